@@ -1,0 +1,42 @@
+"""NVIDIA Warp kernels of bokehray: pure compute, no IO, no validation, no policy.
+
+The launchers that allocate, validate and choose devices live in
+``bokehray._scatter`` (layer 1). Each kernel here has a float64 NumPy oracle in
+``tests/reference/``.
+"""
+
+from .aperture import chord as chord
+from .scatter import (
+    composite_kernel as composite_kernel,
+    finalize_kernel as finalize_kernel,
+    prefix_rows_kernel as prefix_rows_kernel,
+    resolve_levels_kernel as resolve_levels_kernel,
+    scatter_kernel as scatter_kernel,
+    MAX_LEVELS as MAX_LEVELS,
+)
+from .fill import (
+    fill_sources_kernel as fill_sources_kernel,
+    pull_kernel as pull_kernel,
+    push_kernel as push_kernel,
+    column_distance_kernel as column_distance_kernel,
+    pp_init_kernel as pp_init_kernel,
+    row_distance_kernel as row_distance_kernel,
+    slice_sources_kernel as slice_sources_kernel,
+)
+
+__all__ = [
+    "MAX_LEVELS",
+    "chord",
+    "column_distance_kernel",
+    "row_distance_kernel",
+    "composite_kernel",
+    "fill_sources_kernel",
+    "finalize_kernel",
+    "pp_init_kernel",
+    "prefix_rows_kernel",
+    "pull_kernel",
+    "push_kernel",
+    "resolve_levels_kernel",
+    "scatter_kernel",
+    "slice_sources_kernel",
+]

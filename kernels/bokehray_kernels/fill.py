@@ -1,0 +1,210 @@
+"""Layer sources and pull-push filling of the region a layer hides behind nearer layers.
+
+A photo shows each depth layer only where nothing nearer covers it. When the
+nearer layer is defocused, the thin-lens image sees *behind* its edges, so each
+layer is extended into its hidden region by pull-push interpolation (a
+weighted image pyramid: average down where the layer is present, interpolate
+back up where it is not). Colour is filled in tone-mapped form ``c / (1 + c)``
+so that a bright light next to an occluder does not flood the hidden area; the
+4th channel carries the signed CoC so a tilted surface continues its tilt.
+"""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.kernel
+def slice_sources_kernel(
+    image: wp.array2d(dtype=wp.vec3),
+    signed_coc: wp.array2d(dtype=float),
+    slice_id: wp.array2d(dtype=wp.int32),
+    layer: int,
+    x0: int,
+    y0: int,
+    src: wp.array2d(dtype=wp.vec4),
+    radius: wp.array2d(dtype=float),
+):
+    """Sources of one layer in local coordinates: (RGB, 1) where the pixel belongs to it, else 0."""
+    y, x = wp.tid()
+    gy = y + y0
+    gx = x + x0
+    if slice_id[gy, gx] == layer:
+        c = image[gy, gx]
+        src[y, x] = wp.vec4(c[0], c[1], c[2], 1.0)
+        radius[y, x] = wp.abs(signed_coc[gy, gx])
+    else:
+        src[y, x] = wp.vec4()
+        radius[y, x] = 0.0
+
+
+@wp.func
+def _tonemap(c: float) -> float:
+    return c / (1.0 + wp.max(c, 0.0))
+
+
+@wp.func
+def _untonemap(t: float) -> float:
+    t = wp.clamp(t, 0.0, 0.999999)
+    return t / (1.0 - t)
+
+
+@wp.kernel
+def pp_init_kernel(
+    image: wp.array2d(dtype=wp.vec3),
+    signed_coc: wp.array2d(dtype=float),
+    slice_id: wp.array2d(dtype=wp.int32),
+    layer: int,
+    x0: int,
+    y0: int,
+    total: wp.array2d(dtype=wp.vec4),
+    weight: wp.array2d(dtype=float),
+):
+    """Level 0 of the pull-push pyramid: (tone-mapped RGB, signed CoC) with weight 1 on the layer."""
+    y, x = wp.tid()
+    gy = y + y0
+    gx = x + x0
+    if slice_id[gy, gx] == layer:
+        c = image[gy, gx]
+        total[y, x] = wp.vec4(_tonemap(c[0]), _tonemap(c[1]), _tonemap(c[2]), signed_coc[gy, gx])
+        weight[y, x] = 1.0
+    else:
+        total[y, x] = wp.vec4()
+        weight[y, x] = 0.0
+
+
+@wp.kernel
+def pull_kernel(
+    fine_total: wp.array2d(dtype=wp.vec4),
+    fine_weight: wp.array2d(dtype=float),
+    coarse_total: wp.array2d(dtype=wp.vec4),
+    coarse_weight: wp.array2d(dtype=float),
+):
+    """Coarse pixel = sum of its (up to) 2 x 2 children, values and weights."""
+    y, x = wp.tid()
+    t = wp.vec4()
+    w = float(0.0)
+    for dy in range(2):
+        for dx in range(2):
+            fy = 2 * y + dy
+            fx = 2 * x + dx
+            if fy < fine_total.shape[0] and fx < fine_total.shape[1]:
+                t = t + fine_total[fy, fx]
+                w = w + fine_weight[fy, fx]
+    coarse_total[y, x] = t
+    coarse_weight[y, x] = w
+
+
+@wp.kernel
+def push_kernel(
+    coarse_value: wp.array2d(dtype=wp.vec4),
+    coarse_has: wp.array2d(dtype=float),
+    top: int,
+    fine_total: wp.array2d(dtype=wp.vec4),
+    fine_weight: wp.array2d(dtype=float),
+):
+    """Turn a level's (total, weight) into (value, has) in place, interpolating from the coarser level.
+
+    With ``top != 0`` there is no coarser level: value = total / weight where weight > 0.
+    """
+    y, x = wp.tid()
+    w = fine_weight[y, x]
+    if w > 0.0:
+        fine_total[y, x] = fine_total[y, x] / w
+        fine_weight[y, x] = 1.0
+        return
+    if top != 0:
+        fine_weight[y, x] = 0.0
+        return
+    h = coarse_value.shape[0]
+    cw = coarse_value.shape[1]
+    fx = wp.clamp((float(x) + 0.5) * 0.5 - 0.5, 0.0, float(cw - 1))
+    fy = wp.clamp((float(y) + 0.5) * 0.5 - 0.5, 0.0, float(h - 1))
+    xa = int(wp.floor(fx))
+    ya = int(wp.floor(fy))
+    xb = wp.min(xa + 1, cw - 1)
+    yb = wp.min(ya + 1, h - 1)
+    tx = fx - float(xa)
+    ty = fy - float(ya)
+    w00 = (1.0 - tx) * (1.0 - ty) * coarse_has[ya, xa]
+    w01 = tx * (1.0 - ty) * coarse_has[ya, xb]
+    w10 = (1.0 - tx) * ty * coarse_has[yb, xa]
+    w11 = tx * ty * coarse_has[yb, xb]
+    ws = w00 + w01 + w10 + w11
+    if ws > 1.0e-8:
+        v = coarse_value[ya, xa] * w00 + coarse_value[ya, xb] * w01 + coarse_value[yb, xa] * w10
+        v = v + coarse_value[yb, xb] * w11
+        fine_total[y, x] = v / ws
+        fine_weight[y, x] = 1.0
+    else:
+        fine_total[y, x] = wp.vec4()
+        fine_weight[y, x] = 0.0
+
+
+@wp.kernel
+def fill_sources_kernel(
+    slice_id: wp.array2d(dtype=wp.int32),
+    layer: int,
+    x0: int,
+    y0: int,
+    fill_value: wp.array2d(dtype=wp.vec4),
+    fill_has: wp.array2d(dtype=float),
+    dist_l1: wp.array2d(dtype=float),
+    signed_coc: wp.array2d(dtype=float),
+    s_lo: float,
+    s_hi: float,
+    src: wp.array2d(dtype=wp.vec4),
+    radius: wp.array2d(dtype=float),
+):
+    """Add the filled colour as opaque sources where a nearer layer hides this one.
+
+    Only where the hiding pixel is itself blurred enough to reveal it: the L1
+    distance to this layer's visible pixels is at most sqrt(2) times the
+    hiding pixel's CoC radius (plus one pixel). Behind a sharp occluder
+    nothing is filled; the coverage normalisation of the layer handles it.
+    """
+    y, x = wp.tid()
+    gy = y + y0
+    gx = x + x0
+    if slice_id[gy, gx] <= layer or fill_has[y, x] <= 0.0:
+        return
+    if dist_l1[y, x] <= 1.4142135 * wp.abs(signed_coc[gy, gx]) + 1.0:
+        v = fill_value[y, x]
+        src[y, x] = wp.vec4(_untonemap(v[0]), _untonemap(v[1]), _untonemap(v[2]), 1.0)
+        radius[y, x] = wp.abs(wp.clamp(v[3], s_lo, s_hi))
+
+
+@wp.kernel
+def row_distance_kernel(
+    slice_id: wp.array2d(dtype=wp.int32),
+    layer: int,
+    x0: int,
+    y0: int,
+    width: int,
+    dist: wp.array2d(dtype=float),
+):
+    """Horizontal distance (pixels) from each local pixel to the nearest pixel of ``layer`` in its row."""
+    y = wp.tid()
+    big = float(1.0e9)
+    last = float(-1.0e9)
+    for x in range(width):
+        if slice_id[y + y0, x + x0] == layer:
+            last = float(x)
+        dist[y, x] = wp.min(float(x) - last, big)
+    last = float(1.0e9)
+    for i in range(width):
+        x = width - 1 - i
+        if slice_id[y + y0, x + x0] == layer:
+            last = float(x)
+        dist[y, x] = wp.min(dist[y, x], last - float(x))
+
+
+@wp.kernel
+def column_distance_kernel(dist: wp.array2d(dtype=float), height: int):
+    """Second pass of the city-block (L1) distance transform, in place, per column."""
+    x = wp.tid()
+    for y in range(1, height):
+        dist[y, x] = wp.min(dist[y, x], dist[y - 1, x] + 1.0)
+    for i in range(1, height):
+        y = height - 1 - i
+        dist[y, x] = wp.min(dist[y, x], dist[y + 1, x] + 1.0)

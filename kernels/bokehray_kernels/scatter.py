@@ -1,0 +1,260 @@
+"""Row-span scatter of aperture-shaped CoCs on a radius pyramid, and layer compositing.
+
+Each source pixel spreads a ``vec4`` (premultiplied RGB, coverage) over its
+aperture shape. The shape is cut into pixel rows; each row is one interval
+``[a, b]`` deposited into a per-row *difference* buffer with four adds
+(antialiased, fractional ends), and a prefix sum along each row turns the
+differences into per-pixel coverage. A source therefore costs O(rows), not
+O(r^2). Sources whose radius exceeds ``r0`` are scattered on a coarser level
+``l`` (pixel size ``2^l``) where their radius is at most ``r0``, so the cost per
+source is bounded by O(r0) whatever its radius; ``resolve_levels_kernel``
+brings the levels back to full resolution (bilinear, energy preserving).
+
+Each row ``k`` is split into ``n = clamp(ceil(4 / rho), 1, 4)`` equal sub-rows;
+each sub-row gets the weight ``h * (b - a) / sum over all sub-rows of h * (b - a)``
+where ``h`` is the part of the sub-row inside the shape's vertical extent and the
+chord ``[a, b]`` is taken at the middle of that part (midpoint rule). The normalisation
+is over the whole shape, inside the image or not, so every source deposits
+exactly its value (minus what falls outside the image), at every radius,
+including radii below one pixel.
+"""
+
+import warp as wp
+
+from .aperture import chord
+
+wp.set_module_options({"enable_backward": False})
+
+MAX_LEVELS = 6
+"""Pyramid levels 0..5: radii up to ``r0 * 32`` cost O(r0) per source."""
+
+
+@wp.func
+def _deposit_span(buf: wp.array2d(dtype=wp.vec4), row: int, a: float, b: float, v: wp.vec4):
+    # buf is (H, W + 2): column W and W + 1 absorb the right ends, never read back.
+    w = float(buf.shape[1] - 2)
+    a = wp.clamp(a, 0.0, w)
+    b = wp.clamp(b, 0.0, w)
+    if b <= a:
+        return
+    ka = int(wp.floor(a))
+    fa = a - float(ka)
+    kb = int(wp.floor(b))
+    fb = b - float(kb)
+    wp.atomic_add(buf, row, ka, v * (1.0 - fa))
+    wp.atomic_add(buf, row, ka + 1, v * fa)
+    wp.atomic_add(buf, row, kb, -v * (1.0 - fb))
+    wp.atomic_add(buf, row, kb + 1, -v * fb)
+
+
+@wp.func
+def _row_part(k: int, j: int, n_sub: int, top: float, bot: float) -> wp.vec2:
+    # j-th of n_sub equal sub-rows of pixel row k, clipped to [top, bot]: (start, end)
+    step = 1.0 / float(n_sub)
+    t0 = wp.max(float(k) + float(j) * step, top)
+    t1 = wp.min(float(k) + float(j + 1) * step, bot)
+    return wp.vec2(t0, t1)
+
+
+@wp.func
+def _scatter_one(
+    buf: wp.array2d(dtype=wp.vec4),
+    xc: float,
+    yc: float,
+    rho: float,
+    v: wp.vec4,
+    blades: wp.array(dtype=wp.vec4),
+    n_blades: int,
+    extent: wp.vec2,
+):
+    top = yc + extent[0] * rho
+    bot = yc + extent[1] * rho
+    ky0 = int(wp.floor(top))
+    ky1 = int(wp.floor(bot))
+    # small shapes: several sub-rows per pixel row keep the midpoint rule accurate
+    n_sub = wp.clamp(int(wp.ceil(4.0 / rho)), 1, 4)
+    norm = float(0.0)
+    for k in range(ky0, ky1 + 1):
+        for j in range(n_sub):
+            t = _row_part(k, j, n_sub, top, bot)
+            h = t[1] - t[0]
+            if h > 0.0:
+                c = chord(0.5 * (t[0] + t[1]) - yc, rho, blades, n_blades)
+                if c[1] > c[0]:
+                    norm += h * (c[1] - c[0])
+    if norm <= 0.0:
+        # degenerate shape at this radius: keep the energy at the centre
+        r = wp.clamp(int(wp.floor(yc)), 0, buf.shape[0] - 1)
+        _deposit_span(buf, r, wp.floor(xc), wp.floor(xc) + 1.0, v)
+        return
+    inv = 1.0 / norm
+    k0 = wp.max(ky0, 0)
+    k1 = wp.min(ky1, buf.shape[0] - 1)
+    for k in range(k0, k1 + 1):
+        for j in range(n_sub):
+            t = _row_part(k, j, n_sub, top, bot)
+            h = t[1] - t[0]
+            if h > 0.0:
+                c = chord(0.5 * (t[0] + t[1]) - yc, rho, blades, n_blades)
+                if c[1] > c[0]:
+                    _deposit_span(buf, k, xc + c[0], xc + c[1], v * (h * inv))
+
+
+@wp.kernel
+def scatter_kernel(
+    src: wp.array2d(dtype=wp.vec4),
+    radius: wp.array2d(dtype=float),
+    blades: wp.array(dtype=wp.vec4),
+    n_blades: int,
+    extent: wp.vec2,
+    r0: float,
+    n_levels: int,
+    buf0: wp.array2d(dtype=wp.vec4),
+    buf1: wp.array2d(dtype=wp.vec4),
+    buf2: wp.array2d(dtype=wp.vec4),
+    buf3: wp.array2d(dtype=wp.vec4),
+    buf4: wp.array2d(dtype=wp.vec4),
+    buf5: wp.array2d(dtype=wp.vec4),
+):
+    """Scatter every source of ``src`` (local coordinates) with radius ``radius`` [px].
+
+    ``extent`` is the shape's vertical extent ``(y_top, y_bottom)`` at unit radius.
+
+    ``buf<l>`` is the difference buffer of level ``l``, ``(ceil(H/2^l), ceil(W/2^l) + 2)``.
+    """
+    y, x = wp.tid()
+    v = src[y, x]
+    if v[3] == 0.0:
+        return
+    r = radius[y, x]
+    if r < 0.5:
+        # the disc lies inside the source pixel: a plain copy
+        wp.atomic_add(buf0, y, x, v)
+        wp.atomic_add(buf0, y, x + 1, -v)
+        return
+    lev = int(0)
+    scale = float(1.0)
+    while r * scale > r0 and lev < n_levels - 1:
+        lev += 1
+        scale *= 0.5
+    xc = (float(x) + 0.5) * scale
+    yc = (float(y) + 0.5) * scale
+    rho = r * scale
+    if lev == 0:
+        _scatter_one(buf0, xc, yc, rho, v, blades, n_blades, extent)
+    elif lev == 1:
+        _scatter_one(buf1, xc, yc, rho, v, blades, n_blades, extent)
+    elif lev == 2:
+        _scatter_one(buf2, xc, yc, rho, v, blades, n_blades, extent)
+    elif lev == 3:
+        _scatter_one(buf3, xc, yc, rho, v, blades, n_blades, extent)
+    elif lev == 4:
+        _scatter_one(buf4, xc, yc, rho, v, blades, n_blades, extent)
+    else:
+        _scatter_one(buf5, xc, yc, rho, v, blades, n_blades, extent)
+
+
+@wp.kernel
+def prefix_rows_kernel(buf: wp.array2d(dtype=wp.vec4)):
+    """In-place running sum along each row: differences -> per-pixel values."""
+    y = wp.tid()
+    acc = wp.vec4()
+    for x in range(buf.shape[1]):
+        acc = acc + buf[y, x]
+        buf[y, x] = acc
+
+
+@wp.func
+def _bilinear(buf: wp.array2d(dtype=wp.vec4), fx: float, fy: float, h: int, w: int) -> wp.vec4:
+    fx = wp.clamp(fx, 0.0, float(w - 1))
+    fy = wp.clamp(fy, 0.0, float(h - 1))
+    x0 = int(wp.floor(fx))
+    y0 = int(wp.floor(fy))
+    x1 = wp.min(x0 + 1, w - 1)
+    y1 = wp.min(y0 + 1, h - 1)
+    tx = fx - float(x0)
+    ty = fy - float(y0)
+    top = buf[y0, x0] * (1.0 - tx) + buf[y0, x1] * tx
+    bottom = buf[y1, x0] * (1.0 - tx) + buf[y1, x1] * tx
+    return top * (1.0 - ty) + bottom * ty
+
+
+@wp.func
+def _level_sample(buf: wp.array2d(dtype=wp.vec4), x: int, y: int, lev: int, full_h: int, full_w: int) -> wp.vec4:
+    scale = 1.0 / float(1 << lev)
+    h = (full_h + (1 << lev) - 1) >> lev
+    w = (full_w + (1 << lev) - 1) >> lev
+    fx = (float(x) + 0.5) * scale - 0.5
+    fy = (float(y) + 0.5) * scale - 0.5
+    return _bilinear(buf, fx, fy, h, w) * (scale * scale)
+
+
+@wp.kernel
+def resolve_levels_kernel(
+    n_levels: int,
+    buf0: wp.array2d(dtype=wp.vec4),
+    buf1: wp.array2d(dtype=wp.vec4),
+    buf2: wp.array2d(dtype=wp.vec4),
+    buf3: wp.array2d(dtype=wp.vec4),
+    buf4: wp.array2d(dtype=wp.vec4),
+    buf5: wp.array2d(dtype=wp.vec4),
+    out: wp.array2d(dtype=wp.vec4),
+):
+    """Sum level 0 and the bilinearly upsampled coarser levels (density-preserving) into ``out``."""
+    y, x = wp.tid()
+    h = out.shape[0]
+    w = out.shape[1]
+    acc = buf0[y, x]
+    if n_levels > 1:
+        acc = acc + _level_sample(buf1, x, y, 1, h, w)
+    if n_levels > 2:
+        acc = acc + _level_sample(buf2, x, y, 2, h, w)
+    if n_levels > 3:
+        acc = acc + _level_sample(buf3, x, y, 3, h, w)
+    if n_levels > 4:
+        acc = acc + _level_sample(buf4, x, y, 4, h, w)
+    if n_levels > 5:
+        acc = acc + _level_sample(buf5, x, y, 5, h, w)
+    out[y, x] = acc
+
+
+@wp.kernel
+def composite_kernel(layer: wp.array2d(dtype=wp.vec4), x0: int, y0: int, acc: wp.array2d(dtype=wp.vec4)):
+    """Composite one scattered layer OVER the accumulator (back-to-front "over").
+
+    ``layer`` holds (sum of premultiplied RGB, sum of coverage) in local
+    coordinates offset by ``(x0, y0)``. Its opacity is ``min(coverage, 1)`` and
+    its colour is normalised by its coverage (so overlapping sources of one
+    layer average instead of adding up). ``acc`` holds (RGB, opacity).
+    """
+    y, x = wp.tid()
+    l = layer[y, x]
+    cov = l[3]
+    if cov <= 1.0e-6:
+        return
+    alpha = wp.min(cov, 1.0)
+    k = alpha / cov
+    gy = y + y0
+    gx = x + x0
+    a = acc[gy, gx]
+    t = 1.0 - alpha
+    acc[gy, gx] = wp.vec4(l[0] * k + t * a[0], l[1] * k + t * a[1], l[2] * k + t * a[2], alpha + t * a[3])
+
+
+@wp.kernel
+def finalize_kernel(
+    acc: wp.array2d(dtype=wp.vec4),
+    image: wp.array2d(dtype=wp.vec3),
+    slice_id: wp.array2d(dtype=wp.int32),
+    out: wp.array2d(dtype=wp.vec3),
+):
+    """Divide by the accumulated opacity (renormalises holes and borders).
+
+    Copied pixels (``slice_id < 0``) and pixels no source reached keep the input.
+    """
+    y, x = wp.tid()
+    a = acc[y, x]
+    if slice_id[y, x] >= 0 and a[3] > 1.0e-4:
+        out[y, x] = wp.vec3(a[0], a[1], a[2]) / a[3]
+    else:
+        out[y, x] = image[y, x]

@@ -1,0 +1,338 @@
+"""Launcher of the preview renderer: layered, occlusion-aware scatter (docs/renderer.md).
+
+Pipeline (all heavy work in ``bokehray_kernels``):
+
+1. Signed CoC ``s = K (d - d_f)`` per pixel. Tiles whose pixels, and every pixel
+   within CoC reach of them, have ``|s| < 0.5`` are *copied*: never scattered,
+   never composited.
+2. The rest is cut into layers by ``s`` (edges on multiples of a width ``w``
+   with one edge at the focus, ``s = 0``); layer ids grow towards the camera.
+3. Each layer, independently (one worker thread per CPU core): its pixels
+   become sources ``(RGB, 1)``; where a nearer layer hides it, within the CoC
+   reach of the nearer layers, it is extended by pull-push filling; all
+   sources are scattered with their own exact radius on the radius pyramid.
+4. Layers are composited back to front with "over" (opacity = scattered
+   coverage clipped to 1, colour normalised by coverage), and the result is
+   divided by the total opacity.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+import bokehray_kernels as bk
+
+from .lens import Aperture
+
+__all__ = ["PreviewOptions", "RenderStats", "render_preview"]
+
+
+@dataclass(frozen=True, slots=True)
+class PreviewOptions:
+    """Knobs of the preview renderer (defaults are what the benchmarks measure).
+
+    Args:
+        max_layers: most depth layers; more resolves more occlusion, costs more.
+        min_layer_px: narrowest layer, in CoC pixels.
+        level_radius_px: largest radius scattered at a pyramid level before moving
+            to the next coarser one (cost per source is O(level_radius_px)).
+        tile_px: side of the tiles used to skip in-focus regions.
+        fill: extend layers behind nearer ones by pull-push (see bokehray_kernels.fill).
+        threads: worker threads on the CPU (default: all cores).
+    """
+
+    max_layers: int = 12
+    min_layer_px: float = 1.0
+    level_radius_px: float = 8.0
+    tile_px: int = 16
+    fill: bool = True
+    threads: int | None = None
+
+
+@dataclass(slots=True)
+class RenderStats:
+    """What a render did and skipped. Times in seconds."""
+
+    shape: tuple[int, int] = (0, 0)
+    device: str = "cpu"
+    max_coc_px: float = 0.0
+    tiles_total: int = 0
+    tiles_copied: int = 0
+    layers: int = 0
+    sources_scattered: int = 0
+    sources_filled: int = 0
+    pyramid_levels: int = 0
+    threads: int = 1
+    stage_seconds: dict[str, float] = field(default_factory=dict)
+
+    def as_dict(self) -> dict:
+        return {
+            "shape": list(self.shape),
+            "device": self.device,
+            "max_coc_px": round(self.max_coc_px, 3),
+            "tiles_total": self.tiles_total,
+            "tiles_copied": self.tiles_copied,
+            "layers": self.layers,
+            "sources_scattered": self.sources_scattered,
+            "sources_filled": self.sources_filled,
+            "pyramid_levels": self.pyramid_levels,
+            "threads": self.threads,
+            "stage_seconds": {k: round(v, 4) for k, v in self.stage_seconds.items()},
+        }
+
+
+def _box_max_tiles(values: np.ndarray, tile: int) -> np.ndarray:
+    h, w = values.shape
+    th, tw = -(-h // tile), -(-w // tile)
+    pad = np.zeros((th * tile, tw * tile), values.dtype)
+    pad[:h, :w] = values
+    return pad.reshape(th, tile, tw, tile).max(axis=(1, 3))
+
+
+def _dilate(mask: np.ndarray, k: int) -> np.ndarray:
+    """Binary dilation of a small 2-D mask by a (2k+1)^2 square, via 2-D prefix sums."""
+    if k <= 0:
+        return mask.copy()
+    h, w = mask.shape
+    c = np.zeros((h + 1, w + 1), np.int32)
+    c[1:, 1:] = np.cumsum(np.cumsum(mask.astype(np.int32), 0), 1)
+    y0 = np.clip(np.arange(h) - k, 0, h)
+    y1 = np.clip(np.arange(h) + k + 1, 0, h)
+    x0 = np.clip(np.arange(w) - k, 0, w)
+    x1 = np.clip(np.arange(w) + k + 1, 0, w)
+    s = c[y1][:, x1] - c[y0][:, x1] - c[y1][:, x0] + c[y0][:, x0]
+    return s > 0
+
+
+def copy_tiles(radius: np.ndarray, tile: int) -> np.ndarray:
+    """Boolean tile grid: True where the tile can be copied from the input.
+
+    A tile is copied when no pixel whose CoC reaches into it has a radius of
+    half a pixel or more (its own pixels included).
+    """
+    tmax = _box_max_tiles(radius, tile)
+    blurred = tmax >= 0.5
+    needed = np.zeros_like(blurred)
+    if blurred.any():
+        reach = np.ceil((tmax + 1.0) / tile).astype(np.int64)
+        for k in np.unique(reach[blurred]):
+            needed |= _dilate(blurred & (reach == k), int(k))
+    return ~needed
+
+
+@dataclass(slots=True)
+class _Layer:
+    index: int
+    s_lo: float
+    s_hi: float
+    bbox: tuple[int, int, int, int]  # y0, y1, x0, x1
+    max_radius: float
+    fill_reach: float
+    n_sources: int
+
+
+def _levels_for(max_radius: float, r0: float) -> int:
+    n = 1
+    while max_radius > r0 * (1 << (n - 1)) and n < bk.MAX_LEVELS:
+        n += 1
+    return n
+
+
+def _render_layer(
+    layer: _Layer,
+    image: wp.array,
+    signed_coc: wp.array,
+    slice_id: wp.array,
+    blades: wp.array,
+    n_blades: int,
+    extent: wp.vec2,
+    opts: PreviewOptions,
+    device: str,
+) -> tuple[wp.array, int]:
+    y0, y1, x0, x1 = layer.bbox
+    h, w = y1 - y0, x1 - x0
+    src = wp.empty((h, w), dtype=wp.vec4, device=device)
+    radius = wp.empty((h, w), dtype=float, device=device)
+    wp.launch(
+        bk.slice_sources_kernel,
+        dim=(h, w),
+        inputs=[image, signed_coc, slice_id, layer.index, x0, y0],
+        outputs=[src, radius],
+        device=device,
+    )
+    n_filled = 0
+    if layer.fill_reach >= 0.5:
+        n_pp = max(1, min(16, int(math.ceil(math.log2(1.4142 * layer.fill_reach + 2.0))) + 1))
+        totals = [wp.empty((h, w), dtype=wp.vec4, device=device)]
+        weights = [wp.empty((h, w), dtype=float, device=device)]
+        wp.launch(
+            bk.pp_init_kernel,
+            dim=(h, w),
+            inputs=[image, signed_coc, slice_id, layer.index, x0, y0],
+            outputs=[totals[0], weights[0]],
+            device=device,
+        )
+        for _ in range(n_pp):
+            ph, pw = totals[-1].shape
+            ch, cw = (ph + 1) // 2, (pw + 1) // 2
+            totals.append(wp.empty((ch, cw), dtype=wp.vec4, device=device))
+            weights.append(wp.empty((ch, cw), dtype=float, device=device))
+            wp.launch(bk.pull_kernel, dim=(ch, cw), inputs=[totals[-2], weights[-2]],
+                      outputs=[totals[-1], weights[-1]], device=device)
+        top = len(totals) - 1
+        wp.launch(bk.push_kernel, dim=totals[top].shape, inputs=[totals[top], weights[top], 1],
+                  outputs=[totals[top], weights[top]], device=device)
+        for lv in range(top - 1, -1, -1):
+            wp.launch(bk.push_kernel, dim=totals[lv].shape, inputs=[totals[lv + 1], weights[lv + 1], 0],
+                      outputs=[totals[lv], weights[lv]], device=device)
+        dist = wp.empty((h, w), dtype=float, device=device)
+        wp.launch(bk.row_distance_kernel, dim=h, inputs=[slice_id, layer.index, x0, y0, w], outputs=[dist],
+                  device=device)
+        wp.launch(bk.column_distance_kernel, dim=w, inputs=[dist, h], device=device)
+        wp.launch(
+            bk.fill_sources_kernel,
+            dim=(h, w),
+            inputs=[slice_id, layer.index, x0, y0, totals[0], weights[0], dist, signed_coc, layer.s_lo, layer.s_hi],
+            outputs=[src, radius],
+            device=device,
+        )
+        n_filled = -1  # counted by the caller from the masks (cheap on the host)
+    n_levels = _levels_for(layer.max_radius, opts.level_radius_px)
+    bufs = []
+    for lv in range(bk.MAX_LEVELS):
+        if lv < n_levels:
+            bufs.append(wp.zeros(((h + (1 << lv) - 1) >> lv, ((w + (1 << lv) - 1) >> lv) + 2), dtype=wp.vec4,
+                                 device=device))
+        else:
+            bufs.append(bufs[0] if lv > 0 else None)
+    wp.launch(bk.scatter_kernel, dim=(h, w),
+              inputs=[src, radius, blades, n_blades, extent, float(opts.level_radius_px), n_levels, *bufs], device=device)
+    for lv in range(n_levels):
+        wp.launch(bk.prefix_rows_kernel, dim=bufs[lv].shape[0], inputs=[bufs[lv]], device=device)
+    out = src  # reuse: the sources are no longer needed
+    wp.launch(bk.resolve_levels_kernel, dim=(h, w), inputs=[n_levels, *bufs], outputs=[out], device=device)
+    return out, n_filled
+
+
+def render_preview(
+    image: np.ndarray,
+    signed_coc: np.ndarray,
+    aperture: Aperture,
+    *,
+    options: PreviewOptions = PreviewOptions(),
+    device: str = "cpu",
+    progress: Callable[[int, int], None] | None = None,
+) -> tuple[np.ndarray, RenderStats]:
+    """Render an RGB float32 image (validated by the caller) with a per-pixel signed CoC map."""
+    t_start = time.perf_counter()
+    stats = RenderStats(shape=image.shape[:2], device=device)
+    h, w = signed_coc.shape
+    radius = np.abs(signed_coc)
+    stats.max_coc_px = float(radius.max()) if radius.size else 0.0
+
+    copy = copy_tiles(radius, options.tile_px)
+    stats.tiles_total, stats.tiles_copied = int(copy.size), int(copy.sum())
+    copy_px = np.repeat(np.repeat(copy, options.tile_px, 0), options.tile_px, 1)[:h, :w]
+
+    active = ~copy_px
+    if not active.any():
+        stats.stage_seconds["plan"] = time.perf_counter() - t_start
+        stats.stage_seconds["total"] = stats.stage_seconds["plan"]
+        return image.copy(), stats
+
+    s_act = signed_coc[active]
+    s_min, s_max = float(s_act.min()), float(s_act.max())
+    width = max(options.min_layer_px, (s_max - s_min) / options.max_layers)
+    k_min = math.floor(s_min / width)
+    sid = np.floor(signed_coc / width).astype(np.int32) - k_min
+    sid[copy_px] = -1
+    n_slices = int(sid.max()) + 1
+
+    # per-layer bounding boxes and statistics (host side, on small reductions)
+    counts = np.bincount(sid[active], minlength=n_slices)
+    row_has = np.zeros((n_slices, h), bool)
+    col_has = np.zeros((n_slices, w), bool)
+    ys, xs = np.nonzero(active)
+    ids = sid[active]
+    row_has[ids, ys] = True
+    col_has[ids, xs] = True
+    max_r_slice = np.zeros(n_slices)
+    np.maximum.at(max_r_slice, ids, radius[active])
+    # reach of everything nearer than each layer: suffix maximum over layer ids
+    nearer_reach = np.zeros(n_slices)
+    run = 0.0
+    for i in range(n_slices - 1, -1, -1):
+        nearer_reach[i] = run
+        if counts[i]:
+            run = max(run, max_r_slice[i])
+    layers: list[_Layer] = []
+    for i in range(n_slices):
+        if counts[i] == 0:
+            continue
+        rows = np.flatnonzero(row_has[i])
+        cols = np.flatnonzero(col_has[i])
+        lo, hi = (k_min + i) * width, (k_min + i + 1) * width
+        reach = nearer_reach[i] if options.fill else 0.0
+        rmax = max(abs(lo), abs(hi)) if reach >= 0.5 else max_r_slice[i]
+        pad_fill = int(math.ceil(1.4142 * reach)) + 2 if reach >= 0.5 else 0
+        pad = pad_fill + int(math.ceil(rmax)) + 2
+        bbox = (max(0, rows[0] - pad), min(h, rows[-1] + 1 + pad), max(0, cols[0] - pad), min(w, cols[-1] + 1 + pad))
+        layers.append(_Layer(i, lo, hi, bbox, float(rmax), float(reach), int(counts[i])))
+    stats.layers = len(layers)
+    stats.sources_scattered = int(active.sum())
+    stats.pyramid_levels = max(_levels_for(lyr.max_radius, options.level_radius_px) for lyr in layers)
+    t_plan = time.perf_counter()
+    stats.stage_seconds["plan"] = t_plan - t_start
+
+    img_wp = wp.array(np.ascontiguousarray(image, np.float32), dtype=wp.vec3, device=device)
+    s_wp = wp.array(np.ascontiguousarray(signed_coc, np.float32), dtype=float, device=device)
+    sid_wp = wp.array(sid, dtype=wp.int32, device=device)
+    blade_rows = aperture.blade_discs()
+    blades = wp.array(blade_rows if len(blade_rows) else np.zeros((1, 4), np.float32), dtype=wp.vec4, device=device)
+    extent = wp.vec2(*aperture.vertical_extent())
+    acc = wp.zeros((h, w), dtype=wp.vec4, device=device)
+
+    threads = 1 if wp.get_device(device).is_cuda else max(1, options.threads or os.cpu_count() or 1)
+    stats.threads = threads
+    # Layers render independently (Warp CPU launches release the GIL); they are
+    # composited strictly back to front as they complete, with at most
+    # ``threads + 1`` layers in flight to bound memory.
+    done = 0
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        pending: list[tuple[_Layer, Future]] = []
+        it = iter(layers)
+
+        def submit_next() -> None:
+            lyr = next(it, None)
+            if lyr is not None:
+                pending.append((lyr, pool.submit(_render_layer, lyr, img_wp, s_wp, sid_wp, blades,
+                                                 len(blade_rows), extent, options, device)))
+
+        for _ in range(threads + 1):
+            submit_next()
+        while pending:
+            lyr, fut = pending.pop(0)
+            out, _ = fut.result()
+            submit_next()
+            y0, y1, x0, x1 = lyr.bbox
+            wp.launch(bk.composite_kernel, dim=(y1 - y0, x1 - x0), inputs=[out, x0, y0], outputs=[acc], device=device)
+            done += 1
+            if progress is not None:
+                progress(done, len(layers))
+    t_layers = time.perf_counter()
+    stats.stage_seconds["layers"] = t_layers - t_plan
+
+    result = wp.empty((h, w), dtype=wp.vec3, device=device)
+    wp.launch(bk.finalize_kernel, dim=(h, w), inputs=[acc, img_wp, sid_wp], outputs=[result], device=device)
+    out_np = result.numpy()
+    stats.stage_seconds["finalize"] = time.perf_counter() - t_layers
+    stats.stage_seconds["total"] = time.perf_counter() - t_start
+    return out_np, stats

@@ -1,0 +1,16 @@
+"""Every numerical tolerance of the test suite, with the reason for its size."""
+
+# float32 Warp vs float64 NumPy loops on the same discretisation: rounding only.
+KERNEL_VS_REFERENCE_ATOL = 2e-5
+# Sum of an aperture kernel: float32 accumulation over a few hundred deposits.
+ENERGY_RTOL = 2e-5
+# Whole-image energy on larger renders (float32 prefix sums over ~1e3 columns).
+IMAGE_ENERGY_RTOL = 2e-4
+# Midpoint-rule row spans vs exact area coverage (supersampled 64x64 per pixel): L1 of the
+# footprint difference, as a fraction of the total (1.0). Sub-pixel shape detail is the limit.
+FOOTPRINT_L1 = 0.04
+# Pyramid level (bilinear upsampling of a coarser scatter) vs level 0, mean absolute error
+# relative to the mean image value, on a smooth image.
+PYRAMID_REL_MAE = 0.02
+# Identity (K = 0, in focus): copied bit for bit.
+IDENTITY_ATOL = 0.0
