@@ -1,0 +1,58 @@
+"""bokehray: physics-first lens blur for one photo and its disparity map.
+
+Quick start::
+
+    import bokehray as br
+    image = br.read_image("photo.png")            # H x W x 3 scene-linear float32
+    disparity = br.read_disparity("disp.png")     # H x W in [0, 1], 1 = nearest
+    out = br.render(image, disparity, br.BlurParams(k_px=24.0, focus_disparity=0.8))
+    br.write_image("bokeh.png", out)
+"""
+
+from __future__ import annotations
+
+
+import warp as _wp  # noqa: E402
+
+_wp.config.quiet = True
+
+from ._scatter import PreviewOptions, RenderStats  # noqa: E402
+from .errors import BokehrayError, InputError, NumericalError, ResourceError  # noqa: E402
+from .io import read_depth, read_disparity, read_image, write_disparity, write_image  # noqa: E402
+from .lens import (  # noqa: E402
+    Aperture,
+    BlurParams,
+    DepthNormalization,
+    ThinLens,
+    depth_from_disparity,
+    disparity_from_depth,
+)
+from .render import QUALITIES, boost_highlights, focus_at, render, render_with_stats  # noqa: E402
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "QUALITIES",
+    "Aperture",
+    "BlurParams",
+    "BokehrayError",
+    "DepthNormalization",
+    "InputError",
+    "NumericalError",
+    "PreviewOptions",
+    "RenderStats",
+    "ResourceError",
+    "ThinLens",
+    "__version__",
+    "boost_highlights",
+    "depth_from_disparity",
+    "disparity_from_depth",
+    "focus_at",
+    "read_depth",
+    "read_disparity",
+    "read_image",
+    "render",
+    "render_with_stats",
+    "write_disparity",
+    "write_image",
+]

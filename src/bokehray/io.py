@@ -1,0 +1,504 @@
+"""Reading and writing images, disparity maps and depth maps.
+
+Conventions: images are ``float32`` arrays ``H x W x C`` in scene-linear light,
+row 0 at the top. Display-referred files (PNG, JPEG, integer TIFF) are decoded
+from sRGB on read and encoded to sRGB on write; OpenEXR and float TIFF hold
+linear values and stay linear. Alpha is always linear coverage and colour is
+never premultiplied (OpenEXR stores premultiplied colour by specification, so
+it is divided by alpha on read and multiplied on write).
+
+Every bad input raises :class:`~bokehray.errors.InputError` naming the file.
+Writes are atomic: the data goes to a temporary file in the target directory
+that replaces the target only once it is complete.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import struct
+import tempfile
+from collections.abc import Callable, Iterator
+from functools import cache
+from pathlib import Path
+
+import colour
+import imagecodecs
+import numpy as np
+import numpy.typing as npt
+import OpenEXR
+import tifffile
+from PIL import Image
+
+from .errors import InputError
+
+__all__ = [
+    "MAX_PIXELS", "check_output_path", "linear_to_srgb", "read_depth", "read_disparity", "read_image", "srgb_to_linear",
+    "write_disparity", "write_image",
+]  # fmt: skip
+
+MAX_PIXELS = 200_000_000
+"""Largest image (height x width) any reader accepts."""
+
+_FORMATS = {
+    ".png": "PNG", ".jpg": "JPEG", ".jpeg": "JPEG", ".tif": "TIFF", ".tiff": "TIFF", ".exr": "EXR", ".npy": "NPY",
+}  # fmt: skip
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_HALF_MAX = 65504.0
+
+
+def srgb_to_linear(x: npt.ArrayLike) -> np.ndarray:
+    """Decode sRGB-encoded values in [0, 1] to linear light (IEC 61966-2-1), as float32."""
+    return np.asarray(colour.models.eotf_sRGB(np.asarray(x, dtype=np.float32)), dtype=np.float32)
+
+
+def linear_to_srgb(x: npt.ArrayLike) -> np.ndarray:
+    """Encode linear-light values with the sRGB transfer function (IEC 61966-2-1), as float32."""
+    return np.asarray(colour.models.eotf_inverse_sRGB(np.asarray(x, dtype=np.float32)), dtype=np.float32)
+
+
+@cache
+def _srgb_lut(bits: int) -> np.ndarray:
+    lut = srgb_to_linear(np.arange(2**bits, dtype=np.float64) / (2**bits - 1))
+    lut.flags.writeable = False
+    return lut
+
+
+# --------------------------------------------------------------------------- checks
+
+
+def _format(
+    path: str | os.PathLike[str], allowed: tuple[str, ...], what: str, *, read: bool = True
+) -> tuple[Path, str]:
+    """Check that ``path`` exists (when reading) and that its extension is one of the ``allowed`` formats."""
+    p = Path(path)
+    if read and not p.exists():
+        raise InputError(f"{p}: file does not exist")
+    if p.is_dir():
+        raise InputError(f"{p}: expected a file, got a directory")
+    fmt = _FORMATS.get(p.suffix.lower())
+    if fmt not in allowed:
+        exts = ", ".join(e for e, f in _FORMATS.items() if f in allowed)
+        action = "reading" if read else "writing"
+        raise InputError(f"{p}: unsupported extension {p.suffix!r} for {action} {what}; expected one of {exts}")
+    return p, fmt
+
+
+def _check_dims(path: Path, h: int, w: int) -> None:
+    if h <= 0 or w <= 0:
+        raise InputError(f"{path}: expected a non-empty image, got {w} x {h} pixels")
+    if h * w > MAX_PIXELS:
+        raise InputError(f"{path}: expected at most {MAX_PIXELS:,} pixels, got {w} x {h} = {h * w:,}")
+
+
+def _first(mask: np.ndarray) -> tuple[int, ...]:
+    """Index of the first True element (row-major), so ``[:2]`` is its (y, x)."""
+    return tuple(int(i) for i in np.unravel_index(int(np.argmax(mask)), mask.shape))
+
+
+def _check_finite(a: np.ndarray, prefix: str, *, allow_pos_inf: bool = False) -> None:
+    bad = ~np.isfinite(a) & (a != np.inf) if allow_pos_inf else ~np.isfinite(a)
+    if bad.any():
+        idx = _first(bad)
+        y, x, v = idx[0], idx[1], a[idx]
+        kind = "NaN" if np.isnan(v) else ("+Inf" if v > 0 else "-Inf")
+        raise InputError(f"{prefix} {kind} at (y, x) = ({y}, {x})")
+
+
+@contextlib.contextmanager
+def _decoding(path: Path, fmt: str) -> Iterator[None]:
+    """Turn a decoder library's exception into an InputError naming the file and format."""
+    try:
+        yield
+    except (InputError, MemoryError):
+        raise
+    except Exception as exc:  # noqa: BLE001 - decoders raise anything from OSError to RuntimeError
+        raise InputError(f"cannot read {path} as {fmt}: {exc}") from None
+
+
+# --------------------------------------------------------------------------- decoders
+
+
+def _load_png(path: Path) -> np.ndarray:
+    with open(path, "rb") as fh:
+        head = fh.read(33)
+    if len(head) < 33 or head[:8] != _PNG_SIGNATURE or head[12:16] != b"IHDR":
+        raise InputError(f"cannot read {path} as PNG: not a PNG file (bad signature or header)")
+    w, h, depth = struct.unpack(">IIB", head[16:25])
+    _check_dims(path, h, w)
+    if depth != 16:
+        return _load_pil(path, "PNG")
+    # Pillow truncates 16-bit colour PNGs to 8 bits; imagecodecs (libpng) keeps all 16.
+    try:
+        return np.asarray(imagecodecs.png_decode(path.read_bytes()))
+    except imagecodecs.PngError as exc:
+        raise ValueError(f"file is truncated or corrupt (libpng: {exc})") from None
+
+
+def _load_pil(path: Path, fmt: str) -> np.ndarray:
+    with Image.open(path, formats=[fmt]) as im:  # lazy: reads the header only
+        _check_dims(path, im.height, im.width)
+        im.load()
+        if "transparency" in im.info:
+            im = im.convert("RGBA")
+        elif im.mode not in ("L", "LA", "RGB", "RGBA"):
+            im = im.convert("RGB")
+        return np.asarray(im)
+
+
+def _load_tiff(path: Path) -> np.ndarray:
+    with tifffile.TiffFile(path) as tf:
+        page = tf.pages[0]
+        axes = page.axes
+        dims = dict(zip(axes, page.shape))
+        _check_dims(path, dims.get("Y", 0), dims.get("X", 0))
+        if set(axes) - set("SYX"):
+            raise InputError(f"{path}: expected a 2-D TIFF image (axes YX, YXS or SYX), got axes {axes}")
+        if page.photometric not in (tifffile.PHOTOMETRIC.MINISBLACK, tifffile.PHOTOMETRIC.RGB):
+            raise InputError(f"{path}: expected a greyscale or RGB TIFF, got photometric {page.photometric.name}")
+        if tifffile.EXTRASAMPLE.ASSOCALPHA in page.extrasamples:
+            raise InputError(f"{path}: expected unassociated alpha, got associated (premultiplied) alpha")
+        if page.dtype not in (np.uint8, np.uint16, np.float16, np.float32, np.float64):
+            raise InputError(f"{path}: expected uint8, uint16 or float samples, got {page.dtype}")
+        a = page.asarray()
+    return np.moveaxis(a, axes.index("S"), -1) if "S" in axes else a
+
+
+def _load_exr(path: Path, choices: tuple[tuple[str, ...], ...]) -> np.ndarray:
+    if not OpenEXR.isOpenExrFile(str(path)):
+        raise InputError(f"cannot read {path} as EXR: not an OpenEXR file (bad magic number)")
+    with OpenEXR.File(str(path), header_only=True) as f:
+        (x0, y0), (x1, y1) = f.header()["dataWindow"]
+    _check_dims(path, int(y1 - y0 + 1), int(x1 - x0 + 1))
+    chans: dict[str, np.ndarray] = {}
+    with OpenEXR.File(str(path), separate_channels=True) as f:
+        for name, ch in f.parts[0].channels.items():
+            px = ch.pixels
+            if px.ndim == 3 and len(name) == px.shape[-1]:  # packed "RGB"/"RGBA" channel
+                chans.update(zip(name, np.moveaxis(px, -1, 0)))
+            else:
+                chans[name] = px
+    picked = next((c for c in choices if all(n in chans for n in c)), tuple(chans) if len(chans) == 1 else None)
+    if picked is None:
+        wanted = " or ".join(",".join(c) for c in choices)
+        raise InputError(f"{path}: expected EXR channels {wanted}, got {','.join(sorted(chans))}")
+    for n in picked:
+        if chans[n].dtype.kind != "f" or chans[n].shape != chans[picked[0]].shape:
+            raise InputError(f"{path}: expected full-resolution HALF or FLOAT channels, got {n!r} {chans[n].dtype}")
+    a = np.stack([chans[n] for n in picked], axis=-1).astype(np.float32)
+    return a[..., 0] if a.shape[-1] == 1 else a
+
+
+def _load_npy(path: Path) -> np.ndarray:
+    with open(path, "rb") as fh:
+        if fh.read(6) != b"\x93NUMPY":
+            raise InputError(f"cannot read {path} as NPY: not a NPY file (bad magic string)")
+    a = np.load(path, mmap_mode="r", allow_pickle=False)  # header only until copied
+    if a.ndim not in (2, 3):
+        raise InputError(f"{path}: expected a 2-D (H x W) array, got {a.ndim}-D shape {a.shape}")
+    _check_dims(path, a.shape[0], a.shape[1])
+    if a.dtype.kind not in "fiu":
+        raise InputError(f"{path}: expected a float or integer array, got dtype {a.dtype}")
+    return np.array(a)
+
+
+def _load(path: Path, fmt: str, exr_channels: tuple[tuple[str, ...], ...]) -> np.ndarray:
+    """Decode ``path`` to its stored samples: H x W or H x W x C, integer codes or floats."""
+    with _decoding(path, fmt):
+        if fmt == "PNG":
+            a = _load_png(path)
+        elif fmt == "JPEG":
+            a = _load_pil(path, "JPEG")
+        elif fmt == "TIFF":
+            a = _load_tiff(path)
+        elif fmt == "EXR":
+            a = _load_exr(path, exr_channels)
+        else:
+            a = _load_npy(path)
+    if a.ndim not in (2, 3):
+        raise InputError(f"{path}: expected an H x W or H x W x C image, got shape {a.shape}")
+    _check_dims(path, a.shape[0], a.shape[1])
+    if a.ndim == 3 and not 1 <= a.shape[2] <= 4:
+        raise InputError(f"{path}: expected 1 to 4 channels, got {a.shape[2]}")
+    return a
+
+
+def _single_channel(path: Path, a: np.ndarray, fmt: str, what: str) -> np.ndarray:
+    if a.ndim == 3 and a.shape[2] == 3 and fmt in ("PNG", "TIFF") and (a == a[..., :1]).all():
+        return a[..., 0]
+    if a.ndim == 3 and a.shape[2] == 1:
+        return a[..., 0]
+    if a.ndim == 3:
+        differ = " (the channels differ)" if a.shape[2] == 3 else ""
+        raise InputError(f"{path}: expected a single-channel {what} map, got {a.shape[2]} channels{differ}")
+    return a
+
+
+# --------------------------------------------------------------------------- public readers
+
+
+def read_image(path: str | os.PathLike[str]) -> np.ndarray:
+    """Read a colour image as scene-linear float32.
+
+    PNG, JPEG and TIFF (8- or 16-bit integer) are scaled to [0, 1] and decoded
+    from sRGB; float TIFF and OpenEXR (HALF or FLOAT; channels ``R,G,B[,A]`` or
+    ``Y[,A]``) are linear already. Grey images are expanded to three channels.
+
+    Args:
+        path: A ``.png``, ``.jpg``/``.jpeg``, ``.tif``/``.tiff`` or ``.exr`` file.
+
+    Returns:
+        ``H x W x 3`` (RGB) or ``H x W x 4`` (RGBA) float32, row 0 at the top. Alpha
+        is linear coverage (never sRGB-decoded) and the colour is NOT premultiplied.
+
+    Raises:
+        InputError: The file is missing, unreadable, truncated, too large, empty, has
+            an unsupported extension or channel layout, or holds NaN/Inf.
+    """
+    p, fmt = _format(path, ("PNG", "JPEG", "TIFF", "EXR"), "images")
+    a = _load(p, fmt, (("R", "G", "B", "A"), ("R", "G", "B"), ("Y", "A"), ("Y",)))
+    a = a[..., None] if a.ndim == 2 else a
+    n_colour = 1 if a.shape[2] <= 2 else 3
+    if a.dtype.kind == "f":
+        out = a.astype(np.float32)
+        _check_finite(out, f"{p}: expected finite values, got")
+        if fmt == "EXR" and a.shape[2] in (2, 4):  # OpenEXR colour is premultiplied
+            alpha = out[..., -1:]
+            np.divide(out[..., :-1], alpha, out=out[..., :-1], where=alpha != 0)
+    elif a.dtype in (np.uint8, np.uint16):
+        out = np.empty(a.shape, np.float32)
+        out[..., :n_colour] = _srgb_lut(a.dtype.itemsize * 8)[a[..., :n_colour]]
+        out[..., n_colour:] = a[..., n_colour:] / np.float32(np.iinfo(a.dtype).max)
+    else:
+        raise InputError(f"{p}: expected 8- or 16-bit integer or float samples, got {a.dtype}")
+    if n_colour == 1:
+        out = out[..., [0, 0, 0, 1]] if out.shape[2] == 2 else np.repeat(out, 3, axis=2)
+    return out
+
+
+def read_disparity(path: str | os.PathLike[str]) -> np.ndarray:
+    """Read a disparity map (1 = nearest, 0 = farthest) as float32 ``H x W``.
+
+    PNG and integer TIFF codes are divided by their largest code (255, 65535) with
+    no sRGB decoding; float TIFF and OpenEXR (channel ``Y``, else ``R``, else the only
+    channel) are taken as they are; ``.npy`` holds a 2-D (or ``H x W x 1``) float or
+    integer array of the values themselves. A three-channel PNG/TIFF is accepted
+    only if its channels are equal. Values are not range-checked here.
+
+    Raises:
+        InputError: Unreadable file, wrong dimensionality or channel count, NaN/Inf.
+    """
+    p, fmt = _format(path, ("PNG", "TIFF", "EXR", "NPY"), "disparity")
+    a = _single_channel(p, _load(p, fmt, (("Y",), ("R",))), fmt, "disparity")
+    if a.dtype.kind == "u" and fmt != "NPY":
+        return (a / np.float32(np.iinfo(a.dtype).max)).astype(np.float32)
+    if a.dtype.kind == "i" and fmt != "NPY":
+        raise InputError(f"{p}: expected unsigned integer or float samples, got {a.dtype}")
+    out = a.astype(np.float32)
+    _check_finite(out, f"{p}: expected finite values, got")
+    return out
+
+
+def read_depth(path: str | os.PathLike[str]) -> np.ndarray:
+    """Read a metric depth map (metres) as float32 ``H x W``.
+
+    Accepts OpenEXR (channel ``Z``, ``Y`` or ``R``, else the only channel), float TIFF
+    and float ``.npy``. ``+Inf`` (infinitely far, e.g. sky) is allowed; NaN and -Inf
+    are not. Integer formats are rejected: they hold display codes, not metres.
+
+    Raises:
+        InputError: Integer data, unreadable file, wrong shape, NaN or -Inf.
+    """
+    fmt = _FORMATS.get(Path(path).suffix.lower())
+    if fmt in ("PNG", "JPEG"):
+        msg = f"expected metric depth (.exr, float .tif, .npy), got {fmt}: integer codes, not metres"
+        raise InputError(f"{path}: {msg}")
+    p, fmt = _format(path, ("TIFF", "EXR", "NPY"), "depth")
+    a = _single_channel(p, _load(p, fmt, (("Z",), ("Y",), ("R",))), fmt, "depth")
+    if a.dtype.kind != "f":
+        raise InputError(f"{p}: expected float depth in metres, got integer dtype {a.dtype}")
+    out = a.astype(np.float32)
+    _check_finite(out, f"{p}: expected finite depth or +Inf, got", allow_pos_inf=True)
+    return out
+
+
+# --------------------------------------------------------------------------- encoders
+
+
+def _atomic_write(path: Path, encode: Callable[[str], None]) -> Path:
+    """Run ``encode(tmp_name)`` on a temporary sibling of ``path``, then move it onto ``path``."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=path.suffix)
+    os.close(fd)
+    try:
+        encode(tmp)
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        if path.exists():
+            mode = path.stat().st_mode & 0o7777
+        else:
+            umask = os.umask(0o022)
+            os.umask(umask)
+            mode = 0o666 & ~umask
+        os.chmod(tmp, mode)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def _write_exr(tmp: str, img: np.ndarray, *, half: bool) -> None:
+    dtype = np.float16 if half else np.float32
+    names = "Y" if img.shape[2] == 1 else "RGBA"[: img.shape[2]]
+    chans = {n: np.ascontiguousarray(img[..., i], dtype=dtype) for i, n in enumerate(names)}
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with OpenEXR.File(header, chans) as f:
+        f.write(tmp)
+
+
+def _write_tiff(tmp: str, img: np.ndarray) -> None:
+    photometric = "minisblack" if img.shape[2] == 1 else "rgb"
+    tifffile.imwrite(tmp, img[..., 0] if img.shape[2] == 1 else img, photometric=photometric, compression="zlib")
+
+
+def _write_pil(tmp: str, codes: np.ndarray, fmt: str, **options: int) -> None:
+    Image.fromarray(codes[..., 0] if codes.shape[2] == 1 else codes).save(tmp, format=fmt, **options)
+
+
+def _write_bytes(tmp: str, data: bytes) -> None:
+    with open(tmp, "wb") as fh:
+        fh.write(data)
+
+
+def _quantize(img: np.ndarray, bits: int) -> np.ndarray:
+    """sRGB-encode the colour channels (not alpha) and round to ``bits``-bit codes."""
+    enc = img.copy()
+    enc[..., : min(img.shape[2], 3)] = linear_to_srgb(img[..., :3])
+    return np.round(np.clip(enc, 0.0, 1.0) * (2**bits - 1)).astype(np.uint8 if bits == 8 else np.uint16)
+
+
+def check_output_path(path: str | os.PathLike[str], *, bit_depth: int | None = None, half: bool = False) -> Path:
+    """Validate an output path and its options before rendering (so a long render cannot fail at the end).
+
+    Checks the extension, the bit depth for that format, and that the target is
+    not a directory. Raises :class:`InputError`; returns the path.
+    """
+    p, fmt = _format(path, ("PNG", "JPEG", "TIFF", "EXR"), "images", read=False)
+    _output_bits(p, fmt, bit_depth, half)
+    return p
+
+
+def _output_bits(p: Path, fmt: str, bit_depth: int | None, half: bool) -> int:
+    depths = {"PNG": (8, 16), "JPEG": (8,), "TIFF": (8, 16, 32), "EXR": (16, 32)}[fmt]
+    bits = bit_depth if bit_depth is not None else {"PNG": 8, "JPEG": 8, "TIFF": 16, "EXR": 16 if half else 32}[fmt]
+    if bits not in depths:
+        raise InputError(f"{p}: expected bit_depth in {depths} for {fmt}, got {bit_depth!r}")
+    if half and (fmt != "EXR" or bits != 16):
+        raise InputError(f"{p}: half=True needs an .exr path and bit_depth None or 16, got {fmt} with {bit_depth!r}")
+    return bits
+
+
+def write_image(
+    path: str | os.PathLike[str],
+    image: npt.ArrayLike,
+    *,
+    bit_depth: int | None = None,
+    half: bool = False,
+    quality: int = 95,
+) -> Path:
+    """Write a linear float image atomically, choosing the format from the extension.
+
+    ``.png``: 8 (default) or 16-bit sRGB. ``.jpg``/``.jpeg``: 8-bit sRGB at ``quality``,
+    no alpha. ``.tif``/``.tiff``: 16-bit (default) or 8-bit sRGB, or ``bit_depth=32``
+    for linear float32. ``.exr``: linear float32 (default) or HALF (``half=True`` or
+    ``bit_depth=16``), ZIP-compressed, channels ``R,G,B[,A]`` or ``Y``. Integer
+    formats clip to [0, 1]; alpha is written linearly and colour is taken as not
+    premultiplied (it is premultiplied for EXR, as that format requires).
+
+    Args:
+        path: Target file; missing parent directories are created.
+        image: ``H x W``, ``H x W x 1``, ``H x W x 3`` or ``H x W x 4`` linear floats.
+        bit_depth: Bits per sample, or None for the format's default.
+        half: Write OpenEXR HALF channels.
+        quality: JPEG quality, 1 to 100.
+
+    Returns:
+        The path written.
+
+    Raises:
+        InputError: Bad extension, shape, dtype, bit depth, NaN/Inf or out-of-range values.
+    """
+    p, fmt = _format(path, ("PNG", "JPEG", "TIFF", "EXR"), "images", read=False)
+    img = np.asarray(image)
+    img = img[..., None] if img.ndim == 2 else img
+    if img.ndim != 3 or img.shape[2] not in (1, 3, 4) or img.size == 0:
+        raise InputError(f"{p}: expected an H x W, H x W x 3 or H x W x 4 image, got shape {np.shape(image)}")
+    if img.dtype.kind != "f":
+        raise InputError(f"{p}: expected a floating-point linear image, got dtype {img.dtype}")
+    img = img.astype(np.float32)
+    _check_finite(img, f"refusing to write {p}: image contains")
+    bits = _output_bits(p, fmt, bit_depth, half)
+    if fmt == "EXR":
+        if img.shape[2] == 4:
+            img = np.concatenate([img[..., :3] * img[..., 3:], img[..., 3:]], axis=2)
+        big = np.abs(img) > _HALF_MAX
+        if bits == 16 and big.any():
+            y, x = _first(big)[:2]
+            raise InputError(f"refusing to write {p}: value beyond the HALF range (+-65504) at (y, x) = ({y}, {x})")
+        return _atomic_write(p, lambda tmp: _write_exr(tmp, img, half=bits == 16))
+    if fmt == "TIFF":
+        data = img if bits == 32 else _quantize(img, bits)
+        return _atomic_write(p, lambda tmp: _write_tiff(tmp, data))
+    if fmt == "JPEG" and img.shape[2] == 4:
+        raise InputError(f"{p}: expected an image without alpha for JPEG, got 4 channels")
+    if fmt == "JPEG" and not 1 <= quality <= 100:
+        raise InputError(f"{p}: expected JPEG quality in [1, 100], got {quality!r}")
+    codes = _quantize(img, bits)
+    if fmt == "JPEG":
+        return _atomic_write(p, lambda tmp: _write_pil(tmp, codes, "JPEG", quality=quality))
+    if bits == 16:
+        return _atomic_write(p, lambda tmp: _write_bytes(tmp, imagecodecs.png_encode(codes)))
+    return _atomic_write(p, lambda tmp: _write_pil(tmp, codes, "PNG"))
+
+
+def write_disparity(path: str | os.PathLike[str], d: npt.ArrayLike) -> Path:
+    """Write a disparity map atomically.
+
+    ``.exr``: float32 channel ``Y``; ``.png``: 16-bit grey ``round(d * 65535)``, which
+    needs ``d`` within [0, 1]; ``.npy``: float32 array; ``.tif``/``.tiff``: float32.
+
+    Args:
+        path: Target file; missing parent directories are created.
+        d: ``H x W`` (or ``H x W x 1``) disparity values.
+
+    Returns:
+        The path written.
+
+    Raises:
+        InputError: Bad extension, shape, NaN/Inf, or values outside [0, 1] for PNG.
+    """
+    p, fmt = _format(path, ("PNG", "TIFF", "EXR", "NPY"), "disparity", read=False)
+    a = np.asarray(d)
+    a = a[..., 0] if a.ndim == 3 and a.shape[2] == 1 else a
+    if a.ndim != 2 or a.size == 0 or a.dtype.kind not in "fiu":
+        raise InputError(f"{p}: expected a non-empty H x W real disparity array, got shape {a.shape} dtype {a.dtype}")
+    a = a.astype(np.float32)
+    _check_finite(a, f"refusing to write {p}: disparity contains")
+    if fmt == "PNG":
+        lo, hi = float(a.min()), float(a.max())
+        if lo < 0.0 or hi > 1.0:
+            raise InputError(f"{p}: expected disparity within [0, 1] for 16-bit PNG, got [{lo:g}, {hi:g}]")
+        codes = np.round(a[..., None].astype(np.float64) * 65535).astype(np.uint16)
+        return _atomic_write(p, lambda tmp: _write_bytes(tmp, imagecodecs.png_encode(codes)))
+    if fmt == "EXR":
+        return _atomic_write(p, lambda tmp: _write_exr(tmp, a[..., None], half=False))
+    if fmt == "TIFF":
+        return _atomic_write(p, lambda tmp: _write_tiff(tmp, a[..., None]))
+
+    def save_npy(tmp: str) -> None:
+        with open(tmp, "wb") as fh:
+            np.save(fh, a)
+
+    return _atomic_write(p, save_npy)

@@ -1,0 +1,452 @@
+"""Tests for bokehray.io: format round trips, colour handling, error paths, atomic writes."""
+
+from __future__ import annotations
+
+import os
+import re
+import struct
+import zlib
+from pathlib import Path
+
+import numpy as np
+import OpenEXR
+import pytest
+import tifffile
+from PIL import Image
+
+from bokehray import io as bio
+from bokehray.errors import InputError
+
+RNG = np.random.default_rng(1234)
+
+
+def _image(h: int = 24, w: int = 32, c: int = 3) -> np.ndarray:
+    return RNG.uniform(0.0, 1.0, (h, w, c)).astype(np.float32)
+
+
+def _smooth(h: int = 48, w: int = 64) -> np.ndarray:
+    y, x = np.mgrid[0:h, 0:w] / np.array([h, w])[:, None, None]
+    return np.stack([x, y, 0.5 * (x + y)], axis=-1).astype(np.float32) * 0.8 + 0.1
+
+
+def _raises(path: Path, fragment: str):
+    """pytest.raises for an InputError whose message names both ``path`` and the problem."""
+
+    class _Ctx:
+        def __enter__(self):
+            self.ctx = pytest.raises(InputError, match=fragment)
+            self.info = self.ctx.__enter__()
+            return self.info
+
+        def __exit__(self, *exc):
+            handled = self.ctx.__exit__(*exc)
+            assert str(path) in str(self.info.value), str(self.info.value)
+            return handled
+
+    return _Ctx()
+
+
+def _png(path: Path, codes: np.ndarray, *, interlace: bool = False) -> None:
+    """Independent minimal 16-bit PNG encoder (filter 0, optional Adam7) for reader tests."""
+    codes = codes[..., None] if codes.ndim == 2 else codes
+    h, w, c = codes.shape
+    be = codes.astype(">u2")
+    passes = [(0, 0, 8, 8), (0, 4, 8, 8), (4, 0, 8, 4), (0, 2, 4, 4), (2, 0, 4, 2), (0, 1, 2, 2), (1, 0, 2, 1)]
+    raw = b""
+    for y0, x0, dy, dx in passes if interlace else [(0, 0, 1, 1)]:
+        sub = be[y0::dy, x0::dx]
+        if sub.size:
+            raw += b"".join(b"\0" + row.tobytes() for row in sub)
+
+    def chunk(tag: bytes, body: bytes) -> bytes:
+        return struct.pack(">I", len(body)) + tag + body + struct.pack(">I", zlib.crc32(tag + body))
+
+    ihdr = struct.pack(">IIBBBBB", w, h, 16, {1: 0, 2: 4, 3: 2, 4: 6}[c], 0, 0, int(interlace))
+    body = chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b"")
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + body)
+
+
+def _write_exr(path: Path, channels: dict[str, np.ndarray]) -> None:
+    # OpenEXR's binding ignores numpy strides: channel arrays must be C-contiguous.
+    channels = {k: np.ascontiguousarray(v) for k, v in channels.items()}
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, channels) as f:
+        f.write(str(path))
+
+
+# --------------------------------------------------------------------------- round trips
+
+
+@pytest.mark.parametrize("channels", [1, 3, 4])
+def test_png8_round_trip_is_exact_in_codes(tmp_path, channels):
+    img = _image(c=channels)
+    p = bio.write_image(tmp_path / "a.png", img[..., 0] if channels == 1 else img)
+    back = bio.read_image(p)
+    assert back.dtype == np.float32 and back.shape == (24, 32, 4 if channels == 4 else 3)
+    want = bio._quantize(img, 8)
+    got = bio._quantize(back if channels != 1 else back[..., :1], 8)
+    np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("channels", [1, 3, 4])
+def test_png16_round_trip_keeps_16_bit_precision(tmp_path, channels):
+    img = _image(c=channels)
+    back = bio.read_image(bio.write_image(tmp_path / "a.PNG", img, bit_depth=16))
+    ref = np.repeat(img, 3, axis=2) if channels == 1 else img
+    assert np.abs(back - ref).max() < 1e-4  # an 8-bit round trip is off by up to ~4e-3
+
+
+@pytest.mark.parametrize("channels", [1, 2, 3, 4])
+@pytest.mark.parametrize("interlace", [False, True])
+def test_png16_reader_is_exact_against_independent_encoder(tmp_path, channels, interlace):
+    codes = RNG.integers(0, 65536, (13, 11, channels), dtype=np.uint16)
+    _png(tmp_path / "c.png", codes, interlace=interlace)
+    back = bio.read_image(tmp_path / "c.png")
+    n_colour = 1 if channels <= 2 else 3
+    lin = bio.srgb_to_linear(codes[..., :n_colour] / 65535.0)
+    np.testing.assert_allclose(back[..., :3], np.broadcast_to(lin, (13, 11, 3)), rtol=0, atol=1e-6)
+    if channels in (2, 4):
+        np.testing.assert_allclose(back[..., 3], codes[..., -1] / 65535.0, rtol=0, atol=1e-7)
+
+
+def test_png16_writer_decodes_exactly_with_pillow(tmp_path):
+    d = np.clip(np.cumsum(RNG.normal(0, 0.01, (300, 50)), axis=1) + 0.5, 0, 1).astype(np.float32)  # > 1 row block
+    d[::7] = RNG.uniform(0, 1, (43, 50))  # noisy rows too, so several filter types get chosen
+    p = bio.write_disparity(tmp_path / "d.png", d)
+    with Image.open(p) as im:
+        codes = np.asarray(im)
+    np.testing.assert_array_equal(codes, np.round(d.astype(np.float64) * 65535).astype(np.uint16))
+
+
+def test_jpeg_round_trip(tmp_path):
+    img = _smooth()
+    back = bio.read_image(bio.write_image(tmp_path / "a.jpeg", img, quality=95))
+    assert back.shape == img.shape and np.abs(back - img).mean() < 0.01 and np.abs(back - img).max() < 0.05
+
+
+@pytest.mark.parametrize("bit_depth,tol", [(None, 1e-4), (8, 5e-3), (32, 0.0)])
+def test_tiff_round_trip(tmp_path, bit_depth, tol):
+    img = _image(c=4) * 1.0
+    if bit_depth == 32:
+        img[0, 0, 0] = 7.5  # float TIFF is linear and unclipped
+    back = bio.read_image(bio.write_image(tmp_path / "a.tif", img, bit_depth=bit_depth))
+    assert np.abs(back - img).max() <= tol
+
+
+@pytest.mark.parametrize("half,tol", [(False, 1e-6), (True, 2e-3)])
+def test_exr_round_trip(tmp_path, half, tol):
+    img = _image() * 4.0  # HDR values stay as they are
+    p = bio.write_image(tmp_path / "a.exr", img, half=half)
+    back = bio.read_image(p)
+    np.testing.assert_allclose(back, img, rtol=tol, atol=1e-6)
+    with OpenEXR.File(str(p), separate_channels=True) as f:
+        chans = f.parts[0].channels
+        assert sorted(chans) == ["B", "G", "R"]
+        assert chans["R"].pixels.dtype == (np.float16 if half else np.float32)
+        assert f.header()["compression"] == OpenEXR.ZIP_COMPRESSION
+
+
+def test_exr_rgba_is_premultiplied_on_disk_and_straight_in_memory(tmp_path):
+    img = _image(c=4)
+    img[..., 3] = RNG.uniform(0.2, 1.0, img.shape[:2])
+    p = bio.write_image(tmp_path / "a.exr", img)
+    with OpenEXR.File(str(p), separate_channels=True) as f:
+        np.testing.assert_allclose(f.parts[0].channels["R"].pixels, img[..., 0] * img[..., 3], rtol=1e-6)
+    np.testing.assert_allclose(bio.read_image(p), img, rtol=1e-5, atol=1e-6)
+
+
+def test_exr_grey_and_packed_channels(tmp_path):
+    grey = _image(c=1)
+    p = bio.write_image(tmp_path / "g.exr", grey[..., 0])
+    with OpenEXR.File(str(p), separate_channels=True) as f:
+        assert list(f.parts[0].channels) == ["Y"]
+    np.testing.assert_array_equal(bio.read_image(p), np.repeat(grey, 3, axis=2))
+    rgb = _image().astype(np.float16)
+    _write_exr(tmp_path / "packed.exr", {"RGB": rgb})
+    np.testing.assert_array_equal(bio.read_image(tmp_path / "packed.exr"), rgb.astype(np.float32))
+
+
+@pytest.mark.parametrize("ext", [".png", ".exr", ".npy", ".tif"])
+def test_disparity_round_trip(tmp_path, ext):
+    d = RNG.uniform(0, 1, (20, 30)).astype(np.float32)
+    back = bio.read_disparity(bio.write_disparity(tmp_path / f"d{ext}", d))
+    assert back.dtype == np.float32 and back.shape == d.shape
+    assert np.abs(back - d).max() <= (0.5 / 65535 + 1e-7 if ext == ".png" else 0.0)
+
+
+def test_disparity_integer_formats_are_scaled_not_decoded(tmp_path):
+    Image.fromarray(np.full((4, 5), 128, np.uint8)).save(tmp_path / "d8.png")
+    np.testing.assert_allclose(bio.read_disparity(tmp_path / "d8.png"), 128 / 255)
+    tifffile.imwrite(tmp_path / "d16.tif", np.full((4, 5), 30000, np.uint16))
+    np.testing.assert_allclose(bio.read_disparity(tmp_path / "d16.tif"), 30000 / 65535)
+    Image.fromarray(np.full((4, 5, 3), 77, np.uint8)).save(tmp_path / "grey3.png")  # equal channels: fine
+    np.testing.assert_allclose(bio.read_disparity(tmp_path / "grey3.png"), 77 / 255)
+    np.save(tmp_path / "d.npy", np.full((4, 5, 1), 0.25))
+    assert bio.read_disparity(tmp_path / "d.npy").shape == (4, 5)
+
+
+def test_depth_readers(tmp_path):
+    z = RNG.uniform(0.5, 20, (8, 9)).astype(np.float32)
+    z[0, 0] = np.inf  # sky: infinitely far is allowed
+    _write_exr(tmp_path / "z.exr", {"Z": z, "R": np.zeros_like(z)})
+    np.testing.assert_array_equal(bio.read_depth(tmp_path / "z.exr"), z)
+    tifffile.imwrite(tmp_path / "z.tif", z)
+    np.testing.assert_array_equal(bio.read_depth(tmp_path / "z.tif"), z)
+    np.save(tmp_path / "z.npy", z.astype(np.float64))
+    np.testing.assert_array_equal(bio.read_depth(tmp_path / "z.npy"), z)
+
+
+# --------------------------------------------------------------------------- colour handling
+
+
+def test_srgb_decode_applies_to_png_not_exr(tmp_path):
+    Image.fromarray(np.full((4, 4, 3), 128, np.uint8)).save(tmp_path / "g.png")
+    np.testing.assert_allclose(bio.read_image(tmp_path / "g.png"), 0.21586, atol=1e-4)
+    _write_exr(tmp_path / "g.exr", {c: np.full((4, 4), 0.5, np.float32) for c in "RGB"})
+    np.testing.assert_array_equal(bio.read_image(tmp_path / "g.exr"), 0.5)
+    assert abs(float(bio.linear_to_srgb(bio.srgb_to_linear(0.3))) - 0.3) < 1e-6
+
+
+def test_alpha_is_not_gamma_decoded(tmp_path):
+    Image.fromarray(np.full((4, 4, 4), 128, np.uint8)).save(tmp_path / "a.png")
+    img = bio.read_image(tmp_path / "a.png")
+    np.testing.assert_allclose(img[..., :3], 0.21586, atol=1e-4)
+    np.testing.assert_allclose(img[..., 3], 128 / 255, atol=1e-7)
+    Image.fromarray(np.full((4, 4, 2), 128, np.uint8), mode="LA").save(tmp_path / "la.png")
+    np.testing.assert_allclose(bio.read_image(tmp_path / "la.png"), img, atol=1e-7)
+
+
+def test_grey_png_is_expanded(tmp_path):
+    Image.fromarray(np.arange(20, dtype=np.uint8).reshape(4, 5)).save(tmp_path / "g.png")
+    img = bio.read_image(tmp_path / "g.png")
+    assert img.shape == (4, 5, 3) and (img[..., 0] == img[..., 2]).all()
+
+
+# --------------------------------------------------------------------------- read errors
+
+
+def test_missing_file(tmp_path):
+    with _raises(tmp_path / "nope.png", "does not exist"):
+        bio.read_image(tmp_path / "nope.png")
+
+
+def test_directory(tmp_path):
+    (tmp_path / "dir.png").mkdir()
+    with _raises(tmp_path / "dir.png", "got a directory"):
+        bio.read_image(tmp_path / "dir.png")
+
+
+def test_unsupported_extension(tmp_path):
+    (tmp_path / "a.bmp").write_bytes(b"BM")
+    with _raises(tmp_path / "a.bmp", r"unsupported extension '\.bmp'.*\.png, \.jpg"):
+        bio.read_image(tmp_path / "a.bmp")
+    np.save(tmp_path / "a.npy", np.zeros((2, 2, 3)))
+    with _raises(tmp_path / "a.npy", "unsupported extension '.npy' for reading images"):
+        bio.read_image(tmp_path / "a.npy")
+
+
+@pytest.mark.parametrize("bit_depth", [8, 16])
+def test_truncated_png(tmp_path, bit_depth):
+    p = bio.write_image(tmp_path / "t.png", _image(64, 64), bit_depth=bit_depth)
+    p.write_bytes(p.read_bytes()[: p.stat().st_size // 2])
+    with _raises(p, "cannot read .* as PNG: .*truncated"):
+        bio.read_image(p)
+
+
+def test_png_with_wrong_content(tmp_path):
+    (tmp_path / "x.png").write_bytes(b"GIF89a" + bytes(100))
+    with _raises(tmp_path / "x.png", "as PNG: not a PNG file"):
+        bio.read_image(tmp_path / "x.png")
+
+
+def test_corrupt_exr(tmp_path):
+    (tmp_path / "c.exr").write_bytes(RNG.integers(0, 256, 2000, dtype=np.uint8).tobytes())
+    with _raises(tmp_path / "c.exr", "cannot read .* as EXR"):
+        bio.read_image(tmp_path / "c.exr")
+    p = bio.write_image(tmp_path / "t.exr", _image(64, 64))
+    p.write_bytes(p.read_bytes()[: p.stat().st_size // 2])
+    with _raises(p, "cannot read .* as EXR"):
+        bio.read_image(p)
+
+
+def test_truncated_jpeg(tmp_path):
+    p = bio.write_image(tmp_path / "t.jpg", _image(64, 64))
+    p.write_bytes(p.read_bytes()[: p.stat().st_size // 2])
+    with _raises(p, "cannot read .* as JPEG: .*truncated"):
+        bio.read_image(p)
+
+
+def test_truncated_tiff(tmp_path):
+    p = tmp_path / "t.tif"
+    tifffile.imwrite(p, RNG.integers(0, 65535, (64, 64, 3), dtype=np.uint16), photometric="rgb")
+    p.write_bytes(p.read_bytes()[: p.stat().st_size // 2])
+    with _raises(p, "cannot read .* as TIFF"):
+        bio.read_image(p)
+
+
+def test_nan_in_exr(tmp_path):
+    img = _image()
+    img[3, 5, 1] = np.nan
+    _write_exr(tmp_path / "n.exr", {c: img[..., i] for i, c in enumerate("RGB")})
+    with _raises(tmp_path / "n.exr", re.escape("NaN at (y, x) = (3, 5)")):
+        bio.read_image(tmp_path / "n.exr")
+
+
+def test_inf_in_float_tiff(tmp_path):
+    img = _image()
+    img[2, 7] = np.inf
+    tifffile.imwrite(tmp_path / "n.tif", img, photometric="rgb")
+    with _raises(tmp_path / "n.tif", re.escape("+Inf at (y, x) = (2, 7)")):
+        bio.read_image(tmp_path / "n.tif")
+
+
+def test_nan_in_npy_disparity_and_depth(tmp_path):
+    d = np.full((6, 7), 0.5, np.float32)
+    d[4, 1] = np.nan
+    np.save(tmp_path / "n.npy", d)
+    with _raises(tmp_path / "n.npy", re.escape("NaN at (y, x) = (4, 1)")):
+        bio.read_disparity(tmp_path / "n.npy")
+    with _raises(tmp_path / "n.npy", re.escape("NaN at (y, x) = (4, 1)")):
+        bio.read_depth(tmp_path / "n.npy")
+
+
+def test_colour_disparity_png_with_differing_channels(tmp_path):
+    rgb = np.zeros((4, 5, 3), np.uint8)
+    rgb[..., 1] = 9
+    Image.fromarray(rgb).save(tmp_path / "d.png")
+    with _raises(tmp_path / "d.png", "expected a single-channel disparity map, got 3 channels .the channels differ"):
+        bio.read_disparity(tmp_path / "d.png")
+
+
+def test_4d_npy_disparity(tmp_path):
+    np.save(tmp_path / "d.npy", np.zeros((2, 3, 4, 1)))
+    with _raises(tmp_path / "d.npy", "expected a 2-D .* got 4-D"):
+        bio.read_disparity(tmp_path / "d.npy")
+
+
+def test_integer_depth_rejected(tmp_path):
+    Image.fromarray(np.zeros((4, 4), np.uint8)).save(tmp_path / "z.png")
+    with _raises(tmp_path / "z.png", "expected metric depth .* got PNG: integer codes, not metres"):
+        bio.read_depth(tmp_path / "z.png")
+    np.save(tmp_path / "z.npy", np.ones((4, 4), np.int32))
+    with _raises(tmp_path / "z.npy", "expected float depth in metres, got integer"):
+        bio.read_depth(tmp_path / "z.npy")
+
+
+def test_empty_and_wrong_channel_count(tmp_path):
+    np.save(tmp_path / "e.npy", np.zeros((0, 5), np.float32))
+    with _raises(tmp_path / "e.npy", "expected a non-empty image"):
+        bio.read_disparity(tmp_path / "e.npy")
+    five = np.zeros((4, 4, 5), np.uint8)
+    tifffile.imwrite(tmp_path / "five.tif", five, photometric="minisblack", planarconfig="contig")
+    with _raises(tmp_path / "five.tif", "expected 1 to 4 channels, got 5"):
+        bio.read_image(tmp_path / "five.tif")
+    _write_exr(tmp_path / "odd.exr", {"foo": np.zeros((4, 4), np.float32), "bar": np.zeros((4, 4), np.float32)})
+    with _raises(tmp_path / "odd.exr", "expected EXR channels R,G,B,A or R,G,B .* got bar,foo"):
+        bio.read_image(tmp_path / "odd.exr")
+
+
+def test_too_large_is_rejected_from_the_header(tmp_path, monkeypatch):
+    p = tmp_path / "huge.png"  # IHDR claims 100000 x 100000 and there is no pixel data at all
+    ihdr = struct.pack(">IIBBBBB", 100_000, 100_000, 8, 2, 0, 0, 0)
+    crc = struct.pack(">I", zlib.crc32(b"IHDR" + ihdr))
+    p.write_bytes(b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + b"IHDR" + ihdr + crc)
+    with _raises(p, "expected at most 200,000,000 pixels, got 100000 x 100000"):
+        bio.read_image(p)
+    monkeypatch.setattr(bio, "MAX_PIXELS", 100)
+    for name in ("s.exr", "s.tif"):
+        q = bio.write_image(tmp_path / name, _image(), bit_depth=None)
+        with _raises(q, "expected at most 100 pixels, got 32 x 24"):
+            bio.read_image(q)
+
+
+# --------------------------------------------------------------------------- write errors
+
+
+def test_write_rejects_nan(tmp_path):
+    img = _image()
+    img[5, 6, 2] = np.nan
+    with _raises(tmp_path / "o.png", r"refusing to write .* contains NaN at \(y, x\) = \(5, 6\)"):
+        bio.write_image(tmp_path / "o.png", img)
+    assert not (tmp_path / "o.png").exists()
+
+
+@pytest.mark.parametrize(
+    "name,kwargs,fragment",
+    [
+        ("o.bmp", {}, "unsupported extension '.bmp' for writing images"),
+        ("o.jpg", {"bit_depth": 16}, "expected bit_depth in .8,. for JPEG"),
+        ("o.png", {"bit_depth": 32}, "expected bit_depth in .8, 16. for PNG"),
+        ("o.png", {"half": True}, "half=True needs an .exr path"),
+        ("o.exr", {"half": True, "bit_depth": 32}, "half=True needs an .exr path"),
+        ("o.tif", {"half": True}, "half=True needs an .exr path"),
+        ("o.jpg", {"quality": 0}, r"JPEG quality in \[1, 100\]"),
+    ],
+)
+def test_write_rejects_bad_options(tmp_path, name, kwargs, fragment):
+    with _raises(tmp_path / name, fragment):
+        bio.write_image(tmp_path / name, _image(), **kwargs)
+
+
+def test_write_rejects_bad_images(tmp_path):
+    with _raises(tmp_path / "o.jpg", "without alpha for JPEG"):
+        bio.write_image(tmp_path / "o.jpg", _image(c=4))
+    with _raises(tmp_path / "o.png", "got dtype uint8"):
+        bio.write_image(tmp_path / "o.png", np.zeros((4, 4, 3), np.uint8))
+    with _raises(tmp_path / "o.png", "got shape"):
+        bio.write_image(tmp_path / "o.png", np.zeros((4, 4, 2), np.float32))
+    with _raises(tmp_path / "o.exr", re.escape("HALF range (+-65504) at (y, x) = (1, 2)")):
+        big = _image()
+        big[1, 2, 0] = 1e6
+        bio.write_image(tmp_path / "o.exr", big, half=True)
+    with _raises(tmp_path / "d.png", r"within \[0, 1\] for 16-bit PNG, got \[0, 1.5\]"):
+        bio.write_disparity(tmp_path / "d.png", np.array([[0.0, 1.5]]))
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_write_onto_a_directory(tmp_path):
+    (tmp_path / "d.exr").mkdir()
+    with _raises(tmp_path / "d.exr", "expected a file, got a directory"):
+        bio.write_disparity(tmp_path / "d.exr", np.zeros((2, 2)))
+
+
+def test_write_creates_parent_directories(tmp_path):
+    p = bio.write_image(tmp_path / "a" / "b" / "c.png", _image())
+    assert p == tmp_path / "a" / "b" / "c.png" and p.is_file()
+    assert [f.name for f in p.parent.iterdir()] == ["c.png"]
+
+
+# --------------------------------------------------------------------------- atomic writes
+
+
+def _partial_then_fail(target) -> None:
+    """Stand-in for an encoder: writes a few bytes to its target (path or file), then fails."""
+    if hasattr(target, "write"):
+        target.write(b"partial data")
+    else:
+        Path(target).write_bytes(b"partial data")
+    raise OSError("disk on fire")
+
+
+@pytest.mark.parametrize("name,bit_depth", [("a.png", 8), ("a.png", 16), ("a.exr", None), ("a.tif", None)])
+def test_failed_write_leaves_good_file_untouched(tmp_path, monkeypatch, name, bit_depth):
+    target = bio.write_image(tmp_path / name, _image(), bit_depth=bit_depth)
+    good = target.read_bytes()
+    if name == "a.png" and bit_depth == 8:
+        monkeypatch.setattr(Image.Image, "save", lambda self, fp, *a, **k: _partial_then_fail(fp))
+    elif name == "a.png":
+        monkeypatch.setattr(bio, "_write_bytes", lambda tmp, data: _partial_then_fail(tmp))
+    elif name == "a.exr":
+        monkeypatch.setattr(OpenEXR.File, "write", lambda self, target: _partial_then_fail(target))
+    else:
+        monkeypatch.setattr(tifffile, "imwrite", lambda tmp, *a, **k: _partial_then_fail(tmp))
+    with pytest.raises(OSError, match="disk on fire"):
+        bio.write_image(target, _image() * 0.5, bit_depth=bit_depth)
+    assert target.read_bytes() == good
+    assert sorted(os.listdir(tmp_path)) == [name]
+
+
+def test_failed_write_to_new_path_leaves_nothing(tmp_path, monkeypatch):
+    monkeypatch.setattr(np, "save", lambda fh, arr, **k: _partial_then_fail(fh))
+    with pytest.raises(OSError, match="disk on fire"):
+        bio.write_disparity(tmp_path / "d.npy", np.zeros((3, 3)))
+    assert os.listdir(tmp_path) == []
