@@ -5,7 +5,7 @@ import pytest
 import warp as wp
 from hypothesis import settings
 
-wp.config.quiet = True
+wp.config.log_level = wp.LOG_WARNING
 wp.init()
 
 settings.register_profile("ci", max_examples=40, deadline=None, derandomize=True)

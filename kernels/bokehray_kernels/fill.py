@@ -155,6 +155,7 @@ def fill_sources_kernel(
     s_hi: float,
     src: wp.array2d(dtype=wp.vec4),
     radius: wp.array2d(dtype=float),
+    n_filled: wp.array(dtype=wp.int32),
 ):
     """Add the filled colour as opaque sources where a nearer layer hides this one.
 
@@ -172,6 +173,7 @@ def fill_sources_kernel(
         v = fill_value[y, x]
         src[y, x] = wp.vec4(_untonemap(v[0]), _untonemap(v[1]), _untonemap(v[2]), 1.0)
         radius[y, x] = wp.abs(wp.clamp(v[3], s_lo, s_hi))
+        wp.atomic_add(n_filled, 0, 1)
 
 
 @wp.kernel

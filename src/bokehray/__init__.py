@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import warp as _wp  # noqa: E402
 
-_wp.config.quiet = True
+_wp.config.log_level = _wp.LOG_WARNING  # no banner or per-module load lines
 
 from ._scatter import PreviewOptions, RenderStats  # noqa: E402
 from .errors import BokehrayError, InputError, NumericalError, ResourceError  # noqa: E402

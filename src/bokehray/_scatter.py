@@ -170,6 +170,7 @@ def _render_layer(
     )
     n_filled = 0
     if layer.fill_reach >= 0.5:
+        counter = wp.zeros(1, dtype=wp.int32, device=device)
         n_pp = max(1, min(16, int(math.ceil(math.log2(1.4142 * layer.fill_reach + 2.0))) + 1))
         totals = [wp.empty((h, w), dtype=wp.vec4, device=device)]
         weights = [wp.empty((h, w), dtype=float, device=device)]
@@ -201,10 +202,10 @@ def _render_layer(
             bk.fill_sources_kernel,
             dim=(h, w),
             inputs=[slice_id, layer.index, x0, y0, totals[0], weights[0], dist, signed_coc, layer.s_lo, layer.s_hi],
-            outputs=[src, radius],
+            outputs=[src, radius, counter],
             device=device,
         )
-        n_filled = -1  # counted by the caller from the masks (cheap on the host)
+        n_filled = int(counter.numpy()[0])
     n_levels = _levels_for(layer.max_radius, opts.level_radius_px)
     bufs = []
     for lv in range(bk.MAX_LEVELS):
@@ -256,38 +257,37 @@ def render_preview(
     sid[copy_px] = -1
     n_slices = int(sid.max()) + 1
 
-    # per-layer bounding boxes and statistics (host side, on small reductions)
+    # Per-layer extents on the tile grid (host side, on small arrays): a layer's
+    # bounding box is the union of the tiles holding any of its pixels.
+    t = options.tile_px
+    th, tw = copy.shape
+    pad_h, pad_w = th * t - h, tw * t - w
+    sid_t = np.pad(sid, ((0, pad_h), (0, pad_w)), constant_values=-1).reshape(th, t, tw, t)
+    tile_lo = np.where(sid_t < 0, n_slices, sid_t).min(axis=(1, 3))
+    tile_hi = sid_t.max(axis=(1, 3))
     counts = np.bincount(sid[active], minlength=n_slices)
-    row_has = np.zeros((n_slices, h), bool)
-    col_has = np.zeros((n_slices, w), bool)
-    ys, xs = np.nonzero(active)
-    ids = sid[active]
-    row_has[ids, ys] = True
-    col_has[ids, xs] = True
-    max_r_slice = np.zeros(n_slices)
-    np.maximum.at(max_r_slice, ids, radius[active])
-    # reach of everything nearer than each layer: suffix maximum over layer ids
+    present = counts > 0
+    # CoC reach of everything nearer than each layer: suffix maximum of the layers' radius bounds
+    edge_r = np.maximum(np.abs(k_min + np.arange(n_slices)) * width, np.abs(k_min + np.arange(n_slices) + 1) * width)
+    max_r_slice = np.minimum(edge_r, stats.max_coc_px)
     nearer_reach = np.zeros(n_slices)
     run = 0.0
     for i in range(n_slices - 1, -1, -1):
         nearer_reach[i] = run
-        if counts[i]:
+        if present[i]:
             run = max(run, max_r_slice[i])
     layers: list[_Layer] = []
-    for i in range(n_slices):
-        if counts[i] == 0:
-            continue
-        rows = np.flatnonzero(row_has[i])
-        cols = np.flatnonzero(col_has[i])
+    for i in np.flatnonzero(present):
+        ty, tx = np.nonzero((tile_lo <= i) & (tile_hi >= i))
         lo, hi = (k_min + i) * width, (k_min + i + 1) * width
         reach = nearer_reach[i] if options.fill else 0.0
-        rmax = max(abs(lo), abs(hi)) if reach >= 0.5 else max_r_slice[i]
         pad_fill = int(math.ceil(1.4142 * reach)) + 2 if reach >= 0.5 else 0
-        pad = pad_fill + int(math.ceil(rmax)) + 2
-        bbox = (max(0, rows[0] - pad), min(h, rows[-1] + 1 + pad), max(0, cols[0] - pad), min(w, cols[-1] + 1 + pad))
-        layers.append(_Layer(i, lo, hi, bbox, float(rmax), float(reach), int(counts[i])))
+        pad = pad_fill + int(math.ceil(max_r_slice[i])) + 2
+        bbox = (max(0, ty.min() * t - pad), min(h, (ty.max() + 1) * t + pad),
+                max(0, tx.min() * t - pad), min(w, (tx.max() + 1) * t + pad))
+        layers.append(_Layer(int(i), lo, hi, bbox, float(max_r_slice[i]), float(reach), int(counts[i])))
     stats.layers = len(layers)
-    stats.sources_scattered = int(active.sum())
+    stats.sources_scattered = int(counts.sum())
     stats.pyramid_levels = max(_levels_for(lyr.max_radius, options.level_radius_px) for lyr in layers)
     t_plan = time.perf_counter()
     stats.stage_seconds["plan"] = t_plan - t_start
@@ -320,7 +320,8 @@ def render_preview(
             submit_next()
         while pending:
             lyr, fut = pending.pop(0)
-            out, _ = fut.result()
+            out, n_filled = fut.result()
+            stats.sources_filled += n_filled
             submit_next()
             y0, y1, x0, x1 = lyr.bbox
             wp.launch(bk.composite_kernel, dim=(y1 - y0, x1 - x0), inputs=[out, x0, y0], outputs=[acc], device=device)
@@ -329,6 +330,7 @@ def render_preview(
                 progress(done, len(layers))
     t_layers = time.perf_counter()
     stats.stage_seconds["layers"] = t_layers - t_plan
+    stats.sources_scattered += stats.sources_filled
 
     result = wp.empty((h, w), dtype=wp.vec3, device=device)
     wp.launch(bk.finalize_kernel, dim=(h, w), inputs=[acc, img_wp, sid_wp], outputs=[result], device=device)

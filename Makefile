@@ -1,0 +1,25 @@
+# Two commands on a fresh machine: `make demo` and `make test` (each sets up .venv first).
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+
+.PHONY: demo test bench-quick clean
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --quiet --upgrade pip
+	$(BIN)/pip install --quiet -e ".[dev]"
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/bokehray demo -o bokehray-demo
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -n 2 -q
+
+bench-quick: $(STAMP)
+	$(BIN)/python benchmarks/bench_preview.py --quick
+
+clean:
+	rm -rf $(VENV) bokehray-demo .pytest_cache .hypothesis

@@ -1,0 +1,311 @@
+"""Command line: ``bokehray render``, ``bokehray demo``.
+
+Every input problem is reported as one line ``bokehray: error: ...`` with exit
+code 2 (``--debug`` shows the traceback). Outputs are written atomically, and
+only after the render succeeded, so a failed run never leaves a partial file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from .errors import BokehrayError, InputError
+
+EXIT_INPUT = 2
+
+
+def _parse_xy(text: str) -> tuple[int, int]:
+    try:
+        x, y = (int(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected X,Y in pixels (e.g. 640,410), got {text!r}") from None
+    return x, y
+
+
+def _add_lens_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("aperture")
+    g.add_argument("--aperture", choices=("disc", "polygon"), default="disc", help="aperture shape (default: disc)")
+    g.add_argument("--blades", type=int, default=6, help="polygon: number of blades (3..32, default 6)")
+    g.add_argument("--rotation", type=float, default=0.0, help="polygon: rotation in degrees")
+    g.add_argument("--curvature", type=float, default=0.0,
+                   help="polygon: blade curvature, 0 = straight blades .. 1 = circle (default 0)")
+
+
+def _add_device_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--device", default="cpu", help="Warp device: cpu (default), cuda, cuda:N")
+    p.add_argument("--stats", action="store_true", help="print time per stage, tiles skipped, layers, max CoC")
+    p.add_argument("--max-layers", type=int, default=None, help="most depth layers of the preview (default 12)")
+    p.add_argument("--no-fill", action="store_true", help="do not fill the regions hidden behind nearer layers")
+    p.add_argument("--debug", action="store_true", help="show tracebacks")
+    p.add_argument("--quiet", action="store_true", help="print nothing but errors")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from . import __version__
+
+    parser = argparse.ArgumentParser(
+        prog="bokehray",
+        description="Physics-first lens blur: render a photo as a wide-aperture lens would have taken it.",
+    )
+    parser.add_argument("--version", action="version", version=f"bokehray {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    r = sub.add_parser(
+        "render",
+        help="render one image with a disparity (or depth) map",
+        description="CoC radius in pixels = K * |d - d_f| (d: disparity in [0, 1], 1 = nearest). Give the blur as "
+        "--blur K with --focus D_F or --focus-at X,Y, or as a physical lens (--focal-length, --f-number, "
+        "--focus-distance, --sensor-width) with a metric --depth map.",
+    )
+    r.add_argument("image", help="all-in-focus image: PNG/JPEG/TIFF (sRGB, 8/16-bit) or EXR/float TIFF (linear)")
+    src = r.add_mutually_exclusive_group(required=True)
+    src.add_argument("--disparity", help="disparity map in [0, 1], 1 = nearest: PNG 8/16-bit, EXR, TIFF, NPY")
+    src.add_argument("--depth", help="metric depth map in metres: EXR, float TIFF or NPY")
+    r.add_argument("-o", "--output", required=True, help="output: .png .jpg .tif .exr")
+    b = r.add_argument_group("blur as K and focus disparity")
+    b.add_argument("--blur", type=float, help="K: CoC radius in pixels per unit disparity")
+    b.add_argument("--focus", type=float, help="focus disparity d_f in [0, 1]")
+    b.add_argument("--focus-at", type=_parse_xy, metavar="X,Y",
+                   help="focus where this pixel is (median disparity in a 9 x 9 window)")
+    lens = r.add_argument_group("blur as a physical thin lens (needs --depth)")
+    lens.add_argument("--focal-length", type=float, metavar="MM", help="focal length in millimetres")
+    lens.add_argument("--f-number", type=float, metavar="N", help="f-number (aperture diameter = f / N)")
+    lens.add_argument("--focus-distance", type=float, metavar="M", help="focus distance in metres")
+    lens.add_argument("--sensor-width", type=float, default=36.0, metavar="MM", help="sensor width (default 36)")
+    lens.add_argument("--z-near", type=float, help="depth normalisation: nearest depth (default: depth map min)")
+    lens.add_argument("--z-far", type=float, help="depth normalisation: farthest depth, inf allowed (default: max)")
+    _add_lens_args(r)
+    o = r.add_argument_group("input and output")
+    o.add_argument("--resize-disparity", action="store_true", help="resize a disparity/depth map of another size")
+    o.add_argument("--bit-depth", type=int, choices=(8, 16, 32), help="PNG 8/16, TIFF 16/32 (float)")
+    o.add_argument("--half", action="store_true", help="EXR: write half floats")
+    o.add_argument("--highlight-boost", type=float, default=0.0,
+                   help="re-inflate clipped highlights of 8-bit inputs (0 = off, try 4)")
+    o.add_argument("--quality", default="preview", help="renderer quality level (preview)")
+    _add_device_args(r)
+
+    d = sub.add_parser("demo", help="render the built-in demo scene (no download) and a focal-stack contact sheet")
+    d.add_argument("-o", "--output", default="bokehray-demo", help="output folder (default ./bokehray-demo)")
+    d.add_argument("--size", type=_parse_xy, default=(1152, 768), metavar="W,H", help="image size (default 1152,768)")
+    _add_lens_args(d)
+    _add_device_args(d)
+    return parser
+
+
+def _aperture(args: argparse.Namespace):
+    from .lens import Aperture
+
+    if args.aperture == "disc":
+        return Aperture()
+    return Aperture(blades=args.blades, rotation_deg=args.rotation, curvature=args.curvature)
+
+
+def _options(args: argparse.Namespace):
+    from ._scatter import PreviewOptions
+
+    kw = {}
+    if args.max_layers is not None:
+        if args.max_layers < 1:
+            raise InputError(f"--max-layers: expected >= 1, got {args.max_layers}")
+        kw["max_layers"] = args.max_layers
+    if args.no_fill:
+        kw["fill"] = False
+    return PreviewOptions(**kw)
+
+
+def _progress_bar(args: argparse.Namespace):
+    """A tqdm bar over depth layers, shown on a terminal only."""
+    if args.quiet or not sys.stderr.isatty():
+        return None, None
+    from tqdm import tqdm
+
+    bar = tqdm(total=0, desc="layers", unit="layer", leave=False, file=sys.stderr)
+
+    def update(done: int, total: int) -> None:
+        bar.total = total
+        bar.n = done
+        bar.refresh()
+
+    return bar, update
+
+
+def _resize(a: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    from skimage.transform import resize
+
+    return resize(a, shape, order=1, mode="edge", anti_aliasing=False, preserve_range=True).astype(np.float32)
+
+
+def _check_output(path: str, args: argparse.Namespace) -> None:
+    from .io import check_output_path
+
+    check_output_path(path, bit_depth=getattr(args, "bit_depth", None), half=getattr(args, "half", False))
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from . import io
+    from .lens import BlurParams, DepthNormalization, ThinLens, disparity_from_depth
+    from .render import focus_at, render_with_stats
+
+    _check_output(args.output, args)
+    t0 = time.perf_counter()
+    image = io.read_image(args.image)
+    h, w = image.shape[:2]
+
+    lens_args = (args.focal_length, args.f_number, args.focus_distance)
+    physical = any(v is not None for v in lens_args)
+    if physical and args.depth is None:
+        raise InputError("a physical lens (--focal-length/--f-number/--focus-distance) needs a metric --depth map")
+    if physical and (args.blur is not None or args.focus is not None):
+        raise InputError("give the blur either as --blur/--focus or as a physical lens, not both")
+
+    if args.depth is not None:
+        depth = io.read_depth(args.depth)
+        if depth.shape != (h, w):
+            if not args.resize_disparity:
+                raise InputError(f"{args.depth}: depth map is {depth.shape[1]}x{depth.shape[0]}, image is {w}x{h}; "
+                                 "pass --resize-disparity to resize it")
+            depth = _resize(depth, (h, w))
+        norm = None
+        if args.z_near is not None or args.z_far is not None:
+            zn = args.z_near if args.z_near is not None else float(np.min(depth))
+            zf = args.z_far if args.z_far is not None else float(np.max(depth))
+            norm = DepthNormalization(zn, zf)
+        disparity, norm = disparity_from_depth(depth, norm)
+    else:
+        disparity = io.read_disparity(args.disparity)
+        if disparity.shape != (h, w):
+            if not args.resize_disparity:
+                raise InputError(
+                    f"{args.disparity}: disparity is {disparity.shape[1]}x{disparity.shape[0]}, image is {w}x{h}; "
+                    "pass --resize-disparity to resize it"
+                )
+            disparity = _resize(disparity, (h, w))
+        norm = None
+
+    if physical:
+        if args.focal_length is None or args.f_number is None:
+            raise InputError("a physical lens needs both --focal-length and --f-number")
+        focus_m = args.focus_distance
+        if args.focus_at is not None:
+            x, y = args.focus_at
+            focus_m = float(norm.depth(focus_at(disparity, x, y)))
+        if focus_m is None:
+            raise InputError("a physical lens needs --focus-distance or --focus-at X,Y")
+        lens = ThinLens(args.focal_length, args.f_number, focus_m, args.sensor_width)
+        blur = lens.blur_params(norm, w)
+    else:
+        if args.blur is None:
+            raise InputError("give the blur strength: --blur K (or a physical lens with --depth)")
+        if args.blur < 0:
+            raise InputError(f"--blur: expected K >= 0, got {args.blur:g}")
+        if (args.focus is None) == (args.focus_at is None):
+            raise InputError("give the focus as exactly one of --focus D_F or --focus-at X,Y")
+        d_f = args.focus if args.focus is not None else focus_at(disparity, *args.focus_at)
+        blur = BlurParams(args.blur, d_f)
+    t_read = time.perf_counter() - t0
+
+    bar, update = _progress_bar(args)
+    try:
+        out, stats = render_with_stats(image, disparity, blur, _aperture(args), quality=args.quality,
+                                       device=args.device, options=_options(args),
+                                       highlight_boost=args.highlight_boost, progress=update)
+    finally:
+        if bar is not None:
+            bar.close()
+    t1 = time.perf_counter()
+    path = io.write_image(args.output, out, bit_depth=args.bit_depth, half=args.half)
+    t_write = time.perf_counter() - t1
+    if not args.quiet:
+        print(f"wrote {path}  (K = {blur.k_px:.3f} px, d_f = {blur.focus_disparity:.4f}, "
+              f"max CoC {stats.max_coc_px:.1f} px, {stats.stage_seconds['total']:.2f} s)")
+    if args.stats:
+        info = stats.as_dict()
+        info["stage_seconds"] = {"read": round(t_read, 4), **info["stage_seconds"], "write": round(t_write, 4)}
+        info["blur"] = {"K_px": blur.k_px, "focus_disparity": blur.focus_disparity}
+        print(json.dumps(info, indent=2))
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from . import io
+    from .demo import build_demo_scene, contact_sheet
+    from .lens import BlurParams
+    from .render import render_with_stats
+
+    w, h = args.size
+    out_dir = Path(args.output)
+    scene = build_demo_scene(width=w, height=h)
+    aperture = _aperture(args)
+    opts = _options(args)
+    written: list[tuple[str, Path]] = []
+
+    def save(name: str, img: np.ndarray, what: str) -> None:
+        written.append((what, io.write_image(out_dir / name, img)))
+
+    save("input.png", scene.image, "all-in-focus input (sRGB preview)")
+    written.append(("all-in-focus input (linear EXR)", io.write_image(out_dir / "input.exr", scene.image)))
+    written.append(("disparity (16-bit PNG, 1 = nearest)", io.write_disparity(out_dir / "disparity.png",
+                                                                            scene.disparity)))
+    all_stats = []
+    renders = {}
+    for label, d_f in (("near", scene.focus_near), ("far", scene.focus_far)):
+        out, stats = render_with_stats(scene.image, scene.disparity, BlurParams(scene.k_px, d_f), aperture,
+                                       device=args.device, options=opts)
+        renders[label] = out
+        all_stats.append((label, stats))
+        save(f"render_focus_{label}.png", out, f"focused {label} (d_f = {d_f:.3f}, K = {scene.k_px:.2f})")
+        written.append((f"focused {label} (linear EXR)", io.write_image(out_dir / f"render_focus_{label}.exr", out)))
+
+    stack_d = np.linspace(scene.focus_far, scene.focus_near, 6)
+    tiles, labels = [scene.image], ["all in focus"]
+    disp_vis = np.repeat(scene.disparity[..., None], 3, axis=2) ** 2.2  # shown as grey, brighter = nearer
+    tiles.append(disp_vis.astype(np.float32))
+    labels.append("disparity (white = near)")
+    for d_f in stack_d:
+        out, _ = render_with_stats(scene.image, scene.disparity, BlurParams(scene.k_px, float(d_f)), aperture,
+                                   device=args.device, options=opts)
+        tiles.append(out)
+        labels.append(f"focus d_f = {d_f:.2f}")
+    sheet = contact_sheet(tiles, labels, columns=4)
+    sheet_path = out_dir / "focal_stack.png"
+    from .io import srgb_to_linear
+
+    written.append(("focal-stack contact sheet", io.write_image(sheet_path, srgb_to_linear(sheet / 255.0))))
+    if not args.quiet:
+        print(scene.description)
+        for what, path in written:
+            print(f"  {what:<42} {path}")
+        for label, st in all_stats:
+            print(f"  render focus {label}: {st.stage_seconds['total']:.2f} s, {st.layers} layers, "
+                  f"{st.tiles_copied}/{st.tiles_total} tiles copied, max CoC {st.max_coc_px:.1f} px")
+    if args.stats:
+        print(json.dumps({label: st.as_dict() for label, st in all_stats}, indent=2))
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        if args.command == "render":
+            return cmd_render(args)
+        return cmd_demo(args)
+    except BokehrayError as e:
+        if args.debug:
+            raise
+        print(f"bokehray: error: {e}", file=sys.stderr)
+        return EXIT_INPUT
+    except KeyboardInterrupt:
+        print("bokehray: interrupted; no output was written", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,166 @@
+"""The command line: every path a user takes, and every error path (exit 2, one line, no output file)."""
+
+import json
+
+import numpy as np
+import pytest
+
+import bokehray as br
+from bokehray.cli import main
+
+
+@pytest.fixture
+def scene(tmp_path):
+    rng = np.random.default_rng(3)
+    h, w = 48, 64
+    img = rng.random((h, w, 3)).astype(np.float32) * 0.8
+    d = np.tile(np.linspace(0, 1, w, dtype=np.float32), (h, 1))
+    depth = (1.0 / (0.2 + 0.8 * d)).astype(np.float32)  # metres: 1.25 .. 5
+    paths = {
+        "png": br.write_image(tmp_path / "in.png", img),
+        "exr": br.write_image(tmp_path / "in.exr", img),
+        "disp_png": br.write_disparity(tmp_path / "d.png", d),
+        "disp_npy": br.write_disparity(tmp_path / "d.npy", d),
+        "depth": tmp_path / "z.npy",
+    }
+    np.save(paths["depth"], depth)
+    return paths, img, d
+
+
+def run(capsys, *args):
+    code = main([str(a) for a in args])
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+@pytest.mark.parametrize("out_name", ["o.png", "o.jpg", "o.tif", "o.exr"])
+def test_render_writes_every_output_format(scene, tmp_path, capsys, out_name):
+    p, _, _ = scene
+    code, out, err = run(capsys, "render", p["png"], "--disparity", p["disp_png"], "-o", tmp_path / out_name,
+                         "--blur", 6, "--focus", 0.5)
+    assert code == 0, err
+    assert (tmp_path / out_name).exists() and "wrote" in out
+    assert br.read_image(tmp_path / out_name).shape == (48, 64, 3)
+
+
+def test_render_matches_the_python_api(scene, tmp_path, capsys):
+    p, img, d = scene
+    code, _, err = run(capsys, "render", p["exr"], "--disparity", p["disp_npy"], "-o", tmp_path / "o.exr",
+                       "--blur", 8, "--focus", 0.3, "--aperture", "polygon", "--blades", 5, "--rotation", 10,
+                       "--curvature", 0.3)
+    assert code == 0, err
+    want = br.render(br.read_image(p["exr"]), d, br.BlurParams(8, 0.3), br.Aperture(5, 10, 0.3))
+    np.testing.assert_allclose(br.read_image(tmp_path / "o.exr"), want, atol=1e-6)
+
+
+def test_focus_at_and_stats(scene, tmp_path, capsys):
+    p, _, d = scene
+    code, out, err = run(capsys, "render", p["png"], "--disparity", p["disp_png"], "-o", tmp_path / "o.png",
+                         "--blur", 6, "--focus-at", "32,10", "--stats")
+    assert code == 0, err
+    stats = json.loads(out[out.index("{"):])
+    assert stats["blur"]["focus_disparity"] == pytest.approx(float(np.median(d[6:15, 28:37])), abs=1e-4)
+    assert {"read", "plan", "layers", "total", "write"} <= set(stats["stage_seconds"])
+    assert stats["tiles_total"] > 0 and "max_coc_px" in stats
+
+
+def test_physical_lens_with_metric_depth(scene, tmp_path, capsys):
+    p, img, _ = scene
+    code, out, err = run(capsys, "render", p["png"], "--depth", p["depth"], "-o", tmp_path / "o.exr",
+                         "--focal-length", 50, "--f-number", 2.0, "--focus-distance", 2.0, "--sensor-width", 36)
+    assert code == 0, err
+    z = np.load(p["depth"])
+    d, norm = br.disparity_from_depth(z)
+    blur = br.ThinLens(50, 2.0, 2.0, 36).blur_params(norm, 64)
+    want = br.render(br.read_image(p["png"]), d, blur)
+    np.testing.assert_allclose(br.read_image(tmp_path / "o.exr"), want, atol=1e-6)
+    assert f"K = {blur.k_px:.3f}" in out
+
+
+def test_resize_disparity(tmp_path, scene, capsys):
+    p, _, d = scene
+    small = br.write_disparity(tmp_path / "small.npy", d[::2, ::2].copy())
+    code, _, err = run(capsys, "render", p["png"], "--disparity", small, "-o", tmp_path / "o.png", "--blur", 4,
+                       "--focus", 0.5)
+    assert code == 2 and "--resize-disparity" in err and not (tmp_path / "o.png").exists()
+    code, _, err = run(capsys, "render", p["png"], "--disparity", small, "-o", tmp_path / "o.png", "--blur", 4,
+                       "--focus", 0.5, "--resize-disparity")
+    assert code == 0, err
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--disparity", "missing.png", "--blur", 4, "--focus", 0.5], "does not exist"),
+        (["--disparity", "{disp_png}", "--blur", -1, "--focus", 0.5], "K >= 0"),
+        (["--disparity", "{disp_png}", "--blur", 4, "--focus", 1.5], r"\[0, 1\]"),
+        (["--disparity", "{disp_png}", "--blur", 4], "exactly one of --focus"),
+        (["--disparity", "{disp_png}", "--focus", 0.5], "--blur K"),
+        (["--disparity", "{disp_png}", "--focal-length", 50, "--f-number", 2, "--focus-distance", 2], "--depth"),
+        (["--depth", "{depth}", "--focal-length", 50, "--focus-distance", 2], "--f-number"),
+        (["--disparity", "{bad_disp}", "--blur", 4, "--focus", 0.5], r"\[0, 1\]"),
+        (["--disparity", "{nan_disp}", "--blur", 4, "--focus", 0.5], "NaN"),
+        (["--disparity", "{disp_png}", "--blur", 4, "--focus", 0.5, "--device", "cuda:7"], "device"),
+        (["--disparity", "{disp_png}", "--blur", 4, "--focus", 0.5, "--bit-depth", 32], "bit_depth"),
+    ],
+)
+def test_bad_input_exits_2_with_one_line_and_no_output(scene, tmp_path, capsys, args, message):
+    p, _, d = scene
+    np.save(tmp_path / "bad.npy", d * 2)
+    nan = d.copy()
+    nan[3, 4] = np.nan
+    np.save(tmp_path / "nan.npy", nan)
+    fmt = {k: str(v) for k, v in p.items()} | {"bad_disp": tmp_path / "bad.npy", "nan_disp": tmp_path / "nan.npy"}
+    args = [str(a).format(**fmt) for a in args]
+    target = tmp_path / "out.png"
+    code, out, err = run(capsys, "render", p["png"], *args, "-o", target)
+    assert code == 2
+    assert err.startswith("bokehray: error:") and err.count("\n") == 1, err
+    assert pytest.importorskip("re").search(message, err), err
+    assert not target.exists()
+
+
+def test_corrupt_image_and_unsupported_output(tmp_path, scene, capsys):
+    p, _, _ = scene
+    (tmp_path / "broken.png").write_bytes(p["png"].read_bytes()[:100])
+    code, _, err = run(capsys, "render", tmp_path / "broken.png", "--disparity", p["disp_png"], "-o",
+                       tmp_path / "o.png", "--blur", 4, "--focus", 0.5)
+    assert code == 2 and "broken.png" in err
+    code, _, err = run(capsys, "render", p["png"], "--disparity", p["disp_png"], "-o", tmp_path / "o.gif",
+                       "--blur", 4, "--focus", 0.5)
+    assert code == 2 and "unsupported extension" in err
+
+
+def test_existing_output_survives_a_failed_render(tmp_path, scene, capsys):
+    p, _, _ = scene
+    target = tmp_path / "keep.png"
+    target.write_bytes(b"good")
+    code, _, _ = run(capsys, "render", p["png"], "--disparity", p["disp_png"], "-o", target, "--blur", 4,
+                     "--focus", 3.0)
+    assert code == 2 and target.read_bytes() == b"good"
+
+
+def test_debug_shows_the_traceback(scene, tmp_path):
+    p, _, _ = scene
+    with pytest.raises(br.InputError):
+        main(["render", str(p["png"]), "--disparity", str(p["disp_png"]), "-o", str(tmp_path / "o.png"),
+              "--blur", "4", "--focus", "2", "--debug"])
+
+
+def test_demo_writes_everything_it_announces(tmp_path, capsys):
+    code, out, err = run(capsys, "demo", "-o", tmp_path / "demo", "--size", "192,128")
+    assert code == 0, err
+    names = {"input.png", "input.exr", "disparity.png", "render_focus_near.png", "render_focus_far.png",
+             "focal_stack.png", "render_focus_near.exr", "render_focus_far.exr"}
+    assert names <= {f.name for f in (tmp_path / "demo").iterdir()}
+    for name in names:
+        assert str(tmp_path / "demo" / name) in out
+    near = br.read_image(tmp_path / "demo" / "render_focus_near.exr")
+    far = br.read_image(tmp_path / "demo" / "render_focus_far.exr")
+    assert near.shape == (128, 192, 3) and not np.allclose(near, far)
+
+
+def test_version(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0 and "bokehray" in capsys.readouterr().out
