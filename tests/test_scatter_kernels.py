@@ -1,7 +1,5 @@
 """Warp kernels of the preview renderer against the float64 NumPy reference (tests/reference)."""
 
-import math
-
 import numpy as np
 import pytest
 import warp as wp
@@ -10,7 +8,7 @@ from hypothesis import strategies as st
 
 import bokehray_kernels as bk
 from bokehray import Aperture
-from bokehray._scatter import PreviewOptions, render_preview
+from bokehray._scatter import PreviewOptions, layer_edges, render_preview
 from reference import scatter_ref
 from tolerances import (
     ENERGY_RTOL,
@@ -128,13 +126,12 @@ def test_layered_preview_matches_reference(ap, device, rng):
     disparity[:, :] = np.linspace(0, 0.4, w)[None, :]
     disparity[5:14, 6:15] = 0.9  # a near square over a tilted background
     s = (8.0 * (disparity - 0.5)).astype(np.float32)
-    opts = PreviewOptions(max_layers=1000, min_layer_px=1.0, level_radius_px=1e6, fill=False, tile_px=8)
-    got, _ = render_preview(image, s, ap, options=opts, device=device)
-    k_min = math.floor(float(s.min()) / 1.0)
-    # the renderer's layer edges are multiples of the width: same as floor(s / width)
-    want = scatter_ref.layered(image.astype(np.float64), s.astype(np.float64), 1.0, ap.blade_discs(),
-                                 ap.vertical_extent())
-    assert k_min <= 0
+    opts = PreviewOptions(max_layer_px=1.5, level_radius_px=1e6, fill=False, tile_px=8)
+    got, stats = render_preview(image, s, ap, options=opts, device=device)
+    edges = layer_edges(s, opts)
+    assert 4 <= stats.layers <= len(edges) - 1  # empty layers are skipped
+    want = scatter_ref.layered(image.astype(np.float64), s.astype(np.float64), edges, ap.blade_discs(),
+                               ap.vertical_extent())
     np.testing.assert_allclose(got, want, atol=1e-4)
 
 
@@ -170,3 +167,22 @@ def test_every_aperture_integrates_to_one_property(radius, blades, rotation, cur
     np.testing.assert_allclose(out.sum(), 1.0, rtol=ENERGY_RTOL if not pyramid else 1e-4)
     assert np.isfinite(out).all()
     assert out.min() >= -1e-6
+
+
+@given(values=st.lists(st.floats(-40, 40), min_size=1, max_size=200), max_px=st.floats(1.0, 16.0),
+       max_layers=st.integers(1, 16))
+def test_layer_edges_cover_all_values_and_respect_limits(values, max_px, max_layers):
+    s = np.asarray(values, np.float32)
+    opts = PreviewOptions(max_layer_px=max_px, max_layers=max_layers)
+    edges = layer_edges(s, opts)
+    assert np.all(np.diff(edges) > 0)
+    assert edges[0] < s.min() and edges[-1] > s.max()
+    assert len(edges) - 1 <= max(1, max_layers)
+
+
+def test_layer_edges_cut_at_gaps_and_around_focus():
+    s = np.concatenate([np.linspace(-20, -12, 50), np.linspace(-3, 0.3, 50), np.linspace(5, 9, 50)])
+    edges = layer_edges(s.astype(np.float32), PreviewOptions(max_layer_px=100.0))
+    inner = edges[1:-1]
+    assert any(-12 < e < -3 for e in inner) and any(0.3 < e < 5 for e in inner)  # the two depth gaps
+    assert -0.5 in inner and 0.5 in inner  # the in-focus layer is its own

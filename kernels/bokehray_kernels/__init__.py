@@ -19,9 +19,8 @@ from .fill import (
     pull_kernel as pull_kernel,
     push_kernel as push_kernel,
     column_distance_kernel as column_distance_kernel,
-    pp_init_kernel as pp_init_kernel,
+    layer_sources_kernel as layer_sources_kernel,
     row_distance_kernel as row_distance_kernel,
-    slice_sources_kernel as slice_sources_kernel,
 )
 
 __all__ = [
@@ -32,11 +31,10 @@ __all__ = [
     "composite_kernel",
     "fill_sources_kernel",
     "finalize_kernel",
-    "pp_init_kernel",
+    "layer_sources_kernel",
     "prefix_rows_kernel",
     "pull_kernel",
     "push_kernel",
     "resolve_levels_kernel",
     "scatter_kernel",
-    "slice_sources_kernel",
 ]

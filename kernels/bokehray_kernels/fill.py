@@ -14,30 +14,6 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})
 
 
-@wp.kernel
-def slice_sources_kernel(
-    image: wp.array2d(dtype=wp.vec3),
-    signed_coc: wp.array2d(dtype=float),
-    slice_id: wp.array2d(dtype=wp.int32),
-    layer: int,
-    x0: int,
-    y0: int,
-    src: wp.array2d(dtype=wp.vec4),
-    radius: wp.array2d(dtype=float),
-):
-    """Sources of one layer in local coordinates: (RGB, 1) where the pixel belongs to it, else 0."""
-    y, x = wp.tid()
-    gy = y + y0
-    gx = x + x0
-    if slice_id[gy, gx] == layer:
-        c = image[gy, gx]
-        src[y, x] = wp.vec4(c[0], c[1], c[2], 1.0)
-        radius[y, x] = wp.abs(signed_coc[gy, gx])
-    else:
-        src[y, x] = wp.vec4()
-        radius[y, x] = 0.0
-
-
 @wp.func
 def _tonemap(c: float) -> float:
     return c / (1.0 + wp.max(c, 0.0))
@@ -50,27 +26,41 @@ def _untonemap(t: float) -> float:
 
 
 @wp.kernel
-def pp_init_kernel(
+def layer_sources_kernel(
     image: wp.array2d(dtype=wp.vec3),
     signed_coc: wp.array2d(dtype=float),
     slice_id: wp.array2d(dtype=wp.int32),
     layer: int,
     x0: int,
     y0: int,
-    total: wp.array2d(dtype=wp.vec4),
-    weight: wp.array2d(dtype=float),
+    with_fill: int,
+    src: wp.array2d(dtype=wp.vec4),
+    radius: wp.array2d(dtype=float),
+    fill_total: wp.array2d(dtype=wp.vec4),
+    fill_weight: wp.array2d(dtype=float),
 ):
-    """Level 0 of the pull-push pyramid: (tone-mapped RGB, signed CoC) with weight 1 on the layer."""
+    """Sources of one layer in local coordinates: (RGB, 1) on its pixels, 0 elsewhere.
+
+    With ``with_fill != 0`` also level 0 of the pull-push pyramid: (tone-mapped
+    RGB, signed CoC) with weight 1 on the layer.
+    """
     y, x = wp.tid()
     gy = y + y0
     gx = x + x0
     if slice_id[gy, gx] == layer:
         c = image[gy, gx]
-        total[y, x] = wp.vec4(_tonemap(c[0]), _tonemap(c[1]), _tonemap(c[2]), signed_coc[gy, gx])
-        weight[y, x] = 1.0
+        s = signed_coc[gy, gx]
+        src[y, x] = wp.vec4(c[0], c[1], c[2], 1.0)
+        radius[y, x] = wp.abs(s)
+        if with_fill != 0:
+            fill_total[y, x] = wp.vec4(_tonemap(c[0]), _tonemap(c[1]), _tonemap(c[2]), s)
+            fill_weight[y, x] = 1.0
     else:
-        total[y, x] = wp.vec4()
-        weight[y, x] = 0.0
+        src[y, x] = wp.vec4()
+        radius[y, x] = 0.0
+        if with_fill != 0:
+            fill_total[y, x] = wp.vec4()
+            fill_weight[y, x] = 0.0
 
 
 @wp.kernel
@@ -202,11 +192,19 @@ def row_distance_kernel(
 
 
 @wp.kernel
-def column_distance_kernel(dist: wp.array2d(dtype=float), height: int):
-    """Second pass of the city-block (L1) distance transform, in place, per column."""
-    x = wp.tid()
+def column_distance_kernel(dist: wp.array2d(dtype=float), height: int, band: int):
+    """Second pass of the city-block (L1) distance transform, in place, per band of ``band`` columns.
+
+    Each thread sweeps its band row by row (contiguous memory on the CPU);
+    on a GPU use ``band = 1`` (one thread per column).
+    """
+    b = wp.tid()
+    xa = b * band
+    xb = wp.min(xa + band, dist.shape[1])
     for y in range(1, height):
-        dist[y, x] = wp.min(dist[y, x], dist[y - 1, x] + 1.0)
+        for x in range(xa, xb):
+            dist[y, x] = wp.min(dist[y, x], dist[y - 1, x] + 1.0)
     for i in range(1, height):
         y = height - 1 - i
-        dist[y, x] = wp.min(dist[y, x], dist[y + 1, x] + 1.0)
+        for x in range(xa, xb):
+            dist[y, x] = wp.min(dist[y, x], dist[y + 1, x] + 1.0)

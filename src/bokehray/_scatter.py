@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import math
 import os
+import queue
+import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -41,7 +43,8 @@ class PreviewOptions:
 
     Args:
         max_layers: most depth layers; more resolves more occlusion, costs more.
-        min_layer_px: narrowest layer, in CoC pixels.
+        max_layer_px: widest layer (in CoC pixels) on a gap-free depth range.
+        min_layer_px: a CoC range narrower than this is one layer.
         level_radius_px: largest radius scattered at a pyramid level before moving
             to the next coarser one (cost per source is O(level_radius_px)).
         tile_px: side of the tiles used to skip in-focus regions.
@@ -50,6 +53,7 @@ class PreviewOptions:
     """
 
     max_layers: int = 12
+    max_layer_px: float = 8.0
     min_layer_px: float = 1.0
     level_radius_px: float = 8.0
     tile_px: int = 16
@@ -128,6 +132,75 @@ def copy_tiles(radius: np.ndarray, tile: int) -> np.ndarray:
     return ~needed
 
 
+def layer_edges(signed_coc: np.ndarray, options: PreviewOptions) -> np.ndarray:
+    """Edges (ascending, in CoC px) of the depth layers for the given signed CoC values.
+
+    Layers exist to resolve occlusion; on a continuous surface every layer edge
+    is a seam (two one-sided blurs composited instead of one). So edges go
+    (1) around the focus, ``s = -0.5`` and ``s = +0.5``: the in-focus layer is
+    its own, so nothing blurred behind it can halo over it;
+    (2) into the gaps of the CoC histogram, where the depth jumps; and
+    (3) where a gap-free run is still wider than ``max_layer_px``, at even
+    spacing, so an in-focus subject and a far background on one continuous
+    range still get separate layers (no halo). At most ``max_layers`` layers:
+    the narrowest gaps are dropped first.
+    """
+    signed_coc = np.asarray(signed_coc, np.float32).ravel()
+    lo, hi = float(signed_coc.min()), float(signed_coc.max())
+    if hi - lo < options.min_layer_px:
+        return np.array([lo - 0.5, hi + 0.5])
+    bin_px = 0.25
+    n_bins = int(math.ceil((hi - lo) / bin_px)) + 1
+    hist = np.bincount(((signed_coc - lo) / bin_px).astype(np.int64), minlength=n_bins)
+    empty = hist == 0
+    # runs of empty bins: candidate cuts at their centres, ranked by width
+    change = np.flatnonzero(np.diff(np.concatenate([[0], empty.astype(np.int8), [0]])))
+    runs = change.reshape(-1, 2)
+    gaps = [(lo + bin_px * (a + b) / 2.0, (b - a) * bin_px) for a, b in runs]
+    gaps.sort(key=lambda g: -g[1])
+    cuts = {c for c in (-0.5, 0.5) if lo < c < hi}
+    for pos, _ in gaps[: max(0, options.max_layers - 1 - len(cuts))]:
+        cuts.add(pos)
+    edges = np.array(sorted({lo - 0.5, hi + 0.5} | cuts))
+    # split runs that are still too wide
+    out = [edges[0]]
+    for a, b in zip(edges[:-1], edges[1:]):
+        n = max(1, int(math.ceil((b - a) / options.max_layer_px)))
+        out.extend(a + (b - a) * np.arange(1, n + 1) / n)
+    edges = np.array(out)
+    if len(edges) - 1 > options.max_layers:  # too many: fall back to even spacing
+        edges = np.linspace(lo - 0.5, hi + 0.5, options.max_layers + 1)
+    return edges
+
+
+class _Scratch:
+    """Reusable device buffers of one worker thread, handed out as 2-D views.
+
+    Layers have different bounding boxes, so fresh arrays per layer would be
+    page-faulted in again and again (measured: 25% of a 1.5 MP render). Each
+    role keeps one flat buffer that only grows.
+    """
+
+    def __init__(self, device: str, reserve_px: int = 0):
+        self.device = device
+        self.reserve_px = reserve_px  # first allocation of a role is at least this many elements
+        self._bufs: dict[str, wp.array] = {}
+
+    def get(self, role: str, shape: tuple[int, int], dtype, zero: bool = False) -> wp.array:
+        item = wp.types.type_size_in_bytes(dtype)
+        nbytes = int(shape[0]) * int(shape[1]) * item
+        base = self._bufs.get(role)
+        if base is None or base.shape[0] * 4 < nbytes:
+            want = max(nbytes, self.reserve_px * item)
+            base = wp.empty(int(max(1, (want + 3) // 4)), dtype=wp.float32, device=self.device)
+            self._bufs[role] = base
+        view = wp.array(ptr=base.ptr, shape=tuple(int(v) for v in shape), dtype=dtype, device=self.device)
+        view._scratch_owner = base  # keep the storage alive as long as the view
+        if zero:
+            view.zero_()
+        return view
+
+
 @dataclass(slots=True)
 class _Layer:
     index: int
@@ -156,36 +229,33 @@ def _render_layer(
     extent: wp.vec2,
     opts: PreviewOptions,
     device: str,
+    scratch: _Scratch,
+    out: wp.array,
 ) -> tuple[wp.array, int]:
     y0, y1, x0, x1 = layer.bbox
     h, w = y1 - y0, x1 - x0
-    src = wp.empty((h, w), dtype=wp.vec4, device=device)
-    radius = wp.empty((h, w), dtype=float, device=device)
+    src = scratch.get("src", (h, w), wp.vec4)
+    radius = scratch.get("radius", (h, w), float)
+    fill = layer.fill_reach >= 0.5
+    pp_shape = (h, w) if fill else (1, 1)
+    totals = [scratch.get("pp_total0", pp_shape, wp.vec4)]
+    weights = [scratch.get("pp_weight0", pp_shape, float)]
     wp.launch(
-        bk.slice_sources_kernel,
+        bk.layer_sources_kernel,
         dim=(h, w),
-        inputs=[image, signed_coc, slice_id, layer.index, x0, y0],
-        outputs=[src, radius],
+        inputs=[image, signed_coc, slice_id, layer.index, x0, y0, int(fill)],
+        outputs=[src, radius, totals[0], weights[0]],
         device=device,
     )
     n_filled = 0
-    if layer.fill_reach >= 0.5:
-        counter = wp.zeros(1, dtype=wp.int32, device=device)
+    if fill:
+        counter = scratch.get("counter", (1, 1), wp.int32, zero=True).flatten()
         n_pp = max(1, min(16, int(math.ceil(math.log2(1.4142 * layer.fill_reach + 2.0))) + 1))
-        totals = [wp.empty((h, w), dtype=wp.vec4, device=device)]
-        weights = [wp.empty((h, w), dtype=float, device=device)]
-        wp.launch(
-            bk.pp_init_kernel,
-            dim=(h, w),
-            inputs=[image, signed_coc, slice_id, layer.index, x0, y0],
-            outputs=[totals[0], weights[0]],
-            device=device,
-        )
         for _ in range(n_pp):
             ph, pw = totals[-1].shape
             ch, cw = (ph + 1) // 2, (pw + 1) // 2
-            totals.append(wp.empty((ch, cw), dtype=wp.vec4, device=device))
-            weights.append(wp.empty((ch, cw), dtype=float, device=device))
+            totals.append(scratch.get(f"pp_total{len(totals)}", (ch, cw), wp.vec4))
+            weights.append(scratch.get(f"pp_weight{len(weights)}", (ch, cw), float))
             wp.launch(bk.pull_kernel, dim=(ch, cw), inputs=[totals[-2], weights[-2]],
                       outputs=[totals[-1], weights[-1]], device=device)
         top = len(totals) - 1
@@ -194,10 +264,11 @@ def _render_layer(
         for lv in range(top - 1, -1, -1):
             wp.launch(bk.push_kernel, dim=totals[lv].shape, inputs=[totals[lv + 1], weights[lv + 1], 0],
                       outputs=[totals[lv], weights[lv]], device=device)
-        dist = wp.empty((h, w), dtype=float, device=device)
+        dist = scratch.get("dist", (h, w), float)
         wp.launch(bk.row_distance_kernel, dim=h, inputs=[slice_id, layer.index, x0, y0, w], outputs=[dist],
                   device=device)
-        wp.launch(bk.column_distance_kernel, dim=w, inputs=[dist, h], device=device)
+        band = 1 if wp.get_device(device).is_cuda else 64
+        wp.launch(bk.column_distance_kernel, dim=(w + band - 1) // band, inputs=[dist, h, band], device=device)
         wp.launch(
             bk.fill_sources_kernel,
             dim=(h, w),
@@ -210,15 +281,14 @@ def _render_layer(
     bufs = []
     for lv in range(bk.MAX_LEVELS):
         if lv < n_levels:
-            bufs.append(wp.zeros(((h + (1 << lv) - 1) >> lv, ((w + (1 << lv) - 1) >> lv) + 2), dtype=wp.vec4,
-                                 device=device))
+            shape = ((h + (1 << lv) - 1) >> lv, ((w + (1 << lv) - 1) >> lv) + 2)
+            bufs.append(scratch.get(f"level{lv}", shape, wp.vec4, zero=True))
         else:
             bufs.append(bufs[0] if lv > 0 else None)
     wp.launch(bk.scatter_kernel, dim=(h, w),
               inputs=[src, radius, blades, n_blades, extent, float(opts.level_radius_px), n_levels, *bufs], device=device)
     for lv in range(n_levels):
         wp.launch(bk.prefix_rows_kernel, dim=bufs[lv].shape[0], inputs=[bufs[lv]], device=device)
-    out = src  # reuse: the sources are no longer needed
     wp.launch(bk.resolve_levels_kernel, dim=(h, w), inputs=[n_levels, *bufs], outputs=[out], device=device)
     return out, n_filled
 
@@ -249,13 +319,11 @@ def render_preview(
         stats.stage_seconds["total"] = stats.stage_seconds["plan"]
         return image.copy(), stats
 
-    s_act = signed_coc[active]
-    s_min, s_max = float(s_act.min()), float(s_act.max())
-    width = max(options.min_layer_px, (s_max - s_min) / options.max_layers)
-    k_min = math.floor(s_min / width)
-    sid = np.floor(signed_coc / width).astype(np.int32) - k_min
+    edges = layer_edges(signed_coc[active], options)
+    sid = (np.searchsorted(edges, signed_coc, side="right") - 1).astype(np.int32)
+    np.clip(sid, 0, len(edges) - 2, out=sid)
     sid[copy_px] = -1
-    n_slices = int(sid.max()) + 1
+    n_slices = len(edges) - 1
 
     # Per-layer extents on the tile grid (host side, on small arrays): a layer's
     # bounding box is the union of the tiles holding any of its pixels.
@@ -268,8 +336,7 @@ def render_preview(
     counts = np.bincount(sid[active], minlength=n_slices)
     present = counts > 0
     # CoC reach of everything nearer than each layer: suffix maximum of the layers' radius bounds
-    edge_r = np.maximum(np.abs(k_min + np.arange(n_slices)) * width, np.abs(k_min + np.arange(n_slices) + 1) * width)
-    max_r_slice = np.minimum(edge_r, stats.max_coc_px)
+    max_r_slice = np.minimum(np.maximum(np.abs(edges[:-1]), np.abs(edges[1:])), stats.max_coc_px)
     nearer_reach = np.zeros(n_slices)
     run = 0.0
     for i in range(n_slices - 1, -1, -1):
@@ -279,7 +346,7 @@ def render_preview(
     layers: list[_Layer] = []
     for i in np.flatnonzero(present):
         ty, tx = np.nonzero((tile_lo <= i) & (tile_hi >= i))
-        lo, hi = (k_min + i) * width, (k_min + i + 1) * width
+        lo, hi = float(edges[i]), float(edges[i + 1])
         reach = nearer_reach[i] if options.fill else 0.0
         pad_fill = int(math.ceil(1.4142 * reach)) + 2 if reach >= 0.5 else 0
         pad = pad_fill + int(math.ceil(max_r_slice[i])) + 2
@@ -306,6 +373,23 @@ def render_preview(
     # composited strictly back to front as they complete, with at most
     # ``threads + 1`` layers in flight to bound memory.
     done = 0
+    local = threading.local()
+    reserve = int(max((lyr.bbox[1] - lyr.bbox[0]) * (lyr.bbox[3] - lyr.bbox[2]) for lyr in layers))
+    # results outlive their worker's next layer (composited in order): a ring of threads + 1 buffers
+    results = queue.SimpleQueue()
+    for i in range(threads + 1):
+        results.put(_Scratch(device, reserve))
+
+    def render_layer(lyr: _Layer) -> tuple[wp.array, int, _Scratch]:
+        if not hasattr(local, "scratch"):
+            local.scratch = _Scratch(device, reserve)
+        holder = results.get()
+        y0, y1, x0, x1 = lyr.bbox
+        out = holder.get("result", (y1 - y0, x1 - x0), wp.vec4)
+        layer_out, n_filled = _render_layer(lyr, img_wp, s_wp, sid_wp, blades, len(blade_rows), extent, options,
+                                            device, local.scratch, out)
+        return layer_out, n_filled, holder
+
     with ThreadPoolExecutor(max_workers=threads) as pool:
         pending: list[tuple[_Layer, Future]] = []
         it = iter(layers)
@@ -313,18 +397,18 @@ def render_preview(
         def submit_next() -> None:
             lyr = next(it, None)
             if lyr is not None:
-                pending.append((lyr, pool.submit(_render_layer, lyr, img_wp, s_wp, sid_wp, blades,
-                                                 len(blade_rows), extent, options, device)))
+                pending.append((lyr, pool.submit(render_layer, lyr)))
 
         for _ in range(threads + 1):
             submit_next()
         while pending:
             lyr, fut = pending.pop(0)
-            out, n_filled = fut.result()
+            out, n_filled, holder = fut.result()
             stats.sources_filled += n_filled
             submit_next()
             y0, y1, x0, x1 = lyr.bbox
             wp.launch(bk.composite_kernel, dim=(y1 - y0, x1 - x0), inputs=[out, x0, y0], outputs=[acc], device=device)
+            results.put(holder)
             done += 1
             if progress is not None:
                 progress(done, len(layers))

@@ -94,15 +94,15 @@ def scatter(src: np.ndarray, radius: np.ndarray, blades: np.ndarray,
     return out
 
 
-def layered(image: np.ndarray, signed_coc: np.ndarray, layer_px: float, blades: np.ndarray,
+def layered(image: np.ndarray, signed_coc: np.ndarray, edges: np.ndarray, blades: np.ndarray,
             extent: tuple[float, float] = (-1.0, 1.0)) -> np.ndarray:
     """Layered preview without fill, pyramid or tile skipping (docs/renderer.md, "compositing rule").
 
-    Layers are ``floor(s / layer_px)``; each layer scatters (RGB, 1) of its own
+    Layer ``i`` holds the pixels with ``edges[i] <= s < edges[i + 1]``; each layer scatters (RGB, 1) of its own
     pixels; layers are composited back to front with opacity ``min(coverage, 1)``
     and colour ``sum / coverage``; the result is divided by the total opacity.
     """
-    ids = np.floor(signed_coc / layer_px).astype(int)
+    ids = np.searchsorted(edges, signed_coc, side="right") - 1
     h, w, _ = image.shape
     acc = np.zeros((h, w, 3))
     opacity = np.zeros((h, w))
