@@ -230,3 +230,34 @@ def test_focus_at_uses_a_robust_median():
     assert br.focus_at(d, 20, 20) == pytest.approx(0.3)
     with pytest.raises(br.InputError, match="focus point"):
         br.focus_at(d, 60, 2)
+
+
+def test_fill_reveals_the_background_behind_a_blurred_edge(device):
+    """Behind a defocused foreground edge the thin lens sees background: the fill supplies it."""
+    h, w = 64, 64
+    image = np.zeros((h, w, 3), np.float32)
+    image[..., 2] = 1.0
+    image[:, 32:] = [1.0, 0.0, 0.0]  # red, near, blurred
+    d = np.zeros((h, w), np.float32)
+    d[:, 32:] = 1.0
+    blur = br.BlurParams(8.0, 0.0)
+    px = br.render(image, d, blur, device=device)[32, 34]  # 2 px inside the red edge
+    assert 0.5 < px[0] < 0.95
+    assert px[0] + px[2] == pytest.approx(1.0, abs=0.02)  # the rest is blue background: no dark or red halo
+    unfilled = br.render(image, d, blur, options=PreviewOptions(fill=False), device=device)[32, 34]
+    assert unfilled[2] < 0.05  # without the fill only the foreground's own colour is left
+
+
+def test_sparse_layer_fills_sparsely():
+    """Thin strokes over a background continue behind an occluder at their density, not as a solid sheet."""
+    h, w = 64, 96
+    image = np.zeros((h, w, 3), np.float32)
+    d = np.zeros((h, w), np.float32)
+    image[:, ::4] = 1.0  # white vertical lines, one column in four, in focus at d = 0.5
+    d[:, ::4] = 0.5
+    image[:, 48:] = 0.5  # a grey occluder, near and blurred
+    d[:, 48:] = 1.0
+    out = br.render(image, d, br.BlurParams(16.0, 0.5))  # occluder r = 8
+    inside = out[20:44, 50:53].mean()  # 2-4 px inside the occluder edge: partly transparent
+    # hidden lines at density 1/4 give about 0.7 * 0.5 + 0.3 * 0.25 = 0.43; a solid white fill would give 0.65
+    assert inside < 0.5

@@ -38,16 +38,24 @@ def layer_sources_kernel(
     radius: wp.array2d(dtype=float),
     fill_total: wp.array2d(dtype=wp.vec4),
     fill_weight: wp.array2d(dtype=float),
+    fill_known: wp.array2d(dtype=float),
 ):
     """Sources of one layer in local coordinates: (RGB, 1) on its pixels, 0 elsewhere.
 
     With ``with_fill != 0`` also level 0 of the pull-push pyramid: (tone-mapped
-    RGB, signed CoC) with weight 1 on the layer.
+    RGB, signed CoC) with weight 1 on the layer, and ``known = 1`` wherever the
+    photo shows this layer or something behind it (not hidden by a nearer layer).
     """
     y, x = wp.tid()
     gy = y + y0
     gx = x + x0
-    if slice_id[gy, gx] == layer:
+    sid = slice_id[gy, gx]
+    if with_fill != 0:
+        if sid >= 0 and sid <= layer:
+            fill_known[y, x] = 1.0
+        else:
+            fill_known[y, x] = 0.0
+    if sid == layer:
         c = image[gy, gx]
         s = signed_coc[gy, gx]
         src[y, x] = wp.vec4(c[0], c[1], c[2], 1.0)
@@ -67,13 +75,16 @@ def layer_sources_kernel(
 def pull_kernel(
     fine_total: wp.array2d(dtype=wp.vec4),
     fine_weight: wp.array2d(dtype=float),
+    fine_known: wp.array2d(dtype=float),
     coarse_total: wp.array2d(dtype=wp.vec4),
     coarse_weight: wp.array2d(dtype=float),
+    coarse_known: wp.array2d(dtype=float),
 ):
-    """Coarse pixel = sum of its (up to) 2 x 2 children, values and weights."""
+    """Coarse pixel = sum of its (up to) 2 x 2 children: values, weights and known counts."""
     y, x = wp.tid()
     t = wp.vec4()
     w = float(0.0)
+    k = float(0.0)
     for dy in range(2):
         for dx in range(2):
             fy = 2 * y + dy
@@ -81,54 +92,81 @@ def pull_kernel(
             if fy < fine_total.shape[0] and fx < fine_total.shape[1]:
                 t = t + fine_total[fy, fx]
                 w = w + fine_weight[fy, fx]
+                k = k + fine_known[fy, fx]
     coarse_total[y, x] = t
     coarse_weight[y, x] = w
+    coarse_known[y, x] = k
 
 
 @wp.kernel
 def push_kernel(
     coarse_value: wp.array2d(dtype=wp.vec4),
+    coarse_density: wp.array2d(dtype=float),
     coarse_has: wp.array2d(dtype=float),
     top: int,
-    fine_total: wp.array2d(dtype=wp.vec4),
-    fine_weight: wp.array2d(dtype=float),
+    total: wp.array2d(dtype=wp.vec4),
+    weight: wp.array2d(dtype=float),
+    known: wp.array2d(dtype=float),
 ):
-    """Turn a level's (total, weight) into (value, has) in place, interpolating from the coarser level.
+    """Turn one level's sums into (value, density, has) in place, interpolating what it lacks.
 
-    With ``top != 0`` there is no coarser level: value = total / weight where weight > 0.
+    ``value``: mean (tone-mapped RGB, signed CoC) of the layer's own pixels.
+    ``density``: the share of the visible (not hidden) pixels that belong to the
+    layer, so a sparse layer (strokes, wires, twigs over a background) fills its
+    hidden region sparsely, and a continuous surface fills it opaquely.
+    ``has``: 1 where the density is known. Where this level has no visible
+    pixel, both come from the coarser level (bilinear, weighted by what it has).
+    With ``top != 0`` there is no coarser level.
     """
     y, x = wp.tid()
-    w = fine_weight[y, x]
+    w = weight[y, x]
+    k = known[y, x]
+    v = wp.vec4()
     if w > 0.0:
-        fine_total[y, x] = fine_total[y, x] / w
-        fine_weight[y, x] = 1.0
-        return
-    if top != 0:
-        fine_weight[y, x] = 0.0
-        return
-    h = coarse_value.shape[0]
-    cw = coarse_value.shape[1]
-    fx = wp.clamp((float(x) + 0.5) * 0.5 - 0.5, 0.0, float(cw - 1))
-    fy = wp.clamp((float(y) + 0.5) * 0.5 - 0.5, 0.0, float(h - 1))
-    xa = int(wp.floor(fx))
-    ya = int(wp.floor(fy))
-    xb = wp.min(xa + 1, cw - 1)
-    yb = wp.min(ya + 1, h - 1)
-    tx = fx - float(xa)
-    ty = fy - float(ya)
-    w00 = (1.0 - tx) * (1.0 - ty) * coarse_has[ya, xa]
-    w01 = tx * (1.0 - ty) * coarse_has[ya, xb]
-    w10 = (1.0 - tx) * ty * coarse_has[yb, xa]
-    w11 = tx * ty * coarse_has[yb, xb]
-    ws = w00 + w01 + w10 + w11
-    if ws > 1.0e-8:
-        v = coarse_value[ya, xa] * w00 + coarse_value[ya, xb] * w01 + coarse_value[yb, xa] * w10
-        v = v + coarse_value[yb, xb] * w11
-        fine_total[y, x] = v / ws
-        fine_weight[y, x] = 1.0
-    else:
-        fine_total[y, x] = wp.vec4()
-        fine_weight[y, x] = 0.0
+        v = total[y, x] / w
+    density = float(0.0)
+    has = float(0.0)
+    if k > 0.0:
+        density = w / k
+        has = 1.0
+    if (k <= 0.0 or w <= 0.0) and top == 0:
+        h = coarse_value.shape[0]
+        cw = coarse_value.shape[1]
+        fx = wp.clamp((float(x) + 0.5) * 0.5 - 0.5, 0.0, float(cw - 1))
+        fy = wp.clamp((float(y) + 0.5) * 0.5 - 0.5, 0.0, float(h - 1))
+        xa = int(wp.floor(fx))
+        ya = int(wp.floor(fy))
+        xb = wp.min(xa + 1, cw - 1)
+        yb = wp.min(ya + 1, h - 1)
+        tx = fx - float(xa)
+        ty = fy - float(ya)
+        b00 = (1.0 - tx) * (1.0 - ty)
+        b01 = tx * (1.0 - ty)
+        b10 = (1.0 - tx) * ty
+        b11 = tx * ty
+        if k <= 0.0:
+            h00 = b00 * coarse_has[ya, xa]
+            h01 = b01 * coarse_has[ya, xb]
+            h10 = b10 * coarse_has[yb, xa]
+            h11 = b11 * coarse_has[yb, xb]
+            hs = h00 + h01 + h10 + h11
+            if hs > 1.0e-8:
+                density = (h00 * coarse_density[ya, xa] + h01 * coarse_density[ya, xb] + h10 * coarse_density[yb, xa]
+                           + h11 * coarse_density[yb, xb]) / hs
+                has = 1.0
+        if w <= 0.0:
+            # colour only from coarse pixels that hold some of the layer
+            d00 = b00 * coarse_has[ya, xa] * coarse_density[ya, xa]
+            d01 = b01 * coarse_has[ya, xb] * coarse_density[ya, xb]
+            d10 = b10 * coarse_has[yb, xa] * coarse_density[yb, xa]
+            d11 = b11 * coarse_has[yb, xb] * coarse_density[yb, xb]
+            ds = d00 + d01 + d10 + d11
+            if ds > 1.0e-8:
+                v = (coarse_value[ya, xa] * d00 + coarse_value[ya, xb] * d01 + coarse_value[yb, xa] * d10
+                     + coarse_value[yb, xb] * d11) / ds
+    total[y, x] = v
+    weight[y, x] = density
+    known[y, x] = has
 
 
 @wp.kernel
@@ -138,7 +176,7 @@ def fill_sources_kernel(
     x0: int,
     y0: int,
     fill_value: wp.array2d(dtype=wp.vec4),
-    fill_has: wp.array2d(dtype=float),
+    fill_density: wp.array2d(dtype=float),
     dist_l1: wp.array2d(dtype=float),
     signed_coc: wp.array2d(dtype=float),
     s_lo: float,
@@ -147,7 +185,10 @@ def fill_sources_kernel(
     radius: wp.array2d(dtype=float),
     n_filled: wp.array(dtype=wp.int32),
 ):
-    """Add the filled colour as opaque sources where a nearer layer hides this one.
+    """Add the filled colour as sources where a nearer layer hides this one.
+
+    Opacity is the layer's extrapolated density: 1 for a continuous surface,
+    the stroke coverage for a sparse layer (premultiplied, like every source).
 
     Only where the hiding pixel is itself blurred enough to reveal it: the L1
     distance to this layer's visible pixels is at most sqrt(2) times the
@@ -157,11 +198,13 @@ def fill_sources_kernel(
     y, x = wp.tid()
     gy = y + y0
     gx = x + x0
-    if slice_id[gy, gx] <= layer or fill_has[y, x] <= 0.0:
+    density = fill_density[y, x]
+    if slice_id[gy, gx] <= layer or density < 0.02:
         return
     if dist_l1[y, x] <= 1.4142135 * wp.abs(signed_coc[gy, gx]) + 1.0:
         v = fill_value[y, x]
-        src[y, x] = wp.vec4(_untonemap(v[0]), _untonemap(v[1]), _untonemap(v[2]), 1.0)
+        a = wp.min(density, 1.0)
+        src[y, x] = wp.vec4(_untonemap(v[0]) * a, _untonemap(v[1]) * a, _untonemap(v[2]) * a, a)
         radius[y, x] = wp.abs(wp.clamp(v[3], s_lo, s_hi))
         wp.atomic_add(n_filled, 0, 1)
 

@@ -240,11 +240,12 @@ def _render_layer(
     pp_shape = (h, w) if fill else (1, 1)
     totals = [scratch.get("pp_total0", pp_shape, wp.vec4)]
     weights = [scratch.get("pp_weight0", pp_shape, float)]
+    knowns = [scratch.get("pp_known0", pp_shape, float)]
     wp.launch(
         bk.layer_sources_kernel,
         dim=(h, w),
         inputs=[image, signed_coc, slice_id, layer.index, x0, y0, int(fill)],
-        outputs=[src, radius, totals[0], weights[0]],
+        outputs=[src, radius, totals[0], weights[0], knowns[0]],
         device=device,
     )
     n_filled = 0
@@ -256,14 +257,15 @@ def _render_layer(
             ch, cw = (ph + 1) // 2, (pw + 1) // 2
             totals.append(scratch.get(f"pp_total{len(totals)}", (ch, cw), wp.vec4))
             weights.append(scratch.get(f"pp_weight{len(weights)}", (ch, cw), float))
-            wp.launch(bk.pull_kernel, dim=(ch, cw), inputs=[totals[-2], weights[-2]],
-                      outputs=[totals[-1], weights[-1]], device=device)
+            knowns.append(scratch.get(f"pp_known{len(knowns)}", (ch, cw), float))
+            wp.launch(bk.pull_kernel, dim=(ch, cw), inputs=[totals[-2], weights[-2], knowns[-2]],
+                      outputs=[totals[-1], weights[-1], knowns[-1]], device=device)
         top = len(totals) - 1
-        wp.launch(bk.push_kernel, dim=totals[top].shape, inputs=[totals[top], weights[top], 1],
-                  outputs=[totals[top], weights[top]], device=device)
-        for lv in range(top - 1, -1, -1):
-            wp.launch(bk.push_kernel, dim=totals[lv].shape, inputs=[totals[lv + 1], weights[lv + 1], 0],
-                      outputs=[totals[lv], weights[lv]], device=device)
+        for lv in range(top, -1, -1):
+            c = min(lv + 1, top)  # the top level has no coarser level (flag 1): it passes itself
+            wp.launch(bk.push_kernel, dim=totals[lv].shape,
+                      inputs=[totals[c], weights[c], knowns[c], int(lv == top)],
+                      outputs=[totals[lv], weights[lv], knowns[lv]], device=device)
         dist = scratch.get("dist", (h, w), float)
         wp.launch(bk.row_distance_kernel, dim=h, inputs=[slice_id, layer.index, x0, y0, w], outputs=[dist],
                   device=device)
