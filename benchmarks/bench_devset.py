@@ -1,0 +1,94 @@
+"""Score the preview renderer against the path-traced thin-lens dev set (shared/data/pathtraced-dev).
+
+The dev set's own ``score.py`` is the referee: this script renders every
+(scene, focus, K) of the set with each variant, writes the predictions as
+linear EXR, and runs ``score.py`` on them (whole image and the band within
+8 px of a depth discontinuity).
+
+Usage (from the repository root)::
+
+    python benchmarks/bench_devset.py                   # data in ../shared/data/pathtraced-dev
+    python benchmarks/bench_devset.py --data DIR --out benchmarks/results
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+import bokehray as br  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+VARIANTS = {
+    "preview (default)": br.PreviewOptions(),
+    "preview, no hidden-region fill": br.PreviewOptions(fill=False),
+    "plain scatter (one layer, no occlusion)": br.PreviewOptions(max_layers=1, fill=False),
+}
+
+
+def render_set(data: Path, out: Path, options: br.PreviewOptions) -> float:
+    """Render all dev-set pairs into ``out``; returns the total render time in seconds."""
+    total = 0.0
+    for info_path in sorted(data.glob("*/info.json")):
+        scene = info_path.parent
+        info = json.loads(info_path.read_text())
+        image = br.read_image(scene / "image.exr")
+        disparity = br.read_disparity(scene / "disparity.exr")
+        for r in info["renders"]:
+            blur = br.BlurParams(r["K"], min(1.0, max(0.0, r["focus_disparity"])))
+            t = time.perf_counter()
+            pred = br.render(image, disparity, blur, options=options)
+            total += time.perf_counter() - t
+            br.write_image(out / scene.name / f"{r['file']}.exr", pred)
+    return total
+
+
+def score(data: Path, pred: Path) -> dict:
+    text = subprocess.run([sys.executable, str(data / "score.py"), str(pred)], capture_output=True, text=True,
+                          check=True).stdout
+    rows = {}
+    for line in text.splitlines():
+        m = re.match(r"\s*(mean over 18 renders|K=\d+)\s+([\d.]+)\s+([\d.]+)\s+([\d.]+)\s+([\d.]+)", line)
+        if m:
+            rows[m.group(1)] = dict(zip(("psnr", "ssim", "band_psnr", "band_ssim"), map(float, m.groups()[1:])))
+    return {"summary": rows, "table": text}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data" / "pathtraced-dev")
+    ap.add_argument("--out", type=Path, help="folder for devset--preview.json (default: print only)")
+    args = ap.parse_args()
+    if not (args.data / "score.py").exists():
+        print(f"dev set not found at {args.data}: skipped (pass --data DIR)")
+        return 0
+    results = {}
+    for name, opts in VARIANTS.items():
+        with tempfile.TemporaryDirectory() as tmp:
+            render_set(args.data, Path(tmp), opts)  # warm-up: kernels compile on first use
+            seconds = render_set(args.data, Path(tmp), opts)
+            results[name] = score(args.data, Path(tmp)) | {"render_seconds_18": round(seconds, 3)}
+    print("| variant | PSNR | SSIM | band PSNR | band SSIM | K=8 PSNR | K=16 PSNR | K=32 PSNR | time for 18 (s) |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for name, r in results.items():
+        m, s = r["summary"]["mean over 18 renders"], r["summary"]
+        print(f"| {name} | {m['psnr']:.2f} | {m['ssim']:.4f} | {m['band_psnr']:.2f} | {m['band_ssim']:.4f} | "
+              f"{s['K=8']['psnr']:.2f} | {s['K=16']['psnr']:.2f} | {s['K=32']['psnr']:.2f} | "
+              f"{r['render_seconds_18']:.2f} |")
+    print("\nPer render (default variant):\n" + results["preview (default)"]["table"])
+    if args.out:
+        args.out.mkdir(parents=True, exist_ok=True)
+        (args.out / "devset--preview.json").write_text(json.dumps(results, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,128 @@
+"""Shared helpers of the bokehray benchmarks: machine description, warm timing, peak memory, JSON."""
+
+from __future__ import annotations
+
+import datetime
+import json
+import os
+import platform
+import re
+import resource
+import socket
+import statistics
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def _read(path: str) -> str:
+    return Path(path).read_text() if Path(path).exists() else ""
+
+
+def _git_commit() -> str:
+    try:
+        def git(*args: str) -> subprocess.CompletedProcess:
+            return subprocess.run(["git", *args], cwd=REPO, capture_output=True, text=True)
+
+        out, dirty = git("rev-parse", "--short", "HEAD"), git("status", "--porcelain", "--untracked-files=no").stdout
+        return out.stdout.strip() + ("+dirty" if dirty.strip() else "") if out.returncode == 0 else "unknown"
+    except OSError:
+        return "unknown"
+
+
+def machine_info() -> dict:
+    """Describe the machine and software the numbers were taken on."""
+    import numpy
+    import warp
+
+    model = re.search(r"^model name\s*:\s*(.+)$", _read("/proc/cpuinfo"), re.M)
+    mem = re.search(r"^MemTotal:\s*(\d+) kB", _read("/proc/meminfo"), re.M)
+    return {
+        "hostname": socket.gethostname(),
+        "cpu": model.group(1).strip() if model else platform.processor() or "unknown",
+        "cores": os.cpu_count(),
+        "load_avg_1_5_15": [round(x, 2) for x in os.getloadavg()],  # other jobs skew the timings
+        "ram_gb": round(int(mem.group(1)) / 2**20, 1) if mem else None,
+        "os": platform.platform(),
+        "python": platform.python_version(),
+        "numpy": numpy.__version__,
+        "warp": warp.__version__,
+        "git_commit": _git_commit(),
+        "date": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
+    }
+
+
+def machine_tag(info: dict) -> str:
+    """Short file-name-safe tag, e.g. ``vm-amd-epyc-2c``."""
+    raw = f"{info['hostname']}-{info['cpu']}-{info['cores']}c"
+    return re.sub(r"[^a-z0-9]+", "-", raw.lower().replace("(r)", "").replace("(tm)", "")).strip("-")[:60]
+
+
+def time_warm(fn: Callable[[], object], runs: int = 5, warmup: int = 1) -> dict:
+    """Time ``fn()`` after ``warmup`` untimed calls (kernel loading, caches).
+
+    Returns:
+        dict with ``median``, ``min``, ``max`` (seconds), ``runs`` (all timed calls)
+        and ``warmup`` (the warm-up calls' times, first call included).
+    """
+    def once() -> float:
+        t = time.perf_counter()
+        fn()
+        return time.perf_counter() - t
+
+    warm = [once() for _ in range(warmup)]
+    times = [once() for _ in range(runs)]
+    return {"median": statistics.median(times), "min": min(times), "max": max(times), "runs": times, "warmup": warm}
+
+
+def peak_rss_mb_of(cmd_args: Sequence[str], timeout: float = 600.0) -> dict:
+    """Run ``python *cmd_args`` in a fresh process and read the peak RSS it reports.
+
+    The child calls :func:`report_rss` before the measured work (current RSS)
+    and after it (peak RSS); see there why the peak is not ``ru_maxrss``.
+
+    Returns:
+        dict with ``peak_mb`` and ``before_mb`` (or None), or ``error`` on failure.
+    """
+    try:
+        p = subprocess.run([sys.executable, *cmd_args], cwd=REPO, capture_output=True, text=True, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return {"error": f"timed out after {timeout:.0f} s"}
+    kb = {k: int(v) for k, _, v in (ln.partition("=") for ln in p.stdout.splitlines()) if k in ("RSS_KB", "PEAK_KB")}
+    if p.returncode != 0 or "PEAK_KB" not in kb:
+        tail = (p.stderr.strip().splitlines() or ["no output"])[-1]
+        return {"error": f"exit code {p.returncode}: {tail}"}
+    return {"peak_mb": kb["PEAK_KB"] / 1024, "before_mb": kb["RSS_KB"] / 1024 if "RSS_KB" in kb else None}
+
+
+def _status_kb(field: str) -> int | None:
+    m = re.search(rf"^{field}:\s*(\d+) kB", _read("/proc/self/status"), re.M)
+    return int(m.group(1)) if m else None
+
+
+def report_rss(peak: bool) -> None:
+    """Print this process's current (``peak=False``) or peak RSS in KB for :func:`peak_rss_mb_of`.
+
+    The peak is ``VmHWM`` of /proc/self/status, not ``ru_maxrss``: on Linux a
+    child's ``ru_maxrss`` starts at its parent's peak (exec carries the forked
+    address space's high-water mark over), so it would report the benchmark
+    driver's memory. ``ru_maxrss`` is the fallback where /proc is missing.
+    """
+    if peak:
+        kb = _status_kb("VmHWM") or resource.getrusage(resource.RUSAGE_SELF).ru_maxrss // (
+            1024 if sys.platform == "darwin" else 1)  # bytes on macOS
+        print(f"PEAK_KB={kb}", flush=True)
+    elif (kb := _status_kb("VmRSS")) is not None:
+        print(f"RSS_KB={kb}", flush=True)
+
+
+def write_json(path: str | Path, obj: object) -> Path:
+    """Write ``obj`` as indented JSON, creating parent folders."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(obj, indent=2) + "\n")
+    return path
