@@ -62,10 +62,43 @@ def score(data: Path, pred: Path) -> dict:
     return {"summary": rows, "table": text}
 
 
+def crops_figure(data: Path, path: Path, cases=(("d3_lamps_ring_writing", "bokeh_f0_k1", (60, 40, 200)),
+                                                  ("d2_leafy_twig", "bokeh_f1_k2", (40, 60, 200)),
+                                                  ("d1_wire_mesh", "bokeh_f1_k1", (100, 100, 160)))) -> None:
+    """Side-by-side crops at depth edges: input, plain scatter, preview, path-traced truth."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    cols = ("all-in-focus input", "plain scatter", "bokehray preview", "path-traced truth")
+    fig, axes = plt.subplots(len(cases), 4, figsize=(12, 3.1 * len(cases)))
+    for row, (scene, name, (y, x, size)) in enumerate(cases):
+        info = json.loads((data / scene / "info.json").read_text())
+        r = next(r for r in info["renders"] if r["file"] == name)
+        image = br.read_image(data / scene / "image.exr")
+        disparity = br.read_disparity(data / scene / "disparity.exr")
+        blur = br.BlurParams(r["K"], min(1.0, r["focus_disparity"]))
+        shots = (image, br.render(image, disparity, blur, options=VARIANTS["plain scatter (one layer, no occlusion)"]),
+                 br.render(image, disparity, blur), br.read_image(data / scene / f"{name}.exr"))
+        for col, img in enumerate(shots):
+            ax = axes[row, col]
+            ax.imshow(br.io.linear_to_srgb(np.clip(img[y:y + size, x:x + size], 0, 1)))
+            ax.set_xticks([]), ax.set_yticks([])
+            if row == 0:
+                ax.set_title(cols[col])
+            if col == 0:
+                ax.set_ylabel(f"{scene}\n{name} (K={r['K']:g})", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data" / "pathtraced-dev")
     ap.add_argument("--out", type=Path, help="folder for devset--preview.json (default: print only)")
+    ap.add_argument("--figure", type=Path, help="also save side-by-side crops at depth edges (PNG)")
     args = ap.parse_args()
     if not (args.data / "score.py").exists():
         print(f"dev set not found at {args.data}: skipped (pass --data DIR)")
@@ -84,6 +117,8 @@ def main() -> int:
               f"{s['K=8']['psnr']:.2f} | {s['K=16']['psnr']:.2f} | {s['K=32']['psnr']:.2f} | "
               f"{r['render_seconds_18']:.2f} |")
     print("\nPer render (default variant):\n" + results["preview (default)"]["table"])
+    if args.figure:
+        crops_figure(args.data, args.figure)
     if args.out:
         args.out.mkdir(parents=True, exist_ok=True)
         (args.out / "devset--preview.json").write_text(json.dumps(results, indent=1))
