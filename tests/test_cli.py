@@ -164,3 +164,14 @@ def test_version(capsys):
     with pytest.raises(SystemExit) as e:
         main(["--version"])
     assert e.value.code == 0 and "bokehray" in capsys.readouterr().out
+
+
+def test_physical_lens_focus_at_a_pixel(scene, tmp_path, capsys):
+    p, _, _ = scene
+    code, out, err = run(capsys, "render", p["png"], "--depth", p["depth"], "-o", tmp_path / "o.png",
+                         "--focal-length", 35, "--f-number", 1.8, "--focus-at", "40,20", "--stats")
+    assert code == 0, err
+    z = np.load(p["depth"])
+    d, norm = br.disparity_from_depth(z)
+    stats = json.loads(out[out.index("{"):])
+    assert stats["blur"]["focus_disparity"] == pytest.approx(br.focus_at(d, 40, 20), abs=1e-4)

@@ -261,3 +261,16 @@ def test_sparse_layer_fills_sparsely():
     inside = out[20:44, 50:53].mean()  # 2-4 px inside the occluder edge: partly transparent
     # hidden lines at density 1/4 give about 0.7 * 0.5 + 0.3 * 0.25 = 0.43; a solid white fill would give 0.65
     assert inside < 0.5
+
+
+def test_highlight_boost_inflates_only_clipped_pixels():
+    image = np.array([[[0.5, 0.5, 0.5], [1.0, 1.0, 1.0], [1.0, 0.2, 0.2]]], np.float32)
+    out = br.boost_highlights(image, strength=4.0)
+    np.testing.assert_array_equal(out[0, 0], image[0, 0])  # below the threshold: untouched
+    np.testing.assert_allclose(out[0, 1], 5.0)  # fully clipped: 1 + 4 * 1^2
+    np.testing.assert_allclose(out[0, 2], image[0, 2] * 5.0)  # hue kept: the whole pixel scales
+    d = np.zeros((1, 3), np.float32)
+    plain = br.render(image, d, br.BlurParams(0.0, 0.0))
+    boosted = br.render(image, d, br.BlurParams(0.0, 0.0), highlight_boost=4.0)
+    np.testing.assert_array_equal(plain, image)  # off by default
+    np.testing.assert_allclose(boosted, out)

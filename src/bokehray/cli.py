@@ -290,9 +290,35 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _init_warp_quietly(debug: bool) -> None:
+    """Initialise Warp without its native "no CUDA driver" line on CPU-only machines (shown with --debug)."""
+    import os
+
+    import warp as wp
+
+    try:
+        fd = sys.stderr.fileno()
+    except (AttributeError, OSError, ValueError):  # stderr is not a file (e.g. captured by a test runner)
+        fd = None
+    if debug or fd is None:
+        wp.init()
+        return
+    sys.stderr.flush()
+    saved = os.dup(fd)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, fd)
+        wp.init()
+    finally:
+        os.dup2(saved, fd)
+        os.close(saved)
+        os.close(devnull)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    _init_warp_quietly(args.debug)
     try:
         if args.command == "render":
             return cmd_render(args)
@@ -305,6 +331,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("bokehray: interrupted; no output was written", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # stdout closed early (e.g. piped into head): the work is done
+        sys.stdout = None
+        return 0
 
 
 if __name__ == "__main__":
