@@ -20,8 +20,6 @@ from __future__ import annotations
 
 import math
 import os
-import queue
-import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -173,34 +171,6 @@ def layer_edges(signed_coc: np.ndarray, options: PreviewOptions) -> np.ndarray:
     return edges
 
 
-class _Scratch:
-    """Reusable device buffers of one worker thread, handed out as 2-D views.
-
-    Layers have different bounding boxes, so fresh arrays per layer would be
-    page-faulted in again and again (measured: 25% of a 1.5 MP render). Each
-    role keeps one flat buffer that only grows.
-    """
-
-    def __init__(self, device: str, reserve_px: int = 0):
-        self.device = device
-        self.reserve_px = reserve_px  # first allocation of a role is at least this many elements
-        self._bufs: dict[str, wp.array] = {}
-
-    def get(self, role: str, shape: tuple[int, int], dtype, zero: bool = False) -> wp.array:
-        item = wp.types.type_size_in_bytes(dtype)
-        nbytes = int(shape[0]) * int(shape[1]) * item
-        base = self._bufs.get(role)
-        if base is None or base.shape[0] * 4 < nbytes:
-            want = max(nbytes, self.reserve_px * item)
-            base = wp.empty(int(max(1, (want + 3) // 4)), dtype=wp.float32, device=self.device)
-            self._bufs[role] = base
-        view = wp.array(ptr=base.ptr, shape=tuple(int(v) for v in shape), dtype=dtype, device=self.device)
-        view._scratch_owner = base  # keep the storage alive as long as the view
-        if zero:
-            view.zero_()
-        return view
-
-
 @dataclass(slots=True)
 class _Layer:
     index: int
@@ -209,7 +179,6 @@ class _Layer:
     bbox: tuple[int, int, int, int]  # y0, y1, x0, x1
     max_radius: float
     fill_reach: float
-    n_sources: int
 
 
 def _levels_for(max_radius: float, r0: float) -> int:
@@ -229,18 +198,16 @@ def _render_layer(
     extent: wp.vec2,
     opts: PreviewOptions,
     device: str,
-    scratch: _Scratch,
-    out: wp.array,
 ) -> tuple[wp.array, int]:
     y0, y1, x0, x1 = layer.bbox
     h, w = y1 - y0, x1 - x0
-    src = scratch.get("src", (h, w), wp.vec4)
-    radius = scratch.get("radius", (h, w), float)
+    src = wp.empty((h, w), dtype=wp.vec4, device=device)
+    radius = wp.empty((h, w), dtype=float, device=device)
     fill = layer.fill_reach >= 0.5
-    pp_shape = (h, w) if fill else (1, 1)
-    totals = [scratch.get("pp_total0", pp_shape, wp.vec4)]
-    weights = [scratch.get("pp_weight0", pp_shape, float)]
-    knowns = [scratch.get("pp_known0", pp_shape, float)]
+    pp_shape = (h, w) if fill else (1, 1)  # the pull-push pyramid, only when this layer is filled
+    totals = [wp.empty(pp_shape, dtype=wp.vec4, device=device)]
+    weights = [wp.empty(pp_shape, dtype=float, device=device)]
+    knowns = [wp.empty(pp_shape, dtype=float, device=device)]
     wp.launch(
         bk.layer_sources_kernel,
         dim=(h, w),
@@ -250,14 +217,14 @@ def _render_layer(
     )
     n_filled = 0
     if fill:
-        counter = scratch.get("counter", (1, 1), wp.int32, zero=True).flatten()
+        counter = wp.zeros(1, dtype=wp.int32, device=device)
         n_pp = max(1, min(16, int(math.ceil(math.log2(1.4142 * layer.fill_reach + 2.0))) + 1))
         for _ in range(n_pp):
             ph, pw = totals[-1].shape
             ch, cw = (ph + 1) // 2, (pw + 1) // 2
-            totals.append(scratch.get(f"pp_total{len(totals)}", (ch, cw), wp.vec4))
-            weights.append(scratch.get(f"pp_weight{len(weights)}", (ch, cw), float))
-            knowns.append(scratch.get(f"pp_known{len(knowns)}", (ch, cw), float))
+            totals.append(wp.empty((ch, cw), dtype=wp.vec4, device=device))
+            weights.append(wp.empty((ch, cw), dtype=float, device=device))
+            knowns.append(wp.empty((ch, cw), dtype=float, device=device))
             wp.launch(bk.pull_kernel, dim=(ch, cw), inputs=[totals[-2], weights[-2], knowns[-2]],
                       outputs=[totals[-1], weights[-1], knowns[-1]], device=device)
         top = len(totals) - 1
@@ -266,7 +233,7 @@ def _render_layer(
             wp.launch(bk.push_kernel, dim=totals[lv].shape,
                       inputs=[totals[c], weights[c], knowns[c], int(lv == top)],
                       outputs=[totals[lv], weights[lv], knowns[lv]], device=device)
-        dist = scratch.get("dist", (h, w), float)
+        dist = wp.empty((h, w), dtype=float, device=device)
         wp.launch(bk.row_distance_kernel, dim=h, inputs=[slice_id, layer.index, x0, y0, w], outputs=[dist],
                   device=device)
         band = 1 if wp.get_device(device).is_cuda else 64
@@ -284,13 +251,14 @@ def _render_layer(
     for lv in range(bk.MAX_LEVELS):
         if lv < n_levels:
             shape = ((h + (1 << lv) - 1) >> lv, ((w + (1 << lv) - 1) >> lv) + 2)
-            bufs.append(scratch.get(f"level{lv}", shape, wp.vec4, zero=True))
+            bufs.append(wp.zeros(shape, dtype=wp.vec4, device=device))
         else:
             bufs.append(bufs[0] if lv > 0 else None)
     wp.launch(bk.scatter_kernel, dim=(h, w),
               inputs=[src, radius, blades, n_blades, extent, float(opts.level_radius_px), n_levels, *bufs], device=device)
     for lv in range(n_levels):
         wp.launch(bk.prefix_rows_kernel, dim=bufs[lv].shape[0], inputs=[bufs[lv]], device=device)
+    out = src  # the sources are scattered: reuse their memory for the result
     wp.launch(bk.resolve_levels_kernel, dim=(h, w), inputs=[n_levels, *bufs], outputs=[out], device=device)
     return out, n_filled
 
@@ -354,7 +322,7 @@ def render_preview(
         pad = pad_fill + int(math.ceil(max_r_slice[i])) + 2
         bbox = (max(0, ty.min() * t - pad), min(h, (ty.max() + 1) * t + pad),
                 max(0, tx.min() * t - pad), min(w, (tx.max() + 1) * t + pad))
-        layers.append(_Layer(int(i), lo, hi, bbox, float(max_r_slice[i]), float(reach), int(counts[i])))
+        layers.append(_Layer(int(i), lo, hi, bbox, float(max_r_slice[i]), float(reach)))
     stats.layers = len(layers)
     stats.sources_scattered = int(counts.sum())
     stats.pyramid_levels = max(_levels_for(lyr.max_radius, options.level_radius_px) for lyr in layers)
@@ -375,22 +343,9 @@ def render_preview(
     # composited strictly back to front as they complete, with at most
     # ``threads + 1`` layers in flight to bound memory.
     done = 0
-    local = threading.local()
-    reserve = int(max((lyr.bbox[1] - lyr.bbox[0]) * (lyr.bbox[3] - lyr.bbox[2]) for lyr in layers))
-    # results outlive their worker's next layer (composited in order): a ring of threads + 1 buffers
-    results = queue.SimpleQueue()
-    for i in range(threads + 1):
-        results.put(_Scratch(device, reserve))
 
-    def render_layer(lyr: _Layer) -> tuple[wp.array, int, _Scratch]:
-        if not hasattr(local, "scratch"):
-            local.scratch = _Scratch(device, reserve)
-        holder = results.get()
-        y0, y1, x0, x1 = lyr.bbox
-        out = holder.get("result", (y1 - y0, x1 - x0), wp.vec4)
-        layer_out, n_filled = _render_layer(lyr, img_wp, s_wp, sid_wp, blades, len(blade_rows), extent, options,
-                                            device, local.scratch, out)
-        return layer_out, n_filled, holder
+    def render_layer(lyr: _Layer) -> tuple[wp.array, int]:
+        return _render_layer(lyr, img_wp, s_wp, sid_wp, blades, len(blade_rows), extent, options, device)
 
     with ThreadPoolExecutor(max_workers=threads) as pool:
         pending: list[tuple[_Layer, Future]] = []
@@ -405,12 +360,11 @@ def render_preview(
             submit_next()
         while pending:
             lyr, fut = pending.pop(0)
-            out, n_filled, holder = fut.result()
+            out, n_filled = fut.result()
             stats.sources_filled += n_filled
             submit_next()
             y0, y1, x0, x1 = lyr.bbox
             wp.launch(bk.composite_kernel, dim=(y1 - y0, x1 - x0), inputs=[out, x0, y0], outputs=[acc], device=device)
-            results.put(holder)
             done += 1
             if progress is not None:
                 progress(done, len(layers))
