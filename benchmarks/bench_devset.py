@@ -28,13 +28,14 @@ import bokehray as br  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 VARIANTS = {
+    "raytrace (photo mode, defaults)": "raytrace",
     "preview (default)": br.PreviewOptions(),
     "preview, no hidden-region fill": br.PreviewOptions(fill=False),
     "plain scatter (one layer, no occlusion)": br.PreviewOptions(max_layers=1, fill=False),
 }
 
 
-def render_set(data: Path, out: Path, options: br.PreviewOptions) -> float:
+def render_set(data: Path, out: Path, options: br.PreviewOptions | str) -> float:
     """Render all dev-set pairs into ``out``; returns the total render time in seconds."""
     total = 0.0
     for info_path in sorted(data.glob("*/info.json")):
@@ -45,7 +46,10 @@ def render_set(data: Path, out: Path, options: br.PreviewOptions) -> float:
         for r in info["renders"]:
             blur = br.BlurParams(r["K"], min(1.0, max(0.0, r["focus_disparity"])))
             t = time.perf_counter()
-            pred = br.render(image, disparity, blur, options=options)
+            if options == "raytrace":
+                pred = br.render(image, disparity, blur, quality="raytrace")
+            else:
+                pred = br.render(image, disparity, blur, options=options)
             total += time.perf_counter() - t
             br.write_image(out / scene.name / f"{r['file']}.exr", pred)
     return total
@@ -72,8 +76,8 @@ def crops_figure(data: Path, path: Path, cases=(("d3_lamps_ring_writing", "bokeh
     import matplotlib.pyplot as plt
     import numpy as np
 
-    cols = ("all-in-focus input", "plain scatter", "bokehray preview", "path-traced truth")
-    fig, axes = plt.subplots(len(cases), 4, figsize=(12, 3.1 * len(cases)))
+    cols = ("all-in-focus input", "plain scatter", "bokehray preview", "bokehray raytrace", "path-traced truth")
+    fig, axes = plt.subplots(len(cases), 5, figsize=(15, 3.1 * len(cases)))
     for row, (scene, name, (y, x, size)) in enumerate(cases):
         info = json.loads((data / scene / "info.json").read_text())
         r = next(r for r in info["renders"] if r["file"] == name)
@@ -81,7 +85,8 @@ def crops_figure(data: Path, path: Path, cases=(("d3_lamps_ring_writing", "bokeh
         disparity = br.read_disparity(data / scene / "disparity.exr")
         blur = br.BlurParams(r["K"], min(1.0, r["focus_disparity"]))
         shots = (image, br.render(image, disparity, blur, options=VARIANTS["plain scatter (one layer, no occlusion)"]),
-                 br.render(image, disparity, blur), br.read_image(data / scene / f"{name}.exr"))
+                 br.render(image, disparity, blur), br.render(image, disparity, blur, quality="raytrace"),
+                 br.read_image(data / scene / f"{name}.exr"))
         for col, img in enumerate(shots):
             ax = axes[row, col]
             ax.imshow(br.io.linear_to_srgb(np.clip(img[y:y + size, x:x + size], 0, 1)))

@@ -14,6 +14,7 @@ from .scatter import (
     scatter_kernel as scatter_kernel,
     MAX_LEVELS as MAX_LEVELS,
 )
+from .raytrace import raytrace_kernel as raytrace_kernel
 from .fill import (
     fill_sources_kernel as fill_sources_kernel,
     pull_kernel as pull_kernel,
@@ -34,6 +35,7 @@ __all__ = [
     "layer_sources_kernel",
     "prefix_rows_kernel",
     "pull_kernel",
+    "raytrace_kernel",
     "push_kernel",
     "resolve_levels_kernel",
     "scatter_kernel",

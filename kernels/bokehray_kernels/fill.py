@@ -42,6 +42,9 @@ def layer_sources_kernel(
 ):
     """Sources of one layer in local coordinates: (RGB, 1) on its pixels, 0 elsewhere.
 
+    ``radius`` receives the *signed* CoC (the scatter takes its magnitude; the
+    ray tracer turns it back into disparity).
+
     With ``with_fill != 0`` also level 0 of the pull-push pyramid: (tone-mapped
     RGB, signed CoC) with weight 1 on the layer, and ``known = 1`` wherever the
     photo shows this layer or something behind it (not hidden by a nearer layer).
@@ -59,7 +62,7 @@ def layer_sources_kernel(
         c = image[gy, gx]
         s = signed_coc[gy, gx]
         src[y, x] = wp.vec4(c[0], c[1], c[2], 1.0)
-        radius[y, x] = wp.abs(s)
+        radius[y, x] = s
         if with_fill != 0:
             fill_total[y, x] = wp.vec4(_tonemap(c[0]), _tonemap(c[1]), _tonemap(c[2]), s)
             fill_weight[y, x] = 1.0
@@ -205,7 +208,7 @@ def fill_sources_kernel(
         v = fill_value[y, x]
         a = wp.min(density, 1.0)
         src[y, x] = wp.vec4(_untonemap(v[0]) * a, _untonemap(v[1]) * a, _untonemap(v[2]) * a, a)
-        radius[y, x] = wp.abs(wp.clamp(v[3], s_lo, s_hi))
+        radius[y, x] = wp.clamp(v[3], s_lo, s_hi)
         wp.atomic_add(n_filled, 0, 1)
 
 

@@ -116,7 +116,7 @@ def scatter_kernel(
     buf4: wp.array2d(dtype=wp.vec4),
     buf5: wp.array2d(dtype=wp.vec4),
 ):
-    """Scatter every source of ``src`` (local coordinates) with radius ``radius`` [px].
+    """Scatter every source of ``src`` (local coordinates) with radius ``|radius|`` [px].
 
     ``extent`` is the shape's vertical extent ``(y_top, y_bottom)`` at unit radius.
 
@@ -126,7 +126,7 @@ def scatter_kernel(
     v = src[y, x]
     if v[3] == 0.0:
         return
-    r = radius[y, x]
+    r = wp.abs(radius[y, x])
     if r < 0.5:
         # the disc lies inside the source pixel: a plain copy
         wp.atomic_add(buf0, y, x, v)

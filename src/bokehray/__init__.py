@@ -27,6 +27,7 @@ from .lens import (  # noqa: E402
     depth_from_disparity,
     disparity_from_depth,
 )
+from .raytrace import Layer, RaytraceOptions, RaytraceStats, raytrace_layers  # noqa: E402
 from .render import QUALITIES, boost_highlights, focus_at, render, render_with_stats  # noqa: E402
 
 __version__ = "0.1.0"
@@ -38,8 +39,11 @@ __all__ = [
     "BokehrayError",
     "DepthNormalization",
     "InputError",
+    "Layer",
     "NumericalError",
     "PreviewOptions",
+    "RaytraceOptions",
+    "RaytraceStats",
     "RenderStats",
     "ResourceError",
     "ThinLens",
@@ -50,6 +54,7 @@ __all__ = [
     "focus_at",
     "read_depth",
     "read_disparity",
+    "raytrace_layers",
     "read_image",
     "render",
     "render_with_stats",

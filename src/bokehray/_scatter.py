@@ -181,6 +181,52 @@ class _Layer:
     fill_reach: float
 
 
+def plan_layers(signed_coc: np.ndarray, active: np.ndarray, options: PreviewOptions) -> tuple[np.ndarray, list[_Layer]]:
+    """Cut the active pixels into depth layers: per-pixel layer ids (-1 = inactive) and the layer records.
+
+    Each record holds the layer's CoC range, its bounding box (its tiles, padded
+    by its largest CoC and, when filled, by the fill's reach) and the reach of
+    everything nearer (how far behind it a nearer blur can reveal).
+    """
+    h, w = signed_coc.shape
+    max_coc = float(np.abs(signed_coc[active]).max())
+    edges = layer_edges(signed_coc[active], options)
+    sid = (np.searchsorted(edges, signed_coc, side="right") - 1).astype(np.int32)
+    np.clip(sid, 0, len(edges) - 2, out=sid)
+    sid[~active] = -1
+    n_slices = len(edges) - 1
+
+    # Per-layer extents on the tile grid (host side, on small arrays): a layer's
+    # bounding box is the union of the tiles holding any of its pixels.
+    t = options.tile_px
+    th, tw = -(-h // t), -(-w // t)
+    pad_h, pad_w = th * t - h, tw * t - w
+    sid_t = np.pad(sid, ((0, pad_h), (0, pad_w)), constant_values=-1).reshape(th, t, tw, t)
+    tile_lo = np.where(sid_t < 0, n_slices, sid_t).min(axis=(1, 3))
+    tile_hi = sid_t.max(axis=(1, 3))
+    counts = np.bincount(sid[active], minlength=n_slices)
+    present = counts > 0
+    # CoC reach of everything nearer than each layer: suffix maximum of the layers' radius bounds
+    max_r_slice = np.minimum(np.maximum(np.abs(edges[:-1]), np.abs(edges[1:])), max_coc)
+    nearer_reach = np.zeros(n_slices)
+    run = 0.0
+    for i in range(n_slices - 1, -1, -1):
+        nearer_reach[i] = run
+        if present[i]:
+            run = max(run, max_r_slice[i])
+    layers: list[_Layer] = []
+    for i in np.flatnonzero(present):
+        ty, tx = np.nonzero((tile_lo <= i) & (tile_hi >= i))
+        lo, hi = float(edges[i]), float(edges[i + 1])
+        reach = nearer_reach[i] if options.fill else 0.0
+        pad_fill = int(math.ceil(1.4142 * reach)) + 2 if reach >= 0.5 else 0
+        pad = pad_fill + int(math.ceil(max_r_slice[i])) + 2
+        bbox = (max(0, ty.min() * t - pad), min(h, (ty.max() + 1) * t + pad),
+                max(0, tx.min() * t - pad), min(w, (tx.max() + 1) * t + pad))
+        layers.append(_Layer(int(i), lo, hi, bbox, float(max_r_slice[i]), float(reach)))
+    return sid, layers
+
+
 def _levels_for(max_radius: float, r0: float) -> int:
     n = 1
     while max_radius > r0 * (1 << (n - 1)) and n < bk.MAX_LEVELS:
@@ -188,17 +234,14 @@ def _levels_for(max_radius: float, r0: float) -> int:
     return n
 
 
-def _render_layer(
-    layer: _Layer,
-    image: wp.array,
-    signed_coc: wp.array,
-    slice_id: wp.array,
-    blades: wp.array,
-    n_blades: int,
-    extent: wp.vec2,
-    opts: PreviewOptions,
-    device: str,
-) -> tuple[wp.array, int]:
+def _layer_sources(
+    layer: _Layer, image: wp.array, signed_coc: wp.array, slice_id: wp.array, device: str
+) -> tuple[wp.array, wp.array, int]:
+    """One layer's sources on its bounding box: (premultiplied RGB, coverage), signed CoC, fill count.
+
+    The layer's own pixels, plus (when ``layer.fill_reach >= 0.5``) the pull-push
+    fill of the region nearer layers hide, at the layer's density.
+    """
     y0, y1, x0, x1 = layer.bbox
     h, w = y1 - y0, x1 - x0
     src = wp.empty((h, w), dtype=wp.vec4, device=device)
@@ -246,6 +289,23 @@ def _render_layer(
             device=device,
         )
         n_filled = int(counter.numpy()[0])
+    return src, radius, n_filled
+
+
+def _render_layer(
+    layer: _Layer,
+    image: wp.array,
+    signed_coc: wp.array,
+    slice_id: wp.array,
+    blades: wp.array,
+    n_blades: int,
+    extent: wp.vec2,
+    opts: PreviewOptions,
+    device: str,
+) -> tuple[wp.array, int]:
+    y0, y1, x0, x1 = layer.bbox
+    h, w = y1 - y0, x1 - x0
+    src, radius, n_filled = _layer_sources(layer, image, signed_coc, slice_id, device)
     n_levels = _levels_for(layer.max_radius, opts.level_radius_px)
     bufs = []
     for lv in range(bk.MAX_LEVELS):
@@ -289,42 +349,10 @@ def render_preview(
         stats.stage_seconds["total"] = stats.stage_seconds["plan"]
         return image.copy(), stats
 
-    edges = layer_edges(signed_coc[active], options)
-    sid = (np.searchsorted(edges, signed_coc, side="right") - 1).astype(np.int32)
-    np.clip(sid, 0, len(edges) - 2, out=sid)
-    sid[copy_px] = -1
-    n_slices = len(edges) - 1
-
-    # Per-layer extents on the tile grid (host side, on small arrays): a layer's
-    # bounding box is the union of the tiles holding any of its pixels.
-    t = options.tile_px
-    th, tw = copy.shape
-    pad_h, pad_w = th * t - h, tw * t - w
-    sid_t = np.pad(sid, ((0, pad_h), (0, pad_w)), constant_values=-1).reshape(th, t, tw, t)
-    tile_lo = np.where(sid_t < 0, n_slices, sid_t).min(axis=(1, 3))
-    tile_hi = sid_t.max(axis=(1, 3))
-    counts = np.bincount(sid[active], minlength=n_slices)
-    present = counts > 0
-    # CoC reach of everything nearer than each layer: suffix maximum of the layers' radius bounds
-    max_r_slice = np.minimum(np.maximum(np.abs(edges[:-1]), np.abs(edges[1:])), stats.max_coc_px)
-    nearer_reach = np.zeros(n_slices)
-    run = 0.0
-    for i in range(n_slices - 1, -1, -1):
-        nearer_reach[i] = run
-        if present[i]:
-            run = max(run, max_r_slice[i])
-    layers: list[_Layer] = []
-    for i in np.flatnonzero(present):
-        ty, tx = np.nonzero((tile_lo <= i) & (tile_hi >= i))
-        lo, hi = float(edges[i]), float(edges[i + 1])
-        reach = nearer_reach[i] if options.fill else 0.0
-        pad_fill = int(math.ceil(1.4142 * reach)) + 2 if reach >= 0.5 else 0
-        pad = pad_fill + int(math.ceil(max_r_slice[i])) + 2
-        bbox = (max(0, ty.min() * t - pad), min(h, (ty.max() + 1) * t + pad),
-                max(0, tx.min() * t - pad), min(w, (tx.max() + 1) * t + pad))
-        layers.append(_Layer(int(i), lo, hi, bbox, float(max_r_slice[i]), float(reach)))
+    sid, layers = plan_layers(signed_coc, active, options)
+    counts_total = int(active.sum())
     stats.layers = len(layers)
-    stats.sources_scattered = int(counts.sum())
+    stats.sources_scattered = counts_total
     stats.pyramid_levels = max(_levels_for(lyr.max_radius, options.level_radius_px) for lyr in layers)
     t_plan = time.perf_counter()
     stats.stage_seconds["plan"] = t_plan - t_start

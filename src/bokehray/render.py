@@ -9,10 +9,11 @@ import numpy as np
 from ._scatter import PreviewOptions, RenderStats, render_preview
 from .errors import InputError, NumericalError
 from .lens import Aperture, BlurParams
+from .raytrace import RaytraceOptions, RaytraceStats, render_raytrace
 
 __all__ = ["QUALITIES", "boost_highlights", "check_disparity", "check_image", "focus_at", "render", "render_with_stats"]
 
-QUALITIES = ("preview",)
+QUALITIES = ("preview", "raytrace")
 """Quality levels available (docs/renderer.md, "quality ladder")."""
 
 
@@ -88,10 +89,11 @@ def render_with_stats(
     quality: str = "preview",
     device: str = "cpu",
     options: PreviewOptions | None = None,
+    raytrace_options: RaytraceOptions | None = None,
     highlight_boost: float = 0.0,
     progress: Callable[[int, int], None] | None = None,
-) -> tuple[np.ndarray, RenderStats]:
-    """Like :func:`render`, and also return what the renderer did (:class:`RenderStats`)."""
+) -> tuple[np.ndarray, RenderStats | RaytraceStats]:
+    """Like :func:`render`, and also return what the renderer did (:class:`RenderStats` or :class:`RaytraceStats`)."""
     img = check_image(image)
     d = check_disparity(disparity, img.shape[:2])
     if not isinstance(blur, BlurParams):
@@ -111,12 +113,17 @@ def render_with_stats(
         work = boost_highlights(work, highlight_boost)
     s = blur.signed_coc(d)
     opts = options or PreviewOptions()
-    out_rgb, stats = render_preview(np.ascontiguousarray(work[..., :3]), s, aperture, options=opts, device=device,
-                                    progress=progress)
+
+    def run(rgb: np.ndarray, report=None):
+        if quality == "raytrace":
+            return render_raytrace(rgb, d, blur, aperture, preview_options=opts, options=raytrace_options,
+                                   device=device)
+        return render_preview(rgb, s, aperture, options=opts, device=device, progress=report)
+
+    out_rgb, stats = run(np.ascontiguousarray(work[..., :3]), progress)
     if channels == 4:
         # alpha is rendered like a grey channel: it blurs with the colour it belongs to
-        alpha = np.ascontiguousarray(np.repeat(work[..., 3:4], 3, axis=2))
-        out_a, _ = render_preview(alpha, s, aperture, options=opts, device=device)
+        out_a, _ = run(np.ascontiguousarray(np.repeat(work[..., 3:4], 3, axis=2)))
         out = np.concatenate([out_rgb, out_a[..., :1]], axis=2)
     elif channels == 1:
         out = out_rgb[..., :1]
@@ -124,7 +131,7 @@ def render_with_stats(
         out = out_rgb
     bad = ~np.isfinite(out)
     if bad.any():
-        raise NumericalError(f"preview renderer produced NaN/Inf at (y, x, c) = {_first_bad(bad)}")
+        raise NumericalError(f"{quality} renderer produced NaN/Inf at (y, x, c) = {_first_bad(bad)}")
     return out.astype(np.float32, copy=False), stats
 
 
@@ -137,6 +144,7 @@ def render(
     quality: str = "preview",
     device: str = "cpu",
     options: PreviewOptions | None = None,
+    raytrace_options: RaytraceOptions | None = None,
     highlight_boost: float = 0.0,
     progress: Callable[[int, int], None] | None = None,
 ) -> np.ndarray:
@@ -147,9 +155,11 @@ def render(
         disparity: H x W in [0, 1], 1 = nearest.
         blur: ``K`` and ``d_f``; CoC radius ``K * |d - d_f|`` pixels.
         aperture: disc (default) or bladed polygon.
-        quality: ``"preview"`` (occlusion-aware layered scatter).
+        quality: ``"preview"`` (occlusion-aware layered scatter) or ``"raytrace"``
+            (the same layers ray traced through the aperture: slower, converges).
         device: Warp device, ``"cpu"`` or ``"cuda"`` / ``"cuda:N"``.
-        options: renderer knobs (:class:`PreviewOptions`).
+        options: layering knobs (:class:`PreviewOptions`), used by both levels.
+        raytrace_options: aperture sampling of ``"raytrace"`` (:class:`RaytraceOptions`).
         highlight_boost: > 0 re-inflates clipped highlights of display-referred
             inputs before blurring (:func:`boost_highlights`); 0 = off (default).
         progress: called as ``progress(done, total)`` after each depth layer.
@@ -161,7 +171,7 @@ def render(
         InputError: bad shapes, ranges, NaN/Inf, unknown options.
     """
     out, _ = render_with_stats(image, disparity, blur, aperture, quality=quality, device=device, options=options,
-                               highlight_boost=highlight_boost, progress=progress)
+                               raytrace_options=raytrace_options, highlight_boost=highlight_boost, progress=progress)
     return out
 
 

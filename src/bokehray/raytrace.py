@@ -1,0 +1,251 @@
+"""The layered ray tracer: exact thin-lens renders of layer stacks, and the ``raytrace`` quality level.
+
+Rays through sampled points of the aperture are intersected with every layer
+and composited front to back (kernel: ``bokehray_kernels.raytrace``). For a
+stack of planar RGBA layers this converges to the exact thin-lens image as the
+samples grow; for a photo, the layers are built from the image and its
+disparity exactly as the preview builds them (depth slices, hidden regions
+filled), then ray traced instead of scattered. See docs/raytracer.md.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+import bokehray_kernels as bk
+
+from ._scatter import PreviewOptions, _dilate, _layer_sources, plan_layers
+from .errors import InputError
+from .lens import Aperture, BlurParams
+
+__all__ = ["Layer", "RaytraceOptions", "RaytraceStats", "raytrace_layers", "render_raytrace"]
+
+
+@dataclass(frozen=True)
+class Layer:
+    """One layer of a scene: an RGBA texture and its disparity.
+
+    Args:
+        rgba: ``H x W x 4`` float32, scene-linear colour with straight (not
+            premultiplied) alpha; alpha 0 is empty space.
+        disparity: ``H x W`` disparity map in [0, 1], or None for a plane.
+        plane: ``(a, b, c)`` with ``d = a * x + b * y + c`` at pinhole-image
+            position ``(x, y)`` in pixels (pixel centres at ``i + 0.5``).
+    """
+
+    rgba: np.ndarray
+    disparity: np.ndarray | None = None
+    plane: tuple[float, float, float] | None = None
+
+
+@dataclass(frozen=True)
+class RaytraceOptions:
+    """Sampling of the aperture.
+
+    Args:
+        samples_per_px2: rays per square pixel of the largest CoC a pixel can
+            see: ``spp = ceil(samples_per_px2 * pi * r^2)``, clamped.
+        max_spp: most rays per pixel.
+        min_spp: fewest rays per pixel (1 where everything is in focus).
+        seed: rotates the per-pixel sample patterns; renders are deterministic for a seed.
+    """
+
+    samples_per_px2: float = 0.5
+    max_spp: int = 128
+    min_spp: int = 1
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.samples_per_px2) and self.samples_per_px2 > 0):
+            raise InputError(f"samples_per_px2: expected a finite value > 0, got {self.samples_per_px2!r}")
+        if not 1 <= self.min_spp <= self.max_spp:
+            raise InputError(f"spp bounds: expected 1 <= min_spp <= max_spp, got {self.min_spp}, {self.max_spp}")
+
+
+@dataclass
+class RaytraceStats:
+    """Samples used and time taken."""
+
+    layers: int = 0
+    samples_total: int = 0
+    spp_mean: float = 0.0
+    spp_max: int = 0
+    stage_seconds: dict[str, float] = field(default_factory=dict)
+
+    def as_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def _validate_layers(layers: list[Layer]) -> tuple[int, int]:
+    if not layers:
+        raise InputError("layers: expected at least one layer")
+    shape = None
+    for i, lyr in enumerate(layers):
+        rgba = np.asarray(lyr.rgba)
+        if rgba.ndim != 3 or rgba.shape[2] != 4:
+            raise InputError(f"layer {i}: expected an H x W x 4 RGBA texture (with alpha), got shape {rgba.shape}")
+        if shape is None:
+            shape = rgba.shape[:2]
+        elif rgba.shape[:2] != shape:
+            raise InputError(f"layer {i}: expected size {shape} like layer 0, got {rgba.shape[:2]}")
+        if not np.isfinite(rgba).all():
+            raise InputError(f"layer {i}: RGBA contains NaN/Inf")
+        if (lyr.disparity is None) == (lyr.plane is None):
+            raise InputError(f"layer {i}: give exactly one of a disparity map or a plane (a, b, c)")
+        if lyr.disparity is not None:
+            d = np.asarray(lyr.disparity)
+            if d.shape != shape:
+                raise InputError(f"layer {i}: disparity shape {d.shape} differs from the texture's {shape}")
+            if not np.isfinite(d).all():
+                raise InputError(f"layer {i}: disparity contains NaN/Inf")
+        elif not all(math.isfinite(float(v)) for v in lyr.plane):
+            raise InputError(f"layer {i}: plane coefficients must be finite, got {lyr.plane}")
+    return shape
+
+
+def _layer_disparity_at_pixels(lyr: Layer, h: int, w: int) -> np.ndarray:
+    if lyr.disparity is not None:
+        return np.asarray(lyr.disparity, np.float32)
+    a, b, c = lyr.plane
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32) + 0.5
+    return (a * xx + b * yy + c).astype(np.float32)
+
+
+def _visible_coc(coc: np.ndarray, content: np.ndarray, tile: int = 16) -> np.ndarray:
+    """A layer's CoC where its content can reach (tiles with content, dilated by the CoC), else 0.
+
+    A layer whose disparity is defined everywhere but whose alpha is zero far
+    from a pixel cannot send that pixel any light: it must not inflate the
+    pixel's ray count.
+    """
+    h, w = coc.shape
+    th, tw = -(-h // tile), -(-w // tile)
+    pad = np.zeros((th * tile, tw * tile), bool)
+    pad[:h, :w] = content
+    has = pad.reshape(th, tile, tw, tile).any(axis=(1, 3))
+    reach = _dilate(has, int(np.ceil(float(coc.max()) / tile)) + 1)
+    mask = np.repeat(np.repeat(reach, tile, 0), tile, 1)[:h, :w]
+    return np.where(mask, coc, 0.0).astype(np.float32)
+
+
+def raytrace_layers(
+    layers: list[Layer],
+    blur: BlurParams,
+    aperture: Aperture | None = None,
+    *,
+    options: RaytraceOptions | None = None,
+    device: str = "cpu",
+) -> tuple[np.ndarray, RaytraceStats]:
+    """Ray trace a front-to-back stack of layers through a thin lens.
+
+    Args:
+        layers: nearest first. Layers are composited in this order along every
+            ray, so they must not interpenetrate.
+        blur: ``K`` and ``d_f``: a point at disparity ``d`` spreads into the
+            aperture of radius ``K |d - d_f|`` px.
+        aperture: disc (default) or bladed polygon.
+
+    Returns:
+        ``(H x W x 4, stats)``: premultiplied RGB and the coverage (1 minus the
+        transmittance left after the last layer), both averaged over the rays.
+    """
+    t0 = time.perf_counter()
+    options = options or RaytraceOptions()
+    aperture = aperture or Aperture()
+    h, w = _validate_layers(layers)
+    n = len(layers)
+    rgba = np.empty((n, h, w, 4), np.float32)
+    disp = np.zeros((n, h, w), np.float32)
+    planes = np.zeros((n, 4), np.float32)
+    ranges = np.zeros((n, 2), np.float32)
+    r_px = np.zeros((h, w), np.float32)
+    for i, lyr in enumerate(layers):
+        tex = np.asarray(lyr.rgba, np.float32)
+        rgba[i, ..., :3] = tex[..., :3] * tex[..., 3:4]
+        rgba[i, ..., 3] = tex[..., 3]
+        d_px = _layer_disparity_at_pixels(lyr, h, w)
+        if lyr.plane is not None:
+            planes[i] = (*lyr.plane, 1.0)
+        else:
+            disp[i] = d_px
+        ranges[i] = (float(d_px.min()), float(d_px.max()))
+        np.maximum(r_px, _visible_coc(blur.coc_radius(d_px), tex[..., 3] > 0), out=r_px)
+    spp = np.clip(np.ceil(options.samples_per_px2 * np.pi * r_px * r_px), options.min_spp, options.max_spp)
+    spp = np.where(r_px < 0.5, options.min_spp, spp).astype(np.int32)
+    blade_rows = aperture.blade_discs()
+    blades = blade_rows if len(blade_rows) else np.zeros((1, 4), np.float32)
+    t1 = time.perf_counter()
+
+    out = wp.empty((h, w), dtype=wp.vec4, device=device)
+    wp.launch(
+        bk.raytrace_kernel,
+        dim=(h, w),
+        inputs=[
+            wp.array(rgba, dtype=wp.vec4, device=device),
+            wp.array(disp, dtype=float, device=device),
+            wp.array(planes, dtype=wp.vec4, device=device),
+            wp.array(ranges, dtype=wp.vec2, device=device),
+            n,
+            float(blur.k_px),
+            float(blur.focus_disparity),
+            wp.array(blades, dtype=wp.vec4, device=device),
+            len(blade_rows),
+            wp.array(spp, dtype=wp.int32, device=device),
+            int(options.seed),
+        ],
+        outputs=[out],
+        device=device,
+    )
+    result = out.numpy()
+    stats = RaytraceStats(layers=n, samples_total=int(spp.sum()), spp_mean=float(spp.mean()), spp_max=int(spp.max()))
+    stats.stage_seconds = {"setup": t1 - t0, "trace": time.perf_counter() - t1, "total": time.perf_counter() - t0}
+    return result, stats
+
+
+def render_raytrace(
+    image: np.ndarray,
+    disparity: np.ndarray,
+    blur: BlurParams,
+    aperture: Aperture,
+    *,
+    preview_options: PreviewOptions | None = None,
+    options: RaytraceOptions | None = None,
+    device: str = "cpu",
+) -> tuple[np.ndarray, RaytraceStats]:
+    """Photo mode: build layers from one RGB image and its disparity, then ray trace them.
+
+    The layers are the preview's (the same depth slices, hidden regions filled
+    by pull-push at the layer's density); each becomes a map layer whose
+    disparity is its pixels' own where it has content. Rays that end on no
+    opaque layer are renormalised by the coverage they found, as in the preview.
+    """
+    preview_options = preview_options or PreviewOptions()
+    h, w = disparity.shape
+    if blur.k_px == 0.0:
+        return image.copy(), RaytraceStats()
+    s = blur.signed_coc(disparity)
+    sid, plans = plan_layers(s, np.ones((h, w), bool), preview_options)
+    img_wp = wp.array(np.ascontiguousarray(image[..., :3], np.float32), dtype=wp.vec3, device=device)
+    s_wp = wp.array(s, dtype=float, device=device)
+    sid_wp = wp.array(sid, dtype=wp.int32, device=device)
+    layers = []
+    for plan in reversed(plans):  # nearest first
+        full = dataclasses.replace(plan, bbox=(0, h, 0, w))
+        src, coc, _ = _layer_sources(full, img_wp, s_wp, sid_wp, device)
+        src_np, coc_np = src.numpy(), coc.numpy()
+        alpha = np.clip(src_np[..., 3], 0.0, 1.0)
+        colour = np.where(alpha[..., None] > 0, src_np[..., :3] / np.maximum(alpha, 1e-12)[..., None], 0.0)
+        mid = 0.5 * (plan.s_lo + plan.s_hi)
+        coc_np = np.where(alpha > 0, np.clip(coc_np, plan.s_lo, plan.s_hi), mid)
+        d = np.clip(coc_np / blur.k_px + blur.focus_disparity, 0.0, 1.0).astype(np.float32)
+        layers.append(Layer(np.concatenate([colour, alpha[..., None]], axis=2).astype(np.float32), disparity=d))
+    out, stats = raytrace_layers(layers, blur, aperture, options=options, device=device)
+    cov = out[..., 3:4]
+    rgb = np.where(cov > 1e-4, out[..., :3] / np.maximum(cov, 1e-12), image[..., :3])
+    return rgb.astype(np.float32), stats
