@@ -16,6 +16,7 @@ import warp as _wp  # noqa: E402
 
 _wp.config.log_level = _wp.LOG_WARNING  # no banner or per-module load lines
 
+from . import datasets  # noqa: E402
 from ._scatter import PreviewOptions, RenderStats  # noqa: E402
 from .errors import BokehrayError, InputError, NumericalError, ResourceError  # noqa: E402
 from .io import read_depth, read_disparity, read_image, write_disparity, write_image  # noqa: E402
@@ -49,6 +50,7 @@ __all__ = [
     "ThinLens",
     "__version__",
     "boost_highlights",
+    "datasets",
     "depth_from_disparity",
     "disparity_from_depth",
     "focus_at",
