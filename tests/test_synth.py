@@ -65,3 +65,15 @@ def test_cli_synth_and_bad_input(tmp_path, capsys):
     assert not any((tmp_path / "o3").glob("scene_*"))  # no partial dataset entry
     code = main(["synth", "-n", "1", "-o", str(tmp_path / "o4"), "--blur-levels", "a,b", "--quiet"])
     assert code == 2 and "--blur-levels" in capsys.readouterr().err
+
+
+def test_focus_choices_are_the_foreground_and_background_planes():
+    from bokehray.synth import _mean_disparity
+
+    layers, _ = make_scene(SMALL, seed=1, index=3)
+    n = SMALL.size
+    a, b, c = layers[0].plane
+    d_fg = _mean_disparity(layers[0])
+    corners = [a * x + b * y + c for x in (0, n) for y in (0, n)]
+    assert min(corners) - 1e-6 <= d_fg <= max(corners) + 1e-6  # within the nearest layer's own disparity range
+    assert _mean_disparity(layers[-1]) < d_fg

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ._quiet import init_warp_quietly
 from .errors import BokehrayError, InputError
 
 EXIT_INPUT = 2
@@ -315,50 +316,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def _init_warp_quietly(debug: bool) -> None:
-    """Initialise Warp without its native "no CUDA driver" line on CPU-only machines (shown with --debug)."""
-    import os
-
-    import warp as wp
-
-    try:
-        fd = sys.stderr.fileno()
-    except (AttributeError, OSError, ValueError):  # stderr is not a file (e.g. captured by a test runner)
-        fd = None
-    if debug or fd is None:
-        wp.init()
-        return
-    sys.stderr.flush()
-    saved = os.dup(fd)
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    try:
-        os.dup2(devnull, fd)
-        wp.init()
-    finally:
-        os.dup2(saved, fd)
-        os.close(saved)
-        os.close(devnull)
-
-
-def cmd_synth(args: argparse.Namespace) -> int:
-    from .synth import SynthConfig, generate
-
-    try:
-        levels = tuple(float(v) for v in args.blur_levels.split(","))
-    except ValueError:
-        raise InputError(f"--blur-levels: expected comma-separated numbers, got {args.blur_levels!r}") from None
-    config = SynthConfig(size=args.size, blur_levels=levels, aperture=_aperture(args), max_spp=args.max_spp,
-                         fg_dir=args.fg, bg_dir=args.bg)
-    paths = generate(config, args.n, args.output, seed=args.seed, workers=args.workers, progress=not args.quiet)
-    if not args.quiet:
-        print(f"wrote {len(paths)} scenes to {args.output}")
-    return 0
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    _init_warp_quietly(args.debug)
+    init_warp_quietly(args.debug)
     try:
         if args.command == "render":
             return cmd_render(args)

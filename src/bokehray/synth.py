@@ -6,8 +6,8 @@ partial alpha, foliage, a fence mesh, small very bright lights) at random
 scale, placement, facing angle (tilted planes) and depth, over a tilted photo
 background. The all-in-focus image is the same layers seen through a pinhole;
 the targets are exact thin-lens renders (``bokehray.raytrace_layers``) for
-every blur level ``K`` and for focus on the foreground's and on the
-background's mean disparity. Scenes are written in the BLB layout
+every blur level ``K`` and for focus on the nearest foreground's and on the
+background's mean disparity (alpha-weighted). Scenes are written in the BLB layout
 (``bokehray.datasets.write_blb_scene``).
 
 Deterministic: scene ``i`` of seed ``s`` depends only on ``(s, i)``, not on the
@@ -232,16 +232,23 @@ def _pinhole(layers: list[Layer]) -> tuple[np.ndarray, np.ndarray]:
     return img[..., :3], np.clip(disparity, 0.0, 1.0)
 
 
+def _mean_disparity(layer: Layer) -> float:
+    """Alpha-weighted mean disparity of a plane layer: where its content is, not where it is empty."""
+    n = layer.rgba.shape[0]
+    yy, xx = (np.mgrid[0:n, 0:n] + 0.5).astype(np.float64)
+    a, b, c = layer.plane
+    w = layer.rgba[..., 3].astype(np.float64)
+    d = a * xx + b * yy + c
+    return float(np.clip((w * d).sum() / max(w.sum(), 1e-12), 0.0, 1.0))
+
+
 def _generate_one(args: tuple[SynthConfig, int, int, str]) -> str:
     from .datasets import write_blb_scene
 
     config, seed, index, out = args
     layers, desc = make_scene(config, seed, index)
     image, disparity = _pinhole(layers)
-    fg = disparity[disparity > disparity.min() + 0.05]
-    d_fg = float(fg.mean()) if fg.size else float(disparity.max())
-    d_bg = float(layers[-1].plane[2])
-    focus = [d_fg, min(max(d_bg, 0.0), 1.0)]
+    focus = [_mean_disparity(layers[0]), _mean_disparity(layers[-1])]
     renders, spp = [], []
     opts = RaytraceOptions(max_spp=config.max_spp, seed=index)
     for k_index, k in enumerate(config.blur_levels):
@@ -289,7 +296,10 @@ def generate(config: SynthConfig, n: int, out: str | os.PathLike, *, seed: int =
     else:
         import multiprocessing
 
-        with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        from ._quiet import init_warp_quietly
+
+        with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                                 initializer=init_warp_quietly) as pool:
             for path in pool.map(_generate_one, jobs):
                 done.append(path)
                 bar.update()
