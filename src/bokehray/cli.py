@@ -316,6 +316,21 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_synth(args: argparse.Namespace) -> int:
+    from .synth import SynthConfig, generate
+
+    try:
+        levels = tuple(float(v) for v in args.blur_levels.split(","))
+    except ValueError:
+        raise InputError(f"--blur-levels: expected comma-separated numbers, got {args.blur_levels!r}") from None
+    config = SynthConfig(size=args.size, blur_levels=levels, aperture=_aperture(args), max_spp=args.max_spp,
+                         fg_dir=args.fg, bg_dir=args.bg)
+    paths = generate(config, args.n, args.output, seed=args.seed, workers=args.workers, progress=not args.quiet)
+    if not args.quiet:
+        print(f"wrote {len(paths)} scenes to {args.output}")
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
