@@ -175,3 +175,13 @@ def test_physical_lens_focus_at_a_pixel(scene, tmp_path, capsys):
     d, norm = br.disparity_from_depth(z)
     stats = json.loads(out[out.index("{"):])
     assert stats["blur"]["focus_disparity"] == pytest.approx(br.focus_at(d, 40, 20), abs=1e-4)
+
+
+def test_render_raytrace_quality_reports_rays(scene, tmp_path, capsys):
+    p, _, _ = scene
+    code, out, err = run(capsys, "render", p["png"], "--disparity", p["disp_png"], "-o", tmp_path / "o.exr",
+                         "--blur", 6, "--focus", 0.5, "--quality", "raytrace", "--max-spp", 16, "--stats")
+    assert code == 0, err
+    stats = json.loads(out[out.index("{"):])
+    assert stats["spp_max"] <= 16 and stats["samples_total"] > 0 and stats["layers"] >= 1
+    assert br.read_image(tmp_path / "o.exr").shape == (48, 64, 3)

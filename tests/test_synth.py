@@ -77,3 +77,13 @@ def test_focus_choices_are_the_foreground_and_background_planes():
     corners = [a * x + b * y + c for x in (0, n) for y in (0, n)]
     assert min(corners) - 1e-6 <= d_fg <= max(corners) + 1e-6  # within the nearest layer's own disparity range
     assert _mean_disparity(layers[-1]) < d_fg
+
+
+def test_corrupt_foreground_is_a_clear_error_with_no_scene(tmp_path, capsys):
+    (tmp_path / "fg").mkdir()
+    (tmp_path / "fg" / "broken.png").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(20))
+    code = main(["synth", "-n", "1", "-o", str(tmp_path / "out"), "--fg", str(tmp_path / "fg"), "--size", "40",
+                 "--workers", "1", "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2 and "broken.png" in err
+    assert not any((tmp_path / "out").glob("scene_*"))
