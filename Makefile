@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench-quick clean
+.PHONY: demo test bench-quick soak-quick clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -20,6 +20,9 @@ test: $(STAMP)
 
 bench-quick: $(STAMP)
 	$(BIN)/python benchmarks/bench_preview.py --quick
+
+soak-quick: $(STAMP)
+	$(BIN)/python benchmarks/soak.py --cases 300 --seed 1
 
 clean:
 	rm -rf $(VENV) bokehray-demo .pytest_cache .hypothesis

@@ -274,3 +274,14 @@ def test_highlight_boost_inflates_only_clipped_pixels():
     boosted = br.render(image, d, br.BlurParams(0.0, 0.0), highlight_boost=4.0)
     np.testing.assert_array_equal(plain, image)  # off by default
     np.testing.assert_allclose(boosted, out)
+
+
+def test_bright_sources_never_give_negative_output():
+    """Soak regression (benchmarks/soak.py seed 0 case 114): float32 row sums next to radiance 1e4."""
+    rng = np.random.default_rng(980325484)
+    image = (rng.random((33, 64, 3)) * 1e4).astype(np.float32)
+    margin = 6
+    image[:margin] = image[-margin:] = 0
+    image[:, :margin] = image[:, -margin:] = 0
+    out = br.render(image, np.ones((33, 64), np.float32), br.BlurParams(2.0, 0.5))
+    assert out.min() >= 0.0

@@ -108,6 +108,7 @@ def render_with_stats(
     device = _check_device(device)
 
     channels = img.shape[2]
+    lowest = float(img.min())
     work = img if channels >= 3 else np.repeat(img, 3, axis=2)
     if highlight_boost > 0:
         work = boost_highlights(work, highlight_boost)
@@ -129,6 +130,10 @@ def render_with_stats(
         out = out_rgb[..., :1]
     else:
         out = out_rgb
+    if lowest >= 0.0:
+        # Every output pixel is a weighted mean of input radiances, so it cannot be negative; float32
+        # prefix sums next to very bright sources can leave -1e-7 of their value (found by the soak).
+        np.maximum(out, 0.0, out=out)
     bad = ~np.isfinite(out)
     if bad.any():
         raise NumericalError(f"{quality} renderer produced NaN/Inf at (y, x, c) = {_first_bad(bad)}")
