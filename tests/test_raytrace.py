@@ -105,3 +105,20 @@ def test_photo_mode_is_close_to_the_preview_and_identity_in_focus():
 def test_bad_layers_are_rejected(layers, match):
     with pytest.raises(br.InputError, match=match):
         raytrace_layers(layers, br.BlurParams(1.0, 0.5))
+
+
+@pytest.mark.parametrize("d_f", [0.0, 1.0])  # the light in front of focus, then behind it
+def test_preview_and_ray_tracer_agree_on_the_aperture_orientation(d_f):
+    h = w = 41
+    img = np.zeros((h, w, 3), np.float32)
+    img[20, 20] = 100.0
+    layer_d = 0.5
+    blur = br.BlurParams(24.0, d_f)  # radius 12, a triangle that points one way
+    ap = br.Aperture(blades=3, rotation_deg=90.0)
+    preview = br.render(img, np.full((h, w), layer_d, np.float32), blur, ap,
+                        options=br.PreviewOptions(level_radius_px=1e6))[..., 0]
+    rgba = np.concatenate([img, np.ones((h, w, 1), np.float32)], axis=2)
+    traced, _ = raytrace_layers([Layer(rgba, plane=(0.0, 0.0, layer_d))], blur, ap, options=_fixed(512))
+    traced = traced[..., 0]
+    corr = lambda a, b: float(np.corrcoef(a.ravel(), b.ravel())[0, 1])  # noqa: E731
+    assert corr(preview, traced) > 0.9 > corr(preview[::-1, ::-1], traced)

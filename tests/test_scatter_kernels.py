@@ -87,7 +87,7 @@ def test_aperture_kernel_integrates_to_one(ap, radius, device):
 @pytest.mark.parametrize("radius", [2.6, 6.3])
 def test_footprint_close_to_exact_area_coverage(ap, radius, device):
     size = 21
-    got = _point_response(ap, radius, size, device)
+    got = _point_response(ap, -radius, size, device)  # behind focus: the aperture as described
     # exact coverage by 64 x 64 supersampling of every pixel
     n = 64
     c = size // 2 + 0.5
@@ -97,6 +97,14 @@ def test_footprint_close_to_exact_area_coverage(ap, radius, device):
     cov /= cov.sum()
     err = np.abs(got - cov).sum()
     assert err < FOOTPRINT_L1, err
+
+
+@pytest.mark.parametrize("ap", APERTURES[1:4], ids=str)
+def test_front_bokeh_is_the_point_reflection_of_back_bokeh(ap, device):
+    """A thin lens images the aperture point-reflected in front of the focal plane (as the ray tracer does)."""
+    back = _point_response(ap, -5.3, 21, device)
+    front = _point_response(ap, 5.3, 21, device)
+    np.testing.assert_allclose(front, back[::-1, ::-1], atol=1e-6)
 
 
 @pytest.mark.parametrize("ap", APERTURES[:3], ids=str)

@@ -57,6 +57,14 @@ def _row_part(k: int, j: int, n_sub: int, top: float, bot: float) -> wp.vec2:
 
 
 @wp.func
+def _signed_chord(y: float, rho: float, blades: wp.array(dtype=wp.vec4), n_blades: int, sgn: float) -> wp.vec2:
+    if sgn < 0.0:
+        c = chord(-y, rho, blades, n_blades)
+        return wp.vec2(-c[1], -c[0])
+    return chord(y, rho, blades, n_blades)
+
+
+@wp.func
 def _scatter_one(
     buf: wp.array2d(dtype=wp.vec4),
     xc: float,
@@ -66,9 +74,14 @@ def _scatter_one(
     blades: wp.array(dtype=wp.vec4),
     n_blades: int,
     extent: wp.vec2,
+    sgn: float,
 ):
+    # sgn = -1 draws the shape point-reflected (sources in front of the focal plane)
     top = yc + extent[0] * rho
     bot = yc + extent[1] * rho
+    if sgn < 0.0:
+        top = yc - extent[1] * rho
+        bot = yc - extent[0] * rho
     ky0 = int(wp.floor(top))
     ky1 = int(wp.floor(bot))
     # small shapes: several sub-rows per pixel row keep the midpoint rule accurate
@@ -79,7 +92,7 @@ def _scatter_one(
             t = _row_part(k, j, n_sub, top, bot)
             h = t[1] - t[0]
             if h > 0.0:
-                c = chord(0.5 * (t[0] + t[1]) - yc, rho, blades, n_blades)
+                c = _signed_chord(0.5 * (t[0] + t[1]) - yc, rho, blades, n_blades, sgn)
                 if c[1] > c[0]:
                     norm += h * (c[1] - c[0])
     if norm <= 0.0:
@@ -95,7 +108,7 @@ def _scatter_one(
             t = _row_part(k, j, n_sub, top, bot)
             h = t[1] - t[0]
             if h > 0.0:
-                c = chord(0.5 * (t[0] + t[1]) - yc, rho, blades, n_blades)
+                c = _signed_chord(0.5 * (t[0] + t[1]) - yc, rho, blades, n_blades, sgn)
                 if c[1] > c[0]:
                     _deposit_span(buf, k, xc + c[0], xc + c[1], v * (h * inv))
 
@@ -118,7 +131,9 @@ def scatter_kernel(
 ):
     """Scatter every source of ``src`` (local coordinates) with radius ``|radius|`` [px].
 
-    ``extent`` is the shape's vertical extent ``(y_top, y_bottom)`` at unit radius.
+    ``extent`` is the shape's vertical extent ``(y_top, y_bottom)`` at unit radius. A
+    positive (in-front-of-focus) ``radius`` draws the shape point-reflected, as a
+    thin lens does: the aperture's orientation is that of background bokeh.
 
     ``buf<l>`` is the difference buffer of level ``l``, ``(ceil(H/2^l), ceil(W/2^l) + 2)``.
     """
@@ -127,6 +142,10 @@ def scatter_kernel(
     if v[3] == 0.0:
         return
     r = wp.abs(radius[y, x])
+    # a thin lens images the aperture point-reflected in front of the focal plane (s > 0)
+    sgn = float(1.0)
+    if radius[y, x] > 0.0:
+        sgn = -1.0
     if r < 0.5:
         # the disc lies inside the source pixel: a plain copy
         wp.atomic_add(buf0, y, x, v)
@@ -141,17 +160,17 @@ def scatter_kernel(
     yc = (float(y) + 0.5) * scale
     rho = r * scale
     if lev == 0:
-        _scatter_one(buf0, xc, yc, rho, v, blades, n_blades, extent)
+        _scatter_one(buf0, xc, yc, rho, v, blades, n_blades, extent, sgn)
     elif lev == 1:
-        _scatter_one(buf1, xc, yc, rho, v, blades, n_blades, extent)
+        _scatter_one(buf1, xc, yc, rho, v, blades, n_blades, extent, sgn)
     elif lev == 2:
-        _scatter_one(buf2, xc, yc, rho, v, blades, n_blades, extent)
+        _scatter_one(buf2, xc, yc, rho, v, blades, n_blades, extent, sgn)
     elif lev == 3:
-        _scatter_one(buf3, xc, yc, rho, v, blades, n_blades, extent)
+        _scatter_one(buf3, xc, yc, rho, v, blades, n_blades, extent, sgn)
     elif lev == 4:
-        _scatter_one(buf4, xc, yc, rho, v, blades, n_blades, extent)
+        _scatter_one(buf4, xc, yc, rho, v, blades, n_blades, extent, sgn)
     else:
-        _scatter_one(buf5, xc, yc, rho, v, blades, n_blades, extent)
+        _scatter_one(buf5, xc, yc, rho, v, blades, n_blades, extent, sgn)
 
 
 @wp.kernel

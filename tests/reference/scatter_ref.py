@@ -53,7 +53,14 @@ def footprint(xc: float, yc: float, rho: float, blades: np.ndarray, h: int, w: i
     """Weights a source at (xc, yc) (continuous pixel coords) spreads over an h x w grid (level 0).
 
     ``extent``: the shape's vertical extent at unit radius (rows outside it are empty).
+    A positive ``rho`` (in front of focus) draws the shape point-reflected.
     """
+    if rho > 0 and len(blades):
+        # point reflection: a shape S at -S; blades (n, h, R) -> (-n, h, R), extent (a, b) -> (-b, -a)
+        flipped = np.asarray(blades, np.float64).copy()
+        flipped[:, :2] *= -1
+        return footprint(xc, yc, -rho, flipped, h, w, (-extent[1], -extent[0]))
+    rho = abs(rho)
     out = np.zeros((h, w))
     if rho < 0.5:
         out[int(math.floor(yc)), int(math.floor(xc))] = 1.0
@@ -89,7 +96,7 @@ def scatter(src: np.ndarray, radius: np.ndarray, blades: np.ndarray,
         for x in range(w):
             if not np.any(src[y, x]):
                 continue
-            fp = footprint(x + 0.5, y + 0.5, float(radius[y, x]), blades, h, w, extent)
+            fp = footprint(x + 0.5, y + 0.5, float(radius[y, x]), blades, h, w, extent)  # signed
             out += fp[..., None] * src[y, x][None, None, :]
     return out
 
@@ -109,7 +116,7 @@ def layered(image: np.ndarray, signed_coc: np.ndarray, edges: np.ndarray, blades
     for lid in sorted(set(ids.ravel().tolist())):
         member = ids == lid
         src = np.concatenate([image * member[..., None], member[..., None].astype(np.float64)], axis=2)
-        lay = scatter(src, np.abs(signed_coc) * member, blades, extent)
+        lay = scatter(src, signed_coc * member, blades, extent)
         cov = lay[..., 3]
         alpha = np.minimum(cov, 1.0)
         colour = np.where(cov[..., None] > 1e-6, lay[..., :3] / np.maximum(cov, 1e-12)[..., None], 0.0)
