@@ -185,3 +185,45 @@ def test_render_raytrace_quality_reports_rays(scene, tmp_path, capsys):
     stats = json.loads(out[out.index("{"):])
     assert stats["spp_max"] <= 16 and stats["samples_total"] > 0 and stats["layers"] >= 1
     assert br.read_image(tmp_path / "o.exr").shape == (48, 64, 3)
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["render", "x.png", "--disparity", "d.png"],  # no -o
+        ["render", "x.png", "-o", "o.png"],  # neither --disparity nor --depth
+        ["render", "x.png", "--disparity", "d.png", "-o", "o.png", "--focus-at", "5"],
+        ["demo", "--size", "-5,10"],
+        ["frobnicate"],
+    ],
+)
+def test_usage_errors_are_one_line_with_exit_2(argv, capsys):
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    err = capsys.readouterr().err
+    assert e.value.code == 2
+    assert err.startswith("bokehray: error:") and err.count("\n") == 1, err
+
+
+def test_unwritable_output_is_refused_before_rendering(scene, tmp_path, capsys):
+    p, _, _ = scene
+    (tmp_path / "a_file").write_text("not a folder")
+    code, _, err = run(capsys, "render", p["png"], "--disparity", p["disp_png"], "-o", tmp_path / "a_file" / "o.png",
+                       "--blur", 4, "--focus", 0.5)
+    assert code == 2 and "cannot write there" in err and err.count("\n") == 1
+    # a folder that cannot be created at write time is one line too, not a traceback
+    code, _, err = run(capsys, "render", p["png"], "--disparity", p["disp_png"], "-o", "/proc/nope/o.png",
+                       "--blur", 4, "--focus", 0.5)
+    assert code == 2 and err.startswith("bokehray: error:") and err.count("\n") == 1
+
+
+def test_bad_numbers_for_rays_and_workers(scene, tmp_path, capsys):
+    p, _, _ = scene
+    code, _, err = run(capsys, "render", p["png"], "--disparity", p["disp_png"], "-o", tmp_path / "o.png",
+                       "--blur", 4, "--focus", 0.5, "--max-spp", 0)
+    assert code == 2 and "rays per pixel" in err
+    code, _, err = run(capsys, "render", p["png"], "--disparity", p["disp_png"], "-o", tmp_path / "o.png",
+                       "--blur", 1e30, "--focus", 0.5)
+    assert code == 2 and "at most" in err
+    code, _, err = run(capsys, "synth", "-n", 1, "-o", tmp_path / "s", "--workers", 0, "--quiet")
+    assert code == 2 and "--workers" in err

@@ -285,3 +285,20 @@ def test_bright_sources_never_give_negative_output():
     image[:, :margin] = image[:, -margin:] = 0
     out = br.render(image, np.ones((33, 64), np.float32), br.BlurParams(2.0, 0.5))
     assert out.min() >= 0.0
+
+
+def test_highlight_boost_leaves_alpha_alone():
+    rgba = np.full((8, 8, 4), 0.2, np.float32)
+    rgba[..., 3] = 1.0
+    out = br.render(rgba, np.zeros((8, 8), np.float32), br.BlurParams(0.0, 0.0), highlight_boost=4.0)
+    np.testing.assert_allclose(out, rgba)  # alpha 1 is not a clipped highlight
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [{"max_layers": 0}, {"tile_px": 0}, {"max_layer_px": 0.0}, {"max_layers": 1.5}, {"level_radius_px": 0.0},
+     {"level_radius_px": float("nan")}, {"threads": 0}],
+)
+def test_bad_preview_options_are_rejected(kwargs):
+    with pytest.raises(br.InputError):
+        PreviewOptions(**kwargs)

@@ -194,3 +194,24 @@ def test_layer_edges_cut_at_gaps_and_around_focus():
     inner = edges[1:-1]
     assert any(-12 < e < -3 for e in inner) and any(0.3 < e < 5 for e in inner)  # the two depth gaps
     assert -0.5 in inner and 0.5 in inner  # the in-focus layer is its own
+
+
+def test_layer_edges_keep_the_in_focus_layer_when_the_budget_is_tight():
+    """Review finding: a 200 px CoC span used to fall back to even spacing and lose the focus cuts."""
+    s = np.linspace(-100, 100, 5000).astype(np.float32)
+    edges = layer_edges(s, PreviewOptions(max_layers=12))
+    assert len(edges) - 1 <= 12
+    assert -0.5 in edges and 0.5 in edges
+
+
+def test_small_bright_layer_over_black_keeps_its_energy():
+    """A large pyramid-level bokeh ball of a small layer arrives whole (nothing cut at its layer box)."""
+    n = 480
+    img = np.zeros((n, n, 3), np.float32)
+    img[232:248, 232:248] = 10.0
+    s = np.full((n, n), -110.0, np.float32)  # a black background layer ...
+    s[232:248, 232:248] = -100.0  # ... behind a small bright layer of its own, r = 100 (pyramid level 4)
+    out, stats = render_preview(img, s, Aperture())
+    assert stats.layers == 2
+    # all the light arrives: none is cut off at the edge of the small layer's box
+    np.testing.assert_allclose(out.sum(), img.sum(), rtol=1e-3)

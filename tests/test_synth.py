@@ -87,3 +87,11 @@ def test_corrupt_foreground_is_a_clear_error_with_no_scene(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 2 and "broken.png" in err
     assert not any((tmp_path / "out").glob("scene_*"))
+
+
+def test_existing_scenes_need_overwrite(tmp_path):
+    generate(SMALL, 1, tmp_path, seed=0, workers=1, progress=False)
+    with pytest.raises(br.InputError, match="--overwrite"):
+        generate(SMALL, 1, tmp_path, seed=0, workers=1, progress=False)
+    generate(SMALL, 1, tmp_path, seed=1, workers=1, progress=False, overwrite=True)
+    assert json.loads((tmp_path / "scene_00000" / "info.json").read_text())["seed"] == 1

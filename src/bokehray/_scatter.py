@@ -5,8 +5,8 @@ Pipeline (all heavy work in ``bokehray_kernels``):
 1. Signed CoC ``s = K (d - d_f)`` per pixel. Tiles whose pixels, and every pixel
    within CoC reach of them, have ``|s| < 0.5`` are *copied*: never scattered,
    never composited.
-2. The rest is cut into layers by ``s`` (edges on multiples of a width ``w``
-   with one edge at the focus, ``s = 0``); layer ids grow towards the camera.
+2. The rest is cut into layers by ``s`` (``layer_edges``: an in-focus layer,
+   cuts in the depth gaps, wide runs split); layer ids grow towards the camera.
 3. Each layer, independently (one worker thread per CPU core): its pixels
    become sources ``(RGB, 1)``; where a nearer layer hides it, within the CoC
    reach of the nearer layers, it is extended by pull-push filling; all
@@ -30,6 +30,7 @@ import warp as wp
 
 import bokehray_kernels as bk
 
+from .errors import InputError
 from .lens import Aperture
 
 __all__ = ["PreviewOptions", "RenderStats", "render_preview"]
@@ -57,6 +58,20 @@ class PreviewOptions:
     tile_px: int = 16
     fill: bool = True
     threads: int | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("max_layers", "tile_px"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
+                raise InputError(f"{name}: expected an integer >= 1, got {v!r}")
+        for name in ("max_layer_px", "min_layer_px", "level_radius_px"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float, np.floating)) and math.isfinite(v) and v > 0):
+                raise InputError(f"{name}: expected a finite number > 0, got {v!r}")
+        if self.level_radius_px < 2.0:
+            raise InputError(f"level_radius_px: expected >= 2 px (smaller coarsens every blur), got {self.level_radius_px}")
+        if self.threads is not None and (not isinstance(self.threads, int) or self.threads < 1):
+            raise InputError(f"threads: expected None (all cores) or an integer >= 1, got {self.threads!r}")
 
 
 @dataclass(slots=True)
@@ -141,7 +156,8 @@ def layer_edges(signed_coc: np.ndarray, options: PreviewOptions) -> np.ndarray:
     (3) where a gap-free run is still wider than ``max_layer_px``, at even
     spacing, so an in-focus subject and a far background on one continuous
     range still get separate layers (no halo). At most ``max_layers`` layers:
-    the narrowest gaps are dropped first.
+    the narrowest gaps are dropped first, and what the budget leaves for (3) is
+    shared between the wide runs in proportion to their width.
     """
     signed_coc = np.asarray(signed_coc, np.float32).ravel()
     lo, hi = float(signed_coc.min()), float(signed_coc.max())
@@ -156,18 +172,22 @@ def layer_edges(signed_coc: np.ndarray, options: PreviewOptions) -> np.ndarray:
     runs = change.reshape(-1, 2)
     gaps = [(lo + bin_px * (a + b) / 2.0, (b - a) * bin_px) for a, b in runs]
     gaps.sort(key=lambda g: -g[1])
-    cuts = {c for c in (-0.5, 0.5) if lo < c < hi}
-    for pos, _ in gaps[: max(0, options.max_layers - 1 - len(cuts))]:
-        cuts.add(pos)
+    ranked = [c for c in (-0.5, 0.5) if lo < c < hi] + [pos for pos, _ in gaps]  # focus cuts first
+    cuts = set(ranked[: max(0, options.max_layers - 1)])
     edges = np.array(sorted({lo - 0.5, hi + 0.5} | cuts))
-    # split runs that are still too wide
+    # split the runs that are still too wide, sharing what is left of the layer budget
+    # between them in proportion to their width (the focus and gap cuts always stay)
+    widths = np.diff(edges)
+    want = np.maximum(1, np.ceil(widths / options.max_layer_px)).astype(int)
+    spare = options.max_layers - len(widths)
+    if want.sum() - len(widths) > spare:
+        extra = want - 1
+        share = np.floor(extra * max(spare, 0) / max(extra.sum(), 1)).astype(int)
+        want = 1 + share
     out = [edges[0]]
-    for a, b in zip(edges[:-1], edges[1:]):
-        n = max(1, int(math.ceil((b - a) / options.max_layer_px)))
+    for a, b, n in zip(edges[:-1], edges[1:], want):
         out.extend(a + (b - a) * np.arange(1, n + 1) / n)
     edges = np.array(out)
-    if len(edges) - 1 > options.max_layers:  # too many: fall back to even spacing
-        edges = np.linspace(lo - 0.5, hi + 0.5, options.max_layers + 1)
     return edges
 
 
@@ -220,7 +240,9 @@ def plan_layers(signed_coc: np.ndarray, active: np.ndarray, options: PreviewOpti
         lo, hi = float(edges[i]), float(edges[i + 1])
         reach = nearer_reach[i] if options.fill else 0.0
         pad_fill = int(math.ceil(1.4142 * reach)) + 2 if reach >= 0.5 else 0
-        pad = pad_fill + int(math.ceil(max_r_slice[i])) + 2
+        # a level-l scatter spreads up to 2^l px beyond the radius (coarse pixels, bilinear upsampling)
+        coarse = 2 << (_levels_for(float(max_r_slice[i]), options.level_radius_px) - 1)
+        pad = pad_fill + int(math.ceil(max_r_slice[i])) + 2 + coarse
         bbox = (max(0, ty.min() * t - pad), min(h, (ty.max() + 1) * t + pad),
                 max(0, tx.min() * t - pad), min(w, (tx.max() + 1) * t + pad))
         layers.append(_Layer(int(i), lo, hi, bbox, float(max_r_slice[i]), float(reach)))

@@ -48,15 +48,22 @@ def _add_device_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with the CLI's one-line error format (``bokehray: error: ...``, exit 2)."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(EXIT_INPUT, f"bokehray: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from . import __version__
 
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="bokehray",
         description="Physics-first lens blur: render a photo as a wide-aperture lens would have taken it.",
     )
     parser.add_argument("--version", action="version", version=f"bokehray {__version__}")
-    sub = parser.add_subparsers(dest="command", required=True)
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
     r = sub.add_parser(
         "render",
@@ -109,6 +116,7 @@ def build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--blur-levels", default="10,20,30", help="K values, comma separated (default 10,20,30)")
     sy.add_argument("--max-spp", type=int, default=64, help="rays per pixel cap (default 64)")
     sy.add_argument("--workers", type=int, default=None, help="worker processes (default: all cores)")
+    sy.add_argument("--overwrite", action="store_true", help="replace scenes that exist already")
     _add_lens_args(sy)
     sy.add_argument("--debug", action="store_true", help="show tracebacks")
     sy.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -237,7 +245,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     try:
         from .raytrace import RaytraceOptions
 
-        rt_opts = RaytraceOptions(max_spp=args.max_spp) if args.quality == "raytrace" else None
+        rt_opts = RaytraceOptions(max_spp=args.max_spp)  # validated whatever the quality
         out, stats = render_with_stats(image, disparity, blur, _aperture(args), quality=args.quality,
                                        device=args.device, options=_options(args), raytrace_options=rt_opts,
                                        highlight_boost=args.highlight_boost, progress=update)
@@ -325,7 +333,8 @@ def cmd_synth(args: argparse.Namespace) -> int:
         raise InputError(f"--blur-levels: expected comma-separated numbers, got {args.blur_levels!r}") from None
     config = SynthConfig(size=args.size, blur_levels=levels, aperture=_aperture(args), max_spp=args.max_spp,
                          fg_dir=args.fg, bg_dir=args.bg)
-    paths = generate(config, args.n, args.output, seed=args.seed, workers=args.workers, progress=not args.quiet)
+    paths = generate(config, args.n, args.output, seed=args.seed, workers=args.workers, progress=not args.quiet,
+                     overwrite=args.overwrite)
     if not args.quiet:
         print(f"wrote {len(paths)} scenes to {args.output}")
     return 0
@@ -342,6 +351,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             return cmd_synth(args)
         return cmd_demo(args)
     except BokehrayError as e:
+        if args.debug:
+            raise
+        print(f"bokehray: error: {e}", file=sys.stderr)
+        return EXIT_INPUT
+    except OSError as e:  # the disk, not the input: e.g. an output folder that cannot be created
         if args.debug:
             raise
         print(f"bokehray: error: {e}", file=sys.stderr)

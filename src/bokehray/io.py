@@ -387,6 +387,11 @@ def check_output_path(path: str | os.PathLike[str], *, bit_depth: int | None = N
     """
     p, fmt = _format(path, ("PNG", "JPEG", "TIFF", "EXR"), "images", read=False)
     _output_bits(p, fmt, bit_depth, half)
+    parent = p.resolve().parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir() or not os.access(parent, os.W_OK):
+        raise InputError(f"{p}: cannot write there ({parent} is not a writable folder)")
     return p
 
 

@@ -24,7 +24,10 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["Aperture", "BlurParams", "DepthNormalization", "ThinLens", "disparity_from_depth", "depth_from_disparity"]
+MAX_K_PX = 1.0e5
+"""Largest K accepted: a CoC of 100 000 px is beyond any image; larger values only exhaust memory."""
+
+__all__ = ["MAX_K_PX", "Aperture", "BlurParams", "DepthNormalization", "ThinLens", "disparity_from_depth", "depth_from_disparity"]
 
 
 def _finite(name: str, value: float, *, lo: float | None = None, lo_open: bool = False) -> float:
@@ -51,6 +54,8 @@ class BlurParams:
 
     def __post_init__(self) -> None:
         k = _finite("K (blur)", self.k_px, lo=0.0)
+        if k > MAX_K_PX:
+            raise InputError(f"K (blur): expected at most {MAX_K_PX:g} px per unit disparity, got {k:g}")
         f = _finite("focus disparity", self.focus_disparity)
         if not 0.0 <= f <= 1.0:
             raise InputError(f"focus disparity: expected a value in [0, 1] (1 = nearest), got {f:g}")

@@ -50,7 +50,9 @@ class RaytraceOptions:
 
     Args:
         samples_per_px2: rays per square pixel of the largest CoC a pixel can
-            see: ``spp = ceil(samples_per_px2 * pi * r^2)``, clamped.
+            see: ``spp = ceil(samples_per_px2 * pi * r^2)``, clamped. The rays are
+            points of a spiral on the CoC's circumscribed disc; with a polygon
+            aperture only those inside it (polygon area / disc area of them) are traced.
         max_spp: most rays per pixel.
         min_spp: fewest rays per pixel (1 where everything is in focus).
         seed: rotates the per-pixel sample patterns; renders are deterministic for a seed.
@@ -64,8 +66,9 @@ class RaytraceOptions:
     def __post_init__(self) -> None:
         if not (math.isfinite(self.samples_per_px2) and self.samples_per_px2 > 0):
             raise InputError(f"samples_per_px2: expected a finite value > 0, got {self.samples_per_px2!r}")
-        if not 1 <= self.min_spp <= self.max_spp:
-            raise InputError(f"spp bounds: expected 1 <= min_spp <= max_spp, got {self.min_spp}, {self.max_spp}")
+        if not 1 <= self.min_spp <= self.max_spp <= 65536:
+            raise InputError(f"rays per pixel: expected 1 <= min_spp <= max_spp <= 65536, "
+                             f"got {self.min_spp}, {self.max_spp}")
 
 
 @dataclass
@@ -227,8 +230,8 @@ def render_raytrace(
     """
     preview_options = preview_options or PreviewOptions()
     h, w = disparity.shape
-    if blur.k_px == 0.0:
-        return image.copy(), RaytraceStats()
+    if blur.k_px == 0.0:  # a pinhole: the input itself
+        return image[..., :3].copy(), RaytraceStats(stage_seconds={"total": 0.0})
     s = blur.signed_coc(disparity)
     sid, plans = plan_layers(s, np.ones((h, w), bool), preview_options)
     img_wp = wp.array(np.ascontiguousarray(image[..., :3], np.float32), dtype=wp.vec3, device=device)

@@ -14,7 +14,7 @@ from .raytrace import RaytraceOptions, RaytraceStats, render_raytrace
 __all__ = ["QUALITIES", "boost_highlights", "check_disparity", "check_image", "focus_at", "render", "render_with_stats"]
 
 QUALITIES = ("preview", "raytrace")
-"""Quality levels available (docs/renderer.md, "quality ladder")."""
+"""Quality levels: docs/renderer.md (preview) and docs/raytracer.md (raytrace)."""
 
 
 def _first_bad(mask: np.ndarray) -> tuple[int, ...]:
@@ -111,7 +111,8 @@ def render_with_stats(
     lowest = float(img.min())
     work = img if channels >= 3 else np.repeat(img, 3, axis=2)
     if highlight_boost > 0:
-        work = boost_highlights(work, highlight_boost)
+        work = work.copy()
+        work[..., :3] = boost_highlights(work[..., :3], highlight_boost)  # colour only, never alpha
     s = blur.signed_coc(d)
     opts = options or PreviewOptions()
 

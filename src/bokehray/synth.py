@@ -57,8 +57,9 @@ class SynthConfig:
     def __post_init__(self) -> None:
         if not 32 <= self.size <= 4096:
             raise InputError(f"size: expected 32..4096 px, got {self.size}")
-        if not self.blur_levels or any(not (math.isfinite(k) and k > 0) for k in self.blur_levels):
-            raise InputError(f"blur levels: expected positive K values, got {self.blur_levels}")
+        if not self.blur_levels or any(not (math.isfinite(k) and 0 < k <= 1e4) for k in self.blur_levels):
+            raise InputError(f"blur levels: expected K values in (0, 10000], got {self.blur_levels}")
+        RaytraceOptions(max_spp=self.max_spp)  # validates the ray cap
 
 
 def _scene_rng(seed: int, index: int) -> np.random.Generator:
@@ -242,10 +243,10 @@ def _mean_disparity(layer: Layer) -> float:
     return float(np.clip((w * d).sum() / max(w.sum(), 1e-12), 0.0, 1.0))
 
 
-def _generate_one(args: tuple[SynthConfig, int, int, str]) -> str:
+def _generate_one(args: tuple[SynthConfig, int, int, str, bool]) -> str:
     from .datasets import write_blb_scene
 
-    config, seed, index, out = args
+    config, seed, index, out, overwrite = args
     layers, desc = make_scene(config, seed, index)
     image, disparity = _pinhole(layers)
     focus = [_mean_disparity(layers[0]), _mean_disparity(layers[-1])]
@@ -269,21 +270,30 @@ def _generate_one(args: tuple[SynthConfig, int, int, str]) -> str:
         "mean_spp": float(np.mean(spp)),
         **desc,
     }
-    path = write_blb_scene(Path(out) / f"scene_{index:05d}", image, disparity, renders, info)
+    path = write_blb_scene(Path(out) / f"scene_{index:05d}", image, disparity, renders, info, overwrite=overwrite)
     return str(path)
 
 
 def generate(config: SynthConfig, n: int, out: str | os.PathLike, *, seed: int = 0, workers: int | None = None,
-             progress: bool = True) -> list[str]:
-    """Generate ``n`` scenes into ``out`` (BLB layout), in parallel over worker processes."""
+             progress: bool = True, overwrite: bool = False) -> list[str]:
+    """Generate ``n`` scenes into ``out`` (BLB layout), in parallel over worker processes.
+
+    Existing scenes are an error unless ``overwrite`` (checked before any rendering).
+    """
     if n < 1:
         raise InputError(f"-n: expected at least 1 scene, got {n}")
+    if workers is not None and workers < 1:
+        raise InputError(f"--workers: expected at least 1, got {workers}")
+    existing = [f"scene_{i:05d}" for i in range(n) if (Path(out) / f"scene_{i:05d}").exists()]
+    if existing and not overwrite:
+        raise InputError(f"{out}: {len(existing)} of the scenes exist already ({existing[0]}, ...); "
+                         "choose another folder or pass --overwrite")
     if config.fg_dir:
         _files(config.fg_dir, "foreground")
     if config.bg_dir:
         _files(config.bg_dir, "background")
     Path(out).mkdir(parents=True, exist_ok=True)
-    jobs = [(config, seed, i, str(out)) for i in range(n)]
+    jobs = [(config, seed, i, str(out), overwrite) for i in range(n)]
     workers = max(1, min(workers or os.cpu_count() or 1, n))
     from tqdm import tqdm
 
