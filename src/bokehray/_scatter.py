@@ -51,7 +51,7 @@ class PreviewOptions:
         threads: worker threads on the CPU (default: all cores).
     """
 
-    max_layers: int = 12
+    max_layers: int = 8
     max_layer_px: float = 8.0
     min_layer_px: float = 1.0
     level_radius_px: float = 8.0
