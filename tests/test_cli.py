@@ -227,3 +227,13 @@ def test_bad_numbers_for_rays_and_workers(scene, tmp_path, capsys):
     assert code == 2 and "at most" in err
     code, _, err = run(capsys, "synth", "-n", 1, "-o", tmp_path / "s", "--workers", 0, "--quiet")
     assert code == 2 and "--workers" in err
+
+
+def test_focus_at_the_sky_is_a_clear_error(tmp_path, capsys):
+    img = br.write_image(tmp_path / "i.png", np.full((16, 16, 3), 0.5, np.float32))
+    z = np.full((16, 16), 3.0, np.float32)
+    z[:8] = np.inf  # sky in the top half
+    np.save(tmp_path / "z.npy", z)
+    code, _, err = run(capsys, "render", img, "--depth", tmp_path / "z.npy", "-o", tmp_path / "o.png",
+                       "--focal-length", 50, "--f-number", 2, "--focus-at", "4,2")
+    assert code == 2 and "infinity" in err and err.count("\n") == 1

@@ -226,6 +226,9 @@ def cmd_render(args: argparse.Namespace) -> int:
         if args.focus_at is not None:
             x, y = args.focus_at
             focus_m = float(norm.depth(focus_at(disparity, x, y)))
+            if not np.isfinite(focus_m):
+                raise InputError(f"--focus-at {x},{y}: that point is at infinity (sky); a thin lens focused there "
+                                 "needs --focus-distance, or click on a surface")
         if focus_m is None:
             raise InputError("a physical lens needs --focus-distance or --focus-at X,Y")
         lens = ThinLens(args.focal_length, args.f_number, focus_m, args.sensor_width)
