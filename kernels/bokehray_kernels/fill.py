@@ -11,6 +11,8 @@ so that a bright light next to an occluder does not flood the hidden area; the
 
 import warp as wp
 
+from .sampling import bilinear_taps
+
 wp.set_module_options({"enable_backward": False})
 
 
@@ -133,40 +135,32 @@ def push_kernel(
         density = w / k
         has = 1.0
     if (k <= 0.0 or w <= 0.0) and top == 0:
-        h = coarse_value.shape[0]
-        cw = coarse_value.shape[1]
-        fx = wp.clamp((float(x) + 0.5) * 0.5 - 0.5, 0.0, float(cw - 1))
-        fy = wp.clamp((float(y) + 0.5) * 0.5 - 0.5, 0.0, float(h - 1))
-        xa = int(wp.floor(fx))
-        ya = int(wp.floor(fy))
-        xb = wp.min(xa + 1, cw - 1)
-        yb = wp.min(ya + 1, h - 1)
-        tx = fx - float(xa)
-        ty = fy - float(ya)
-        b00 = (1.0 - tx) * (1.0 - ty)
-        b01 = tx * (1.0 - ty)
-        b10 = (1.0 - tx) * ty
-        b11 = tx * ty
+        t = bilinear_taps((float(x) + 0.5) * 0.5 - 0.5, (float(y) + 0.5) * 0.5 - 0.5, coarse_value.shape[0],
+                          coarse_value.shape[1])
+        b00 = (1.0 - t.tx) * (1.0 - t.ty)
+        b01 = t.tx * (1.0 - t.ty)
+        b10 = (1.0 - t.tx) * t.ty
+        b11 = t.tx * t.ty
         if k <= 0.0:
-            h00 = b00 * coarse_has[ya, xa]
-            h01 = b01 * coarse_has[ya, xb]
-            h10 = b10 * coarse_has[yb, xa]
-            h11 = b11 * coarse_has[yb, xb]
+            h00 = b00 * coarse_has[t.y0, t.x0]
+            h01 = b01 * coarse_has[t.y0, t.x1]
+            h10 = b10 * coarse_has[t.y1, t.x0]
+            h11 = b11 * coarse_has[t.y1, t.x1]
             hs = h00 + h01 + h10 + h11
             if hs > 1.0e-8:
-                density = (h00 * coarse_density[ya, xa] + h01 * coarse_density[ya, xb] + h10 * coarse_density[yb, xa]
-                           + h11 * coarse_density[yb, xb]) / hs
+                density = (h00 * coarse_density[t.y0, t.x0] + h01 * coarse_density[t.y0, t.x1] + h10 * coarse_density[t.y1, t.x0]
+                           + h11 * coarse_density[t.y1, t.x1]) / hs
                 has = 1.0
         if w <= 0.0:
             # colour only from coarse pixels that hold some of the layer
-            d00 = b00 * coarse_has[ya, xa] * coarse_density[ya, xa]
-            d01 = b01 * coarse_has[ya, xb] * coarse_density[ya, xb]
-            d10 = b10 * coarse_has[yb, xa] * coarse_density[yb, xa]
-            d11 = b11 * coarse_has[yb, xb] * coarse_density[yb, xb]
+            d00 = b00 * coarse_has[t.y0, t.x0] * coarse_density[t.y0, t.x0]
+            d01 = b01 * coarse_has[t.y0, t.x1] * coarse_density[t.y0, t.x1]
+            d10 = b10 * coarse_has[t.y1, t.x0] * coarse_density[t.y1, t.x0]
+            d11 = b11 * coarse_has[t.y1, t.x1] * coarse_density[t.y1, t.x1]
             ds = d00 + d01 + d10 + d11
             if ds > 1.0e-8:
-                v = (coarse_value[ya, xa] * d00 + coarse_value[ya, xb] * d01 + coarse_value[yb, xa] * d10
-                     + coarse_value[yb, xb] * d11) / ds
+                v = (coarse_value[t.y0, t.x0] * d00 + coarse_value[t.y0, t.x1] * d01 + coarse_value[t.y1, t.x0] * d10
+                     + coarse_value[t.y1, t.x1] * d11) / ds
     total[y, x] = v
     weight[y, x] = density
     known[y, x] = has

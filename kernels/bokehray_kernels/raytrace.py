@@ -19,6 +19,7 @@ the layer's border continued outwards (as the path-traced dev set does).
 import warp as wp
 
 from .aperture import chord
+from .sampling import bilinear_taps
 
 wp.set_module_options({"enable_backward": False})
 
@@ -48,36 +49,18 @@ def aperture_sample(i: int, n: int, rotation: float) -> wp.vec2:
 
 @wp.func
 def sample_layer_rgba(tex: wp.array3d(dtype=wp.vec4), layer: int, p: wp.vec2) -> wp.vec4:
-    h = tex.shape[1]
-    w = tex.shape[2]
-    fx = wp.clamp(p[0] - 0.5, 0.0, float(w - 1))
-    fy = wp.clamp(p[1] - 0.5, 0.0, float(h - 1))
-    x0 = int(wp.floor(fx))
-    y0 = int(wp.floor(fy))
-    x1 = wp.min(x0 + 1, w - 1)
-    y1 = wp.min(y0 + 1, h - 1)
-    tx = fx - float(x0)
-    ty = fy - float(y0)
-    top = tex[layer, y0, x0] * (1.0 - tx) + tex[layer, y0, x1] * tx
-    bot = tex[layer, y1, x0] * (1.0 - tx) + tex[layer, y1, x1] * tx
-    return top * (1.0 - ty) + bot * ty
+    t = bilinear_taps(p[0] - 0.5, p[1] - 0.5, tex.shape[1], tex.shape[2])
+    top = tex[layer, t.y0, t.x0] * (1.0 - t.tx) + tex[layer, t.y0, t.x1] * t.tx
+    bot = tex[layer, t.y1, t.x0] * (1.0 - t.tx) + tex[layer, t.y1, t.x1] * t.tx
+    return top * (1.0 - t.ty) + bot * t.ty
 
 
 @wp.func
 def sample_layer_disp(disp: wp.array3d(dtype=float), layer: int, p: wp.vec2) -> float:
-    h = disp.shape[1]
-    w = disp.shape[2]
-    fx = wp.clamp(p[0] - 0.5, 0.0, float(w - 1))
-    fy = wp.clamp(p[1] - 0.5, 0.0, float(h - 1))
-    x0 = int(wp.floor(fx))
-    y0 = int(wp.floor(fy))
-    x1 = wp.min(x0 + 1, w - 1)
-    y1 = wp.min(y0 + 1, h - 1)
-    tx = fx - float(x0)
-    ty = fy - float(y0)
-    top = disp[layer, y0, x0] * (1.0 - tx) + disp[layer, y0, x1] * tx
-    bot = disp[layer, y1, x0] * (1.0 - tx) + disp[layer, y1, x1] * tx
-    return top * (1.0 - ty) + bot * ty
+    t = bilinear_taps(p[0] - 0.5, p[1] - 0.5, disp.shape[1], disp.shape[2])
+    top = disp[layer, t.y0, t.x0] * (1.0 - t.tx) + disp[layer, t.y0, t.x1] * t.tx
+    bot = disp[layer, t.y1, t.x0] * (1.0 - t.tx) + disp[layer, t.y1, t.x1] * t.tx
+    return top * (1.0 - t.ty) + bot * t.ty
 
 
 @wp.func

@@ -22,6 +22,7 @@ including radii below one pixel.
 import warp as wp
 
 from .aperture import chord
+from .sampling import bilinear_taps
 
 wp.set_module_options({"enable_backward": False})
 
@@ -185,17 +186,10 @@ def prefix_rows_kernel(buf: wp.array2d(dtype=wp.vec4)):
 
 @wp.func
 def _bilinear(buf: wp.array2d(dtype=wp.vec4), fx: float, fy: float, h: int, w: int) -> wp.vec4:
-    fx = wp.clamp(fx, 0.0, float(w - 1))
-    fy = wp.clamp(fy, 0.0, float(h - 1))
-    x0 = int(wp.floor(fx))
-    y0 = int(wp.floor(fy))
-    x1 = wp.min(x0 + 1, w - 1)
-    y1 = wp.min(y0 + 1, h - 1)
-    tx = fx - float(x0)
-    ty = fy - float(y0)
-    top = buf[y0, x0] * (1.0 - tx) + buf[y0, x1] * tx
-    bottom = buf[y1, x0] * (1.0 - tx) + buf[y1, x1] * tx
-    return top * (1.0 - ty) + bottom * ty
+    t = bilinear_taps(fx, fy, h, w)
+    top = buf[t.y0, t.x0] * (1.0 - t.tx) + buf[t.y0, t.x1] * t.tx
+    bottom = buf[t.y1, t.x0] * (1.0 - t.tx) + buf[t.y1, t.x1] * t.tx
+    return top * (1.0 - t.ty) + bottom * t.ty
 
 
 @wp.func
