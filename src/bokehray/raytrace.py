@@ -20,7 +20,7 @@ import warp as wp
 
 import bokehray_kernels as bk
 
-from ._scatter import PreviewOptions, _dilate, _layer_sources, plan_layers
+from ._scatter import PreviewOptions, _box_max_tiles, _dilate, _layer_sources, plan_layers
 from .errors import InputError
 from .lens import Aperture, BlurParams
 
@@ -128,11 +128,7 @@ def _visible_coc(coc: np.ndarray, content: np.ndarray, tile: int = 16) -> np.nda
     pixel's ray count.
     """
     h, w = coc.shape
-    th, tw = -(-h // tile), -(-w // tile)
-    pad = np.zeros((th * tile, tw * tile), bool)
-    pad[:h, :w] = content
-    has = pad.reshape(th, tile, tw, tile).any(axis=(1, 3))
-    reach = _dilate(has, int(np.ceil(float(coc.max()) / tile)) + 1)
+    reach = _dilate(_box_max_tiles(content, tile), int(np.ceil(float(coc.max()) / tile)) + 1)
     mask = np.repeat(np.repeat(reach, tile, 0), tile, 1)[:h, :w]
     return np.where(mask, coc, 0.0).astype(np.float32)
 
@@ -159,26 +155,38 @@ def raytrace_layers(
         transmittance left after the last layer), both averaged over the rays.
     """
     t0 = time.perf_counter()
-    options = options or RaytraceOptions()
-    aperture = aperture or Aperture()
     h, w = _validate_layers(layers)
     n = len(layers)
     rgba = np.empty((n, h, w, 4), np.float32)
-    disp = np.zeros((n, h, w), np.float32)
+    disp = np.empty((n, h, w), np.float32)
     planes = np.zeros((n, 4), np.float32)
-    ranges = np.zeros((n, 2), np.float32)
-    r_px = np.zeros((h, w), np.float32)
     for i, lyr in enumerate(layers):
         tex = np.asarray(lyr.rgba, np.float32)
         rgba[i, ..., :3] = tex[..., :3] * tex[..., 3:4]
         rgba[i, ..., 3] = tex[..., 3]
-        d_px = _layer_disparity_at_pixels(lyr, h, w)
+        disp[i] = _layer_disparity_at_pixels(lyr, h, w)
         if lyr.plane is not None:
             planes[i] = (*lyr.plane, 1.0)
-        else:
-            disp[i] = d_px
-        ranges[i] = (float(d_px.min()), float(d_px.max()))
-        np.maximum(r_px, _visible_coc(blur.coc_radius(d_px), tex[..., 3] > 0), out=r_px)
+    return _trace(rgba, disp, planes, blur, aperture or Aperture(), options or RaytraceOptions(), device, t0)
+
+
+def _trace(
+    rgba: np.ndarray,
+    disp: np.ndarray,
+    planes: np.ndarray,
+    blur: BlurParams,
+    aperture: Aperture,
+    options: RaytraceOptions,
+    device: str,
+    t0: float,
+) -> tuple[np.ndarray, RaytraceStats]:
+    """Launch the kernel on packed layers: ``rgba`` (n, H, W, 4) premultiplied, ``disp`` (n, H, W) the
+    disparity of every layer at every pixel, ``planes`` (n, 4) ``(a, b, c, 1)`` for plane layers, else 0."""
+    n, h, w = disp.shape
+    ranges = np.stack([disp.min(axis=(1, 2)), disp.max(axis=(1, 2))], axis=1).astype(np.float32)
+    r_px = np.zeros((h, w), np.float32)
+    for i in range(n):
+        np.maximum(r_px, _visible_coc(blur.coc_radius(disp[i]), rgba[i, ..., 3] > 0), out=r_px)
     spp = np.clip(np.ceil(options.samples_per_px2 * np.pi * r_px * r_px), options.min_spp, options.max_spp)
     spp = np.where(r_px < 0.5, options.min_spp, spp).astype(np.int32)
     blade_rows = aperture.blade_discs()
@@ -237,18 +245,19 @@ def render_raytrace(
     img_wp = wp.array(np.ascontiguousarray(image[..., :3], np.float32), dtype=wp.vec3, device=device)
     s_wp = wp.array(s, dtype=float, device=device)
     sid_wp = wp.array(sid, dtype=wp.int32, device=device)
-    layers = []
-    for plan in reversed(plans):  # nearest first
-        full = dataclasses.replace(plan, bbox=(0, h, 0, w))
-        src, coc, _ = _layer_sources(full, img_wp, s_wp, sid_wp, device)
-        src_np, coc_np = src.numpy(), coc.numpy()
-        alpha = np.clip(src_np[..., 3], 0.0, 1.0)
-        colour = np.where(alpha[..., None] > 0, src_np[..., :3] / np.maximum(alpha, 1e-12)[..., None], 0.0)
-        mid = 0.5 * (plan.s_lo + plan.s_hi)
-        coc_np = np.where(alpha > 0, np.clip(coc_np, plan.s_lo, plan.s_hi), mid)
-        d = np.clip(coc_np / blur.k_px + blur.focus_disparity, 0.0, 1.0).astype(np.float32)
-        layers.append(Layer(np.concatenate([colour, alpha[..., None]], axis=2).astype(np.float32), disparity=d))
-    out, stats = raytrace_layers(layers, blur, aperture, options=options, device=device)
+    t0 = time.perf_counter()
+    n = len(plans)
+    rgba = np.empty((n, h, w, 4), np.float32)
+    disp = np.empty((n, h, w), np.float32)
+    for i, plan in enumerate(reversed(plans)):  # nearest first
+        src, coc, _ = _layer_sources(dataclasses.replace(plan, bbox=(0, h, 0, w)), img_wp, s_wp, sid_wp, device)
+        rgba[i] = src.numpy()  # premultiplied RGB and coverage already: what the kernel takes
+        # the layer's own CoC where it has content, its mid-range elsewhere (transparent: never hit)
+        coc_np = np.where(rgba[i, ..., 3] > 0, np.clip(coc.numpy(), plan.s_lo, plan.s_hi), 0.5 * (plan.s_lo + plan.s_hi))
+        disp[i] = np.clip(coc_np / blur.k_px + blur.focus_disparity, 0.0, 1.0)
+    np.clip(rgba[..., 3], 0.0, 1.0, out=rgba[..., 3])
+    out, stats = _trace(rgba, disp, np.zeros((n, 4), np.float32), blur, aperture, options or RaytraceOptions(),
+                        device, t0)
     cov = out[..., 3:4]
     rgb = np.where(cov > 1e-4, out[..., :3] / np.maximum(cov, 1e-12), image[..., :3])
     return rgb.astype(np.float32), stats
