@@ -237,3 +237,14 @@ def test_focus_at_the_sky_is_a_clear_error(tmp_path, capsys):
     code, _, err = run(capsys, "render", img, "--depth", tmp_path / "z.npy", "-o", tmp_path / "o.png",
                        "--focal-length", 50, "--f-number", 2, "--focus-at", "4,2")
     assert code == 2 and "infinity" in err and err.count("\n") == 1
+
+
+def test_resized_depth_with_sky_stays_finite(tmp_path, capsys):
+    img = br.write_image(tmp_path / "i.png", np.full((16, 16, 3), 0.5, np.float32))
+    z = np.full((8, 8), 2.0, np.float32)
+    z[:3] = np.inf  # sky
+    np.save(tmp_path / "z.npy", z)
+    code, _, err = run(capsys, "render", img, "--depth", tmp_path / "z.npy", "-o", tmp_path / "o.exr",
+                       "--focal-length", 50, "--f-number", 2, "--focus-distance", 2, "--resize-disparity")
+    assert code == 0, err
+    assert np.isfinite(br.read_image(tmp_path / "o.exr")).all()

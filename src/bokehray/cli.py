@@ -197,27 +197,21 @@ def cmd_render(args: argparse.Namespace) -> int:
 
     if args.depth is not None:
         depth = io.read_depth(args.depth)
-        if depth.shape != (h, w):
-            if not args.resize_disparity:
-                raise InputError(f"{args.depth}: depth map is {depth.shape[1]}x{depth.shape[0]}, image is {w}x{h}; "
-                                 "pass --resize-disparity to resize it")
-            depth = _resize(depth, (h, w))
         norm = None
         if args.z_near is not None or args.z_far is not None:
             zn = args.z_near if args.z_near is not None else float(np.min(depth))
             zf = args.z_far if args.z_far is not None else float(np.max(depth))
             norm = DepthNormalization(zn, zf)
+        # resize after the conversion: disparity interpolates where depth cannot (inf for sky)
         disparity, norm = disparity_from_depth(depth, norm)
     else:
-        disparity = io.read_disparity(args.disparity)
-        if disparity.shape != (h, w):
-            if not args.resize_disparity:
-                raise InputError(
-                    f"{args.disparity}: disparity is {disparity.shape[1]}x{disparity.shape[0]}, image is {w}x{h}; "
-                    "pass --resize-disparity to resize it"
-                )
-            disparity = _resize(disparity, (h, w))
-        norm = None
+        disparity, norm = io.read_disparity(args.disparity), None
+    if disparity.shape != (h, w):
+        source = args.depth or args.disparity
+        if not args.resize_disparity:
+            raise InputError(f"{source}: map is {disparity.shape[1]}x{disparity.shape[0]}, image is {w}x{h}; "
+                             "pass --resize-disparity to resize it")
+        disparity = _resize(disparity, (h, w))
 
     if physical:
         if args.focal_length is None or args.f_number is None:
