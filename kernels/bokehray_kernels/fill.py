@@ -37,14 +37,14 @@ def layer_sources_kernel(
     y0: int,
     with_fill: int,
     src: wp.array2d(dtype=wp.vec4),
-    radius: wp.array2d(dtype=float),
+    coc: wp.array2d(dtype=float),
     fill_total: wp.array2d(dtype=wp.vec4),
     fill_weight: wp.array2d(dtype=float),
     fill_known: wp.array2d(dtype=float),
 ):
     """Sources of one layer in local coordinates: (RGB, 1) on its pixels, 0 elsewhere.
 
-    ``radius`` receives the *signed* CoC (the scatter takes its magnitude; the
+    ``coc`` receives the *signed* CoC (the scatter takes its magnitude; the
     ray tracer turns it back into disparity).
 
     With ``with_fill != 0`` also level 0 of the pull-push pyramid: (tone-mapped
@@ -64,13 +64,13 @@ def layer_sources_kernel(
         c = image[gy, gx]
         s = signed_coc[gy, gx]
         src[y, x] = wp.vec4(c[0], c[1], c[2], 1.0)
-        radius[y, x] = s
+        coc[y, x] = s
         if with_fill != 0:
             fill_total[y, x] = wp.vec4(_tonemap(c[0]), _tonemap(c[1]), _tonemap(c[2]), s)
             fill_weight[y, x] = 1.0
     else:
         src[y, x] = wp.vec4()
-        radius[y, x] = 0.0
+        coc[y, x] = 0.0
         if with_fill != 0:
             fill_total[y, x] = wp.vec4()
             fill_weight[y, x] = 0.0
@@ -179,7 +179,7 @@ def fill_sources_kernel(
     s_lo: float,
     s_hi: float,
     src: wp.array2d(dtype=wp.vec4),
-    radius: wp.array2d(dtype=float),
+    coc: wp.array2d(dtype=float),
     n_filled: wp.array(dtype=wp.int32),
 ):
     """Add the filled colour as sources where a nearer layer hides this one.
@@ -202,8 +202,8 @@ def fill_sources_kernel(
         v = fill_value[y, x]
         a = wp.min(density, 1.0)
         src[y, x] = wp.vec4(_untonemap(v[0]) * a, _untonemap(v[1]) * a, _untonemap(v[2]) * a, a)
-        radius[y, x] = wp.clamp(v[3], s_lo, s_hi)
-        wp.atomic_add(n_filled, 0, 1)
+        coc[y, x] = wp.clamp(v[3], s_lo, s_hi)
+        wp.atomic_add(n_filled, layer, 1)
 
 
 @wp.kernel

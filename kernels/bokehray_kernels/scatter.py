@@ -117,7 +117,7 @@ def _scatter_one(
 @wp.kernel
 def scatter_kernel(
     src: wp.array2d(dtype=wp.vec4),
-    radius: wp.array2d(dtype=float),
+    coc: wp.array2d(dtype=float),
     blades: wp.array(dtype=wp.vec4),
     n_blades: int,
     extent: wp.vec2,
@@ -130,10 +130,10 @@ def scatter_kernel(
     buf4: wp.array2d(dtype=wp.vec4),
     buf5: wp.array2d(dtype=wp.vec4),
 ):
-    """Scatter every source of ``src`` (local coordinates) with radius ``|radius|`` [px].
+    """Scatter every source of ``src`` (local coordinates) with radius ``|coc|`` [px].
 
     ``extent`` is the shape's vertical extent ``(y_top, y_bottom)`` at unit radius. A
-    positive (in-front-of-focus) ``radius`` draws the shape point-reflected, as a
+    positive (in-front-of-focus) ``coc`` draws the shape point-reflected, as a
     thin lens does: the aperture's orientation is that of background bokeh.
 
     ``buf<l>`` is the difference buffer of level ``l``, ``(ceil(H/2^l), ceil(W/2^l) + 2)``.
@@ -142,10 +142,10 @@ def scatter_kernel(
     v = src[y, x]
     if v[3] == 0.0:
         return
-    r = wp.abs(radius[y, x])
+    r = wp.abs(coc[y, x])
     # a thin lens images the aperture point-reflected in front of the focal plane (s > 0)
     sgn = float(1.0)
-    if radius[y, x] > 0.0:
+    if coc[y, x] > 0.0:
         sgn = -1.0
     if r < 0.5:
         # the disc lies inside the source pixel: a plain copy

@@ -257,17 +257,18 @@ def _levels_for(max_radius: float, r0: float) -> int:
 
 
 def _layer_sources(
-    layer: _Layer, image: wp.array, signed_coc: wp.array, slice_id: wp.array, device: str
-) -> tuple[wp.array, wp.array, int]:
-    """One layer's sources on its bounding box: (premultiplied RGB, coverage), signed CoC, fill count.
+    layer: _Layer, image: wp.array, signed_coc: wp.array, slice_id: wp.array, filled: wp.array, device: str
+) -> tuple[wp.array, wp.array]:
+    """One layer's sources on its bounding box: (premultiplied RGB, coverage) and signed CoC.
 
     The layer's own pixels, plus (when ``layer.fill_reach >= 0.5``) the pull-push
-    fill of the region nearer layers hide, at the layer's density.
+    fill of the region nearer layers hide, at the layer's density; the number of
+    filled sources is added to ``filled[layer.index]`` (read once per render).
     """
     y0, y1, x0, x1 = layer.bbox
     h, w = y1 - y0, x1 - x0
     src = wp.empty((h, w), dtype=wp.vec4, device=device)
-    radius = wp.empty((h, w), dtype=float, device=device)
+    coc = wp.empty((h, w), dtype=float, device=device)
     fill = layer.fill_reach >= 0.5
     pp_shape = (h, w) if fill else (1, 1)  # the pull-push pyramid, only when this layer is filled
     totals = [wp.empty(pp_shape, dtype=wp.vec4, device=device)]
@@ -277,12 +278,10 @@ def _layer_sources(
         bk.layer_sources_kernel,
         dim=(h, w),
         inputs=[image, signed_coc, slice_id, layer.index, x0, y0, int(fill)],
-        outputs=[src, radius, totals[0], weights[0], knowns[0]],
+        outputs=[src, coc, totals[0], weights[0], knowns[0]],
         device=device,
     )
-    n_filled = 0
     if fill:
-        counter = wp.zeros(1, dtype=wp.int32, device=device)
         n_pp = max(1, min(16, int(math.ceil(math.log2(1.4142 * layer.fill_reach + 2.0))) + 1))
         for _ in range(n_pp):
             ph, pw = totals[-1].shape
@@ -307,11 +306,10 @@ def _layer_sources(
             bk.fill_sources_kernel,
             dim=(h, w),
             inputs=[slice_id, layer.index, x0, y0, totals[0], weights[0], dist, signed_coc, layer.s_lo, layer.s_hi],
-            outputs=[src, radius, counter],
+            outputs=[src, coc, filled],
             device=device,
         )
-        n_filled = int(counter.numpy()[0])
-    return src, radius, n_filled
+    return src, coc
 
 
 def _render_layer(
@@ -319,15 +317,16 @@ def _render_layer(
     image: wp.array,
     signed_coc: wp.array,
     slice_id: wp.array,
+    filled: wp.array,
     blades: wp.array,
     n_blades: int,
     extent: wp.vec2,
     opts: PreviewOptions,
     device: str,
-) -> tuple[wp.array, int]:
+) -> wp.array:
     y0, y1, x0, x1 = layer.bbox
     h, w = y1 - y0, x1 - x0
-    src, radius, n_filled = _layer_sources(layer, image, signed_coc, slice_id, device)
+    src, coc = _layer_sources(layer, image, signed_coc, slice_id, filled, device)
     n_levels = _levels_for(layer.max_radius, opts.level_radius_px)
     bufs = []
     for lv in range(bk.MAX_LEVELS):
@@ -337,12 +336,12 @@ def _render_layer(
         else:
             bufs.append(bufs[0] if lv > 0 else None)
     wp.launch(bk.scatter_kernel, dim=(h, w),
-              inputs=[src, radius, blades, n_blades, extent, float(opts.level_radius_px), n_levels, *bufs], device=device)
+              inputs=[src, coc, blades, n_blades, extent, float(opts.level_radius_px), n_levels, *bufs], device=device)
     for lv in range(n_levels):
         wp.launch(bk.prefix_rows_kernel, dim=bufs[lv].shape[0], inputs=[bufs[lv]], device=device)
     out = src  # the sources are scattered: reuse their memory for the result
     wp.launch(bk.resolve_levels_kernel, dim=(h, w), inputs=[n_levels, *bufs], outputs=[out], device=device)
-    return out, n_filled
+    return out
 
 
 def render_preview(
@@ -394,8 +393,10 @@ def render_preview(
     # ``threads + 1`` layers in flight to bound memory.
     done = 0
 
-    def render_layer(lyr: _Layer) -> tuple[wp.array, int]:
-        return _render_layer(lyr, img_wp, s_wp, sid_wp, blades, len(blade_rows), extent, options, device)
+    filled = wp.zeros(max(lyr.index for lyr in layers) + 1, dtype=wp.int32, device=device)
+
+    def render_layer(lyr: _Layer) -> wp.array:
+        return _render_layer(lyr, img_wp, s_wp, sid_wp, filled, blades, len(blade_rows), extent, options, device)
 
     with ThreadPoolExecutor(max_workers=threads) as pool:
         pending: list[tuple[_Layer, Future]] = []
@@ -410,8 +411,7 @@ def render_preview(
             submit_next()
         while pending:
             lyr, fut = pending.pop(0)
-            out, n_filled = fut.result()
-            stats.sources_filled += n_filled
+            out = fut.result()
             submit_next()
             y0, y1, x0, x1 = lyr.bbox
             wp.launch(bk.composite_kernel, dim=(y1 - y0, x1 - x0), inputs=[out, x0, y0], outputs=[acc], device=device)
@@ -420,6 +420,7 @@ def render_preview(
                 progress(done, len(layers))
     t_layers = time.perf_counter()
     stats.stage_seconds["layers"] = t_layers - t_plan
+    stats.sources_filled = int(filled.numpy().sum())
     stats.sources_scattered += stats.sources_filled
 
     result = wp.empty((h, w), dtype=wp.vec3, device=device)

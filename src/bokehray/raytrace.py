@@ -249,8 +249,10 @@ def render_raytrace(
     n = len(plans)
     rgba = np.empty((n, h, w, 4), np.float32)
     disp = np.empty((n, h, w), np.float32)
+    filled = wp.zeros(max(plan.index for plan in plans) + 1, dtype=wp.int32, device=device)
     for i, plan in enumerate(reversed(plans)):  # nearest first
-        src, coc, _ = _layer_sources(dataclasses.replace(plan, bbox=(0, h, 0, w)), img_wp, s_wp, sid_wp, device)
+        full = dataclasses.replace(plan, bbox=(0, h, 0, w))
+        src, coc = _layer_sources(full, img_wp, s_wp, sid_wp, filled, device)
         rgba[i] = src.numpy()  # premultiplied RGB and coverage already: what the kernel takes
         # the layer's own CoC where it has content, its mid-range elsewhere (transparent: never hit)
         coc_np = np.where(rgba[i, ..., 3] > 0, np.clip(coc.numpy(), plan.s_lo, plan.s_hi), 0.5 * (plan.s_lo + plan.s_hi))
