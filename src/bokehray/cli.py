@@ -299,9 +299,12 @@ def cmd_demo(args: argparse.Namespace) -> int:
     disp_vis = np.repeat(scene.disparity[..., None], 3, axis=2) ** 2.2  # shown as grey, brighter = nearer
     tiles.append(disp_vis.astype(np.float32))
     labels.append("disparity (white = near)")
-    for d_f in stack_d:
-        out, _ = render_with_stats(scene.image, scene.disparity, BlurParams(scene.k_px, float(d_f)), aperture,
-                                   device=args.device, options=opts)
+    for i, d_f in enumerate(stack_d):
+        if i in (0, len(stack_d) - 1):  # the far and near ends are the renders written above
+            out = renders["far" if i == 0 else "near"]
+        else:
+            out, _ = render_with_stats(scene.image, scene.disparity, BlurParams(scene.k_px, float(d_f)), aperture,
+                                       device=args.device, options=opts)
         tiles.append(out)
         labels.append(f"focus d_f = {d_f:.2f}")
     sheet = contact_sheet(tiles, labels, columns=4)
