@@ -1,0 +1,224 @@
+"""The one-step diffusion wrapper of BokehDiff (paper sec. 3.1), loaded from a local directory only.
+
+::
+
+    z_t   = E(I_f)                                  scaled VAE latent, no noise added
+    z0    = (z_t - beta_T * eps_theta(z_t, T, c)) / alpha_T,   T = 499
+    I_b   = D(z0)
+
+with ``alpha_T = sqrt(abar_T)`` and ``beta_T = sqrt(1 - abar_T)`` from the
+checkpoint's own scheduler (``v_prediction`` and ``sample`` checkpoints are
+converted the matching way). PISA runs in the U-Net's down-block self-attention
+with masks from the Warp kernels. The prompt embedding is computed once.
+
+The checkpoint is a diffusers SDXL layout (``unet/ vae/ scheduler/
+text_encoder/ text_encoder_2/ tokenizer/ tokenizer_2/``); a model without text
+encoders instead carries ``prompt_embeds.safetensors`` (keys ``prompt_embeds`` and,
+for SDXL U-Nets, ``pooled_prompt_embeds``). BokehDiff-style LoRA weights
+(``pytorch_lora_weights.safetensors``) and fine-tuned VAE-encoder weights load on
+top. Nothing is downloaded: every ``from_pretrained`` runs with
+``local_files_only=True``.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from safetensors.torch import load_file
+
+from bokehray.errors import InputError
+from bokehray.io import linear_to_srgb, srgb_to_linear
+from bokehray.lens import BlurParams
+from bokehray.pisa import PisaMaskOptions
+
+from .masks import PisaMaskProvider
+from .processor import install_pisa
+from .tiles import blend_tiles, tile_grid
+
+__all__ = ["OneStepBokeh", "OneStepOptions", "load_one_step"]
+
+TIMESTEP = 499
+
+
+@dataclass(frozen=True)
+class OneStepOptions:
+    """Inference settings.
+
+    Args:
+        timestep: the fixed diffusion timestep T (499 in the paper).
+        tile: tile size in image pixels for large images (a multiple of ``size_multiple``).
+        overlap: overlap of neighbouring tiles in image pixels, blended with a raised cosine.
+        masks: PISA mask options (inference uses the hardest edge, ``k_max``).
+    """
+
+    timestep: int = TIMESTEP
+    tile: int = 1024
+    overlap: int = 128
+    masks: PisaMaskOptions = PisaMaskOptions()
+
+
+class OneStepBokeh(torch.nn.Module):
+    """One-step bokeh renderer around a diffusers U-Net and VAE.
+
+    Args:
+        unet: a ``UNet2DConditionModel`` (PISA is installed into its down-block self-attention).
+        vae: an ``AutoencoderKL``.
+        scheduler: any diffusers scheduler with ``alphas_cumprod`` (DDPM, Euler, ...).
+        prompt_embeds, pooled_prompt_embeds: the cached text condition (batch 1).
+        options: inference settings.
+    """
+
+    def __init__(self, unet, vae, scheduler, prompt_embeds: torch.Tensor,
+                 pooled_prompt_embeds: torch.Tensor | None = None, options: OneStepOptions = OneStepOptions()):
+        super().__init__()
+        self.unet, self.vae, self.options = unet, vae, options
+        self.pisa_layers = install_pisa(unet)
+        abar = scheduler.alphas_cumprod[options.timestep].double()
+        self.alpha, self.beta = float(abar.sqrt()), float((1.0 - abar).sqrt())
+        self.prediction_type = scheduler.config.get("prediction_type", "epsilon")
+        if self.prediction_type not in ("epsilon", "v_prediction", "sample"):
+            raise InputError(f"scheduler prediction_type {self.prediction_type!r} is not supported")
+        self.register_buffer("prompt_embeds", prompt_embeds, persistent=False)
+        self.register_buffer("pooled_prompt_embeds", pooled_prompt_embeds, persistent=False)
+        cfg = vae.config
+        self.latent_scale = float(cfg.scaling_factor)
+        self.latent_shift = float(cfg.get("shift_factor", None) or 0.0)
+        self.vae_factor = 2 ** (len(cfg.block_out_channels) - 1)
+        self.size_multiple = self.vae_factor * 2 ** (len(unet.config.block_out_channels) - 1)
+
+    # --- the three steps -------------------------------------------------------------------------
+    def encode(self, image: torch.Tensor) -> torch.Tensor:
+        """``z_t = E(I_f)``: sRGB image in [0, 1], ``(B, 3, H, W)`` -> scaled latent (the mode, no noise)."""
+        latent = self.vae.encode(image * 2.0 - 1.0).latent_dist.mode()
+        return (latent - self.latent_shift) * self.latent_scale
+
+    def denoise(self, z_t: torch.Tensor, pisa: PisaMaskProvider) -> torch.Tensor:
+        """``z0 = (z_t - beta_T eps) / alpha_T`` with PISA masks from ``pisa``."""
+        b, _, h, w = z_t.shape
+        kwargs = {}
+        if self.unet.config.get("addition_embed_type") == "text_time":
+            ih, iw = h * self.vae_factor, w * self.vae_factor
+            time_ids = torch.tensor([[ih, iw, 0, 0, ih, iw]], dtype=z_t.dtype, device=z_t.device).expand(b, -1)
+            kwargs["added_cond_kwargs"] = {"text_embeds": self.pooled_prompt_embeds.expand(b, -1).to(z_t.dtype),
+                                           "time_ids": time_ids}
+        t = torch.full((b,), self.options.timestep, device=z_t.device, dtype=torch.long)
+        out = self.unet(z_t, t, encoder_hidden_states=self.prompt_embeds.expand(b, -1, -1).to(z_t.dtype),
+                        cross_attention_kwargs={"pisa": pisa}, **kwargs).sample
+        if self.prediction_type == "epsilon":
+            return (z_t - self.beta * out) / self.alpha
+        if self.prediction_type == "v_prediction":
+            return self.alpha * z_t - self.beta * out
+        return out
+
+    def decode(self, z0: torch.Tensor) -> torch.Tensor:
+        """``I_b = D(z0)``, sRGB in [0, 1]."""
+        image = self.vae.decode(z0 / self.latent_scale + self.latent_shift).sample
+        return ((image + 1.0) / 2.0).clamp(0.0, 1.0)
+
+    def forward(self, image: torch.Tensor, pisa: PisaMaskProvider) -> torch.Tensor:
+        """Render one batch: sRGB ``(B, 3, H, W)`` in [0, 1], H and W multiples of ``size_multiple``."""
+        return self.decode(self.denoise(self.encode(image), pisa))
+
+    # --- whole images ----------------------------------------------------------------------------
+    @torch.no_grad()
+    def render(self, image: np.ndarray, disparity: np.ndarray, params: BlurParams) -> np.ndarray:
+        """Render a scene-linear ``H x W x 3`` image with its disparity, tile by tile; returns scene-linear."""
+        img = np.asarray(image, dtype=np.float32)
+        if img.ndim != 3 or img.shape[2] != 3:
+            raise InputError(f"image: expected H x W x 3, got shape {img.shape}")
+        if np.shape(disparity) != img.shape[:2]:
+            raise InputError(f"disparity: expected shape {img.shape[:2]}, got {np.shape(disparity)}")
+        srgb = linear_to_srgb(np.clip(img, 0.0, 1.0)).astype(np.float32)
+        opts = self.options
+        tiles = tile_grid(img.shape[:2], opts.tile, opts.overlap, self.size_multiple)
+        device = next(self.unet.parameters()).device
+        dtype = next(self.unet.parameters()).dtype
+        outputs = []
+        for (y0, y1, x0, x1), (ph, pw) in tiles:
+            crop = np.pad(srgb[y0:y1, x0:x1], ((0, ph), (0, pw), (0, 0)), mode="reflect")
+            dcrop = np.pad(np.asarray(disparity, np.float32)[y0:y1, x0:x1], ((0, ph), (0, pw)), mode="reflect")
+            pisa = PisaMaskProvider(dcrop, params.focus_disparity, params.k_px, opts.masks)
+            x = torch.from_numpy(crop).permute(2, 0, 1)[None].to(device, dtype)
+            y = self(x, pisa)[0].permute(1, 2, 0).float().cpu().numpy()
+            outputs.append(y[: y1 - y0, : x1 - x0])
+        out = blend_tiles(outputs, [t for t, _ in tiles], img.shape[:2], opts.overlap)
+        return srgb_to_linear(out).astype(np.float32)
+
+
+def _encode_prompt(path: Path, unet, vae, scheduler, prompt: str, device) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """The cached text condition: ``prompt_embeds.safetensors`` if present, else the text encoders."""
+    fixed = path / "prompt_embeds.safetensors"
+    if fixed.is_file():
+        t = load_file(str(fixed))
+        if "prompt_embeds" not in t:
+            raise InputError(f"{fixed}: expected a tensor named 'prompt_embeds'")
+        return t["prompt_embeds"].to(device), t.get("pooled_prompt_embeds", None)
+    from diffusers import StableDiffusionXLPipeline
+    from transformers import CLIPTextModel, CLIPTextModelWithProjection, CLIPTokenizer
+
+    missing = [d for d in ("text_encoder", "text_encoder_2", "tokenizer", "tokenizer_2") if not (path / d).is_dir()]
+    if missing:
+        raise InputError(f"{path}: no prompt_embeds.safetensors and no text encoders (missing {', '.join(missing)})")
+    pipe = StableDiffusionXLPipeline(
+        vae=vae, unet=unet, scheduler=scheduler,
+        text_encoder=CLIPTextModel.from_pretrained(path / "text_encoder", local_files_only=True),
+        text_encoder_2=CLIPTextModelWithProjection.from_pretrained(path / "text_encoder_2", local_files_only=True),
+        tokenizer=CLIPTokenizer.from_pretrained(path / "tokenizer", local_files_only=True),
+        tokenizer_2=CLIPTokenizer.from_pretrained(path / "tokenizer_2", local_files_only=True),
+    )
+    with torch.no_grad():
+        embeds, _, pooled, _ = pipe.encode_prompt(prompt, device=device, num_images_per_prompt=1,
+                                                  do_classifier_free_guidance=False)
+    return embeds, pooled
+
+
+def load_one_step(
+    model_dir: str | os.PathLike,
+    lora: str | os.PathLike | None = None,
+    encoder_weights: str | os.PathLike | None = None,
+    prompt: str = "",
+    options: OneStepOptions = OneStepOptions(),
+    device: str = "cpu",
+    dtype: torch.dtype = torch.float32,
+) -> OneStepBokeh:
+    """Load a one-step bokeh model from local files (no hub access).
+
+    Args:
+        model_dir: a diffusers SDXL-layout directory (see the module docstring).
+        lora: a directory holding ``pytorch_lora_weights.safetensors``, or the file itself.
+        encoder_weights: a safetensors state dict for the VAE encoder (keys with or without ``encoder.``).
+        prompt: the text condition, encoded once.
+    """
+    from diffusers import AutoencoderKL, DDPMScheduler, UNet2DConditionModel
+
+    path = Path(model_dir)
+    for sub in ("unet", "vae", "scheduler"):
+        if not (path / sub).is_dir():
+            raise InputError(f"{path}: not a diffusers model directory (no {sub}/)")
+    os.environ.setdefault("HF_HUB_OFFLINE", "1")
+    unet = UNet2DConditionModel.from_pretrained(path / "unet", local_files_only=True)
+    vae = AutoencoderKL.from_pretrained(path / "vae", local_files_only=True)
+    scheduler = DDPMScheduler.from_pretrained(path / "scheduler", local_files_only=True)
+    if not 0 <= options.timestep < len(scheduler.alphas_cumprod):
+        raise InputError(f"timestep {options.timestep} is outside the scheduler's {len(scheduler.alphas_cumprod)} steps")
+    if encoder_weights is not None:
+        state = load_file(str(encoder_weights))
+        state = {k.removeprefix("encoder."): v for k, v in state.items()}
+        vae.encoder.load_state_dict(state, strict=True)
+    if lora is not None:
+        from diffusers import StableDiffusionXLPipeline
+
+        lora = Path(lora)
+        weight_name = lora.name if lora.is_file() else "pytorch_lora_weights.safetensors"
+        lora_dir = lora.parent if lora.is_file() else lora
+        if not (lora_dir / weight_name).is_file():
+            raise InputError(f"{lora_dir / weight_name}: LoRA weights not found")
+        state, alphas = StableDiffusionXLPipeline.lora_state_dict(str(lora_dir), weight_name=weight_name)
+        StableDiffusionXLPipeline.load_lora_into_unet(state, alphas, unet, adapter_name="bokeh")
+    embeds, pooled = _encode_prompt(path, unet, vae, scheduler, prompt, device)
+    model = OneStepBokeh(unet, vae, scheduler, embeds, pooled, options).to(device, dtype)
+    return model.eval()
