@@ -126,6 +126,10 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--size", type=_parse_xy, default=(1152, 768), metavar="W,H", help="image size (default 1152,768)")
     _add_lens_args(d)
     _add_device_args(d)
+
+    from .bench.cli import add_parser as add_bench_parser  # bokehray bench: docs/benchmarks.md
+
+    add_bench_parser(sub)
     return parser
 
 
@@ -349,6 +353,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             return cmd_render(args)
         if args.command == "synth":
             return cmd_synth(args)
+        if args.command == "bench":
+            from .bench.cli import cmd_bench
+
+            return cmd_bench(args)
         return cmd_demo(args)
     except BokehrayError as e:
         if args.debug:
