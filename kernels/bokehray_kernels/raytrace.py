@@ -129,13 +129,25 @@ def raytrace_kernel(
     n_blades: int,
     spp: wp.array2d(dtype=wp.int32),
     seed: int,
+    tex_x0: int,
+    tex_y0: int,
+    img_x0: int,
+    img_y0: int,
     out: wp.array2d(dtype=wp.vec4),
 ):
-    """Average of ``spp[y, x]`` aperture rays per pixel; ``out`` = (RGB, 1 - transmittance)."""
+    """Average of ``spp[y, x]`` aperture rays per pixel; ``out`` = (RGB, 1 - transmittance).
+
+    Output pixel ``(y, x)`` is texture pixel ``(y + tex_y0, x + tex_x0)``, and the
+    textures start at pixel ``(img_y0, img_x0)`` of the whole image (a tile of a
+    larger render): the sample pattern's rotation hashes the whole-image position,
+    so a tiled render traces the same rays as an untiled one.
+    """
     y, x = wp.tid()
     n = spp[y, x]
-    rot = hash_angle(x, y, seed)
-    centre = wp.vec2(float(x) + 0.5, float(y) + 0.5)
+    tx = x + tex_x0
+    ty = y + tex_y0
+    rot = hash_angle(tx + img_x0, ty + img_y0, seed)
+    centre = wp.vec2(float(tx) + 0.5, float(ty) + 0.5)
     acc = wp.vec4()
     used = int(0)
     for i in range(n):

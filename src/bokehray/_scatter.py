@@ -49,6 +49,14 @@ class PreviewOptions:
         tile_px: side of the tiles used to skip in-focus regions.
         fill: extend layers behind nearer ones by pull-push (see bokehray_kernels.fill).
         threads: worker threads on the CPU (default: all cores).
+        tile_size: render in independent square tiles of this many pixels a side
+            (each with a halo that makes the result equal the untiled render, see
+            ``bokehray._tiling``); None (default) tiles only when the untiled
+            render would not fit the memory budget.
+        memory_limit_mb: memory budget of one render in MB; None (default) is 80 %
+            of the memory available when the render starts. A render that cannot
+            fit even in tiles raises :class:`~bokehray.errors.ResourceError` before
+            allocating anything large.
     """
 
     max_layers: int = 8
@@ -58,6 +66,8 @@ class PreviewOptions:
     tile_px: int = 16
     fill: bool = True
     threads: int | None = None
+    tile_size: int | None = None
+    memory_limit_mb: float | None = None
 
     def __post_init__(self) -> None:
         for name in ("max_layers", "tile_px"):
@@ -72,6 +82,13 @@ class PreviewOptions:
             raise InputError(f"level_radius_px: expected >= 2 px (smaller coarsens every blur), got {self.level_radius_px}")
         if self.threads is not None and (not isinstance(self.threads, int) or self.threads < 1):
             raise InputError(f"threads: expected None (all cores) or an integer >= 1, got {self.threads!r}")
+        t = self.tile_size
+        if t is not None and (isinstance(t, bool) or not isinstance(t, (int, np.integer)) or t < self.tile_px):
+            raise InputError(f"tile_size: expected None (automatic) or an integer >= tile_px ({self.tile_px}), got {t!r}")
+        m = self.memory_limit_mb
+        if m is not None and not (isinstance(m, (int, float, np.floating)) and not isinstance(m, bool)
+                                  and math.isfinite(m) and m > 0):
+            raise InputError(f"memory_limit_mb: expected None (automatic) or a finite number > 0, got {m!r}")
 
 
 @dataclass(slots=True)
@@ -88,6 +105,8 @@ class RenderStats:
     sources_filled: int = 0
     pyramid_levels: int = 0
     threads: int = 1
+    image_tiles: int = 1
+    memory_estimate_mb: float = 0.0
     stage_seconds: dict[str, float] = field(default_factory=dict)
 
     def as_dict(self) -> dict:
@@ -102,8 +121,33 @@ class RenderStats:
             "sources_filled": self.sources_filled,
             "pyramid_levels": self.pyramid_levels,
             "threads": self.threads,
+            "image_tiles": self.image_tiles,
+            "memory_estimate_mb": round(self.memory_estimate_mb, 1),
             "stage_seconds": {k: round(v, 4) for k, v in self.stage_seconds.items()},
         }
+
+
+def cap_coc(signed_coc: np.ndarray) -> np.ndarray:
+    """Compress CoC radii beyond twice the image diagonal (order kept): their light covers the frame uniformly.
+
+    Every aperture (a triangle at worst) contains the disc of half its circumradius, so a
+    source whose radius exceeds twice the diagonal lights every pixel of the frame equally:
+    a larger radius only spreads less of its light inside the frame. Without the cap a CoC
+    far beyond the image (K = 1e5 on a small image) leaves each pixel a coverage below the
+    float32 noise floor of the compositing (1e-4), and the render would fall back to the
+    unblurred input; the ray tracer's march would take O(K) steps per ray. Beyond the cap
+    ``c`` a radius ``r`` becomes ``c + log1p(r - c)`` (still ordered, so layers keep their
+    depth order). Renders whose CoC stays within the cap are unchanged.
+    """
+    h, w = signed_coc.shape
+    cap = np.float32(2.0 * math.hypot(h, w) + 2.0)
+    r = np.abs(signed_coc)
+    if not (r > cap).any():
+        return signed_coc
+    big = r > cap
+    out = signed_coc.copy()
+    out[big] = np.sign(signed_coc[big]) * (cap + np.log1p(r[big] - cap))
+    return out.astype(np.float32)
 
 
 def _box_max_tiles(values: np.ndarray, tile: int) -> np.ndarray:
@@ -249,6 +293,11 @@ def plan_layers(signed_coc: np.ndarray, active: np.ndarray, options: PreviewOpti
     return sid, layers
 
 
+def _pull_levels(fill_reach: float) -> int:
+    """Levels of the pull-push pyramid that fills a layer hidden up to ``fill_reach`` px deep."""
+    return max(1, min(16, int(math.ceil(math.log2(1.4142 * fill_reach + 2.0))) + 1))
+
+
 def _levels_for(max_radius: float, r0: float) -> int:
     n = 1
     while max_radius > r0 * (1 << (n - 1)) and n < bk.MAX_LEVELS:
@@ -282,8 +331,7 @@ def _layer_sources(
         device=device,
     )
     if fill:
-        n_pp = max(1, min(16, int(math.ceil(math.log2(1.4142 * layer.fill_reach + 2.0))) + 1))
-        for _ in range(n_pp):
+        for _ in range(_pull_levels(layer.fill_reach)):
             ph, pw = totals[-1].shape
             ch, cw = (ph + 1) // 2, (pw + 1) // 2
             totals.append(wp.empty((ch, cw), dtype=wp.vec4, device=device))
@@ -354,11 +402,15 @@ def render_preview(
     progress: Callable[[int, int], None] | None = None,
 ) -> tuple[np.ndarray, RenderStats]:
     """Render an RGB float32 image (validated by the caller) with a per-pixel signed CoC map."""
+    from . import _tiling  # noqa: PLC0415 - _tiling imports this module
+
     t_start = time.perf_counter()
     stats = RenderStats(shape=image.shape[:2], device=device)
     h, w = signed_coc.shape
+    _tiling.check_whole_image(h, w, _tiling.PREVIEW_WHOLE_IMAGE_B, options)  # before allocating anything large
+    stats.max_coc_px = max(float(signed_coc.max()), -float(signed_coc.min())) if signed_coc.size else 0.0
+    signed_coc = cap_coc(signed_coc)
     radius = np.abs(signed_coc)
-    stats.max_coc_px = float(radius.max()) if radius.size else 0.0
 
     copy = copy_tiles(radius, options.tile_px)
     stats.tiles_total, stats.tiles_copied = int(copy.size), int(copy.sum())
@@ -371,23 +423,52 @@ def render_preview(
         return image.copy(), stats
 
     sid, layers = plan_layers(signed_coc, active, options)
-    counts_total = int(active.sum())
+    del active, copy_px
     stats.layers = len(layers)
-    stats.sources_scattered = counts_total
+    stats.sources_scattered = int((sid >= 0).sum())
     stats.pyramid_levels = max(_levels_for(lyr.max_radius, options.level_radius_px) for lyr in layers)
+    threads = 1 if wp.get_device(device).is_cuda else max(1, options.threads or os.cpu_count() or 1)
+    stats.threads = threads
+    tile = _tiling.preview_tile_size(h, w, layers, options, threads, stats)  # may raise ResourceError
     t_plan = time.perf_counter()
     stats.stage_seconds["plan"] = t_plan - t_start
 
+    if tile is None:
+        out_np, n_filled = _render_region(image, signed_coc, sid, layers, aperture, options, device, threads, progress)
+    else:
+        out_np, n_filled = _tiling.render_preview_tiles(image, signed_coc, sid, layers, aperture, options, device,
+                                                        threads, tile, progress, stats)
+    stats.sources_filled = n_filled
+    stats.sources_scattered += n_filled
+    stats.stage_seconds["layers"] = time.perf_counter() - t_plan
+    stats.stage_seconds["total"] = time.perf_counter() - t_start
+    return out_np, stats
+
+
+def _render_region(
+    image: np.ndarray,
+    signed_coc: np.ndarray,
+    sid: np.ndarray,
+    layers: list[_Layer],
+    aperture: Aperture,
+    options: PreviewOptions,
+    device: str,
+    threads: int,
+    progress: Callable[[int, int], None] | None = None,
+) -> tuple[np.ndarray, int]:
+    """Scatter and composite ``layers`` (bounding boxes in the coordinates of the given arrays), then finalise.
+
+    Returns the rendered RGB and the number of filled sources.
+    """
+    h, w = signed_coc.shape
     img_wp = wp.array(np.ascontiguousarray(image, np.float32), dtype=wp.vec3, device=device)
     s_wp = wp.array(np.ascontiguousarray(signed_coc, np.float32), dtype=float, device=device)
-    sid_wp = wp.array(sid, dtype=wp.int32, device=device)
+    sid_wp = wp.array(np.ascontiguousarray(sid), dtype=wp.int32, device=device)
     blade_rows = aperture.blade_discs()
     blades = wp.array(blade_rows if len(blade_rows) else np.zeros((1, 4), np.float32), dtype=wp.vec4, device=device)
     extent = wp.vec2(*aperture.vertical_extent())
     acc = wp.zeros((h, w), dtype=wp.vec4, device=device)
 
-    threads = 1 if wp.get_device(device).is_cuda else max(1, options.threads or os.cpu_count() or 1)
-    stats.threads = threads
     # Layers render independently (Warp CPU launches release the GIL); they are
     # composited strictly back to front as they complete, with at most
     # ``threads + 1`` layers in flight to bound memory.
@@ -418,14 +499,7 @@ def render_preview(
             done += 1
             if progress is not None:
                 progress(done, len(layers))
-    t_layers = time.perf_counter()
-    stats.stage_seconds["layers"] = t_layers - t_plan
-    stats.sources_filled = int(filled.numpy().sum())
-    stats.sources_scattered += stats.sources_filled
 
     result = wp.empty((h, w), dtype=wp.vec3, device=device)
     wp.launch(bk.finalize_kernel, dim=(h, w), inputs=[acc, img_wp, sid_wp], outputs=[result], device=device)
-    out_np = result.numpy()
-    stats.stage_seconds["finalize"] = time.perf_counter() - t_layers
-    stats.stage_seconds["total"] = time.perf_counter() - t_start
-    return out_np, stats
+    return result.numpy(), int(filled.numpy().sum())

@@ -20,7 +20,7 @@ import warp as wp
 
 import bokehray_kernels as bk
 
-from ._scatter import PreviewOptions, _box_max_tiles, _dilate, _layer_sources, plan_layers
+from ._scatter import PreviewOptions, _box_max_tiles, _dilate, _layer_sources, cap_coc, plan_layers
 from .errors import InputError
 from .lens import Aperture, BlurParams
 
@@ -79,6 +79,7 @@ class RaytraceStats:
     samples_total: int = 0
     spp_mean: float = 0.0
     spp_max: int = 0
+    image_tiles: int = 1
     stage_seconds: dict[str, float] = field(default_factory=dict)
 
     def as_dict(self) -> dict:
@@ -179,29 +180,43 @@ def _trace(
     options: RaytraceOptions,
     device: str,
     t0: float,
+    *,
+    ranges: np.ndarray | None = None,
+    r_px: np.ndarray | None = None,
+    core: tuple[int, int, int, int] | None = None,
+    origin: tuple[int, int] = (0, 0),
 ) -> tuple[np.ndarray, RaytraceStats]:
     """Launch the kernel on packed layers: ``rgba`` (n, H, W, 4) premultiplied, ``disp`` (n, H, W) the
-    disparity of every layer at every pixel, ``planes`` (n, 4) ``(a, b, c, 1)`` for plane layers, else 0."""
+    disparity of every layer at every pixel, ``planes`` (n, 4) ``(a, b, c, 1)`` for plane layers, else 0.
+
+    A tile of a larger render passes what depends on the whole image: each layer's disparity
+    range (``ranges``, n x 2), the visible CoC of the traced pixels (``r_px``), the traced
+    pixels ``core`` = (y0, y1, x0, x1) inside the textures, and the textures' ``origin`` (y, x)
+    in the whole image. Returns the traced pixels only.
+    """
     n, h, w = disp.shape
-    ranges = np.stack([disp.min(axis=(1, 2)), disp.max(axis=(1, 2))], axis=1).astype(np.float32)
-    r_px = np.zeros((h, w), np.float32)
-    for i in range(n):
-        np.maximum(r_px, _visible_coc(blur.coc_radius(disp[i]), rgba[i, ..., 3] > 0), out=r_px)
+    core = (0, h, 0, w) if core is None else core
+    if ranges is None:
+        ranges = np.stack([disp.min(axis=(1, 2)), disp.max(axis=(1, 2))], axis=1).astype(np.float32)
+    if r_px is None:
+        r_px = np.zeros((h, w), np.float32)
+        for i in range(n):
+            np.maximum(r_px, _visible_coc(blur.coc_radius(disp[i]), rgba[i, ..., 3] > 0), out=r_px)
     spp = np.clip(np.ceil(options.samples_per_px2 * np.pi * r_px * r_px), options.min_spp, options.max_spp)
     spp = np.where(r_px < 0.5, options.min_spp, spp).astype(np.int32)
     blade_rows = aperture.blade_discs()
     blades = blade_rows if len(blade_rows) else np.zeros((1, 4), np.float32)
     t1 = time.perf_counter()
 
-    out = wp.empty((h, w), dtype=wp.vec4, device=device)
+    out = wp.empty(spp.shape, dtype=wp.vec4, device=device)
     wp.launch(
         bk.raytrace_kernel,
-        dim=(h, w),
+        dim=spp.shape,
         inputs=[
             wp.array(rgba, dtype=wp.vec4, device=device),
             wp.array(disp, dtype=float, device=device),
             wp.array(planes, dtype=wp.vec4, device=device),
-            wp.array(ranges, dtype=wp.vec2, device=device),
+            wp.array(np.ascontiguousarray(ranges, np.float32), dtype=wp.vec2, device=device),
             n,
             float(blur.k_px),
             float(blur.focus_disparity),
@@ -209,6 +224,10 @@ def _trace(
             len(blade_rows),
             wp.array(spp, dtype=wp.int32, device=device),
             int(options.seed),
+            int(core[2]),
+            int(core[0]),
+            int(origin[1]),
+            int(origin[0]),
         ],
         outputs=[out],
         device=device,
@@ -217,6 +236,29 @@ def _trace(
     stats = RaytraceStats(layers=n, samples_total=int(spp.sum()), spp_mean=float(spp.mean()), spp_max=int(spp.max()))
     stats.stage_seconds = {"setup": t1 - t0, "trace": time.perf_counter() - t1, "total": time.perf_counter() - t0}
     return result, stats
+
+
+def _photo_textures(plans: list, image: np.ndarray, s: np.ndarray, sid: np.ndarray, blur: BlurParams,
+                    device: str) -> tuple[np.ndarray, np.ndarray]:
+    """The map layers of photo mode on the given arrays (the whole image, or a tile's window), nearest first:
+    premultiplied RGB and coverage (n, H, W, 4), and disparity (n, H, W)."""
+    h, w = s.shape
+    img_wp = wp.array(np.ascontiguousarray(image[..., :3], np.float32), dtype=wp.vec3, device=device)
+    s_wp = wp.array(np.ascontiguousarray(s, np.float32), dtype=float, device=device)
+    sid_wp = wp.array(np.ascontiguousarray(sid), dtype=wp.int32, device=device)
+    n = len(plans)
+    rgba = np.empty((n, h, w, 4), np.float32)
+    disp = np.empty((n, h, w), np.float32)
+    filled = wp.zeros(max(plan.index for plan in plans) + 1, dtype=wp.int32, device=device)
+    for i, plan in enumerate(reversed(plans)):  # nearest first
+        full = dataclasses.replace(plan, bbox=(0, h, 0, w))
+        src, coc = _layer_sources(full, img_wp, s_wp, sid_wp, filled, device)
+        rgba[i] = src.numpy()  # premultiplied RGB and coverage already: what the kernel takes
+        # the layer's own CoC where it has content, its mid-range elsewhere (transparent: never hit)
+        coc_np = np.where(rgba[i, ..., 3] > 0, np.clip(coc.numpy(), plan.s_lo, plan.s_hi), 0.5 * (plan.s_lo + plan.s_hi))
+        disp[i] = np.clip(coc_np / blur.k_px + blur.focus_disparity, 0.0, 1.0)
+    np.clip(rgba[..., 3], 0.0, 1.0, out=rgba[..., 3])
+    return rgba, disp
 
 
 def render_raytrace(
@@ -235,31 +277,88 @@ def render_raytrace(
     by pull-push at the layer's density); each becomes a map layer whose
     disparity is its pixels' own where it has content. Rays that end on no
     opaque layer are renormalised by the coverage they found, as in the preview.
+    Large renders go tile by tile (``bokehray._tiling``), with the same result.
     """
+    from . import _tiling  # noqa: PLC0415 - _tiling imports bokehray._scatter
+
     preview_options = preview_options or PreviewOptions()
+    options = options or RaytraceOptions()
     h, w = disparity.shape
     if blur.k_px == 0.0:  # a pinhole: the input itself
         return image[..., :3].copy(), RaytraceStats(stage_seconds={"total": 0.0})
-    s = blur.signed_coc(disparity)
+    _tiling.check_whole_image(h, w, _tiling.RAYTRACE_WHOLE_IMAGE_B, preview_options)
+    s = cap_coc(blur.signed_coc(disparity))  # the layers' disparity below is s / K + d_f: capped alike
     sid, plans = plan_layers(s, np.ones((h, w), bool), preview_options)
-    img_wp = wp.array(np.ascontiguousarray(image[..., :3], np.float32), dtype=wp.vec3, device=device)
-    s_wp = wp.array(s, dtype=float, device=device)
-    sid_wp = wp.array(sid, dtype=wp.int32, device=device)
+    max_coc = float(np.abs(s).max())
+    tile = _tiling.raytrace_tile_size(h, w, plans, max_coc, preview_options)  # may raise ResourceError
     t0 = time.perf_counter()
-    n = len(plans)
-    rgba = np.empty((n, h, w, 4), np.float32)
-    disp = np.empty((n, h, w), np.float32)
-    filled = wp.zeros(max(plan.index for plan in plans) + 1, dtype=wp.int32, device=device)
-    for i, plan in enumerate(reversed(plans)):  # nearest first
-        full = dataclasses.replace(plan, bbox=(0, h, 0, w))
-        src, coc = _layer_sources(full, img_wp, s_wp, sid_wp, filled, device)
-        rgba[i] = src.numpy()  # premultiplied RGB and coverage already: what the kernel takes
-        # the layer's own CoC where it has content, its mid-range elsewhere (transparent: never hit)
-        coc_np = np.where(rgba[i, ..., 3] > 0, np.clip(coc.numpy(), plan.s_lo, plan.s_hi), 0.5 * (plan.s_lo + plan.s_hi))
-        disp[i] = np.clip(coc_np / blur.k_px + blur.focus_disparity, 0.0, 1.0)
-    np.clip(rgba[..., 3], 0.0, 1.0, out=rgba[..., 3])
-    out, stats = _trace(rgba, disp, np.zeros((n, 4), np.float32), blur, aperture, options or RaytraceOptions(),
-                        device, t0)
+    if tile is None:
+        rgba, disp = _photo_textures(plans, image, s, sid, blur, device)
+        out, stats = _trace(rgba, disp, np.zeros((len(plans), 4), np.float32), blur, aperture, options, device, t0)
+        del rgba, disp
+    else:
+        out, stats = _trace_tiles(image, s, sid, plans, blur, aperture, options, device, max_coc,
+                                  -(-tile // 16) * 16, t0)
     cov = out[..., 3:4]
     rgb = np.where(cov > 1e-4, out[..., :3] / np.maximum(cov, 1e-12), image[..., :3])
     return rgb.astype(np.float32), stats
+
+
+def _trace_tiles(image: np.ndarray, s: np.ndarray, sid: np.ndarray, plans: list, blur: BlurParams,
+                 aperture: Aperture, options: RaytraceOptions, device: str, max_coc: float, tile: int,
+                 t0: float) -> tuple[np.ndarray, RaytraceStats]:
+    """Photo mode tile by tile, equal to the untiled trace.
+
+    Pass 1 builds each tile's layers on its window and gathers what the
+    untiled trace takes from whole layers: their disparity ranges (the march
+    bounds), their largest CoC and their content tiles (the ray counts).
+    Pass 2 builds them again and traces each tile's core.
+    """
+    from . import _tiling  # noqa: PLC0415
+
+    h, w = s.shape
+    n, grid = len(plans), 16
+    halo, align = _tiling.raytrace_halo(plans, max_coc)
+    cores = _tiling.cores(h, w, tile)
+    ranges = np.tile(np.array([[np.inf, -np.inf]], np.float32), (n, 1))
+    coc_max = np.zeros(n, np.float32)
+    content = np.zeros((n, -(-h // grid), -(-w // grid)), bool)
+
+    def window_layers(core):
+        wy0, wy1, wx0, wx1 = _tiling.raytrace_window(h, w, core, halo, align)
+        rgba, disp = _photo_textures(plans, image[wy0:wy1, wx0:wx1], s[wy0:wy1, wx0:wx1], sid[wy0:wy1, wx0:wx1],
+                                     blur, device)
+        cy0, cy1, cx0, cx1 = core
+        return (wy0, wx0), (cy0 - wy0, cy1 - wy0, cx0 - wx0, cx1 - wx0), rgba, disp
+
+    for core in cores:
+        _, (y0, y1, x0, x1), rgba, disp = window_layers(core)
+        d = disp[:, y0:y1, x0:x1]
+        np.minimum(ranges[:, 0], d.min(axis=(1, 2)), out=ranges[:, 0])
+        np.maximum(ranges[:, 1], d.max(axis=(1, 2)), out=ranges[:, 1])
+        for i in range(n):
+            coc_max[i] = max(coc_max[i], float(blur.coc_radius(d[i]).max()))
+            ty, tx = core[0] // grid, core[2] // grid
+            t = _box_max_tiles(rgba[i, y0:y1, x0:x1, 3] > 0, grid)
+            content[i, ty : ty + t.shape[0], tx : tx + t.shape[1]] |= t
+    reach = [_dilate(content[i], int(np.ceil(float(coc_max[i]) / grid)) + 1) for i in range(n)]
+
+    out = np.empty((h, w, 4), np.float32)
+    stats = RaytraceStats(layers=n)
+    for core in cores:
+        (wy0, wx0), (y0, y1, x0, x1), rgba, disp = window_layers(core)
+        cy0, cy1, cx0, cx1 = core
+        r_px = np.zeros((cy1 - cy0, cx1 - cx0), np.float32)
+        for i in range(n):
+            sub = reach[i][cy0 // grid : -(-cy1 // grid), cx0 // grid : -(-cx1 // grid)]  # cores start on the grid
+            mask = np.repeat(np.repeat(sub, grid, 0), grid, 1)[: cy1 - cy0, : cx1 - cx0]
+            np.maximum(r_px, np.where(mask, blur.coc_radius(disp[i, y0:y1, x0:x1]), 0.0).astype(np.float32), out=r_px)
+        part, st = _trace(rgba, disp, np.zeros((n, 4), np.float32), blur, aperture, options, device, t0,
+                          ranges=ranges, r_px=r_px, core=(y0, y1, x0, x1), origin=(wy0, wx0))
+        out[cy0:cy1, cx0:cx1] = part
+        stats.samples_total += st.samples_total
+        stats.spp_max = max(stats.spp_max, st.spp_max)
+    stats.spp_mean = stats.samples_total / float(h * w)
+    stats.image_tiles = len(cores)
+    stats.stage_seconds = {"total": time.perf_counter() - t0}
+    return out, stats
