@@ -137,7 +137,8 @@ def cap_coc(signed_coc: np.ndarray) -> np.ndarray:
     float32 noise floor of the compositing (1e-4), and the render would fall back to the
     unblurred input; the ray tracer's march would take O(K) steps per ray. Beyond the cap
     ``c`` a radius ``r`` becomes ``c + log1p(r - c)`` (still ordered, so layers keep their
-    depth order). Renders whose CoC stays within the cap are unchanged.
+    depth order; not idempotent, so the entry points apply it once). Renders whose CoC stays
+    within the cap are unchanged.
     """
     h, w = signed_coc.shape
     cap = np.float32(2.0 * math.hypot(h, w) + 2.0)

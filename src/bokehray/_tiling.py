@@ -31,13 +31,11 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
-import re
 from collections.abc import Callable
-from pathlib import Path
 
 import numpy as np
 
+from ._memory import available_bytes
 from ._scatter import PreviewOptions, RenderStats, _Layer, _levels_for, _pull_levels, _render_region
 from .errors import ResourceError
 from .lens import Aperture
@@ -64,20 +62,6 @@ RAYTRACE_LAYER_B = 40
 RAYTRACE_REGION_B = 150
 RAYTRACE_WHOLE_IMAGE_B = 48
 TILE_CANDIDATES = (8192, 4096, 3072, 2048, 1536, 1024, 768, 512, 384, 256, 128, 64)
-
-
-def available_bytes() -> int:
-    """Memory this process can still use: ``MemAvailable`` of /proc/meminfo (Linux), else free pages."""
-    try:
-        m = re.search(r"^MemAvailable:\s*(\d+) kB", Path("/proc/meminfo").read_text(), re.M)
-        if m:
-            return int(m.group(1)) * 1024
-    except OSError:
-        pass
-    try:
-        return int(os.sysconf("SC_AVPHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
-    except (ValueError, OSError, AttributeError):
-        return 1 << 62  # unknown: do not refuse
 
 
 def budget_bytes(options: PreviewOptions) -> int:
@@ -237,20 +221,24 @@ def raytrace_window(h: int, w: int, core: tuple[int, int, int, int], halo: int, 
     return (*_span(0, h, cy0, cy1, halo, align), *_span(0, w, cx0, cx1, halo, align))
 
 
-def raytrace_tile_size(h: int, w: int, layers: list[_Layer], max_coc: float, options: PreviewOptions) -> int | None:
-    """Tile side for a photo-mode ray trace, or None to trace untiled. Raises ResourceError if nothing fits."""
+def raytrace_tile_size(h: int, w: int, layers: list[_Layer], max_coc: float, options: PreviewOptions
+                       ) -> tuple[int | None, float]:
+    """(tile side or None to trace untiled, estimated bytes) for a photo-mode ray trace.
+
+    Raises ResourceError if nothing fits.
+    """
     budget = budget_bytes(options)
     n = len(layers)
     whole = RAYTRACE_WHOLE_IMAGE_B * h * w
     untiled = whole + (RAYTRACE_REGION_B + RAYTRACE_LAYER_B * n) * h * w
     if options.tile_size is None and untiled <= budget:
-        return None
+        return None, untiled
     halo, align = raytrace_halo(layers, max_coc)
     for tile in ([options.tile_size] if options.tile_size is not None else TILE_CANDIDATES):
         side_y, side_x = min(h, tile + 2 * halo + align), min(w, tile + 2 * halo + align)
         need = whole + (RAYTRACE_REGION_B + RAYTRACE_LAYER_B * n) * side_y * side_x
         if need <= budget:
-            return tile
+            return tile, need
         if options.tile_size is not None:
             raise _refuse(f"ray traced render in {tile} px tiles", need, budget,
                           "choose a smaller tile_size or leave it to the automatic choice")

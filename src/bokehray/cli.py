@@ -209,7 +209,7 @@ def cmd_render(args: argparse.Namespace) -> int:
         # resize after the conversion: disparity interpolates where depth cannot (inf for sky)
         disparity, norm = disparity_from_depth(depth, norm)
     else:
-        disparity, norm = io.read_disparity(args.disparity), None
+        disparity, norm = io.read_disparity(args.disparity, check_range=True), None
     if disparity.shape != (h, w):
         source = args.depth or args.disparity
         if not args.resize_disparity:

@@ -30,7 +30,8 @@ import OpenEXR
 import tifffile
 from PIL import Image
 
-from .errors import InputError
+from ._memory import available_bytes
+from .errors import InputError, ResourceError
 
 __all__ = [
     "MAX_PIXELS", "check_output_path", "linear_to_srgb", "read_depth", "read_disparity", "read_image", "srgb_to_linear",
@@ -39,6 +40,11 @@ __all__ = [
 
 MAX_PIXELS = 200_000_000
 """Largest image (height x width) any reader accepts."""
+
+_DECODE_BYTES_PER_PX = 40
+"""Peak bytes per pixel while decoding (4 channels of 16-bit codes or float32 samples, plus the float32
+result and a conversion temporary): a file whose header declares more than the memory available is
+refused before any pixel is decoded (a decompression bomb)."""
 
 _FORMATS = {
     ".png": "PNG", ".jpg": "JPEG", ".jpeg": "JPEG", ".tif": "TIFF", ".tiff": "TIFF", ".exr": "EXR", ".npy": "NPY",
@@ -89,6 +95,10 @@ def _check_dims(path: Path, h: int, w: int) -> None:
         raise InputError(f"{path}: expected a non-empty image, got {w} x {h} pixels")
     if h * w > MAX_PIXELS:
         raise InputError(f"{path}: expected at most {MAX_PIXELS:,} pixels, got {w} x {h} = {h * w:,}")
+    need, have = h * w * _DECODE_BYTES_PER_PX, available_bytes()
+    if need > have:
+        raise ResourceError(f"{path}: decoding {w} x {h} pixels needs about {need >> 20:,} MB, but only "
+                            f"{have >> 20:,} MB of memory is available")
 
 
 def _first(mask: np.ndarray) -> tuple[int, ...]:
@@ -110,8 +120,10 @@ def _decoding(path: Path, fmt: str) -> Iterator[None]:
     """Turn a decoder library's exception into an InputError naming the file and format."""
     try:
         yield
-    except (InputError, MemoryError):
+    except (InputError, ResourceError):
         raise
+    except MemoryError:
+        raise ResourceError(f"{path}: ran out of memory while decoding it as {fmt}") from None
     except Exception as exc:  # noqa: BLE001 - decoders raise anything from OSError to RuntimeError
         raise InputError(f"cannot read {path} as {fmt}: {exc}") from None
 
@@ -193,13 +205,27 @@ def _load_npy(path: Path) -> np.ndarray:
     with open(path, "rb") as fh:
         if fh.read(6) != b"\x93NUMPY":
             raise InputError(f"cannot read {path} as NPY: not a NPY file (bad magic string)")
-    a = np.load(path, mmap_mode="r", allow_pickle=False)  # header only until copied
-    if a.ndim not in (2, 3):
-        raise InputError(f"{path}: expected a 2-D (H x W) array, got {a.ndim}-D shape {a.shape}")
-    _check_dims(path, a.shape[0], a.shape[1])
-    if a.dtype.kind not in "fiu":
-        raise InputError(f"{path}: expected a float or integer array, got dtype {a.dtype}")
-    return np.array(a)
+        fh.seek(0)
+        version = np.lib.format.read_magic(fh)
+        if version == (1, 0):
+            shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
+        elif version == (2, 0):
+            shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
+        else:
+            raise InputError(f"cannot read {path} as NPY: unsupported format version {version[0]}.{version[1]}")
+        offset = fh.tell()
+    # the header alone decides: shape, dtype and whether the file holds that many bytes (no mmap, no allocation)
+    if len(shape) not in (2, 3):
+        raise InputError(f"{path}: expected a 2-D (H x W) array, got {len(shape)}-D shape {shape}")
+    _check_dims(path, shape[0], shape[1])
+    if dtype.kind not in "fiu" or dtype.hasobject:
+        raise InputError(f"{path}: expected a float or integer array, got dtype {dtype}")
+    need = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+    have = path.stat().st_size - offset
+    if have < need:
+        raise InputError(f"{path}: file is truncated: its header declares {shape} {dtype} ({need:,} bytes of data), "
+                         f"but only {max(have, 0):,} bytes follow")
+    return np.array(np.load(path, mmap_mode="r", allow_pickle=False))
 
 
 def _load(path: Path, fmt: str, exr_channels: tuple[tuple[str, ...], ...]) -> np.ndarray:
@@ -276,17 +302,20 @@ def read_image(path: str | os.PathLike[str]) -> np.ndarray:
     return out
 
 
-def read_disparity(path: str | os.PathLike[str]) -> np.ndarray:
+def read_disparity(path: str | os.PathLike[str], *, check_range: bool = False) -> np.ndarray:
     """Read a disparity map (1 = nearest, 0 = farthest) as float32 ``H x W``.
 
     PNG and integer TIFF codes are divided by their largest code (255, 65535) with
     no sRGB decoding; float TIFF and OpenEXR (channel ``Y``, else ``R``, else the only
     channel) are taken as they are; ``.npy`` holds a 2-D (or ``H x W x 1``) float or
     integer array of the values themselves. A three-channel PNG/TIFF is accepted
-    only if its channels are equal. Values are not range-checked here.
+    only if its channels are equal. Values are range-checked only with
+    ``check_range=True`` (the renderer checks them anyway; the reader's message
+    names the file).
 
     Raises:
-        InputError: Unreadable file, wrong dimensionality or channel count, NaN/Inf.
+        InputError: Unreadable file, wrong dimensionality or channel count, NaN/Inf,
+            and with ``check_range`` values outside [0, 1].
     """
     p, fmt = _format(path, ("PNG", "TIFF", "EXR", "NPY"), "disparity")
     a = _single_channel(p, _load(p, fmt, (("Y",), ("R",))), fmt, "disparity")
@@ -296,6 +325,12 @@ def read_disparity(path: str | os.PathLike[str]) -> np.ndarray:
         raise InputError(f"{p}: expected unsigned integer or float samples, got {a.dtype}")
     out = a.astype(np.float32)
     _check_finite(out, f"{p}: expected finite values, got")
+    if check_range and out.size and (out.min() < 0.0 or out.max() > 1.0):
+        bad = (out < 0.0) | (out > 1.0)
+        y, x = _first(bad)[:2]
+        raise InputError(f"{p}: expected disparity in [0, 1] (1 = nearest), got {float(out[y, x]):.4g} at (y, x) = "
+                         f"({y}, {x}) (range [{float(out.min()):.4g}, {float(out.max()):.4g}]); normalise it, or "
+                         "give metric depth with --depth")
     return out
 
 

@@ -80,6 +80,7 @@ class RaytraceStats:
     spp_mean: float = 0.0
     spp_max: int = 0
     image_tiles: int = 1
+    memory_estimate_mb: float = 0.0
     stage_seconds: dict[str, float] = field(default_factory=dict)
 
     def as_dict(self) -> dict:
@@ -290,7 +291,7 @@ def render_raytrace(
     s = cap_coc(blur.signed_coc(disparity))  # the layers' disparity below is s / K + d_f: capped alike
     sid, plans = plan_layers(s, np.ones((h, w), bool), preview_options)
     max_coc = float(np.abs(s).max())
-    tile = _tiling.raytrace_tile_size(h, w, plans, max_coc, preview_options)  # may raise ResourceError
+    tile, need = _tiling.raytrace_tile_size(h, w, plans, max_coc, preview_options)  # may raise ResourceError
     t0 = time.perf_counter()
     if tile is None:
         rgba, disp = _photo_textures(plans, image, s, sid, blur, device)
@@ -299,6 +300,7 @@ def render_raytrace(
     else:
         out, stats = _trace_tiles(image, s, sid, plans, blur, aperture, options, device, max_coc,
                                   -(-tile // 16) * 16, t0)
+    stats.memory_estimate_mb = need / _tiling.MB
     cov = out[..., 3:4]
     rgb = np.where(cov > 1e-4, out[..., :3] / np.maximum(cov, 1e-12), image[..., :3])
     return rgb.astype(np.float32), stats

@@ -1,0 +1,133 @@
+"""Coverage-guided fuzzing of the file readers with atheris (libFuzzer for Python).
+
+Each input is written to a file with the format's extension and handed to every reader
+that takes the format (``read_image``, ``read_disparity``, ``read_depth``). The contract
+under test: a reader returns a finite float32 array of the documented shape, or raises
+``InputError``/``ResourceError`` (one clear message naming the file); anything else
+(another exception, NaN in the output, a hang, a crash of a native decoder) is a finding
+and its input is saved by libFuzzer as ``crash-*``/``timeout-*``. Python code of bokehray,
+Pillow and tifffile is instrumented for coverage; the native decoders (libpng, libjpeg,
+libtiff codecs, OpenEXR) run uninstrumented.
+
+To keep runs fast, the harness lowers ``MAX_PIXELS`` to 2 MP (the limit logic itself is
+tested in tests/test_io.py). Seeds are small valid files of every variant we write
+(8/16-bit PNG, JPEG, 8/16-bit and float TIFF, float and half EXR, NPY); found inputs are
+kept under tests/data/fuzz/ and replayed by tests/test_fuzz_regressions.py (no atheris).
+
+Usage (needs ``pip install atheris``; from the repository root)::
+
+    python benchmarks/fuzz_readers.py --seconds 90            # every format, 90 s each
+    python benchmarks/fuzz_readers.py --format png --seconds 60 --corpus /tmp/png-corpus
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+FORMATS = {  # format -> (extension, readers)
+    "png": (".png", ("read_image", "read_disparity")),
+    "jpeg": (".jpg", ("read_image",)),
+    "tiff": (".tif", ("read_image", "read_disparity", "read_depth")),
+    "exr": (".exr", ("read_image", "read_disparity", "read_depth")),
+    "npy": (".npy", ("read_disparity", "read_depth")),
+}
+FUZZ_MAX_PIXELS = 2_000_000
+
+
+def write_seeds(fmt: str, folder: Path) -> list[Path]:
+    """Small valid files of ``fmt`` in every variant the writers produce."""
+    import numpy as np
+
+    import bokehray.io as bio
+
+    rng = np.random.default_rng(0)
+    img = rng.random((5, 7, 4)).astype(np.float32)
+    d = rng.random((5, 7)).astype(np.float32)
+    folder.mkdir(parents=True, exist_ok=True)
+    out = []
+    if fmt == "png":
+        out += [bio.write_image(folder / "rgb8.png", img[..., :3]), bio.write_image(folder / "rgba16.png", img, bit_depth=16),
+                bio.write_image(folder / "grey8.png", img[..., :1]), bio.write_disparity(folder / "disp16.png", d)]
+    elif fmt == "jpeg":
+        out += [bio.write_image(folder / "rgb.jpg", img[..., :3], quality=50), bio.write_image(folder / "grey.jpg", img[..., :1])]
+    elif fmt == "tiff":
+        out += [bio.write_image(folder / "rgb16.tif", img[..., :3]), bio.write_image(folder / "rgba8.tif", img, bit_depth=8),
+                bio.write_image(folder / "float.tif", img[..., :3], bit_depth=32), bio.write_disparity(folder / "disp.tif", d)]
+    elif fmt == "exr":
+        out += [bio.write_image(folder / "rgba.exr", img), bio.write_image(folder / "half.exr", img[..., :3], half=True),
+                bio.write_disparity(folder / "disp.exr", d)]
+    else:
+        out += [bio.write_disparity(folder / "disp.npy", d)]
+    return out
+
+
+def fuzz_one(fmt: str, seconds: int, corpus: Path, artifacts: Path) -> int:
+    """Fuzz one format in this process until ``seconds`` have passed (libFuzzer exits the process)."""
+    import atheris
+
+    with atheris.instrument_imports(include=["bokehray", "PIL", "tifffile"]):
+        import numpy as np
+
+        import bokehray.io as bio
+        from bokehray.errors import InputError, ResourceError
+
+    bio.MAX_PIXELS = FUZZ_MAX_PIXELS
+    ext, names = FORMATS[fmt]
+    readers = [getattr(bio, n) for n in names]
+    path = Path(tempfile.mkdtemp(prefix=f"bokehray-fuzz-{fmt}-")) / f"input{ext}"
+
+    def one_input(data: bytes) -> None:
+        path.write_bytes(data)
+        for read in readers:
+            try:
+                a = read(path)
+            except (InputError, ResourceError) as e:
+                if str(path) not in str(e):
+                    raise AssertionError(f"{read.__name__}: error does not name the file: {e}") from None
+                continue
+            if a.dtype != np.float32 or a.ndim not in (2, 3) or not np.isfinite(a).all():
+                raise AssertionError(f"{read.__name__}: returned {a.dtype} {a.shape} finite={np.isfinite(a).all()}")
+
+    if not any(corpus.iterdir()) if corpus.exists() else True:
+        write_seeds(fmt, corpus)
+    artifacts.mkdir(parents=True, exist_ok=True)
+    argv = [sys.argv[0], str(corpus), f"-max_total_time={seconds}", f"-artifact_prefix={artifacts}/{fmt}-",
+            "-timeout=20", "-rss_limit_mb=6144", "-max_len=65536", "-print_final_stats=1"]
+    atheris.Setup(argv, one_input)
+    atheris.Fuzz()
+    return 0
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--format", choices=sorted(FORMATS), help="one format (default: all, one process each)")
+    ap.add_argument("--seconds", type=int, default=60, help="fuzzing time per format")
+    ap.add_argument("--corpus", type=Path, help="corpus folder (default: a temporary one seeded with valid files)")
+    ap.add_argument("--artifacts", type=Path, default=Path(tempfile.gettempdir()) / "bokehray-fuzz-artifacts",
+                    help="where libFuzzer saves crashing inputs")
+    args = ap.parse_args()
+    if args.format:
+        corpus = args.corpus or Path(tempfile.mkdtemp(prefix=f"bokehray-corpus-{args.format}-"))
+        return fuzz_one(args.format, args.seconds, corpus, args.artifacts)
+    status = 0
+    for fmt in FORMATS:
+        cmd = [sys.executable, __file__, "--format", fmt, "--seconds", str(args.seconds),
+               "--artifacts", str(args.artifacts)]
+        if args.corpus:
+            cmd += ["--corpus", str(args.corpus / fmt)]
+        print(f"== {fmt}", flush=True)
+        rc = subprocess.run(cmd, env={**os.environ, "PYTHONWARNINGS": "ignore"}).returncode
+        print(f"== {fmt}: exit code {rc}", flush=True)
+        status = status or rc
+    return status
+
+
+if __name__ == "__main__":
+    sys.exit(main())

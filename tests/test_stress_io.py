@@ -1,0 +1,171 @@
+"""Input-side stress: decompression bombs in every format, memory-aware refusal, disparity ranges, CLI.
+
+Complements tests/test_io.py (truncated and corrupt files, NaN/Inf, channel counts, missing
+paths, atomic writes) and tests/test_fuzz_regressions.py (inputs found by fuzzing).
+"""
+
+import resource
+import struct
+import time
+import zlib
+
+import numpy as np
+import pytest
+
+import bokehray.io as bio
+from bokehray import cli
+from bokehray.errors import InputError, ResourceError
+
+
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def _png_bomb(path, w, h):
+    ihdr = struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0)
+    idat = zlib.compress(b"\0" * 64)  # a few bytes of "pixel data"
+    chunks = b""
+    for tag, body in ((b"IHDR", ihdr), (b"IDAT", idat), (b"IEND", b"")):
+        chunks += struct.pack(">I", len(body)) + tag + body + struct.pack(">I", zlib.crc32(tag + body))
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunks)
+
+
+def _tiff_bomb(path, w, h):
+    """A little-endian baseline TIFF whose IFD declares w x h 8-bit grey pixels in one 8-byte strip."""
+    entries = [(256, 4, 1, w), (257, 4, 1, h), (258, 3, 1, 8), (259, 3, 1, 1), (262, 3, 1, 1), (273, 4, 1, 8),
+               (277, 3, 1, 1), (278, 4, 1, h), (279, 4, 1, 8)]
+    ifd = struct.pack("<H", len(entries))
+    for tag, typ, count, value in entries:
+        ifd += struct.pack("<HHII", tag, typ, count, value) if typ == 4 else struct.pack("<HHIHH", tag, typ, count,
+                                                                                          value, 0)
+    ifd += struct.pack("<I", 0)
+    path.write_bytes(b"II*\x00" + struct.pack("<I", 16) + b"\0" * 8 + ifd)
+
+
+def _exr_bomb(path, tmp_path, w, h):
+    """A valid small EXR whose header's dataWindow is patched to w x h."""
+    small = bio.write_image(tmp_path / "small.exr", np.zeros((4, 4, 3), np.float32))
+    data = bytearray(small.read_bytes())
+    for name in (b"dataWindow\0box2i\0", b"displayWindow\0box2i\0"):
+        i = data.index(name) + len(name) + 4  # skip the attribute size
+        data[i : i + 16] = struct.pack("<iiii", 0, 0, w - 1, h - 1)
+    path.write_bytes(bytes(data))
+
+
+def _jpeg_bomb(path, tmp_path, w, h):
+    """A valid small JPEG whose SOF0 frame header is patched to w x h."""
+    small = bio.write_image(tmp_path / "small.jpg", np.zeros((8, 8, 3), np.float32))
+    data = bytearray(small.read_bytes())
+    i = data.index(b"\xff\xc0") + 5  # marker, length (2), precision (1), then height and width
+    data[i : i + 4] = struct.pack(">HH", h, w)
+    path.write_bytes(bytes(data))
+
+
+def _npy_bomb(path, w, h):
+    header = repr({"descr": "<f4", "fortran_order": False, "shape": (h, w)}).encode()
+    header += b" " * (63 - (10 + len(header)) % 64) + b"\n"
+    path.write_bytes(b"\x93NUMPY\x01\x00" + struct.pack("<H", len(header)) + header + b"\0" * 64)
+
+
+BOMBS = {
+    "png": lambda p, t, w, h: _png_bomb(p, w, h),
+    "tif": lambda p, t, w, h: _tiff_bomb(p, w, h),
+    "exr": lambda p, t, w, h: _exr_bomb(p, t, w, h),
+    "jpg": lambda p, t, w, h: _jpeg_bomb(p, t, w, h),
+    "npy": lambda p, t, w, h: _npy_bomb(p, w, h),
+}
+READERS = {"png": [bio.read_image, bio.read_disparity], "tif": [bio.read_image, bio.read_disparity, bio.read_depth],
+           "exr": [bio.read_image, bio.read_disparity, bio.read_depth], "jpg": [bio.read_image],
+           "npy": [bio.read_disparity, bio.read_depth]}
+
+
+@pytest.mark.parametrize("ext", sorted(BOMBS))
+def test_decompression_bombs_are_refused_from_the_header(tmp_path, ext):
+    """A few hundred bytes declaring 60 000 x 60 000 pixels: refused naming the file, nothing allocated."""
+    p = tmp_path / f"bomb.{ext}"
+    BOMBS[ext](p, tmp_path, 60_000, 60_000)
+    assert p.stat().st_size < 2000
+    before = _peak_rss_mb()
+    for read in READERS[ext]:
+        t = time.perf_counter()
+        with pytest.raises(InputError) as e:
+            read(p)
+        assert str(p) in str(e.value) and time.perf_counter() - t < 2.0
+        assert any(s in str(e.value) for s in ("60000 x 60000", "decompression bomb")), str(e.value)
+    assert _peak_rss_mb() - before < 200  # a decoded bomb would take 3.6 GB and more
+
+
+@pytest.mark.parametrize("ext", ["png", "tif", "exr", "npy"])
+def test_header_that_does_not_fit_in_memory_is_refused_before_decoding(tmp_path, ext, monkeypatch):
+    """Within MAX_PIXELS but beyond the memory available (here: pretend 50 MB): a ResourceError naming the file."""
+    p = tmp_path / f"big.{ext}"
+    BOMBS[ext](p, tmp_path, 4000, 3000)  # 12 MP: about 480 MB to decode
+    monkeypatch.setattr(bio, "available_bytes", lambda: 50 << 20)
+    for read in READERS[ext]:
+        with pytest.raises(ResourceError, match=rf"{p}: decoding 4000 x 3000 pixels needs about 457 MB, but only 50 MB"):
+            read(p)
+
+
+def test_out_of_memory_inside_a_decoder_becomes_a_resource_error(tmp_path, monkeypatch):
+    p = bio.write_image(tmp_path / "a.png", np.zeros((4, 4, 3), np.float32))
+
+    def oom(*args, **kwargs):
+        raise MemoryError
+
+    monkeypatch.setattr(bio, "_load_pil", oom)
+    with pytest.raises(ResourceError, match=rf"{p}: ran out of memory while decoding it as PNG"):
+        bio.read_image(p)
+
+
+@pytest.mark.parametrize("ext", ["npy", "exr", "tif"])
+@pytest.mark.parametrize("value", [-0.25, 1.5, -0.0])
+def test_float_disparity_range_is_checked_naming_the_file(tmp_path, ext, value):
+    d = np.full((6, 8), 0.5, np.float32)
+    d[2, 3] = value
+    p = bio.write_disparity(tmp_path / f"d.{ext}", d)
+    assert bio.read_disparity(p)[2, 3] == value  # unchecked by default (callers may normalise)
+    if value == -0.0:
+        assert bio.read_disparity(p, check_range=True)[2, 3] == 0.0  # -0 is 0
+        return
+    with pytest.raises(InputError, match=rf"{p}: expected disparity in \[0, 1\] .* got {value:g} at \(y, x\) = \(2, 3\)"):
+        bio.read_disparity(p, check_range=True)
+
+
+def test_16_bit_disparity_is_always_in_range(tmp_path):
+    p = bio.write_disparity(tmp_path / "d.png", np.array([[0.0, 1.0], [0.5, 1e-5]], np.float32))
+    d = bio.read_disparity(p, check_range=True)
+    assert d.min() == 0.0 and d.max() == 1.0 and d.dtype == np.float32
+
+
+@pytest.mark.parametrize("case", ["negative", "nan_tif", "bomb_png", "bomb_exr", "mismatch", "dir", "missing"])
+def test_cli_bad_disparity_inputs_exit_2_with_one_line_naming_the_file(tmp_path, capsys, case):
+    img = bio.write_image(tmp_path / "img.png", np.random.default_rng(0).random((12, 16, 3)).astype(np.float32))
+    d = np.full((12, 16), 0.5, np.float32)
+    if case == "negative":
+        d[3, 4] = -1.0
+        src = bio.write_disparity(tmp_path / "d.npy", d)
+    elif case == "nan_tif":
+        d[3, 4] = np.nan
+        src = tmp_path / "d.tif"
+        import tifffile
+
+        tifffile.imwrite(src, d)
+    elif case == "bomb_png":
+        src = tmp_path / "d.png"
+        _png_bomb(src, 100_000, 100_000)
+    elif case == "bomb_exr":
+        src = tmp_path / "d.exr"
+        _exr_bomb(src, tmp_path, 100_000, 100_000)
+    elif case == "mismatch":
+        src = bio.write_disparity(tmp_path / "d.exr", np.full((5, 7), 0.5, np.float32))
+    elif case == "dir":
+        src = tmp_path / "folder.png"
+        src.mkdir()
+    else:
+        src = tmp_path / "nothing.exr"
+    out = tmp_path / "out.png"
+    rc = cli.main(["render", str(img), "--disparity", str(src), "-o", str(out), "--blur", "4", "--focus", "0.5"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and not out.exists()
+    assert len(err.splitlines()) == 1 and err.startswith("bokehray: error: ") and str(src) in err, err
+    assert "Traceback" not in err
