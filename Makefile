@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench-quick soak-quick clean
+.PHONY: demo test bench-quick bench-compare-quick soak-quick clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -20,6 +20,11 @@ test: $(STAMP)
 
 bench-quick: $(STAMP)
 	$(BIN)/python benchmarks/bench_preview.py --quick
+
+# run time against error, bokehray levels and peers side by side (docs/benchmarks.md); peers that
+# are not installed are skipped with a one-line message
+bench-compare-quick: $(STAMP)
+	$(BIN)/bokehray bench --quick --out out/bench
 
 soak-quick: $(STAMP)
 	$(BIN)/python benchmarks/soak.py --cases 300 --seed 1

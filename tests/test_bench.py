@@ -13,7 +13,7 @@ from scipy import ndimage
 from bokehray.bench import Method, SynthSplit, pareto_front, registry, run_bench, select
 from bokehray.bench.ebb import focus_from_mask, focus_from_sharpness, search_k
 from bokehray.bench.peers import NaiveScatter, coc_radius_map
-from bokehray.bench.run import Case, dominators, ebb_cases, perturb_disparity, synth_cases
+from bokehray.bench.run import Case, dominators, ebb_cases, perturb_disparity, robustness_subset, synth_cases
 from bokehray.datasets import write_blb_scene
 from bokehray.errors import InputError
 
@@ -150,6 +150,11 @@ def test_runner_skips_missing_and_failing_methods_without_crashing():
     assert s["psnr"] > 60 and s["time_min"] <= s["time_median"] <= s["time_max"]  # it is its own truth
     assert set(s["robustness_drop_db"]) == {"-1", "1"} and all(v < 0 for v in s["robustness_drop_db"].values())
     assert res["per_image"][0]["runs"] == 2
+
+
+def test_robustness_cases_spread_over_the_list():
+    assert robustness_subset(list(range(24)), 4) == [0, 8, 15, 23]
+    assert robustness_subset([1, 2], 5) == [1, 2] and robustness_subset([1, 2], 0) == []
 
 
 def test_select_and_registry():

@@ -49,7 +49,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
     if args.list_methods:
         for m in registry():
-            reason = m.unavailable()
+            try:
+                reason = m.unavailable()
+            except Exception as exc:  # noqa: BLE001 - listing must not crash on a broken peer
+                reason = f"{type(exc).__name__}: {exc}"
             print(f"{m.name:16s} {m.family:9s} {'ok' if reason is None else 'skipped: ' + reason}  ({m.description})")
         return 0
     for flag in ("limit", "runs", "robustness"):

@@ -237,13 +237,13 @@ def run_bench(cases: Sequence[Case], methods: Sequence[Method], *, runs: int = 3
     skipped: dict[str, str] = {}
     active: list[tuple[Method, Callable]] = []
     for m in methods:
-        reason = m.unavailable()
-        if reason is None:
-            try:
+        try:
+            reason = m.unavailable()
+            if reason is None:
                 active.append((m, m.make()))
                 continue
-            except Exception as exc:  # noqa: BLE001 - a peer that fails to start is skipped, never fatal
-                reason = f"{type(exc).__name__}: {exc}"
+        except Exception as exc:  # noqa: BLE001 - a peer that fails to start is skipped, never fatal
+            reason = f"{type(exc).__name__}: {exc}"
         skipped[m.name] = reason
         log(f"skipped {m.name}: {reason}")
     rows: list[dict] = []
@@ -252,7 +252,7 @@ def run_bench(cases: Sequence[Case], methods: Sequence[Method], *, runs: int = 3
         for ci, case in enumerate(cases):
             log(f"[{ci + 1}/{len(cases)}] {case.name}")
             rows.extend(_measure_case(case, active, runs, perceptual, k_range, skipped, log))
-        rob_cases = list(cases[:robustness_cases])
+        rob_cases = robustness_subset(cases, robustness_cases)
         for ci, case in enumerate(rob_cases):
             log(f"robustness [{ci + 1}/{len(rob_cases)}] {case.name}")
             _robustness_case(case, [(m, r) for m, r in active if m.robustness and m.name not in skipped], rows,
@@ -263,6 +263,15 @@ def run_bench(cases: Sequence[Case], methods: Sequence[Method], *, runs: int = 3
             if close:
                 close()
     return _summarise(rows, methods, skipped, robustness, robustness_radii, runs)
+
+
+def robustness_subset(cases: Sequence[Case], n: int) -> list[Case]:
+    """``n`` cases evenly spread over the list (so over the scenes, not the first scene's renders)."""
+    if n <= 0:
+        return []
+    if n >= len(cases):
+        return list(cases)
+    return [cases[int(i)] for i in np.round(np.linspace(0, len(cases) - 1, n))]
 
 
 def _k_for(case: Case, method: Method, render: Callable, k_range, log) -> tuple[float, int]:
@@ -492,7 +501,7 @@ def _plots(results: dict, plots: Path, tag: str) -> list[Path]:
         ax.set_ylabel("PSNR, dB (sRGB, clipped)")
         ax.set_title(f"bokehray bench: {tag}")
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=8, loc="lower right")
+        ax.legend(fontsize=8, loc="best")
         fig.tight_layout()
         p = plots / f"bench_{tag}_pareto.png"
         fig.savefig(p, dpi=100)
