@@ -91,7 +91,7 @@ def main():
             rgba = np.ones((h, w, 4), np.float32)
             rgba[..., :3] = rgb
             z = np.ones((h, w, 4), np.float32)
-            z[..., :3] = (rad / rmax if rmax > 0 else rad * 0)[..., None]
+            z[..., :3] = rad[..., None]  # radius / rmax, normalised by the harness
             n_img.image = image("bokehray_in", w, h)
             n_img.image.pixels.foreach_set(rgba[::-1].ravel())  # Blender rows go bottom-up
             n_z.image = image("bokehray_z", w, h)

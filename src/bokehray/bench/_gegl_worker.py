@@ -1,7 +1,7 @@
 """GEGL worker for ``bokehray bench``; runs under the *system* Python (GObject introspection).
 
 Protocol: one JSON request per stdin line ``{"width", "height", "image", "radius", "out", "rmax"}``
-(raw float32 files: H x W x 3 linear RGB, H x W CoC radius in px); answers one line
+(raw float32 files: H x W x 3 linear RGB, H x W CoC radius in px divided by rmax); answers one line
 ``REPLY {"ok": true, "seconds": ..., "peak_kb": ...}`` after writing H x W x 3 float32 to
 ``out``. Needs no numpy. Not imported by bokehray.
 """
@@ -55,16 +55,12 @@ def main():
             src = Gegl.Buffer.new("RGB float", 0, 0, w, h)
             with open(req["image"], "rb") as f:
                 src.set(rect, "RGB float", f.read())
-            # aux mask = radius / rmax; with linear-mask the blur radius is mask * radius
-            import array
-
-            rad = array.array("f")
+            # aux mask = radius / rmax (normalised by the harness); with linear-mask the blur radius
+            # is mask * radius
             with open(req["radius"], "rb") as f:
-                rad.frombytes(f.read())
-            scale = 1.0 / rmax if rmax > 0 else 0.0
-            mask = array.array("f", (v * scale for v in rad))
+                mask = f.read()
             aux = Gegl.Buffer.new("Y float", 0, 0, w, h)
-            aux.set(rect, "Y float", mask.tobytes())
+            aux.set(rect, "Y float", mask)
             out = Gegl.Buffer.new("RGBA float", 0, 0, w, h)
             g = Gegl.Node()
             n_src = g.create_child("gegl:buffer-source")

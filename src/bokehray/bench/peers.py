@@ -148,7 +148,11 @@ class _Worker:
 
 
 class _ExternalPeer:
-    """Common part of the GEGL and Blender adapters: raw float32 files in, raw float32 out."""
+    """Common part of the GEGL and Blender adapters: raw float32 files in, raw float32 out.
+
+    The request holds the linear RGB image and the CoC radius map divided by its maximum
+    ``rmax`` (the form both peers take, so the workers do no per-pixel work of their own).
+    """
 
     name = "external"
     script = ""
@@ -168,20 +172,19 @@ class _ExternalPeer:
                 raise RuntimeError(self.unavailable() or "not available")
             self._worker = _Worker(argv)
 
-    def params(self, rmax: float) -> dict:  # pragma: no cover - overridden
-        raise NotImplementedError
-
     def __call__(self, image: np.ndarray, disparity: np.ndarray, k_px: float, focus_disparity: float) -> np.ndarray:
         self.start()
         assert self._worker is not None
         h, w = disparity.shape
         r = coc_radius_map(disparity, k_px, focus_disparity)
+        rmax = float(r.max())
         tmp = self._worker.tmp
         np.ascontiguousarray(image[..., :3], np.float32).tofile(tmp / "image.f32")
-        r.tofile(tmp / "radius.f32")
+        # both peers take the radius map normalised to [0, 1] and scaled by rmax inside
+        (r / np.float32(rmax) if rmax > 0 else np.zeros_like(r)).astype(np.float32).tofile(tmp / "radius.f32")
         rep = self._worker.request({"width": w, "height": h, "image": str(tmp / "image.f32"),
                                     "radius": str(tmp / "radius.f32"), "out": str(tmp / "out.f32"),
-                                    **self.params(float(r.max()))})
+                                    "rmax": rmax})
         peak = rep.get("peak_kb")
         self.last_peak_mb = peak / 1024 if peak is not None else None
         self.last_inner_seconds = rep.get("seconds")
@@ -218,9 +221,6 @@ class GeglLensBlur(_ExternalPeer):
         py = self._python()
         return None if py is None else [py, str(_HERE / self.script)]
 
-    def params(self, rmax: float) -> dict:
-        return {"rmax": rmax}
-
 
 class BlenderDefocus(_ExternalPeer):
     """Blender's compositor Defocus node, Z input as the radius map (``use_zbuffer`` off), disc."""
@@ -248,6 +248,3 @@ class BlenderDefocus(_ExternalPeer):
 
     def argv(self) -> list[str] | None:
         return [self._python(), str(_HERE / self.script)]
-
-    def params(self, rmax: float) -> dict:
-        return {"rmax": rmax}

@@ -325,6 +325,9 @@ def _measure_case(case: Case, active, runs: int, perceptual, k_range, skipped: d
                 log(f"skipped {m.name}: {skipped[m.name]}")
                 continue
             row["times"].append(time.perf_counter() - t)
+            inner = getattr(render, "last_inner_seconds", None)  # out-of-process peers: the worker's own time
+            if inner is not None:
+                row.setdefault("inner_times", []).append(inner)
             if first:
                 worker_peak = getattr(render, "last_peak_mb", None)
                 hwm = _status_kb("VmHWM")
@@ -337,6 +340,8 @@ def _measure_case(case: Case, active, runs: int, perceptual, k_range, skipped: d
             continue
         ts = row.pop("times")
         row.update(time_median=statistics.median(ts), time_min=min(ts), time_max=max(ts), runs=len(ts))
+        if "inner_times" in row:
+            row["worker_time_median"] = statistics.median(row.pop("inner_times"))
         log(f"  {m.name:16s} {row['time_median']:8.3f} s  PSNR {row['psnr']:6.2f}  band {row['band_psnr']:6.2f}  "
             f"SSIM {row['ssim']:.4f}")
         out.append(row)
@@ -420,6 +425,8 @@ def markdown_table(results: dict) -> str:
     aligned = any("aligned_psnr" in s for s in results["summary"].values())
     head = "| method | family | time/image s (median) | min-max s | PSNR | band PSNR | SSIM | band SSIM |"
     head += " aligned PSNR | aligned SSIM |" if aligned else ""
+    worker = any("worker_time_median" in s for s in results["summary"].values())
+    head += " worker s |" if worker else ""
     head += " peak MB | K | Pareto |"
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for n, s in results["summary"].items():
@@ -427,6 +434,8 @@ def markdown_table(results: dict) -> str:
                 f" | {_fmt(s['psnr'])} | {_fmt(s['band_psnr'])} | {_fmt(s['ssim'], 4)} | {_fmt(s['band_ssim'], 4)} |")
         if aligned:
             line += f" {_fmt(s.get('aligned_psnr'))} | {_fmt(s.get('aligned_ssim'), 4)} |"
+        if worker:
+            line += f" {_fmt(s.get('worker_time_median'), 3)} |"
         line += f" {_fmt(s.get('peak_mb_max'), 0)} | {_fmt(s.get('k_px'), 1)} | {'yes' if s['on_pareto_front'] else ''} |"
         lines.append(line)
     return "\n".join(lines)
