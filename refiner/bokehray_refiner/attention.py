@@ -26,6 +26,36 @@ import torch.nn.functional as F
 __all__ = ["pisa_attention", "pisa_attention_dense", "pisa_weights", "window_offsets"]
 
 
+UNFOLD_BUDGET_BYTES = 256 * 2**20
+"""Above this size of the unfolded tensor (``B heads d (2w+1)^2 N`` values), the loop path is used."""
+
+
+def _use_unfold(x: torch.Tensor, window: int, path: str) -> bool:
+    if path not in ("auto", "unfold", "loop"):
+        raise ValueError(f"path: expected 'auto', 'unfold' or 'loop', got {path!r}")
+    if path != "auto":
+        return path == "unfold"
+    return x.numel() * (2 * window + 1) ** 2 * 4 <= UNFOLD_BUDGET_BYTES
+
+
+def _grid(x: torch.Tensor) -> torch.Tensor:
+    """(B, heads, H, W, d) -> (B * heads, d, H, W) for unfold/fold."""
+    b, nh, h, w, d = x.shape
+    return x.permute(0, 1, 4, 2, 3).reshape(b * nh, d, h, w)
+
+
+def _logits(q: torch.Tensor, k: torch.Tensor, window: int, unfold: bool) -> torch.Tensor:
+    """``s[b, h, y, x, o] = q[(y, x) + offset(o)] . k[(y, x)]`` (zero outside the image)."""
+    b, nh, h, w, d = q.shape
+    n_off = (2 * window + 1) ** 2
+    if unfold:  # one im2col: fast, memory B heads d (2w+1)^2 N
+        qn = F.unfold(_grid(q), 2 * window + 1, padding=window).view(b, nh, d, n_off, h, w)
+        return torch.einsum("bzdoyx,bzyxd->bzyxo", qn, k)
+    qp = F.pad(q, (0, 0, window, window, window, window))  # one offset at a time: memory B heads N d
+    return torch.stack([(qp[:, :, window + dy: window + dy + h, window + dx: window + dx + w] * k).sum(-1)
+                        for dy, dx in window_offsets(window)], dim=-1)
+
+
 def window_offsets(window: int) -> list[tuple[int, int]]:
     """(dy, dx) of each window entry, row-major, as in ``bokehray.pisa.window_offsets``."""
     r = range(-window, window + 1)
@@ -52,7 +82,7 @@ def _batched(mask: torch.Tensor) -> torch.Tensor:
 
 
 def pisa_weights(
-    q: torch.Tensor, k: torch.Tensor, coc: torch.Tensor, window: int, scale: float | None = None
+    q: torch.Tensor, k: torch.Tensor, coc: torch.Tensor, window: int, scale: float | None = None, path: str = "auto"
 ) -> torch.Tensor:
     """The energy-conserving, CoC-masked weights ``A^(QC)`` in the key-centric window.
 
@@ -61,6 +91,8 @@ def pisa_weights(
         coc: ``(B, H, W, (2w+1)^2)`` (or without B): ``C`` for key ``(y, x)`` and query ``(y, x) + offset``.
         window: the window radius ``w``.
         scale: logit scale, default ``1 / sqrt(d)``.
+        path: ``"unfold"`` (im2col, fast), ``"loop"`` (one offset at a time, least memory) or
+            ``"auto"`` (unfold below :data:`UNFOLD_BUDGET_BYTES`). Both give the same result.
 
     Returns:
         ``(B, heads, H, W, (2w+1)^2)`` float32; each key's weights sum to 1 over its
@@ -70,13 +102,7 @@ def pisa_weights(
     b, nh, h, w, d = q.shape
     scale = 1.0 / math.sqrt(d) if scale is None else scale
     acc = _acc_dtype(q)
-    qp = F.pad(q.to(acc), (0, 0, window, window, window, window))
-    kf = k.to(acc)
-    logits = torch.stack(
-        [(qp[:, :, window + dy: window + dy + h, window + dx: window + dx + w] * kf).sum(-1)
-         for dy, dx in window_offsets(window)],
-        dim=-1,
-    ) * scale
+    logits = _logits(q.to(acc), k.to(acc), window, _use_unfold(q, window, path)) * scale
     with torch.no_grad():
         log_c = torch.log(_batched(coc).to(acc))  # 0 -> -inf: masked out
     masked = logits + log_c
@@ -87,10 +113,15 @@ def pisa_weights(
     return e / torch.where(total > 0, total, torch.ones_like(total))  # empty column: 0 / 1, and finite gradients
 
 
-def _aggregate(weights: torch.Tensor, v: torch.Tensor, window: int) -> torch.Tensor:
+def _aggregate(weights: torch.Tensor, v: torch.Tensor, window: int, unfold: bool) -> torch.Tensor:
     """``out[q] = sum_k W[k, q - k] V[k]``: each key scatters its weighted value over its window."""
-    b, nh, h, w, _ = weights.shape
+    b, nh, h, w, n_off = weights.shape
     vf = v.to(weights.dtype)
+    if unfold:  # col2im sums every key's window into place
+        dv = v.shape[-1]
+        blocks = torch.einsum("bzyxo,bzyxd->bzdoyx", weights, vf).reshape(b * nh, dv * n_off, h * w)
+        out = F.fold(blocks, (h, w), 2 * window + 1, padding=window)
+        return out.view(b, nh, dv, h, w).permute(0, 1, 3, 4, 2)
     out = vf.new_zeros((b, nh, h + 2 * window, w + 2 * window, v.shape[-1]))
     for o, (dy, dx) in enumerate(window_offsets(window)):
         out[:, :, window + dy: window + dy + h, window + dx: window + dx + w] += weights[..., o, None] * vf
@@ -105,6 +136,7 @@ def pisa_attention(
     visibility: torch.Tensor | None,
     window: int,
     scale: float | None = None,
+    path: str = "auto",
 ) -> torch.Tensor:
     """PISA self-attention over the key-centric window (eq. 8).
 
@@ -113,18 +145,20 @@ def pisa_attention(
         coc, visibility: ``(B, H, W, (2w+1)^2)`` masks from ``bokehray.pisa.pisa_masks``
             (visibility None: no occlusion term).
         window: the window radius ``w`` of the masks.
+        path: see :func:`pisa_weights`.
 
     Returns:
         ``(B, heads, H, W, dv)`` in the dtype of ``v``.
     """
     if v.shape[:4] != q.shape[:4]:
         raise ValueError(f"v: expected (B, heads, H, W, dv) matching q {tuple(q.shape[:4])}, got {tuple(v.shape)}")
-    a = pisa_weights(q, k, coc, window, scale)
+    unfold = _use_unfold(v, window, path) and _use_unfold(q, window, path)
+    a = pisa_weights(q, k, coc, window, scale, "unfold" if unfold else "loop")
     if visibility is not None:
         if visibility.shape != coc.shape:
             raise ValueError(f"visibility: expected the shape of coc {tuple(coc.shape)}, got {tuple(visibility.shape)}")
         a = a * _batched(visibility).to(a.dtype)
-    return _aggregate(a, v, window).to(v.dtype)
+    return _aggregate(a, v, window, unfold).to(v.dtype)
 
 
 def pisa_attention_dense(

@@ -127,6 +127,36 @@ def build_parser() -> argparse.ArgumentParser:
     _add_lens_args(d)
     _add_device_args(d)
 
+    t = sub.add_parser(
+        "train-refiner",
+        help="train the small one-step refiner on synthetic pairs (needs the 'refiner' extra)",
+        description="Trains on a BLB-layout folder from `bokehray synth`: classical previews rendered from corrupted "
+        "disparity (eroded, dilated, blurred, shifted) against the exact targets. Resumes from OUT/checkpoint.pt. "
+        "Writes OUT/refiner.safetensors, refiner.json, loss.csv and loss.png. See docs/refiner.md.",
+    )
+    t.add_argument("--data", required=True, help="BLB-layout training folder (from bokehray synth)")
+    t.add_argument("--out", required=True, help="run folder: checkpoints, loss log and plot, final weights")
+    t.add_argument("--steps", type=int, default=2000, help="optimiser steps (default 2000)")
+    t.add_argument("--batch", type=int, default=8, help="crops per step (default 8)")
+    t.add_argument("--crop", type=int, default=96, help="crop side in pixels, a multiple of 8 (default 96)")
+    t.add_argument("--lr", type=float, default=1e-3, help="peak AdamW learning rate (default 1e-3)")
+    t.add_argument("--variants", type=int, default=2, help="corrupted-depth renders per pair (default 2)")
+    t.add_argument("--limit", type=int, help="use only the first N pairs")
+    t.add_argument("--seed", type=int, default=0, help="seed of the model, the corruptions and the batches")
+    t.add_argument("--edge-weight", type=float, default=0.5, help="weight of the multi-scale edge loss (eq. 9)")
+    t.add_argument("--adv-weight", type=float, default=0.0, help="weight of the adversarial term (default off)")
+    t.add_argument("--lpips-model", help="local TorchScript LPIPS model (never downloaded)")
+    t.add_argument("--lpips-weight", type=float, default=0.0, help="weight of the LPIPS term (needs --lpips-model)")
+    t.add_argument("--checkpoint-every", type=int, default=100, help="steps between checkpoints (default 100)")
+    t.add_argument("--stop-at", type=int, help="stop at this step and export its weights (the schedule stays that "
+                   "of --steps); resuming a run that is past it exports that checkpoint")
+    t.add_argument("--no-resume", action="store_true", help="start over even if OUT/checkpoint.pt exists")
+    t.add_argument("--device", default="auto", help="torch device: auto (cuda if present), cpu, cuda:0")
+    t.add_argument("--threads", type=int, help="torch CPU threads (default: torch's choice; on a busy machine 1 is "
+                   "several times faster than oversubscribed cores)")
+    t.add_argument("--debug", action="store_true", help="show tracebacks")
+    t.add_argument("--quiet", action="store_true", help="no progress bar")
+
     from .bench.cli import add_parser as add_bench_parser  # bokehray bench: docs/benchmarks.md
 
     add_bench_parser(sub)
@@ -344,6 +374,38 @@ def cmd_synth(args: argparse.Namespace) -> int:
     return 0
 
 
+def _refiner_module(name: str):
+    """Import a module of the optional torch refiner, or say which install step is missing."""
+    import importlib
+
+    try:
+        return importlib.import_module(f"bokehray_refiner.{name}")
+    except ImportError as e:
+        raise InputError(f"the neural refiner needs its extra: pip install 'bokehray[refiner]' ({e})") from None
+
+
+def cmd_train_refiner(args: argparse.Namespace) -> int:
+    train = _refiner_module("train")
+    if args.threads is not None:
+        if args.threads < 1:
+            raise InputError(f"--threads: expected >= 1, got {args.threads}")
+        import torch
+
+        torch.set_num_threads(args.threads)
+    try:
+        cfg = train.TrainConfig(
+            data=args.data, out=args.out, steps=args.steps, batch=args.batch, crop=args.crop, lr=args.lr,
+            variants=args.variants, limit=args.limit, seed=args.seed, edge_weight=args.edge_weight,
+            adv_weight=args.adv_weight, lpips_model=args.lpips_model, lpips_weight=args.lpips_weight,
+            checkpoint_every=args.checkpoint_every, device=args.device)
+        weights = train.train(cfg, resume=not args.no_resume, progress=not args.quiet, stop_at=args.stop_at)
+    except ValueError as e:
+        raise InputError(str(e)) from None
+    if not args.quiet:
+        print(f"wrote {weights}")
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -353,6 +415,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return cmd_render(args)
         if args.command == "synth":
             return cmd_synth(args)
+        if args.command == "train-refiner":
+            return cmd_train_refiner(args)
         if args.command == "bench":
             from .bench.cli import cmd_bench
 

@@ -1,0 +1,197 @@
+"""``render --refine``: the shipped refiner applied where depth errors show, blended into the classical render.
+
+Depth errors only change the image where a depth discontinuity meets a
+non-trivial blur; elsewhere the classical render is already right. So the
+image is cut into tiles, and a tile is refined only if a discontinuity whose
+CoC jump exceeds ``min_jump_px`` lies within reach (the larger CoC radius at
+that edge) of it. Each refined tile runs with a halo of context; its
+correction (refined minus classical, in sRGB) is feathered to 0 across the
+halo, so refined and untouched tiles meet without a seam, and pixels no tile
+reaches are bit-identical to the classical render.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from safetensors import SafetensorError, safe_open
+from safetensors.torch import load_file
+
+from bokehray.errors import InputError
+from bokehray.io import linear_to_srgb, srgb_to_linear
+from bokehray.lens import BlurParams
+from bokehray.pisa import PisaMaskOptions
+
+from .masks import PisaMaskProvider
+from .model import BokehRefiner, RefinerConfig
+
+__all__ = ["DEFAULT_WEIGHTS", "RefineOptions", "RefineStats", "load_refiner", "refine", "tiles_to_refine"]
+
+DEFAULT_WEIGHTS = Path(__file__).parent / "weights" / "refiner.safetensors"
+
+
+@dataclass(frozen=True)
+class RefineOptions:
+    """Where and how to refine.
+
+    Args:
+        tile: tile side in pixels (a multiple of 8).
+        halo: context around a tile in pixels (a multiple of 8); the correction fades out across it.
+        min_jump_px: a depth edge matters if the CoC radius jumps by more than this across it.
+        batch: tiles per forward pass.
+    """
+
+    tile: int = 64
+    halo: int = 32
+    min_jump_px: float = 1.0
+    batch: int = 8
+
+    def __post_init__(self) -> None:
+        if self.tile < 8 or self.tile % 8 or self.halo < 0 or self.halo % 8:
+            raise InputError(f"refine tiles: tile and halo must be multiples of 8 (tile >= 8), got {self.tile}, "
+                             f"{self.halo}")
+        if not (np.isfinite(self.min_jump_px) and self.min_jump_px > 0) or self.batch < 1:
+            raise InputError("refine: min_jump_px must be > 0 and batch >= 1")
+
+
+@dataclass
+class RefineStats:
+    """What ``--refine`` did."""
+
+    tiles_total: int = 0
+    tiles_refined: int = 0
+    seconds: float = 0.0
+
+    @property
+    def share_refined(self) -> float:
+        return self.tiles_refined / self.tiles_total if self.tiles_total else 0.0
+
+    def as_dict(self) -> dict:
+        return {"tiles_total": self.tiles_total, "tiles_refined": self.tiles_refined,
+                "share_refined": self.share_refined, "seconds": self.seconds}
+
+
+def load_refiner(path: str | os.PathLike | None = None, device: str = "cpu") -> BokehRefiner:
+    """Load refiner weights (default: the ones shipped in the package) written by ``bokehray train-refiner``."""
+    path = Path(path) if path is not None else DEFAULT_WEIGHTS
+    if not path.is_file():
+        raise InputError(f"{path}: no refiner weights there (train them with `bokehray train-refiner`)")
+    try:
+        with safe_open(str(path), framework="pt") as f:
+            config = json.loads((f.metadata() or {})["config"])
+        state = load_file(str(path))
+        model = BokehRefiner(RefinerConfig(**config))
+        model.load_state_dict(state, strict=True)
+    except (KeyError, ValueError, TypeError, RuntimeError, OSError, SafetensorError) as e:
+        raise InputError(f"{path}: not refiner weights written by bokehray train-refiner ({e})") from None
+    return model.to(device).eval()
+
+
+def tiles_to_refine(coc: np.ndarray, tile: int, min_jump_px: float) -> np.ndarray:
+    """Boolean ``(ceil(h/tile), ceil(w/tile))`` map of tiles within reach of a depth edge that matters."""
+    h, w = coc.shape
+    reach = np.zeros((h, w), np.float32)  # at each edge pixel: how far its blur can carry a depth error
+    for ax in (0, 1):
+        a = np.take(coc, range(coc.shape[ax] - 1), axis=ax)
+        b = np.take(coc, range(1, coc.shape[ax]), axis=ax)
+        edge = np.abs(a - b) > min_jump_px
+        r = np.where(edge, np.maximum(np.abs(a), np.abs(b)), 0.0)
+        sl = [slice(None)] * 2
+        sl[ax] = slice(0, -1)
+        reach[tuple(sl)] = np.maximum(reach[tuple(sl)], r)
+    ty, tx = -(-h // tile), -(-w // tile)
+    padded = np.zeros((ty * tile, tx * tile), np.float32)
+    padded[:h, :w] = reach
+    tile_reach = padded.reshape(ty, tile, tx, tile).max(axis=(1, 3))  # largest reach of an edge in each tile
+    has_edge = tile_reach > 0
+    need = has_edge.copy()
+    n = int(np.ceil(tile_reach.max() / tile)) + 1 if has_edge.any() else 0
+    for dy in range(-n, n + 1):  # a tile is needed if an edge's reach crosses the gap between the tiles
+        for dx in range(-n, n + 1):
+            gap = tile * np.hypot(max(abs(dy) - 1, 0), max(abs(dx) - 1, 0))
+            src = has_edge & (tile_reach + 1 >= gap)
+            ys, xs = np.nonzero(src)
+            yy, xx = ys + dy, xs + dx
+            ok = (yy >= 0) & (yy < ty) & (xx >= 0) & (xx < tx)
+            need[yy[ok], xx[ok]] = True
+    return need
+
+
+def _feather(size: int, halo: int) -> np.ndarray:
+    """1 over the tile, a raised cosine down to 0 across the halo on both sides."""
+    ramp = 0.5 - 0.5 * np.cos(np.pi * (np.arange(halo) + 0.5) / halo) if halo else np.zeros(0)
+    return np.concatenate([ramp, np.ones(size - 2 * halo), ramp[::-1]])
+
+
+@torch.no_grad()
+def refine(
+    image: np.ndarray,
+    disparity: np.ndarray,
+    blur: BlurParams,
+    classical: np.ndarray,
+    model: BokehRefiner | None = None,
+    options: RefineOptions = RefineOptions(),
+) -> tuple[np.ndarray, RefineStats]:
+    """Refine a classical render where depth discontinuities meet blur.
+
+    Args:
+        image: the all-in-focus ``H x W x 3`` scene-linear image.
+        disparity: ``H x W`` in [0, 1], the map the classical render used.
+        blur: its ``K`` and ``d_f``.
+        classical: the classical render (``H x W x 3``, scene-linear).
+        model: a loaded refiner (default: the shipped weights).
+
+    Returns:
+        The refined render (scene-linear float32; untouched pixels are the classical values exactly) and stats.
+    """
+    t0 = time.perf_counter()
+    model = model or load_refiner()
+    h, w = disparity.shape
+    coc = blur.signed_coc(disparity).astype(np.float32)
+    need = tiles_to_refine(coc, options.tile, options.min_jump_px)
+    stats = RefineStats(tiles_total=int(need.size), tiles_refined=int(need.sum()))
+    if not need.any():
+        stats.seconds = time.perf_counter() - t0
+        return classical.astype(np.float32, copy=True), stats
+    t, halo = options.tile, options.halo
+    size = t + 2 * halo
+    ph, pw = need.shape[0] * t - h + halo, need.shape[1] * t - w + halo  # pad to whole tiles plus the halo
+    pad3 = ((halo, ph), (halo, pw), (0, 0))
+    base = np.clip(classical[..., :3], 0.0, 1.0)
+    f_srgb = np.pad(linear_to_srgb(np.clip(image[..., :3], 0.0, 1.0)), pad3, mode="reflect")
+    r_srgb = np.pad(linear_to_srgb(base), pad3, mode="reflect")
+    d_pad = np.pad(disparity.astype(np.float32), pad3[:2], mode="reflect")
+    coc_pad = np.pad(coc, pad3[:2], mode="reflect")
+    acc = np.zeros(r_srgb.shape, np.float32)
+    wsum = np.zeros(r_srgb.shape[:2] + (1,), np.float32)
+    feather = _feather(size, halo)
+    wt = (feather[:, None] * feather[None, :])[..., None].astype(np.float32)
+    device = next(model.parameters()).device
+    boxes = [(int(y) * t, int(x) * t) for y, x in zip(*np.nonzero(need))]
+    opts = PisaMaskOptions()
+    for i in range(0, len(boxes), options.batch):
+        chunk = boxes[i:i + options.batch]
+        sl = [(slice(y, y + size), slice(x, x + size)) for y, x in chunk]
+        stack = lambda a: torch.from_numpy(np.stack([a[s] for s in sl])).to(device)  # noqa: E731
+        focus = stack(f_srgb).permute(0, 3, 1, 2)
+        render = stack(r_srgb).permute(0, 3, 1, 2)
+        pisa = PisaMaskProvider(np.stack([d_pad[s] for s in sl]), blur.focus_disparity, blur.k_px, opts,
+                                torch_device=device)
+        delta = (model(focus, render, stack(coc_pad), pisa) - render).permute(0, 2, 3, 1).cpu().numpy()
+        for s, dlt in zip(sl, delta):
+            acc[s] += dlt * wt
+            wsum[s] += wt
+    delta = (acc / np.maximum(wsum, 1.0))[halo:halo + h, halo:halo + w]
+    r = linear_to_srgb(base)
+    fixed = srgb_to_linear(np.clip(r + delta, 0.0, 1.0))
+    out = classical.astype(np.float32, copy=True)
+    touched = wsum[halo:halo + h, halo:halo + w, 0] > 0
+    out[..., :3][touched] = (classical[..., :3] + (fixed - base))[touched]
+    stats.seconds = time.perf_counter() - t0
+    return np.maximum(out, 0.0) if classical.min() >= 0 else out, stats

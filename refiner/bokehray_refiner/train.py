@@ -1,0 +1,278 @@
+"""``bokehray train-refiner``: train the small one-step refiner on synthetic pairs.
+
+Losses (paper sec. 3.4): MSE and the multi-scale edge loss of eq. 9 in sRGB,
+LPIPS when the user points to a local TorchScript LPIPS model, and an optional
+adversarial term with a small patch discriminator. AdamW with linear warm-up
+and a cosine schedule. The PISA edge hardness rises log-linearly from
+``hardness_start`` to ``k_max`` over the first ``hardness_ramp`` of the steps,
+then stays (appendix A). Checkpoints hold the model, optimiser, schedule and
+every random state, so a resumed run continues exactly as an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+from safetensors.torch import save_file
+from tqdm import tqdm
+
+from bokehray.pisa import K_MAX, PisaMaskOptions
+
+from .data import PairBank
+from .masks import PisaMaskProvider
+from .model import BokehRefiner, RefinerConfig, fingerprint
+
+__all__ = ["TrainConfig", "edge_loss", "hardness_at", "train"]
+
+
+@dataclass
+class TrainConfig:
+    """One training run. ``out`` receives checkpoint.pt, loss.csv, loss.png, refiner.safetensors and refiner.json."""
+
+    data: str
+    out: str
+    steps: int = 2000
+    batch: int = 8
+    crop: int = 96
+    lr: float = 1e-3
+    weight_decay: float = 1e-4
+    warmup: int = 100
+    variants: int = 2
+    seed: int = 0
+    mse_weight: float = 1.0
+    edge_weight: float = 0.5
+    lpips_weight: float = 0.0
+    lpips_model: str | None = None
+    adv_weight: float = 0.0
+    hardness_start: float = 10.0
+    hardness_ramp: float = 0.6
+    checkpoint_every: int = 100
+    limit: int | None = None
+    device: str = "auto"
+    model: dict = field(default_factory=lambda: RefinerConfig().as_dict())
+
+    def __post_init__(self) -> None:
+        if self.steps < 1 or self.batch < 1 or self.crop % RefinerConfig().latent_factor:
+            raise ValueError(f"steps and batch must be >= 1 and crop a multiple of {RefinerConfig().latent_factor}")
+        if self.lpips_weight > 0 and not self.lpips_model:
+            raise ValueError("lpips_weight > 0 needs lpips_model: a local TorchScript LPIPS model")
+
+
+def hardness_at(step: int, cfg: TrainConfig) -> float:
+    """Log-linear ramp from ``hardness_start`` to ``k_max``."""
+    ramp = max(1.0, cfg.hardness_ramp * cfg.steps)
+    t = min(1.0, step / ramp)
+    return float(math.exp((1 - t) * math.log(cfg.hardness_start) + t * math.log(K_MAX)))
+
+
+def _sobel(size: int) -> torch.Tensor:
+    """Extended Sobel pair of odd ``size``: binomial smoothing x central difference, unit response to a unit ramp."""
+    n = size - 1
+    smooth = torch.tensor([math.comb(n, i) for i in range(size)], dtype=torch.float32)
+    smooth /= smooth.sum()
+    diff = torch.arange(size, dtype=torch.float32) - n / 2
+    diff /= (diff * diff).sum()
+    gx = smooth[:, None] * diff[None, :]
+    return torch.stack([gx, gx.T])[:, None]  # (2, 1, s, s): d/dx, d/dy
+
+
+def _grad(img: torch.Tensor, kernel: torch.Tensor) -> torch.Tensor:
+    b, c, h, w = img.shape
+    pad = kernel.shape[-1] // 2
+    g = F.conv2d(F.pad(img.reshape(b * c, 1, h, w), (pad,) * 4, mode="replicate"), kernel.to(img))
+    return g.view(b, c, 2, h, w)
+
+
+def edge_loss(pred: torch.Tensor, target: torch.Tensor, focus: torch.Tensor) -> torch.Tensor:
+    """Eq. 9: ``sum_l 1/l^2 || (grad_l pred - grad_l target) * max_{I in {target, focus}} |grad_l I| ||_1`` (mean)."""
+    total = pred.new_zeros(())
+    for level in (1, 2, 3):
+        k = _sobel(2 * level + 1)
+        gt, gf = _grad(target, k), _grad(focus, k)
+        weight = torch.maximum(gt.norm(dim=2, keepdim=True), gf.norm(dim=2, keepdim=True)).detach()
+        total = total + ((_grad(pred, k) - gt).abs() * weight).mean() / level**2
+    return total
+
+
+class _PatchDiscriminator(nn.Module):
+    def __init__(self, ch: int = 32):
+        super().__init__()
+        self.net = nn.Sequential(
+            nn.Conv2d(6, ch, 4, 2, 1), nn.LeakyReLU(0.2),
+            nn.Conv2d(ch, 2 * ch, 4, 2, 1), nn.GroupNorm(8, 2 * ch), nn.LeakyReLU(0.2),
+            nn.Conv2d(2 * ch, 1, 3, 1, 1))
+
+    def forward(self, image: torch.Tensor, focus: torch.Tensor) -> torch.Tensor:
+        return self.net(torch.cat([image, focus], 1))
+
+
+def _device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(name)
+
+
+def _lr_lambda(cfg: TrainConfig):
+    def f(step: int) -> float:
+        if step < cfg.warmup:
+            return (step + 1) / cfg.warmup
+        t = (step - cfg.warmup) / max(1, cfg.steps - cfg.warmup)
+        return 0.5 * (1.0 + math.cos(math.pi * min(1.0, t)))
+    return f
+
+
+def _to_tensors(batch: dict, device) -> tuple[torch.Tensor, ...]:
+    img = lambda a: torch.from_numpy(a).permute(0, 3, 1, 2).to(device)  # noqa: E731
+    coc = batch["k_px"][:, None, None] * (batch["disparity"] - batch["focus_disparity"][:, None, None])
+    return img(batch["focus"]), img(batch["render"]), img(batch["target"]), torch.from_numpy(coc).to(device)
+
+
+def _save_plot(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    steps = np.array([r["step"] for r in rows])
+    fig, ax = plt.subplots(figsize=(6, 3.5), dpi=120)
+    for key in ("loss", "mse", "edge"):
+        vals = np.array([r[key] for r in rows])
+        k = max(1, len(vals) // 50)
+        smooth = np.convolve(vals, np.ones(k) / k, mode="valid")
+        ax.plot(steps[k - 1:], smooth, label=key)
+    ax.set_yscale("log")
+    ax.set_xlabel("step")
+    ax.set_ylabel("training loss (running mean)")
+    ax.legend()
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    tmp = path.with_suffix(".tmp.png")
+    fig.savefig(tmp)
+    plt.close(fig)
+    os.replace(tmp, path)
+
+
+def _atomic_torch_save(obj, path: Path) -> None:
+    tmp = path.with_suffix(".tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def export_weights(model: BokehRefiner, path: Path, meta: dict) -> None:
+    """Write ``refiner.safetensors`` (weights) and ``refiner.json`` (architecture and provenance) atomically."""
+    state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
+    tmp = path.with_suffix(".tmp")
+    save_file(state, str(tmp), metadata={"config": json.dumps(model.config.as_dict())})
+    os.replace(tmp, path)
+    meta_path = path.with_suffix(".json")
+    meta_path.with_suffix(".tmp").write_text(json.dumps(meta, indent=2))
+    os.replace(meta_path.with_suffix(".tmp"), meta_path)
+
+
+def train(cfg: TrainConfig, resume: bool = True, progress: bool = True, bank: PairBank | None = None,
+          stop_at: int | None = None) -> Path | None:
+    """Run (or resume) a training run; returns the path of the exported weights.
+
+    ``stop_at`` ends the run at that step (or at once, if a resumed checkpoint is already past it), writes a
+    checkpoint and exports the weights of that step: ``train --steps N --stop-at M`` reproduces a run of N steps
+    that was stopped at step M (resuming needs a checkpoint at or before M).
+    """
+    out = Path(cfg.out)
+    out.mkdir(parents=True, exist_ok=True)
+    device = _device(cfg.device)
+    torch.manual_seed(cfg.seed)
+    model = BokehRefiner(RefinerConfig(**cfg.model)).to(device)
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, _lr_lambda(cfg))
+    disc = d_opt = None
+    if cfg.adv_weight > 0:
+        disc = _PatchDiscriminator().to(device)
+        d_opt = torch.optim.AdamW(disc.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    lpips = torch.jit.load(cfg.lpips_model, map_location=device).eval() if cfg.lpips_weight > 0 else None
+    rng = np.random.default_rng(cfg.seed)
+    step, rows = 0, []
+    ckpt = out / "checkpoint.pt"
+    if resume and ckpt.is_file():
+        state = torch.load(ckpt, map_location=device, weights_only=False)
+        if state["config"] != asdict(cfg):
+            raise ValueError(f"{ckpt}: written by a different configuration; use a new --out or --no-resume")
+        model.load_state_dict(state["model"])
+        opt.load_state_dict(state["opt"])
+        sched.load_state_dict(state["sched"])
+        if disc is not None:
+            disc.load_state_dict(state["disc"])
+            d_opt.load_state_dict(state["d_opt"])
+        rng.bit_generator.state = state["rng"]
+        torch.set_rng_state(state["torch_rng"])
+        step, rows = state["step"], state["rows"]
+        if stop_at is not None and step > stop_at:
+            raise ValueError(f"{ckpt}: the checkpoint is at step {step}, past --stop-at {stop_at}")
+    if bank is None:
+        bank = PairBank(cfg.data, variants=cfg.variants, seed=cfg.seed, limit=cfg.limit, progress=progress)
+    model.train()
+    bar = tqdm(total=cfg.steps, initial=step, desc="training refiner", disable=not progress, unit="step")
+    while step < cfg.steps and (stop_at is None or step < stop_at):
+        t0 = time.perf_counter()
+        batch = bank.batch(rng, cfg.batch, cfg.crop)
+        focus, render, target, coc = _to_tensors(batch, device)
+        opts = PisaMaskOptions(hardness=hardness_at(step, cfg))
+        pisa = PisaMaskProvider(batch["disparity"], batch["focus_disparity"], batch["k_px"], opts,
+                                torch_device=device)
+        pred = model(focus, render, coc, pisa)
+        mse = F.mse_loss(pred, target)
+        edge = edge_loss(pred, target, focus)
+        loss = cfg.mse_weight * mse + cfg.edge_weight * edge
+        extra = {}
+        if lpips is not None:
+            extra["lpips"] = lpips(pred.clamp(0, 1) * 2 - 1, target * 2 - 1).mean()
+            loss = loss + cfg.lpips_weight * extra["lpips"]
+        if disc is not None:
+            extra["adv"] = F.softplus(-disc(pred, focus)).mean()  # -log D(pred)
+            loss = loss + cfg.adv_weight * extra["adv"]
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        opt.step()
+        sched.step()
+        if disc is not None:  # L_D = -log D(target) - log(1 - D(pred))
+            d_loss = F.softplus(-disc(target, focus)).mean() + F.softplus(disc(pred.detach(), focus)).mean()
+            d_opt.zero_grad(set_to_none=True)
+            d_loss.backward()
+            d_opt.step()
+        step += 1
+        rows.append({"step": step, "loss": loss.item(), "mse": mse.item(), "edge": edge.item(),
+                     "lr": sched.get_last_lr()[0], "hardness": opts.hardness, "sec": time.perf_counter() - t0}
+                    | {k: v.item() for k, v in extra.items()})
+        bar.update(1)
+        bar.set_postfix(loss=f"{loss.item():.4g}")
+        if step % cfg.checkpoint_every == 0 or step == cfg.steps or step == stop_at:
+            state = {"model": model.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(),
+                     "rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(), "step": step,
+                     "rows": rows, "config": asdict(cfg)}
+            if disc is not None:
+                state |= {"disc": disc.state_dict(), "d_opt": d_opt.state_dict()}
+            _atomic_torch_save(state, ckpt)
+            with open(out / "loss.csv", "w", newline="") as f:
+                writer = csv.DictWriter(f, fieldnames=list(rows[-1]))
+                writer.writeheader()
+                writer.writerows(rows)
+            _save_plot(rows, out / "loss.png")
+        if stop_at is not None and step >= stop_at:
+            break
+    bar.close()
+    weights = out / "refiner.safetensors"
+    export_weights(model, weights, {"model": model.config.as_dict(), "train": asdict(cfg), "steps": step,
+                                    "fingerprint": fingerprint(model), "stopped_at": stop_at,
+                                    "final_loss": rows[-1]["loss"] if rows else None,
+                                    "train_seconds": float(sum(r["sec"] for r in rows))})
+    return weights

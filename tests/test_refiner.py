@@ -1,0 +1,135 @@
+"""The small refiner: identity at initialisation, training, exact resume, shipped weights, ``--refine``."""
+
+import json
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+import bokehray as br  # noqa: E402
+from bokehray.errors import InputError  # noqa: E402
+from bokehray.synth import SynthConfig, generate  # noqa: E402
+from bokehray_refiner.data import PairBank, corrupt_disparity  # noqa: E402
+from bokehray_refiner.masks import PisaMaskProvider  # noqa: E402
+from bokehray_refiner.model import BokehRefiner, fingerprint  # noqa: E402
+from bokehray_refiner.refine import DEFAULT_WEIGHTS, RefineOptions, load_refiner, refine, tiles_to_refine  # noqa
+from bokehray_refiner.train import TrainConfig, edge_loss, hardness_at, train  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def pairs(tmp_path_factory):
+    root = tmp_path_factory.mktemp("synth")
+    generate(SynthConfig(size=64, blur_levels=(6.0,), max_spp=16), 2, root, seed=5, workers=1, progress=False)
+    return root
+
+
+@pytest.fixture(scope="module")
+def bank(pairs):
+    return PairBank(str(pairs), variants=1, seed=0, progress=False)
+
+
+def _cfg(pairs, out, **kw):
+    base = dict(data=str(pairs), out=str(out), steps=4, batch=2, crop=32, warmup=2, checkpoint_every=2, lr=3e-3,
+                variants=1)
+    return TrainConfig(**(base | kw))
+
+
+def test_untrained_model_returns_the_classical_render():
+    model = BokehRefiner()
+    x, r = torch.rand(2, 3, 32, 40), torch.rand(2, 3, 32, 40)
+    out = model(x, r, torch.zeros(2, 32, 40), PisaMaskProvider(np.zeros((2, 32, 40), np.float32), 0.0, 8.0))
+    assert torch.equal(out, r)
+
+
+def test_corruptions_move_edges_the_right_way():
+    d = np.zeros((32, 32), np.float32)
+    d[8:24, 8:24] = 1.0
+    assert corrupt_disparity(d, "erode", 2).sum() < d.sum() < corrupt_disparity(d, "dilate", 2).sum()
+    assert np.array_equal(corrupt_disparity(d, "none", 3), d)
+    blurred = corrupt_disparity(d, "blur", 4)
+    assert 0 < blurred[8, 16] < 1 and blurred.sum() == pytest.approx(d.sum(), rel=0.02)
+    shifted = corrupt_disparity(d, "shift", 3, np.random.default_rng(0))
+    assert shifted.sum() == pytest.approx(d.sum(), rel=0.5) and not np.array_equal(shifted, d)
+
+
+def test_edge_loss_is_zero_for_the_target_and_sees_blur():
+    g = torch.Generator().manual_seed(0)
+    target = torch.rand(1, 3, 24, 24, generator=g)
+    focus = torch.rand(1, 3, 24, 24, generator=g)
+    assert edge_loss(target, target, focus) == 0
+    flat = target.mean(dim=(2, 3), keepdim=True).expand_as(target)
+    assert edge_loss(flat, target, focus) > edge_loss(target + 0.01, target, focus)
+
+
+def test_hardness_ramps_to_k_max():
+    cfg = TrainConfig(data=".", out=".", steps=100, hardness_ramp=0.5)
+    assert hardness_at(0, cfg) == pytest.approx(cfg.hardness_start)
+    assert hardness_at(50, cfg) == pytest.approx(1e6) and hardness_at(99, cfg) == pytest.approx(1e6)
+    assert hardness_at(10, cfg) < hardness_at(20, cfg)
+
+
+def test_training_lowers_the_loss(pairs, tmp_path):
+    import csv
+
+    one = PairBank(str(pairs), variants=1, seed=0, limit=1, progress=False)  # one whole 64 x 64 crop: no sampling noise
+    cfg = _cfg(pairs, tmp_path, steps=16, batch=1, crop=64, checkpoint_every=16, limit=1, lr=1e-3)
+    weights = train(cfg, resume=False, progress=False, bank=one)
+    with open(tmp_path / "loss.csv") as f:
+        loss = [float(r["loss"]) for r in csv.DictReader(f)]
+    assert len(loss) == 16 and loss[-1] < 0.95 * loss[0] and np.mean(loss[-4:]) < np.mean(loss[4:8]) < loss[0]
+    assert (tmp_path / "loss.png").is_file() and weights.is_file()
+    meta = json.loads(weights.with_suffix(".json").read_text())
+    assert meta["steps"] == 16 and meta["fingerprint"] == pytest.approx(fingerprint(load_refiner(weights)))
+
+
+def test_resume_continues_exactly(pairs, bank, tmp_path):
+    straight = train(_cfg(pairs, tmp_path / "a"), resume=False, progress=False, bank=bank)
+    early = train(_cfg(pairs, tmp_path / "b"), resume=False, progress=False, bank=bank, stop_at=2)
+    assert json.loads(early.with_suffix(".json").read_text())["steps"] == 2
+    resumed = train(_cfg(pairs, tmp_path / "b"), resume=True, progress=False, bank=bank)
+    from safetensors.torch import load_file
+
+    a, b = load_file(str(straight)), load_file(str(resumed))
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    with pytest.raises(ValueError, match="different configuration"):
+        train(_cfg(pairs, tmp_path / "b", lr=1e-2), resume=True, progress=False, bank=bank)
+
+
+def test_bad_weights_are_refused(tmp_path):
+    with pytest.raises(InputError, match="no refiner weights"):
+        load_refiner(tmp_path / "missing.safetensors")
+    bad = tmp_path / "bad.safetensors"
+    bad.write_bytes(b"not a safetensors file")
+    with pytest.raises(InputError, match="not refiner weights"):
+        load_refiner(bad)
+
+
+def test_refine_leaves_an_in_focus_flat_scene_alone():
+    rng = np.random.default_rng(0)
+    img = rng.uniform(0, 1, (96, 80, 3)).astype(np.float32)
+    d = np.full((96, 80), 0.4, np.float32)
+    blur = br.BlurParams(16.0, 0.4)
+    classical = br.render(img, d, blur)
+    out, stats = refine(img, d, blur, classical, model=BokehRefiner())
+    assert stats.tiles_refined == 0 and stats.tiles_total == 4
+    assert np.array_equal(out, classical)
+
+
+def test_refine_touches_only_tiles_near_depth_edges():
+    rng = np.random.default_rng(0)
+    img = rng.uniform(0, 1, (256, 256, 3)).astype(np.float32)
+    d = np.full((256, 256), 0.2, np.float32)
+    d[:40, :40] = 0.9  # one near block in a corner
+    blur = br.BlurParams(8.0, 0.9)
+    need = tiles_to_refine(blur.signed_coc(d), 64, 1.0)
+    assert need[0, 0] and need.sum() <= 4 and not need[3, 3]
+    model = BokehRefiner()
+    with torch.no_grad():
+        model.head.bias.fill_(0.05)  # a model that changes every pixel it sees
+    classical = br.render(img, d, blur)
+    out, stats = refine(img, d, blur, classical, model=model, options=RefineOptions(tile=64, halo=16))
+    assert 0 < stats.tiles_refined < stats.tiles_total and stats.share_refined == stats.tiles_refined / 16
+    assert np.array_equal(out[160:, 160:], classical[160:, 160:])  # far from the edge: bit-identical
+    assert np.abs(out[:40, :40] - classical[:40, :40]).max() > 0.01
+    assert np.isfinite(out).all() and out.min() >= 0
