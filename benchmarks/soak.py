@@ -2,11 +2,12 @@
 
 Each case draws an image size (1 x 1 upwards), radiance scale (0 to 1e4, denormals included),
 a disparity pattern (constant 0 or 1, random, one-pixel steps, a step edge), K (0 to 1e4),
-d_f in [0, 1], an aperture and a quality level, and checks: no exception, finite output,
-output within the input's range (every pixel is an average of input radiances; float32
-rounding of 1e-5 of the brightest value is allowed), and energy
-conservation for constant-disparity cases with a zero border. A failure prints a one-line
-reproducer (seed and case index).
+d_f in [0, 1], an aperture, a quality level, the channel count (grey, RGB, RGBA with alpha
+exactly 0 and 1) and, for one case in eight, a forced tile size, and checks: no exception,
+finite output, output within the input's range (every pixel is an average of input radiances;
+float32 rounding of 1e-5 of the brightest value is allowed), energy conservation for
+constant-disparity cases with a zero border, and that the tiled render equals the untiled one.
+A failure prints a one-line reproducer (seed and case index).
 
 Usage (from the repository root)::
 
@@ -36,13 +37,16 @@ def draw_case(rng: np.random.Generator) -> dict:
     quality = "raytrace" if rng.random() < 0.15 and k <= 40 and h * w <= 1024 else "preview"
     return {"h": h, "w": w, "scale": scale, "pattern": pattern, "k": k, "d_f": float(rng.choice([0.0, 0.5, 1.0,
             rng.random()])), "blades": int(rng.choice([0, 0, 5, 6])), "curv": float(rng.random()),
-            "quality": quality, "border": bool(rng.random() < 0.3), "img_seed": int(rng.integers(1 << 31))}
+            "quality": quality, "border": bool(rng.random() < 0.3), "img_seed": int(rng.integers(1 << 31)),
+            "channels": int(rng.choice([3, 3, 1, 4])), "tile": int(rng.choice([16, 24, 40])) if rng.random() < 0.125 else 0}
 
 
 def run_case(c: dict) -> str | None:
     rng = np.random.default_rng(c["img_seed"])
     h, w = c["h"], c["w"]
-    image = (rng.random((h, w, 3)) * c["scale"]).astype(np.float32)
+    image = (rng.random((h, w, c.get("channels", 3))) * c["scale"]).astype(np.float32)
+    if image.shape[2] == 4:
+        image[..., 3] = rng.choice([0.0, 1.0, 0.3], (h, w))  # alpha exactly 0 and 1
     d = {"zero": np.zeros((h, w)), "one": np.ones((h, w)), "random": rng.random((h, w)),
          "steps": np.indices((h, w)).sum(0) % 2, "edge": (np.arange(w)[None, :] >= w // 2) * np.ones((h, 1)),
          "constant": np.full((h, w), rng.random())}[c["pattern"]].astype(np.float32)
@@ -56,8 +60,13 @@ def run_case(c: dict) -> str | None:
     opts = br.RaytraceOptions(max_spp=16) if c["quality"] == "raytrace" else None
     try:
         out = br.render(image, d, br.BlurParams(c["k"], c["d_f"]), ap, quality=c["quality"], raytrace_options=opts)
+        tiled = None if not c.get("tile") else br.render(image, d, br.BlurParams(c["k"], c["d_f"]), ap,
+                                                           quality=c["quality"], raytrace_options=opts,
+                                                           options=br.PreviewOptions(tile_size=c["tile"]))
     except Exception as e:  # noqa: BLE001 - a soak reports every failure
         return f"exception {type(e).__name__}: {e}"
+    if tiled is not None and np.abs(tiled - out).max() > 2e-5 * max(float(np.abs(out).max()), 1e-30):
+        return f"tiled render differs from the untiled one by {np.abs(tiled - out).max():.3g}"
     if not np.isfinite(out).all():
         return "non-finite output"
     lo, hi = image.min(axis=(0, 1)), image.max(axis=(0, 1))

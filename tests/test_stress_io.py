@@ -169,3 +169,19 @@ def test_cli_bad_disparity_inputs_exit_2_with_one_line_naming_the_file(tmp_path,
     assert rc == 2 and not out.exists()
     assert len(err.splitlines()) == 1 and err.startswith("bokehray: error: ") and str(src) in err, err
     assert "Traceback" not in err
+
+
+def test_exr_whose_unpremultiplied_colour_overflows_is_refused(tmp_path):
+    """Found by fuzzing: premultiplied colour 1e30 over alpha 1e-22 is 1e52 straight, beyond float32."""
+    import OpenEXR
+
+    chans = {n: np.full((3, 4), v, np.float32) for n, v in zip("RGBA", (0.5, 0.5, -1e30, 1e-22))}
+    p = tmp_path / "tiny-alpha.exr"
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, chans) as f:
+        f.write(str(p))
+    with pytest.raises(InputError, match=rf"{p}: colour / alpha .* overflows float32: -Inf at \(y, x\) = \(0, 0\)"):
+        bio.read_image(p)
+    chans = {n: np.full((3, 4), v, np.float32) for n, v in zip("RGBA", (0.5, 0.5, 0.25, 1e-22))}
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, chans) as f:
+        f.write(str(p))
+    np.testing.assert_allclose(bio.read_image(p)[0, 0], [5e21, 5e21, 2.5e21, 1e-22], rtol=1e-6)  # finite: kept

@@ -222,3 +222,13 @@ def test_rays_leaving_a_one_pixel_layer_see_its_border_continued():
     tex = np.array([[[0.25, 0.5, 1e4, 1.0]]], np.float32)
     out, _ = raytrace_layers([Layer(tex, plane=(0, 0, 0.0))], br.BlurParams(50.0, 1.0), options=_fixed(16))
     np.testing.assert_allclose(out[0, 0], [0.25, 0.5, 1e4, 1.0], rtol=1e-6)
+
+
+def test_radiance_near_the_float32_limit():
+    """The preview takes 3e38; the ray tracer, whose ray sums would overflow, refuses it with a clear message."""
+    image = np.full((8, 8, 3), 3e38, np.float32)
+    d = np.zeros((8, 8), np.float32)
+    out = br.render(image, d, br.BlurParams(5.0, 1.0))
+    assert np.isfinite(out).all()
+    with pytest.raises(br.InputError, match="radiance up to 3e\\+38.*within \\+-1e\\+36"):
+        br.render(image, d, br.BlurParams(5.0, 1.0), quality="raytrace")

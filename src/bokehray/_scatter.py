@@ -93,7 +93,12 @@ class PreviewOptions:
 
 @dataclass(slots=True)
 class RenderStats:
-    """What a render did and skipped. Times in seconds."""
+    """What a render did and skipped. Times in seconds.
+
+    ``image_tiles`` > 1: the render went tile by tile (bokehray._tiling); ``sources_filled``
+    then counts the fill of each tile's halo again. ``memory_estimate_mb``: the estimated
+    peak that chose between tiled and untiled.
+    """
 
     shape: tuple[int, int] = (0, 0)
     device: str = "cpu"
@@ -142,9 +147,9 @@ def cap_coc(signed_coc: np.ndarray) -> np.ndarray:
     """
     h, w = signed_coc.shape
     cap = np.float32(2.0 * math.hypot(h, w) + 2.0)
+    if signed_coc.size == 0 or max(float(signed_coc.max()), -float(signed_coc.min())) <= cap:
+        return signed_coc  # the normal case: no copy
     r = np.abs(signed_coc)
-    if not (r > cap).any():
-        return signed_coc
     big = r > cap
     out = signed_coc.copy()
     out[big] = np.sign(signed_coc[big]) * (cap + np.log1p(r[big] - cap))
@@ -414,6 +419,7 @@ def render_preview(
     radius = np.abs(signed_coc)
 
     copy = copy_tiles(radius, options.tile_px)
+    del radius
     stats.tiles_total, stats.tiles_copied = int(copy.size), int(copy.sum())
     copy_px = np.repeat(np.repeat(copy, options.tile_px, 0), options.tile_px, 1)[:h, :w]
 

@@ -290,7 +290,10 @@ def read_image(path: str | os.PathLike[str]) -> np.ndarray:
         _check_finite(out, f"{p}: expected finite values, got")
         if fmt == "EXR" and a.shape[2] in (2, 4):  # OpenEXR colour is premultiplied
             alpha = out[..., -1:]
-            np.divide(out[..., :-1], alpha, out=out[..., :-1], where=alpha != 0)
+            with np.errstate(over="ignore", invalid="ignore"):
+                np.divide(out[..., :-1], alpha, out=out[..., :-1], where=alpha != 0)
+            # a tiny alpha (1e-22) under a large colour overflows float32 (found by fuzzing)
+            _check_finite(out, f"{p}: colour / alpha (OpenEXR stores premultiplied colour) overflows float32:")
     elif a.dtype in (np.uint8, np.uint16):
         out = np.empty(a.shape, np.float32)
         out[..., :n_colour] = _srgb_lut(a.dtype.itemsize * 8)[a[..., :n_colour]]

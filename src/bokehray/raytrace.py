@@ -24,6 +24,9 @@ from ._scatter import PreviewOptions, _box_max_tiles, _dilate, _layer_sources, c
 from .errors import InputError
 from .lens import Aperture, BlurParams
 
+MAX_RADIANCE = 1e36
+"""Largest radiance photo-mode ray tracing accepts: sums of 128 rays of it stay within float32 (3.4e38)."""
+
 __all__ = ["Layer", "RaytraceOptions", "RaytraceStats", "raytrace_layers", "render_raytrace"]
 
 
@@ -288,6 +291,10 @@ def render_raytrace(
     if blur.k_px == 0.0:  # a pinhole: the input itself
         return image[..., :3].copy(), RaytraceStats(stage_seconds={"total": 0.0})
     _tiling.check_whole_image(h, w, _tiling.RAYTRACE_WHOLE_IMAGE_B, preview_options)
+    peak = float(np.abs(image[..., :3]).max())
+    if peak > MAX_RADIANCE:
+        raise InputError(f"image: radiance up to {peak:.3g}; the ray tracer averages rays in float32 and needs "
+                         f"values within +-{MAX_RADIANCE:g} (the preview takes them)")
     s = cap_coc(blur.signed_coc(disparity))  # the layers' disparity below is s / K + d_f: capped alike
     sid, plans = plan_layers(s, np.ones((h, w), bool), preview_options)
     max_coc = float(np.abs(s).max())
