@@ -33,12 +33,11 @@ def _dense(win, window, b):
     return torch.tensor(ref.window_to_dense(win, window))[None].expand(b, -1, -1)
 
 
-@pytest.mark.parametrize("path", ["unfold", "loop"])
-def test_windowed_equals_dense_values_and_gradients(path):
+def test_windowed_equals_dense_values_and_gradients():
     coc, vis, w = _masks()
     q, k, v = _qkv()
     ct, vt = torch.tensor(coc)[None].expand(2, -1, -1, -1), torch.tensor(vis)[None].expand(2, -1, -1, -1)
-    out = pisa_attention(q, k, v, ct, vt, w, path=path)
+    out = pisa_attention(q, k, v, ct, vt, w)
     dense = pisa_attention_dense(q.flatten(2, 3), k.flatten(2, 3), v.flatten(2, 3),
                                  _dense(coc, w, 2).double(), _dense(vis, w, 2).double())
     torch.testing.assert_close(out.flatten(2, 3), dense, rtol=1e-10, atol=1e-12)
@@ -49,14 +48,13 @@ def test_windowed_equals_dense_values_and_gradients(path):
         torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-11)
 
 
-@pytest.mark.parametrize("path", ["unfold", "loop"])
-def test_gradcheck(path):
+def test_gradcheck():
     g = torch.Generator().manual_seed(3)
     q, k, v = (torch.randn(1, 1, 3, 4, 2, generator=g, dtype=torch.float64, requires_grad=True) for _ in range(3))
     coc = torch.rand(3, 4, 9, generator=g, dtype=torch.float64)
     coc[1, 2] = 0.0  # an empty column too
     vis = torch.rand(3, 4, 9, generator=g, dtype=torch.float64)
-    f = lambda q, k, v: pisa_attention(q, k, v, coc, vis, 1, path=path)  # noqa: E731
+    f = lambda q, k, v: pisa_attention(q, k, v, coc, vis, 1)  # noqa: E731
     assert torch.autograd.gradcheck(f, (q, k, v), eps=1e-6, atol=1e-6)
 
 

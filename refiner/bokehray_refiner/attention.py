@@ -11,9 +11,10 @@ occluders block (eq. 8)::
 
 ``C`` is 0 outside the largest CoC, so only queries within the window radius
 ``w`` of a key matter: :func:`pisa_attention` works on the key-centric window of
-``bokehray.pisa`` (memory ``O(N (2w+1)^2)`` per head, not ``O(N^2)``).
-Logits and weights are computed in float32 for half-precision inputs (float64 stays float64); a key whose
-mask is empty contributes 0, never NaN.
+``bokehray.pisa`` (memory ``O(N (2w+1)^2)`` per head, not ``O(N^2)``), one
+window row at a time, in place when no gradient is needed. Logits and weights
+are computed in float32 for half-precision inputs (float64 stays float64); a
+key whose mask is empty contributes 0, never NaN.
 """
 
 from __future__ import annotations
@@ -26,34 +27,16 @@ import torch.nn.functional as F
 __all__ = ["pisa_attention", "pisa_attention_dense", "pisa_weights", "window_offsets"]
 
 
-UNFOLD_BUDGET_BYTES = 256 * 2**20
-"""Above this size of the unfolded tensor (``B heads d (2w+1)^2 N`` values), the loop path is used."""
+def _logits(q: torch.Tensor, k: torch.Tensor, window: int) -> torch.Tensor:
+    """``s[b, h, y, x, o] = q[(y, x) + offset(o)] . k[(y, x)]`` (zero outside the image).
 
-
-def _use_unfold(x: torch.Tensor, window: int, path: str) -> bool:
-    if path not in ("auto", "unfold", "loop"):
-        raise ValueError(f"path: expected 'auto', 'unfold' or 'loop', got {path!r}")
-    if path != "auto":
-        return path == "unfold"
-    return x.numel() * (2 * window + 1) ** 2 * 4 <= UNFOLD_BUDGET_BYTES
-
-
-def _grid(x: torch.Tensor) -> torch.Tensor:
-    """(B, heads, H, W, d) -> (B * heads, d, H, W) for unfold/fold."""
-    b, nh, h, w, d = x.shape
-    return x.permute(0, 1, 4, 2, 3).reshape(b * nh, d, h, w)
-
-
-def _logits(q: torch.Tensor, k: torch.Tensor, window: int, unfold: bool) -> torch.Tensor:
-    """``s[b, h, y, x, o] = q[(y, x) + offset(o)] . k[(y, x)]`` (zero outside the image)."""
-    b, nh, h, w, d = q.shape
-    n_off = (2 * window + 1) ** 2
-    if unfold:  # one im2col: fast, memory B heads d (2w+1)^2 N
-        qn = F.unfold(_grid(q), 2 * window + 1, padding=window).view(b, nh, d, n_off, h, w)
-        return torch.einsum("bzdoyx,bzyxd->bzyxo", qn, k)
-    qp = F.pad(q, (0, 0, window, window, window, window))  # one offset at a time: memory B heads N d
-    return torch.stack([(qp[:, :, window + dy: window + dy + h, window + dx: window + dx + w] * k).sum(-1)
-                        for dy, dx in window_offsets(window)], dim=-1)
+    One window row at a time: a strided view (no copy) holds the row's 2w+1 neighbours of
+    every key, so temporaries stay at ``B heads N (2w+1) d`` values.
+    """
+    h = q.shape[2]
+    qp = F.pad(q, (0, 0, window, window, window, window))
+    rows = (qp[:, :, window + dy: window + dy + h].unfold(3, 2 * window + 1, 1) for dy in range(-window, window + 1))
+    return torch.cat([torch.einsum("bzyxdo,bzyxd->bzyxo", row, k) for row in rows], dim=-1)
 
 
 def window_offsets(window: int) -> list[tuple[int, int]]:
@@ -82,7 +65,7 @@ def _batched(mask: torch.Tensor) -> torch.Tensor:
 
 
 def pisa_weights(
-    q: torch.Tensor, k: torch.Tensor, coc: torch.Tensor, window: int, scale: float | None = None, path: str = "auto"
+    q: torch.Tensor, k: torch.Tensor, coc: torch.Tensor, window: int, scale: float | None = None
 ) -> torch.Tensor:
     """The energy-conserving, CoC-masked weights ``A^(QC)`` in the key-centric window.
 
@@ -91,8 +74,6 @@ def pisa_weights(
         coc: ``(B, H, W, (2w+1)^2)`` (or without B): ``C`` for key ``(y, x)`` and query ``(y, x) + offset``.
         window: the window radius ``w``.
         scale: logit scale, default ``1 / sqrt(d)``.
-        path: ``"unfold"`` (im2col, fast), ``"loop"`` (one offset at a time, least memory) or
-            ``"auto"`` (unfold below :data:`UNFOLD_BUDGET_BYTES`). Both give the same result.
 
     Returns:
         ``(B, heads, H, W, (2w+1)^2)`` float32; each key's weights sum to 1 over its
@@ -102,30 +83,34 @@ def pisa_weights(
     b, nh, h, w, d = q.shape
     scale = 1.0 / math.sqrt(d) if scale is None else scale
     acc = _acc_dtype(q)
-    logits = _logits(q.to(acc), k.to(acc), window, _use_unfold(q, window, path)) * scale
     with torch.no_grad():
         log_c = torch.log(_batched(coc).to(acc))  # 0 -> -inf: masked out
-    masked = logits + log_c
+    logits = _logits(q.to(acc), k.to(acc), window)
+    inplace = not (torch.is_grad_enabled() and (q.requires_grad or k.requires_grad))
+    if inplace:  # inference: one window-sized buffer, updated in place
+        masked = logits.mul_(scale).add_(log_c)
+    else:
+        masked = logits * scale + log_c
     peak = masked.amax(dim=-1, keepdim=True).detach()
     peak = torch.where(torch.isfinite(peak), peak, torch.zeros_like(peak))  # empty column: any finite shift
-    e = torch.exp(masked - peak)
+    e = masked.sub_(peak).exp_() if inplace else torch.exp(masked - peak)
     total = e.sum(dim=-1, keepdim=True)
-    return e / torch.where(total > 0, total, torch.ones_like(total))  # empty column: 0 / 1, and finite gradients
+    total = torch.where(total > 0, total, torch.ones_like(total))  # empty column: 0 / 1, and finite gradients
+    return e.div_(total) if inplace else e / total
 
 
-def _aggregate(weights: torch.Tensor, v: torch.Tensor, window: int, unfold: bool) -> torch.Tensor:
+def _aggregate(weights: torch.Tensor, v: torch.Tensor, window: int) -> torch.Tensor:
     """``out[q] = sum_k W[k, q - k] V[k]``: each key scatters its weighted value over its window."""
-    b, nh, h, w, n_off = weights.shape
+    b, nh, h, w, _ = weights.shape
     vf = v.to(weights.dtype)
-    if unfold:  # col2im sums every key's window into place
-        dv = v.shape[-1]
-        blocks = torch.einsum("bzyxo,bzyxd->bzdoyx", weights, vf).reshape(b * nh, dv * n_off, h * w)
-        out = F.fold(blocks, (h, w), 2 * window + 1, padding=window)
-        return out.view(b, nh, dv, h, w).permute(0, 1, 3, 4, 2)
-    out = vf.new_zeros((b, nh, h + 2 * window, w + 2 * window, v.shape[-1]))
-    for o, (dy, dx) in enumerate(window_offsets(window)):
-        out[:, :, window + dy: window + dy + h, window + dx: window + dx + w] += weights[..., o, None] * vf
-    return out[:, :, window: window + h, window: window + w]
+    n = 2 * window + 1
+    dv = v.shape[-1]
+    out = vf.new_zeros((b, nh, h + 2 * window, w, dv))
+    for i, dy in enumerate(range(-window, window + 1)):  # one window row at a time, summed into place by col2im
+        blocks = torch.einsum("bzyxo,bzyxd->bzdoyx", weights[..., i * n:(i + 1) * n], vf).reshape(b * nh, dv * n, h * w)
+        row = F.fold(blocks, (h, w), (1, n), padding=(0, window)).view(b, nh, dv, h, w).permute(0, 1, 3, 4, 2)
+        out[:, :, window + dy: window + dy + h] += row
+    return out[:, :, window: window + h]
 
 
 def pisa_attention(
@@ -136,7 +121,6 @@ def pisa_attention(
     visibility: torch.Tensor | None,
     window: int,
     scale: float | None = None,
-    path: str = "auto",
 ) -> torch.Tensor:
     """PISA self-attention over the key-centric window (eq. 8).
 
@@ -145,20 +129,19 @@ def pisa_attention(
         coc, visibility: ``(B, H, W, (2w+1)^2)`` masks from ``bokehray.pisa.pisa_masks``
             (visibility None: no occlusion term).
         window: the window radius ``w`` of the masks.
-        path: see :func:`pisa_weights`.
 
     Returns:
         ``(B, heads, H, W, dv)`` in the dtype of ``v``.
     """
     if v.shape[:4] != q.shape[:4]:
         raise ValueError(f"v: expected (B, heads, H, W, dv) matching q {tuple(q.shape[:4])}, got {tuple(v.shape)}")
-    unfold = _use_unfold(v, window, path) and _use_unfold(q, window, path)
-    a = pisa_weights(q, k, coc, window, scale, "unfold" if unfold else "loop")
+    a = pisa_weights(q, k, coc, window, scale)
     if visibility is not None:
         if visibility.shape != coc.shape:
             raise ValueError(f"visibility: expected the shape of coc {tuple(coc.shape)}, got {tuple(visibility.shape)}")
-        a = a * _batched(visibility).to(a.dtype)
-    return _aggregate(a, v, window, unfold).to(v.dtype)
+        vis = _batched(visibility).to(a.dtype)
+        a = a.mul_(vis) if not a.requires_grad else a * vis
+    return _aggregate(a, v, window).to(v.dtype)
 
 
 def pisa_attention_dense(
