@@ -133,3 +133,19 @@ def test_refine_touches_only_tiles_near_depth_edges():
     assert np.array_equal(out[160:, 160:], classical[160:, 160:])  # far from the edge: bit-identical
     assert np.abs(out[:40, :40] - classical[:40, :40]).max() > 0.01
     assert np.isfinite(out).all() and out.min() >= 0
+
+
+def test_full_frame_and_tiled_refinement_blend_the_same_way():
+    rng = np.random.default_rng(1)
+    img = rng.uniform(0, 1, (128, 96, 3)).astype(np.float32)
+    d = np.where(rng.uniform(size=(128, 96)) < 0.5, 0.2, 0.8).astype(np.float32)  # edges everywhere
+    blur = br.BlurParams(8.0, 0.8)
+    model = BokehRefiner()
+    with torch.no_grad():
+        model.head.bias.fill_(0.03)  # a constant correction: both paths must place it identically
+    classical = br.render(img, d, blur)
+    full, s1 = refine(img, d, blur, classical, model=model)
+    tiled, s2 = refine(img, d, blur, classical, model=model, options=RefineOptions(full_frame_px=0))
+    assert s1.tiles_refined == s2.tiles_refined == s1.tiles_total
+    np.testing.assert_allclose(full, tiled, rtol=0, atol=1e-5)
+    assert np.abs(full - classical).mean() > 0.01

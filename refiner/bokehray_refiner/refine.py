@@ -45,12 +45,15 @@ class RefineOptions:
         halo: context around a tile in pixels (a multiple of 8); the correction fades out across it.
         min_jump_px: a depth edge matters if the CoC radius jumps by more than this across it.
         batch: tiles per forward pass.
+        full_frame_px: when the tiles with their halos would cover more than the frame, and the frame has at
+            most this many pixels, one pass over the whole frame replaces them (same blend weights).
     """
 
     tile: int = 64
     halo: int = 32
     min_jump_px: float = 1.0
     batch: int = 8
+    full_frame_px: int = 4_000_000
 
     def __post_init__(self) -> None:
         if self.tile < 8 or self.tile % 8 or self.halo < 0 or self.halo % 8:
@@ -168,25 +171,31 @@ def refine(
     r_srgb = np.pad(linear_to_srgb(base), pad3, mode="reflect")
     d_pad = np.pad(disparity.astype(np.float32), pad3[:2], mode="reflect")
     coc_pad = np.pad(coc, pad3[:2], mode="reflect")
-    acc = np.zeros(r_srgb.shape, np.float32)
-    wsum = np.zeros(r_srgb.shape[:2] + (1,), np.float32)
     feather = _feather(size, halo)
     wt = (feather[:, None] * feather[None, :])[..., None].astype(np.float32)
+    boxes = [(slice(int(y) * t, int(y) * t + size), slice(int(x) * t, int(x) * t + size)) for y, x in zip(*np.nonzero(need))]
+    wsum = np.zeros(r_srgb.shape[:2] + (1,), np.float32)
+    for sl in boxes:
+        wsum[sl] += wt
     device = next(model.parameters()).device
-    boxes = [(int(y) * t, int(x) * t) for y, x in zip(*np.nonzero(need))]
     opts = PisaMaskOptions()
-    for i in range(0, len(boxes), options.batch):
-        chunk = boxes[i:i + options.batch]
-        sl = [(slice(y, y + size), slice(x, x + size)) for y, x in chunk]
-        stack = lambda a: torch.from_numpy(np.stack([a[s] for s in sl])).to(device)  # noqa: E731
-        focus = stack(f_srgb).permute(0, 3, 1, 2)
-        render = stack(r_srgb).permute(0, 3, 1, 2)
-        pisa = PisaMaskProvider(np.stack([d_pad[s] for s in sl]), blur.focus_disparity, blur.k_px, opts,
+
+    def run(sls: list) -> np.ndarray:
+        stack = lambda a: torch.from_numpy(np.stack([a[s] for s in sls])).to(device)  # noqa: E731
+        focus, render = stack(f_srgb).permute(0, 3, 1, 2), stack(r_srgb).permute(0, 3, 1, 2)
+        pisa = PisaMaskProvider(np.stack([d_pad[s] for s in sls]), blur.focus_disparity, blur.k_px, opts,
                                 torch_device=device)
-        delta = (model(focus, render, stack(coc_pad), pisa) - render).permute(0, 2, 3, 1).cpu().numpy()
-        for s, dlt in zip(sl, delta):
-            acc[s] += dlt * wt
-            wsum[s] += wt
+        return (model(focus, render, stack(coc_pad), pisa) - render).permute(0, 2, 3, 1).cpu().numpy()
+
+    full = d_pad.size
+    if len(boxes) * size * size >= full and full <= options.full_frame_px:
+        acc = run([(slice(None), slice(None))])[0] * wsum  # one pass over the frame costs less than the tiles
+    else:
+        acc = np.zeros(r_srgb.shape, np.float32)
+        for i in range(0, len(boxes), options.batch):
+            chunk = boxes[i:i + options.batch]
+            for sl, dlt in zip(chunk, run(chunk)):
+                acc[sl] += dlt * wt
     delta = (acc / np.maximum(wsum, 1.0))[halo:halo + h, halo:halo + w]
     r = linear_to_srgb(base)
     fixed = srgb_to_linear(np.clip(r + delta, 0.0, 1.0))
