@@ -149,3 +149,50 @@ def test_full_frame_and_tiled_refinement_blend_the_same_way():
     assert s1.tiles_refined == s2.tiles_refined == s1.tiles_total
     np.testing.assert_allclose(full, tiled, rtol=0, atol=1e-5)
     assert np.abs(full - classical).mean() > 0.01
+
+
+@pytest.fixture(scope="module")
+def weights(tmp_path_factory):
+    from pathlib import Path
+
+    from bokehray_refiner.train import export_weights
+
+    model = BokehRefiner()
+    with torch.no_grad():
+        model.head.bias.fill_(0.02)
+    path = Path(tmp_path_factory.mktemp("weights")) / "refiner.safetensors"
+    export_weights(model, path, {"fingerprint": fingerprint(model)})
+    return path
+
+
+def test_render_api_refines_and_reports(weights):
+    rng = np.random.default_rng(2)
+    img = rng.uniform(0, 1, (96, 96, 4)).astype(np.float32)  # RGBA: alpha is not refined
+    d = np.full((96, 96), 0.2, np.float32)
+    d[30:60, 30:60] = 0.9
+    blur = br.BlurParams(10.0, 0.9)
+    plain, st0 = br.render_with_stats(img, d, blur)
+    out, st = br.render_with_stats(img, d, blur, refine=str(weights))
+    assert st0.refine is None and st.refine["tiles_refined"] > 0 and "refine" in st.stage_seconds
+    assert np.array_equal(out[..., 3], plain[..., 3]) and not np.array_equal(out[..., :3], plain[..., :3])
+    flat = np.full((96, 96), 0.5, np.float32)
+    same, st_flat = br.render_with_stats(img, flat, br.BlurParams(10.0, 0.5), refine=str(weights))
+    assert st_flat.refine["tiles_refined"] == 0 and np.array_equal(same, br.render(img, flat, br.BlurParams(10.0, 0.5)))
+
+
+def test_cli_refine(weights, tmp_path, capsys):
+    from bokehray.cli import main
+
+    rng = np.random.default_rng(3)
+    img = rng.uniform(0, 1, (64, 64, 3)).astype(np.float32)
+    d = np.full((64, 64), 0.1, np.float32)
+    d[20:44, 20:44] = 0.8
+    br.write_image(tmp_path / "img.exr", img)
+    np.save(tmp_path / "d.npy", d)
+    base = ["render", str(tmp_path / "img.exr"), "--disparity", str(tmp_path / "d.npy"), "--blur", "12",
+            "--focus", "0.8", "--stats"]
+    assert main(base + ["-o", str(tmp_path / "out.exr"), "--refine", str(weights)]) == 0
+    text = capsys.readouterr().out
+    assert "refined" in text and '"tiles_refined"' in text
+    assert main(base + ["-o", str(tmp_path / "bad.exr"), "--refine", str(tmp_path / "none.safetensors")]) == 2
+    assert "no refiner weights" in capsys.readouterr().err and not (tmp_path / "bad.exr").exists()

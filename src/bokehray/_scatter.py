@@ -113,6 +113,7 @@ class RenderStats:
     image_tiles: int = 1
     memory_estimate_mb: float = 0.0
     stage_seconds: dict[str, float] = field(default_factory=dict)
+    refine: dict | None = None  #: what ``refine=`` did (tiles refined, share, seconds), None without it
 
     def as_dict(self) -> dict:
         return {
@@ -129,6 +130,7 @@ class RenderStats:
             "image_tiles": self.image_tiles,
             "memory_estimate_mb": round(self.memory_estimate_mb, 1),
             "stage_seconds": {k: round(v, 4) for k, v in self.stage_seconds.items()},
+            "refine": self.refine,
         }
 
 

@@ -99,6 +99,9 @@ def build_parser() -> argparse.ArgumentParser:
     o.add_argument("--quality", choices=("preview", "raytrace"), default="preview",
                    help="preview: layered scatter (fast); raytrace: the same layers ray traced (exact, slower)")
     o.add_argument("--max-spp", type=int, default=128, help="raytrace: most rays per pixel (default 128)")
+    o.add_argument("--refine", nargs="?", const=True, default=False, metavar="WEIGHTS",
+                   help="then run the neural refiner near depth edges (needs the 'refiner' extra); default: the "
+                   "shipped weights, or WEIGHTS from bokehray train-refiner")
     _add_device_args(r)
 
     sy = sub.add_parser(
@@ -279,7 +282,7 @@ def cmd_render(args: argparse.Namespace) -> int:
         rt_opts = RaytraceOptions(max_spp=args.max_spp)  # validated whatever the quality
         out, stats = render_with_stats(image, disparity, blur, _aperture(args), quality=args.quality,
                                        device=args.device, options=_options(args), raytrace_options=rt_opts,
-                                       highlight_boost=args.highlight_boost, progress=update)
+                                       highlight_boost=args.highlight_boost, progress=update, refine=args.refine)
     finally:
         if bar is not None:
             bar.close()
@@ -288,8 +291,10 @@ def cmd_render(args: argparse.Namespace) -> int:
     t_write = time.perf_counter() - t1
     if not args.quiet:
         max_coc = float(blur.coc_radius(disparity).max())
+        refined = (f", refined {stats.refine['tiles_refined']}/{stats.refine['tiles_total']} tiles"
+                   if stats.refine else "")
         print(f"wrote {path}  (K = {blur.k_px:.3f} px, d_f = {blur.focus_disparity:.4f}, "
-              f"max CoC {max_coc:.1f} px, {stats.stage_seconds.get('total', 0.0):.2f} s)")
+              f"max CoC {max_coc:.1f} px, {stats.stage_seconds.get('total', 0.0):.2f} s{refined})")
     if args.stats:
         info = stats.as_dict()
         info["stage_seconds"] = {"read": round(t_read, 4), **info["stage_seconds"], "write": round(t_write, 4)}

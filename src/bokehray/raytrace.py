@@ -85,6 +85,7 @@ class RaytraceStats:
     image_tiles: int = 1
     memory_estimate_mb: float = 0.0
     stage_seconds: dict[str, float] = field(default_factory=dict)
+    refine: dict | None = None  #: what ``refine=`` did (tiles refined, share, seconds), None without it
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 
 import numpy as np
@@ -92,6 +93,7 @@ def render_with_stats(
     raytrace_options: RaytraceOptions | None = None,
     highlight_boost: float = 0.0,
     progress: Callable[[int, int], None] | None = None,
+    refine: bool | str | os.PathLike = False,
 ) -> tuple[np.ndarray, RenderStats | RaytraceStats]:
     """Like :func:`render`, and also return what the renderer did (:class:`RenderStats` or :class:`RaytraceStats`)."""
     img = check_image(image)
@@ -123,6 +125,12 @@ def render_with_stats(
         return render_preview(rgb, s, aperture, options=opts, device=device, progress=report)
 
     out_rgb, stats = run(np.ascontiguousarray(work[..., :3]), progress)
+    if refine is not False and refine is not None:
+        out_rgb, rstats = _refine(work[..., :3], d, blur, out_rgb, refine, device)
+        stats.refine = rstats.as_dict()
+        stats.stage_seconds["refine"] = rstats.seconds
+        if "total" in stats.stage_seconds:
+            stats.stage_seconds["total"] += rstats.seconds
     if channels == 4:
         # alpha is rendered like a grey channel: it blurs with the colour it belongs to
         out_a, _ = run(np.ascontiguousarray(np.repeat(work[..., 3:4], 3, axis=2)))
@@ -153,6 +161,7 @@ def render(
     raytrace_options: RaytraceOptions | None = None,
     highlight_boost: float = 0.0,
     progress: Callable[[int, int], None] | None = None,
+    refine: bool | str | os.PathLike = False,
 ) -> np.ndarray:
     """Render ``image`` as a thin lens with aperture ``aperture`` would have seen it.
 
@@ -169,6 +178,8 @@ def render(
         highlight_boost: > 0 re-inflates clipped highlights of display-referred
             inputs before blurring (:func:`boost_highlights`); 0 = off (default).
         progress: called as ``progress(done, total)`` after each depth layer.
+        refine: True runs the shipped neural refiner (``bokehray_refiner``, the ``refiner`` extra) on the
+            tiles near depth edges that matter (docs/refiner.md); a path uses those weights instead.
 
     Returns:
         float32 array shaped like ``image``, scene-linear.
@@ -177,7 +188,8 @@ def render(
         InputError: bad shapes, ranges, NaN/Inf, unknown options.
     """
     out, _ = render_with_stats(image, disparity, blur, aperture, quality=quality, device=device, options=options,
-                               raytrace_options=raytrace_options, highlight_boost=highlight_boost, progress=progress)
+                               raytrace_options=raytrace_options, highlight_boost=highlight_boost, progress=progress,
+                               refine=refine)
     return out
 
 
@@ -192,6 +204,20 @@ def boost_highlights(image: np.ndarray, strength: float, threshold: float = 0.95
     peak = image.max(axis=2, keepdims=True)
     t = np.clip((peak - threshold) / (1.0 - threshold), 0.0, 1.0)
     return (image * (1.0 + strength * t * t)).astype(np.float32)
+
+
+def _refine(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, classical: np.ndarray,
+            weights: bool | str | os.PathLike, device: str):
+    """Run the optional torch refiner; imported only here, so ``bokehray`` never needs torch otherwise."""
+    try:
+        from bokehray_refiner.refine import load_refiner, refine
+    except ImportError as e:
+        raise InputError(f"refine: the neural refiner needs its extra: pip install 'bokehray[refiner]' ({e})") from None
+    import torch
+
+    tdev = "cuda" if device.startswith("cuda") and torch.cuda.is_available() else "cpu"
+    model = load_refiner(None if weights is True else weights, device=tdev)
+    return refine(image, disparity, blur, classical, model=model)
 
 
 def _check_device(device: str) -> str:
