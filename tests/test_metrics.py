@@ -98,6 +98,7 @@ def test_exposure_align_is_one_global_gain():
     assert g == 1.0 and not black.any()
 
 
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")  # torch.jit is deprecated upstream, still works
 def test_perceptual_metric_needs_a_local_file(tmp_path):
     with pytest.raises(InputError, match="does not exist"):
         PerceptualMetric("lpips", str(tmp_path / "missing.pt"))
@@ -108,6 +109,7 @@ def test_perceptual_metric_needs_a_local_file(tmp_path):
         PerceptualMetric("lpips", str(bad))
 
 
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")
 def test_perceptual_metric_runs_a_torchscript_model(tmp_path):
     torch = pytest.importorskip("torch")
 

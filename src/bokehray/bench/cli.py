@@ -90,8 +90,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
     chk = results["preview_check"]
     if chk is not None:
         beaten = ", ".join(chk["peers_faster_and_more_accurate"]) or "none"
-        print(f"\npreview on the Pareto front: {'yes' if chk['on_front'] else 'no'}; "
-              f"peers both faster and more accurate than preview: {beaten}")
+        print(f"\npeers both faster and more accurate than preview: {beaten} (target: none); "
+              f"preview on the Pareto front of all methods: {'yes' if chk['on_front'] else 'no'}")
     for name, reason in results["skipped"].items():
         print(f"skipped {name}: {reason}")
     print(f"wrote {', '.join(str(p) for p in written)} ({results['wall_seconds']:.0f} s)")

@@ -494,12 +494,13 @@ def _plots(results: dict, plots: Path, tag: str) -> list[Path]:
     if summ:
         fig, ax = plt.subplots(figsize=(7.5, 4.8))
         front = results["pareto_front"]
-        for n, s in summ.items():
+        for i, (n, s) in enumerate(summ.items()):
             colour = "tab:blue" if s["family"] == "bokehray" else "tab:red"
             ax.errorbar(s["time_median"], s["psnr"], xerr=[[s["time_median"] - s["time_min"]],
                         [s["time_max"] - s["time_median"]]], fmt="o", color=colour, ms=6,
                         mfc=colour if n in front else "white", capsize=2)
-            ax.annotate(n, (s["time_median"], s["psnr"]), textcoords="offset points", xytext=(5, 4), fontsize=8)
+            ax.annotate(n, (s["time_median"], s["psnr"]), textcoords="offset points", fontsize=8,
+                        xytext=((5, 4), (5, -12), (-20, 12))[i % 3])  # neighbours (settings) do not overlap
         fx = [summ[n]["time_median"] for n in front]
         fy = [summ[n]["psnr"] for n in front]
         ax.step(fx, fy, where="post", color="grey", lw=0.8, ls="--", label="Pareto front (filled points)")
@@ -521,9 +522,9 @@ def _plots(results: dict, plots: Path, tag: str) -> list[Path]:
         fig, ax = plt.subplots(figsize=(7.5, 4.5))
         radii = results["robustness_radii"]
         for n, drop in rob.items():
-            xs = [r for r in radii if str(r) in drop]
+            xs = sorted([r for r in radii if str(r) in drop] + [0])  # 0: the clean disparity, no change
             ls = "-" if summ[n]["family"] == "bokehray" else "--"
-            ax.plot(xs, [drop[str(r)] for r in xs], ls, marker="o", ms=3, label=n)
+            ax.plot(xs, [drop[str(r)] if r else 0.0 for r in xs], ls, marker="o", ms=3, label=n)
         ax.axhline(0, color="grey", lw=0.6)
         ax.set_xlabel("disparity perturbation, px (negative: erosion, positive: dilation)")
         ax.set_ylabel("PSNR change vs clean disparity, dB")
