@@ -23,7 +23,6 @@ import os
 import platform
 import re
 import statistics
-import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -537,7 +536,3 @@ def _plots(results: dict, plots: Path, tag: str) -> list[Path]:
         plt.close(fig)
         written.append(p)
     return written
-
-
-def python_info() -> str:
-    return f"{sys.executable} {platform.python_version()}"
