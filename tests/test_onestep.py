@@ -67,7 +67,7 @@ def test_masks_reach_the_attention(tiny):
     with torch.no_grad():
         a, b = model(x, flat), model(x, blurry)
     assert (a - b).abs().max() > 1e-4
-    assert set(flat._cache) == {(16, 16), (8, 8)}  # one mask set per PISA grid (the tiny VAE downsamples by 2)
+    assert set(flat._cache) == {(4, 4), (2, 2)}  # one mask set per PISA grid: latent 1/8 and its 1/2
 
 
 def test_lora_and_encoder_weights_load_and_act(tiny):
@@ -98,6 +98,7 @@ def test_fixed_prompt_embedding_replaces_text_encoders(tiny, tmp_path):
 
 def test_tiled_render_bounds_tile_size_and_covers_the_image(tiny):
     model = load_one_step(tiny, options=OneStepOptions(tile=32, overlap=8))
+    assert model.size_multiple == 16
     img, d = _scene(48, 70)  # not a multiple of the model's size constraint: tiles are padded
     out = model.render(img, d, BlurParams(8.0, 0.9))
     assert out.shape == img.shape and np.isfinite(out).all()

@@ -16,6 +16,7 @@ import json
 import os
 import time
 from dataclasses import dataclass
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -81,10 +82,18 @@ class RefineStats:
 
 
 def load_refiner(path: str | os.PathLike | None = None, device: str = "cpu") -> BokehRefiner:
-    """Load refiner weights (default: the ones shipped in the package) written by ``bokehray train-refiner``."""
+    """Load refiner weights (default: the ones shipped in the package) written by ``bokehray train-refiner``.
+
+    Loaded models are cached per file, modification time and device (inference only: do not train them).
+    """
     path = Path(path) if path is not None else DEFAULT_WEIGHTS
     if not path.is_file():
         raise InputError(f"{path}: no refiner weights there (train them with `bokehray train-refiner`)")
+    return _load(str(path.resolve()), path.stat().st_mtime_ns, str(device))
+
+
+@lru_cache(maxsize=4)
+def _load(path: str, mtime_ns: int, device: str) -> BokehRefiner:
     try:
         with safe_open(str(path), framework="pt") as f:
             config = json.loads((f.metadata() or {})["config"])

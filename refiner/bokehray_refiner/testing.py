@@ -62,9 +62,9 @@ def write_tiny_sdxl(path: str | Path, seed: int = 0, lora: bool = False, encoder
         addition_time_embed_dim=8, transformer_layers_per_block=1, projection_class_embeddings_input_dim=80,
         cross_attention_dim=64, norm_num_groups=8,
     )
-    vae = AutoencoderKL(block_out_channels=[16, 32], in_channels=3, out_channels=3,
-                        down_block_types=["DownEncoderBlock2D"] * 2, up_block_types=["UpDecoderBlock2D"] * 2,
-                        latent_channels=4, norm_num_groups=8, sample_size=64)
+    vae = AutoencoderKL(block_out_channels=[8, 16, 16, 16], in_channels=3, out_channels=3,  # / 8, as SDXL's
+                        down_block_types=["DownEncoderBlock2D"] * 4, up_block_types=["UpDecoderBlock2D"] * 4,
+                        latent_channels=4, norm_num_groups=8, sample_size=64, layers_per_block=1)
     scheduler = DDPMScheduler(beta_start=0.00085, beta_end=0.012, beta_schedule="scaled_linear",
                               num_train_timesteps=1000, prediction_type="epsilon")
     text_cfg = dict(bos_token_id=514 - 2, eos_token_id=514 - 1, pad_token_id=514 - 1, hidden_size=32,

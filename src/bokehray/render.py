@@ -216,8 +216,7 @@ def _refine(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, classica
     import torch
 
     tdev = "cuda" if device.startswith("cuda") and torch.cuda.is_available() else "cpu"
-    model = load_refiner(None if weights is True else weights, device=tdev)
-    return refine(image, disparity, blur, classical, model=model)
+    return refine(image, disparity, blur, classical, model=load_refiner(None if weights is True else weights, tdev))
 
 
 def _check_device(device: str) -> str:

@@ -1,11 +1,7 @@
 """The method registry of ``bokehray bench``: the one place that lists what is measured.
 
 A :class:`Method` renders ``(image, disparity, K, d_f)`` into a scene-linear H x W x 3 image.
-To add one, append an entry to :func:`registry`; for example the neural refiner (issue 6)
-would be one line::
-
-    Method("refine", "bokehray", "preview + neural refiner",
-           _bokehray(lambda: {"refine": True}), unavailable=_needs_module("bokehray_refiner")),
+To add one, append an entry to :func:`registry`.
 
 Every method is optional at run time: ``unavailable()`` returns a one-line reason (and the
 method is skipped) or None. Peers are imported lazily, so ``bokehray`` never needs bpy, GEGL
@@ -83,6 +79,14 @@ def _needs_module(module: str, hint: str = "") -> Callable[[], str | None]:
     return check
 
 
+def _refiner_missing() -> str | None:
+    if importlib.util.find_spec("bokehray_refiner") is None:
+        return "module 'bokehray_refiner' not installed (pip install 'bokehray[refiner]')"
+    from bokehray_refiner.refine import DEFAULT_WEIGHTS
+
+    return None if DEFAULT_WEIGHTS.is_file() else f"no shipped refiner weights at {DEFAULT_WEIGHTS}"
+
+
 def _peer(cls_name: str) -> tuple[Callable[[], Renderer], Callable[[], str | None]]:
     def cls():
         from . import peers
@@ -104,6 +108,8 @@ def registry() -> list[Method]:
                _preview(max_layers=12, level_radius_px=16.0)),
         Method("preview-nofill", "bokehray", "preview without hidden-region fill", _preview(fill=False),
                robustness=False),
+        Method("preview+refine", "bokehray", "preview, then the shipped neural refiner near depth edges",
+               _bokehray(refine=True), _refiner_missing),
         Method("raytrace-16", "bokehray", "raytrace, at most 16 rays per pixel", _raytrace(16), quick=True,
                robustness=False),
         Method("raytrace-64", "bokehray", "raytrace, at most 64 rays per pixel", _raytrace(64), robustness=False),
