@@ -3,7 +3,8 @@
 ``seeds/`` holds small valid files of every variant the writers produce (what the fuzzer
 starts from): each must be read. ``found/`` holds inputs the fuzzer (benchmarks/fuzz_readers.py)
 turned up, each once a failure: each must now be read, or refused with one InputError or
-ResourceError naming the file. docs/robustness.md lists what each found input was.
+ResourceError naming the file, and nothing else may be printed. docs/robustness.md lists
+what each found input was.
 """
 
 from pathlib import Path
@@ -27,7 +28,7 @@ def test_the_regression_files_are_there_and_small():
 
 
 @pytest.mark.parametrize("path", FILES, ids=lambda p: f"{p.parent.name}/{p.name}")
-def test_reader_returns_finite_float32_or_one_clear_error(path, monkeypatch):
+def test_reader_returns_finite_float32_or_one_clear_error(path, monkeypatch, capfd):
     monkeypatch.setattr(bio, "MAX_PIXELS", 2_000_000)  # as the fuzzer ran
     read_any = False
     for name in READERS[path.suffix]:
@@ -40,3 +41,6 @@ def test_reader_returns_finite_float32_or_one_clear_error(path, monkeypatch):
         assert a.dtype == np.float32 and a.ndim in (2, 3) and np.isfinite(a).all()
     if path.parent.name == "seeds":
         assert read_any, f"{path}: a seed must be readable"
+    # nothing of the decoders' own chatter (OpenEXR prints to fd 1/2, tifffile logs) reaches the user
+    out, err = capfd.readouterr()
+    assert out == "" and err == "", (out + err)[:300]

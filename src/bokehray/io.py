@@ -15,8 +15,11 @@ that replaces the target only once it is complete.
 from __future__ import annotations
 
 import contextlib
+import io
+import logging
 import os
 import struct
+import sys
 import tempfile
 from collections.abc import Callable, Iterator
 from functools import cache
@@ -158,7 +161,38 @@ def _load_pil(path: Path, fmt: str) -> np.ndarray:
         return np.asarray(im)
 
 
+@contextlib.contextmanager
+def _tifffile_log() -> Iterator[list[str]]:
+    """Collect tifffile's log messages (damaged tags) instead of letting them reach stderr."""
+    messages: list[str] = []
+
+    class Collect(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            messages.append(record.getMessage())
+
+    log = logging.getLogger("tifffile")
+    handler, propagate = Collect(), log.propagate
+    log.addHandler(handler)
+    log.propagate = False
+    try:
+        yield messages
+    finally:
+        log.removeHandler(handler)
+        log.propagate = propagate
+
+
 def _load_tiff(path: Path) -> np.ndarray:
+    with _tifffile_log() as said:
+        try:
+            return _load_tiff_quietly(path)
+        except (InputError, ResourceError):
+            raise
+        except Exception as exc:  # noqa: BLE001 - tifffile's log often says more than its exception
+            why = f"{exc}; {said[0]}" if said else str(exc)
+            raise ValueError(why) from None
+
+
+def _load_tiff_quietly(path: Path) -> np.ndarray:
     with tifffile.TiffFile(path) as tf:
         page = tf.pages[0]
         axes = page.axes
@@ -176,20 +210,69 @@ def _load_tiff(path: Path) -> np.ndarray:
     return np.moveaxis(a, axes.index("S"), -1) if "S" in axes else a
 
 
+def _flush_c_streams() -> None:
+    with contextlib.suppress(Exception):
+        import ctypes
+
+        ctypes.CDLL(None).fflush(None)
+
+
+@contextlib.contextmanager
+def _library_output() -> Iterator[list[str]]:
+    """Capture what native code writes to file descriptors 1 and 2 (OpenEXR prints its errors there).
+
+    Yields a list that holds the captured lines once the block ends. The descriptors are
+    process-wide, so output of other threads during the block is captured too (a short read).
+    """
+    lines: list[str] = []
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
+    printed = io.StringIO()  # the Python binding prints its warnings with print()
+    with tempfile.TemporaryFile() as sink:
+        try:
+            os.dup2(sink.fileno(), 1)
+            os.dup2(sink.fileno(), 2)
+            with contextlib.redirect_stdout(printed), contextlib.redirect_stderr(printed):
+                yield lines
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            _flush_c_streams()  # C/C++ stdout is buffered: flush it into the sink, not onto the terminal later
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            for fd in saved:
+                os.close(fd)
+            sink.seek(0)
+            text = sink.read().decode("utf-8", "replace") + printed.getvalue()
+            lines.extend(ln.strip() for ln in text.splitlines() if ln.strip())
+
+
 def _load_exr(path: Path, choices: tuple[tuple[str, ...], ...]) -> np.ndarray:
     if not OpenEXR.isOpenExrFile(str(path)):
         raise InputError(f"cannot read {path} as EXR: not an OpenEXR file (bad magic number)")
-    with OpenEXR.File(str(path), header_only=True) as f:
-        (x0, y0), (x1, y1) = f.header()["dataWindow"]
-    _check_dims(path, int(y1 - y0 + 1), int(x1 - x0 + 1))
     chans: dict[str, np.ndarray] = {}
-    with OpenEXR.File(str(path), separate_channels=True) as f:
-        for name, ch in f.parts[0].channels.items():
-            px = ch.pixels
-            if px.ndim == 3 and len(name) == px.shape[-1]:  # packed "RGB"/"RGBA" channel
-                chans.update(zip(name, np.moveaxis(px, -1, 0)))
-            else:
-                chans[name] = px
+    failure = None
+    with _library_output() as said:
+        try:
+            with OpenEXR.File(str(path), header_only=True) as f:
+                (x0, y0), (x1, y1) = f.header()["dataWindow"]
+            _check_dims(path, int(y1 - y0 + 1), int(x1 - x0 + 1))
+            with OpenEXR.File(str(path), separate_channels=True) as f:
+                for name, ch in f.parts[0].channels.items():
+                    px = ch.pixels
+                    if px.ndim == 3 and len(name) == px.shape[-1]:  # packed "RGB"/"RGBA" channel
+                        chans.update(zip(name, np.moveaxis(px, -1, 0)))
+                    else:
+                        chans[name] = px
+        except (InputError, ResourceError):
+            raise
+        except Exception as exc:  # noqa: BLE001 - the binding raises anything; the library's own words are better
+            failure = exc
+    # the binding reports damaged pixel data as a printed warning and carries on: never return what it made of it
+    if failure is not None or said:
+        why = (said[0] if said else str(failure)).removeprefix(f"{path}: ")
+        raise InputError(f"cannot read {path} as EXR: file is truncated or corrupt ({why})")
     picked = next((c for c in choices if all(n in chans for n in c)), tuple(chans) if len(chans) == 1 else None)
     if picked is None:
         wanted = " or ".join(",".join(c) for c in choices)
