@@ -33,6 +33,9 @@ def main() -> None:
     ap.add_argument("--weights", help="refiner weights (default: the shipped ones)")
     ap.add_argument("--max-spp", type=int, default=64, help="raytrace rays per pixel cap")
     ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--band-margin", type=float, default=None,
+                    help="RefineOptions.band_margin_px (inf: no band restriction); default: the option's default")
+    ap.add_argument("--no-raytrace", action="store_true", help="skip the raytrace level (for quick sweeps)")
     ap.add_argument("--out", default=str(REPO / "benchmarks/results/refiner.json"))
     ap.add_argument("--plot", default=str(REPO / "docs/img/refiner_robustness.png"))
     args = ap.parse_args()
@@ -45,7 +48,9 @@ def main() -> None:
     from bokehray.datasets import BLBDataset
     from bokehray.metrics import discontinuity_band, score
     from bokehray_refiner.data import corrupt_disparity
-    from bokehray_refiner.refine import load_refiner, refine
+    from bokehray_refiner.refine import RefineOptions, load_refiner, refine
+
+    ropts = RefineOptions() if args.band_margin is None else RefineOptions(band_margin_px=args.band_margin)
 
     model = load_refiner(args.weights)
     ds = BLBDataset(args.data)
@@ -62,9 +67,10 @@ def main() -> None:
             preview = br.render(s.image, d, blur)
             t_preview = time.perf_counter() - t0
             t0 = time.perf_counter()
-            ray = br.render(s.image, d, blur, quality="raytrace", raytrace_options=br.RaytraceOptions(max_spp=args.max_spp))
+            ray = preview if args.no_raytrace else br.render(
+                s.image, d, blur, quality="raytrace", raytrace_options=br.RaytraceOptions(max_spp=args.max_spp))
             t_ray = time.perf_counter() - t0
-            refined, st = refine(s.image, d, blur, preview, model=model)
+            refined, st = refine(s.image, d, blur, preview, model=model, options=ropts)
             for method, img, t in (("preview", preview, t_preview), ("raytrace", ray, t_ray),
                                    ("refine", refined, t_preview + st.seconds)):
                 rows.append({"pair": s.name, "k_px": s.k_px, "corruption": kind, "px": amount, "method": method,
@@ -73,7 +79,8 @@ def main() -> None:
         print(f"{n + 1}/{len(idx)} {s.name}", flush=True)
     summary = summarise(rows)
     write_json(args.out, {"machine": machine_info(), "data": str(args.data), "pairs": len(idx),
-                          "weights": str(args.weights or "shipped"), "summary": summary, "rows": rows})
+                          "weights": str(args.weights or "shipped"), "refine_options": ropts.__dict__,
+                          "summary": summary, "rows": rows})
     print_table(summary)
     plot(summary, args.plot)
 

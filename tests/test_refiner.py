@@ -196,3 +196,16 @@ def test_cli_refine(weights, tmp_path, capsys):
     assert "refined" in text and '"tiles_refined"' in text
     assert main(base + ["-o", str(tmp_path / "bad.exr"), "--refine", str(tmp_path / "none.safetensors")]) == 2
     assert "no refiner weights" in capsys.readouterr().err and not (tmp_path / "bad.exr").exists()
+
+
+def test_edge_band_follows_each_edges_reach():
+    from bokehray_refiner.refine import edge_band, edge_reach
+
+    coc = np.zeros((1, 60), np.float32)
+    coc[0, 30:] = 10.0  # one edge at x = 29/30 with CoC 10 on its far side
+    reach = edge_reach(coc, 1.0)
+    assert reach[0, 29] == 10.0 and reach.sum() == 10.0
+    band = edge_band(reach, margin_px=2.0, feather_px=4.0)
+    assert band[0, 29] == 1.0 and band[0, 29 + 12] == 1.0  # within CoC + margin
+    assert 0.0 < band[0, 29 + 14] < 1.0 and band[0, 29 + 17] == 0.0  # fades out over the feather
+    assert np.array_equal(edge_band(np.zeros((4, 4), np.float32), 2.0, 4.0), np.zeros((4, 4), np.float32))

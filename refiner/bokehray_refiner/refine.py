@@ -48,6 +48,8 @@ class RefineOptions:
         batch: tiles per forward pass.
         full_frame_px: when the tiles with their halos would cover more than the frame, and the frame has at
             most this many pixels, one pass over the whole frame replaces them (same blend weights).
+        band_margin_px, band_feather_px: the correction is kept only within (the edge's CoC + margin) of a
+            depth edge, fading out over the feather: farther away a depth error cannot change the image.
     """
 
     tile: int = 64
@@ -55,6 +57,8 @@ class RefineOptions:
     min_jump_px: float = 1.0
     batch: int = 8
     full_frame_px: int = 4_000_000
+    band_margin_px: float = 6.0
+    band_feather_px: float = 4.0
 
     def __post_init__(self) -> None:
         if self.tile < 8 or self.tile % 8 or self.halo < 0 or self.halo % 8:
@@ -105,10 +109,10 @@ def _load(path: str, mtime_ns: int, device: str) -> BokehRefiner:
     return model.to(device).eval()
 
 
-def tiles_to_refine(coc: np.ndarray, tile: int, min_jump_px: float) -> np.ndarray:
-    """Boolean ``(ceil(h/tile), ceil(w/tile))`` map of tiles within reach of a depth edge that matters."""
+def edge_reach(coc: np.ndarray, min_jump_px: float) -> np.ndarray:
+    """At each pixel on a depth edge that matters (CoC jump > ``min_jump_px``), the larger CoC radius; 0 elsewhere."""
     h, w = coc.shape
-    reach = np.zeros((h, w), np.float32)  # at each edge pixel: how far its blur can carry a depth error
+    reach = np.zeros((h, w), np.float32)
     for ax in (0, 1):
         a = np.take(coc, range(coc.shape[ax] - 1), axis=ax)
         b = np.take(coc, range(1, coc.shape[ax]), axis=ax)
@@ -117,6 +121,26 @@ def tiles_to_refine(coc: np.ndarray, tile: int, min_jump_px: float) -> np.ndarra
         sl = [slice(None)] * 2
         sl[ax] = slice(0, -1)
         reach[tuple(sl)] = np.maximum(reach[tuple(sl)], r)
+    return reach
+
+
+def edge_band(reach: np.ndarray, margin_px: float, feather_px: float) -> np.ndarray:
+    """Weight in [0, 1]: 1 within (its nearest edge's reach + ``margin_px``) of a depth edge, a linear
+    fall-off over ``feather_px`` beyond. A depth error at an edge changes the image only that far."""
+    from scipy import ndimage
+
+    edge = reach > 0
+    if not edge.any():
+        return np.zeros(reach.shape, np.float32)
+    dist, (iy, ix) = ndimage.distance_transform_edt(~edge, return_indices=True)
+    limit = reach[iy, ix] + margin_px
+    return np.clip((limit + feather_px - dist) / feather_px, 0.0, 1.0).astype(np.float32)
+
+
+def tiles_to_refine(coc: np.ndarray, tile: int, min_jump_px: float) -> np.ndarray:
+    """Boolean ``(ceil(h/tile), ceil(w/tile))`` map of tiles within reach of a depth edge that matters."""
+    h, w = coc.shape
+    reach = edge_reach(coc, min_jump_px)
     ty, tx = -(-h // tile), -(-w // tile)
     padded = np.zeros((ty * tile, tx * tile), np.float32)
     padded[:h, :w] = reach
@@ -206,6 +230,7 @@ def refine(
             for sl, dlt in zip(chunk, run(chunk)):
                 acc[sl] += dlt * wt
     delta = (acc / np.maximum(wsum, 1.0))[halo:halo + h, halo:halo + w]
+    delta *= edge_band(edge_reach(coc, options.min_jump_px), options.band_margin_px, options.band_feather_px)[..., None]
     r = linear_to_srgb(base)
     fixed = srgb_to_linear(np.clip(r + delta, 0.0, 1.0))
     out = classical.astype(np.float32, copy=True)
