@@ -104,14 +104,60 @@ def test_tiled_render_bounds_tile_size_and_covers_the_image(tiny):
     assert out.shape == img.shape and np.isfinite(out).all()
 
 
-def test_tiles_blend_to_a_partition_of_unity():
-    rng = np.random.default_rng(1)
-    img = rng.uniform(size=(50, 77, 3)).astype(np.float32)
-    grid = tile_grid(img.shape[:2], 24, 8, multiple=8)
+def test_tiles_cover_the_image_and_cross_fade_in_overlaps():
+    grid = tile_grid((50, 77), 24, 8, multiple=8)
     boxes = [b for b, _ in grid]
     assert all((y1 - y0 + ph) % 8 == 0 and (x1 - x0 + pw) % 8 == 0 for (y0, y1, x0, x1), (ph, pw) in grid)
-    out = blend_tiles([img[y0:y1, x0:x1] for y0, y1, x0, x1 in boxes], boxes, img.shape[:2], 8)
-    np.testing.assert_allclose(out, img, rtol=0, atol=1e-6)
+    covered = np.zeros((50, 77), int)
+    for y0, y1, x0, x1 in boxes:
+        covered[y0:y1, x0:x1] += 1
+    assert covered.min() >= 1
+    # Two tiles of constant 0 and 1 overlapping by 8 columns: 0 and 1 outside, a rising ramp inside.
+    boxes = [(0, 4, 0, 24), (0, 4, 16, 40)]
+    tiles = [np.zeros((4, 24, 1), np.float32), np.ones((4, 24, 1), np.float32)]
+    row = blend_tiles(tiles, boxes, (4, 40), 8)[0, :, 0]
+    assert np.all(row[:16] == 0) and np.all(row[24:] == 1)
+    ramp = row[16:24]
+    assert np.all(np.diff(ramp) > 0) and 0 < ramp[0] < 0.1 and 0.9 < ramp[-1] < 1
+    np.testing.assert_allclose(ramp + ramp[::-1], 1.0, atol=1e-6)  # symmetric cross-fade
+
+
+def test_prediction_types(tiny):
+    model = load_one_step(tiny)
+    z = torch.rand(1, 4, 4, 4)
+    pisa = PisaMaskProvider(np.full((32, 32), 0.5, np.float32), 0.2, 6.0)
+    with torch.no_grad():
+        eps_form = model.denoise(z, pisa)
+        out = (z - eps_form * model.alpha) / model.beta  # the network's raw output, recovered
+        model.prediction_type = "v_prediction"
+        torch.testing.assert_close(model.denoise(z, pisa), model.alpha * z - model.beta * out, rtol=1e-4, atol=1e-5)
+        model.prediction_type = "sample"
+        torch.testing.assert_close(model.denoise(z, pisa), out, rtol=1e-4, atol=1e-5)
+
+
+def test_processor_matches_pisa_attention_on_a_non_square_grid():
+    from diffusers.models.attention_processor import Attention
+
+    from bokehray.pisa import pisa_masks
+    from bokehray_refiner.attention import pisa_attention
+
+    torch.manual_seed(0)
+    attn = Attention(query_dim=16, heads=2, dim_head=8)
+    attn.set_processor(PISAAttnProcessor())
+    d = np.random.default_rng(0).uniform(0, 1, (6, 10)).astype(np.float32)
+    pisa = PisaMaskProvider(d, 0.3, 20.0)
+    x = torch.randn(1, 3 * 5, 16)  # tokens of the 3 x 5 grid (image / 2)
+    with torch.no_grad():
+        got = attn(x, pisa=pisa)
+        m = pisa.at(3, 5)
+        small = torch.nn.functional.interpolate(torch.from_numpy(d)[None, None], size=(3, 5), mode="area")[0, 0]
+        ref_masks = pisa_masks(small.numpy(), 0.3, 20.0 * 5 / 10, window=m.window)
+        np.testing.assert_array_equal(m.coc[0].numpy(), ref_masks.coc.numpy())  # K rescaled with the grid
+        grid = lambda t: t.view(1, 3, 5, 2, 8).permute(0, 3, 1, 2, 4)  # noqa: E731
+        out = pisa_attention(grid(attn.to_q(x)), grid(attn.to_k(x)), grid(attn.to_v(x)), m.coc, m.visibility,
+                             m.window, scale=attn.scale)
+        want = attn.to_out[0](out.permute(0, 2, 3, 1, 4).reshape(1, 15, 16))
+    torch.testing.assert_close(got, want)
 
 
 def test_bad_model_directories_are_refused(tiny, tmp_path):

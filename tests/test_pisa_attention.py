@@ -77,11 +77,6 @@ def test_in_focus_is_the_identity():
     out = pisa_attention(q, k, v, torch.tensor(coc), torch.tensor(vis), m.window)
     # At k_max a neighbour's mask is sigmoid(-13.8) = 1e-6; the logits can raise its share by exp(ds).
     torch.testing.assert_close(out, v.detach(), rtol=0, atol=2e-5)
-    q, k, v = _qkv(scale=1.0)
-    a = pisa_weights(q, k, torch.tensor(coc), m.window)
-    centre = a.shape[-1] // 2
-    off = torch.cat([a[..., :centre], a[..., centre + 1:]], -1)
-    assert off.max() < 1e-6 * torch.exp(2 * (q.abs() * k.abs()).sum(-1).max() / 2).item()
 
 
 def test_fully_masked_key_contributes_zero_not_nan():
@@ -136,4 +131,3 @@ def test_random_inputs_never_give_nan_or_inf(logit_scale, coc_value, dtype, seed
     q, k = (q.detach() * logit_scale).to(dtype), k.detach().to(dtype)
     out = pisa_attention(q, k, v.detach().to(dtype), torch.tensor(coc), torch.tensor(vis), w)
     assert torch.isfinite(out).all()
-    assert out.abs().max() <= v.abs().max() * H * W  # bounded: each key hands out at most its value

@@ -36,8 +36,10 @@ def test_masks_match_dense_reference(device, model):
     np.testing.assert_allclose(c_dense[inside], ref.coc_dense(d, 0.2, 4.0, opts.slope)[inside], atol=2e-6)
     v_ref = ref.visibility_dense(d, 0.2, 4.0, model=model)
     v_dense = ref.window_to_dense(vis, m.window)
-    # Occlusion tests are thresholds: float32 vs float64 may flip a sample exactly on one; none flips here.
-    assert np.abs(v_dense[inside] - v_ref[inside]).max() <= 1e-6
+    # Occlusion tests are thresholds: float32 and float64 may round a collinear point lying exactly on a
+    # texel boundary to different texels, flipping one source sample (1/5) of a pair; rare, never more.
+    err = np.abs(v_dense[inside] - v_ref[inside])
+    assert err.max() <= 0.2 + 1e-6 and (err > 1e-6).mean() < 0.01
     assert 0.2 < v_dense[inside].mean() < 0.95  # the scene does occlude, and not everything
 
 
@@ -152,3 +154,19 @@ def test_masks_are_finite_and_bounded(h, w, values, d_f, k, model):
     coc, vis = m.numpy()
     assert np.isfinite(coc).all() and np.isfinite(vis).all()
     assert 0.0 <= coc.min() and coc.max() <= 1.0 and 0.0 <= vis.min() and vis.max() <= 1.0
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 5, 8])
+def test_jittered_sources_are_centred_on_the_key(n):
+    offs = ref.source_offsets(n, 0.5)
+    assert len(offs) == n
+    np.testing.assert_allclose(offs.mean(axis=0), 0.0, atol=1e-12)
+    assert (n % 2 == 0) or np.any(np.all(offs == 0.0, axis=1))  # odd n: one source on the key
+    # The kernel uses the same sources: a scene symmetric under a half turn about the key gives a
+    # visibility symmetric under the same half turn (a biased source set breaks this).
+    d = np.zeros((9, 9), np.float32)
+    d[4, 6] = d[4, 2] = 1.0
+    d[2, 5] = d[6, 3] = 0.7
+    _, vis = pisa_masks(d, 0.0, 6.0, PisaMaskOptions(n_sources=n), window=4).numpy()
+    v = vis[4, 4].reshape(9, 9)
+    np.testing.assert_allclose(v, v[::-1, ::-1], atol=1e-6)

@@ -209,3 +209,10 @@ def test_edge_band_follows_each_edges_reach():
     assert band[0, 29] == 1.0 and band[0, 29 + 12] == 1.0  # within CoC + margin
     assert 0.0 < band[0, 29 + 14] < 1.0 and band[0, 29 + 17] == 0.0  # fades out over the feather
     assert np.array_equal(edge_band(np.zeros((4, 4), np.float32), 2.0, 4.0), np.zeros((4, 4), np.float32))
+
+
+def test_refine_needs_the_preview_quality(weights):
+    img = np.zeros((16, 16, 3), np.float32)
+    with pytest.raises(InputError, match="preview"):
+        br.render(img, np.zeros((16, 16), np.float32), br.BlurParams(4.0, 0.5), quality="raytrace",
+                  refine=str(weights))

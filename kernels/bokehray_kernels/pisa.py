@@ -38,15 +38,21 @@ def soft_edge(x: float, slope: float) -> float:
 def source_offset(j: int, n: int, sigma: float) -> wp.vec2:
     """Offset of the j-th of n jittered light sources around a key (eq. 8).
 
-    A deterministic quasi-Monte-Carlo sample of N(0, sigma^2 I): golden-angle
-    directions with radii ``sigma * sqrt(-2 ln(1 - u_j))``, ``u_j = (j + 0.5) / n``.
-    One source sits on the key itself.
+    A deterministic quasi-Monte-Carlo sample of N(0, sigma^2 I) whose mean is exactly the key:
+    for odd n, source 0 sits on the key; the others come in mirrored pairs ``+-p_m`` at
+    golden-angle directions with radii ``sigma * sqrt(-2 ln(1 - u_m))``, ``u_m = (m + 0.5) / M``
+    for ``M`` pairs.
     """
-    if n <= 1:
+    odd = n % 2
+    if n <= 1 or (odd == 1 and j == 0):
         return wp.vec2(0.0, 0.0)
-    u = (float(j) + 0.5) / float(n)
-    rad = sigma * wp.sqrt(-2.0 * wp.log(1.0 - u))
-    a = float(j) * _GOLDEN_ANGLE
+    idx = j - odd
+    m = idx // 2
+    sign = 1.0 - 2.0 * float(idx % 2)
+    pairs = (n - odd) // 2
+    u = (float(m) + 0.5) / float(pairs)
+    rad = sign * sigma * wp.sqrt(-2.0 * wp.log(1.0 - u))
+    a = float(m) * _GOLDEN_ANGLE
     return wp.vec2(rad * wp.cos(a), rad * wp.sin(a))
 
 

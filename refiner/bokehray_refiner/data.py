@@ -23,10 +23,11 @@ from bokehray.io import linear_to_srgb
 from bokehray.lens import BlurParams
 from bokehray.render import render
 
-__all__ = ["CORRUPTIONS", "PairBank", "corrupt_disparity"]
+__all__ = ["CORRUPTIONS", "CORRUPTION_PROBS", "PairBank", "corrupt_disparity"]
 
 CORRUPTIONS = ("none", "erode", "dilate", "blur", "shift")
-_PROBS = (0.2, 0.25, 0.25, 0.15, 0.15)
+CORRUPTION_PROBS = (0.35, 0.25, 0.25, 0.075, 0.075)
+"""Default share of each corruption in :data:`CORRUPTIONS` order."""
 
 
 def corrupt_disparity(d: np.ndarray, kind: str, amount: int, rng: np.random.Generator | None = None) -> np.ndarray:
@@ -73,7 +74,12 @@ class PairBank:
     """
 
     def __init__(self, root: str, variants: int = 2, max_corruption_px: int = 5, seed: int = 0,
-                 limit: int | None = None, progress: bool = True):
+                 limit: int | None = None, progress: bool = True,
+                 probs: tuple[float, ...] = CORRUPTION_PROBS):
+        if len(probs) != len(CORRUPTIONS) or min(probs) < 0 or abs(sum(probs) - 1.0) > 1e-6:
+            raise ValueError(f"corruption probabilities: expected {len(CORRUPTIONS)} shares summing to 1, got {probs}")
+        if max_corruption_px < 1:
+            raise ValueError(f"max_corruption_px: expected >= 1, got {max_corruption_px}")
         ds = BLBDataset(root)
         n = len(ds) if limit is None else min(limit, len(ds))
         rng = np.random.default_rng(seed)
@@ -82,7 +88,7 @@ class PairBank:
             s = ds[i]
             renders, disps, kinds = [], [], []
             for _ in range(variants):
-                kind = str(rng.choice(CORRUPTIONS, p=_PROBS))
+                kind = str(rng.choice(CORRUPTIONS, p=list(probs)))
                 amount = int(rng.integers(1, max_corruption_px + 1))
                 dc = np.clip(corrupt_disparity(s.disparity, kind, amount, rng), 0.0, 1.0)
                 r = render(s.image, dc, BlurParams(s.k_px, s.focus_disparity))
@@ -96,12 +102,15 @@ class PairBank:
                 k_px=float(s.k_px), focus_disparity=float(s.focus_disparity)))
         if not self.pairs:
             raise ValueError(f"{root}: no pairs")
+        self.min_side = min(min(p.focus.shape[:2]) for p in self.pairs)
 
     def __len__(self) -> int:
         return len(self.pairs)
 
     def batch(self, rng: np.random.Generator, size: int, crop: int) -> dict[str, np.ndarray]:
-        """A random batch of ``crop x crop`` crops (random pair, variant, position and flips)."""
+        """A random batch of ``crop x crop`` crops (random pair, variant, position and left-right flip)."""
+        if crop > self.min_side:
+            raise ValueError(f"crop {crop} is larger than the smallest image ({self.min_side} px)")
         out: dict[str, list] = {k: [] for k in ("focus", "render", "target", "disparity", "k_px", "focus_disparity")}
         for _ in range(size):
             p = self.pairs[int(rng.integers(len(self.pairs)))]

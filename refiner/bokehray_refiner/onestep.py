@@ -126,7 +126,11 @@ class OneStepBokeh(torch.nn.Module):
     # --- whole images ----------------------------------------------------------------------------
     @torch.no_grad()
     def render(self, image: np.ndarray, disparity: np.ndarray, params: BlurParams) -> np.ndarray:
-        """Render a scene-linear ``H x W x 3`` image with its disparity, tile by tile; returns scene-linear."""
+        """Render a scene-linear ``H x W x 3`` image with its disparity, tile by tile; returns scene-linear.
+
+        The VAE works on display-referred sRGB: the input is clipped to [0, 1] first, so highlights
+        brighter than 1 come out at 1 (the shipped refiner, which corrects a classical render, keeps them).
+        """
         img = np.asarray(image, dtype=np.float32)
         if img.ndim != 3 or img.shape[2] != 3:
             raise InputError(f"image: expected H x W x 3, got shape {img.shape}")
@@ -220,5 +224,9 @@ def load_one_step(
         state, alphas = StableDiffusionXLPipeline.lora_state_dict(str(lora_dir), weight_name=weight_name)
         StableDiffusionXLPipeline.load_lora_into_unet(state, alphas, unet, adapter_name="bokeh")
     embeds, pooled = _encode_prompt(path, unet, vae, scheduler, prompt, device)
+    if embeds.ndim != 3 or embeds.shape[0] != 1:
+        raise InputError(f"{path}: prompt embeddings must be 1 x tokens x features, got {tuple(embeds.shape)}")
+    if unet.config.get("addition_embed_type") == "text_time" and pooled is None:
+        raise InputError(f"{path}: this U-Net needs pooled prompt embeddings (pooled_prompt_embeds)")
     model = OneStepBokeh(unet, vae, scheduler, embeds, pooled, options).to(device, dtype)
     return model.eval()

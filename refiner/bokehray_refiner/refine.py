@@ -230,11 +230,12 @@ def refine(
             for sl, dlt in zip(chunk, run(chunk)):
                 acc[sl] += dlt * wt
     delta = (acc / np.maximum(wsum, 1.0))[halo:halo + h, halo:halo + w]
-    delta *= edge_band(edge_reach(coc, options.min_jump_px), options.band_margin_px, options.band_feather_px)[..., None]
+    band = edge_band(edge_reach(coc, options.min_jump_px), options.band_margin_px, options.band_feather_px)
+    delta *= band[..., None]
     r = linear_to_srgb(base)
     fixed = srgb_to_linear(np.clip(r + delta, 0.0, 1.0))
     out = classical.astype(np.float32, copy=True)
-    touched = wsum[halo:halo + h, halo:halo + w, 0] > 0
+    touched = (wsum[halo:halo + h, halo:halo + w, 0] > 0) & (band > 0)  # elsewhere: the classical bits
     out[..., :3][touched] = (classical[..., :3] + (fixed - base))[touched]
     stats.seconds = time.perf_counter() - t0
     return np.maximum(out, 0.0) if classical.min() >= 0 else out, stats

@@ -6,7 +6,9 @@ adversarial term with a small patch discriminator. AdamW with linear warm-up
 and a cosine schedule. The PISA edge hardness rises log-linearly from
 ``hardness_start`` to ``k_max`` over the first ``hardness_ramp`` of the steps,
 then stays (appendix A). Checkpoints hold the model, optimiser, schedule and
-every random state, so a resumed run continues exactly as an uninterrupted one.
+the random states (NumPy's batch sampler and torch's CPU generator; nothing random runs on a GPU),
+and the configuration includes the corruption shares, so a resumed run continues exactly as an
+uninterrupted one.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ from tqdm import tqdm
 
 from bokehray.pisa import K_MAX, PisaMaskOptions
 
-from .data import PairBank
+from .data import CORRUPTION_PROBS, PairBank
 from .masks import PisaMaskProvider
 from .model import BokehRefiner, RefinerConfig, fingerprint
 
@@ -48,6 +50,8 @@ class TrainConfig:
     weight_decay: float = 1e-4
     warmup: int = 100
     variants: int = 2
+    corruption_probs: list[float] = field(default_factory=lambda: list(CORRUPTION_PROBS))
+    max_corruption_px: int = 5
     seed: int = 0
     mse_weight: float = 1.0
     edge_weight: float = 0.5
@@ -62,8 +66,9 @@ class TrainConfig:
     model: dict = field(default_factory=lambda: RefinerConfig().as_dict())
 
     def __post_init__(self) -> None:
-        if self.steps < 1 or self.batch < 1 or self.crop % RefinerConfig().latent_factor:
-            raise ValueError(f"steps and batch must be >= 1 and crop a multiple of {RefinerConfig().latent_factor}")
+        factor = RefinerConfig(**self.model).latent_factor
+        if self.steps < 1 or self.batch < 1 or self.checkpoint_every < 1 or self.crop < factor or self.crop % factor:
+            raise ValueError(f"steps, batch and checkpoint_every must be >= 1 and crop a positive multiple of {factor}")
         if self.lpips_weight > 0 and not self.lpips_model:
             raise ValueError("lpips_weight > 0 needs lpips_model: a local TorchScript LPIPS model")
 
@@ -187,6 +192,8 @@ def train(cfg: TrainConfig, resume: bool = True, progress: bool = True, bank: Pa
     checkpoint and exports the weights of that step: ``train --steps N --stop-at M`` reproduces a run of N steps
     that was stopped at step M (resuming needs a checkpoint at or before M).
     """
+    if stop_at is not None and stop_at < 1:
+        raise ValueError(f"stop_at: expected >= 1, got {stop_at}")
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     device = _device(cfg.device)
@@ -218,7 +225,8 @@ def train(cfg: TrainConfig, resume: bool = True, progress: bool = True, bank: Pa
         if stop_at is not None and step > stop_at:
             raise ValueError(f"{ckpt}: the checkpoint is at step {step}, past --stop-at {stop_at}")
     if bank is None:
-        bank = PairBank(cfg.data, variants=cfg.variants, seed=cfg.seed, limit=cfg.limit, progress=progress)
+        bank = PairBank(cfg.data, variants=cfg.variants, max_corruption_px=cfg.max_corruption_px, seed=cfg.seed,
+                        limit=cfg.limit, progress=progress, probs=tuple(cfg.corruption_probs))
     model.train()
     bar = tqdm(total=cfg.steps, initial=step, desc="training refiner", disable=not progress, unit="step")
     while step < cfg.steps and (stop_at is None or step < stop_at):
@@ -262,10 +270,11 @@ def train(cfg: TrainConfig, resume: bool = True, progress: bool = True, bank: Pa
             if disc is not None:
                 state |= {"disc": disc.state_dict(), "d_opt": d_opt.state_dict()}
             _atomic_torch_save(state, ckpt)
-            with open(out / "loss.csv", "w", newline="") as f:
+            with open(out / "loss.csv.tmp", "w", newline="") as f:
                 writer = csv.DictWriter(f, fieldnames=list(rows[-1]))
                 writer.writeheader()
                 writer.writerows(rows)
+            os.replace(out / "loss.csv.tmp", out / "loss.csv")
             _save_plot(rows, out / "loss.png")
         if stop_at is not None and step >= stop_at:
             break

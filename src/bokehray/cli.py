@@ -100,8 +100,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="preview: layered scatter (fast); raytrace: the same layers ray traced (exact, slower)")
     o.add_argument("--max-spp", type=int, default=128, help="raytrace: most rays per pixel (default 128)")
     o.add_argument("--refine", nargs="?", const=True, default=False, metavar="WEIGHTS",
-                   help="then run the neural refiner near depth edges (needs the 'refiner' extra); default: the "
-                   "shipped weights, or WEIGHTS from bokehray train-refiner")
+                   help="then run the neural refiner near depth edges (preview quality; needs the 'refiner' extra); "
+                   "default: the shipped weights, or WEIGHTS from bokehray train-refiner")
     _add_device_args(r)
 
     sy = sub.add_parser(

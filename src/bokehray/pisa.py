@@ -48,7 +48,8 @@ class PisaMaskOptions:
         hardness: the soft edge's ``k`` (training schedules raise it to ``k_max``; inference uses ``k_max``).
         k_max: the hardness cap (1e6 in the paper).
         dist_scale: ``c`` in eq. 6, multiplies the query-key distance (latent pixels).
-        n_sources: jittered light sources per key for the expectation of eq. 8.
+        n_sources: jittered light sources per key for the expectation of eq. 8 (odd: one on the key,
+            the rest in mirrored pairs, so their mean is the key).
         source_sigma: standard deviation of the source jitter ``epsilon_s``, latent pixels.
         n_steps: disparity samples ``d~`` along each ray (stratified over ``(d_s, 1)``).
         margin_px: an occluder must be nearer than the ray by this CoC, in latent
@@ -63,7 +64,7 @@ class PisaMaskOptions:
     hardness: float = K_MAX
     k_max: float = K_MAX
     dist_scale: float = 1.0
-    n_sources: int = 4
+    n_sources: int = 5
     source_sigma: float = 0.5
     n_steps: int = 8
     margin_px: float = 0.5

@@ -108,6 +108,9 @@ def render_with_stats(
     if not (np.isfinite(highlight_boost) and highlight_boost >= 0):
         raise InputError(f"highlight_boost: expected a finite value >= 0, got {highlight_boost!r}")
     device = _check_device(device)
+    if refine is not False and refine is not None and quality != "preview":
+        raise InputError("refine: the refiner corrects preview renders (it was trained on them); "
+                         "use quality='preview' with refine")
 
     channels = img.shape[2]
     lowest = float(img.min())

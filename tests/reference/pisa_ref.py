@@ -18,12 +18,15 @@ def soft(x: np.ndarray, slope: float) -> np.ndarray:
 
 
 def source_offsets(n: int, sigma: float) -> np.ndarray:
-    if n <= 1:
-        return np.zeros((1, 2))
-    j = np.arange(n)
-    u = (j + 0.5) / n
-    rad = sigma * np.sqrt(-2.0 * np.log(1.0 - u))
-    return np.stack([rad * np.cos(j * GOLDEN_ANGLE), rad * np.sin(j * GOLDEN_ANGLE)], axis=1)  # (x, y)
+    """(x, y) offsets: the key itself for odd n, then mirrored pairs +-p_m; their mean is exactly 0."""
+    out = [np.zeros(2)] if n % 2 else []
+    pairs = n // 2
+    for m in range(pairs):
+        u = (m + 0.5) / pairs
+        rad = sigma * math.sqrt(-2.0 * math.log(1.0 - u))
+        p = np.array([rad * math.cos(m * GOLDEN_ANGLE), rad * math.sin(m * GOLDEN_ANGLE)])
+        out += [p, -p]
+    return np.array(out) if out else np.zeros((1, 2))
 
 
 def bilinear(d: np.ndarray, x: float, y: float) -> float:
@@ -65,7 +68,7 @@ def collinear(q, ps, ds, dt, d_f, k_lat, model, eps):
     return q + k_lat * (dt - d_f) * u
 
 
-def visibility_dense(d: np.ndarray, d_f: float, k_lat: float, n_sources: int = 4, sigma: float = 0.5,
+def visibility_dense(d: np.ndarray, d_f: float, k_lat: float, n_sources: int = 5, sigma: float = 0.5,
                      n_steps: int = 8, margin_px: float = 0.5, model: str = "thin_lens",
                      eps: float = 1e-3) -> np.ndarray:
     h, w = d.shape
