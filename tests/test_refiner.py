@@ -96,6 +96,16 @@ def test_resume_continues_exactly(pairs, bank, tmp_path):
         train(_cfg(pairs, tmp_path / "b", lr=1e-2), resume=True, progress=False, bank=bank)
 
 
+def test_shipped_weights_load_and_reproduce_their_fingerprint():
+    if not DEFAULT_WEIGHTS.is_file():
+        pytest.fail(f"the package must ship refiner weights at {DEFAULT_WEIGHTS}")
+    meta = json.loads(DEFAULT_WEIGHTS.with_suffix(".json").read_text())
+    model = load_refiner()
+    assert fingerprint(model) == pytest.approx(meta["fingerprint"], rel=1e-4, abs=1e-5)
+    assert fingerprint(model) == fingerprint(model)  # deterministic
+
+
+
 def test_bad_weights_are_refused(tmp_path):
     with pytest.raises(InputError, match="no refiner weights"):
         load_refiner(tmp_path / "missing.safetensors")
