@@ -6,8 +6,9 @@ image is cut into tiles, and a tile is refined only if a discontinuity whose
 CoC jump exceeds ``min_jump_px`` lies within reach (the larger CoC radius at
 that edge) of it. Each refined tile runs with a halo of context; its
 correction (refined minus classical, in sRGB) is feathered to 0 across the
-halo, so refined and untouched tiles meet without a seam, and pixels no tile
-reaches are bit-identical to the classical render.
+halo, so refined and untouched tiles meet without a seam. The correction is
+also kept only within (the edge's CoC + a margin) of a depth edge; every other
+pixel is bit-identical to the classical render.
 """
 
 from __future__ import annotations
