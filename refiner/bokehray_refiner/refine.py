@@ -32,6 +32,7 @@ from bokehray.pisa import PisaMaskOptions
 
 from .masks import PisaMaskProvider
 from .model import BokehRefiner, RefinerConfig
+from .tiles import raised_cosine_ramp
 
 __all__ = ["DEFAULT_WEIGHTS", "RefineOptions", "RefineStats", "load_refiner", "refine", "tiles_to_refine"]
 
@@ -140,8 +141,11 @@ def edge_band(reach: np.ndarray, margin_px: float, feather_px: float) -> np.ndar
 
 def tiles_to_refine(coc: np.ndarray, tile: int, min_jump_px: float) -> np.ndarray:
     """Boolean ``(ceil(h/tile), ceil(w/tile))`` map of tiles within reach of a depth edge that matters."""
-    h, w = coc.shape
-    reach = edge_reach(coc, min_jump_px)
+    return _tiles_near(edge_reach(coc, min_jump_px), tile)
+
+
+def _tiles_near(reach: np.ndarray, tile: int) -> np.ndarray:
+    h, w = reach.shape
     ty, tx = -(-h // tile), -(-w // tile)
     padded = np.zeros((ty * tile, tx * tile), np.float32)
     padded[:h, :w] = reach
@@ -158,12 +162,6 @@ def tiles_to_refine(coc: np.ndarray, tile: int, min_jump_px: float) -> np.ndarra
             ok = (yy >= 0) & (yy < ty) & (xx >= 0) & (xx < tx)
             need[yy[ok], xx[ok]] = True
     return need
-
-
-def _feather(size: int, halo: int) -> np.ndarray:
-    """1 over the tile, a raised cosine down to 0 across the halo on both sides."""
-    ramp = 0.5 - 0.5 * np.cos(np.pi * (np.arange(halo) + 0.5) / halo) if halo else np.zeros(0)
-    return np.concatenate([ramp, np.ones(size - 2 * halo), ramp[::-1]])
 
 
 @torch.no_grad()
@@ -191,7 +189,8 @@ def refine(
     model = model or load_refiner()
     h, w = disparity.shape
     coc = blur.signed_coc(disparity).astype(np.float32)
-    need = tiles_to_refine(coc, options.tile, options.min_jump_px)
+    reach = edge_reach(coc, options.min_jump_px)
+    need = _tiles_near(reach, options.tile)
     stats = RefineStats(tiles_total=int(need.size), tiles_refined=int(need.sum()))
     if not need.any():
         stats.seconds = time.perf_counter() - t0
@@ -205,7 +204,7 @@ def refine(
     r_srgb = np.pad(linear_to_srgb(base), pad3, mode="reflect")
     d_pad = np.pad(disparity.astype(np.float32), pad3[:2], mode="reflect")
     coc_pad = np.pad(coc, pad3[:2], mode="reflect")
-    feather = _feather(size, halo)
+    feather = raised_cosine_ramp(size, halo)
     wt = (feather[:, None] * feather[None, :])[..., None].astype(np.float32)
     boxes = [(slice(int(y) * t, int(y) * t + size), slice(int(x) * t, int(x) * t + size)) for y, x in zip(*np.nonzero(need))]
     wsum = np.zeros(r_srgb.shape[:2] + (1,), np.float32)
@@ -231,10 +230,9 @@ def refine(
             for sl, dlt in zip(chunk, run(chunk)):
                 acc[sl] += dlt * wt
     delta = (acc / np.maximum(wsum, 1.0))[halo:halo + h, halo:halo + w]
-    band = edge_band(edge_reach(coc, options.min_jump_px), options.band_margin_px, options.band_feather_px)
+    band = edge_band(reach, options.band_margin_px, options.band_feather_px)
     delta *= band[..., None]
-    r = linear_to_srgb(base)
-    fixed = srgb_to_linear(np.clip(r + delta, 0.0, 1.0))
+    fixed = srgb_to_linear(np.clip(r_srgb[halo:halo + h, halo:halo + w] + delta, 0.0, 1.0))
     out = classical.astype(np.float32, copy=True)
     touched = (wsum[halo:halo + h, halo:halo + w, 0] > 0) & (band > 0)  # elsewhere: the classical bits
     out[..., :3][touched] = (classical[..., :3] + (fixed - base))[touched]

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-__all__ = ["blend_tiles", "tile_grid"]
+__all__ = ["blend_tiles", "raised_cosine_ramp", "tile_grid"]
 
 Box = tuple[int, int, int, int]  # y0, y1, x0, x1
 
@@ -36,7 +36,9 @@ def tile_grid(shape: tuple[int, int], tile: int, overlap: int, multiple: int = 1
     return out
 
 
-def _ramp(n: int, lo_edge: bool, hi_edge: bool, overlap: int) -> np.ndarray:
+def raised_cosine_ramp(n: int, overlap: int, lo_edge: bool = False, hi_edge: bool = False) -> np.ndarray:
+    """Weights over ``n`` pixels: 1 inside, a raised cosine rising over ``overlap`` pixels at each end that is not
+    an image edge (``lo_edge`` / ``hi_edge``)."""
     r = np.ones(n)
     k = min(overlap, n // 2)
     if k > 0:
@@ -54,8 +56,8 @@ def blend_tiles(tiles: list[np.ndarray], boxes: list[Box], shape: tuple[int, int
     acc = np.zeros((h, w, tiles[0].shape[2]))
     total = np.zeros((h, w, 1))
     for t, (y0, y1, x0, x1) in zip(tiles, boxes):
-        wy = _ramp(y1 - y0, y0 == 0, y1 == h, overlap)
-        wx = _ramp(x1 - x0, x0 == 0, x1 == w, overlap)
+        wy = raised_cosine_ramp(y1 - y0, overlap, y0 == 0, y1 == h)
+        wx = raised_cosine_ramp(x1 - x0, overlap, x0 == 0, x1 == w)
         wt = (wy[:, None] * wx[None, :])[..., None]
         acc[y0:y1, x0:x1] += wt * t
         total[y0:y1, x0:x1] += wt
