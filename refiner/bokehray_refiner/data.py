@@ -15,10 +15,9 @@ from dataclasses import dataclass
 
 import numpy as np
 from skimage.filters import gaussian
-from skimage.morphology import dilation, disk, erosion
 from tqdm import tqdm
 
-from bokehray.datasets import BLBDataset
+from bokehray.datasets import BLBDataset, perturb_disparity
 from bokehray.io import linear_to_srgb
 from bokehray.lens import BlurParams
 from bokehray.render import render
@@ -41,10 +40,8 @@ def corrupt_disparity(d: np.ndarray, kind: str, amount: int, rng: np.random.Gene
     d = np.asarray(d, np.float32)
     if kind == "none" or amount == 0:
         return d.copy()
-    if kind == "erode":
-        return erosion(d, disk(amount)).astype(np.float32)
-    if kind == "dilate":
-        return dilation(d, disk(amount)).astype(np.float32)
+    if kind in ("erode", "dilate"):
+        return perturb_disparity(d, -amount if kind == "erode" else amount)
     if kind == "blur":
         return gaussian(d, sigma=amount / 2.0, preserve_range=True).astype(np.float32)
     if kind == "shift":

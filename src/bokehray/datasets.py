@@ -31,7 +31,7 @@ import numpy as np
 from .errors import InputError
 from .io import read_depth, read_disparity, read_image, write_disparity, write_image
 
-__all__ = ["FAR_DEPTH", "BLBDataset", "EBBDataset", "Sample", "write_blb_scene"]
+__all__ = ["FAR_DEPTH", "BLBDataset", "EBBDataset", "Sample", "perturb_disparity", "write_blb_scene"]
 
 FAR_DEPTH = 1e9
 """Finite depth / focus distance written for disparity 0 (OpenEXR and JSON hold no +Inf here)."""
@@ -360,3 +360,16 @@ def _index(i: int, n: int) -> int:
     if not -n <= i < n:
         raise IndexError(f"index {i} out of range for {n} samples")
     return int(i) % n
+
+
+def perturb_disparity(disparity: np.ndarray, radius: int) -> np.ndarray:
+    """Grey erosion (``radius < 0``) or dilation (``> 0``) with a disc of ``|radius|`` px (paper fig. 7)."""
+    from scipy import ndimage
+
+    r = abs(int(radius))
+    if r == 0:
+        return disparity.copy()
+    yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
+    disc = (xx * xx + yy * yy) <= r * r
+    op = ndimage.grey_dilation if radius > 0 else ndimage.grey_erosion
+    return op(disparity, footprint=disc, mode="nearest").astype(np.float32)

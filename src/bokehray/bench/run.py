@@ -30,6 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..datasets import perturb_disparity
+from .machine import machine_info, reset_peak_rss, status_kb
 from ..errors import InputError
 from ..metrics import BAND_PX, PerceptualMetric, discontinuity_band, exposure_align, score
 from .methods import Method
@@ -154,69 +156,7 @@ def ebb_cases(path: str | os.PathLike, limit: int | None = None, mask_dir: str =
     return out
 
 
-def perturb_disparity(disparity: np.ndarray, radius: int) -> np.ndarray:
-    """Grey erosion (``radius < 0``) or dilation (``> 0``) with a disc of ``|radius|`` px (paper fig. 7)."""
-    from scipy import ndimage
-
-    r = abs(int(radius))
-    if r == 0:
-        return disparity.copy()
-    yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
-    disc = (xx * xx + yy * yy) <= r * r
-    op = ndimage.grey_dilation if radius > 0 else ndimage.grey_erosion
-    return op(disparity, footprint=disc, mode="nearest").astype(np.float32)
-
-
 # --------------------------------------------------------------------------- measuring
-
-
-def _status_kb(field_name: str) -> int | None:
-    try:
-        m = re.search(rf"^{field_name}:\s*(\d+) kB", Path("/proc/self/status").read_text(), re.M)
-    except OSError:
-        return None
-    return int(m.group(1)) if m else None
-
-
-def _reset_peak() -> bool:
-    try:
-        Path("/proc/self/clear_refs").write_text("5")
-        return True
-    except OSError:
-        return False
-
-
-def machine_info() -> dict:
-    """Where the numbers were measured (CPU, cores, memory, load, versions, commit)."""
-    import subprocess
-
-    import warp
-
-    cpu = re.search(r"^model name\s*:\s*(.+)$", _read("/proc/cpuinfo"), re.M)
-    mem = re.search(r"^MemTotal:\s*(\d+) kB", _read("/proc/meminfo"), re.M)
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                cwd=Path(__file__).parent).stdout.strip() or None
-    except OSError:
-        commit = None
-    return {
-        "cpu": cpu.group(1).strip() if cpu else platform.processor() or "unknown",
-        "cores": os.cpu_count(),
-        "ram_gb": round(int(mem.group(1)) / 2**20, 1) if mem else None,
-        "load_avg_1_5_15": [round(x, 2) for x in os.getloadavg()],
-        "os": platform.platform(),
-        "python": platform.python_version(),
-        "numpy": np.__version__,
-        "warp": warp.__version__,
-        "git_commit": commit,
-    }
-
-
-def _read(path: str) -> str:
-    try:
-        return Path(path).read_text()
-    except OSError:
-        return ""
 
 
 def _nanmean(vals: Sequence[float]) -> float:
@@ -315,7 +255,7 @@ def _measure_case(case: Case, active, runs: int, perceptual, k_range, skipped: d
                 continue
             row = rows[m.name]
             first = i == 0
-            rss0 = _status_kb("VmRSS") if first and _reset_peak() else None
+            rss0 = status_kb("VmRSS") if first and reset_peak_rss() else None
             t = time.perf_counter()
             try:
                 render(case.image, case.disparity, row["k_px"], case.focus_disparity)
@@ -329,7 +269,7 @@ def _measure_case(case: Case, active, runs: int, perceptual, k_range, skipped: d
                 row.setdefault("inner_times", []).append(inner)
             if first:
                 worker_peak = getattr(render, "last_peak_mb", None)
-                hwm = _status_kb("VmHWM")
+                hwm = status_kb("VmHWM")
                 row["peak_mb"] = worker_peak if worker_peak is not None else (
                     (hwm - rss0) / 1024 if rss0 is not None and hwm is not None else None)
     out = []
