@@ -16,7 +16,6 @@ from __future__ import annotations
 import csv
 import json
 import math
-import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -28,6 +27,7 @@ import torch.nn.functional as F
 from safetensors.torch import save_file
 from tqdm import tqdm
 
+from bokehray.io import atomic_write
 from bokehray.pisa import K_MAX, PisaMaskOptions
 
 from .data import CORRUPTION_PROBS, PairBank
@@ -161,27 +161,22 @@ def _save_plot(rows: list[dict], path: Path) -> None:
     ax.legend()
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    tmp = path.with_suffix(".tmp.png")
-    fig.savefig(tmp)
+    atomic_write(path, fig.savefig)
     plt.close(fig)
-    os.replace(tmp, path)
 
 
-def _atomic_torch_save(obj, path: Path) -> None:
-    tmp = path.with_suffix(".tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+def _write_csv(rows: list[dict], tmp: str) -> None:
+    with open(tmp, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[-1]))
+        writer.writeheader()
+        writer.writerows(rows)
 
 
 def export_weights(model: BokehRefiner, path: Path, meta: dict) -> None:
     """Write ``refiner.safetensors`` (weights) and ``refiner.json`` (architecture and provenance) atomically."""
     state = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
-    tmp = path.with_suffix(".tmp")
-    save_file(state, str(tmp), metadata={"config": json.dumps(model.config.as_dict())})
-    os.replace(tmp, path)
-    meta_path = path.with_suffix(".json")
-    meta_path.with_suffix(".tmp").write_text(json.dumps(meta, indent=2))
-    os.replace(meta_path.with_suffix(".tmp"), meta_path)
+    atomic_write(path, lambda tmp: save_file(state, tmp, metadata={"config": json.dumps(model.config.as_dict())}))
+    atomic_write(path.with_suffix(".json"), lambda tmp: Path(tmp).write_text(json.dumps(meta, indent=2)))
 
 
 def train(cfg: TrainConfig, resume: bool = True, progress: bool = True, bank: PairBank | None = None,
@@ -269,12 +264,8 @@ def train(cfg: TrainConfig, resume: bool = True, progress: bool = True, bank: Pa
                      "rows": rows, "config": asdict(cfg)}
             if disc is not None:
                 state |= {"disc": disc.state_dict(), "d_opt": d_opt.state_dict()}
-            _atomic_torch_save(state, ckpt)
-            with open(out / "loss.csv.tmp", "w", newline="") as f:
-                writer = csv.DictWriter(f, fieldnames=list(rows[-1]))
-                writer.writeheader()
-                writer.writerows(rows)
-            os.replace(out / "loss.csv.tmp", out / "loss.csv")
+            atomic_write(ckpt, lambda tmp: torch.save(state, tmp))
+            atomic_write(out / "loss.csv", lambda tmp: _write_csv(rows, tmp))
             _save_plot(rows, out / "loss.png")
         if stop_at is not None and step >= stop_at:
             break

@@ -37,7 +37,7 @@ from ._memory import available_bytes
 from .errors import InputError, ResourceError
 
 __all__ = [
-    "MAX_PIXELS", "check_output_path", "linear_to_srgb", "read_depth", "read_disparity", "read_image", "srgb_to_linear",
+    "MAX_PIXELS", "atomic_write", "check_output_path", "linear_to_srgb", "read_depth", "read_disparity", "read_image", "srgb_to_linear",
     "write_disparity", "write_image",
 ]  # fmt: skip
 
@@ -446,7 +446,7 @@ def read_depth(path: str | os.PathLike[str]) -> np.ndarray:
 # --------------------------------------------------------------------------- encoders
 
 
-def _atomic_write(path: Path, encode: Callable[[str], None]) -> Path:
+def atomic_write(path: Path, encode: Callable[[str], None]) -> Path:
     """Run ``encode(tmp_name)`` on a temporary sibling of ``path``, then move it onto ``path``."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=path.suffix)
@@ -573,20 +573,20 @@ def write_image(
         if bits == 16 and big.any():
             y, x = _first(big)[:2]
             raise InputError(f"refusing to write {p}: value beyond the HALF range (+-65504) at (y, x) = ({y}, {x})")
-        return _atomic_write(p, lambda tmp: _write_exr(tmp, img, half=bits == 16))
+        return atomic_write(p, lambda tmp: _write_exr(tmp, img, half=bits == 16))
     if fmt == "TIFF":
         data = img if bits == 32 else _quantize(img, bits)
-        return _atomic_write(p, lambda tmp: _write_tiff(tmp, data))
+        return atomic_write(p, lambda tmp: _write_tiff(tmp, data))
     if fmt == "JPEG" and img.shape[2] == 4:
         raise InputError(f"{p}: expected an image without alpha for JPEG, got 4 channels")
     if fmt == "JPEG" and not 1 <= quality <= 100:
         raise InputError(f"{p}: expected JPEG quality in [1, 100], got {quality!r}")
     codes = _quantize(img, bits)
     if fmt == "JPEG":
-        return _atomic_write(p, lambda tmp: _write_pil(tmp, codes, "JPEG", quality=quality))
+        return atomic_write(p, lambda tmp: _write_pil(tmp, codes, "JPEG", quality=quality))
     if bits == 16:
-        return _atomic_write(p, lambda tmp: _write_bytes(tmp, imagecodecs.png_encode(codes)))
-    return _atomic_write(p, lambda tmp: _write_pil(tmp, codes, "PNG"))
+        return atomic_write(p, lambda tmp: _write_bytes(tmp, imagecodecs.png_encode(codes)))
+    return atomic_write(p, lambda tmp: _write_pil(tmp, codes, "PNG"))
 
 
 def write_disparity(path: str | os.PathLike[str], d: npt.ArrayLike) -> Path:
@@ -617,14 +617,14 @@ def write_disparity(path: str | os.PathLike[str], d: npt.ArrayLike) -> Path:
         if lo < 0.0 or hi > 1.0:
             raise InputError(f"{p}: expected disparity within [0, 1] for 16-bit PNG, got [{lo:g}, {hi:g}]")
         codes = np.round(a[..., None].astype(np.float64) * 65535).astype(np.uint16)
-        return _atomic_write(p, lambda tmp: _write_bytes(tmp, imagecodecs.png_encode(codes)))
+        return atomic_write(p, lambda tmp: _write_bytes(tmp, imagecodecs.png_encode(codes)))
     if fmt == "EXR":
-        return _atomic_write(p, lambda tmp: _write_exr(tmp, a[..., None], half=False))
+        return atomic_write(p, lambda tmp: _write_exr(tmp, a[..., None], half=False))
     if fmt == "TIFF":
-        return _atomic_write(p, lambda tmp: _write_tiff(tmp, a[..., None]))
+        return atomic_write(p, lambda tmp: _write_tiff(tmp, a[..., None]))
 
     def save_npy(tmp: str) -> None:
         with open(tmp, "wb") as fh:
             np.save(fh, a)
 
-    return _atomic_write(p, save_npy)
+    return atomic_write(p, save_npy)
