@@ -16,7 +16,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import REPO, machine_info, peak_rss_mb_of, report_rss, time_warm, write_json  # noqa: E402
+from common import REPO, machine_info, peak_rss_mb_of, report_rss, reset_peak_rss, time_warm, write_json  # noqa: E402
 
 HEADS, HEAD_DIM, MAX_COC = 4, 16, 8.0
 
@@ -64,10 +64,7 @@ def child(form: str, n: int) -> None:
         fn()  # warm: first-call allocations (thread pools, kernel scratch) are not the attention's
         del fn
         fn = _call(form, n)
-        try:  # reset the high-water mark to the current RSS (Linux >= 4.0), so the peak is this call's
-            Path("/proc/self/clear_refs").write_text("5")
-        except OSError:
-            pass
+        reset_peak_rss()  # so the peak is this call's
         report_rss(peak=False)
         fn()
         report_rss(peak=True)

@@ -2,13 +2,9 @@
 
 from __future__ import annotations
 
-import datetime
 import json
-import os
-import platform
 import re
 import resource
-import socket
 import statistics
 import subprocess
 import sys
@@ -16,44 +12,12 @@ import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from bokehray.bench.machine import machine_info, reset_peak_rss, status_kb
+
+__all__ = ["REPO", "machine_info", "machine_tag", "peak_rss_mb_of", "report_rss", "reset_peak_rss", "time_warm",
+           "write_json"]
+
 REPO = Path(__file__).resolve().parent.parent
-
-
-def _read(path: str) -> str:
-    return Path(path).read_text() if Path(path).exists() else ""
-
-
-def _git_commit() -> str:
-    try:
-        def git(*args: str) -> subprocess.CompletedProcess:
-            return subprocess.run(["git", *args], cwd=REPO, capture_output=True, text=True)
-
-        out, dirty = git("rev-parse", "--short", "HEAD"), git("status", "--porcelain", "--untracked-files=no").stdout
-        return out.stdout.strip() + ("+dirty" if dirty.strip() else "") if out.returncode == 0 else "unknown"
-    except OSError:
-        return "unknown"
-
-
-def machine_info() -> dict:
-    """Describe the machine and software the numbers were taken on."""
-    import numpy
-    import warp
-
-    model = re.search(r"^model name\s*:\s*(.+)$", _read("/proc/cpuinfo"), re.M)
-    mem = re.search(r"^MemTotal:\s*(\d+) kB", _read("/proc/meminfo"), re.M)
-    return {
-        "hostname": socket.gethostname(),
-        "cpu": model.group(1).strip() if model else platform.processor() or "unknown",
-        "cores": os.cpu_count(),
-        "load_avg_1_5_15": [round(x, 2) for x in os.getloadavg()],  # other jobs skew the timings
-        "ram_gb": round(int(mem.group(1)) / 2**20, 1) if mem else None,
-        "os": platform.platform(),
-        "python": platform.python_version(),
-        "numpy": numpy.__version__,
-        "warp": warp.__version__,
-        "git_commit": _git_commit(),
-        "date": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
-    }
 
 
 def machine_tag(info: dict) -> str:
@@ -99,11 +63,6 @@ def peak_rss_mb_of(cmd_args: Sequence[str], timeout: float = 600.0) -> dict:
     return {"peak_mb": kb["PEAK_KB"] / 1024, "before_mb": kb["RSS_KB"] / 1024 if "RSS_KB" in kb else None}
 
 
-def _status_kb(field: str) -> int | None:
-    m = re.search(rf"^{field}:\s*(\d+) kB", _read("/proc/self/status"), re.M)
-    return int(m.group(1)) if m else None
-
-
 def report_rss(peak: bool) -> None:
     """Print this process's current (``peak=False``) or peak RSS in KB for :func:`peak_rss_mb_of`.
 
@@ -113,10 +72,10 @@ def report_rss(peak: bool) -> None:
     driver's memory. ``ru_maxrss`` is the fallback where /proc is missing.
     """
     if peak:
-        kb = _status_kb("VmHWM") or resource.getrusage(resource.RUSAGE_SELF).ru_maxrss // (
+        kb = status_kb("VmHWM") or resource.getrusage(resource.RUSAGE_SELF).ru_maxrss // (
             1024 if sys.platform == "darwin" else 1)  # bytes on macOS
         print(f"PEAK_KB={kb}", flush=True)
-    elif (kb := _status_kb("VmRSS")) is not None:
+    elif (kb := status_kb("VmRSS")) is not None:
         print(f"RSS_KB={kb}", flush=True)
 
 
