@@ -10,6 +10,8 @@ import math
 
 import numpy as np
 
+from .raytrace_ref import bilinear
+
 GOLDEN_ANGLE = 2.399963229728653
 
 
@@ -27,18 +29,6 @@ def source_offsets(n: int, sigma: float) -> np.ndarray:
         p = np.array([rad * math.cos(m * GOLDEN_ANGLE), rad * math.sin(m * GOLDEN_ANGLE)])
         out += [p, -p]
     return np.array(out) if out else np.zeros((1, 2))
-
-
-def bilinear(d: np.ndarray, x: float, y: float) -> float:
-    h, w = d.shape
-    x = min(max(x, 0.0), w - 1.0)
-    y = min(max(y, 0.0), h - 1.0)
-    x0, y0 = int(math.floor(x)), int(math.floor(y))
-    x1, y1 = min(x0 + 1, w - 1), min(y0 + 1, h - 1)
-    tx, ty = x - x0, y - y0
-    top = d[y0, x0] * (1 - tx) + d[y0, x1] * tx
-    bot = d[y1, x0] * (1 - tx) + d[y1, x1] * tx
-    return top * (1 - ty) + bot * ty
 
 
 def coc_dense(d: np.ndarray, d_f: float, k_lat: float, slope: float, c: float = 1.0) -> np.ndarray:
@@ -85,7 +75,7 @@ def visibility_dense(d: np.ndarray, d_f: float, k_lat: float, n_sources: int = 5
             acc = 0.0
             for off in offs:
                 ps = np.array([kx, ky], np.float64) + off
-                ds = bilinear(d, ps[0], ps[1])
+                ds = float(bilinear(d, ps[0] + 0.5, ps[1] + 0.5))  # texel centres at +0.5 there
                 visible = True
                 for i in range(n_steps):
                     dt = ds + (1 - ds) * (i + 0.5) / n_steps
