@@ -29,13 +29,13 @@ import bokehray as br  # noqa: E402
 ROOT = Path(__file__).resolve().parent.parent
 VARIANTS = {
     "raytrace (photo mode, defaults)": "raytrace",
-    "preview (default)": br.PreviewOptions(),
-    "preview, no hidden-region fill": br.PreviewOptions(fill=False),
-    "plain scatter (one layer, no occlusion)": br.PreviewOptions(max_layers=1, fill=False),
+    "preview (default)": br.LayerOptions(),
+    "preview, no hidden-region fill": br.LayerOptions(fill=False),
+    "plain scatter (one layer, no occlusion)": br.LayerOptions(max_layers=1, fill=False),
 }
 
 
-def render_set(data: Path, out: Path, options: br.PreviewOptions | str) -> float:
+def render_set(data: Path, out: Path, options: br.LayerOptions | str) -> float:
     """Render all dev-set pairs into ``out``; returns the total render time in seconds."""
     total = 0.0
     for info_path in sorted(data.glob("*/info.json")):
@@ -49,7 +49,7 @@ def render_set(data: Path, out: Path, options: br.PreviewOptions | str) -> float
             if options == "raytrace":
                 pred = br.render(image, disparity, blur, quality="raytrace")
             else:
-                pred = br.render(image, disparity, blur, options=options)
+                pred = br.render(image, disparity, blur, layers=options)
             total += time.perf_counter() - t
             br.write_image(out / scene.name / f"{r['file']}.exr", pred)
     return total
@@ -84,7 +84,7 @@ def crops_figure(data: Path, path: Path, cases=(("d3_lamps_ring_writing", "bokeh
         image = br.read_image(data / scene / "image.exr")
         disparity = br.read_disparity(data / scene / "disparity.exr")
         blur = br.BlurParams(r["K"], min(1.0, r["focus_disparity"]))
-        shots = (image, br.render(image, disparity, blur, options=VARIANTS["plain scatter (one layer, no occlusion)"]),
+        shots = (image, br.render(image, disparity, blur, layers=VARIANTS["plain scatter (one layer, no occlusion)"]),
                  br.render(image, disparity, blur), br.render(image, disparity, blur, quality="raytrace"),
                  br.read_image(data / scene / f"{name}.exr"))
         for col, img in enumerate(shots):

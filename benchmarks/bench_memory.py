@@ -58,13 +58,13 @@ def child(npz: str, quality: str, radius: str, tile: str, limit: str, spp: str) 
     with np.load(npz) as f:
         image, disparity, focus = f["image"], f["disparity"], float(f["focus"])
     blur = br.BlurParams(float(radius) / max(float(np.abs(disparity - focus).max()), 1e-6), focus)
-    opts = br.PreviewOptions(tile_size=None if tile == "-" else int(tile),
-                             memory_limit_mb=None if limit == "-" else float(limit))
+    memory = br.MemoryOptions(tile_size=None if tile == "-" else int(tile),
+                              memory_limit_mb=None if limit == "-" else float(limit))
     rays = br.RaytraceOptions(max_spp=int(spp)) if spp != "-" else None
     common.report_rss(peak=False)
     t = time.perf_counter()
     try:
-        _, stats = br.render_with_stats(image, disparity, blur, quality=quality, options=opts, raytrace_options=rays)
+        _, stats = br.render_with_stats(image, disparity, blur, quality=quality, options=rays, memory=memory)
         info = {"seconds": time.perf_counter() - t, "image_tiles": stats.image_tiles,
                 "memory_estimate_mb": getattr(stats, "memory_estimate_mb", None), "layers": stats.layers}
     except br.ResourceError as e:

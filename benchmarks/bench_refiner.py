@@ -68,7 +68,7 @@ def main() -> None:
             t_preview = time.perf_counter() - t0
             t0 = time.perf_counter()
             ray = preview if args.no_raytrace else br.render(
-                s.image, d, blur, quality="raytrace", raytrace_options=br.RaytraceOptions(max_spp=args.max_spp))
+                s.image, d, blur, quality="raytrace", options=br.RaytraceOptions(max_spp=args.max_spp))
             t_ray = time.perf_counter() - t0
             refined, st = refine(s.image, d, blur, preview, model=model, options=ropts)
             for method, img, t in (("preview", preview, t_preview), ("raytrace", ray, t_ray),

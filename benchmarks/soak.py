@@ -59,10 +59,10 @@ def run_case(c: dict) -> str | None:
     ap = br.Aperture(blades=c["blades"], curvature=c["curv"]) if c["blades"] else br.Aperture()
     opts = br.RaytraceOptions(max_spp=16) if c["quality"] == "raytrace" else None
     try:
-        out = br.render(image, d, br.BlurParams(c["k"], c["d_f"]), ap, quality=c["quality"], raytrace_options=opts)
+        out = br.render(image, d, br.BlurParams(c["k"], c["d_f"]), ap, quality=c["quality"], options=opts)
         tiled = None if not c.get("tile") else br.render(image, d, br.BlurParams(c["k"], c["d_f"]), ap,
-                                                           quality=c["quality"], raytrace_options=opts,
-                                                           options=br.PreviewOptions(tile_size=c["tile"]))
+                                                           quality=c["quality"], options=opts,
+                                                           memory=br.MemoryOptions(tile_size=c["tile"]))
     except Exception as e:  # noqa: BLE001 - a soak reports every failure
         return f"exception {type(e).__name__}: {e}"
     if tiled is not None and np.abs(tiled - out).max() > 2e-5 * max(float(np.abs(out).max()), 1e-30):

@@ -1,9 +1,16 @@
+"""Shared fixtures. Tests live by category (kernels/, core/, refiner/, cli_io/, stress/); the NumPy oracles in
+reference/ and the tolerances in tolerances.py are imported from this folder."""
+
 import os
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 import warp as wp
 from hypothesis import settings
+
+sys.path.insert(0, str(Path(__file__).parent))  # reference/, tolerances.py, conftest.DEVICES
 
 wp.config.log_level = wp.LOG_WARNING
 wp.init()

@@ -1,8 +1,9 @@
 """NVIDIA Warp kernels of bokehray: pure compute, no IO, no validation, no policy.
 
-The launchers that allocate, validate and choose devices live in
-``bokehray._scatter`` (layer 1). Each kernel here has a float64 NumPy oracle in
-``tests/reference/``.
+The launchers that allocate, validate and choose devices live in ``bokehray``
+(``bokehray.scene`` builds the layers, ``bokehray.levels`` renders them); this
+package imports neither ``bokehray`` nor torch. Each kernel here has a float64
+NumPy oracle in ``tests/reference/`` and a test comparing them.
 """
 
 from .aperture import chord as chord
@@ -16,6 +17,7 @@ from .scatter import (
 )
 from .raytrace import raytrace_kernel as raytrace_kernel
 from .fill import (
+    FILL_GATE_SLOPE as FILL_GATE_SLOPE,
     fill_sources_kernel as fill_sources_kernel,
     pull_kernel as pull_kernel,
     push_kernel as push_kernel,
@@ -25,6 +27,7 @@ from .fill import (
 )
 
 __all__ = [
+    "FILL_GATE_SLOPE",
     "MAX_LEVELS",
     "chord",
     "column_distance_kernel",

@@ -15,6 +15,11 @@ from .sampling import bilinear_taps
 
 wp.set_module_options({"enable_backward": False})
 
+FILL_GATE_SLOPE = 1.4142135
+"""sqrt(2): a layer is filled where its visible pixels lie within ``FILL_GATE_SLOPE * r + 1`` px (L1) of a hidden
+pixel whose hider has CoC radius ``r`` (the L1 bound of a Euclidean disc). The host pads layer boxes by it."""
+_GATE = wp.constant(FILL_GATE_SLOPE)
+
 
 @wp.func
 def _tonemap(c: float) -> float:
@@ -198,7 +203,7 @@ def fill_sources_kernel(
     density = fill_density[y, x]
     if slice_id[gy, gx] <= layer or density < 0.02:
         return
-    if dist_l1[y, x] <= 1.4142135 * wp.abs(signed_coc[gy, gx]) + 1.0:
+    if dist_l1[y, x] <= _GATE * wp.abs(signed_coc[gy, gx]) + 1.0:
         v = fill_value[y, x]
         a = wp.min(density, 1.0)
         src[y, x] = wp.vec4(_untonemap(v[0]) * a, _untonemap(v[1]) * a, _untonemap(v[2]) * a, a)

@@ -20,7 +20,7 @@ from tqdm import tqdm
 from bokehray.datasets import BLBDataset, perturb_disparity
 from bokehray.io import linear_to_srgb
 from bokehray.lens import BlurParams
-from bokehray.render import render
+from bokehray.pipeline import render
 
 __all__ = ["CORRUPTIONS", "CORRUPTION_PROBS", "PairBank", "corrupt_disparity"]
 

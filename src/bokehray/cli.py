@@ -1,4 +1,4 @@
-"""Command line: ``bokehray render``, ``bokehray demo``.
+"""Command line: ``bokehray render``, ``synth``, ``demo``, ``train-refiner`` and ``bench``.
 
 Every input problem is reported as one line ``bokehray: error: ...`` with exit
 code 2 (``--debug`` shows the traceback). Outputs are written atomically, and
@@ -96,8 +96,10 @@ def build_parser() -> argparse.ArgumentParser:
     o.add_argument("--half", action="store_true", help="EXR: write half floats")
     o.add_argument("--highlight-boost", type=float, default=0.0,
                    help="re-inflate clipped highlights of 8-bit inputs (0 = off, try 4)")
-    o.add_argument("--quality", choices=("preview", "raytrace"), default="preview",
-                   help="preview: layered scatter (fast); raytrace: the same layers ray traced (exact, slower)")
+    from .levels import LEVELS
+
+    o.add_argument("--quality", choices=tuple(LEVELS), default="preview",
+                   help="; ".join(f"{name}: {level.summary}" for name, level in LEVELS.items()))
     o.add_argument("--max-spp", type=int, default=128, help="raytrace: most rays per pixel (default 128)")
     o.add_argument("--refine", nargs="?", const=True, default=False, metavar="WEIGHTS",
                    help="then run the neural refiner near depth edges (preview quality; needs the 'refiner' extra); "
@@ -174,8 +176,8 @@ def _aperture(args: argparse.Namespace):
     return Aperture(blades=args.blades, rotation_deg=args.rotation, curvature=args.curvature)
 
 
-def _options(args: argparse.Namespace):
-    from ._scatter import PreviewOptions
+def _layer_options(args: argparse.Namespace):
+    from .options import LayerOptions
 
     kw = {}
     if args.max_layers is not None:
@@ -184,7 +186,7 @@ def _options(args: argparse.Namespace):
         kw["max_layers"] = args.max_layers
     if args.no_fill:
         kw["fill"] = False
-    return PreviewOptions(**kw)
+    return LayerOptions(**kw)
 
 
 def _progress_bar(args: argparse.Namespace):
@@ -218,7 +220,7 @@ def _check_output(path: str, args: argparse.Namespace) -> None:
 def cmd_render(args: argparse.Namespace) -> int:
     from . import io
     from .lens import BlurParams, DepthNormalization, ThinLens, disparity_from_depth
-    from .render import focus_at, render_with_stats
+    from .pipeline import focus_at, render_with_stats
 
     _check_output(args.output, args)
     t0 = time.perf_counter()
@@ -277,12 +279,13 @@ def cmd_render(args: argparse.Namespace) -> int:
 
     bar, update = _progress_bar(args)
     try:
-        from .raytrace import RaytraceOptions
+        from .options import RaytraceOptions
 
         rt_opts = RaytraceOptions(max_spp=args.max_spp)  # validated whatever the quality
         out, stats = render_with_stats(image, disparity, blur, _aperture(args), quality=args.quality,
-                                       device=args.device, options=_options(args), raytrace_options=rt_opts,
-                                       highlight_boost=args.highlight_boost, progress=update, refine=args.refine)
+                                       device=args.device, options=rt_opts if args.quality == "raytrace" else None,
+                                       layers=_layer_options(args), highlight_boost=args.highlight_boost,
+                                       progress=update, refine=args.refine)
     finally:
         if bar is not None:
             bar.close()
@@ -307,13 +310,13 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from . import io
     from .demo import build_demo_scene, contact_sheet
     from .lens import BlurParams
-    from .render import render_with_stats
+    from .pipeline import render_with_stats
 
     w, h = args.size
     out_dir = Path(args.output)
     scene = build_demo_scene(width=w, height=h)
     aperture = _aperture(args)
-    opts = _options(args)
+    opts = _layer_options(args)
     written: list[tuple[str, Path]] = []
 
     def save(name: str, img: np.ndarray, what: str) -> None:
@@ -327,7 +330,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     renders = {}
     for label, d_f in (("near", scene.focus_near), ("far", scene.focus_far)):
         out, stats = render_with_stats(scene.image, scene.disparity, BlurParams(scene.k_px, d_f), aperture,
-                                       device=args.device, options=opts)
+                                       device=args.device, layers=opts)
         renders[label] = out
         all_stats.append((label, stats))
         save(f"render_focus_{label}.png", out, f"focused {label} (d_f = {d_f:.3f}, K = {scene.k_px:.2f})")
@@ -343,7 +346,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
             out = renders["far" if i == 0 else "near"]
         else:
             out, _ = render_with_stats(scene.image, scene.disparity, BlurParams(scene.k_px, float(d_f)), aperture,
-                                       device=args.device, options=opts)
+                                       device=args.device, layers=opts)
         tiles.append(out)
         labels.append(f"focus d_f = {d_f:.2f}")
     sheet = contact_sheet(tiles, labels, columns=4)
@@ -432,6 +435,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         print(f"bokehray: error: {e}", file=sys.stderr)
         return EXIT_INPUT
+    except BrokenPipeError:  # stdout closed early (e.g. piped into head): the work is done
+        sys.stdout = None
+        return 0
     except OSError as e:  # the disk, not the input: e.g. an output folder that cannot be created
         if args.debug:
             raise
@@ -440,9 +446,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("bokehray: interrupted; no output was written", file=sys.stderr)
         return 130
-    except BrokenPipeError:  # stdout closed early (e.g. piped into head): the work is done
-        sys.stdout = None
-        return 0
 
 
 if __name__ == "__main__":

@@ -26,7 +26,8 @@ import numpy as np
 
 from .errors import InputError
 from .lens import Aperture, BlurParams
-from .raytrace import Layer, RaytraceOptions, raytrace_layers
+from .levels.raytrace import Layer, raytrace_layers
+from .options import RaytraceOptions
 
 __all__ = ["SynthConfig", "generate", "make_scene"]
 

@@ -18,8 +18,10 @@ import warp as wp
 
 import bokehray as br
 import bokehray_kernels as bk
-from bokehray._scatter import PreviewOptions, cap_coc, layer_edges, render_preview
-from bokehray.raytrace import Layer, RaytraceOptions, raytrace_layers
+from bokehray.levels.preview import render_signed_coc
+from bokehray.levels.raytrace import Layer, raytrace_layers
+from bokehray.options import LayerOptions, PreviewOptions, RaytraceOptions
+from bokehray.scene import cap_coc, copy_tiles, grid_to_pixels, layer_edges
 
 from . import raytrace_ref, scatter_ref
 
@@ -94,20 +96,19 @@ def layered_case(seed: int, device: str = "cpu") -> tuple[float, float, str]:
          "edge": (np.arange(w)[None, :] >= w // 2) * np.ones((h, 1)), "constant": np.full((h, w), rng.random()),
          "zero": np.zeros((h, w)), "one": np.ones((h, w))}[pattern].astype(np.float32)
     blur = br.BlurParams(float(rng.choice([0.0, 0.9, 3.0, 7.0, 25.0])), float(rng.choice([0.0, 1.0, rng.random()])))
-    opts = PreviewOptions(max_layer_px=1.5, level_radius_px=1e6, fill=False, tile_px=4)
-    got, _ = render_preview(image, blur.signed_coc(d), ap, options=opts, device=device)
+    layers = LayerOptions(max_layer_px=1.5, fill=False, tile_px=4)
+    got, _ = render_signed_coc(image, blur.signed_coc(d), ap, layers=layers, options=PreviewOptions(level_radius_px=1e6),
+                               device=device)
     # the renderer compresses CoCs beyond twice the image diagonal (cap_coc, a policy, not a kernel;
     # not idempotent, so applied once): the reference gets the same radii
     s = cap_coc(blur.signed_coc(d))
     # the reference has no tile skipping: give it the same slices (copied pixels keep the input in both)
-    from bokehray._scatter import copy_tiles
-
-    copy = copy_tiles(np.abs(s), opts.tile_px)
-    active = ~np.repeat(np.repeat(copy, 4, 0), 4, 1)[:h, :w]
+    copy = copy_tiles(np.abs(s), layers.tile_px)
+    active = ~grid_to_pixels(copy, layers.tile_px, (h, w))
     if not active.any():
         want = image.astype(np.float64)
     else:
-        edges = layer_edges(s[active], opts)
+        edges = layer_edges(s[active], layers)
         want = scatter_ref.layered(image.astype(np.float64), s.astype(np.float64), edges, ap.blade_discs(),
                                    ap.vertical_extent())
         want = np.where(active[..., None], want, image)

@@ -50,7 +50,7 @@ def _bokehray(**render_kwargs) -> Callable[[], Renderer]:
 
     def make() -> Renderer:
         from ..lens import Aperture, BlurParams
-        from ..render import render
+        from ..pipeline import render
 
         def run(image: np.ndarray, disparity: np.ndarray, k_px: float, focus_disparity: float) -> np.ndarray:
             return render(image, disparity, BlurParams(k_px, focus_disparity), Aperture(), **render_kwargs)
@@ -60,16 +60,17 @@ def _bokehray(**render_kwargs) -> Callable[[], Renderer]:
     return make
 
 
-def _preview(**opts) -> Callable[[], Renderer]:
-    from .._scatter import PreviewOptions
+def _preview(level_radius_px: float | None = None, **layers) -> Callable[[], Renderer]:
+    from ..options import LayerOptions, PreviewOptions
 
-    return _bokehray(options=PreviewOptions(**opts))
+    preview = PreviewOptions() if level_radius_px is None else PreviewOptions(level_radius_px=level_radius_px)
+    return _bokehray(options=preview, layers=LayerOptions(**layers))
 
 
 def _raytrace(spp: int) -> Callable[[], Renderer]:
-    from ..raytrace import RaytraceOptions
+    from ..options import RaytraceOptions
 
-    return _bokehray(quality="raytrace", raytrace_options=RaytraceOptions(max_spp=spp))
+    return _bokehray(quality="raytrace", options=RaytraceOptions(max_spp=spp))
 
 
 def _needs_module(module: str, hint: str = "") -> Callable[[], str | None]:

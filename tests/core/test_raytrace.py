@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 import bokehray as br
-from bokehray.raytrace import Layer, RaytraceOptions, raytrace_layers, render_raytrace
+from bokehray.levels.raytrace import Layer, raytrace_layers
+from bokehray.options import RaytraceOptions
 from reference import raytrace_ref
 
 
@@ -81,13 +82,13 @@ def test_adaptive_sampling_and_determinism():
 def test_photo_mode_is_close_to_the_preview_and_identity_in_focus():
     scene = __import__("bokehray.demo", fromlist=["build_demo_scene"]).build_demo_scene(width=128, height=96)
     blur = br.BlurParams(scene.k_px, scene.focus_near)
-    rt, stats = render_raytrace(scene.image, scene.disparity, blur, br.Aperture(),
-                                options=RaytraceOptions(max_spp=64))
+    rt, stats = br.render_with_stats(scene.image, scene.disparity, blur, quality="raytrace",
+                                     options=RaytraceOptions(max_spp=64))
     pv = br.render(scene.image, scene.disparity, blur)
     assert np.isfinite(rt).all() and stats.layers >= 3
     srgb = lambda x: br.io.linear_to_srgb(np.clip(x, 0, 1))  # noqa: E731
     assert 10 * np.log10(1 / np.mean((srgb(rt) - srgb(pv)) ** 2)) > 28
-    same, _ = render_raytrace(scene.image, scene.disparity, br.BlurParams(0.0, 0.5), br.Aperture())
+    same = br.render(scene.image, scene.disparity, br.BlurParams(0.0, 0.5), quality="raytrace")
     np.testing.assert_array_equal(same, scene.image)
 
 

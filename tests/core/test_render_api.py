@@ -7,7 +7,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 import bokehray as br
-from bokehray._scatter import PreviewOptions
+from bokehray import LayerOptions, PreviewOptions
 from tolerances import IDENTITY_ATOL, IMAGE_ENERGY_RTOL
 
 finite_radiance = st.floats(0.0, 50.0, allow_nan=False, width=32)
@@ -73,9 +73,9 @@ def test_in_focus_everywhere_is_identity(scene, k):
 @given(scene=scenes(max_side=20), blur=blurs)
 def test_horizontal_mirror_symmetry(scene, blur):
     image, d = scene
-    opts = PreviewOptions(fill=False, level_radius_px=1e6)
-    out = br.render(image, d, blur, options=opts)
-    mirrored = br.render(image[:, ::-1].copy(), d[:, ::-1].copy(), blur, options=opts)
+    opts = {"layers": LayerOptions(fill=False), "options": PreviewOptions(level_radius_px=1e6)}
+    out = br.render(image, d, blur, **opts)
+    mirrored = br.render(image[:, ::-1].copy(), d[:, ::-1].copy(), blur, **opts)
     np.testing.assert_allclose(mirrored[:, ::-1], out, rtol=1e-4, atol=1e-4)
 
 
@@ -244,7 +244,7 @@ def test_fill_reveals_the_background_behind_a_blurred_edge(device):
     px = br.render(image, d, blur, device=device)[32, 34]  # 2 px inside the red edge
     assert 0.5 < px[0] < 0.95
     assert px[0] + px[2] == pytest.approx(1.0, abs=0.02)  # the rest is blue background: no dark or red halo
-    unfilled = br.render(image, d, blur, options=PreviewOptions(fill=False), device=device)[32, 34]
+    unfilled = br.render(image, d, blur, layers=LayerOptions(fill=False), device=device)[32, 34]
     assert unfilled[2] < 0.05  # without the fill only the foreground's own colour is left
 
 
@@ -295,10 +295,11 @@ def test_highlight_boost_leaves_alpha_alone():
 
 
 @pytest.mark.parametrize(
-    "kwargs",
-    [{"max_layers": 0}, {"tile_px": 0}, {"max_layer_px": 0.0}, {"max_layers": 1.5}, {"level_radius_px": 0.0},
-     {"level_radius_px": float("nan")}, {"threads": 0}],
+    "cls,kwargs",
+    [(LayerOptions, {"max_layers": 0}), (LayerOptions, {"tile_px": 0}), (LayerOptions, {"max_layer_px": 0.0}),
+     (LayerOptions, {"max_layers": 1.5}), (PreviewOptions, {"level_radius_px": 0.0}),
+     (PreviewOptions, {"level_radius_px": float("nan")}), (PreviewOptions, {"threads": 0})],
 )
-def test_bad_preview_options_are_rejected(kwargs):
+def test_bad_preview_options_are_rejected(cls, kwargs):
     with pytest.raises(br.InputError):
-        PreviewOptions(**kwargs)
+        cls(**kwargs)

@@ -17,7 +17,8 @@ from hypothesis import strategies as st
 
 import bokehray as br
 from bokehray.lens import MAX_K_PX
-from bokehray.raytrace import Layer, RaytraceOptions, raytrace_layers
+from bokehray.levels.raytrace import Layer, raytrace_layers
+from bokehray.options import RaytraceOptions
 from reference import raytrace_ref, stress_cases
 
 SCALES = (0.0, 1e-40, 1e-8, 1.0, 1e4)
@@ -27,6 +28,11 @@ REFERENCE_RTOL = 5e-5
 # denormal radiance (1e-40): float32 keeps only 1 to 3 significant digits down there
 # (deposits of 1e-43 sit on a grid of 1.4e-45); the absolute floor is in stress_cases.
 DENORMAL_RTOL = 5e-2
+
+
+def _rays(quality, spp):
+    """The level's options: a ray cap for the ray tracer, the defaults for the preview."""
+    return RaytraceOptions(max_spp=spp) if quality == "raytrace" else None
 
 
 @given(seed=st.integers(0, 2**31 - 1), kernel=st.sampled_from(sorted(stress_cases.CASES)))
@@ -81,7 +87,7 @@ def test_preview_extremes_are_finite_and_bounded(case, ap):
 @given(case=extreme_cases())
 def test_raytrace_extremes_are_finite_and_bounded(case):
     image, d, blur, desc = case  # K up to 1e5: the CoC cap keeps the march short (cap_coc)
-    out = br.render(image, d, blur, quality="raytrace", raytrace_options=RaytraceOptions(max_spp=4))
+    out = br.render(image, d, blur, quality="raytrace", options=RaytraceOptions(max_spp=4))
     _check_bounded(image, out, desc)
     if blur.k_px == 0.0 or (d == blur.focus_disparity).all():
         np.testing.assert_allclose(out, image, rtol=1e-6, atol=0)
@@ -93,7 +99,7 @@ def test_disparity_all_zero_or_one_with_focus_at_the_ends(quality, d_value, d_f)
     rng = np.random.default_rng(3)
     image = rng.random((24, 30, 3)).astype(np.float32)
     d = np.full((24, 30), d_value, np.float32)
-    out = br.render(image, d, br.BlurParams(10.0, d_f), quality=quality, raytrace_options=RaytraceOptions(max_spp=8))
+    out = br.render(image, d, br.BlurParams(10.0, d_f), quality=quality, options=_rays(quality, 8))
     if d_value == d_f:
         np.testing.assert_allclose(out, image, rtol=1e-6)
     else:  # one fronto-parallel plane 10 px out of focus: a blur that keeps the mean away from borders
@@ -124,7 +130,7 @@ def test_energy_is_conserved_at_extreme_radiance_and_thin_images(scale, shape):
 def test_huge_k_spreads_every_pixel_to_the_mean(shape, aperture):
     """K = 1e5: every pixel's CoC covers the frame many times over, so each output is the frame's mean.
 
-    Found by this suite: without the CoC cap (bokehray._scatter.cap_coc) the coverage fell below
+    Found by this suite: without the CoC cap (bokehray.scene.cap_coc) the coverage fell below
     the compositing's noise floor and the preview silently returned the unblurred input.
     """
     rng = np.random.default_rng(0)
@@ -136,7 +142,7 @@ def test_huge_k_spreads_every_pixel_to_the_mean(shape, aperture):
 
 
 def test_coc_cap_leaves_normal_renders_alone_and_keeps_depth_order():
-    from bokehray._scatter import cap_coc
+    from bokehray.scene import cap_coc
 
     s = np.linspace(-60, 60, 200 * 300, dtype=np.float32).reshape(200, 300)
     assert cap_coc(s) is s  # within twice the diagonal: untouched
@@ -151,7 +157,7 @@ def test_denormal_and_zero_radiance_stay_finite_and_non_negative():
     image[5:9, 5:9] = 0.0
     d = (np.indices((20, 20)).sum(0) % 2).astype(np.float32)
     for quality in ("preview", "raytrace"):
-        out = br.render(image, d, br.BlurParams(7.0, 0.3), quality=quality, raytrace_options=RaytraceOptions(max_spp=4))
+        out = br.render(image, d, br.BlurParams(7.0, 0.3), quality=quality, options=_rays(quality, 4))
         assert np.isfinite(out).all() and (out >= 0).all() and out.max() <= 1.0001e-40
 
 

@@ -12,7 +12,7 @@ import pytest
 from bokehray.errors import InputError
 from bokehray.metrics import PerceptualMetric, discontinuity_band, exposure_align, psnr, score, ssim_map, to_srgb
 
-SCORE_PY = Path(__file__).resolve().parents[2] / "shared" / "data" / "pathtraced-dev" / "score.py"
+SCORE_PY = Path(__file__).resolve().parents[3] / "shared" / "data" / "pathtraced-dev" / "score.py"
 
 
 def test_to_srgb_hand_values():

@@ -8,7 +8,9 @@ from hypothesis import strategies as st
 
 import bokehray_kernels as bk
 from bokehray import Aperture
-from bokehray._scatter import PreviewOptions, layer_edges, render_preview
+from bokehray import LayerOptions, PreviewOptions
+from bokehray.levels.preview import render_signed_coc
+from bokehray.scene import layer_edges
 from reference import scatter_ref
 from tolerances import (
     ENERGY_RTOL,
@@ -134,9 +136,10 @@ def test_layered_preview_matches_reference(ap, device, rng):
     disparity[:, :] = np.linspace(0, 0.4, w)[None, :]
     disparity[5:14, 6:15] = 0.9  # a near square over a tilted background
     s = (8.0 * (disparity - 0.5)).astype(np.float32)
-    opts = PreviewOptions(max_layer_px=1.5, level_radius_px=1e6, fill=False, tile_px=8)
-    got, stats = render_preview(image, s, ap, options=opts, device=device)
-    edges = layer_edges(s, opts)
+    layers = LayerOptions(max_layer_px=1.5, fill=False, tile_px=8)
+    got, stats = render_signed_coc(image, s, ap, layers=layers, options=PreviewOptions(level_radius_px=1e6),
+                                   device=device)
+    edges = layer_edges(s, layers)
     assert 4 <= stats.layers <= len(edges) - 1  # empty layers are skipped
     want = scatter_ref.layered(image.astype(np.float64), s.astype(np.float64), edges, ap.blade_discs(),
                                ap.vertical_extent())
@@ -149,8 +152,9 @@ def test_pyramid_levels_approximate_level_zero(device):
     image = np.stack([0.5 + 0.3 * np.sin(xx / 9.0), 0.5 + 0.3 * np.cos(yy / 7.0), np.full((h, w), 0.4)], -1)
     image = image.astype(np.float32)
     s = np.full((h, w), 13.0, np.float32)
-    exact, _ = render_preview(image, s, Aperture(), options=PreviewOptions(level_radius_px=1e6), device=device)
-    approx, st_ = render_preview(image, s, Aperture(), options=PreviewOptions(level_radius_px=4.0), device=device)
+    exact, _ = render_signed_coc(image, s, Aperture(), options=PreviewOptions(level_radius_px=1e6), device=device)
+    approx, st_ = render_signed_coc(image, s, Aperture(), options=PreviewOptions(level_radius_px=4.0),
+                                   device=device)
     assert st_.pyramid_levels == 3
     inner = (slice(16, -16), slice(16, -16))
     mae = np.abs(exact[inner] - approx[inner]).mean() / image.mean()
@@ -181,7 +185,7 @@ def test_every_aperture_integrates_to_one_property(radius, blades, rotation, cur
        max_layers=st.integers(1, 16))
 def test_layer_edges_cover_all_values_and_respect_limits(values, max_px, max_layers):
     s = np.asarray(values, np.float32)
-    opts = PreviewOptions(max_layer_px=max_px, max_layers=max_layers)
+    opts = LayerOptions(max_layer_px=max_px, max_layers=max_layers)
     edges = layer_edges(s, opts)
     assert np.all(np.diff(edges) > 0)
     assert edges[0] < s.min() and edges[-1] > s.max()
@@ -190,7 +194,7 @@ def test_layer_edges_cover_all_values_and_respect_limits(values, max_px, max_lay
 
 def test_layer_edges_cut_at_gaps_and_around_focus():
     s = np.concatenate([np.linspace(-20, -12, 50), np.linspace(-3, 0.3, 50), np.linspace(5, 9, 50)])
-    edges = layer_edges(s.astype(np.float32), PreviewOptions(max_layer_px=100.0))
+    edges = layer_edges(s.astype(np.float32), LayerOptions(max_layer_px=100.0))
     inner = edges[1:-1]
     assert any(-12 < e < -3 for e in inner) and any(0.3 < e < 5 for e in inner)  # the two depth gaps
     assert -0.5 in inner and 0.5 in inner  # the in-focus layer is its own
@@ -199,7 +203,7 @@ def test_layer_edges_cut_at_gaps_and_around_focus():
 def test_layer_edges_keep_the_in_focus_layer_when_the_budget_is_tight():
     """Review finding: a 200 px CoC span used to fall back to even spacing and lose the focus cuts."""
     s = np.linspace(-100, 100, 5000).astype(np.float32)
-    edges = layer_edges(s, PreviewOptions(max_layers=12))
+    edges = layer_edges(s, LayerOptions(max_layers=12))
     assert len(edges) - 1 <= 12
     assert -0.5 in edges and 0.5 in edges
 
@@ -211,7 +215,7 @@ def test_small_bright_layer_over_black_keeps_its_energy():
     img[232:248, 232:248] = 10.0
     s = np.full((n, n), -110.0, np.float32)  # a black background layer ...
     s[232:248, 232:248] = -100.0  # ... behind a small bright layer of its own, r = 100 (pyramid level 4)
-    out, stats = render_preview(img, s, Aperture())
+    out, stats = render_signed_coc(img, s, Aperture())
     assert stats.layers == 2
     # all the light arrives: none is cut off at the edge of the small layer's box
     np.testing.assert_allclose(out.sum(), img.sum(), rtol=1e-3)

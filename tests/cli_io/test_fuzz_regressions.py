@@ -15,7 +15,7 @@ import pytest
 import bokehray.io as bio
 from bokehray.errors import InputError, ResourceError
 
-DATA = Path(__file__).parent / "data" / "fuzz"
+DATA = Path(__file__).parents[1] / "data" / "fuzz"
 READERS = {".png": ("read_image", "read_disparity"), ".jpg": ("read_image",),
            ".tif": ("read_image", "read_disparity", "read_depth"), ".exr": ("read_image", "read_disparity", "read_depth"),
            ".npy": ("read_disparity", "read_depth")}

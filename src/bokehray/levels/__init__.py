@@ -1,0 +1,37 @@
+"""The quality ladder: every level renders the same layered scene (``bokehray.scene``).
+
+- ``preview`` (:mod:`.preview`): occlusion-aware row-span scatter of the layers, fast.
+- ``raytrace`` (:mod:`.raytrace`): the same layers ray traced through the aperture; the exact renderer of
+  layer stacks (``bokehray.raytrace_layers``, ``bokehray synth``).
+- the refine hook (:mod:`.refine`): the optional neural pass over a preview render.
+
+``LEVELS`` is the registry the API, the CLI and the benchmark read their choices from.
+"""
+
+from __future__ import annotations
+
+from ..options import PreviewOptions, RaytraceOptions
+from .base import Level, RenderContext
+from . import preview, raytrace
+
+__all__ = ["LEVELS", "Level", "RenderContext", "get_level"]
+
+LEVELS: dict[str, Level] = {
+    level.name: level
+    for level in (
+        Level("preview", "layered occlusion-aware scatter (fast)", PreviewOptions, preview.render_preview,
+              preview.WHOLE_IMAGE_B),
+        Level("raytrace", "the layers ray traced through the aperture", RaytraceOptions, raytrace.render_raytrace,
+              raytrace.WHOLE_IMAGE_B),
+    )
+}
+
+
+def get_level(name: str) -> Level:
+    """The level called ``name``; InputError naming the choices otherwise."""
+    from ..errors import InputError
+
+    level = LEVELS.get(name) if isinstance(name, str) else None
+    if level is None:
+        raise InputError(f"quality: expected one of {', '.join(LEVELS)}, got {name!r}")
+    return level

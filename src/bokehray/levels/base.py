@@ -1,0 +1,60 @@
+"""What every quality level takes and returns: the render context and the level's entry in the registry."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..lens import Aperture, BlurParams
+from ..options import LayerOptions, MemoryOptions
+from ..stats import RenderStats
+
+__all__ = ["Level", "RenderContext"]
+
+Progress = Callable[[int, int], None]
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class RenderContext:
+    """One render's inputs, validated by ``bokehray.pipeline``: what travels together through a level.
+
+    ``image`` is H x W x 3 float32 scene-linear, ``disparity`` H x W in [0, 1], ``signed_coc`` the capped
+    ``K (d - d_f)`` (``bokehray.scene.cap_coc``); ``options`` is the level's own options type.
+    """
+
+    image: np.ndarray
+    disparity: np.ndarray
+    signed_coc: np.ndarray
+    blur: BlurParams
+    aperture: Aperture
+    layers: LayerOptions
+    memory: MemoryOptions
+    options: object
+    device: str
+    progress: Progress | None = None
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.signed_coc.shape
+
+    def with_image(self, image: np.ndarray) -> RenderContext:
+        """The same render of other colour (an RGBA render's alpha goes through the level as grey)."""
+        return RenderContext(image, self.disparity, self.signed_coc, self.blur, self.aperture, self.layers,
+                             self.memory, self.options, self.device, None)
+
+
+@dataclass(frozen=True, slots=True)
+class Level:
+    """A rung of the quality ladder: its name, what it is, its options type and its renderer.
+
+    ``render(ctx)`` returns (H x W x 3 float32, stats); ``whole_image_bytes`` is what it holds per pixel of the
+    whole image whatever the tiling (a render is refused from its shape when that alone exceeds the budget).
+    """
+
+    name: str
+    summary: str
+    options_type: type
+    render: Callable[[RenderContext], tuple[np.ndarray, RenderStats]]
+    whole_image_bytes: int

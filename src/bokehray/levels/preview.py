@@ -1,0 +1,251 @@
+"""The preview level: layered, occlusion-aware row-span scatter (docs/renderer.md).
+
+Pipeline (all heavy work in ``bokehray_kernels``):
+
+1. Tiles whose pixels, and every pixel within CoC reach of them, have ``|s| < 0.5`` are *copied*: never
+   scattered, never composited (``bokehray.scene.copy_tiles``).
+2. The rest is the layered scene (``bokehray.scene.build_scene``): layers by ``s``, ids growing towards the
+   camera, each with its box, radius bound and fill reach.
+3. Each layer, independently (one worker thread per CPU core): its sources (its own pixels and the fill of what
+   nearer layers hide, ``bokehray.scene.build_layer_sources``) are scattered with their own exact radius on
+   the radius pyramid.
+4. Layers are composited back to front with "over" (opacity = scattered coverage clipped to 1, colour
+   normalised by coverage), and the result is divided by the total opacity.
+
+Large renders go tile by tile through ``bokehray.tiling`` with exact halos (``bokehray.scene.scatter_halo``).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+import bokehray_kernels as bk
+
+from .. import scene as sc
+from .. import tiling
+from ..options import PreviewOptions
+from ..stats import PreviewStats
+from .base import Progress, RenderContext
+
+__all__ = ["render_preview", "render_signed_coc"]
+
+# Bytes per pixel, from the arrays each stage allocates (float32 = 4 bytes); checked against measured peaks by
+# benchmarks/bench_memory.py (docs/robustness.md).
+WHOLE_IMAGE_B = 48
+"""Whole-image arrays, kept or transient: signed CoC and radius, tile masks, the plan's sort keys (int64 search
+result), layer ids, output."""
+REGION_B = 60
+"""Per pixel of the rendered region: image, CoC, layer ids on the device, accumulator, result."""
+LAYER_B = 80
+"""Per pixel of a layer's box in flight: sources (16 + 4), pull-push pyramid (24 x 4/3), distance map (4),
+radius-pyramid difference buffers (16 x 4/3 and 2 spare columns)."""
+
+
+@dataclass(frozen=True, slots=True)
+class _Scatter:
+    """What every layer's scatter reads: the aperture on the device and the pyramid step."""
+
+    blades: wp.array
+    n_blades: int
+    extent: wp.vec2
+    level_radius_px: float
+    threads: int
+    device: str
+
+
+def _region_bytes(window_px: int, layer_areas: list[int], threads: int) -> int:
+    in_flight = sorted(layer_areas, reverse=True)[: threads + 1]  # threads + 1 layers in flight
+    return REGION_B * window_px + LAYER_B * sum(in_flight)
+
+
+def _area(box: tiling.Box) -> int:
+    return (box[1] - box[0]) * (box[3] - box[2])
+
+
+def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
+    """Render ``ctx.image`` (RGB) with its signed CoC map."""
+    options: PreviewOptions = ctx.options
+    t_start = time.perf_counter()
+    image, s = ctx.image, ctx.signed_coc
+    h, w = s.shape
+    stats = PreviewStats(quality="preview", shape=(h, w), device=ctx.device)
+    tiling.check_whole_image(h, w, WHOLE_IMAGE_B, ctx.memory)  # before allocating anything large
+    stats.max_coc_px = max(float(s.max()), -float(s.min())) if s.size else 0.0
+
+    grid = ctx.layers.tile_px
+    copy = sc.copy_tiles(np.abs(s), grid)
+    stats.tiles_total, stats.tiles_copied = int(copy.size), int(copy.sum())
+    active = ~sc.grid_to_pixels(copy, grid, (h, w))
+    if not active.any():
+        stats.stage_seconds["plan"] = time.perf_counter() - t_start
+        stats.stage_seconds["total"] = stats.stage_seconds["plan"]
+        return image.copy(), stats
+
+    scene = sc.build_scene(s, active, ctx.layers, options.level_radius_px)
+    del active
+    stats.layers = len(scene.layers)
+    stats.sources_scattered = int((scene.ids >= 0).sum())
+    stats.pyramid_levels = max(sc.pyramid_levels(lyr.max_radius, options.level_radius_px) for lyr in scene.layers)
+    threads = 1 if wp.get_device(ctx.device).is_cuda else max(1, options.threads or os.cpu_count() or 1)
+    stats.threads = threads
+
+    whole = WHOLE_IMAGE_B * h * w
+    areas = [_area(lyr.bbox) for lyr in scene.layers]
+    margin = 2 * max(sum(sc.scatter_halo(lyr, options.level_radius_px)) for lyr in scene.layers)
+    tile, need = tiling.choose_tile(
+        h, w, ctx.memory, untiled_bytes=whole + _region_bytes(h * w, areas, threads), margin=margin,
+        window_bytes=lambda hy, wx: whole + _region_bytes(hy * wx, [min(a, hy * wx) for a in areas], threads),
+        what=f"preview render at a largest CoC of {stats.max_coc_px:.0f} px",
+    )
+    stats.memory_estimate_mb = need / tiling.MB
+    blade_rows = ctx.aperture.blade_discs()
+    scatter = _Scatter(
+        wp.array(blade_rows if len(blade_rows) else np.zeros((1, 4), np.float32), dtype=wp.vec4, device=ctx.device),
+        len(blade_rows), wp.vec2(*ctx.aperture.vertical_extent()), float(options.level_radius_px), threads,
+        ctx.device)
+    t_plan = time.perf_counter()
+    stats.stage_seconds["plan"] = t_plan - t_start
+
+    if tile is None:
+        out, n_filled = _render_window(image, s, scene.ids, scene.layers, scene.n_slots, scatter, ctx.progress)
+    else:
+        out, n_filled, stats.image_tiles = _render_tiled(image, s, scene, scatter, tile, ctx.progress)
+    stats.sources_filled = n_filled
+    stats.sources_scattered += n_filled
+    stats.stage_seconds["layers"] = time.perf_counter() - t_plan
+    stats.stage_seconds["total"] = time.perf_counter() - t_start
+    return out, stats
+
+
+def _tile_layers(scene: sc.LayeredScene, core: tiling.Box) -> tuple[tiling.Box, list[sc.LayerRecord]]:
+    """The window a tile needs and its layers (boxes relative to the window); layers that cannot reach the core
+    drop out."""
+    cy0, cy1, cx0, cx1 = core
+    boxes = []
+    for lyr in scene.layers:
+        gy0, gy1, gx0, gx1 = lyr.bbox
+        if gy1 <= cy0 or gy0 >= cy1 or gx1 <= cx0 or gx0 >= cx1:
+            continue  # a layer's box holds all its light: nothing of it lands in this core
+        halo, align = sc.scatter_halo(lyr, scene.level_radius_px)
+        boxes.append((lyr, tiling.window(lyr.bbox, core, halo, align)))
+    wy0 = min([cy0] + [b[0] for _, b in boxes])
+    wy1 = max([cy1] + [b[1] for _, b in boxes])
+    wx0 = min([cx0] + [b[2] for _, b in boxes])
+    wx1 = max([cx1] + [b[3] for _, b in boxes])
+    local = [lyr.moved((y0 - wy0, y1 - wy0, x0 - wx0, x1 - wx0)) for lyr, (y0, y1, x0, x1) in boxes]
+    return (wy0, wy1, wx0, wx1), local
+
+
+def _render_tiled(image: np.ndarray, s: np.ndarray, scene: sc.LayeredScene, scatter: _Scatter, tile: int,
+                  progress: Progress | None) -> tuple[np.ndarray, int, int]:
+    """Render tile by tile, each tile on its window (halo included), its core copied out."""
+    h, w = s.shape
+    out = image.copy()  # pixels no layer reaches (copied tiles) keep the input, as finalize does
+    plans = {core: _tile_layers(scene, core) for core in tiling.cores(h, w, tile)}
+    total = sum(len(local) for _, local in plans.values())
+    done, n_filled = 0, 0
+
+    def report(i: int, _n: int) -> None:
+        if progress is not None:
+            progress(done + i, total)
+
+    def render_core(core: tiling.Box) -> np.ndarray | None:
+        nonlocal done, n_filled
+        (wy0, wy1, wx0, wx1), local = plans[core]
+        if not local:
+            return None
+        part, filled = _render_window(image[wy0:wy1, wx0:wx1], s[wy0:wy1, wx0:wx1], scene.ids[wy0:wy1, wx0:wx1],
+                                      local, scene.n_slots, scatter, report)
+        done += len(local)
+        n_filled += filled
+        cy0, cy1, cx0, cx1 = core
+        return part[cy0 - wy0 : cy1 - wy0, cx0 - wx0 : cx1 - wx0]
+
+    n_tiles = tiling.render_tiles(out, tile, render_core)
+    return out, n_filled, n_tiles
+
+
+def _render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatter) -> wp.array:
+    """Scatter one layer's sources on the radius pyramid and resolve it: (premultiplied RGB, coverage) on its box."""
+    device = scatter.device
+    y0, y1, x0, x1 = layer.bbox
+    h, w = y1 - y0, x1 - x0
+    src, coc = sc.build_layer_sources(layer, arrays)
+    n_levels = sc.pyramid_levels(layer.max_radius, scatter.level_radius_px)
+    bufs = []
+    for lv in range(bk.MAX_LEVELS):
+        if lv < n_levels:
+            shape = ((h + (1 << lv) - 1) >> lv, ((w + (1 << lv) - 1) >> lv) + 2)
+            bufs.append(wp.zeros(shape, dtype=wp.vec4, device=device))
+        else:
+            bufs.append(bufs[0] if lv > 0 else None)
+    wp.launch(bk.scatter_kernel, dim=(h, w),
+              inputs=[src, coc, scatter.blades, scatter.n_blades, scatter.extent, scatter.level_radius_px, n_levels,
+                      *bufs], device=device)
+    for lv in range(n_levels):
+        wp.launch(bk.prefix_rows_kernel, dim=bufs[lv].shape[0], inputs=[bufs[lv]], device=device)
+    out = src  # the sources are scattered: reuse their memory for the result
+    wp.launch(bk.resolve_levels_kernel, dim=(h, w), inputs=[n_levels, *bufs], outputs=[out], device=device)
+    return out
+
+
+def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_slots: int, scatter: _Scatter,
+                   progress: Progress | None) -> tuple[np.ndarray, int]:
+    """Scatter and composite ``layers`` (boxes in the window's coordinates), then finalise.
+
+    Returns the rendered RGB and the number of filled sources.
+    """
+    device = scatter.device
+    h, w = s.shape
+    arrays = sc.LayerSources.upload(image, s, ids, n_slots, device)
+    acc = wp.zeros((h, w), dtype=wp.vec4, device=device)
+
+    # Layers render independently (Warp CPU launches release the GIL); they are composited strictly back to
+    # front as they complete, with at most ``threads + 1`` layers in flight to bound memory.
+    done = 0
+    with ThreadPoolExecutor(max_workers=scatter.threads) as pool:
+        pending: list[tuple[sc.LayerRecord, Future]] = []
+        it = iter(layers)
+
+        def submit_next() -> None:
+            lyr = next(it, None)
+            if lyr is not None:
+                pending.append((lyr, pool.submit(_render_layer, lyr, arrays, scatter)))
+
+        for _ in range(scatter.threads + 1):
+            submit_next()
+        while pending:
+            lyr, fut = pending.pop(0)
+            out = fut.result()
+            submit_next()
+            y0, y1, x0, x1 = lyr.bbox
+            wp.launch(bk.composite_kernel, dim=(y1 - y0, x1 - x0), inputs=[out, x0, y0], outputs=[acc], device=device)
+            done += 1
+            if progress is not None:
+                progress(done, len(layers))
+
+    result = wp.empty((h, w), dtype=wp.vec3, device=device)
+    wp.launch(bk.finalize_kernel, dim=(h, w), inputs=[acc, arrays.image, arrays.ids], outputs=[result], device=device)
+    return result.numpy(), arrays.filled_count()
+
+
+def render_signed_coc(image: np.ndarray, signed_coc: np.ndarray, aperture, *, layers=None, memory=None,
+                      options: PreviewOptions | None = None, device: str = "cpu",
+                      progress: Progress | None = None) -> tuple[np.ndarray, PreviewStats]:
+    """The preview of an RGB float32 image (validated by the caller) with a given signed CoC map instead of a
+    disparity and ``BlurParams``: the seam the kernel tests and stress cases render through."""
+    from ..options import LayerOptions, MemoryOptions
+
+    memory = memory or MemoryOptions()
+    tiling.check_whole_image(*signed_coc.shape, WHOLE_IMAGE_B, memory)  # from the shape, before reading a value
+    ctx = RenderContext(image, None, sc.cap_coc(signed_coc), None, aperture, layers or LayerOptions(), memory,
+                        options or PreviewOptions(), device, progress)
+    out, stats = render_preview(ctx)
+    stats.max_coc_px = max(float(signed_coc.max()), -float(signed_coc.min())) if signed_coc.size else 0.0
+    return out, stats

@@ -1,0 +1,32 @@
+"""The refine hook: the optional neural pass over a preview render (``bokehray_refiner``, docs/refiner.md).
+
+Not a level of its own: it corrects the colour of a classical render near depth edges. torch is imported only
+here, and only when asked, so ``bokehray`` never needs it otherwise.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from ..errors import InputError
+from ..lens import BlurParams
+
+__all__ = ["REFINABLE", "refine_render"]
+
+REFINABLE = ("preview",)
+"""Levels whose renders the refiner corrects (it was trained on preview renders)."""
+
+
+def refine_render(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, classical: np.ndarray,
+                  weights: bool | str | os.PathLike, device: str):
+    """Run the refiner on ``classical`` (the level's RGB render); returns (refined RGB, the refiner's stats)."""
+    try:
+        from bokehray_refiner.refine import load_refiner, refine
+    except ImportError as e:
+        raise InputError(f"refine: the neural refiner needs its extra: pip install 'bokehray[refiner]' ({e})") from None
+    import torch
+
+    tdev = "cuda" if device.startswith("cuda") and torch.cuda.is_available() else "cpu"
+    return refine(image, disparity, blur, classical, model=load_refiner(None if weights is True else weights, tdev))

@@ -1,0 +1,128 @@
+"""Render options, grouped by the concern they belong to.
+
+- :class:`LayerOptions` shape the layered scene built from the photo (``bokehray.scene``); both quality levels
+  read them.
+- :class:`MemoryOptions` bound one render's memory (``bokehray.tiling``); both levels read them.
+- :class:`PreviewOptions` are read only by the preview (``bokehray.levels.preview``).
+- :class:`RaytraceOptions` are read only by the ray tracer (``bokehray.levels.raytrace``).
+
+A level is given only its own options type: ``render(..., quality="raytrace", options=PreviewOptions())`` is an
+error, not a silently ignored knob. Defaults are what the benchmarks measure.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from .errors import InputError
+from .validate import check_int, check_number
+
+__all__ = ["LayerOptions", "MemoryOptions", "PreviewOptions", "RaytraceOptions"]
+
+
+@dataclass(frozen=True, slots=True)
+class LayerOptions:
+    """How the photo is cut into depth layers (``bokehray.scene``).
+
+    Args:
+        max_layers: most depth layers; more resolves more occlusion, costs more.
+        max_layer_px: widest layer (in CoC pixels) on a gap-free depth range.
+        min_layer_px: a CoC range narrower than this is one layer.
+        fill: extend layers behind nearer ones by pull-push (see bokehray_kernels.fill).
+        tile_px: side of the grid on which in-focus tiles are skipped and layers' boxes are planned.
+    """
+
+    max_layers: int = 8
+    max_layer_px: float = 8.0
+    min_layer_px: float = 1.0
+    fill: bool = True
+    tile_px: int = 16
+
+    def __post_init__(self) -> None:
+        check_int(self.max_layers, "max_layers", lo=1)
+        check_int(self.tile_px, "tile_px", lo=1)
+        check_number(self.max_layer_px, "max_layer_px", 0.0, lo_open=True)
+        check_number(self.min_layer_px, "min_layer_px", 0.0, lo_open=True)
+        if not isinstance(self.fill, bool):
+            raise InputError(f"fill: expected True or False, got {self.fill!r}")
+
+
+@dataclass(frozen=True, slots=True)
+class MemoryOptions:
+    """The memory budget of one render (``bokehray.tiling``).
+
+    Args:
+        tile_size: render in independent square tiles of this many pixels a side (each with a halo that makes
+            the result equal the untiled render); None (default) tiles only when the untiled render would not
+            fit the budget. At least the layer grid (``LayerOptions.tile_px``).
+        memory_limit_mb: memory budget of one render in MB; None (default) is 80 % of the memory available when
+            the render starts. A render that cannot fit even in tiles raises
+            :class:`~bokehray.errors.ResourceError` before allocating anything large.
+    """
+
+    tile_size: int | None = None
+    memory_limit_mb: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.tile_size is not None:
+            try:
+                check_int(self.tile_size, "tile_size", lo=1)
+            except InputError:
+                raise InputError(f"tile_size: expected None (automatic) or an integer >= 1, got {self.tile_size!r}") from None
+        if self.memory_limit_mb is not None:
+            try:
+                check_number(self.memory_limit_mb, "memory_limit_mb", 0.0, lo_open=True)
+            except InputError:
+                raise InputError(f"memory_limit_mb: expected None (automatic) or a finite number > 0, "
+                                 f"got {self.memory_limit_mb!r}") from None
+
+
+@dataclass(frozen=True, slots=True)
+class PreviewOptions:
+    """Knobs only the preview reads (``bokehray.levels.preview``).
+
+    Args:
+        level_radius_px: largest radius scattered at a pyramid level before moving to the next coarser one
+            (cost per source is O(level_radius_px)).
+        threads: worker threads on the CPU (default: all cores).
+    """
+
+    level_radius_px: float = 8.0
+    threads: int | None = None
+
+    def __post_init__(self) -> None:
+        check_number(self.level_radius_px, "level_radius_px", 0.0, lo_open=True)
+        if self.level_radius_px < 2.0:
+            raise InputError(f"level_radius_px: expected >= 2 px (smaller coarsens every blur), got {self.level_radius_px}")
+        if self.threads is not None and (isinstance(self.threads, bool) or not isinstance(self.threads, int)
+                                         or self.threads < 1):
+            raise InputError(f"threads: expected None (all cores) or an integer >= 1, got {self.threads!r}")
+
+
+@dataclass(frozen=True, slots=True)
+class RaytraceOptions:
+    """Sampling of the aperture, read only by the ray tracer (``bokehray.levels.raytrace``).
+
+    Args:
+        samples_per_px2: rays per square pixel of the largest CoC a pixel can see:
+            ``spp = ceil(samples_per_px2 * pi * r^2)``, clamped. The rays are points of a spiral on the CoC's
+            circumscribed disc; with a polygon aperture only those inside it (polygon area / disc area of them)
+            are traced.
+        max_spp: most rays per pixel.
+        min_spp: fewest rays per pixel (1 where everything is in focus).
+        seed: rotates the per-pixel sample patterns; renders are deterministic for a seed.
+    """
+
+    samples_per_px2: float = 0.5
+    max_spp: int = 128
+    min_spp: int = 1
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        check_number(self.samples_per_px2, "samples_per_px2", 0.0, lo_open=True)
+        check_int(self.max_spp, "max_spp")
+        check_int(self.min_spp, "min_spp")
+        check_int(self.seed, "seed")
+        if not 1 <= self.min_spp <= self.max_spp <= 65536:
+            raise InputError(f"rays per pixel: expected 1 <= min_spp <= max_spp <= 65536, "
+                             f"got {self.min_spp}, {self.max_spp}")

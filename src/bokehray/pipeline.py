@@ -1,0 +1,227 @@
+"""The public rendering pipeline: validate at the boundary, build the context, run the chosen level, refine.
+
+``render_with_stats`` = check arguments -> expand grey / split alpha -> optional highlight boost -> the level
+(``bokehray.levels``) on the colour -> optional refine -> the level again on alpha (RGBA inputs) -> output checks.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from numbers import Integral, Real
+
+import numpy as np
+
+from . import scene, tiling
+from .errors import InputError, NumericalError
+from .lens import Aperture, BlurParams
+from .levels import LEVELS, RenderContext, get_level
+from .levels.refine import REFINABLE, refine_render
+from .options import LayerOptions, MemoryOptions, PreviewOptions, RaytraceOptions
+from .stats import RenderStats
+from .validate import check_disparity, check_image, check_number, check_type, first_bad_index
+
+__all__ = ["QUALITIES", "boost_highlights", "focus_at", "render", "render_with_stats"]
+
+QUALITIES = tuple(LEVELS)
+"""Quality levels: docs/renderer.md (preview) and docs/raytracer.md (raytrace)."""
+
+Progress = Callable[[int, int], None]
+
+
+def focus_at(disparity: np.ndarray, x: int, y: int, window: int = 9) -> float:
+    """Focus disparity from a clicked pixel: the median disparity in a ``window`` x ``window`` box.
+
+    The median ignores a few pixels of another depth under the cursor (an edge,
+    a strand of hair), which is what "focus where I clicked" should mean.
+    """
+    d = np.asarray(disparity)
+    if d.ndim == 3 and d.shape[2] == 1:
+        d = d[..., 0]
+    if d.ndim != 2 or d.size == 0:
+        raise InputError(f"disparity: expected a non-empty H x W map, got shape {d.shape}")
+    for name, v in (("x", x), ("y", y), ("window", window)):
+        if isinstance(v, bool) or not isinstance(v, Integral):
+            raise InputError(f"focus point: expected integer pixel coordinates and window, got {name} = {v!r}")
+    h, w = d.shape
+    if not (0 <= int(x) < w and 0 <= int(y) < h):
+        raise InputError(f"focus point: expected 0 <= x < {w} and 0 <= y < {h}, got ({x}, {y})")
+    r = max(0, int(window) // 2)
+    patch = d[max(0, y - r) : y + r + 1, max(0, x - r) : x + r + 1]
+    return float(np.median(patch))
+
+
+def boost_highlights(image: np.ndarray, strength: float, threshold: float = 0.95) -> np.ndarray:
+    """Re-inflate clipped highlights of an 8-bit (display-referred) photo.
+
+    An sRGB file stores a street lamp of radiance 20 as 1.0, so its bokeh ball
+    comes out dim. Pixels whose brightest channel exceeds ``threshold`` are
+    scaled by ``1 + strength * t^2`` with ``t = (max - threshold) / (1 - threshold)``.
+    Off by default, and never used for metrics.
+    """
+    peak = image.max(axis=2, keepdims=True)
+    t = np.clip((peak - threshold) / (1.0 - threshold), 0.0, 1.0)
+    return (image * (1.0 + strength * t * t)).astype(np.float32)
+
+
+def _check_device(device: str) -> str:
+    import warp as wp
+
+    check_type(device, str, "device", "a Warp device name such as 'cpu' or 'cuda:0'")
+    try:
+        dev = wp.get_device(device)
+    except (RuntimeError, ValueError) as e:
+        avail = ", ".join(str(d) for d in wp.get_devices())
+        raise InputError(f"device: {device!r} is not available here ({e}); available: {avail}") from None
+    return str(dev)
+
+
+def _check_shape_fits(image: object, level_whole_image_b: int, memory: MemoryOptions) -> None:
+    """Refuse a render from the input's shape alone, before anything is copied (a broadcast view of 1e10
+    pixels must not be turned into a 112 GiB array first)."""
+    shape = np.shape(image)
+    if len(shape) >= 2 and all(isinstance(v, Integral) for v in shape[:2]):
+        tiling.check_whole_image(int(shape[0]), int(shape[1]), level_whole_image_b, memory)
+
+
+def _check_refine(refine: object, quality: str) -> bool:
+    if refine is None or refine is False:
+        return False
+    if not (refine is True or isinstance(refine, (str, os.PathLike))):
+        raise InputError(f"refine: expected True, False or a path to refiner weights, got {refine!r}")
+    if quality not in REFINABLE:
+        raise InputError("refine: the refiner corrects preview renders (it was trained on them); "
+                         "use quality='preview' with refine")
+    return True
+
+
+def render_with_stats(
+    image: np.ndarray,
+    disparity: np.ndarray,
+    blur: BlurParams,
+    aperture: Aperture | None = None,
+    *,
+    quality: str = "preview",
+    device: str = "cpu",
+    options: PreviewOptions | RaytraceOptions | None = None,
+    layers: LayerOptions | None = None,
+    memory: MemoryOptions | None = None,
+    highlight_boost: float = 0.0,
+    progress: Progress | None = None,
+    refine: bool | str | os.PathLike = False,
+) -> tuple[np.ndarray, RenderStats]:
+    """Like :func:`render`, and also return what the renderer did (a :class:`~bokehray.RenderStats`:
+    :class:`~bokehray.PreviewStats` or :class:`~bokehray.RaytraceStats`)."""
+    level = get_level(quality)
+    layers = LayerOptions() if layers is None else layers
+    memory = MemoryOptions() if memory is None else memory
+    options = level.options_type() if options is None else options
+    check_type(layers, LayerOptions, "layers", "a bokehray.LayerOptions")
+    check_type(memory, MemoryOptions, "memory", "a bokehray.MemoryOptions")
+    if not isinstance(options, level.options_type):
+        raise InputError(f"options: quality {quality!r} takes a bokehray.{level.options_type.__name__}, "
+                         f"got {type(options).__name__}")
+    if memory.tile_size is not None and memory.tile_size < layers.tile_px:
+        raise InputError(f"tile_size: expected None (automatic) or an integer >= tile_px ({layers.tile_px}), "
+                         f"got {memory.tile_size!r}")
+    check_type(blur, BlurParams, "blur", "a bokehray.BlurParams")
+    aperture = Aperture() if aperture is None else aperture
+    check_type(aperture, Aperture, "aperture", "a bokehray.Aperture")
+    if isinstance(highlight_boost, bool) or not isinstance(highlight_boost, Real):
+        raise InputError(f"highlight_boost: expected a finite number >= 0, got {highlight_boost!r}")
+    check_number(highlight_boost, "highlight_boost", 0.0)
+    if progress is not None and not callable(progress):
+        raise InputError(f"progress: expected a callable progress(done, total) or None, got {progress!r}")
+    refining = _check_refine(refine, quality)
+    device = _check_device(device)
+    _check_shape_fits(image, level.whole_image_bytes, memory)
+
+    img = check_image(image)
+    d = check_disparity(disparity, img.shape[:2])
+    channels = img.shape[2]
+    lowest = float(img.min())
+    work = img if channels >= 3 else np.repeat(img, 3, axis=2)
+    if highlight_boost > 0:
+        work = work.copy()
+        with np.errstate(over="ignore", invalid="ignore"):
+            work[..., :3] = boost_highlights(work[..., :3], highlight_boost)  # colour only, never alpha
+        bad = ~np.isfinite(work[..., :3])
+        if bad.any():
+            raise InputError(f"highlight_boost: {highlight_boost:g} takes the image beyond float32 at (y, x, c) = "
+                             f"{first_bad_index(bad)}; use a smaller boost")
+    s = blur.signed_coc(d)
+    raw_max = max(float(s.max()), -float(s.min())) if s.size else 0.0
+    ctx = RenderContext(np.ascontiguousarray(work[..., :3]), d, scene.cap_coc(s), blur, aperture, layers, memory,
+                        options, device, progress)
+
+    out_rgb, stats = level.render(ctx)
+    stats.max_coc_px = raw_max
+    if refining:
+        out_rgb, rstats = refine_render(work[..., :3], d, blur, out_rgb, refine, device)
+        stats.refine = rstats.as_dict()
+        stats.stage_seconds["refine"] = rstats.seconds
+        if "total" in stats.stage_seconds:
+            stats.stage_seconds["total"] += rstats.seconds
+    if channels == 4:
+        # alpha is rendered like a grey channel: it blurs with the colour it belongs to
+        out_a, _ = level.render(ctx.with_image(np.ascontiguousarray(np.repeat(work[..., 3:4], 3, axis=2))))
+        out = np.concatenate([out_rgb, out_a[..., :1]], axis=2)
+    elif channels == 1:
+        out = out_rgb[..., :1]
+    else:
+        out = out_rgb
+    if lowest >= 0.0:
+        # Every output pixel is a weighted mean of input radiances, so it cannot be negative; float32
+        # prefix sums next to very bright sources can leave -1e-7 of their value (found by the soak).
+        np.maximum(out, 0.0, out=out)
+    bad = ~np.isfinite(out)
+    if bad.any():
+        raise NumericalError(f"{quality} renderer produced NaN/Inf at (y, x, c) = {first_bad_index(bad)}")
+    return out.astype(np.float32, copy=False), stats
+
+
+def render(
+    image: np.ndarray,
+    disparity: np.ndarray,
+    blur: BlurParams,
+    aperture: Aperture | None = None,
+    *,
+    quality: str = "preview",
+    device: str = "cpu",
+    options: PreviewOptions | RaytraceOptions | None = None,
+    layers: LayerOptions | None = None,
+    memory: MemoryOptions | None = None,
+    highlight_boost: float = 0.0,
+    progress: Progress | None = None,
+    refine: bool | str | os.PathLike = False,
+) -> np.ndarray:
+    """Render ``image`` as a thin lens with aperture ``aperture`` would have seen it.
+
+    Args:
+        image: all-in-focus photo, float32 H x W x C (C = 1, 3 or 4), scene-linear.
+        disparity: H x W in [0, 1], 1 = nearest.
+        blur: ``K`` and ``d_f``; CoC radius ``K * |d - d_f|`` pixels.
+        aperture: disc (default) or bladed polygon.
+        quality: a level of ``bokehray.QUALITIES``: ``"preview"`` (occlusion-aware layered scatter) or
+            ``"raytrace"`` (the same layers ray traced through the aperture).
+        device: Warp device, ``"cpu"`` or ``"cuda"`` / ``"cuda:N"``.
+        options: the level's own knobs: :class:`~bokehray.PreviewOptions` or :class:`~bokehray.RaytraceOptions`.
+        layers: how the photo is cut into depth layers (:class:`~bokehray.LayerOptions`), for every level.
+        memory: memory budget and tiling (:class:`~bokehray.MemoryOptions`), for every level.
+        highlight_boost: > 0 re-inflates clipped highlights of display-referred
+            inputs before blurring (:func:`boost_highlights`); 0 = off (default).
+        progress: called as ``progress(done, total)`` after each depth layer.
+        refine: True runs the shipped neural refiner (``bokehray_refiner``, the ``refiner`` extra) on the
+            tiles near depth edges that matter (docs/refiner.md); a path uses those weights instead.
+
+    Returns:
+        float32 array shaped like ``image``, scene-linear.
+
+    Raises:
+        InputError: bad shapes, ranges, NaN/Inf, unknown options or argument types.
+        ResourceError: the render does not fit the memory budget (refused before allocating).
+    """
+    out, _ = render_with_stats(image, disparity, blur, aperture, quality=quality, device=device, options=options,
+                               layers=layers, memory=memory, highlight_boost=highlight_boost, progress=progress,
+                               refine=refine)
+    return out

@@ -1,0 +1,385 @@
+"""The layered scene built from a photo: the step every quality level stands on.
+
+From one image and its signed CoC map ``s = K (d - d_f)`` (px, > 0 in front of the focus):
+
+1. CoC radii beyond twice the image diagonal are compressed (:func:`cap_coc`);
+2. tiles that nothing blurred can reach are marked to copy (:func:`copy_tiles`, preview only);
+3. the remaining pixels are cut into depth layers by ``s`` (:func:`layer_edges`): a :class:`LayeredScene`
+   holds the per-pixel layer ids, the edges, the largest CoC and one :class:`LayerRecord` per layer (its CoC
+   range, bounding box, radius bound and fill reach);
+4. each layer's sources, its own pixels plus the pull-push fill of the region nearer layers hide
+   (:func:`build_layer_sources`);
+5. how far a layer's light and fill reach (:func:`scatter_halo`, :func:`fill_halo`), so tiles can be cut
+   with exact halos (``bokehray.tiling``).
+
+The preview scatters each layer's sources (``bokehray.levels.preview``); the ray tracer turns them into
+textures and traces rays through them (``bokehray.levels.raytrace``). Nothing else recomputes a footprint.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+import bokehray_kernels as bk
+
+from .options import LayerOptions
+
+__all__ = [
+    "FILL_MIN_REACH_PX", "LayerRecord", "LayerSources", "LayeredScene", "build_layer_sources", "build_scene",
+    "cap_coc", "copy_tiles", "dilate", "fill_halo", "layer_edges", "pyramid_levels", "scatter_halo", "tile_max",
+]  # fmt: skip
+
+FILL_MIN_REACH_PX = 0.5
+"""A layer is filled only when nearer layers blur by at least this much (below it nothing behind them shows)."""
+
+FILL_GATE_SLOPE = bk.FILL_GATE_SLOPE
+"""The fill reaches ``FILL_GATE_SLOPE * r + 1`` px (L1) behind a hider of CoC radius ``r``: sqrt(2), an L1
+distance bound of the Euclidean disc (defined once, in the kernels)."""
+
+MAX_PULL_LEVELS = 16
+
+COARSE_SCATTER_CELLS = 2
+"""A level-l scatter spreads up to this many cells of ``2^l`` px beyond the radius (coarse pixels, bilinear
+upsampling): a layer's box holds them."""
+
+CUT_CELLS = 2
+"""A tile's window cuts the coarse cells at its border (they sum fewer pixels than in the untiled render); its
+halo keeps this many further cells of the coarsest level between them and the tile's core."""
+
+_HISTOGRAM_BIN_PX = 0.25
+
+
+def cap_coc(signed_coc: np.ndarray) -> np.ndarray:
+    """Compress CoC radii beyond twice the image diagonal (order kept): their light covers the frame uniformly.
+
+    Every aperture (a triangle at worst) contains the disc of half its circumradius, so a
+    source whose radius exceeds twice the diagonal lights every pixel of the frame equally:
+    a larger radius only spreads less of its light inside the frame. Without the cap a CoC
+    far beyond the image (K = 1e5 on a small image) leaves each pixel a coverage below the
+    float32 noise floor of the compositing (1e-4), and the render would fall back to the
+    unblurred input; the ray tracer's march would take O(K) steps per ray. Beyond the cap
+    ``c`` a radius ``r`` becomes ``c + log1p(r - c)`` (still ordered, so layers keep their
+    depth order; not idempotent, so the entry points apply it once). Renders whose CoC stays
+    within the cap are unchanged.
+    """
+    h, w = signed_coc.shape
+    cap = np.float32(2.0 * math.hypot(h, w) + 2.0)
+    if signed_coc.size == 0 or max(float(signed_coc.max()), -float(signed_coc.min())) <= cap:
+        return signed_coc  # the normal case: no copy
+    r = np.abs(signed_coc)
+    big = r > cap
+    out = signed_coc.copy()
+    out[big] = np.sign(signed_coc[big]) * (cap + np.log1p(r[big] - cap))
+    return out.astype(np.float32)
+
+
+def tile_max(values: np.ndarray, tile: int) -> np.ndarray:
+    """Maximum of ``values`` over each ``tile`` x ``tile`` cell of the grid (partial cells at the far edges)."""
+    h, w = values.shape
+    th, tw = -(-h // tile), -(-w // tile)
+    pad = np.zeros((th * tile, tw * tile), values.dtype)
+    pad[:h, :w] = values
+    return pad.reshape(th, tile, tw, tile).max(axis=(1, 3))
+
+
+def dilate(mask: np.ndarray, k: int) -> np.ndarray:
+    """Binary dilation of a small 2-D mask by a (2k+1)^2 square, via 2-D prefix sums."""
+    if k <= 0:
+        return mask.copy()
+    h, w = mask.shape
+    c = np.zeros((h + 1, w + 1), np.int32)
+    c[1:, 1:] = np.cumsum(np.cumsum(mask.astype(np.int32), 0), 1)
+    y0 = np.clip(np.arange(h) - k, 0, h)
+    y1 = np.clip(np.arange(h) + k + 1, 0, h)
+    x0 = np.clip(np.arange(w) - k, 0, w)
+    x1 = np.clip(np.arange(w) + k + 1, 0, w)
+    s = c[y1][:, x1] - c[y0][:, x1] - c[y1][:, x0] + c[y0][:, x0]
+    return s > 0
+
+
+def grid_to_pixels(grid: np.ndarray, tile: int, shape: tuple[int, int]) -> np.ndarray:
+    """Expand a per-tile grid to pixels (cropped to ``shape``)."""
+    return np.repeat(np.repeat(grid, tile, 0), tile, 1)[: shape[0], : shape[1]]
+
+
+def copy_tiles(radius: np.ndarray, tile: int) -> np.ndarray:
+    """Boolean tile grid: True where the tile can be copied from the input.
+
+    A tile is copied when no pixel whose CoC reaches into it has a radius of
+    half a pixel or more (its own pixels included).
+    """
+    tmax = tile_max(radius, tile)
+    blurred = tmax >= 0.5
+    needed = np.zeros_like(blurred)
+    if blurred.any():
+        reach = np.ceil((tmax + 1.0) / tile).astype(np.int64)
+        for k in np.unique(reach[blurred]):
+            needed |= dilate(blurred & (reach == k), int(k))
+    return ~needed
+
+
+def layer_edges(signed_coc: np.ndarray, options: LayerOptions) -> np.ndarray:
+    """Edges (ascending, in CoC px) of the depth layers for the given signed CoC values.
+
+    Layers exist to resolve occlusion; on a continuous surface every layer edge
+    is a seam (two one-sided blurs composited instead of one). So edges go
+    (1) around the focus, ``s = -0.5`` and ``s = +0.5``: the in-focus layer is
+    its own, so nothing blurred behind it can halo over it;
+    (2) into the gaps of the CoC histogram, where the depth jumps; and
+    (3) where a gap-free run is still wider than ``max_layer_px``, at even
+    spacing, so an in-focus subject and a far background on one continuous
+    range still get separate layers (no halo). At most ``max_layers`` layers:
+    the narrowest gaps are dropped first, and what the budget leaves for (3) is
+    shared between the wide runs in proportion to their width.
+    """
+    signed_coc = np.asarray(signed_coc, np.float32).ravel()
+    lo, hi = float(signed_coc.min()), float(signed_coc.max())
+    if hi - lo < options.min_layer_px:
+        return np.array([lo - 0.5, hi + 0.5])
+    bin_px = _HISTOGRAM_BIN_PX
+    n_bins = int(math.ceil((hi - lo) / bin_px)) + 1
+    hist = np.bincount(((signed_coc - lo) / bin_px).astype(np.int64), minlength=n_bins)
+    empty = hist == 0
+    # runs of empty bins: candidate cuts at their centres, ranked by width
+    change = np.flatnonzero(np.diff(np.concatenate([[0], empty.astype(np.int8), [0]])))
+    runs = change.reshape(-1, 2)
+    gaps = [(lo + bin_px * (a + b) / 2.0, (b - a) * bin_px) for a, b in runs]
+    gaps.sort(key=lambda g: -g[1])
+    ranked = [c for c in (-0.5, 0.5) if lo < c < hi] + [pos for pos, _ in gaps]  # focus cuts first
+    cuts = set(ranked[: max(0, options.max_layers - 1)])
+    edges = np.array(sorted({lo - 0.5, hi + 0.5} | cuts))
+    # split the runs that are still too wide, sharing what is left of the layer budget
+    # between them in proportion to their width (the focus and gap cuts always stay)
+    widths = np.diff(edges)
+    want = np.maximum(1, np.ceil(widths / options.max_layer_px)).astype(int)
+    spare = options.max_layers - len(widths)
+    if want.sum() - len(widths) > spare:
+        extra = want - 1
+        share = np.floor(extra * max(spare, 0) / max(extra.sum(), 1)).astype(int)
+        want = 1 + share
+    out = [edges[0]]
+    for a, b, n in zip(edges[:-1], edges[1:], want):
+        out.extend(a + (b - a) * np.arange(1, n + 1) / n)
+    return np.array(out)
+
+
+def pyramid_levels(max_radius: float, level_radius_px: float) -> int:
+    """Levels of the radius pyramid a layer of CoC radius up to ``max_radius`` needs (``bk.MAX_LEVELS`` at most)."""
+    n = 1
+    while max_radius > level_radius_px * (1 << (n - 1)) and n < bk.MAX_LEVELS:
+        n += 1
+    return n
+
+
+def pull_levels(fill_reach: float) -> int:
+    """Levels of the pull-push pyramid that fills a layer hidden up to ``fill_reach`` px deep."""
+    return max(1, min(MAX_PULL_LEVELS, int(math.ceil(math.log2(FILL_GATE_SLOPE * fill_reach + 2.0))) + 1))
+
+
+@dataclass(frozen=True, slots=True)
+class LayerRecord:
+    """One depth layer of a :class:`LayeredScene`.
+
+    ``bbox`` (y0, y1, x0, x1) holds its tiles, padded by its largest CoC, its pyramid's spread and, when
+    filled, the fill's reach: every source of the layer and all of its light lie inside. ``fill_reach``: the
+    largest CoC of everything nearer (how far behind it a nearer blur can reveal); 0 when not filled.
+    """
+
+    index: int
+    s_lo: float
+    s_hi: float
+    bbox: tuple[int, int, int, int]
+    max_radius: float
+    fill_reach: float
+
+    @property
+    def filled(self) -> bool:
+        return self.fill_reach >= FILL_MIN_REACH_PX
+
+    def moved(self, bbox: tuple[int, int, int, int]) -> LayerRecord:
+        """The same layer on another box (a tile's window, or the whole image)."""
+        return dataclasses.replace(self, bbox=bbox)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class LayeredScene:
+    """The photo cut into depth layers: per-pixel layer ids (-1 = copied, in no layer), the layer edges in CoC
+    px, the largest CoC radius of the layered pixels, and the present layers far to near (ids grow towards the
+    camera). ``level_radius_px`` is the radius-pyramid step the boxes were padded for (None: no pyramid)."""
+
+    ids: np.ndarray
+    edges: np.ndarray
+    max_coc: float
+    layers: tuple[LayerRecord, ...]
+    level_radius_px: float | None
+
+    @property
+    def n_slots(self) -> int:
+        """One past the largest layer index (the size of per-layer counters)."""
+        return max(lyr.index for lyr in self.layers) + 1
+
+
+def build_scene(signed_coc: np.ndarray, active: np.ndarray, options: LayerOptions,
+                level_radius_px: float | None = None) -> LayeredScene:
+    """Cut the active pixels into depth layers.
+
+    Each record holds the layer's CoC range, its bounding box (its tiles, padded by its largest CoC, by the
+    pyramid's spread when scattered with ``level_radius_px``, and by the fill's reach when filled) and the reach
+    of everything nearer.
+    """
+    h, w = signed_coc.shape
+    max_coc = float(np.abs(signed_coc[active]).max())
+    edges = layer_edges(signed_coc[active], options)
+    sid = (np.searchsorted(edges, signed_coc, side="right") - 1).astype(np.int32)
+    np.clip(sid, 0, len(edges) - 2, out=sid)
+    sid[~active] = -1
+    n_slices = len(edges) - 1
+
+    # Per-layer extents on the tile grid (host side, on small arrays): a layer's
+    # bounding box is the union of the tiles holding any of its pixels.
+    t = options.tile_px
+    th, tw = -(-h // t), -(-w // t)
+    pad_h, pad_w = th * t - h, tw * t - w
+    sid_t = np.pad(sid, ((0, pad_h), (0, pad_w)), constant_values=-1).reshape(th, t, tw, t)
+    tile_lo = np.where(sid_t < 0, n_slices, sid_t).min(axis=(1, 3))
+    tile_hi = sid_t.max(axis=(1, 3))
+    counts = np.bincount(sid[active], minlength=n_slices)
+    present = counts > 0
+    # CoC reach of everything nearer than each layer: suffix maximum of the layers' radius bounds
+    max_r_slice = np.minimum(np.maximum(np.abs(edges[:-1]), np.abs(edges[1:])), max_coc)
+    nearer_reach = np.zeros(n_slices)
+    run = 0.0
+    for i in range(n_slices - 1, -1, -1):
+        nearer_reach[i] = run
+        if present[i]:
+            run = max(run, max_r_slice[i])
+    layers = []
+    for i in np.flatnonzero(present):
+        ty, tx = np.nonzero((tile_lo <= i) & (tile_hi >= i))
+        reach = float(nearer_reach[i]) if options.fill else 0.0
+        pad_fill = _fill_pad(reach)
+        coarse = 0
+        if level_radius_px is not None:
+            coarse = COARSE_SCATTER_CELLS << (pyramid_levels(float(max_r_slice[i]), level_radius_px) - 1)
+        pad = pad_fill + int(math.ceil(max_r_slice[i])) + 2 + coarse
+        bbox = (max(0, ty.min() * t - pad), min(h, (ty.max() + 1) * t + pad),
+                max(0, tx.min() * t - pad), min(w, (tx.max() + 1) * t + pad))
+        layers.append(LayerRecord(int(i), float(edges[i]), float(edges[i + 1]), bbox, float(max_r_slice[i]), reach))
+    return LayeredScene(sid, edges, max_coc, tuple(layers), level_radius_px)
+
+
+def _fill_pad(reach: float) -> int:
+    """How far the fill extends a layer beyond its own pixels (the gate ``sqrt(2) r + 1`` rounded up, plus one)."""
+    return int(math.ceil(FILL_GATE_SLOPE * reach)) + 2 if reach >= FILL_MIN_REACH_PX else 0
+
+
+# --------------------------------------------------------------------------- halos
+
+
+def fill_halo(layer: LayerRecord) -> tuple[int, int]:
+    """(halo, alignment) of a layer's fill: a filled value depends on pull-push cells up to ``3 * 2^n`` px away
+    (``n`` pull levels; each push reads the coarser level's neighbours) and a window's cut cells reach ``2^n`` px
+    in; the pyramid's cells are ``2^n`` px. (0, 1) for an unfilled layer."""
+    if not layer.filled:
+        return 0, 1
+    n_pp = pull_levels(layer.fill_reach)
+    return 4 * (1 << n_pp) + 4, 1 << n_pp
+
+
+def scatter_halo(layer: LayerRecord, level_radius_px: float) -> tuple[int, int]:
+    """(halo, alignment) of a scattered layer: how far a pixel depends on the layer's sources (its largest radius
+    plus the coarsest pyramid level's spread and its cut cells), the fill's halo on top, and the cell every
+    pyramid of the layer is anchored to."""
+    n_lv = pyramid_levels(layer.max_radius, level_radius_px)
+    cell = 1 << (n_lv - 1)
+    halo = int(math.ceil(layer.max_radius)) + 2 + (COARSE_SCATTER_CELLS + CUT_CELLS) * cell
+    f_halo, f_align = fill_halo(layer)
+    return halo + f_halo, max(cell, f_align)
+
+
+# --------------------------------------------------------------------------- sources
+
+
+@dataclass(slots=True)
+class LayerSources:
+    """The scene's arrays on the device for one window (the whole image or a tile's): what every layer's sources
+    are built from, plus the counter of filled sources per layer (read once per render)."""
+
+    image: wp.array
+    signed_coc: wp.array
+    ids: wp.array
+    filled: wp.array
+    device: str
+
+    @classmethod
+    def upload(cls, image: np.ndarray, signed_coc: np.ndarray, ids: np.ndarray, n_slots: int,
+               device: str) -> LayerSources:
+        return cls(
+            wp.array(np.ascontiguousarray(image[..., :3], np.float32), dtype=wp.vec3, device=device),
+            wp.array(np.ascontiguousarray(signed_coc, np.float32), dtype=float, device=device),
+            wp.array(np.ascontiguousarray(ids), dtype=wp.int32, device=device),
+            wp.zeros(n_slots, dtype=wp.int32, device=device),
+            device,
+        )
+
+    def filled_count(self) -> int:
+        return int(self.filled.numpy().sum())
+
+
+def build_layer_sources(layer: LayerRecord, arrays: LayerSources) -> tuple[wp.array, wp.array]:
+    """One layer's sources on its bounding box: (premultiplied RGB, coverage) and signed CoC.
+
+    The layer's own pixels, plus (when the layer is filled) the pull-push fill of the region nearer layers
+    hide, at the layer's density; the number of filled sources is added to ``arrays.filled[layer.index]``.
+    """
+    device = arrays.device
+    y0, y1, x0, x1 = layer.bbox
+    h, w = y1 - y0, x1 - x0
+    src = wp.empty((h, w), dtype=wp.vec4, device=device)
+    coc = wp.empty((h, w), dtype=float, device=device)
+    fill = layer.filled
+    pp_shape = (h, w) if fill else (1, 1)  # the pull-push pyramid, only when this layer is filled
+    totals = [wp.empty(pp_shape, dtype=wp.vec4, device=device)]
+    weights = [wp.empty(pp_shape, dtype=float, device=device)]
+    knowns = [wp.empty(pp_shape, dtype=float, device=device)]
+    wp.launch(
+        bk.layer_sources_kernel,
+        dim=(h, w),
+        inputs=[arrays.image, arrays.signed_coc, arrays.ids, layer.index, x0, y0, int(fill)],
+        outputs=[src, coc, totals[0], weights[0], knowns[0]],
+        device=device,
+    )
+    if fill:
+        for _ in range(pull_levels(layer.fill_reach)):
+            ph, pw = totals[-1].shape
+            ch, cw = (ph + 1) // 2, (pw + 1) // 2
+            totals.append(wp.empty((ch, cw), dtype=wp.vec4, device=device))
+            weights.append(wp.empty((ch, cw), dtype=float, device=device))
+            knowns.append(wp.empty((ch, cw), dtype=float, device=device))
+            wp.launch(bk.pull_kernel, dim=(ch, cw), inputs=[totals[-2], weights[-2], knowns[-2]],
+                      outputs=[totals[-1], weights[-1], knowns[-1]], device=device)
+        top = len(totals) - 1
+        for lv in range(top, -1, -1):
+            c = min(lv + 1, top)  # the top level has no coarser level (flag 1): it passes itself
+            wp.launch(bk.push_kernel, dim=totals[lv].shape,
+                      inputs=[totals[c], weights[c], knowns[c], int(lv == top)],
+                      outputs=[totals[lv], weights[lv], knowns[lv]], device=device)
+        dist = wp.empty((h, w), dtype=float, device=device)
+        wp.launch(bk.row_distance_kernel, dim=h, inputs=[arrays.ids, layer.index, x0, y0, w], outputs=[dist],
+                  device=device)
+        band = 1 if wp.get_device(device).is_cuda else 64
+        wp.launch(bk.column_distance_kernel, dim=(w + band - 1) // band, inputs=[dist, h, band], device=device)
+        wp.launch(
+            bk.fill_sources_kernel,
+            dim=(h, w),
+            inputs=[arrays.ids, layer.index, x0, y0, totals[0], weights[0], dist, arrays.signed_coc, layer.s_lo,
+                    layer.s_hi],
+            outputs=[src, coc, arrays.filled],
+            device=device,
+        )
+    return src, coc

@@ -1,0 +1,108 @@
+"""Validation at the public boundary: the one place that checks arrays and argument types.
+
+Every check raises :class:`~bokehray.errors.InputError` with the argument's name and
+what was expected, so callers (the API, the readers, the datasets, the PISA masks,
+the ray tracer, the refiner) report bad input the same way.
+"""
+
+from __future__ import annotations
+
+import math
+from numbers import Integral, Real
+
+import numpy as np
+
+from .errors import InputError
+
+__all__ = [
+    "check_disparity", "check_finite", "check_image", "check_int", "check_number", "check_type", "first_bad_index",
+]  # fmt: skip
+
+
+def first_bad_index(mask: np.ndarray) -> tuple[int, ...]:
+    """Index of the first True element of ``mask`` (row-major), so ``[:2]`` is its (y, x)."""
+    return tuple(int(i) for i in np.unravel_index(int(np.argmax(mask)), mask.shape))
+
+
+def check_finite(a: np.ndarray, name: str, axes: str = "(y, x)") -> None:
+    """Raise if ``a`` holds NaN or Inf, naming the first bad index as ``axes``."""
+    bad = ~np.isfinite(a)
+    if bad.any():
+        raise InputError(f"{name}: NaN/Inf at {axes} = {first_bad_index(bad)}")
+
+
+def check_type(value: object, types: type | tuple[type, ...], name: str, what: str) -> None:
+    """Raise unless ``value`` is an instance of ``types``; ``what`` names the expected type for the message."""
+    if not isinstance(value, types):
+        raise InputError(f"{name}: expected {what}, got {type(value).__name__}")
+
+
+def check_int(value: object, name: str, lo: int | None = None, hi: int | None = None) -> int:
+    """An integer (not a bool, not a float that happens to be whole) within [lo, hi]."""
+    if isinstance(value, bool) or not isinstance(value, Integral):
+        raise InputError(f"{name}: expected an integer, got {value!r}")
+    v = int(value)
+    if (lo is not None and v < lo) or (hi is not None and v > hi):
+        raise InputError(f"{name}: expected an integer in [{lo if lo is not None else '-inf'}, "
+                         f"{hi if hi is not None else 'inf'}], got {v}")
+    return v
+
+
+def check_number(value: object, name: str, lo: float | None = None, *, lo_open: bool = False) -> float:
+    """A finite real number (not a bool, not a string) >= ``lo`` (> ``lo`` with ``lo_open``)."""
+    if isinstance(value, bool) or not isinstance(value, Real):
+        raise InputError(f"{name}: expected a number, got {value!r}")
+    v = float(value)
+    if not math.isfinite(v):
+        raise InputError(f"{name}: expected a finite number, got {value!r}")
+    if lo is not None and (v <= lo if lo_open else v < lo):
+        raise InputError(f"{name}: expected a number {'>' if lo_open else '>='} {lo:g}, got {value!r}")
+    return v
+
+
+def check_image(image: np.ndarray, name: str = "image") -> np.ndarray:
+    """Validate a scene-linear image: H x W, H x W x 1, H x W x 3 or H x W x 4, finite. Returns float32."""
+    if not isinstance(image, np.ndarray) and not hasattr(image, "__array__"):
+        raise InputError(f"{name}: expected a NumPy array, got {type(image).__name__}")
+    a = np.asarray(image)
+    if a.ndim == 2:
+        a = a[..., None]
+    if a.ndim != 3 or a.shape[2] not in (1, 3, 4):
+        raise InputError(f"{name}: expected H x W x C with C in (1, 3, 4), got shape {np.shape(image)}")
+    if a.shape[0] < 1 or a.shape[1] < 1:
+        raise InputError(f"{name}: expected a non-empty image, got shape {a.shape}")
+    if not np.issubdtype(a.dtype, np.floating):
+        raise InputError(
+            f"{name}: expected floating-point scene-linear values, got dtype {a.dtype}; "
+            "decode integer images with bokehray.read_image"
+        )
+    a = np.ascontiguousarray(a, np.float32)
+    bad = ~np.isfinite(a)
+    if bad.any():
+        raise InputError(f"{name}: NaN/Inf at (y, x, c) = {first_bad_index(bad)} (after conversion to float32)")
+    return a
+
+
+def check_disparity(disparity: np.ndarray, shape_hw: tuple[int, int], name: str = "disparity") -> np.ndarray:
+    """Validate a disparity map: shape ``shape_hw``, finite, within [0, 1]. Returns float32."""
+    if not isinstance(disparity, np.ndarray) and not hasattr(disparity, "__array__"):
+        raise InputError(f"{name}: expected a NumPy array, got {type(disparity).__name__}")
+    d = np.asarray(disparity)
+    if d.ndim == 3 and d.shape[2] == 1:
+        d = d[..., 0]
+    if d.shape != tuple(shape_hw):
+        raise InputError(
+            f"{name}: expected shape {tuple(shape_hw)} (the image's H x W), got {d.shape}; "
+            "resize it first (CLI: --resize-disparity)"
+        )
+    if not (np.issubdtype(d.dtype, np.floating) or np.issubdtype(d.dtype, np.integer)):
+        raise InputError(f"{name}: expected a numeric array, got dtype {d.dtype}")
+    d = np.asarray(d, np.float32)
+    check_finite(d, name)
+    lo, hi = float(d.min()), float(d.max())
+    if lo < 0.0 or hi > 1.0:
+        raise InputError(
+            f"{name}: expected values in [0, 1] (1 = nearest), got [{lo:.4g}, {hi:.4g}]; "
+            "normalise it, or convert metric depth with bokehray.disparity_from_depth"
+        )
+    return np.ascontiguousarray(d)
