@@ -458,6 +458,49 @@ def test_sparse_layer_fills_sparsely():
     np.testing.assert_allclose(got["src"][behind][:, :3] / a[:, None], 0.5, rtol=1e-5)
 
 
+def test_bright_light_beside_the_occluder_does_not_flood():
+    """Tone-mapped pull-push: a 1000x light on the occluder's edge barely lifts the hidden region.
+
+    A linear-light pull-push would spread it at about its share of the neighbourhood (1000 / 25 = 40
+    on a 5 x 5 footprint); in tone-mapped form it counts as at most 1 against the dim pixels' 0.09.
+    """
+    size = 17
+    sid = np.zeros((size, size), np.int32)
+    sid[4:13, 4:13] = 1
+    image = np.full((size, size, 3), 0.1, np.float32)
+    image[8, 3] = 1000.0
+    scene = {"image": image, "sid": sid, "scoc": np.where(sid == 1, 8.0, -3.0).astype(np.float32), "layer": 0,
+             "bbox": (0, size, 0, size), "n_layers": 2, "s_lo": -8.0, "s_hi": 0.0}
+    got = _run_fill(scene, 4)
+    filled = (sid == 1) & (got["src"][..., 3] > 0)
+    assert filled.sum() == 81  # 4 px deep at most, the gate is sqrt(2) 8 + 1
+    colour = got["src"][filled][:, 0] / got["src"][filled][:, 3]
+    assert colour.max() < 1.0 and np.median(colour) < 0.15, (colour.max(), np.median(colour))
+
+
+@pytest.mark.parametrize("radius", [0.5, 1.0, 2.5, 4.2, 7.0, 11.0])
+def test_launcher_pyramid_depth_fills_the_whole_gate(radius):
+    """With the launcher's level count for a reach r, every hidden pixel inside the gate gets a source,
+    even behind an occluder that leaves a single pixel of the layer visible."""
+    from bokehray._scatter import _pull_levels  # noqa: PLC0415 - host module (being restructured)
+
+    n = int(2 * (fill_ref.SQRT2 * radius + 2)) + 3
+    for visible in ("corner pixel", "left column"):
+        sid = np.ones((n, n), np.int32)
+        if visible == "corner pixel":
+            sid[0, 0] = 0
+        else:
+            sid[:, 0] = 0
+        scene = {"image": np.full((n, n, 3), 0.5, np.float32), "sid": sid,
+                 "scoc": np.where(sid == 1, radius, -1.0).astype(np.float32), "layer": 0, "bbox": (0, n, 0, n),
+                 "n_layers": 2, "s_lo": -2.0, "s_hi": 0.0}
+        got = _run_fill(scene, _pull_levels(radius))
+        gate = (sid == 1) & (fill_ref.l1_distance(sid, 0, 0, 0, n, n) <= fill_ref.SQRT2 * radius + 1.0)
+        filled = (sid == 1) & (got["src"][..., 3] > 0)
+        np.testing.assert_array_equal(filled, gate, err_msg=visible)
+        np.testing.assert_allclose(got["src"][filled][:, 3], 1.0, atol=ATOL)
+
+
 @pytest.mark.xfail(strict=True, reason="negative radiance is filled as 0 (tone map undefined for c < 0); "
                                        "reported, the kernel is not changed here")
 def test_negative_colour_fill_stays_within_the_visible_colours():
