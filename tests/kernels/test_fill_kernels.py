@@ -105,7 +105,7 @@ def _run_fill(scene, pull_levels, band: int = 64) -> dict:
     knowns = [wp.empty(pp, dtype=float, device=DEVICE)]
     wp.launch(bk.layer_sources_kernel, dim=(h, w), inputs=[image, scoc, sid, layer, x0, y0, int(fill)],
               outputs=[src, coc, totals[0], weights[0], knowns[0]], device=DEVICE)
-    out = {"src": src, "coc": coc, "n_filled": filled}
+    out = {}
     if fill:
         for _ in range(pull_levels):
             ph, pw = totals[-1].shape
