@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench-quick bench-compare-quick soak-quick clean
+.PHONY: demo test lint bench-quick bench-compare-quick soak-quick clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -17,6 +17,11 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -n 2 -q
+
+# the structure of docs/architecture.md (import direction, no cycles, kernels pure) and a lint pass
+lint: $(STAMP)
+	$(BIN)/ruff check src kernels refiner benchmarks tests
+	$(BIN)/lint-imports
 
 bench-quick: $(STAMP)
 	$(BIN)/python benchmarks/bench_preview.py --quick

@@ -13,9 +13,7 @@ Usage (from the repository root)::
 from __future__ import annotations
 
 import argparse
-import json
 import sys
-import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
@@ -66,7 +64,7 @@ def main() -> int:
     truth, _ = br.raytrace_layers(layers, blur, options=fixed(4 * SPP[-1]), )
     rows = []
     for n in SPP:
-        timing = common.time_warm(lambda: br.raytrace_layers(layers, blur, options=fixed(n)), runs=3, warmup=0)
+        timing = common.time_warm(lambda n=n: br.raytrace_layers(layers, blur, options=fixed(n)), runs=3, warmup=0)
         out, _ = br.raytrace_layers(layers, blur, options=fixed(n))
         rows.append({"spp": n, "psnr_db": round(psnr(out[..., :3], truth[..., :3]), 2), **timing})
     adaptive = br.RaytraceOptions()

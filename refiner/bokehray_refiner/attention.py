@@ -24,6 +24,8 @@ import math
 import torch
 import torch.nn.functional as F
 
+from bokehray.errors import InputError
+
 __all__ = ["pisa_attention", "pisa_attention_dense", "pisa_weights", "window_offsets"]
 
 
@@ -47,11 +49,11 @@ def window_offsets(window: int) -> list[tuple[int, int]]:
 
 def _check(q: torch.Tensor, k: torch.Tensor, coc: torch.Tensor, window: int) -> None:
     if q.ndim != 5 or k.shape != q.shape:
-        raise ValueError(f"q and k: expected equal shapes (B, heads, H, W, d), got {tuple(q.shape)}, {tuple(k.shape)}")
+        raise InputError(f"q and k: expected equal shapes (B, heads, H, W, d), got {tuple(q.shape)}, {tuple(k.shape)}")
     n_off = (2 * window + 1) ** 2
     b, _, h, w, _ = q.shape
     if coc.shape[-3:] != (h, w, n_off) or coc.ndim not in (3, 4) or (coc.ndim == 4 and coc.shape[0] not in (1, b)):
-        raise ValueError(f"mask: expected (B, {h}, {w}, {n_off}) for window {window}, got {tuple(coc.shape)}")
+        raise InputError(f"mask: expected (B, {h}, {w}, {n_off}) for window {window}, got {tuple(coc.shape)}")
 
 
 def _acc_dtype(x: torch.Tensor) -> torch.dtype:
@@ -134,11 +136,11 @@ def pisa_attention(
         ``(B, heads, H, W, dv)`` in the dtype of ``v``.
     """
     if v.shape[:4] != q.shape[:4]:
-        raise ValueError(f"v: expected (B, heads, H, W, dv) matching q {tuple(q.shape[:4])}, got {tuple(v.shape)}")
+        raise InputError(f"v: expected (B, heads, H, W, dv) matching q {tuple(q.shape[:4])}, got {tuple(v.shape)}")
     a = pisa_weights(q, k, coc, window, scale)
     if visibility is not None:
         if visibility.shape != coc.shape:
-            raise ValueError(f"visibility: expected the shape of coc {tuple(coc.shape)}, got {tuple(visibility.shape)}")
+            raise InputError(f"visibility: expected the shape of coc {tuple(coc.shape)}, got {tuple(visibility.shape)}")
         vis = _batched(visibility).to(a.dtype)
         a = a.mul_(vis) if not a.requires_grad else a * vis
     return _aggregate(a, v, window).to(v.dtype)

@@ -18,6 +18,7 @@ from skimage.filters import gaussian
 from tqdm import tqdm
 
 from bokehray.datasets import BLBDataset, perturb_disparity
+from bokehray.errors import InputError
 from bokehray.io import linear_to_srgb
 from bokehray.lens import BlurParams
 from bokehray.pipeline import render
@@ -50,7 +51,7 @@ def corrupt_disparity(d: np.ndarray, kind: str, amount: int, rng: np.random.Gene
         dy, dx = int(round(amount * np.sin(a))), int(round(amount * np.cos(a)))
         p = amount
         return np.pad(d, p, mode="edge")[p - dy: p - dy + d.shape[0], p - dx: p - dx + d.shape[1]].copy()
-    raise ValueError(f"corruption: expected one of {CORRUPTIONS}, got {kind!r}")
+    raise InputError(f"corruption: expected one of {CORRUPTIONS}, got {kind!r}")
 
 
 @dataclass
@@ -74,9 +75,9 @@ class PairBank:
                  limit: int | None = None, progress: bool = True,
                  probs: tuple[float, ...] = CORRUPTION_PROBS):
         if len(probs) != len(CORRUPTIONS) or min(probs) < 0 or abs(sum(probs) - 1.0) > 1e-6:
-            raise ValueError(f"corruption probabilities: expected {len(CORRUPTIONS)} shares summing to 1, got {probs}")
+            raise InputError(f"corruption probabilities: expected {len(CORRUPTIONS)} shares summing to 1, got {probs}")
         if max_corruption_px < 1:
-            raise ValueError(f"max_corruption_px: expected >= 1, got {max_corruption_px}")
+            raise InputError(f"max_corruption_px: expected >= 1, got {max_corruption_px}")
         ds = BLBDataset(root)
         n = len(ds) if limit is None else min(limit, len(ds))
         rng = np.random.default_rng(seed)
@@ -98,7 +99,7 @@ class PairBank:
                 renders=renders, disparities=disps, kinds=kinds,
                 k_px=float(s.k_px), focus_disparity=float(s.focus_disparity)))
         if not self.pairs:
-            raise ValueError(f"{root}: no pairs")
+            raise InputError(f"{root}: no pairs")
         self.min_side = min(min(p.focus.shape[:2]) for p in self.pairs)
 
     def __len__(self) -> int:
@@ -107,7 +108,7 @@ class PairBank:
     def batch(self, rng: np.random.Generator, size: int, crop: int) -> dict[str, np.ndarray]:
         """A random batch of ``crop x crop`` crops (random pair, variant, position and left-right flip)."""
         if crop > self.min_side:
-            raise ValueError(f"crop {crop} is larger than the smallest image ({self.min_side} px)")
+            raise InputError(f"crop {crop} is larger than the smallest image ({self.min_side} px)")
         out: dict[str, list] = {k: [] for k in ("focus", "render", "target", "disparity", "k_px", "focus_disparity")}
         for _ in range(size):
             p = self.pairs[int(rng.integers(len(self.pairs)))]

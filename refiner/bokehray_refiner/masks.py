@@ -19,6 +19,7 @@ import torch
 import torch.nn.functional as F
 import warp as wp
 
+from bokehray.errors import InputError
 from bokehray.pisa import PisaMaskOptions, pisa_masks, window_radius
 
 __all__ = ["LayerMasks", "PisaMaskProvider"]
@@ -60,7 +61,7 @@ class PisaMaskProvider:
         if d.ndim == 2:
             d = d[None]
         if d.ndim != 3:
-            raise ValueError(f"disparity: expected (B, H, W) or (H, W), got shape {tuple(d.shape)}")
+            raise InputError(f"disparity: expected (B, H, W) or (H, W), got shape {tuple(d.shape)}")
         self.disparity = d
         b = d.shape[0]
         self.focus = self._per_image(focus_disparity, b, "focus_disparity")
@@ -74,7 +75,7 @@ class PisaMaskProvider:
     def _per_image(value: float | Sequence[float], b: int, name: str) -> list[float]:
         vals = [float(value)] * b if np.ndim(value) == 0 else [float(v) for v in value]
         if len(vals) != b:
-            raise ValueError(f"{name}: expected one value or {b}, got {len(vals)}")
+            raise InputError(f"{name}: expected one value or {b}, got {len(vals)}")
         return vals
 
     @property
@@ -91,7 +92,7 @@ class PisaMaskProvider:
                 return gh, gw
             if gh * gw < n_tokens:
                 break
-        raise ValueError(f"{n_tokens} tokens match no power-of-2 reduction of the {h}x{w} disparity map")
+        raise InputError(f"{n_tokens} tokens match no power-of-2 reduction of the {h}x{w} disparity map")
 
     def at(self, h: int, w: int) -> LayerMasks:
         """The masks on an ``h x w`` grid (computed once, then cached)."""

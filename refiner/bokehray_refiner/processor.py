@@ -19,6 +19,8 @@ import re
 import torch
 from diffusers.models.attention_processor import Attention, AttnProcessor2_0
 
+from bokehray.errors import InputError
+
 from .attention import pisa_attention
 from .masks import PisaMaskProvider
 
@@ -41,7 +43,7 @@ class PISAAttnProcessor(PassThroughAttnProcessor):
         if pisa is None or encoder_hidden_states is not None:
             return super().__call__(attn, hidden_states, encoder_hidden_states, attention_mask, temb)
         if attention_mask is not None:
-            raise ValueError("PISA self-attention takes its masks from the provider, not from attention_mask")
+            raise InputError("PISA self-attention takes its masks from the provider, not from attention_mask")
         residual = hidden_states
         if attn.spatial_norm is not None:
             hidden_states = attn.spatial_norm(hidden_states, temb)
@@ -90,7 +92,7 @@ def install_pisa(unet: torch.nn.Module, pattern: str = r"^down_blocks\..*\.attn1
     """
     names = pisa_layer_names(unet, pattern)
     if not names:
-        raise ValueError(f"no attention processor of the model matches {pattern!r}")
+        raise InputError(f"no attention processor of the model matches {pattern!r}")
     chosen = set(names)
     unet.set_attn_processor({name: PISAAttnProcessor() if name in chosen else PassThroughAttnProcessor()
                              for name in unet.attn_processors})

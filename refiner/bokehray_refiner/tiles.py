@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 
+from bokehray.errors import InputError
+
 __all__ = ["blend_tiles", "raised_cosine_ramp", "tile_grid"]
 
 Box = tuple[int, int, int, int]  # y0, y1, x0, x1
@@ -26,7 +28,7 @@ def tile_grid(shape: tuple[int, int], tile: int, overlap: int, multiple: int = 1
     tile up to a multiple of ``multiple`` (a model's size constraint).
     """
     if tile < multiple or tile % multiple or not 0 <= overlap < tile:
-        raise ValueError(f"tile {tile} must be a positive multiple of {multiple} larger than the overlap {overlap}")
+        raise InputError(f"tile {tile} must be a positive multiple of {multiple} larger than the overlap {overlap}")
     h, w = shape
     out = []
     for y0 in _starts(h, tile, overlap):

@@ -27,6 +27,7 @@ import torch.nn.functional as F
 from safetensors.torch import save_file
 from tqdm import tqdm
 
+from bokehray.errors import InputError
 from bokehray.io import atomic_write
 from bokehray.pisa import K_MAX, PisaMaskOptions
 
@@ -68,9 +69,9 @@ class TrainConfig:
     def __post_init__(self) -> None:
         factor = RefinerConfig(**self.model).latent_factor
         if self.steps < 1 or self.batch < 1 or self.checkpoint_every < 1 or self.crop < factor or self.crop % factor:
-            raise ValueError(f"steps, batch and checkpoint_every must be >= 1 and crop a positive multiple of {factor}")
+            raise InputError(f"steps, batch and checkpoint_every must be >= 1 and crop a positive multiple of {factor}")
         if self.lpips_weight > 0 and not self.lpips_model:
-            raise ValueError("lpips_weight > 0 needs lpips_model: a local TorchScript LPIPS model")
+            raise InputError("lpips_weight > 0 needs lpips_model: a local TorchScript LPIPS model")
 
 
 def hardness_at(step: int, cfg: TrainConfig) -> float:
@@ -188,7 +189,7 @@ def train(cfg: TrainConfig, resume: bool = True, progress: bool = True, bank: Pa
     that was stopped at step M (resuming needs a checkpoint at or before M).
     """
     if stop_at is not None and stop_at < 1:
-        raise ValueError(f"stop_at: expected >= 1, got {stop_at}")
+        raise InputError(f"stop_at: expected >= 1, got {stop_at}")
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
     device = _device(cfg.device)
@@ -207,7 +208,7 @@ def train(cfg: TrainConfig, resume: bool = True, progress: bool = True, bank: Pa
     if resume and ckpt.is_file():
         state = torch.load(ckpt, map_location=device, weights_only=False)
         if state["config"] != asdict(cfg):
-            raise ValueError(f"{ckpt}: written by a different configuration; use a new --out or --no-resume")
+            raise InputError(f"{ckpt}: written by a different configuration; use a new --out or --no-resume")
         model.load_state_dict(state["model"])
         opt.load_state_dict(state["opt"])
         sched.load_state_dict(state["sched"])
@@ -218,7 +219,7 @@ def train(cfg: TrainConfig, resume: bool = True, progress: bool = True, bank: Pa
         torch.set_rng_state(state["torch_rng"])
         step, rows = state["step"], state["rows"]
         if stop_at is not None and step > stop_at:
-            raise ValueError(f"{ckpt}: the checkpoint is at step {step}, past --stop-at {stop_at}")
+            raise InputError(f"{ckpt}: the checkpoint is at step {step}, past --stop-at {stop_at}")
     if bank is None:
         bank = PairBank(cfg.data, variants=cfg.variants, max_corruption_px=cfg.max_corruption_px, seed=cfg.seed,
                         limit=cfg.limit, progress=progress, probs=tuple(cfg.corruption_probs))
@@ -264,7 +265,7 @@ def train(cfg: TrainConfig, resume: bool = True, progress: bool = True, bank: Pa
                      "rows": rows, "config": asdict(cfg)}
             if disc is not None:
                 state |= {"disc": disc.state_dict(), "d_opt": d_opt.state_dict()}
-            atomic_write(ckpt, lambda tmp: torch.save(state, tmp))
+            atomic_write(ckpt, lambda tmp, state=state: torch.save(state, tmp))
             atomic_write(out / "loss.csv", lambda tmp: _write_csv(rows, tmp))
             _save_plot(rows, out / "loss.png")
         if stop_at is not None and step >= stop_at:

@@ -134,7 +134,7 @@ def build_demo_scene(width: int = 768, height: int = 512, seed: int = 0) -> Demo
     rng = np.random.default_rng(seed)
     s = W / _REF_WIDTH  # pixel-size scale
     gy, gx = np.mgrid[0:H, 0:W].astype(np.float32)
-    full = (slice(0, H), slice(0, W))
+
 
     # Far background: dusk launch pad on a tilted plane; clipped lamps lifted to HDR.
     rocket = skdata.rocket()

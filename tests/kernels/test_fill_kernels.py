@@ -90,7 +90,7 @@ def scenes(draw, max_side: int = 12):
 
 
 def _run_fill(scene, pull_levels, band: int = 64) -> dict:
-    """The kernel chain in the launch order of the preview launcher (``_layer_sources``)."""
+    """The kernel chain in the launch order of ``bokehray.scene.build_layer_sources``."""
     y0, y1, x0, x1 = scene["bbox"]
     h, w = y1 - y0, x1 - x0
     layer = scene["layer"]
@@ -315,7 +315,8 @@ def test_no_fill_gives_the_layer_pixels_only(scene):
 
 def _planned_scene(seed: int, size: int = 32):
     """A blurred disc in front of a textured, tilted background: disparity -> signed CoC -> plan_layers."""
-    from bokehray._scatter import PreviewOptions, plan_layers  # noqa: PLC0415 - host module (being restructured)
+    from bokehray.options import LayerOptions
+    from bokehray.scene import build_scene
 
     rng = np.random.default_rng(seed)
     yy, xx = np.mgrid[:size, :size]
@@ -325,23 +326,23 @@ def _planned_scene(seed: int, size: int = 32):
     image = rng.uniform(0.0, 1.0, (size, size, 3)).astype(np.float32)
     image[rng.random((size, size)) < 0.05] *= 30.0
     scoc = (rng.uniform(6, 14) * (disp - 0.5)).astype(np.float32)
-    opts = PreviewOptions(tile_px=8)
-    sid, layers = plan_layers(scoc, np.ones((size, size), bool), opts)
-    return image, scoc, sid, layers
+    scene = build_scene(scoc, np.ones((size, size), bool), LayerOptions(tile_px=8), level_radius_px=8.0)
+    return image, scoc, scene.ids, scene.layers
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_host_layer_sources_matches_reference(seed):
-    """The launcher itself (bokehray._scatter._layer_sources) on planned layers, against the composed oracle."""
-    from bokehray._scatter import _layer_sources, _pull_levels  # noqa: PLC0415 - host module (being restructured)
+    """The launcher itself (bokehray.scene.build_layer_sources) on planned layers, against the composed oracle."""
+    from bokehray.scene import LayerSources, build_layer_sources, pull_levels
 
     image, scoc, sid, layers = _planned_scene(seed)
     n = int(sid.max()) + 1
     assert any(la.fill_reach >= 0.5 for la in layers), "the scene must exercise the fill"
     for la in layers:
-        filled = wp.zeros(n, dtype=wp.int32, device=DEVICE)
-        src, coc = _layer_sources(la, _wp(image, wp.vec3), _wp(scoc, float), _wp(sid, wp.int32), filled, DEVICE)
-        levels = _pull_levels(la.fill_reach) if la.fill_reach >= 0.5 else None
+        arrays = LayerSources.upload(image, scoc, sid, n, DEVICE)
+        src, coc = build_layer_sources(la, arrays)
+        filled = arrays.filled
+        levels = pull_levels(la.fill_reach) if la.filled else None
         want = fill_ref.layer_fill(image, scoc, sid, la.index, la.bbox, la.s_lo, la.s_hi, levels, n)
         assert np.all(np.abs(src.numpy() - want["src"]) <= _colour_tol(want["src"]))
         np.testing.assert_allclose(coc.numpy(), want["coc"], rtol=1e-5, atol=ATOL)
@@ -482,7 +483,7 @@ def test_bright_light_beside_the_occluder_does_not_flood():
 def test_launcher_pyramid_depth_fills_the_whole_gate(radius):
     """With the launcher's level count for a reach r, every hidden pixel inside the gate gets a source,
     even behind an occluder that leaves a single pixel of the layer visible."""
-    from bokehray._scatter import _pull_levels  # noqa: PLC0415 - host module (being restructured)
+    from bokehray.scene import pull_levels
 
     n = int(2 * (fill_ref.SQRT2 * radius + 2)) + 3
     for visible in ("corner pixel", "left column"):
@@ -494,7 +495,7 @@ def test_launcher_pyramid_depth_fills_the_whole_gate(radius):
         scene = {"image": np.full((n, n, 3), 0.5, np.float32), "sid": sid,
                  "scoc": np.where(sid == 1, radius, -1.0).astype(np.float32), "layer": 0, "bbox": (0, n, 0, n),
                  "n_layers": 2, "s_lo": -2.0, "s_hi": 0.0}
-        got = _run_fill(scene, _pull_levels(radius))
+        got = _run_fill(scene, pull_levels(radius))
         gate = (sid == 1) & (fill_ref.l1_distance(sid, 0, 0, 0, n, n) <= fill_ref.SQRT2 * radius + 1.0)
         filled = (sid == 1) & (got["src"][..., 3] > 0)
         np.testing.assert_array_equal(filled, gate, err_msg=visible)

@@ -123,7 +123,7 @@ def raytrace_case(seed: int, device: str = "cpu") -> tuple[float, float, str]:
     scale = float(rng.choice(SCALES[1:]))
     same_depth = rng.random() < 0.3
     layers = []
-    for i in range(n):
+    for _ in range(n):
         tex = np.empty((h, w, 4), np.float32)
         tex[..., :3] = rng.random((h, w, 3)) * scale
         alpha = rng.choice(["zero", "one", "step", "random"])

@@ -44,7 +44,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
 def cmd_bench(args: argparse.Namespace) -> int:
     from ..metrics import PerceptualMetric
     from .methods import registry, select
-    from .run import (QUICK_SPLIT, SynthSplit, blb_cases, default_cache, ebb_cases, machine_info, markdown_table,
+    from .machine import machine_info
+    from .run import (QUICK_SPLIT, SynthSplit, blb_cases, default_cache, ebb_cases, markdown_table,
                       robustness_table, run_bench, synth_cases, write_reports)
 
     if args.list_methods:

@@ -20,8 +20,6 @@ import hashlib
 import json
 import math
 import os
-import platform
-import re
 import statistics
 import time
 from collections.abc import Callable, Sequence
@@ -31,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from ..datasets import perturb_disparity
-from .machine import machine_info, reset_peak_rss, status_kb
+from .machine import reset_peak_rss, status_kb
 from ..errors import InputError
 from ..metrics import BAND_PX, PerceptualMetric, discontinuity_band, exposure_align, score
 from .methods import Method
