@@ -221,10 +221,12 @@ def cmd_render(args: argparse.Namespace) -> int:
     from . import io
     from .lens import BlurParams, DepthNormalization, ThinLens, disparity_from_depth
     from .pipeline import focus_at, render_with_stats
+    from .validate import check_radiance
 
     _check_output(args.output, args)
     t0 = time.perf_counter()
     image = io.read_image(args.image)
+    check_radiance(image, str(args.image))  # the limit every level has, with the file named
     h, w = image.shape[:2]
 
     lens_args = (args.focal_length, args.f_number, args.focus_distance)

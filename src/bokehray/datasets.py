@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from .errors import InputError
+from .validate import check_disparity, check_image
 from .io import read_depth, read_disparity, read_image, write_disparity, write_image
 
 __all__ = ["FAR_DEPTH", "BLBDataset", "EBBDataset", "Sample", "perturb_disparity", "write_blb_scene"]
@@ -132,9 +133,7 @@ def write_blb_scene(
     d = np.asarray(disparity)
     if d.shape != (h, w) or d.dtype.kind not in "fiu":
         raise InputError(f"disparity: expected a real {h} x {w} (H x W) array like the image, got shape {d.shape}")
-    d = d.astype(np.float32)
-    if not np.isfinite(d).all() or d.min() < 0.0 or d.max() > 1.0:
-        raise InputError(f"disparity: expected finite values in [0, 1], got range [{np.nanmin(d):g}, {np.nanmax(d):g}]")
+    d = check_disparity(d, (h, w))
     if not isinstance(info, Mapping):
         raise InputError(f"info: expected a dict, got {type(info).__name__}")
     ks = _floats(info, "blur_parameters", "info")
@@ -187,15 +186,12 @@ def write_blb_scene(
 
 
 def _check_image(a: Any, what: str, hw: tuple[int, int] | None = None) -> np.ndarray:
-    arr = np.asarray(a) if a is not None else np.empty(0)
-    if arr.ndim != 3 or arr.shape[2] != 3 or arr.size == 0 or (hw is not None and arr.shape[:2] != hw):
-        want = f"{hw[0]} x {hw[1]} x 3 like the image" if hw else "H x W x 3"
-        raise InputError(f"{what}: expected a {want} array, got shape {arr.shape}")
-    if arr.dtype.kind != "f":
-        raise InputError(f"{what}: expected a floating-point linear image, got dtype {arr.dtype}")
-    if not np.isfinite(arr).all():
-        raise InputError(f"{what}: expected finite values, got NaN or Inf")
-    return arr.astype(np.float32)
+    if a is None:
+        raise InputError(f"{what}: expected an H x W x 3 array, got None")
+    img = check_image(a, what, channels=(3,))
+    if hw is not None and img.shape[:2] != hw:
+        raise InputError(f"{what}: expected a {hw[0]} x {hw[1]} x 3 array like the image, got shape {img.shape}")
+    return img
 
 
 def _swap_in(tmp: Path, folder: Path) -> None:

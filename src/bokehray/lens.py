@@ -18,6 +18,7 @@ Conventions (docs/conventions.md):
 from __future__ import annotations
 
 import math
+from numbers import Real
 from dataclasses import dataclass
 
 import numpy as np
@@ -31,10 +32,10 @@ __all__ = ["MAX_K_PX", "Aperture", "BlurParams", "DepthNormalization", "ThinLens
 
 
 def _finite(name: str, value: float, *, lo: float | None = None, lo_open: bool = False) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise InputError(f"{name}: expected a number, got {value!r}") from None
+    # a real number only: True, "4" or None are mistakes, not 1.0, 4.0 or an error from float()
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, Real):
+        raise InputError(f"{name}: expected a number, got {value!r}")
+    v = float(value)
     if not math.isfinite(v):
         raise InputError(f"{name}: expected a finite number, got {v!r}")
     if lo is not None and (v < lo or (lo_open and v == lo)):

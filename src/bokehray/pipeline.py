@@ -19,7 +19,7 @@ from .levels import LEVELS, RenderContext, get_level
 from .levels.refine import REFINABLE, refine_render
 from .options import LayerOptions, MemoryOptions, PreviewOptions, RaytraceOptions
 from .stats import RenderStats
-from .validate import check_disparity, check_image, check_number, check_type, first_bad_index
+from .validate import MAX_RADIANCE, check_disparity, check_image, check_number, check_radiance, check_type, first_bad_index
 
 __all__ = ["QUALITIES", "boost_highlights", "focus_at", "render", "render_with_stats"]
 
@@ -137,6 +137,7 @@ def render_with_stats(
     _check_shape_fits(image, level.whole_image_bytes, memory)
 
     img = check_image(image)
+    check_radiance(img)
     d = check_disparity(disparity, img.shape[:2])
     channels = img.shape[2]
     lowest = float(img.min())
@@ -145,10 +146,10 @@ def render_with_stats(
         work = work.copy()
         with np.errstate(over="ignore", invalid="ignore"):
             work[..., :3] = boost_highlights(work[..., :3], highlight_boost)  # colour only, never alpha
-        bad = ~np.isfinite(work[..., :3])
+        bad = ~np.isfinite(work[..., :3]) | (np.abs(work[..., :3]) > MAX_RADIANCE)
         if bad.any():
-            raise InputError(f"highlight_boost: {highlight_boost:g} takes the image beyond float32 at (y, x, c) = "
-                             f"{first_bad_index(bad)}; use a smaller boost")
+            raise InputError(f"highlight_boost: {highlight_boost:g} takes the image beyond the radiance a render "
+                             f"takes (+-{MAX_RADIANCE:g}) at (y, x, c) = {first_bad_index(bad)}; use a smaller boost")
     s = blur.signed_coc(d)
     raw_max = max(float(s.max()), -float(s.min())) if s.size else 0.0
     ctx = RenderContext(np.ascontiguousarray(work[..., :3]), d, scene.cap_coc(s), blur, aperture, layers, memory,

@@ -21,6 +21,7 @@ import warp as wp
 import bokehray_kernels.pisa as kp
 
 from .errors import InputError
+from .validate import check_disparity
 
 __all__ = ["K_MAX", "PisaMaskOptions", "PisaMasks", "edge_slope", "pisa_masks", "window_offsets", "window_radius"]
 
@@ -146,11 +147,7 @@ def pisa_masks(
     d = np.asarray(disparity)
     if d.ndim != 2 or d.size == 0:
         raise InputError(f"disparity: expected a non-empty h x w array, got shape {d.shape}")
-    d = np.ascontiguousarray(d, dtype=np.float32)
-    if not np.isfinite(d).all():
-        raise InputError("disparity: contains NaN or Inf")
-    if d.min() < 0.0 or d.max() > 1.0:
-        raise InputError(f"disparity: expected values in [0, 1], got [{d.min():.4g}, {d.max():.4g}]")
+    d = check_disparity(d, d.shape)
     if not (math.isfinite(focus_disparity) and 0.0 <= focus_disparity <= 1.0):
         raise InputError(f"focus_disparity: expected a value in [0, 1], got {focus_disparity!r}")
     if not (math.isfinite(k_lat) and 0.0 <= k_lat <= 1.0e5):

@@ -15,8 +15,13 @@ import numpy as np
 from .errors import InputError
 
 __all__ = [
-    "check_disparity", "check_finite", "check_image", "check_int", "check_number", "check_type", "first_bad_index",
+    "MAX_RADIANCE", "check_disparity", "check_finite", "check_image", "check_int", "check_number", "check_radiance",
+    "check_type", "first_bad_index",
 ]  # fmt: skip
+
+MAX_RADIANCE = 1e36
+"""Largest radiance any level renders: the preview's prefix sums and the ray tracer's ray averages add up to a few
+hundred values in float32 (max 3.4e38), so beyond this a render could overflow. Refused up front, for every level."""
 
 
 def first_bad_index(mask: np.ndarray) -> tuple[int, ...]:
@@ -28,7 +33,7 @@ def check_finite(a: np.ndarray, name: str, axes: str = "(y, x)") -> None:
     """Raise if ``a`` holds NaN or Inf, naming the first bad index as ``axes``."""
     bad = ~np.isfinite(a)
     if bad.any():
-        raise InputError(f"{name}: NaN/Inf at {axes} = {first_bad_index(bad)}")
+        raise InputError(f"{name}: expected finite values, got NaN/Inf at {axes} = {first_bad_index(bad)}")
 
 
 def check_type(value: object, types: type | tuple[type, ...], name: str, what: str) -> None:
@@ -60,15 +65,16 @@ def check_number(value: object, name: str, lo: float | None = None, *, lo_open: 
     return v
 
 
-def check_image(image: np.ndarray, name: str = "image") -> np.ndarray:
-    """Validate a scene-linear image: H x W, H x W x 1, H x W x 3 or H x W x 4, finite. Returns float32."""
+def check_image(image: np.ndarray, name: str = "image", channels: tuple[int, ...] = (1, 3, 4)) -> np.ndarray:
+    """Validate a scene-linear image: H x W (as H x W x 1) or H x W x C with C in ``channels``, floating point,
+    finite. Returns it as contiguous float32 (no copy when it already is)."""
     if not isinstance(image, np.ndarray) and not hasattr(image, "__array__"):
         raise InputError(f"{name}: expected a NumPy array, got {type(image).__name__}")
     a = np.asarray(image)
-    if a.ndim == 2:
+    if a.ndim == 2 and 1 in channels:
         a = a[..., None]
-    if a.ndim != 3 or a.shape[2] not in (1, 3, 4):
-        raise InputError(f"{name}: expected H x W x C with C in (1, 3, 4), got shape {np.shape(image)}")
+    if a.ndim != 3 or a.shape[2] not in channels:
+        raise InputError(f"{name}: expected H x W x C with C in {channels}, got shape {np.shape(image)}")
     if a.shape[0] < 1 or a.shape[1] < 1:
         raise InputError(f"{name}: expected a non-empty image, got shape {a.shape}")
     if not np.issubdtype(a.dtype, np.floating):
@@ -77,10 +83,16 @@ def check_image(image: np.ndarray, name: str = "image") -> np.ndarray:
             "decode integer images with bokehray.read_image"
         )
     a = np.ascontiguousarray(a, np.float32)
-    bad = ~np.isfinite(a)
-    if bad.any():
-        raise InputError(f"{name}: NaN/Inf at (y, x, c) = {first_bad_index(bad)} (after conversion to float32)")
+    check_finite(a, name, "(y, x, c)")
     return a
+
+
+def check_radiance(image: np.ndarray, name: str = "image") -> None:
+    """Refuse radiance beyond :data:`MAX_RADIANCE` (a finite float32 near its maximum would overflow a render)."""
+    peak = float(np.abs(image).max()) if image.size else 0.0
+    if peak > MAX_RADIANCE:
+        raise InputError(f"{name}: radiance up to {peak:.3g}; renders sum values in float32 and need them within "
+                         f"+-{MAX_RADIANCE:g} (scale the image down)")
 
 
 def check_disparity(disparity: np.ndarray, shape_hw: tuple[int, int], name: str = "disparity") -> np.ndarray:
@@ -102,7 +114,7 @@ def check_disparity(disparity: np.ndarray, shape_hw: tuple[int, int], name: str 
     lo, hi = float(d.min()), float(d.max())
     if lo < 0.0 or hi > 1.0:
         raise InputError(
-            f"{name}: expected values in [0, 1] (1 = nearest), got [{lo:.4g}, {hi:.4g}]; "
+            f"{name}: expected finite values in [0, 1] (1 = nearest), got [{lo:.4g}, {hi:.4g}]; "
             "normalise it, or convert metric depth with bokehray.disparity_from_depth"
         )
     return np.ascontiguousarray(d)

@@ -303,3 +303,50 @@ def test_highlight_boost_leaves_alpha_alone():
 def test_bad_preview_options_are_rejected(cls, kwargs):
     with pytest.raises(br.InputError):
         cls(**kwargs)
+
+
+# --- argument types (the adversarial run found each escaping as a bare TypeError/AttributeError) ----------------
+
+_IMG, _D = np.zeros((4, 4, 3), np.float32), np.zeros((4, 4), np.float32)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"options": {"max_layers": 2}}, "options: quality 'preview' takes a bokehray.PreviewOptions, got dict"),
+        ({"options": br.RaytraceOptions()}, "takes a bokehray.PreviewOptions, got RaytraceOptions"),
+        ({"quality": "raytrace", "options": PreviewOptions()}, "takes a bokehray.RaytraceOptions"),
+        ({"layers": {"fill": False}}, "layers: expected a bokehray.LayerOptions, got dict"),
+        ({"memory": 100}, "memory: expected a bokehray.MemoryOptions, got int"),
+        ({"highlight_boost": "4"}, "highlight_boost: expected a finite number"),
+        ({"highlight_boost": None}, "highlight_boost: expected a finite number"),
+        ({"highlight_boost": 1e39}, "highlight_boost: .* beyond the radiance"),
+        ({"refine": 1}, "refine: expected True, False or a path"),
+        ({"quality": 3}, "quality: expected one of preview, raytrace"),
+        ({"device": None}, "device: expected a Warp device name"),
+        ({"progress": "yes"}, "progress: expected a callable"),
+    ],
+)
+def test_wrong_argument_types_raise_input_error_naming_the_argument(kwargs, match):
+    image = np.ones((4, 4, 3), np.float32) if "highlight_boost" in kwargs else _IMG
+    with pytest.raises(br.InputError, match=match):
+        br.render(image, _D, br.BlurParams(1.0, 0.5), **kwargs)
+
+
+@pytest.mark.parametrize(
+    ("call", "match"),
+    [
+        (lambda: br.focus_at(_D, 1.5, 2.7), "integer pixel coordinates"),
+        (lambda: br.focus_at(np.zeros(5, np.float32), 1, 0), "non-empty H x W map"),
+        (lambda: br.RaytraceOptions(max_spp=2.5), "max_spp: expected an integer"),
+        (lambda: br.BlurParams(True, 0.5), "K .*expected a number, got True"),
+        (lambda: br.BlurParams("4", 0.5), "K .*expected a number"),
+        (lambda: br.render(_IMG, _D, (1.0, 0.5)), "blur: expected a bokehray.BlurParams, got tuple"),
+        (lambda: br.render(_IMG, _D, br.BlurParams(1.0, 0.5), "disc"), "aperture: expected a bokehray.Aperture"),
+        (lambda: br.raytrace_layers(br.Layer(np.zeros((2, 2, 4), np.float32), plane=(0, 0, 0)),
+                                    br.BlurParams(1.0, 0.5)), "layers: expected a list of bokehray.Layer"),
+    ],
+)
+def test_public_constructors_and_helpers_check_their_types(call, match):
+    with pytest.raises(br.InputError, match=match):
+        call()

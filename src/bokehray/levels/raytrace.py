@@ -24,13 +24,10 @@ from ..errors import InputError
 from ..lens import Aperture, BlurParams
 from ..options import RaytraceOptions
 from ..stats import RaytraceStats
-from ..validate import check_type
+from ..validate import check_finite, check_radiance, check_type
 from .base import RenderContext
 
-__all__ = ["MAX_RADIANCE", "Layer", "raytrace_layers", "render_raytrace"]
-
-MAX_RADIANCE = 1e36
-"""Largest radiance photo-mode ray tracing accepts: sums of 128 rays of it stay within float32 (3.4e38)."""
+__all__ = ["Layer", "raytrace_layers", "render_raytrace"]
 
 # Bytes per pixel (float32 = 4 bytes), checked against measured peaks by benchmarks/bench_memory.py.
 WHOLE_IMAGE_B = 48
@@ -100,16 +97,15 @@ def _validate_layers(layers: list[Layer]) -> tuple[int, int]:
             shape = rgba.shape[:2]
         elif rgba.shape[:2] != shape:
             raise InputError(f"layer {i}: expected size {shape} like layer 0, got {rgba.shape[:2]}")
-        if not np.isfinite(rgba).all():
-            raise InputError(f"layer {i}: RGBA contains NaN/Inf")
+        check_finite(rgba, f"layer {i} RGBA", "(y, x, c)")
+        check_radiance(rgba[..., :3], f"layer {i} RGBA")
         if (lyr.disparity is None) == (lyr.plane is None):
             raise InputError(f"layer {i}: give exactly one of a disparity map or a plane (a, b, c)")
         if lyr.disparity is not None:
             d = np.asarray(lyr.disparity)
             if d.shape != shape:
                 raise InputError(f"layer {i}: disparity shape {d.shape} differs from the texture's {shape}")
-            if not np.isfinite(d).all():
-                raise InputError(f"layer {i}: disparity contains NaN/Inf")
+            check_finite(d, f"layer {i} disparity")
         elif not all(math.isfinite(float(v)) for v in lyr.plane):
             raise InputError(f"layer {i}: plane coefficients must be finite, got {lyr.plane}")
     return shape
@@ -277,10 +273,6 @@ def render_raytrace(ctx: RenderContext) -> tuple[np.ndarray, RaytraceStats]:
         return image[..., :3].copy(), RaytraceStats(quality="raytrace", shape=(h, w), device=ctx.device,
                                                     stage_seconds={"total": 0.0})
     tiling.check_whole_image(h, w, WHOLE_IMAGE_B, ctx.memory)
-    peak = float(np.abs(image[..., :3]).max())
-    if peak > MAX_RADIANCE:
-        raise InputError(f"image: radiance up to {peak:.3g}; the ray tracer averages rays in float32 and needs "
-                         f"values within +-{MAX_RADIANCE:g} (the preview takes them)")
     # the layers' disparity is s / K + d_f: s is capped (bokehray.scene.cap_coc), the disparity alike
     scene = sc.build_scene(s, np.ones((h, w), bool), ctx.layers)
     grid = ctx.layers.tile_px
