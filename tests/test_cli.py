@@ -193,7 +193,6 @@ def test_render_raytrace_quality_reports_rays(scene, tmp_path, capsys):
         ["render", "x.png", "--disparity", "d.png"],  # no -o
         ["render", "x.png", "-o", "o.png"],  # neither --disparity nor --depth
         ["render", "x.png", "--disparity", "d.png", "-o", "o.png", "--focus-at", "5"],
-        ["demo", "--size", "-5,10"],
         ["frobnicate"],
     ],
 )
@@ -203,6 +202,25 @@ def test_usage_errors_are_one_line_with_exit_2(argv, capsys):
     err = capsys.readouterr().err
     assert e.value.code == 2
     assert err.startswith("bokehray: error:") and err.count("\n") == 1, err
+
+
+@pytest.mark.parametrize(
+    "argv,message",
+    [
+        (["demo", "--size", "-5,10"], "demo size: expected width and height >= 64, got -5 x 10"),
+        (["render", "{png}", "--disparity", "{disp}", "-o", "{out}", "--blur", "4", "--focus-at", "-1,0"],
+         "focus point: expected 0 <= x < 64 and 0 <= y < 48, got (-1, 0)"),
+        (["render", "{png}", "--disparity", "{disp}", "-o", "{out}", "--blur", "4", "--focus-at", "-3,-2"],
+         "got (-3, -2)"),
+    ],
+)
+def test_negative_number_pairs_are_values_not_options(scene, tmp_path, capsys, argv, message):
+    """issue 18: argparse took ``--focus-at -1,0`` for an option ("expected one argument")."""
+    p, _, _ = scene
+    argv = [a.format(png=p["png"], disp=p["disp_png"], out=tmp_path / "o.png") for a in argv]
+    code, _, err = run(capsys, *argv)
+    assert code == 2 and err.count("\n") == 1 and message in err, err
+    assert not (tmp_path / "o.png").exists()
 
 
 def test_unwritable_output_is_refused_before_rendering(scene, tmp_path, capsys):

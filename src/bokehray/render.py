@@ -204,9 +204,19 @@ def boost_highlights(image: np.ndarray, strength: float, threshold: float = 0.95
     scaled by ``1 + strength * t^2`` with ``t = (max - threshold) / (1 - threshold)``.
     Off by default, and never used for metrics.
     """
+    if not strength <= np.finfo(np.float32).max:  # the kernels compute in float32
+        raise InputError(f"highlight_boost: expected a value within float32's range (3.4e38), got {strength:g}")
     peak = image.max(axis=2, keepdims=True)
-    t = np.clip((peak - threshold) / (1.0 - threshold), 0.0, 1.0)
-    return (image * (1.0 + strength * t * t)).astype(np.float32)
+    with np.errstate(over="ignore", invalid="ignore"):  # an overflow is refused below, naming the pixel
+        t = np.clip((peak - threshold) / (1.0 - threshold), 0.0, 1.0)
+        out = image * (1.0 + strength * t * t)
+    bad = ~np.isfinite(out)
+    if bad.any():
+        y, x = (int(v) for v in np.argwhere(bad)[0][:2])
+        raise InputError(f"highlight_boost: expected a boost that keeps radiance within float32's range (3.4e38), "
+                         f"got {strength:g}, which takes pixel (y, x) = ({y}, {x}) from {float(peak[y, x, 0]):.4g} "
+                         f"to {float(peak[y, x, 0]) * (1.0 + strength * float(t[y, x, 0]) ** 2):.4g}")
+    return out.astype(np.float32)
 
 
 def _refine(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, classical: np.ndarray,
@@ -225,8 +235,11 @@ def _refine(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, classica
 def _check_device(device: str) -> str:
     import warp as wp
 
+    from ._quiet import native_stderr_quiet
+
     try:
-        dev = wp.get_device(device)
+        with native_stderr_quiet():  # Warp prints two native lines per failed "cuda" lookup
+            dev = wp.get_device(device)
     except (RuntimeError, ValueError) as e:
         avail = ", ".join(str(d) for d in wp.get_devices())
         raise InputError(f"device: {device!r} is not available here ({e}); available: {avail}") from None
