@@ -385,3 +385,27 @@ def test_size_mismatch_is_found_from_the_headers_before_decoding(inputs, tmp_pat
     err = capsys.readouterr().err
     assert rc == 2 and err == f"bokehray: error: {small}: map is 16x12, image is 128x96; pass --resize-disparity to " \
                               "resize it\n"
+
+
+_FUZZ = sorted(p for p in (Path(__file__).parent / "data" / "fuzz").rglob("*") if p.suffix in (".png", ".jpg", ".tif",
+                                                                                                   ".exr", ".npy"))
+
+
+@pytest.mark.parametrize("path", _FUZZ, ids=lambda p: f"{p.parent.name}/{p.name}")
+def test_read_size_agrees_with_the_readers_on_the_fuzz_files(path, monkeypatch, capfd):
+    """The header-only size is what every reader that decodes the file finds, or a clear error naming it."""
+    monkeypatch.setattr(bio, "MAX_PIXELS", 2_000_000)
+    try:
+        size = bio.read_size(path)
+    except (InputError, ResourceError) as e:
+        assert str(path) in str(e)
+        size = None
+    readers = READERS[{".tif": "tif", ".exr": "exr", ".png": "png", ".jpg": "jpg", ".npy": "npy"}[path.suffix]]
+    for read in readers:
+        try:
+            a = read(path)
+        except (InputError, ResourceError):
+            continue
+        assert a.shape[:2] == size
+    out, err = capfd.readouterr()
+    assert out == "" and err == "", (out + err)[:300]
