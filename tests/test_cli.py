@@ -266,3 +266,23 @@ def test_resized_depth_with_sky_stays_finite(tmp_path, capsys):
                        "--focal-length", 50, "--f-number", 2, "--focus-distance", 2, "--resize-disparity")
     assert code == 0, err
     assert np.isfinite(br.read_image(tmp_path / "o.exr")).all()
+
+
+def test_a_closed_stdout_is_not_an_error(scene, tmp_path, capsys, monkeypatch):
+    """``bokehray render ... | head -0``: BrokenPipeError is an OSError, and the OSError branch caught it first
+    (an error line and exit 2 after the output had been written)."""
+    import sys
+
+    class Closed:
+        def write(self, text):
+            raise BrokenPipeError(32, "Broken pipe")
+
+        def flush(self):
+            pass
+
+    p, _, _ = scene
+    monkeypatch.setattr(sys, "stdout", Closed())
+    code = main(["render", str(p["png"]), "--disparity", str(p["disp_png"]), "-o", str(tmp_path / "o.png"),
+                 "--blur", "4", "--focus", "0.5"])
+    assert code == 0 and (tmp_path / "o.png").exists()
+    assert capsys.readouterr().err == ""
