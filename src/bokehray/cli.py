@@ -1,8 +1,12 @@
 """Command line: ``bokehray render``, ``bokehray demo``.
 
-Every input problem is reported as one line ``bokehray: error: ...`` with exit
-code 2 (``--debug`` shows the traceback). Outputs are written atomically, and
-only after the render succeeded, so a failed run never leaves a partial file.
+Every input problem, and every failure to write an output (disk full, permissions),
+is reported as one line ``bokehray: error: ...`` naming the file, with exit code 2
+(``--debug`` shows the traceback and any warnings). Outputs are written atomically,
+and only after the render succeeded, so a failed run never leaves a partial file.
+Ctrl-C exits 130 and SIGTERM 143, both after removing the temporary file of a write
+in progress; temporaries left by a killed run (SIGKILL) are removed by the next write
+to the same path (docs/robustness.md).
 """
 
 from __future__ import annotations
