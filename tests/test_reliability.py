@@ -34,7 +34,7 @@ def _python(code: str, *args, wait: bool = True, timeout: float = 120):
     env = {**os.environ, "PYTHONPATH": _PATHS + os.pathsep + os.environ.get("PYTHONPATH", "")}
     cmd = [sys.executable, "-c", code, *map(str, args)]
     if wait:
-        return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=timeout)
+        return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=timeout, check=False)
     return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
 
 

@@ -4,14 +4,21 @@ Complements tests/test_io.py (truncated and corrupt files, NaN/Inf, channel coun
 paths, atomic writes) and tests/test_fuzz_regressions.py (inputs found by fuzzing).
 """
 
+import os
 import resource
+import signal
 import struct
+import subprocess
+import sys
 import time
 import zlib
+from pathlib import Path
 
+import bokehray_kernels
 import numpy as np
 import pytest
 
+import bokehray
 import bokehray.io as bio
 from bokehray import cli
 from bokehray.errors import InputError, ResourceError
@@ -190,14 +197,6 @@ def test_exr_whose_unpremultiplied_colour_overflows_is_refused(tmp_path):
 # --------------------------------------------------------------------------- issue 18: the CLI in a real process
 # (a traceback, a warning or a native library's line reaches the real stderr only outside pytest's capture)
 
-import os  # noqa: E402
-import signal  # noqa: E402
-import subprocess  # noqa: E402
-import sys  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-import bokehray  # noqa: E402
-import bokehray_kernels  # noqa: E402
 
 _PATHS = os.pathsep.join(dict.fromkeys(str(Path(m.__file__).resolve().parents[1]) for m in (bokehray, bokehray_kernels)))
 
@@ -209,7 +208,7 @@ def _cli(args, *, prelude: str = "", wait: bool = True, timeout: float = 120):
     env.pop("PYTHONWARNINGS", None)
     if wait:
         return subprocess.run([sys.executable, "-c", code, *map(str, args)], capture_output=True, text=True, env=env,
-                              timeout=timeout)
+                              timeout=timeout, check=False)
     return subprocess.Popen([sys.executable, "-c", code, *map(str, args)], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env=env)
 
@@ -233,7 +232,7 @@ def full_disk(tmp_path):
     folder = tmp_path / "full"
     folder.mkdir()
     mounted = os.geteuid() == 0 and subprocess.run(["mount", "-t", "tmpfs", "-o", "size=4k", "tmpfs", str(folder)],
-                                                   capture_output=True).returncode == 0
+                                                   capture_output=True, check=False).returncode == 0
     yield folder, mounted
     if mounted:
         subprocess.run(["umount", str(folder)], check=False)
@@ -282,7 +281,7 @@ def _start_and_signal(args, sig):
     try:
         assert proc.stdout.readline().strip() == "WRITING", proc.stderr.read()
         proc.send_signal(sig)
-        out, err = proc.communicate(timeout=30)
+        _, err = proc.communicate(timeout=30)
     finally:
         if proc.poll() is None:
             proc.kill()
