@@ -127,17 +127,19 @@ def test_ctrl_c_stops_the_ray_tracer_within_a_second_or_two(tmp_path):
     img, d = _scene(384, 384)
     src = bio.write_image(tmp_path / "in.exr", img)
     disp = bio.write_disparity(tmp_path / "d.exr", d)
+    # announce the ray-tracing kernel's first launch (SIGINT during the Python work around it is handled at once)
     prelude = """
 import signal, sys
 signal.signal(signal.SIGINT, signal.default_int_handler)  # a background test runner may start us with SIGINT ignored
-import bokehray.raytrace as rt
-_orig = rt.render_raytrace
-def _announce(*a, **k):
-    print("TRACING", flush=True)
-    return _orig(*a, **k)
-rt.render_raytrace = _announce
-import bokehray.render
-sys.modules["bokehray.render"].render_raytrace = _announce
+import warp as wp
+import bokehray_kernels as bk
+_launch, _told = wp.launch, []
+def _announce(kernel, *a, **k):
+    if kernel is bk.raytrace_kernel and not _told:
+        _told.append(True)
+        print("TRACING", flush=True)
+    return _launch(kernel, *a, **k)
+wp.launch = _announce
 from bokehray.cli import main
 sys.exit(main(sys.argv[1:]))
 """
@@ -145,7 +147,7 @@ sys.exit(main(sys.argv[1:]))
                    "--focus", 0.5, "--quality", "raytrace", "--max-spp", 1024, wait=False)
     try:
         assert proc.stdout.readline().strip() == "TRACING", proc.stderr.read()
-        time.sleep(0.5)
+        time.sleep(0.3)
         proc.send_signal(signal.SIGINT)
         t = time.perf_counter()
         try:
