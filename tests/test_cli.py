@@ -286,3 +286,35 @@ def test_a_closed_stdout_is_not_an_error(scene, tmp_path, capsys, monkeypatch):
                  "--blur", "4", "--focus", "0.5"])
     assert code == 0 and (tmp_path / "o.png").exists()
     assert capsys.readouterr().err == ""
+
+
+@pytest.mark.parametrize("fails", [False, True])
+def test_warnings_are_one_line_on_success_and_dropped_on_error(monkeypatch, capsys, fails):
+    """A Python warning during a command never turns the one-line error into several (issue 18.2)."""
+    import sys
+    import warnings
+
+    from bokehray import cli
+    from bokehray.errors import InputError
+
+    def cmd(args):
+        warnings.warn("overflow encountered in multiply", RuntimeWarning, stacklevel=1)
+        warnings.warn("overflow encountered in multiply", RuntimeWarning, stacklevel=1)  # shown once
+        if fails:
+            raise InputError("x.png: expected something else")
+        return 0
+
+    monkeypatch.setattr(cli, "cmd_render", cmd)
+    argv = ["render", "x.png", "--disparity", "d.png", "-o", "o.png"]
+    with warnings.catch_warnings():  # outside pytest a warning is printed to stderr: do that here too
+        warnings.simplefilter("default")
+        warnings.showwarning = lambda msg, cat, fn, ln, file=None, line=None: print(
+            warnings.formatwarning(msg, cat, fn, ln), file=sys.stderr, end="")
+        code = main(argv)
+    err = capsys.readouterr().err
+    if fails:
+        assert code == 2 and err == "bokehray: error: x.png: expected something else\n"
+    else:
+        assert code == 0 and err.count("\n") == 1
+        assert err.startswith("bokehray: warning: overflow encountered in multiply (test_cli.py:"), err
+        assert main([*argv, "--quiet"]) == 0 and capsys.readouterr().err == ""
