@@ -1,9 +1,10 @@
 """Coverage-guided fuzzing of the file readers with atheris (libFuzzer for Python).
 
 Each input is written to a file with the format's extension and handed to every reader
-that takes the format (``read_image``, ``read_disparity``, ``read_depth``). The contract
-under test: a reader returns a finite float32 array of the documented shape, or raises
-``InputError``/``ResourceError`` (one clear message naming the file); anything else
+that takes the format (``read_image``, ``read_disparity``, ``read_depth``) and to the
+header-only ``read_size``. The contract under test: a reader returns a finite float32 array
+of the documented shape, whose height and width ``read_size`` reported, without a Python
+warning, or raises ``InputError``/``ResourceError`` (one clear message naming the file); anything else
 (another exception, NaN in the output, a hang, a crash of a native decoder) is a finding
 and its input is saved by libFuzzer as ``crash-*``/``timeout-*``. Python code of bokehray,
 Pillow and tifffile is instrumented for coverage; the native decoders (libpng, libjpeg,
@@ -27,6 +28,7 @@ import os
 import subprocess
 import sys
 import tempfile
+import warnings
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -65,6 +67,38 @@ def write_seeds(fmt: str, folder: Path) -> list[Path]:
                 bio.write_disparity(folder / "disp.exr", d)]
     else:
         out += [bio.write_disparity(folder / "disp.npy", d)]
+    out += _issue18_seeds(fmt, folder, img, d)
+    return out
+
+
+def _issue18_seeds(fmt: str, folder: Path, img, d) -> list[Path]:
+    """Variants the readers refuse or handle specially since issue 18, so the fuzzer explores those paths:
+    CMYK JPEG, multi-page TIFF and one with a reduced-resolution page, alpha-only EXR, float64 NPY."""
+    import numpy as np
+    import OpenEXR
+    import tifffile
+    from PIL import Image
+
+    out = []
+    if fmt == "jpeg":
+        Image.fromarray((img[..., :3] * 255).astype(np.uint8)).convert("CMYK").save(folder / "cmyk.jpg", quality=50)
+        out.append(folder / "cmyk.jpg")
+    elif fmt == "tiff":
+        codes = (d * 65535).astype(np.uint16)
+        tifffile.imwrite(folder / "pages.tif", np.stack([codes, codes[::-1]]), photometric="minisblack")
+        with tifffile.TiffWriter(folder / "reduced.tif") as w:
+            w.write(codes, photometric="minisblack")
+            w.write(codes[::2, ::2], photometric="minisblack", subfiletype=1)
+        out += [folder / "pages.tif", folder / "reduced.tif"]
+    elif fmt == "exr":
+        header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+        with OpenEXR.File(header, {"A": np.ascontiguousarray(d)}) as f:
+            f.write(str(folder / "alpha.exr"))
+        out.append(folder / "alpha.exr")
+    elif fmt == "npy":
+        np.save(folder / "float64.npy", d.astype(np.float64) * 1e300)
+        np.save(folder / "float64-ok.npy", d.astype(np.float64))
+        out += [folder / "float64.npy", folder / "float64-ok.npy"]
     return out
 
 
@@ -85,15 +119,25 @@ def fuzz_one(fmt: str, seconds: int, corpus: Path, artifacts: Path) -> int:
 
     def one_input(data: bytes) -> None:
         path.write_bytes(data)
+        try:  # the header-only size (issue 18): must agree with every reader that decodes the file
+            size = bio.read_size(path)
+        except (InputError, ResourceError) as e:
+            if str(path) not in str(e):
+                raise AssertionError(f"read_size: error does not name the file: {e}") from None
+            size = None
         for read in readers:
             try:
-                a = read(path)
+                with warnings.catch_warnings():
+                    warnings.simplefilter("error")  # a RuntimeWarning (overflow in a cast) would reach stderr
+                    a = read(path)
             except (InputError, ResourceError) as e:
                 if str(path) not in str(e):
                     raise AssertionError(f"{read.__name__}: error does not name the file: {e}") from None
                 continue
             if a.dtype != np.float32 or a.ndim not in (2, 3) or not np.isfinite(a).all():
                 raise AssertionError(f"{read.__name__}: returned {a.dtype} {a.shape} finite={np.isfinite(a).all()}")
+            if size != a.shape[:2]:
+                raise AssertionError(f"{read.__name__}: decoded {a.shape[:2]}, but read_size said {size}")
 
     if not any(corpus.iterdir()) if corpus.exists() else True:
         write_seeds(fmt, corpus)

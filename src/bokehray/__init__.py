@@ -20,7 +20,7 @@ import warp as _wp
 _wp.config.log_level = _wp.LOG_WARNING  # no banner or per-module load lines
 
 from . import datasets  # noqa: E402
-from .errors import BokehrayError, InputError, NumericalError, ResourceError  # noqa: E402
+from .errors import BokehrayError, InputError, NumericalError, OutputError, ResourceError  # noqa: E402
 from .io import read_depth, read_disparity, read_image, write_disparity, write_image  # noqa: E402
 from .lens import (  # noqa: E402
     Aperture,
@@ -48,6 +48,7 @@ __all__ = [
     "LayerOptions",
     "MemoryOptions",
     "NumericalError",
+    "OutputError",
     "PreviewOptions",
     "PreviewStats",
     "RaytraceOptions",

@@ -1,25 +1,58 @@
 """Command line: ``bokehray render``, ``synth``, ``demo``, ``train-refiner`` and ``bench``.
 
-Every input problem is reported as one line ``bokehray: error: ...`` with exit
-code 2 (``--debug`` shows the traceback). Outputs are written atomically, and
-only after the render succeeded, so a failed run never leaves a partial file.
+Every input problem, and every failure to write an output (disk full, permissions),
+is reported as one line ``bokehray: error: ...`` naming the file, with exit code 2
+(``--debug`` shows the traceback and any warnings). Outputs are written atomically,
+and only after the render succeeded, so a failed run never leaves a partial file.
+Ctrl-C exits 130 and SIGTERM 143, both after removing the temporary file of a write
+in progress; temporaries left by a killed run (SIGKILL) are removed by the next write
+to the same path (docs/robustness.md).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import re
+import signal
 import sys
+import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
 
-from ._quiet import init_warp_quietly
+from ._quiet import collect_warnings, init_warp_quietly
 from .errors import BokehrayError, InputError
 
 EXIT_INPUT = 2
+EXIT_INTERRUPTED = 130  # 128 + SIGINT
+EXIT_TERMINATED = 143  # 128 + SIGTERM
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread like Ctrl-C so that every cleanup path runs (atomic writes remove
+    their temporary file); the CLI then exits with 143."""
+
+
+def _on_sigterm(signum: int, frame) -> None:
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)  # a second SIGTERM during the clean-up ends the process
+    raise Terminated()
+
+
+@contextlib.contextmanager
+def _sigterm_raises() -> Iterator[None]:
+    """Within the block, SIGTERM raises :class:`Terminated` (main thread only; the previous handler is restored)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _on_sigterm)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def _parse_xy(text: str) -> tuple[int, int]:
@@ -49,7 +82,16 @@ def _add_device_args(p: argparse.ArgumentParser) -> None:
 
 
 class _Parser(argparse.ArgumentParser):
-    """argparse with the CLI's one-line error format (``bokehray: error: ...``, exit 2)."""
+    """argparse with the CLI's one-line error format (``bokehray: error: ...``, exit 2).
+
+    Values that start with a minus sign and look like numbers or number pairs (``-0.5``,
+    ``-1,0``) are values, not options: ``--focus-at -1,0`` reaches the option's own check
+    (out of the image) instead of "expected one argument".
+    """
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = re.compile(r"^-\d+$|^-\d*\.\d+$|^-\d+(,-?\d+)+$")
 
     def error(self, message: str) -> None:  # type: ignore[override]
         self.exit(EXIT_INPUT, f"bokehray: error: {message} (see {self.prog} --help)\n")
@@ -217,6 +259,19 @@ def _check_output(path: str, args: argparse.Namespace) -> None:
     check_output_path(path, bit_depth=getattr(args, "bit_depth", None), half=getattr(args, "half", False))
 
 
+def _check_sizes_from_headers(args: argparse.Namespace) -> None:
+    """Refuse an image and map of different sizes from their headers, before decoding either (a 64 MP PNG takes
+    seconds to decode); the readers still check each file in full afterwards."""
+    from .io import read_size
+
+    source = args.depth or args.disparity
+    if args.resize_disparity or source is None:
+        return
+    (h, w), (mh, mw) = read_size(args.image), read_size(source)
+    if (mh, mw) != (h, w):
+        raise InputError(f"{source}: map is {mw}x{mh}, image is {w}x{h}; pass --resize-disparity to resize it")
+
+
 def cmd_render(args: argparse.Namespace) -> int:
     from . import io
     from .lens import BlurParams, DepthNormalization, ThinLens, disparity_from_depth
@@ -225,6 +280,7 @@ def cmd_render(args: argparse.Namespace) -> int:
 
     _check_output(args.output, args)
     t0 = time.perf_counter()
+    _check_sizes_from_headers(args)
     image = io.read_image(args.image)
     check_radiance(image, str(args.image))  # the limit every level has, with the file named
     h, w = image.shape[:2]
@@ -416,38 +472,64 @@ def cmd_train_refiner(args: argparse.Namespace) -> int:
     return 0
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    init_warp_quietly(args.debug)
-    try:
-        if args.command == "render":
-            return cmd_render(args)
-        if args.command == "synth":
-            return cmd_synth(args)
-        if args.command == "train-refiner":
-            return cmd_train_refiner(args)
-        if args.command == "bench":
-            from .bench.cli import cmd_bench
+def _run(args: argparse.Namespace) -> int:
+    if args.command == "render":
+        return cmd_render(args)
+    if args.command == "synth":
+        return cmd_synth(args)
+    if args.command == "train-refiner":
+        return cmd_train_refiner(args)
+    if args.command == "bench":
+        from .bench.cli import cmd_bench
 
-            return cmd_bench(args)
-        return cmd_demo(args)
-    except BokehrayError as e:
-        if args.debug:
-            raise
-        print(f"bokehray: error: {e}", file=sys.stderr)
-        return EXIT_INPUT
-    except BrokenPipeError:  # stdout closed early (e.g. piped into head): the work is done
-        sys.stdout = None
-        return 0
-    except OSError as e:  # the disk, not the input: e.g. an output folder that cannot be created
-        if args.debug:
-            raise
-        print(f"bokehray: error: {e}", file=sys.stderr)
-        return EXIT_INPUT
-    except KeyboardInterrupt:
-        print("bokehray: interrupted; no output was written", file=sys.stderr)
-        return 130
+        return cmd_bench(args)
+    return cmd_demo(args)
+
+
+def _os_error_line(e: OSError) -> str:
+    """An OSError as one line that names the file (``[Errno 28] No space left on device`` names none)."""
+    if e.filename is not None and e.strerror:
+        other = f" -> {e.filename2}" if e.filename2 is not None else ""
+        return f"{e.filename}{other}: {e.strerror}"
+    return str(e)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    with _sigterm_raises():
+        try:
+            parser = build_parser()
+            args = parser.parse_args(argv)
+        except KeyboardInterrupt as e:  # before any work: nothing to clean up
+            return EXIT_TERMINATED if isinstance(e, Terminated) else EXIT_INTERRUPTED
+        debug = getattr(args, "debug", False)
+        code, message = None, None
+        with collect_warnings(debug) as warned:
+            try:
+                init_warp_quietly(debug)
+                code = _run(args)
+            except BokehrayError as e:
+                if debug:
+                    raise
+                message = str(e)
+            except BrokenPipeError:  # stdout closed early (e.g. piped into head): the work is done
+                sys.stdout = None
+                return 0
+            except OSError as e:  # the disk, not the input: e.g. an output folder that cannot be created
+                if debug:
+                    raise
+                message = _os_error_line(e)
+            except KeyboardInterrupt as e:
+                # atomic writes removed their temporary file on the way out: nothing partial is left
+                what = "terminated (SIGTERM)" if isinstance(e, Terminated) else "interrupted"
+                print(f"bokehray: {what}; no partial output was left", file=sys.stderr)
+                return EXIT_TERMINATED if isinstance(e, Terminated) else EXIT_INTERRUPTED
+        if message is not None:  # one line; warnings raised on the way to the error are dropped (--debug shows them)
+            print(f"bokehray: error: {message}", file=sys.stderr)
+            return EXIT_INPUT
+        if not getattr(args, "quiet", False):
+            for w in warned:
+                print(f"bokehray: warning: {w.message} ({Path(w.filename).name}:{w.lineno})", file=sys.stderr)
+        return code
 
 
 if __name__ == "__main__":

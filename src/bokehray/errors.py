@@ -6,7 +6,7 @@ message reads ``<what>: expected <what>, got <what>`` followed by how to fix it.
 
 from __future__ import annotations
 
-__all__ = ["BokehrayError", "InputError", "NumericalError", "ResourceError"]
+__all__ = ["BokehrayError", "InputError", "NumericalError", "OutputError", "ResourceError"]
 
 
 class BokehrayError(Exception):
@@ -23,3 +23,11 @@ class NumericalError(BokehrayError, FloatingPointError):
 
 class ResourceError(BokehrayError, MemoryError):
     """A request cannot fit in the memory or device available."""
+
+
+class OutputError(BokehrayError, OSError):
+    """An output file could not be written (disk full, permission, folder gone); the message names the file.
+
+    Nothing partial is left behind: the writer's temporary file is removed and an existing
+    file at that path is untouched.
+    """

@@ -15,9 +15,12 @@ that replaces the target only once it is complete.
 from __future__ import annotations
 
 import contextlib
+import errno
 import io
 import logging
 import os
+import signal
+import socket
 import struct
 import sys
 import tempfile
@@ -34,10 +37,11 @@ import tifffile
 from PIL import Image
 
 from ._memory import available_bytes
-from .errors import InputError, ResourceError
+from .errors import BokehrayError, InputError, OutputError, ResourceError
 
 __all__ = [
-    "MAX_PIXELS", "atomic_write", "check_output_path", "linear_to_srgb", "read_depth", "read_disparity", "read_image", "srgb_to_linear",
+    "MAX_PIXELS", "atomic_write", "check_output_path", "linear_to_srgb", "read_depth", "read_disparity", "read_image",
+    "read_size", "remove_stale_temporaries", "srgb_to_linear",
     "write_disparity", "write_image",
 ]  # fmt: skip
 
@@ -118,6 +122,31 @@ def _check_finite(a: np.ndarray, prefix: str, *, allow_pos_inf: bool = False) ->
         raise InputError(f"{prefix} {kind} at (y, x) = ({y}, {x})")
 
 
+_F32_MAX = float(np.finfo(np.float32).max)
+
+
+def _range_prefix(p: Path) -> str:
+    return f"{p}: expected values within float32's range (+-3.4e38), got"
+
+
+def _to_float32(a: np.ndarray, prefix: str, range_prefix: str, *, allow_pos_inf: bool = False) -> np.ndarray:
+    """Cast stored samples to float32 after checking them as the file holds them.
+
+    NaN/Inf are refused (``+Inf`` too unless ``allow_pos_inf``), and so are finite float64
+    values beyond float32's range (1e300 would silently become +Inf): the message quotes the
+    value in the file, not what the cast would have made of it.
+    """
+    _check_finite(a, prefix, allow_pos_inf=allow_pos_inf)
+    if a.dtype.kind == "f" and a.dtype.itemsize > 4:
+        with np.errstate(invalid="ignore"):
+            big = np.isfinite(a) & (np.abs(a) > _F32_MAX)
+        if big.any():
+            idx = _first(big)
+            raise InputError(f"{range_prefix} {float(a[idx]):.4g} at (y, x) = ({idx[0]}, {idx[1]})")
+    with np.errstate(over="ignore"):  # only +Inf (allowed) can get here unconverted; nothing overflows
+        return a.astype(np.float32)
+
+
 @contextlib.contextmanager
 def _decoding(path: Path, fmt: str) -> Iterator[None]:
     """Turn a decoder library's exception into an InputError naming the file and format."""
@@ -134,12 +163,18 @@ def _decoding(path: Path, fmt: str) -> Iterator[None]:
 # --------------------------------------------------------------------------- decoders
 
 
-def _load_png(path: Path) -> np.ndarray:
+def _png_header(path: Path) -> tuple[int, int, int]:
+    """Width, height and bit depth from the IHDR chunk."""
     with open(path, "rb") as fh:
         head = fh.read(33)
     if len(head) < 33 or head[:8] != _PNG_SIGNATURE or head[12:16] != b"IHDR":
         raise InputError(f"cannot read {path} as PNG: not a PNG file (bad signature or header)")
     w, h, depth = struct.unpack(">IIB", head[16:25])
+    return w, h, depth
+
+
+def _load_png(path: Path) -> np.ndarray:
+    w, h, depth = _png_header(path)
     _check_dims(path, h, w)
     if depth != 16:
         return _load_pil(path, "PNG")
@@ -153,6 +188,10 @@ def _load_png(path: Path) -> np.ndarray:
 def _load_pil(path: Path, fmt: str) -> np.ndarray:
     with Image.open(path, formats=[fmt]) as im:  # lazy: reads the header only
         _check_dims(path, im.height, im.width)
+        if im.mode in ("CMYK", "YCbCr", "LAB", "HSV"):  # a JPEG in CMYK/YCCK: colours need its ICC profile
+            raise InputError(f"{path}: expected an RGB or greyscale {fmt}, got {im.mode} colour, which has no "
+                             "defined conversion to RGB without a colour-managed workflow; convert it to sRGB first "
+                             "(e.g. ImageMagick: magick in.jpg -colorspace sRGB out.jpg)")
         im.load()
         if "transparency" in im.info:
             im = im.convert("RGBA")
@@ -181,10 +220,10 @@ def _tifffile_log() -> Iterator[list[str]]:
         log.propagate = propagate
 
 
-def _load_tiff(path: Path) -> np.ndarray:
+def _load_tiff(path: Path, *, size_only: bool = False):
     with _tifffile_log() as said:
         try:
-            return _load_tiff_quietly(path)
+            return _load_tiff_quietly(path, size_only=size_only)
         except (InputError, ResourceError):
             raise
         except Exception as exc:  # noqa: BLE001 - tifffile's log often says more than its exception
@@ -192,12 +231,24 @@ def _load_tiff(path: Path) -> np.ndarray:
             raise ValueError(why) from None
 
 
-def _load_tiff_quietly(path: Path) -> np.ndarray:
+_TIFF_AUXILIARY = 0b101
+"""NewSubfileType bits of pages that are not separate images: reduced resolution (1), transparency mask (4)."""
+
+
+def _load_tiff_quietly(path: Path, *, size_only: bool = False) -> np.ndarray | tuple[int, int]:
     with tifffile.TiffFile(path) as tf:
         page = tf.pages[0]
         axes = page.axes
         dims = dict(zip(axes, page.shape))
+        if size_only:
+            return dims.get("Y", 0), dims.get("X", 0)
         _check_dims(path, dims.get("Y", 0), dims.get("X", 0))
+        n_pages = len(tf.pages)
+        images = 1 + sum(1 for i in range(1, min(n_pages, 64)) if not tf.pages[i].subfiletype & _TIFF_AUXILIARY)
+        if images > 1:
+            more = "+" if n_pages > 64 else ""
+            raise InputError(f"{path}: expected one image, got a multi-page TIFF with {images}{more} full-size pages; "
+                             "save the page to use as its own file")
         if set(axes) - set("SYX"):
             raise InputError(f"{path}: expected a 2-D TIFF image (axes YX, YXS or SYX), got axes {axes}")
         if page.photometric not in (tifffile.PHOTOMETRIC.MINISBLACK, tifffile.PHOTOMETRIC.RGB):
@@ -248,6 +299,22 @@ def _library_output() -> Iterator[list[str]]:
             lines.extend(ln.strip() for ln in text.splitlines() if ln.strip())
 
 
+def _exr_size(path: Path) -> tuple[int, int]:
+    if not OpenEXR.isOpenExrFile(str(path)):
+        raise InputError(f"cannot read {path} as EXR: not an OpenEXR file (bad magic number)")
+    failure = None
+    with _library_output() as said:
+        try:
+            with OpenEXR.File(str(path), header_only=True) as f:
+                (x0, y0), (x1, y1) = f.header()["dataWindow"]
+        except Exception as exc:  # noqa: BLE001 - as in _load_exr
+            failure = exc
+    if failure is not None or said:
+        why = (said[0] if said else str(failure)).removeprefix(f"{path}: ")
+        raise InputError(f"cannot read {path} as EXR: file is truncated or corrupt ({why})")
+    return int(y1 - y0 + 1), int(x1 - x0 + 1)
+
+
 def _load_exr(path: Path, choices: tuple[tuple[str, ...], ...]) -> np.ndarray:
     if not OpenEXR.isOpenExrFile(str(path)):
         raise InputError(f"cannot read {path} as EXR: not an OpenEXR file (bad magic number)")
@@ -273,7 +340,12 @@ def _load_exr(path: Path, choices: tuple[tuple[str, ...], ...]) -> np.ndarray:
     if failure is not None or said:
         why = (said[0] if said else str(failure)).removeprefix(f"{path}: ")
         raise InputError(f"cannot read {path} as EXR: file is truncated or corrupt ({why})")
-    picked = next((c for c in choices if all(n in chans for n in c)), tuple(chans) if len(chans) == 1 else None)
+    only = tuple(chans) if len(chans) == 1 else None
+    if only is not None and (only[0] == "A" or only[0].endswith(".A")):
+        # coverage, not values: reading it as grey would turn a matte into a disparity map or an image
+        raise InputError(f"{path}: holds only the alpha channel {only[0]!r} (coverage, not values); expected EXR "
+                         f"channels {' or '.join(','.join(c) for c in choices)}")
+    picked = next((c for c in choices if all(n in chans for n in c)), only)
     if picked is None:
         wanted = " or ".join(",".join(c) for c in choices)
         raise InputError(f"{path}: expected EXR channels {wanted}, got {','.join(sorted(chans))}")
@@ -284,7 +356,7 @@ def _load_exr(path: Path, choices: tuple[tuple[str, ...], ...]) -> np.ndarray:
     return a[..., 0] if a.shape[-1] == 1 else a
 
 
-def _load_npy(path: Path) -> np.ndarray:
+def _load_npy(path: Path, *, size_only: bool = False):
     with open(path, "rb") as fh:
         if fh.read(6) != b"\x93NUMPY":
             raise InputError(f"cannot read {path} as NPY: not a NPY file (bad magic string)")
@@ -300,6 +372,8 @@ def _load_npy(path: Path) -> np.ndarray:
     # the header alone decides: shape, dtype and whether the file holds that many bytes (no mmap, no allocation)
     if len(shape) not in (2, 3):
         raise InputError(f"{path}: expected a 2-D (H x W) array, got {len(shape)}-D shape {shape}")
+    if size_only:
+        return int(shape[0]), int(shape[1])
     _check_dims(path, shape[0], shape[1])
     if dtype.kind not in "fiu" or dtype.hasobject:
         raise InputError(f"{path}: expected a float or integer array, got dtype {dtype}")
@@ -346,6 +420,28 @@ def _single_channel(path: Path, a: np.ndarray, fmt: str, what: str) -> np.ndarra
 # --------------------------------------------------------------------------- public readers
 
 
+def read_size(path: str | os.PathLike[str]) -> tuple[int, int]:
+    """``(height, width)`` of an image, disparity or depth file, from its header alone (no pixel is decoded).
+
+    Lets a caller compare the sizes of two files before spending seconds decoding a large
+    one (the CLI does, for the image and its disparity map). Accepts every format a reader
+    takes; a file whose header cannot be read raises :class:`InputError` naming it.
+    """
+    p, fmt = _format(path, ("PNG", "JPEG", "TIFF", "EXR", "NPY"), "images or maps")
+    with _decoding(p, fmt):
+        if fmt == "PNG":
+            w, h, _ = _png_header(p)
+            return int(h), int(w)
+        if fmt == "JPEG":
+            with Image.open(p, formats=["JPEG"]) as im:
+                return int(im.height), int(im.width)
+        if fmt == "TIFF":
+            return _load_tiff(p, size_only=True)
+        if fmt == "EXR":
+            return _exr_size(p)
+        return _load_npy(p, size_only=True)
+
+
 def read_image(path: str | os.PathLike[str]) -> np.ndarray:
     """Read a colour image as scene-linear float32.
 
@@ -369,8 +465,7 @@ def read_image(path: str | os.PathLike[str]) -> np.ndarray:
     a = a[..., None] if a.ndim == 2 else a
     n_colour = 1 if a.shape[2] <= 2 else 3
     if a.dtype.kind == "f":
-        out = a.astype(np.float32)
-        _check_finite(out, f"{p}: expected finite values, got")
+        out = _to_float32(a, f"{p}: expected finite values, got", _range_prefix(p))
         if fmt == "EXR" and a.shape[2] in (2, 4):  # OpenEXR colour is premultiplied
             alpha = out[..., -1:]
             with np.errstate(over="ignore", invalid="ignore"):
@@ -409,8 +504,7 @@ def read_disparity(path: str | os.PathLike[str], *, check_range: bool = False) -
         return (a / np.float32(np.iinfo(a.dtype).max)).astype(np.float32)
     if a.dtype.kind == "i" and fmt != "NPY":
         raise InputError(f"{p}: expected unsigned integer or float samples, got {a.dtype}")
-    out = a.astype(np.float32)
-    _check_finite(out, f"{p}: expected finite values, got")
+    out = _to_float32(a, f"{p}: expected finite values, got", _range_prefix(p))
     if check_range and out.size and (out.min() < 0.0 or out.max() > 1.0):
         bad = (out < 0.0) | (out > 1.0)
         y, x = _first(bad)[:2]
@@ -438,20 +532,102 @@ def read_depth(path: str | os.PathLike[str]) -> np.ndarray:
     a = _single_channel(p, _load(p, fmt, (("Z",), ("Y",), ("R",))), fmt, "depth")
     if a.dtype.kind != "f":
         raise InputError(f"{p}: expected float depth in metres, got integer dtype {a.dtype}")
-    out = a.astype(np.float32)
-    _check_finite(out, f"{p}: expected finite depth or +Inf, got", allow_pos_inf=True)
-    return out
+    return _to_float32(a, f"{p}: expected finite depth or +Inf, got", _range_prefix(p), allow_pos_inf=True)
 
 
 # --------------------------------------------------------------------------- encoders
 
 
-def atomic_write(path: Path, encode: Callable[[str], None]) -> Path:
-    """Run ``encode(tmp_name)`` on a temporary sibling of ``path``, then move it onto ``path``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=path.suffix)
-    os.close(fd)
+_TMP_TAG = ".tmp-"
+"""Temporary siblings are named ``.<name>.tmp-<host>-<pid>-<random><suffix>``: hidden, never read by
+any reader here, and recognisable as a dead writer's leftovers by the next write to ``<name>``."""
+
+
+def _tmp_prefix(path: Path) -> str:
+    host = "".join(c if c.isalnum() else "_" for c in socket.gethostname())[:32] or "host"
+    return f".{path.name}{_TMP_TAG}{host}-{os.getpid()}-"
+
+
+def _pid_alive(pid: int) -> bool:
     try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # e.g. EPERM: it exists, owned by someone else
+        return True
+    return True
+
+
+def remove_stale_temporaries(path: str | os.PathLike[str]) -> list[Path]:
+    """Remove temporary files that an earlier, killed write to ``path`` left beside it.
+
+    A write that is killed outright (SIGKILL, power loss) cannot clean up after itself; its
+    hidden ``.<name>.tmp-<host>-<pid>-...`` file stays. Such a file is removed here when it was
+    made on this host by a process that no longer exists; files of a live writer (a concurrent
+    write to the same path) and of other hosts (a shared folder) are left alone. Returns the
+    files removed. Called by every write; never raises.
+    """
+    p = Path(path)
+    host_prefix = _tmp_prefix(p).rsplit("-", 2)[0] + "-"  # ".<name>.tmp-<host>-"
+    removed = []
+    try:
+        entries = list(os.scandir(p.parent))
+    except OSError:
+        return removed
+    for e in entries:
+        if not (e.name.startswith(host_prefix) and e.name.endswith(p.suffix)):
+            continue
+        pid_text = e.name[len(host_prefix):].split("-", 1)[0]
+        if not pid_text.isdigit() or int(pid_text) == os.getpid() or _pid_alive(int(pid_text)):
+            continue
+        with contextlib.suppress(OSError):
+            os.unlink(e.path)
+            removed.append(Path(e.path))
+    return removed
+
+
+_WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EACCES, errno.EPERM, errno.EIO,
+                 errno.ENOENT, errno.ENOTDIR)
+
+
+def _why(exc: BaseException, tmp: str | None) -> str:
+    """The reason a write failed, in the system's words, without the temporary file's name.
+
+    OpenEXR raises ``RuntimeError('Failed to write pixel data to image file "<tmp>". No space
+    left on device.')``: a system reason found in such a message is given alone.
+    """
+    if isinstance(exc, OSError) and exc.errno is not None and exc.strerror:
+        return exc.strerror
+    text = str(exc) or type(exc).__name__
+    for code in _WRITE_ERRNOS:
+        if os.strerror(code) in text:
+            return os.strerror(code)
+    if tmp:
+        text = text.replace(f'"{tmp}"', "the file").replace(tmp, "the file")
+    return text.strip().rstrip(".")
+
+
+def atomic_write(path: Path, encode: Callable[[str], None]) -> Path:
+    """Run ``encode(tmp_name)`` on a temporary sibling of ``path``, then move it onto ``path``.
+
+    Any failure of the encoder or of the file system (disk full, permissions, a folder that
+    cannot be made) raises :class:`OutputError` naming ``path``; the temporary file is removed
+    and an existing ``path`` is untouched. An interrupt (KeyboardInterrupt, or SIGTERM turned
+    into one by the CLI) removes the temporary file too and propagates. Stale temporaries of
+    killed earlier writes to ``path`` are removed first (:func:`remove_stale_temporaries`).
+    """
+    path = Path(path)
+    tmp = None
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        remove_stale_temporaries(path)
+        # a signal between creating the file and knowing its name would leak it: hold signals meanwhile
+        blocked = _block_signals()
+        try:
+            fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=_tmp_prefix(path), suffix=path.suffix)
+        finally:
+            _unblock_signals(blocked)
+        os.close(fd)
         encode(tmp)
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
@@ -463,11 +639,29 @@ def atomic_write(path: Path, encode: Callable[[str], None]) -> Path:
             mode = 0o666 & ~umask
         os.chmod(tmp, mode)
         os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
+    except BaseException as exc:
+        if tmp is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+        if isinstance(exc, (BokehrayError, KeyboardInterrupt, SystemExit, GeneratorExit)):
+            raise
+        if isinstance(exc, MemoryError):
+            raise ResourceError(f"cannot write {path}: ran out of memory while encoding it") from None
+        if isinstance(exc, Exception):
+            raise OutputError(f"cannot write {path}: {_why(exc, tmp)}") from exc
         raise
     return path
+
+
+def _block_signals() -> set[int] | None:
+    if not hasattr(signal, "pthread_sigmask"):
+        return None
+    return signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+
+
+def _unblock_signals(previous: set[int] | None) -> None:
+    if previous is not None:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 def _write_exr(tmp: str, img: np.ndarray, *, half: bool) -> None:
@@ -485,10 +679,14 @@ def _write_tiff(tmp: str, img: np.ndarray) -> None:
 
 
 def _write_pil(tmp: str, codes: np.ndarray, fmt: str, **options: int) -> None:
-    Image.fromarray(codes[..., 0] if codes.shape[2] == 1 else codes).save(tmp, format=fmt, **options)
+    # Encoded in memory, then written by Python: Pillow (13.0) saving a JPEG straight to a full disk stops at
+    # the first short write and reports success, leaving a truncated file (found on a 4 KB tmpfs).
+    buf = io.BytesIO()
+    Image.fromarray(codes[..., 0] if codes.shape[2] == 1 else codes).save(buf, format=fmt, **options)
+    _write_bytes(tmp, buf.getbuffer())
 
 
-def _write_bytes(tmp: str, data: bytes) -> None:
+def _write_bytes(tmp: str, data: bytes | memoryview) -> None:
     with open(tmp, "wb") as fh:
         fh.write(data)
 
@@ -563,12 +761,15 @@ def write_image(
         raise InputError(f"{p}: expected an H x W, H x W x 3 or H x W x 4 image, got shape {np.shape(image)}")
     if img.dtype.kind != "f":
         raise InputError(f"{p}: expected a floating-point linear image, got dtype {img.dtype}")
-    img = img.astype(np.float32)
-    _check_finite(img, f"refusing to write {p}: image contains")
+    img = _to_float32(img, f"refusing to write {p}: image contains",
+                      f"refusing to write {p}: image holds a value beyond float32's range (+-3.4e38):")
     bits = _output_bits(p, fmt, bit_depth, half)
     if fmt == "EXR":
         if img.shape[2] == 4:
-            img = np.concatenate([img[..., :3] * img[..., 3:], img[..., 3:]], axis=2)
+            with np.errstate(over="ignore"):
+                img = np.concatenate([img[..., :3] * img[..., 3:], img[..., 3:]], axis=2)
+            _check_finite(img, f"refusing to write {p}: colour x alpha (OpenEXR stores premultiplied colour) "
+                          "overflows float32:")
         big = np.abs(img) > _HALF_MAX
         if bits == 16 and big.any():
             y, x = _first(big)[:2]
@@ -610,8 +811,8 @@ def write_disparity(path: str | os.PathLike[str], d: npt.ArrayLike) -> Path:
     a = a[..., 0] if a.ndim == 3 and a.shape[2] == 1 else a
     if a.ndim != 2 or a.size == 0 or a.dtype.kind not in "fiu":
         raise InputError(f"{p}: expected a non-empty H x W real disparity array, got shape {a.shape} dtype {a.dtype}")
-    a = a.astype(np.float32)
-    _check_finite(a, f"refusing to write {p}: disparity contains")
+    a = _to_float32(a, f"refusing to write {p}: disparity contains",
+                    f"refusing to write {p}: disparity holds a value beyond float32's range (+-3.4e38):")
     if fmt == "PNG":
         lo, hi = float(a.min()), float(a.max())
         if lo < 0.0 or hi > 1.0:

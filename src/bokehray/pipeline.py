@@ -57,19 +57,33 @@ def boost_highlights(image: np.ndarray, strength: float, threshold: float = 0.95
     An sRGB file stores a street lamp of radiance 20 as 1.0, so its bokeh ball
     comes out dim. Pixels whose brightest channel exceeds ``threshold`` are
     scaled by ``1 + strength * t^2`` with ``t = (max - threshold) / (1 - threshold)``.
-    Off by default, and never used for metrics.
+    Off by default, and never used for metrics. A boost that would take a pixel beyond the radiance a render
+    takes (:data:`~bokehray.validate.MAX_RADIANCE`) is refused, naming the pixel.
     """
+    if not strength <= np.finfo(np.float32).max:  # the kernels compute in float32
+        raise InputError(f"highlight_boost: expected a value within float32's range (3.4e38), got {strength:g}")
     peak = image.max(axis=2, keepdims=True)
-    t = np.clip((peak - threshold) / (1.0 - threshold), 0.0, 1.0)
-    return (image * (1.0 + strength * t * t)).astype(np.float32)
+    with np.errstate(over="ignore", invalid="ignore"):  # an overflow is refused below, naming the pixel
+        t = np.clip((peak - threshold) / (1.0 - threshold), 0.0, 1.0)
+        out = image * (1.0 + strength * t * t)
+    bad = ~np.isfinite(out) | (np.abs(out) > MAX_RADIANCE)
+    if bad.any():
+        y, x = (int(v) for v in np.argwhere(bad)[0][:2])
+        raise InputError(f"highlight_boost: expected a boost that keeps radiance within +-{MAX_RADIANCE:g}, the "
+                         f"radiance a render takes, got {strength:g}, which takes pixel (y, x) = ({y}, {x}) from "
+                         f"{float(peak[y, x, 0]):.4g} to {float(peak[y, x, 0]) * (1.0 + strength * float(t[y, x, 0]) ** 2):.4g}")
+    return out.astype(np.float32)
 
 
 def _check_device(device: str) -> str:
     import warp as wp
 
+    from ._quiet import native_stderr_quiet
+
     check_type(device, str, "device", "a Warp device name such as 'cpu' or 'cuda:0'")
     try:
-        dev = wp.get_device(device)
+        with native_stderr_quiet():  # Warp prints two native lines per failed "cuda" lookup
+            dev = wp.get_device(device)
     except (RuntimeError, ValueError) as e:
         avail = ", ".join(str(d) for d in wp.get_devices())
         raise InputError(f"device: {device!r} is not available here ({e}); available: {avail}") from None
@@ -144,12 +158,7 @@ def render_with_stats(
     work = img if channels >= 3 else np.repeat(img, 3, axis=2)
     if highlight_boost > 0:
         work = work.copy()
-        with np.errstate(over="ignore", invalid="ignore"):
-            work[..., :3] = boost_highlights(work[..., :3], highlight_boost)  # colour only, never alpha
-        bad = ~np.isfinite(work[..., :3]) | (np.abs(work[..., :3]) > MAX_RADIANCE)
-        if bad.any():
-            raise InputError(f"highlight_boost: {highlight_boost:g} takes the image beyond the radiance a render "
-                             f"takes (+-{MAX_RADIANCE:g}) at (y, x, c) = {first_bad_index(bad)}; use a smaller boost")
+        work[..., :3] = boost_highlights(work[..., :3], highlight_boost)  # colour only, never alpha
     s = blur.signed_coc(d)
     raw_max = max(float(s.max()), -float(s.min())) if s.size else 0.0
     ctx = RenderContext(np.ascontiguousarray(work[..., :3]), d, scene.cap_coc(s), blur, aperture, layers, memory,

@@ -193,7 +193,6 @@ def test_render_raytrace_quality_reports_rays(scene, tmp_path, capsys):
         ["render", "x.png", "--disparity", "d.png"],  # no -o
         ["render", "x.png", "-o", "o.png"],  # neither --disparity nor --depth
         ["render", "x.png", "--disparity", "d.png", "-o", "o.png", "--focus-at", "5"],
-        ["demo", "--size", "-5,10"],
         ["frobnicate"],
     ],
 )
@@ -203,6 +202,25 @@ def test_usage_errors_are_one_line_with_exit_2(argv, capsys):
     err = capsys.readouterr().err
     assert e.value.code == 2
     assert err.startswith("bokehray: error:") and err.count("\n") == 1, err
+
+
+@pytest.mark.parametrize(
+    "argv,message",
+    [
+        (["demo", "--size", "-5,10"], "demo size: expected width and height >= 64, got -5 x 10"),
+        (["render", "{png}", "--disparity", "{disp}", "-o", "{out}", "--blur", "4", "--focus-at", "-1,0"],
+         "focus point: expected 0 <= x < 64 and 0 <= y < 48, got (-1, 0)"),
+        (["render", "{png}", "--disparity", "{disp}", "-o", "{out}", "--blur", "4", "--focus-at", "-3,-2"],
+         "got (-3, -2)"),
+    ],
+)
+def test_negative_number_pairs_are_values_not_options(scene, tmp_path, capsys, argv, message):
+    """issue 18: argparse took ``--focus-at -1,0`` for an option ("expected one argument")."""
+    p, _, _ = scene
+    argv = [a.format(png=p["png"], disp=p["disp_png"], out=tmp_path / "o.png") for a in argv]
+    code, _, err = run(capsys, *argv)
+    assert code == 2 and err.count("\n") == 1 and message in err, err
+    assert not (tmp_path / "o.png").exists()
 
 
 def test_unwritable_output_is_refused_before_rendering(scene, tmp_path, capsys):
@@ -248,3 +266,55 @@ def test_resized_depth_with_sky_stays_finite(tmp_path, capsys):
                        "--focal-length", 50, "--f-number", 2, "--focus-distance", 2, "--resize-disparity")
     assert code == 0, err
     assert np.isfinite(br.read_image(tmp_path / "o.exr")).all()
+
+
+def test_a_closed_stdout_is_not_an_error(scene, tmp_path, capsys, monkeypatch):
+    """``bokehray render ... | head -0``: BrokenPipeError is an OSError, and the OSError branch caught it first
+    (an error line and exit 2 after the output had been written)."""
+    import sys
+
+    class Closed:
+        def write(self, text):
+            raise BrokenPipeError(32, "Broken pipe")
+
+        def flush(self):
+            pass
+
+    p, _, _ = scene
+    monkeypatch.setattr(sys, "stdout", Closed())
+    code = main(["render", str(p["png"]), "--disparity", str(p["disp_png"]), "-o", str(tmp_path / "o.png"),
+                 "--blur", "4", "--focus", "0.5"])
+    assert code == 0 and (tmp_path / "o.png").exists()
+    assert capsys.readouterr().err == ""
+
+
+@pytest.mark.parametrize("fails", [False, True])
+def test_warnings_are_one_line_on_success_and_dropped_on_error(monkeypatch, capsys, fails):
+    """A Python warning during a command never turns the one-line error into several (issue 18.2)."""
+    import sys
+    import warnings
+
+    from bokehray import cli
+    from bokehray.errors import InputError
+
+    def cmd(args):
+        warnings.warn("overflow encountered in multiply", RuntimeWarning, stacklevel=1)
+        warnings.warn("overflow encountered in multiply", RuntimeWarning, stacklevel=1)  # shown once
+        if fails:
+            raise InputError("x.png: expected something else")
+        return 0
+
+    monkeypatch.setattr(cli, "cmd_render", cmd)
+    argv = ["render", "x.png", "--disparity", "d.png", "-o", "o.png"]
+    with warnings.catch_warnings():  # outside pytest a warning is printed to stderr: do that here too
+        warnings.simplefilter("default")
+        warnings.showwarning = lambda msg, cat, fn, ln, file=None, line=None: print(
+            warnings.formatwarning(msg, cat, fn, ln), file=sys.stderr, end="")
+        code = main(argv)
+    err = capsys.readouterr().err
+    if fails:
+        assert code == 2 and err == "bokehray: error: x.png: expected something else\n"
+    else:
+        assert code == 0 and err.count("\n") == 1
+        assert err.startswith("bokehray: warning: overflow encountered in multiply (test_cli.py:"), err
+        assert main([*argv, "--quiet"]) == 0 and capsys.readouterr().err == ""

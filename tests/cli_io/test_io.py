@@ -450,3 +450,191 @@ def test_failed_write_to_new_path_leaves_nothing(tmp_path, monkeypatch):
     with pytest.raises(OSError, match="disk on fire"):
         bio.write_disparity(tmp_path / "d.npy", np.zeros((3, 3)))
     assert os.listdir(tmp_path) == []
+
+
+# --------------------------------------------------------------------------- issue 18: writer errors, stale temporaries
+
+
+@pytest.mark.parametrize("name,patch", [
+    ("a.exr", "exr"), ("a.png", "pil"), ("a16.png", "bytes"), ("a.tif", "tiff"), ("a.jpg", "pil"), ("d.npy", "npy"),
+])
+def test_every_writer_error_names_the_output_file(tmp_path, monkeypatch, name, patch):
+    """A full disk (ENOSPC), however the encoder reports it, is one OutputError naming the target, not the temp."""
+    import errno
+
+    from bokehray.errors import OutputError
+
+    def enospc_os(target, *a, **k):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    def enospc_exr(self, target):  # what OpenEXR's binding raises when the disk fills
+        Path(target).write_bytes(b"partial")
+        raise RuntimeError(f'Failed to write pixel data to image file "{target}". No space left on device.')
+
+    if patch == "exr":
+        monkeypatch.setattr(OpenEXR.File, "write", enospc_exr)
+    elif patch == "pil":
+        monkeypatch.setattr(Image.Image, "save", lambda self, fp, *a, **k: enospc_os(fp))
+    elif patch == "bytes":
+        monkeypatch.setattr(bio, "_write_bytes", lambda tmp, data: enospc_os(tmp))
+    elif patch == "tiff":
+        monkeypatch.setattr(tifffile, "imwrite", enospc_os)
+    else:
+        monkeypatch.setattr(np, "save", lambda fh, arr, **k: enospc_os(fh))
+    target = tmp_path / "out" / name
+    with pytest.raises(OutputError) as info:
+        if name.endswith(".npy"):
+            bio.write_disparity(target, np.zeros((3, 3)))
+        else:
+            bio.write_image(target, _image(), bit_depth=16 if name == "a16.png" else None)
+    assert str(info.value) == f"cannot write {target}: No space left on device"
+    assert isinstance(info.value, OSError) and os.listdir(target.parent) == []
+
+
+def test_a_folder_that_cannot_be_made_is_an_output_error_naming_the_file(tmp_path):
+    from bokehray.errors import OutputError
+
+    (tmp_path / "f").write_text("a file, not a folder")
+    with pytest.raises(OutputError, match=re.escape(f"cannot write {tmp_path / 'f' / 'o.png'}: ")):
+        bio.write_image(tmp_path / "f" / "o.png", _image())
+
+
+def _dead_pid() -> int:
+    import subprocess
+    import sys
+
+    p = subprocess.Popen([sys.executable, "-c", "pass"])
+    p.wait()
+    return p.pid  # reaped: no process has this id (until the system reuses it, which takes a while)
+
+
+def test_stale_temporaries_of_a_killed_write_are_removed_by_the_next_write(tmp_path):
+    prefix = bio._tmp_prefix(tmp_path / "o.png")
+    host_part = prefix.rsplit("-", 2)[0]
+    dead = tmp_path / f"{host_part}-{_dead_pid()}-abc123.png"
+    live = tmp_path / f"{host_part}-{os.getppid()}-def456.png"  # our parent is alive: a concurrent writer
+    other_host = tmp_path / ".o.png.tmp-elsewhere-1-ghi789.png"  # a shared folder: not ours to judge
+    other_name = tmp_path / f".p.png.tmp-{host_part.split('tmp-')[1]}-{_dead_pid()}-jkl.png"
+    for f in (dead, live, other_host, other_name):
+        f.write_bytes(b"partial")
+    bio.write_image(tmp_path / "o.png", _image())
+    left = sorted(f.name for f in tmp_path.iterdir())
+    assert left == sorted(["o.png", live.name, other_host.name, other_name.name])
+    assert not bio.remove_stale_temporaries(tmp_path / "o.png")
+
+
+def test_temporary_names_carry_host_and_pid(tmp_path, monkeypatch):
+    seen = []
+    monkeypatch.setattr(bio, "_write_pil", lambda tmp, codes, fmt, **k: (seen.append(tmp), Path(tmp).write_bytes(b"x")))
+    bio.write_image(tmp_path / "o.png", _image())
+    name = Path(seen[0]).name
+    assert name.startswith(".o.png.tmp-") and f"-{os.getpid()}-" in name and name.endswith(".png")
+
+
+# --------------------------------------------------------------------------- issue 18: values as the file holds them
+
+
+@pytest.mark.parametrize("reader", ["read_disparity", "read_depth"])
+def test_float64_beyond_float32_is_reported_as_the_file_holds_it(tmp_path, reader):
+    import warnings
+
+    a = np.full((4, 5), 0.5)
+    a[2, 3] = 1e300
+    np.save(tmp_path / "d.npy", a)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no RuntimeWarning on the way (it used to say "overflow in cast")
+        with _raises(tmp_path / "d.npy", re.escape("expected values within float32's range (+-3.4e38), got 1e+300 "
+                                                    "at (y, x) = (2, 3)")):
+            getattr(bio, reader)(tmp_path / "d.npy")
+
+
+def test_float64_tiff_image_beyond_float32_is_refused_without_warnings(tmp_path):
+    import warnings
+
+    a = np.full((4, 5, 3), 0.5)
+    a[1, 2, 0] = -5e39
+    tifffile.imwrite(tmp_path / "i.tif", a, photometric="rgb")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with _raises(tmp_path / "i.tif", re.escape("got -5e+39 at (y, x) = (1, 2)")):
+            bio.read_image(tmp_path / "i.tif")
+
+
+def test_writers_refuse_float64_beyond_float32_without_warnings(tmp_path):
+    import warnings
+
+    a = np.full((4, 5, 3), 0.5)
+    a[0, 1, 2] = 1e300
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with _raises(tmp_path / "o.exr", re.escape("beyond float32's range (+-3.4e38): 1e+300 at (y, x) = (0, 1)")):
+            bio.write_image(tmp_path / "o.exr", a)
+        with _raises(tmp_path / "d.npy", re.escape("1e+300 at (y, x) = (0, 1)")):
+            bio.write_disparity(tmp_path / "d.npy", a[..., 2])
+        rgba = np.full((2, 2, 4), 3e38, np.float32)
+        rgba[..., 3] = 2.0  # alpha above 1 times a colour near float32's maximum
+        with _raises(tmp_path / "o.exr", "overflows float32: \\+Inf"):
+            bio.write_image(tmp_path / "o.exr", rgba)
+    assert os.listdir(tmp_path) == []
+
+
+# --------------------------------------------------------------------------- issue 18: questionable inputs decided
+
+
+def test_alpha_only_exr_is_neither_an_image_nor_a_map(tmp_path):
+    """A lone 'A' channel is a matte (coverage); it used to be read as grey and accepted as disparity."""
+    _write_exr(tmp_path / "a.exr", {"A": np.full((4, 5), 0.5, np.float32)})
+    for read in (bio.read_image, bio.read_disparity, bio.read_depth):
+        with _raises(tmp_path / "a.exr", "holds only the alpha channel 'A' \\(coverage, not values\\)"):
+            read(tmp_path / "a.exr")
+    _write_exr(tmp_path / "layer.exr", {"matte.A": np.full((4, 5), 0.5, np.float32)})
+    with _raises(tmp_path / "layer.exr", "alpha channel 'matte.A'"):
+        bio.read_disparity(tmp_path / "layer.exr")
+    _write_exr(tmp_path / "z.exr", {"depth": np.full((4, 5), 0.5, np.float32)})  # any other lone channel: taken
+    assert bio.read_disparity(tmp_path / "z.exr").shape == (4, 5)
+
+
+def test_cmyk_jpeg_is_refused_not_miscoloured(tmp_path):
+    """Without its ICC profile CMYK has no defined RGB (a real CMYK photo decoded to mean 0.31 for 0.50)."""
+    Image.new("RGB", (16, 12), (128, 128, 128)).convert("CMYK").save(tmp_path / "c.jpg", quality=95)
+    with _raises(tmp_path / "c.jpg", "expected an RGB or greyscale JPEG, got CMYK colour"):
+        bio.read_image(tmp_path / "c.jpg")
+
+
+def test_multi_page_tiff_is_refused_but_reduced_resolution_pages_are_ignored(tmp_path):
+    a, b = np.zeros((8, 9), np.uint16), np.full((8, 9), 60000, np.uint16)
+    tifffile.imwrite(tmp_path / "stack.tif", np.stack([a, b]), photometric="minisblack")
+    with tifffile.TiffWriter(tmp_path / "two.tif") as w:
+        w.write(a, photometric="minisblack")
+        w.write(b, photometric="minisblack")
+    for name in ("stack.tif", "two.tif"):
+        for read in (bio.read_image, bio.read_disparity):
+            with _raises(tmp_path / name, "expected one image, got a multi-page TIFF with 2 full-size pages"):
+                read(tmp_path / name)
+    with tifffile.TiffWriter(tmp_path / "pyramid.tif") as w:  # a preview page is not a second image
+        w.write(b, photometric="minisblack")
+        w.write(b[::2, ::2], photometric="minisblack", subfiletype=1)
+    np.testing.assert_array_equal(bio.read_disparity(tmp_path / "pyramid.tif"), b / np.float32(65535))
+
+
+@pytest.mark.parametrize("name", ["i.png", "i16.png", "i.jpg", "i.tif", "i.exr", "d.npy", "d.exr", "planar.tif"])
+def test_read_size_matches_the_decoded_shape_without_decoding(tmp_path, monkeypatch, name):
+    img = _image(13, 17)
+    p = tmp_path / name
+    if name == "d.npy" or name == "d.exr":
+        bio.write_disparity(p, img[..., 0])
+    elif name == "planar.tif":
+        tifffile.imwrite(p, np.moveaxis((img * 255).astype(np.uint8), -1, 0), photometric="rgb", planarconfig="separate")
+    else:
+        bio.write_image(p, img, bit_depth=16 if name == "i16.png" else None)
+    shape = (bio.read_disparity(p) if name.startswith("d") else bio.read_image(p)).shape[:2]
+    monkeypatch.setattr(bio, "_load", lambda *a, **k: pytest.fail("read_size decoded pixels"))
+    assert bio.read_size(p) == shape == (13, 17)
+
+
+def test_read_size_refuses_what_it_cannot_read(tmp_path):
+    (tmp_path / "x.png").write_bytes(b"not a png at all, really not")
+    with _raises(tmp_path / "x.png", "not a PNG file"):
+        bio.read_size(tmp_path / "x.png")
+    with _raises(tmp_path / "nope.exr", "does not exist"):
+        bio.read_size(tmp_path / "nope.exr")

@@ -4,14 +4,21 @@ Complements tests/test_io.py (truncated and corrupt files, NaN/Inf, channel coun
 paths, atomic writes) and tests/test_fuzz_regressions.py (inputs found by fuzzing).
 """
 
+import os
 import resource
+import signal
 import struct
+import subprocess
+import sys
 import time
 import zlib
+from pathlib import Path
 
+import bokehray_kernels
 import numpy as np
 import pytest
 
+import bokehray
 import bokehray.io as bio
 from bokehray import cli
 from bokehray.errors import InputError, ResourceError
@@ -185,3 +192,222 @@ def test_exr_whose_unpremultiplied_colour_overflows_is_refused(tmp_path):
     with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, chans) as f:
         f.write(str(p))
     np.testing.assert_allclose(bio.read_image(p)[0, 0], [5e21, 5e21, 2.5e21, 1e-22], rtol=1e-6)  # finite: kept
+
+
+# --------------------------------------------------------------------------- issue 18: the CLI in a real process
+# (a traceback, a warning or a native library's line reaches the real stderr only outside pytest's capture)
+
+
+_PATHS = os.pathsep.join(dict.fromkeys(str(Path(m.__file__).resolve().parents[1]) for m in (bokehray, bokehray_kernels)))
+
+
+def _cli(args, *, prelude: str = "", wait: bool = True, timeout: float = 120):
+    """Run ``bokehray ARGS`` in a fresh interpreter (after ``prelude``); the finished process, or the running one."""
+    code = f"{prelude}\nimport sys\nfrom bokehray.cli import main\nsys.exit(main(sys.argv[1:]))\n"
+    env = {**os.environ, "PYTHONPATH": _PATHS + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    env.pop("PYTHONWARNINGS", None)
+    if wait:
+        return subprocess.run([sys.executable, "-c", code, *map(str, args)], capture_output=True, text=True, env=env,
+                              timeout=timeout, check=False)
+    return subprocess.Popen([sys.executable, "-c", code, *map(str, args)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=env)
+
+
+@pytest.fixture
+def inputs(tmp_path):
+    img = bio.write_image(tmp_path / "in.png", np.random.default_rng(0).random((96, 128, 3)).astype(np.float32))
+    disp = bio.write_disparity(tmp_path / "d.png", np.tile(np.linspace(0, 1, 128, dtype=np.float32), (96, 1)))
+    return img, disp
+
+
+def _one_error_line(proc) -> str:
+    err = proc.stderr.strip()
+    assert proc.returncode == 2 and len(err.splitlines()) == 1 and err.startswith("bokehray: error: "), proc.stderr
+    return err
+
+
+@pytest.fixture
+def full_disk(tmp_path):
+    """A 4 KB tmpfs (smaller than every output here) (root only), else None: the tests then patch the writers to fail as a full disk does."""
+    folder = tmp_path / "full"
+    folder.mkdir()
+    mounted = os.geteuid() == 0 and subprocess.run(["mount", "-t", "tmpfs", "-o", "size=4k", "tmpfs", str(folder)],
+                                                   capture_output=True, check=False).returncode == 0
+    yield folder, mounted
+    if mounted:
+        subprocess.run(["umount", str(folder)], check=False)
+
+
+_ENOSPC_WRITERS = """
+import errno, os, OpenEXR, tifffile
+from PIL import Image
+def _exr(self, target):
+    open(target, "wb").write(b"partial")
+    raise RuntimeError(f'Failed to write pixel data to image file "{target}". No space left on device.')
+def _enospc(*a, **k):
+    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+OpenEXR.File.write, tifffile.imwrite, Image.Image.save = _exr, _enospc, _enospc
+"""
+
+
+@pytest.mark.parametrize("ext", ["exr", "png", "tif", "jpg"])
+def test_disk_full_while_writing_is_one_line_naming_the_output(inputs, full_disk, ext):
+    """issue 18.1: a full disk during the EXR write was a traceback with exit 1; PNG/TIFF named no file."""
+    (img, disp), (folder, mounted) = inputs, full_disk
+    out = folder / f"o.{ext}"
+    proc = _cli(["render", img, "--disparity", disp, "-o", out, "--blur", 4, "--focus", 0.5],
+                prelude="" if mounted else _ENOSPC_WRITERS)
+    assert _one_error_line(proc) == f"bokehray: error: cannot write {out}: No space left on device"
+    assert sorted(os.listdir(folder)) == []
+
+
+def _slow_writer(marker: str) -> str:
+    """A prelude whose PNG encoder writes part of the file, says so on stdout, then hangs (until a signal)."""
+    return f"""
+import signal, time
+from pathlib import Path
+import bokehray.io as bio
+signal.signal(signal.SIGINT, signal.default_int_handler)  # a background test runner may start us with SIGINT ignored
+def _slow(tmp, codes, fmt, **k):
+    Path(tmp).write_bytes(b"partial" * 4096)
+    print("{marker}", flush=True)
+    time.sleep(60)
+bio._write_pil = _slow
+"""
+
+
+def _start_and_signal(args, sig):
+    proc = _cli(args, prelude=_slow_writer("WRITING"), wait=False)
+    try:
+        assert proc.stdout.readline().strip() == "WRITING", proc.stderr.read()
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    return proc.returncode, err
+
+
+@pytest.mark.parametrize("sig,code,words", [(signal.SIGTERM, 143, "terminated (SIGTERM)"),
+                                            (signal.SIGINT, 130, "interrupted")])
+def test_a_signal_while_writing_removes_the_temporary_file(inputs, tmp_path, sig, code, words):
+    """issue 18.6: SIGTERM used to kill the process mid-write, leaving ``.o.png.XXXX.png`` beside the output."""
+    img, disp = inputs
+    out = tmp_path / "o.png"
+    rc, err = _start_and_signal(["render", img, "--disparity", disp, "-o", out, "--blur", 4, "--focus", 0.5], sig)
+    assert rc == code, err
+    assert err.strip() == f"bokehray: {words}; no partial output was left"
+    assert sorted(os.listdir(tmp_path)) == ["d.png", "in.png"]
+
+
+def test_stale_temporary_of_a_killed_write_is_removed_by_the_next_write(inputs, tmp_path):
+    """SIGKILL cannot be handled: its temporary file stays until the next write to that path removes it."""
+    img, disp = inputs
+    out = tmp_path / "o.png"
+    args = ["render", img, "--disparity", disp, "-o", out, "--blur", 4, "--focus", 0.5]
+    rc, _ = _start_and_signal(args, signal.SIGKILL)
+    assert rc == -signal.SIGKILL
+    stale = [n for n in os.listdir(tmp_path) if n.startswith(".o.png.tmp-")]
+    assert len(stale) == 1 and (tmp_path / stale[0]).stat().st_size > 0
+    proc = _cli(args)
+    assert proc.returncode == 0 and proc.stderr == "", proc.stderr
+    assert sorted(os.listdir(tmp_path)) == ["d.png", "in.png", "o.png"]
+    assert bio.read_image(out).shape == (96, 128, 3)
+
+
+def test_sigterm_during_the_render_exits_143_without_output(inputs, tmp_path):
+    """SIGTERM before the write (here during a slow stand-in for the render): exit 143, one line, nothing written."""
+    img, disp = inputs
+    out = tmp_path / "o.png"
+    prelude = """
+import sys, time
+import bokehray.pipeline as r
+def _slow(*a, **k):
+    print("RENDERING", flush=True)
+    time.sleep(60)
+r.render_with_stats = _slow
+"""
+    proc = _cli(["render", img, "--disparity", disp, "-o", out, "--blur", 4, "--focus", 0.5], prelude=prelude,
+                wait=False)
+    try:
+        assert proc.stdout.readline().strip() == "RENDERING", proc.stderr.read()
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 143 and err.strip() == "bokehray: terminated (SIGTERM); no partial output was left"
+    assert not out.exists()
+
+
+def test_overflow_cases_are_one_line_with_no_warnings(inputs, tmp_path):
+    """issue 18.2: overflow warnings leaked onto stderr (3 to 5 lines), and 1e300 was reported as "+Inf"."""
+    img, disp = inputs
+    out = tmp_path / "o.png"
+    base = ["--blur", 4, "--focus", 0.5, "-o", out]
+    err = _one_error_line(_cli(["render", img, "--disparity", disp, "--highlight-boost", "1e39", *base]))
+    assert err == "bokehray: error: highlight_boost: expected a value within float32's range (3.4e38), got 1e+39"
+    bright = bio.write_image(tmp_path / "bright.exr", np.full((96, 128, 3), 3e38, np.float32))
+    err = _one_error_line(_cli(["render", bright, "--disparity", disp, *base]))  # every level's radiance limit
+    assert err == f"bokehray: error: {bright}: radiance up to 3e+38; renders sum values in float32 and need them " \
+                  "within +-1e+36 (scale the image down)"
+    bright = bio.write_image(tmp_path / "bright.exr", np.full((96, 128, 3), 5e35, np.float32))
+    err = _one_error_line(_cli(["render", bright, "--disparity", disp, "--highlight-boost", 4, *base]))
+    assert "highlight_boost: expected a boost that keeps radiance within +-1e+36" in err
+    assert "from 5e+35 to 2.5e+36" in err
+    d = np.full((96, 128), 0.5)
+    d[5, 6] = 1e300
+    np.save(tmp_path / "d64.npy", d)
+    err = _one_error_line(_cli(["render", img, "--disparity", tmp_path / "d64.npy", *base]))
+    assert err.endswith("d64.npy: expected values within float32's range (+-3.4e38), got 1e+300 at (y, x) = (5, 6)")
+    assert not out.exists()
+
+
+def test_cuda_without_a_driver_is_one_line(inputs, tmp_path):
+    """Warp printed two native ``Warp CUDA error`` lines before the one-line error on a machine without a driver."""
+    import warp as wp
+
+    if wp.is_cuda_available():
+        pytest.skip("this machine has CUDA: the request succeeds")
+    img, disp = inputs
+    proc = _cli(["render", img, "--disparity", disp, "-o", tmp_path / "o.png", "--blur", 4, "--focus", 0.5,
+                 "--device", "cuda"])
+    assert "device: 'cuda' is not available here" in _one_error_line(proc)
+
+
+def test_size_mismatch_is_found_from_the_headers_before_decoding(inputs, tmp_path, monkeypatch, capsys):
+    """A 64 MP PNG was decoded (5 s) before its size mismatch with the disparity map was reported."""
+    img, _ = inputs
+    small = bio.write_disparity(tmp_path / "small.npy", np.full((12, 16), 0.5, np.float32))
+    monkeypatch.setattr(bio, "_load", lambda *a, **k: pytest.fail("decoded pixels before comparing the headers"))
+    rc = cli.main(["render", str(img), "--disparity", str(small), "-o", str(tmp_path / "o.png"), "--blur", "4",
+                   "--focus", "0.5"])
+    err = capsys.readouterr().err
+    assert rc == 2 and err == f"bokehray: error: {small}: map is 16x12, image is 128x96; pass --resize-disparity to " \
+                              "resize it\n"
+
+
+_FUZZ = sorted(p for p in (Path(__file__).parent / "data" / "fuzz").rglob("*") if p.suffix in (".png", ".jpg", ".tif",
+                                                                                                   ".exr", ".npy"))
+
+
+@pytest.mark.parametrize("path", _FUZZ, ids=lambda p: f"{p.parent.name}/{p.name}")
+def test_read_size_agrees_with_the_readers_on_the_fuzz_files(path, monkeypatch, capfd):
+    """The header-only size is what every reader that decodes the file finds, or a clear error naming it."""
+    monkeypatch.setattr(bio, "MAX_PIXELS", 2_000_000)
+    try:
+        size = bio.read_size(path)
+    except (InputError, ResourceError) as e:
+        assert str(path) in str(e)
+        size = None
+    readers = READERS[{".tif": "tif", ".exr": "exr", ".png": "png", ".jpg": "jpg", ".npy": "npy"}[path.suffix]]
+    for read in readers:
+        try:
+            a = read(path)
+        except (InputError, ResourceError):
+            continue
+        assert a.shape[:2] == size
+    out, err = capfd.readouterr()
+    assert out == "" and err == "", (out + err)[:300]
