@@ -122,6 +122,7 @@ def create_app(session: ViewSession, worker: RenderWorker | None = None, allowed
             return error(400, str(e))
         headers = {
             "X-Bokehray-Stage": stage, "X-Bokehray-Factor": str(meta["factor"]),
+            "X-Bokehray-Proxy-Level": str(meta.get("level", "")),
             "X-Bokehray-Focus-Disparity": repr(p.blur.focus_disparity), "X-Bokehray-K": repr(p.blur.k_px),
             "X-Bokehray-Render-Seconds": f"{seconds:.4f}",
             "X-Bokehray-Seconds": f"{time.perf_counter() - t0:.4f}",

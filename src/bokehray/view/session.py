@@ -12,6 +12,7 @@ from __future__ import annotations
 import io
 import math
 import shlex
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,7 +22,7 @@ import bokehray as br
 
 from ..errors import InputError
 
-__all__ = ["EXPORT_FORMATS", "MAX_BODY_BYTES", "RenderParams", "ViewSession", "box_factor", "box_reduce",
+__all__ = ["EXPORT_FORMATS", "MAX_BODY_BYTES", "ProxyLadder", "RenderParams", "ViewSession", "box_factor", "box_reduce",
            "encode_jpeg", "parse_params"]
 
 MAX_BODY_BYTES = 4096
@@ -78,6 +79,29 @@ def encode_png(arr: np.ndarray, mode: str) -> bytes:
     buf = io.BytesIO()
     Image.fromarray(arr, mode).save(buf, "PNG", compress_level=1)
     return buf.getvalue()
+
+
+class ProxyLadder:
+    """Which proxy the next live update renders at: a feedback rule on the last update's render time.
+
+    Level 0 is the finest proxy (``--proxy-size``); each next level has about 3/4 of the long side (just over
+    half the pixels). A render slower than ``budget_s`` steps one level coarser; one faster than
+    ``step_up * budget_s`` steps one level finer (a level costs ~1.8x the next, so the finer one is expected
+    inside the budget). During a drag the parameters change a little per update, so the last update predicts
+    the next: strong blur and bladed apertures, which cost more per pixel, settle on a coarser proxy instead
+    of slowing the page down.
+    """
+
+    def __init__(self, levels: int, budget_s: float = 0.19, step_up: float = 0.45) -> None:
+        self.levels, self.budget_s, self.step_up = int(levels), float(budget_s), float(step_up)
+        self.level = 0
+
+    def report(self, seconds: float) -> int:
+        if seconds > self.budget_s and self.level < self.levels - 1:
+            self.level += 1
+        elif seconds < self.step_up * self.budget_s and self.level > 0:
+            self.level -= 1
+        return self.level
 
 
 @dataclass(frozen=True)
@@ -182,7 +206,8 @@ class ViewSession:
     Args:
         image: scene-linear H x W x C float32 (C = 1, 3, 4).
         disparity: H x W in [0, 1] (already resized, if it had to be).
-        proxy_long_side: the live preview renders at most this many pixels on the long side.
+        proxy_long_side: the live preview renders at most this many pixels on the long side (the finest
+            proxy; coarser ones take over while updates are slow, see :class:`ProxyLadder`).
         display_long_side: the refined full-resolution render is sent to the page reduced to this size
             (the export writes every pixel).
         image_path, disparity_arg, depth_path, resize_disparity: what the command line was given, for
@@ -211,10 +236,13 @@ class ViewSession:
         self.image_path, self.disparity_path, self.depth_path = image_path, disparity_path, depth_path
         self.resize_disparity = resize_disparity
         self.export_dir = Path(export_dir).resolve()
-        # the proxy: f x f box means in linear light; K scales by 1/f
-        self.proxy_factor = box_factor(self.h, self.w, proxy_long_side)
-        self.proxy_image = box_reduce(self.image, self.proxy_factor)
-        self.proxy_disparity = np.clip(box_reduce(self.disparity, self.proxy_factor), 0.0, 1.0)
+        # the proxies: f x f box means in linear light (K scales by 1/f), finest first; see ProxyLadder
+        f0 = box_factor(self.h, self.w, proxy_long_side)
+        factors = sorted({f0, *(math.ceil(f0 * (4 / 3) ** i) for i in (1, 2, 3))})
+        self.proxies = [(f, box_reduce(self.image, f), np.clip(box_reduce(self.disparity, f), 0.0, 1.0))
+                        for f in factors]
+        self.proxy_factor, self.proxy_image, self.proxy_disparity = self.proxies[0]
+        self.ladder = ProxyLadder(len(self.proxies))
         self.display_factor = box_factor(self.h, self.w, display_long_side)
         self._cache: dict[str, bytes] = {}
         self._full: tuple[tuple, np.ndarray] | None = None  # the last full-resolution render and its key
@@ -276,7 +304,7 @@ class ViewSession:
         return {
             "width": self.w, "height": self.h, "files": names,
             "proxy": {"factor": self.proxy_factor, "width": self.proxy_image.shape[1],
-                      "height": self.proxy_image.shape[0]},
+                      "height": self.proxy_image.shape[0], "factors": [f for f, _, _ in self.proxies]},
             "display": {"factor": self.display_factor, "width": -(-self.w // self.display_factor),
                         "height": -(-self.h // self.display_factor)},
             "default_blur": float(max(1, round(self.w / 50))), "max_blur": float(max(8, round(self.w / 8))),
@@ -286,15 +314,21 @@ class ViewSession:
 
     # --- renders --------------------------------------------------------------------------------------
     def render_preview(self, p: RenderParams, check=None) -> tuple[bytes, dict]:
-        """The live preview: preview level on the proxy with ``K / f``; ``check()`` may raise to abandon it."""
-        f = self.proxy_factor
+        """The live preview: preview level on a proxy with ``K / f``; ``check()`` may raise to abandon it.
+
+        The proxy is the ladder's choice (:class:`ProxyLadder`); an abandoned render does not move the ladder.
+        """
+        level = self.ladder.level
+        f, image, disparity = self.proxies[level]
         blur = br.BlurParams(p.blur.k_px / f, p.blur.focus_disparity)
         progress = (lambda done, total: check()) if check is not None else None
-        out, stats = br.render_with_stats(self.proxy_image, self.proxy_disparity, blur, p.lens, quality="preview",
+        t = time.perf_counter()
+        out, stats = br.render_with_stats(image, disparity, blur, p.lens, quality="preview",
                                           device=self.device, highlight_boost=p.highlight_boost, progress=progress)
+        self.ladder.report(time.perf_counter() - t)
         if check is not None:
             check()
-        return encode_jpeg(to_srgb8(out), 88), {"factor": f, "layers": stats.layers}
+        return encode_jpeg(to_srgb8(out), 88), {"factor": f, "layers": stats.layers, "level": level}
 
     def render_full(self, p: RenderParams, check=None) -> np.ndarray:
         """Every pixel at the chosen quality (cached for the export of the same parameters)."""

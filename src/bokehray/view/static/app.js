@@ -168,13 +168,14 @@ async function exportImage() {
   btn.disabled = true;
   document.body.dataset.exported = "";
   $("export-out").textContent = "rendering every pixel and writing…";
+  $("export-command").textContent = "";
   try {
     const r = await fetch("/api/export", { method: "POST", headers: { "Content-Type": "application/json" },
       body: JSON.stringify({ params: params(), format: $("format").value, bit_depth: Number($("bit_depth").value) }) });
     const j = await r.json();
     if (!r.ok) { $("export-out").textContent = ""; setError(j.error || ("HTTP " + r.status)); return; }
-    $("export-out").textContent = "wrote " + j.path + ` (${j.seconds.toFixed(1)} s)`;
-    showCommand(j.command);
+    $("export-out").textContent = "wrote " + j.path + ` (${j.seconds.toFixed(1)} s); the same file from the command line:`;
+    $("export-command").textContent = j.command;
     document.body.dataset.exported = j.path;
   } catch (e) {
     setError("export failed: " + e);
