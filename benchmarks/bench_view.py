@@ -171,8 +171,10 @@ def _plot(result: dict, path: Path) -> None:
     a.boxplot([result["drags"][k]["page_ms"] for k in names], tick_labels=names, showfliers=True)
     a.axhline(result["target_ms"], color="tab:red", ls="--", lw=1, label=f"target {result['target_ms']:.0f} ms")
     a.set_ylabel("ms per update (request to JPEG)")
-    a.set_title(f"live preview, {result['megapixels']} MP photo, proxy "
-                f"{result['proxy']['shape'][1]}x{result['proxy']['shape'][0]}", fontsize=9)
+    used = sorted({f for d in result["drags"].values() for f in d["proxy_factors"]})
+    a.set_title(f"live preview, {result['megapixels']} MP photo; proxy factors used {used} "
+                f"(finest {result['proxy']['shape'][1]}x{result['proxy']['shape'][0]}); load "
+                f"{result['load_avg_at_end'][0]:.1f}", fontsize=8)
     a.tick_params(axis="x", labelsize=6, rotation=15)
     a.legend(fontsize=8)
     sides = sorted(result.get("proxy_sweep", {}), key=int)

@@ -9,6 +9,7 @@ the packed 16-bit disparity the page uses to draw the in-focus region.
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import math
 import shlex
@@ -346,6 +347,13 @@ class ViewSession:
         return out
 
     def full_display(self, p: RenderParams, check=None) -> tuple[bytes, dict]:
+        """The refinement the page shows when the input rests: every pixel at the preview level, reduced for display.
+
+        Always the preview level, whatever ``p.quality``: the ray tracer has no progress hook in the public
+        API, so a ray-traced refinement could not be abandoned when the user drags again (it would hold every
+        preview back for its whole run). The chosen level is what the export renders.
+        """
+        p = dataclasses.replace(p, quality="preview")
         out = self.render_full(p, check)
         if check is not None:
             check()
