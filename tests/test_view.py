@@ -175,6 +175,8 @@ def test_worker_newest_wins_and_abandons_the_running_job():
         assert started.wait(5)
         queued = [w.submit(lambda check, i=i: i) for i in range(20)]
         assert queued[-1].result(5) == 19
+        # handed over without the abandoned job's traceback (its frames hold the render's arrays)
+        assert isinstance(first.exception(5), Superseded) and first.exception().__traceback__ is None
         with pytest.raises(Superseded):
             first.result(5)
         for fut in queued[:-1]:
