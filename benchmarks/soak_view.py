@@ -68,7 +68,7 @@ def main() -> int:
 
         for k in range(args.storms):
             with ThreadPoolExecutor(8) as pool:
-                statuses = list(pool.map(lambda i: one(i, k), range(200)))
+                statuses = list(pool.map(one, range(200), [k] * 200))
             rows.append({"requests": 200 * (k + 1), "rss_mb": round((common.status_kb("VmRSS") or 0) / 1024, 1),
                          "ok": statuses.count(200), "superseded": statuses.count(409),
                          "other": len(statuses) - statuses.count(200) - statuses.count(409),

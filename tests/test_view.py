@@ -151,8 +151,9 @@ def test_preview_renders_at_the_ladders_proxy(scene_files):
     assert [f for f, _, _ in s.proxies] == [3, 4, 6, 8]
     p = parse_params({"blur": 20.0, "focus": 0.5}, s.disparity)
     s.ladder = ProxyLadder(4, budget_s=-1.0)  # every render is "slow": one level coarser each time
-    from PIL import Image
     import io
+
+    from PIL import Image
 
     for f in (3, 4, 6, 8, 8):
         data, meta = s.render_preview(p)
@@ -245,8 +246,9 @@ def test_render_preview_and_full(server, session):
     st, h, data = post(server.url + "api/render", {"blur": 20, "focus_at": [x, y], "stage": "preview"})
     assert st == 200 and data[:2] == b"\xff\xd8" and h["x-bokehray-factor"] == "3"
     assert float(h["x-bokehray-focus-disparity"]) == br.focus_at(session.disparity, x, y)
-    from PIL import Image
     import io
+
+    from PIL import Image
 
     assert Image.open(io.BytesIO(data)).size == (160, 107)
     st, h, data = post(server.url + "api/render", {"blur": 20, "focus_at": [x, y], "stage": "full"})

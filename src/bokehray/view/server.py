@@ -21,6 +21,7 @@ import socket
 import threading
 import time
 from importlib import resources
+from typing import Self
 from urllib.parse import quote
 
 from ..errors import BokehrayError, InputError
@@ -232,7 +233,7 @@ class ViewServer:
         finally:
             self.close()
 
-    def start(self) -> ViewServer:
+    def start(self) -> Self:
         self._thread = threading.Thread(target=self.server.run, kwargs={"sockets": [self.sock]}, daemon=True)
         self._thread.start()
         deadline = time.monotonic() + 10
@@ -248,7 +249,7 @@ class ViewServer:
         self.worker.close()
         self.sock.close()
 
-    def __enter__(self) -> ViewServer:
+    def __enter__(self) -> Self:
         return self.start()
 
     def __exit__(self, *exc) -> None:
