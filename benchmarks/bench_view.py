@@ -144,6 +144,8 @@ def main() -> int:
             print(f"proxy {side:5d}: {s.proxy_image.shape[1]}x{s.proxy_image.shape[0]} median {r['median_ms']:.1f} ms",
                   flush=True)
         result["proxy_sweep"] = sweep
+        # a second fixed workload of the same run: focus clicks on the 640 px proxy alone (no ladder)
+        result["ratio_update_to_fixed_proxy640"] = result["all_updates"]["median_ms"] / sweep[640]["median_ms"]
     result["load_avg_at_end"] = list(os.getloadavg())
     result["pass"] = result["all_updates"]["median_ms"] <= TARGET_MS
     tag = common.machine_tag(result["machine"]) + ("-quick" if args.quick else "")

@@ -148,14 +148,14 @@ def test_proxy_ladder_steps_coarser_when_slow_and_back_when_fast():
 def test_preview_renders_at_the_ladders_proxy(scene_files):
     _, _, _, sc = scene_files
     s = ViewSession(sc.image, sc.disparity, proxy_long_side=160)
-    assert [f for f, _, _ in s.proxies] == [3, 4, 6, 8]
+    assert [f for f, _, _ in s.proxies] == [3, 4, 6, 8, 10]
     p = parse_params({"blur": 20.0, "focus": 0.5}, s.disparity)
-    s.ladder = ProxyLadder(4, budget_s=-1.0)  # every render is "slow": one level coarser each time
+    s.ladder = ProxyLadder(5, budget_s=-1.0)  # every render is "slow": one level coarser each time
     import io
 
     from PIL import Image
 
-    for f in (3, 4, 6, 8, 8):
+    for f in (3, 4, 6, 8, 10, 10):
         data, meta = s.render_preview(p)
         assert meta["factor"] == f and Image.open(io.BytesIO(data)).size == (-(-480 // f), -(-320 // f))
 

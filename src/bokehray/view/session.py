@@ -239,7 +239,7 @@ class ViewSession:
         self.export_dir = Path(export_dir).resolve()
         # the proxies: f x f box means in linear light (K scales by 1/f), finest first; see ProxyLadder
         f0 = box_factor(self.h, self.w, proxy_long_side)
-        factors = sorted({f0, *(math.ceil(f0 * (4 / 3) ** i) for i in (1, 2, 3))})
+        factors = sorted({f0, *(math.ceil(f0 * (4 / 3) ** i) for i in (1, 2, 3, 4))})
         self.proxies = [(f, box_reduce(self.image, f), np.clip(box_reduce(self.disparity, f), 0.0, 1.0))
                         for f in factors]
         self.proxy_factor, self.proxy_image, self.proxy_disparity = self.proxies[0]
