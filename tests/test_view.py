@@ -378,3 +378,52 @@ def test_raytrace_export_and_preview_level_refinement(server, session, tmp_path)
     np.testing.assert_array_equal(rt, br.read_image(again))
     pv = br.render(session.image, session.disparity, br.BlurParams(8.0, 0.5))
     assert np.abs(rt - pv).max() > 0  # the export really is the other level
+
+
+def test_depth_map_session_and_its_command(scene_files, tmp_path):
+    """--depth: the same min-max normalisation as `bokehray render --depth`, and a command that says --depth."""
+    _, img, _, sc = scene_files
+    depth = (1.0 / (0.2 + sc.disparity)).astype(np.float32)  # metres; nearer = larger disparity
+    dpath = tmp_path / "depth.exr"
+    br.write_image(dpath, depth[..., None])
+    out_dir = tmp_path / "exports"
+    out_dir.mkdir()
+    s = ViewSession.from_files(str(img), depth=str(dpath), export_dir=out_dir, proxy_long_side=160)
+    expected, _ = br.disparity_from_depth(br.read_depth(dpath))
+    np.testing.assert_array_equal(s.disparity, expected)
+    p = parse_params({"blur": 12.0, "focus_at": list(subject_pixel(sc.disparity))}, s.disparity)
+    path, command = s.export(p, "exr", 32)
+    argv = shlex.split(command)
+    assert argv[argv.index("--depth") + 1] == str(dpath.resolve())
+    again = tmp_path / "again.exr"
+    argv[argv.index("-o") + 1] = str(again)
+    assert main(argv[1:] + ["--quiet"]) == 0
+    np.testing.assert_array_equal(br.read_image(path), br.read_image(again))
+
+
+def test_cli_serves_until_interrupted(scene_files, tmp_path):
+    """`bokehray view` prints its 127.0.0.1 URL, serves the page, and stops cleanly on Ctrl-C (SIGINT)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    _, img, disp, _ = scene_files
+    code = "import sys; from bokehray.cli import main; sys.exit(main())"
+    proc = subprocess.Popen([sys.executable, "-c", code, "view", str(img), "--disparity", str(disp),
+                             "--export-dir", str(tmp_path)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    try:
+        line = proc.stdout.readline()
+        assert line.startswith("bokehray view: http://127.0.0.1:"), line
+        url = line.split()[2]
+        info = json.loads(urllib.request.urlopen(url + "api/info", timeout=30).read())
+        assert info["width"] == 480 and info["export_dir"] == str(tmp_path.resolve())
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, err
+    assert "Traceback" not in err and "stopped" in err

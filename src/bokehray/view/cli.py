@@ -73,7 +73,10 @@ def cmd_view(args: argparse.Namespace) -> int:
         import webbrowser
 
         webbrowser.open(server.url)
-    server.run()
+    try:
+        server.run()
+    except KeyboardInterrupt:  # uvicorn re-raises the Ctrl-C it shut down on: for a server, the normal stop
+        pass
     if not args.quiet:
         print("bokehray view: stopped", file=sys.stderr)
     return 0
