@@ -277,6 +277,17 @@ def test_requests_are_validated(server):
     st, _, body = post(server.url + "api/export", {"params": {"blur": 10, "focus": 0.5}, "format": "jpg",
                                                     "bit_depth": 16})
     assert st == 400
+    # what a page of another site can send from the user's browser: refused before anything renders
+    req = urllib.request.Request(server.url + "api/export", method="POST", headers={"Content-Type": "text/plain"},
+                                 data=json.dumps({"params": {"blur": 10, "focus": 0.5}}).encode())
+    with pytest.raises(urllib.error.HTTPError) as e:
+        urllib.request.urlopen(req, timeout=10)
+    assert e.value.code == 415
+    req = urllib.request.Request(server.url + "api/render", method="POST", data=b'{"blur": 10, "focus": 0.5}',
+                                 headers={"Content-Type": "application/json", "Origin": "http://attacker.example"})
+    with pytest.raises(urllib.error.HTTPError) as e:
+        urllib.request.urlopen(req, timeout=10)
+    assert e.value.code == 403
     req = urllib.request.Request(server.url + "api/info", headers={"Host": "attacker.example"})
     with pytest.raises(urllib.error.HTTPError) as e:  # DNS rebinding: only our own Host is answered
         urllib.request.urlopen(req, timeout=10)

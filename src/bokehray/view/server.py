@@ -62,6 +62,13 @@ def create_app(session: ViewSession, worker: RenderWorker | None = None, allowed
         return Response(data, media_type=media, headers={**_SECURITY_HEADERS, **(headers or {})})
 
     async def read_json(request: Request):
+        # A page of another site can make the browser POST here ("simple" requests need no CORS preflight),
+        # but not with a JSON content type, and the browser names its origin: both are checked.
+        if request.headers.get("content-type", "").split(";")[0].strip().lower() != "application/json":
+            raise _Refused(415, "request body: expected Content-Type: application/json")
+        origin = request.headers.get("origin")
+        if origin is not None and origin != f"{request.url.scheme}://{request.headers.get('host', '')}":
+            raise _Refused(403, f"request from another origin ({origin}) refused")
         declared = request.headers.get("content-length")
         if declared is not None and (not declared.isdigit() or int(declared) > MAX_BODY_BYTES):
             raise _TooLarge()
@@ -106,6 +113,8 @@ def create_app(session: ViewSession, worker: RenderWorker | None = None, allowed
                 raise InputError(f"stage: expected 'preview' or 'full', got {stage!r}")
         except _TooLarge:
             return error(413, f"request body: larger than {MAX_BODY_BYTES} bytes")
+        except _Refused as e:
+            return error(e.status, str(e))
         except BokehrayError as e:
             return error(400, str(e))
         t0 = time.perf_counter()
@@ -147,6 +156,8 @@ def create_app(session: ViewSession, worker: RenderWorker | None = None, allowed
             fut = worker.submit_export(lambda check: session.export(p, fmt, bits))
         except _TooLarge:
             return error(413, f"request body: larger than {MAX_BODY_BYTES} bytes")
+        except _Refused as e:
+            return error(e.status, str(e))
         except Busy as e:
             return error(429, str(e))
         except BokehrayError as e:
@@ -186,6 +197,12 @@ def create_app(session: ViewSession, worker: RenderWorker | None = None, allowed
 
 class _TooLarge(Exception):
     pass
+
+
+class _Refused(Exception):
+    def __init__(self, status: int, message: str) -> None:
+        super().__init__(message)
+        self.status = status
 
 
 def bind(host: str, port: int) -> socket.socket:
