@@ -207,6 +207,9 @@ def build_parser() -> argparse.ArgumentParser:
     from .bench.cli import add_parser as add_bench_parser  # bokehray bench: docs/benchmarks.md
 
     add_bench_parser(sub)
+    from .view.cli import add_parser as add_view_parser  # bokehray view: docs/view.md
+
+    add_view_parser(sub)
     return parser
 
 
@@ -483,6 +486,10 @@ def _run(args: argparse.Namespace) -> int:
         from .bench.cli import cmd_bench
 
         return cmd_bench(args)
+    if args.command == "view":
+        from .view.cli import cmd_view
+
+        return cmd_view(args)
     return cmd_demo(args)
 
 

@@ -61,7 +61,7 @@ def check_number(value: object, name: str, lo: float | None = None, *, lo_open: 
     if not math.isfinite(v):
         raise InputError(f"{name}: expected a finite number, got {value!r}")
     if lo is not None and (v <= lo if lo_open else v < lo):
-        raise InputError(f"{name}: expected a number {'>' if lo_open else '>='} {lo:g}, got {value!r}")
+        raise InputError(f"{name}: expected a finite value {'>' if lo_open else '>='} {lo:g}, got {value!r}")
     return v
 
 

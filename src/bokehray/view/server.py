@@ -1,0 +1,273 @@
+"""The ASGI app of ``bokehray view`` (Starlette on uvicorn) and a server handle.
+
+Endpoints (all answers come from the files given on the command line; the client
+never names a path):
+
+- ``GET /`` and ``/static/*``: the page (package data, no external resources).
+- ``GET /api/info``: size, proxy and display factors, defaults and ranges.
+- ``GET /api/photo.jpg``, ``/api/depth.png``, ``/api/disparity16.png``: computed once.
+- ``POST /api/render`` with a JSON parameter set and ``"stage": "preview" | "full"``:
+  a JPEG, with the focus disparity, K, time and the command line in ``X-Bokehray-*`` headers.
+  409 when a newer request superseded it, 400 with ``{"error": ...}`` for a bad parameter.
+- ``POST /api/export`` with ``{"params": {...}, "format": "png|jpg|tif|exr", "bit_depth": N}``:
+  writes the full-resolution render into the export folder; answers the path and the command.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import socket
+import threading
+import time
+from importlib import resources
+from typing import Self
+from urllib.parse import quote
+
+from ..errors import BokehrayError, InputError
+from .session import EXPORT_FORMATS, MAX_BODY_BYTES, ViewSession, parse_params
+from .worker import Busy, RenderWorker, Superseded
+
+__all__ = ["ViewServer", "create_app"]
+
+_STATIC = {"index.html": "text/html; charset=utf-8", "app.js": "text/javascript; charset=utf-8",
+           "style.css": "text/css; charset=utf-8"}
+_SECURITY_HEADERS = {
+    "Content-Security-Policy": "default-src 'self'; img-src 'self' blob: data:; object-src 'none'; "
+                               "frame-ancestors 'none'; base-uri 'none'",
+    "X-Content-Type-Options": "nosniff",
+    "Cache-Control": "no-store",
+}
+
+
+def _static(name: str) -> bytes:
+    return resources.files("bokehray.view").joinpath("static", name).read_bytes()
+
+
+def create_app(session: ViewSession, worker: RenderWorker | None = None, allowed_hosts: tuple[str, ...] = ()):
+    """The Starlette app over ``session``; ``worker`` defaults to a new :class:`RenderWorker`."""
+    from starlette.applications import Starlette
+    from starlette.requests import Request
+    from starlette.responses import JSONResponse, Response
+    from starlette.routing import Route
+
+    worker = worker or RenderWorker()
+    stats = {"requests": 0, "rejected": 0}
+
+    def error(status: int, message: str) -> JSONResponse:
+        stats["rejected"] += status >= 400 and status != 409
+        return JSONResponse({"error": message}, status_code=status, headers=_SECURITY_HEADERS)
+
+    def blob(data: bytes, media: str, headers: dict | None = None) -> Response:
+        return Response(data, media_type=media, headers={**_SECURITY_HEADERS, **(headers or {})})
+
+    async def read_json(request: Request):
+        # A page of another site can make the browser POST here ("simple" requests need no CORS preflight),
+        # but not with a JSON content type, and the browser names its origin: both are checked.
+        if request.headers.get("content-type", "").split(";")[0].strip().lower() != "application/json":
+            raise _Refused(415, "request body: expected Content-Type: application/json")
+        origin = request.headers.get("origin")
+        if origin is not None and origin != f"{request.url.scheme}://{request.headers.get('host', '')}":
+            raise _Refused(403, f"request from another origin ({origin}) refused")
+        declared = request.headers.get("content-length")
+        if declared is not None and (not declared.isdigit() or int(declared) > MAX_BODY_BYTES):
+            raise _TooLarge()
+        body = b""
+        async for chunk in request.stream():
+            body += chunk
+            if len(body) > MAX_BODY_BYTES:
+                raise _TooLarge()
+        try:
+            return json.loads(body)
+        except (ValueError, UnicodeDecodeError) as e:
+            raise InputError(f"request body: expected JSON ({e})") from None
+
+    async def page(request: Request) -> Response:
+        return blob(_static("index.html"), _STATIC["index.html"])
+
+    async def static(request: Request) -> Response:
+        name = request.path_params["name"]
+        if name not in _STATIC:  # a fixed list: no path from the client reaches the file system
+            return error(404, f"no such file: {name!r}")
+        return blob(_static(name), _STATIC[name])
+
+    async def info(request: Request) -> Response:
+        return JSONResponse(session.info(), headers=_SECURITY_HEADERS)
+
+    async def photo(request: Request) -> Response:
+        return blob(await asyncio.to_thread(session.photo_jpeg), "image/jpeg")
+
+    async def depth(request: Request) -> Response:
+        return blob(await asyncio.to_thread(session.depth_png), "image/png")
+
+    async def disparity16(request: Request) -> Response:
+        return blob(await asyncio.to_thread(session.disparity16_png), "image/png")
+
+    async def render(request: Request) -> Response:
+        stats["requests"] += 1
+        try:
+            body = await read_json(request)
+            p = parse_params(body, session.disparity)
+            stage = body.get("stage", "preview")
+            if stage not in ("preview", "full"):
+                raise InputError(f"stage: expected 'preview' or 'full', got {stage!r}")
+        except _TooLarge:
+            return error(413, f"request body: larger than {MAX_BODY_BYTES} bytes")
+        except _Refused as e:
+            return error(e.status, str(e))
+        except BokehrayError as e:
+            return error(400, str(e))
+        t0 = time.perf_counter()
+
+        def job(check):
+            t_start = time.perf_counter()
+            data, meta = (session.render_preview if stage == "preview" else session.full_display)(p, check)
+            return data, meta, time.perf_counter() - t_start
+
+        try:
+            data, meta, seconds = await asyncio.wrap_future(worker.submit(job))
+        except Superseded:
+            return JSONResponse({"superseded": True}, status_code=409, headers=_SECURITY_HEADERS)
+        except BokehrayError as e:
+            return error(400, str(e))
+        headers = {
+            "X-Bokehray-Stage": stage, "X-Bokehray-Factor": str(meta["factor"]),
+            "X-Bokehray-Proxy-Level": str(meta.get("level", "")),
+            "X-Bokehray-Focus-Disparity": repr(p.blur.focus_disparity), "X-Bokehray-K": repr(p.blur.k_px),
+            "X-Bokehray-Render-Seconds": f"{seconds:.4f}",
+            "X-Bokehray-Seconds": f"{time.perf_counter() - t0:.4f}",
+            "X-Bokehray-Command": quote(session.command(p, "OUTPUT.png"), safe=""),
+        }
+        return blob(data, "image/jpeg", headers)
+
+    async def export(request: Request) -> Response:
+        try:
+            body = await read_json(request)
+            if not isinstance(body, dict) or set(body) - {"params", "format", "bit_depth"}:
+                raise InputError("export: expected {\"params\": {...}, \"format\": ..., \"bit_depth\": ...}")
+            p = parse_params(body.get("params"), session.disparity)
+            fmt = body.get("format", "png")
+            if fmt not in EXPORT_FORMATS:
+                raise InputError(f"export format: expected one of {', '.join(EXPORT_FORMATS)}, got {fmt!r}")
+            bits = body.get("bit_depth")
+            if bits is not None and (isinstance(bits, bool) or bits not in EXPORT_FORMATS[fmt]):
+                raise InputError(f"argument --bit-depth: {fmt} takes {', '.join(map(str, EXPORT_FORMATS[fmt]))}, "
+                                 f"got {bits!r}")
+            fut = worker.submit_export(lambda check: session.export(p, fmt, bits))
+        except _TooLarge:
+            return error(413, f"request body: larger than {MAX_BODY_BYTES} bytes")
+        except _Refused as e:
+            return error(e.status, str(e))
+        except Busy as e:
+            return error(429, str(e))
+        except BokehrayError as e:
+            return error(400, str(e))
+        t0 = time.perf_counter()
+        try:
+            path, command = await asyncio.wrap_future(fut)
+        except BokehrayError as e:
+            return error(400, str(e))
+        except OSError as e:
+            return error(500, f"export: {e}")
+        return JSONResponse({"path": str(path), "command": command, "seconds": round(time.perf_counter() - t0, 3)},
+                            headers=_SECURITY_HEADERS)
+
+    async def status(request: Request) -> Response:
+        return JSONResponse({"worker": dict(worker.counts), "queued": worker.queued(), **stats},
+                            headers=_SECURITY_HEADERS)
+
+    routes = [
+        Route("/", page), Route("/static/{name}", static), Route("/api/info", info),
+        Route("/api/photo.jpg", photo), Route("/api/depth.png", depth), Route("/api/disparity16.png", disparity16),
+        Route("/api/render", render, methods=["POST"]), Route("/api/export", export, methods=["POST"]),
+        Route("/api/status", status),
+    ]
+    middleware = []
+    if allowed_hosts:
+        # a page on another site cannot reach this server through DNS rebinding: the Host must be ours
+        from starlette.middleware import Middleware
+        from starlette.middleware.trustedhost import TrustedHostMiddleware
+
+        middleware.append(Middleware(TrustedHostMiddleware, allowed_hosts=list(allowed_hosts)))
+    app = Starlette(routes=routes, middleware=middleware)
+    app.state.worker = worker
+    app.state.stats = stats
+    return app
+
+
+class _TooLarge(Exception):
+    pass
+
+
+class _Refused(Exception):
+    def __init__(self, status: int, message: str) -> None:
+        super().__init__(message)
+        self.status = status
+
+
+def bind(host: str, port: int) -> socket.socket:
+    """A listening socket on ``host:port`` (0 = a free port), or one clear line saying why not."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind((host, port))
+    except (socket.gaierror, UnicodeError) as e:
+        sock.close()
+        raise InputError(f"--host {host!r}: not an address of this machine ({e})") from None
+    except OSError as e:
+        sock.close()
+        raise InputError(f"--port {port}: cannot listen on {host}:{port} ({e.strerror or e})") from None
+    sock.listen(128)
+    return sock
+
+
+class ViewServer:
+    """uvicorn serving :func:`create_app` on a bound socket; ``run()`` blocks, ``start()`` runs it in a thread."""
+
+    def __init__(self, session: ViewSession, host: str = "127.0.0.1", port: int = 0) -> None:
+        import uvicorn
+
+        self.session = session
+        self.sock = bind(host, port)
+        self.host, self.port = host, self.sock.getsockname()[1]
+        hosts = ("127.0.0.1", "localhost", "[::1]") if host in ("127.0.0.1", "localhost", "::1") else ()
+        self.worker = RenderWorker()
+        self.app = create_app(session, self.worker, allowed_hosts=hosts)
+        config = uvicorn.Config(self.app, log_level="warning", access_log=False, lifespan="off",
+                                limit_concurrency=64, timeout_keep_alive=5, h11_max_incomplete_event_size=16384)
+        self.server = uvicorn.Server(config)
+        self._thread: threading.Thread | None = None
+
+    @property
+    def url(self) -> str:
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"http://{host}:{self.port}/"
+
+    def run(self) -> None:
+        try:
+            self.server.run(sockets=[self.sock])
+        finally:
+            self.close()
+
+    def start(self) -> Self:
+        self._thread = threading.Thread(target=self.server.run, kwargs={"sockets": [self.sock]}, daemon=True)
+        self._thread.start()
+        deadline = time.monotonic() + 10
+        while not self.server.started and time.monotonic() < deadline:
+            time.sleep(0.01)
+        return self
+
+    def close(self) -> None:
+        self.server.should_exit = True
+        if self._thread is not None:
+            self._thread.join(10)
+            self._thread = None
+        self.worker.close()
+        self.sock.close()
+
+    def __enter__(self) -> Self:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()

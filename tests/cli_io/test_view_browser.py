@@ -1,0 +1,153 @@
+"""bokehray view in a real browser: headless Chromium from the system packages, driven by Selenium.
+
+Loads the page, clicks the subject, checks the focus moved there and a new image arrived, drags the blur
+slider, shows the in-focus overlay, exports. Nothing is downloaded: the test uses /usr/bin/chromium and its
+chromedriver (Debian ``chromium`` + ``chromium-driver``, installed by ``.ci/run``) and skips, saying so,
+where they are missing. ``BOKEHRAY_VIEW_SCREENSHOT=FILE`` saves a screenshot of the page (docs/img/view.png).
+"""
+
+from __future__ import annotations
+
+import os
+import shlex
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("starlette", reason="bokehray view needs the 'view' extra (starlette, uvicorn)")
+pytest.importorskip("uvicorn", reason="bokehray view needs the 'view' extra (starlette, uvicorn)")
+pytest.importorskip("selenium", reason="the browser test needs selenium (the 'test-browser' extra)")
+
+import bokehray as br  # noqa: E402
+from bokehray.demo import build_demo_scene  # noqa: E402
+from bokehray.view.server import ViewServer  # noqa: E402
+from bokehray.view.session import ViewSession  # noqa: E402
+
+CHROMIUM = next((p for p in map(shutil.which, ("chromium", "chromium-browser")) if p), None)
+DRIVER = shutil.which("chromedriver")
+if CHROMIUM is None or DRIVER is None:
+    pytest.skip("headless Chromium is not installed here (apt-get install chromium chromium-driver; .ci/run "
+                "does it on a machine where apt works)", allow_module_level=True)
+
+from selenium import webdriver  # noqa: E402
+from selenium.webdriver.chrome.options import Options  # noqa: E402
+from selenium.webdriver.chrome.service import Service  # noqa: E402
+from selenium.webdriver.common.action_chains import ActionChains  # noqa: E402
+from selenium.webdriver.common.by import By  # noqa: E402
+from selenium.webdriver.support.ui import WebDriverWait  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory):
+    d = tmp_path_factory.mktemp("view-browser")
+    sc = build_demo_scene(width=960, height=640)
+    img, disp = d / "photo.png", d / "disparity.png"
+    br.write_image(img, sc.image)
+    br.write_disparity(disp, sc.disparity)
+    (d / "exports").mkdir()
+    session = ViewSession.from_files(str(img), disparity=str(disp), export_dir=d / "exports", proxy_long_side=480)
+    with ViewServer(session) as server:
+        yield server, session
+
+
+@pytest.fixture(scope="module")
+def browser():
+    opts = Options()
+    opts.binary_location = CHROMIUM
+    for a in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--window-size=1400,1100",
+              "--force-device-scale-factor=1", "--disable-extensions", "--no-first-run"):
+        opts.add_argument(a)
+    drv = webdriver.Chrome(service=Service(DRIVER), options=opts)
+    drv.set_page_load_timeout(30)
+    yield drv
+    drv.quit()
+
+
+def body(drv, name: str) -> str | None:
+    return drv.find_element(By.TAG_NAME, "body").get_attribute(f"data-{name}")
+
+
+def wait_images(drv, more_than: int, stage: str = "full", timeout: float = 60) -> None:
+    WebDriverWait(drv, timeout).until(
+        lambda d: int(body(d, "images") or 0) > more_than and body(d, "stage") == stage and body(d, "state") == "idle")
+
+
+def test_click_drag_export_in_chromium(served, browser):
+    server, session = served
+    drv = browser
+    drv.get(server.url)
+    wait_images(drv, 0)
+    assert drv.find_element(By.ID, "error").text == ""
+    d_before = float(body(drv, "focus-disparity"))  # the start: focused at the centre of the frame
+
+    # click on the cat (disparity 0.92 at its centre)
+    ys, xs = np.nonzero(np.abs(session.disparity - 0.92) < 0.004)
+    x, y = int(np.median(xs)), int(np.median(ys))
+    canvas = drv.find_element(By.ID, "view")
+    cw, ch = drv.execute_script("const c = arguments[0]; return [c.clientWidth, c.clientHeight];", canvas)
+    n = int(body(drv, "images"))
+    ActionChains(drv).move_to_element_with_offset(canvas, int((x + 0.5) / session.w * cw - cw / 2),
+                                                  int((y + 0.5) / session.h * ch - ch / 2)).click().perform()
+    wait_images(drv, n)
+    cx, cy = (int(v) for v in body(drv, "focus-at").split(","))
+    assert abs(cx - x) <= 2 and abs(cy - y) <= 2
+    d_after = float(body(drv, "focus-disparity"))
+    assert d_after == pytest.approx(br.focus_at(session.disparity, cx, cy), abs=1e-12)
+    assert abs(d_after - 0.92) < 0.01 and abs(d_after - d_before) > 0.1
+    assert f"--focus-at {cx},{cy}" in drv.find_element(By.ID, "command").text
+
+    # drag the blur slider: previews while dragging, then the full resolution
+    slider = drv.find_element(By.ID, "blur")
+    k_before = float(slider.get_attribute("value"))
+    n = int(body(drv, "images"))
+    ActionChains(drv).click_and_hold(slider).move_by_offset(-40, 0).move_by_offset(-20, 0).release().perform()
+    wait_images(drv, n)
+    k_after = float(slider.get_attribute("value"))
+    assert k_after > k_before
+    assert f"--blur {float(k_after)!r}" in drv.find_element(By.ID, "command").text
+    assert int(body(drv, "images")) >= n + 1
+
+    # the in-focus region: drawn where the CoC is below one pixel, i.e. on the cat
+    drv.find_element(By.ID, "infocus").click()
+    covered = drv.execute_script(
+        "const o = document.getElementById('overlay'); const a = o.getContext('2d').getImageData(0, 0, o.width, "
+        "o.height).data; let n = 0; for (let i = 3; i < a.length; i += 4) n += a[i] > 0; return n / (a.length / 4);")
+    inside = np.mean(np.abs(session.disparity - d_after) * k_after < 1.0)
+    assert covered == pytest.approx(inside, abs=0.02) and covered > 0.01
+
+    # a bladed aperture (a select, then the rotation slider): the page refines again
+    n = int(body(drv, "images"))
+    drv.execute_script("const a = document.getElementById('aperture'); a.value = 'polygon'; "
+                       "a.dispatchEvent(new Event('change'));")
+    ActionChains(drv).click_and_hold(drv.find_element(By.ID, "rotation")).move_by_offset(12, 0).release().perform()
+    wait_images(drv, n)
+    assert "--aperture polygon --blades 6" in drv.find_element(By.ID, "command").text
+    assert drv.find_element(By.ID, "error").text == ""
+    # export a 16-bit PNG; the page shows the path and the command that writes the same file
+    drv.execute_script("const f = document.getElementById('format'); f.value = 'png'; "
+                       "f.dispatchEvent(new Event('change'));")
+    drv.execute_script("document.getElementById('bit_depth').value = '16';")
+    drv.find_element(By.ID, "export").click()
+    WebDriverWait(drv, 120).until(lambda d: body(d, "exported"))
+    path = Path(body(drv, "exported"))
+    assert path.parent == session.export_dir and path.exists()
+    command = drv.find_element(By.ID, "export-command").text
+    argv = shlex.split(command)
+    assert argv[argv.index("-o") + 1] == str(path) and "--bit-depth" in argv and "--focus-at" in argv
+    assert argv[argv.index("--aperture") + 1] == "polygon"
+    out = br.read_image(path)
+    assert out.shape == (session.h, session.w, 3)
+    from bokehray.cli import main
+
+    again = path.with_name("again.png")
+    argv[argv.index("-o") + 1] = str(again)
+    assert main(argv[1:] + ["--quiet"]) == 0
+    np.testing.assert_array_equal(br.read_image(again), out)  # the shown command writes the same file
+    again.unlink()
+    assert drv.find_element(By.ID, "error").text == ""
+
+    shot = os.environ.get("BOKEHRAY_VIEW_SCREENSHOT")
+    if shot:
+        drv.save_screenshot(shot)
