@@ -414,10 +414,15 @@ def cmd_train_refiner(args: argparse.Namespace) -> int:
     return 0
 
 
+def _start_warp(args: argparse.Namespace) -> None:
+    """Initialise Warp (0.6 s import, module cache) only once a command is about to compute, so that
+    ``--help`` and argument errors return at once."""
+    init_warp_quietly(getattr(args, "debug", False))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    init_warp_quietly(args.debug)
     try:
         if args.command == "render":
             return cmd_render(args)

@@ -25,7 +25,6 @@ from collections.abc import Callable, Iterator
 from functools import cache
 from pathlib import Path
 
-import colour
 import imagecodecs
 import numpy as np
 import numpy.typing as npt
@@ -56,14 +55,34 @@ _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _HALF_MAX = 65504.0
 
 
+_SRGB_KNEE = 1.055 * 0.0031308 ** (1 / 2.4) - 0.055
+"""Encoded value of the linear knee 0.0031308: where the decoding switches segments (as colour-science has it)."""
+
+
 def srgb_to_linear(x: npt.ArrayLike) -> np.ndarray:
-    """Decode sRGB-encoded values in [0, 1] to linear light (IEC 61966-2-1), as float32."""
-    return np.asarray(colour.models.eotf_sRGB(np.asarray(x, dtype=np.float32)), dtype=np.float32)
+    """Decode sRGB-encoded values in [0, 1] to linear light (IEC 61966-2-1), as float32.
+
+    The piecewise curve ``x / 12.92`` up to the image of 0.0031308 under the encoding (0.0404499...),
+    ``((x + 0.055) / 1.055) ** 2.4`` above, evaluated in float64
+    and rounded once to float32: the same numbers as colour-science's ``eotf_sRGB`` (tested), without its 1.5 s
+    import. Values below 0 follow the linear segment; NaN stays NaN.
+    """
+    v = np.asarray(x, dtype=np.float32).astype(np.float64)
+    with np.errstate(invalid="ignore"):
+        out = np.where(v <= _SRGB_KNEE, v / 12.92, ((np.maximum(v, _SRGB_KNEE) + 0.055) / 1.055) ** 2.4)
+    return out.astype(np.float32)
 
 
 def linear_to_srgb(x: npt.ArrayLike) -> np.ndarray:
-    """Encode linear-light values with the sRGB transfer function (IEC 61966-2-1), as float32."""
-    return np.asarray(colour.models.eotf_inverse_sRGB(np.asarray(x, dtype=np.float32)), dtype=np.float32)
+    """Encode linear-light values with the sRGB transfer function (IEC 61966-2-1), as float32.
+
+    ``12.92 x`` below 0.0031308, ``1.055 x ** (1 / 2.4) - 0.055`` above, in float64 rounded once to float32 (the
+    same numbers as colour-science's ``eotf_inverse_sRGB``, tested).
+    """
+    v = np.asarray(x, dtype=np.float32).astype(np.float64)
+    with np.errstate(invalid="ignore"):
+        out = np.where(v <= 0.0031308, v * 12.92, 1.055 * np.maximum(v, 0.0031308) ** (1 / 2.4) - 0.055)
+    return out.astype(np.float32)
 
 
 @cache
