@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from collections.abc import Sequence
@@ -18,6 +19,7 @@ import numpy as np
 
 from ._quiet import init_warp_quietly
 from .errors import BokehrayError, InputError
+from .photo import AMOUNT_DEFAULT, AMOUNT_K_FRACTION
 
 EXIT_INPUT = 2
 
@@ -68,21 +70,36 @@ def build_parser() -> argparse.ArgumentParser:
     r = sub.add_parser(
         "render",
         help="render one image with a disparity (or depth) map",
-        description="CoC radius in pixels = K * |d - d_f| (d: disparity in [0, 1], 1 = nearest). Give the blur as "
-        "--blur K with --focus D_F or --focus-at X,Y, or as a physical lens (--focal-length, --f-number, "
-        "--focus-distance, --sensor-width) with a metric --depth map.",
+        description="CoC radius in pixels = K * |d - d_f| (d: disparity in [0, 1], 1 = nearest). With only an image "
+        "and a map it picks the blur (--amount 50) and focuses on the subject (the nearest region holding 3%% of the "
+        "centre-weighted frame) and says so. Or give --amount/--blur K with --focus D_F or --focus-at X,Y, or a "
+        "physical lens (--focal-length, --f-number, --focus-distance, --sensor-width) with a metric --depth map. "
+        "docs/usage.md walks through it.",
     )
     r.add_argument("image", help="all-in-focus image: PNG/JPEG/TIFF (sRGB, 8/16-bit) or EXR/float TIFF (linear)")
     src = r.add_mutually_exclusive_group(required=True)
-    src.add_argument("--disparity", help="disparity map in [0, 1], 1 = nearest: PNG 8/16-bit, EXR, TIFF, NPY")
-    src.add_argument("--depth", help="metric depth map in metres: EXR, float TIFF or NPY")
+    src.add_argument("--disparity", help="disparity map in [0, 1], 1 = nearest (PNG 8/16-bit, EXR, TIFF, NPY); "
+                     "any other range with --normalize")
+    src.add_argument("--depth", help="metric depth map in metres: EXR, float TIFF or NPY; integer PNG/TIFF/NPY "
+                     "codes with --depth-scale. Depth <= 0 or inf = no depth: infinitely far (sky)")
     r.add_argument("-o", "--output", required=True, help="output: .png .jpg .tif .exr")
-    b = r.add_argument_group("blur as K and focus disparity")
-    b.add_argument("--blur", type=float, help="K: CoC radius in pixels per unit disparity")
-    b.add_argument("--focus", type=float, help="focus disparity d_f in [0, 1]")
+    dm = r.add_argument_group("depth conventions")
+    dm.add_argument("--normalize", action="store_true",
+                    help="the --disparity map is relative (any range, e.g. a depth model's inverse depth): map its "
+                    "0.5th..99.5th percentiles to 0..1")
+    dm.add_argument("--invert", action="store_true", help="the --disparity map is near-is-dark: use 1 - d")
+    dm.add_argument("--depth-scale", type=float, metavar="M", help="metres per code of an integer --depth map "
+                    "(0.001 for a 16-bit millimetre PNG); multiplies a float map")
+    b = r.add_argument_group("blur and focus")
+    blur = b.add_mutually_exclusive_group()
+    blur.add_argument("--amount", type=float, metavar="0..100",
+                      help=f"blur strength independent of resolution: K = amount/100 x "
+                      f"{AMOUNT_K_FRACTION:.0%} of the image diagonal (default {AMOUNT_DEFAULT:g})".replace("%", "%%"))
+    blur.add_argument("--blur", type=float, metavar="K", help="K: CoC radius in pixels per unit disparity")
+    b.add_argument("--focus", type=float, metavar="D_F", help="focus disparity d_f in [0, 1]")
     b.add_argument("--focus-at", type=_parse_xy, metavar="X,Y",
                    help="focus where this pixel is (median disparity in a 9 x 9 window)")
-    lens = r.add_argument_group("blur as a physical thin lens (needs --depth)")
+    lens = r.add_argument_group("blur as a physical thin lens (needs a metric --depth map)")
     lens.add_argument("--focal-length", type=float, metavar="MM", help="focal length in millimetres")
     lens.add_argument("--f-number", type=float, metavar="N", help="f-number (aperture diameter = f / N)")
     lens.add_argument("--focus-distance", type=float, metavar="M", help="focus distance in metres")
@@ -91,11 +108,13 @@ def build_parser() -> argparse.ArgumentParser:
     lens.add_argument("--z-far", type=float, help="depth normalisation: farthest depth, inf allowed (default: max)")
     _add_lens_args(r)
     o = r.add_argument_group("input and output")
-    o.add_argument("--resize-disparity", action="store_true", help="resize a disparity/depth map of another size")
+    o.add_argument("--resize-disparity", action="store_true", help="resize a disparity/depth map of another size "
+                   "(same aspect ratio)")
     o.add_argument("--bit-depth", type=int, choices=(8, 16, 32), help="PNG 8/16, TIFF 16/32 (float)")
     o.add_argument("--half", action="store_true", help="EXR: write half floats")
+    o.add_argument("--jpeg-quality", type=int, default=95, metavar="Q", help="JPEG output quality 1..100 (default 95)")
     o.add_argument("--highlight-boost", type=float, default=0.0,
-                   help="re-inflate clipped highlights of 8-bit inputs (0 = off, try 4)")
+                   help="re-inflate clipped highlights (pixels near 1.0) by this strength (0 = off, try 4)")
     from .levels import LEVELS
 
     o.add_argument("--quality", choices=tuple(LEVELS), default="preview",
@@ -217,44 +236,114 @@ def _check_output(path: str, args: argparse.Namespace) -> None:
     check_output_path(path, bit_depth=getattr(args, "bit_depth", None), half=getattr(args, "half", False))
 
 
-def cmd_render(args: argparse.Namespace) -> int:
-    from . import io
-    from .lens import BlurParams, DepthNormalization, ThinLens, disparity_from_depth
-    from .pipeline import focus_at, render_with_stats
+def _say(args: argparse.Namespace, text: str) -> None:
+    if not args.quiet:
+        print(text)
 
+
+def _warn(args: argparse.Namespace, text: str) -> None:
+    if not args.quiet:
+        print(f"bokehray: warning: {text}", file=sys.stderr)
+
+
+def _check_render_flags(args: argparse.Namespace) -> bool:
+    """Contradictions between flags, found before any file is read (and before Warp starts). Returns whether
+    the blur is a physical lens."""
+    physical = any(v is not None for v in (args.focal_length, args.f_number, args.focus_distance))
+    given_focus = [name for name, v in (("--focus", args.focus), ("--focus-at", args.focus_at),
+                                        ("--focus-distance", args.focus_distance)) if v is not None]
+    if len(given_focus) > 1:
+        raise InputError(f"{' and '.join(given_focus)} contradict each other: give the focus one way")
+    if physical and args.depth is None:
+        how = " (--normalize/--invert describe a relative map)" if args.normalize or args.invert else ""
+        raise InputError("a physical lens (--focal-length/--f-number/--focus-distance) needs metric depth, and "
+                         f"a --disparity map{how} has no scale: give a depth map in metres with --depth (an integer "
+                         "map with --depth-scale, e.g. 0.001 for millimetres), or set the blur with --amount/--blur "
+                         "and the focus with --focus/--focus-at")
+    if physical and (args.blur is not None or args.amount is not None or args.focus is not None):
+        raise InputError("give the blur either as --amount/--blur with --focus, or as a physical lens, not both")
+    if physical and (args.focal_length is None or args.f_number is None):
+        raise InputError("a physical lens needs both --focal-length and --f-number")
+    if args.depth is not None and (args.normalize or args.invert):
+        raise InputError("--normalize and --invert describe a relative --disparity map; a --depth map is metric "
+                         "(near = small), and is converted to disparity with the thin-lens normalisation")
+    if args.depth_scale is not None and args.depth is None:
+        raise InputError("--depth-scale converts the codes of an integer --depth map to metres; it needs --depth")
+    if args.blur is not None and args.blur < 0:
+        raise InputError(f"--blur: expected K >= 0, got {args.blur:g}")
+    if args.z_near is not None or args.z_far is not None:
+        if args.depth is None:
+            raise InputError("--z-near/--z-far normalise a metric --depth map; they need --depth")
+    if not 1 <= args.jpeg_quality <= 100:
+        raise InputError(f"--jpeg-quality: expected 1..100, got {args.jpeg_quality}")
+    if args.amount is not None:
+        from .photo import k_from_amount
+
+        k_from_amount(args.amount, 1, 1)  # the range check
+    return physical
+
+
+def _read_map(args: argparse.Namespace, h: int, w: int):
+    """The disparity map by the conventions the flags state; ``(d, DepthNormalization or None)``."""
+    from . import io, photo
+    from .lens import DepthNormalization
+
+    norm = None
+    if args.depth is not None:
+        depth = photo.read_depth_map(args.depth, scale=args.depth_scale)
+        if args.z_near is not None or args.z_far is not None:
+            finite = depth[np.isfinite(depth) & (depth > 0)]
+            zn = args.z_near if args.z_near is not None else float(finite.min()) if finite.size else 1.0
+            zf = args.z_far if args.z_far is not None else float(finite.max()) if finite.size else np.inf
+            norm = DepthNormalization(zn, zf)
+        # resize after the conversion: disparity interpolates where depth cannot (inf for sky)
+        disparity, norm, missing = photo.depth_to_disparity(depth, norm, source=args.depth)
+        if missing > 0:
+            _say(args, f"depth: {missing:.1%} of {args.depth} is 0, negative or infinite (no depth): taken as "
+                 "infinitely far (sky)")
+        source = args.depth
+    else:
+        source = args.disparity
+        raw = io.read_disparity(source)
+        if args.normalize:
+            disparity = photo.normalize_relative(raw, invert=args.invert, source=source)
+            lo, hi = np.percentile(raw, photo.NORMALIZE_PERCENTILES)
+            _say(args, f"disparity: {source} normalised from [{lo:.4g}, {hi:.4g}] (0.5th..99.5th percentiles) "
+                 f"to [0, 1]{', inverted' if args.invert else ''}")
+        else:
+            if raw.size and (raw.min() < 0.0 or raw.max() > 1.0):
+                raise InputError(f"{source}: expected disparity in [0, 1] (1 = nearest), got values in "
+                                 f"[{float(raw.min()):.4g}, {float(raw.max()):.4g}]: pass --normalize for a relative "
+                                 "map of any range (add --invert if near is dark), or give metric depth with --depth")
+            disparity = 1.0 - raw if args.invert else raw
+        reverse, why = photo.looks_reversed(disparity)
+        if reverse:
+            fix = "drop --invert" if args.invert else "pass --invert"
+            _warn(args, f"{source}: the map looks reversed ({why}); if near is dark in it, {fix}")
+    if disparity.shape != (h, w):
+        mh, mw = disparity.shape
+        if not args.resize_disparity:
+            raise InputError(f"{source}: map is {mw}x{mh}, image is {w}x{h}; pass --resize-disparity to resize it")
+        if abs(math.log((mw / mh) / (w / h))) > 0.02:
+            raise InputError(f"{source}: map is {mw}x{mh}, image is {w}x{h}: a different aspect ratio, so resizing "
+                             "would stretch it (was one of them rotated? the image's EXIF orientation is applied)")
+        disparity = _resize(disparity, (h, w))
+    return np.ascontiguousarray(disparity, np.float32), norm
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from . import io, photo
+    from .lens import BlurParams, ThinLens
+    from .pipeline import focus_at
+
+    physical = _check_render_flags(args)
     _check_output(args.output, args)
     t0 = time.perf_counter()
     image = io.read_image(args.image)
     h, w = image.shape[:2]
-
-    lens_args = (args.focal_length, args.f_number, args.focus_distance)
-    physical = any(v is not None for v in lens_args)
-    if physical and args.depth is None:
-        raise InputError("a physical lens (--focal-length/--f-number/--focus-distance) needs a metric --depth map")
-    if physical and (args.blur is not None or args.focus is not None):
-        raise InputError("give the blur either as --blur/--focus or as a physical lens, not both")
-
-    if args.depth is not None:
-        depth = io.read_depth(args.depth)
-        norm = None
-        if args.z_near is not None or args.z_far is not None:
-            zn = args.z_near if args.z_near is not None else float(np.min(depth))
-            zf = args.z_far if args.z_far is not None else float(np.max(depth))
-            norm = DepthNormalization(zn, zf)
-        # resize after the conversion: disparity interpolates where depth cannot (inf for sky)
-        disparity, norm = disparity_from_depth(depth, norm)
-    else:
-        disparity, norm = io.read_disparity(args.disparity, check_range=True), None
-    if disparity.shape != (h, w):
-        source = args.depth or args.disparity
-        if not args.resize_disparity:
-            raise InputError(f"{source}: map is {disparity.shape[1]}x{disparity.shape[0]}, image is {w}x{h}; "
-                             "pass --resize-disparity to resize it")
-        disparity = _resize(disparity, (h, w))
+    disparity, norm = _read_map(args, h, w)
 
     if physical:
-        if args.focal_length is None or args.f_number is None:
-            raise InputError("a physical lens needs both --focal-length and --f-number")
         focus_m = args.focus_distance
         if args.focus_at is not None:
             x, y = args.focus_at
@@ -267,20 +356,31 @@ def cmd_render(args: argparse.Namespace) -> int:
         lens = ThinLens(args.focal_length, args.f_number, focus_m, args.sensor_width)
         blur = lens.blur_params(norm, w)
     else:
-        if args.blur is None:
-            raise InputError("give the blur strength: --blur K (or a physical lens with --depth)")
-        if args.blur < 0:
-            raise InputError(f"--blur: expected K >= 0, got {args.blur:g}")
-        if (args.focus is None) == (args.focus_at is None):
-            raise InputError("give the focus as exactly one of --focus D_F or --focus-at X,Y")
-        d_f = args.focus if args.focus is not None else focus_at(disparity, *args.focus_at)
-        blur = BlurParams(args.blur, d_f)
+        if args.blur is not None:
+            k = args.blur
+        else:
+            amount = AMOUNT_DEFAULT if args.amount is None else args.amount
+            k = photo.k_from_amount(amount, h, w)
+            _say(args, f"blur: --amount {amount:g} -> K = {k:.1f} px ({amount / 100 * AMOUNT_K_FRACTION:.1%} of the "
+                 f"{math.hypot(h, w):.0f}-px diagonal){'' if args.amount is not None else ' (the default)'}")
+        if args.focus is not None:
+            d_f = args.focus
+        elif args.focus_at is not None:
+            d_f = focus_at(disparity, *args.focus_at)
+        else:
+            subject = photo.subject_focus(disparity)
+            d_f = subject.d_f
+            _say(args, f"focus: on the subject around pixel ({subject.x}, {subject.y}), d_f = {d_f:.3f} (the nearest "
+                 f"region holding {subject.share:.0%} of the centre-weighted frame; --focus-at X,Y to choose)")
+        blur = BlurParams(k, d_f)
     t_read = time.perf_counter() - t0
+
+    _start_warp(args)
+    from .options import RaytraceOptions
+    from .pipeline import render_with_stats
 
     bar, update = _progress_bar(args)
     try:
-        from .options import RaytraceOptions
-
         rt_opts = RaytraceOptions(max_spp=args.max_spp)  # validated whatever the quality
         out, stats = render_with_stats(image, disparity, blur, _aperture(args), quality=args.quality,
                                        device=args.device, options=rt_opts if args.quality == "raytrace" else None,
@@ -290,7 +390,7 @@ def cmd_render(args: argparse.Namespace) -> int:
         if bar is not None:
             bar.close()
     t1 = time.perf_counter()
-    path = io.write_image(args.output, out, bit_depth=args.bit_depth, half=args.half)
+    path = io.write_image(args.output, out, bit_depth=args.bit_depth, half=args.half, quality=args.jpeg_quality)
     t_write = time.perf_counter() - t1
     if not args.quiet:
         max_coc = float(blur.coc_radius(disparity).max())
@@ -312,6 +412,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from .lens import BlurParams
     from .pipeline import render_with_stats
 
+    _start_warp(args)
     w, h = args.size
     out_dir = Path(args.output)
     scene = build_demo_scene(width=w, height=h)
@@ -373,6 +474,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
         levels = tuple(float(v) for v in args.blur_levels.split(","))
     except ValueError:
         raise InputError(f"--blur-levels: expected comma-separated numbers, got {args.blur_levels!r}") from None
+    _start_warp(args)
     config = SynthConfig(size=args.size, blur_levels=levels, aperture=_aperture(args), max_spp=args.max_spp,
                          fg_dir=args.fg, bg_dir=args.bg)
     paths = generate(config, args.n, args.output, seed=args.seed, workers=args.workers, progress=not args.quiet,
@@ -394,6 +496,7 @@ def _refiner_module(name: str):
 
 def cmd_train_refiner(args: argparse.Namespace) -> int:
     train = _refiner_module("train")
+    _start_warp(args)
     if args.threads is not None:
         if args.threads < 1:
             raise InputError(f"--threads: expected >= 1, got {args.threads}")
@@ -433,6 +536,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.command == "bench":
             from .bench.cli import cmd_bench
 
+            _start_warp(args)
             return cmd_bench(args)
         return cmd_demo(args)
     except BokehrayError as e:
