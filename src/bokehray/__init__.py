@@ -20,6 +20,7 @@ neither Warp nor the image codecs; the first use of ``br.render`` (or any other 
 from __future__ import annotations
 
 import importlib
+import importlib.util
 from typing import TYPE_CHECKING, Any
 
 from ._quiet import quiet_warp_on_import
@@ -48,6 +49,8 @@ __all__ = sorted([*_EXPORTS, "__version__"])
 def __getattr__(name: str) -> Any:
     module = _EXPORTS.get(name)
     if module is None:
+        if not name.startswith("_") and importlib.util.find_spec(f"{__name__}.{name}") is not None:
+            return importlib.import_module(f".{name}", __name__)  # a submodule: br.io, br.photo, ...
         raise AttributeError(f"module 'bokehray' has no attribute {name!r}")
     value = importlib.import_module(f".{name}" if module == "" else f".{module}", __name__)
     if module != "":

@@ -332,11 +332,10 @@ def _read_map(args: argparse.Namespace, h: int, w: int):
 
 
 def cmd_render(args: argparse.Namespace) -> int:
+    physical = _check_render_flags(args)  # before any import that takes time
     from . import io, photo
     from .lens import BlurParams, ThinLens
-    from .pipeline import focus_at
 
-    physical = _check_render_flags(args)
     _check_output(args.output, args)
     t0 = time.perf_counter()
     image = io.read_image(args.image)
@@ -346,6 +345,8 @@ def cmd_render(args: argparse.Namespace) -> int:
     if physical:
         focus_m = args.focus_distance
         if args.focus_at is not None:
+            from .pipeline import focus_at
+
             x, y = args.focus_at
             focus_m = float(norm.depth(focus_at(disparity, x, y)))
             if not np.isfinite(focus_m):
@@ -366,6 +367,8 @@ def cmd_render(args: argparse.Namespace) -> int:
         if args.focus is not None:
             d_f = args.focus
         elif args.focus_at is not None:
+            from .pipeline import focus_at
+
             d_f = focus_at(disparity, *args.focus_at)
         else:
             subject = photo.subject_focus(disparity)
