@@ -320,6 +320,7 @@ def _read_map(args: argparse.Namespace, h: int, w: int):
         if reverse:
             fix = "drop --invert" if args.invert else "pass --invert"
             _warn(args, f"{source}: the map looks reversed ({why}); if near is dark in it, {fix}")
+    _say_embedded(args, source)
     if disparity.shape != (h, w):
         mh, mw = disparity.shape
         if not args.resize_disparity:
@@ -331,6 +332,22 @@ def _read_map(args: argparse.Namespace, h: int, w: int):
     return np.ascontiguousarray(disparity, np.float32), norm
 
 
+def _say_embedded(args: argparse.Namespace, path: str):
+    """What the reader did with the file's orientation and colour profile, said in one line."""
+    from . import photo
+    from .io import _FORMATS
+
+    meta = photo.embedded(Path(path), _FORMATS.get(Path(path).suffix.lower(), ""))
+    done = []
+    if meta.orientation != 1:
+        done.append(f"EXIF orientation {meta.orientation} applied ({photo.orientation_words(meta.orientation)})")
+    if not meta.is_srgb:
+        done.append(f"colour profile '{meta.icc_name}' converted to sRGB")
+    if done:
+        _say(args, f"{'image' if path == args.image else 'map'}: {'; '.join(done)}")
+    return meta
+
+
 def cmd_render(args: argparse.Namespace) -> int:
     physical = _check_render_flags(args)  # before any import that takes time
     from . import io, photo
@@ -340,6 +357,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     image = io.read_image(args.image)
     h, w = image.shape[:2]
+    meta = _say_embedded(args, args.image)
     disparity, norm = _read_map(args, h, w)
 
     if physical:
@@ -393,7 +411,8 @@ def cmd_render(args: argparse.Namespace) -> int:
         if bar is not None:
             bar.close()
     t1 = time.perf_counter()
-    path = io.write_image(args.output, out, bit_depth=args.bit_depth, half=args.half, quality=args.jpeg_quality)
+    path = io.write_image(args.output, out, bit_depth=args.bit_depth, half=args.half, quality=args.jpeg_quality,
+                          exif=photo.exif_for_output(meta))  # JPEG keeps the photo's EXIF, orientation reset
     t_write = time.perf_counter() - t1
     if not args.quiet:
         max_coc = float(blur.coc_radius(disparity).max())

@@ -344,6 +344,10 @@ def _load(path: Path, fmt: str, exr_channels: tuple[tuple[str, ...], ...]) -> np
             a = _load_exr(path, exr_channels)
         else:
             a = _load_npy(path)
+    if fmt in ("PNG", "JPEG", "TIFF") and a.ndim in (2, 3):
+        from .photo import apply_orientation, embedded
+
+        a = apply_orientation(a, embedded(path, fmt).orientation)  # EXIF orientation: the pixels as displayed
     if a.ndim not in (2, 3):
         raise InputError(f"{path}: expected an H x W or H x W x C image, got shape {a.shape}")
     _check_dims(path, a.shape[0], a.shape[1])
@@ -398,6 +402,9 @@ def read_image(path: str | os.PathLike[str]) -> np.ndarray:
             # a tiny alpha (1e-22) under a large colour overflows float32 (found by fuzzing)
             _check_finite(out, f"{p}: colour / alpha (OpenEXR stores premultiplied colour) overflows float32:")
     elif a.dtype in (np.uint8, np.uint16):
+        from .photo import embedded, to_srgb_codes
+
+        a = to_srgb_codes(a, embedded(p, fmt), str(p))  # an embedded ICC profile (Display P3, Adobe RGB) -> sRGB
         out = np.empty(a.shape, np.float32)
         out[..., :n_colour] = _srgb_lut(a.dtype.itemsize * 8)[a[..., :n_colour]]
         out[..., n_colour:] = a[..., n_colour:] / np.float32(np.iinfo(a.dtype).max)
@@ -494,18 +501,34 @@ def _write_exr(tmp: str, img: np.ndarray, *, half: bool) -> None:
     dtype = np.float16 if half else np.float32
     names = "Y" if img.shape[2] == 1 else "RGBA"[: img.shape[2]]
     chans = {n: np.ascontiguousarray(img[..., i], dtype=dtype) for i, n in enumerate(names)}
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    from .photo import SRGB_CHROMATICITIES
+
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
+              "chromaticities": SRGB_CHROMATICITIES}  # linear Rec. 709 / sRGB primaries, D65
     with OpenEXR.File(header, chans) as f:
         f.write(tmp)
 
 
-def _write_tiff(tmp: str, img: np.ndarray) -> None:
+def _write_tiff(tmp: str, img: np.ndarray, icc: bytes | None = None) -> None:
     photometric = "minisblack" if img.shape[2] == 1 else "rgb"
-    tifffile.imwrite(tmp, img[..., 0] if img.shape[2] == 1 else img, photometric=photometric, compression="zlib")
+    extra = {"iccprofile": icc} if icc is not None and img.shape[2] >= 3 else {}
+    tifffile.imwrite(tmp, img[..., 0] if img.shape[2] == 1 else img, photometric=photometric, compression="zlib",
+                     **extra)
 
 
-def _write_pil(tmp: str, codes: np.ndarray, fmt: str, **options: int) -> None:
+def _write_pil(tmp: str, codes: np.ndarray, fmt: str, **options: object) -> None:
+    options = {k: v for k, v in options.items() if v is not None}
     Image.fromarray(codes[..., 0] if codes.shape[2] == 1 else codes).save(tmp, format=fmt, **options)
+
+
+def _png_with_icc(data: bytes, icc: bytes) -> bytes:
+    """``data`` (a PNG) with an iCCP chunk holding ``icc`` right after IHDR (the 16-bit encoder writes none)."""
+    import zlib
+
+    body = b"sRGB\x00\x00" + zlib.compress(icc)  # profile name, NUL, compression method 0, zlib stream
+    chunk = struct.pack(">I", len(body)) + b"iCCP" + body + struct.pack(">I", zlib.crc32(b"iCCP" + body))
+    end_ihdr = 8 + 8 + 13 + 4  # signature, IHDR length + type, IHDR data, CRC
+    return data[:end_ihdr] + chunk + data[end_ihdr:]
 
 
 def _write_bytes(tmp: str, data: bytes) -> None:
@@ -553,6 +576,7 @@ def write_image(
     bit_depth: int | None = None,
     half: bool = False,
     quality: int = 95,
+    exif: bytes | None = None,
 ) -> Path:
     """Write a linear float image atomically, choosing the format from the extension.
 
@@ -569,6 +593,11 @@ def write_image(
         bit_depth: Bits per sample, or None for the format's default.
         half: Write OpenEXR HALF channels.
         quality: JPEG quality, 1 to 100.
+        exif: an EXIF block to embed in a JPEG (``bokehray.photo.exif_for_output`` keeps the input's, with the
+            orientation reset), or None.
+
+    Display-referred outputs are tagged sRGB: an sRGB ICC profile in PNG, JPEG and integer TIFF; EXR files carry
+    the sRGB / Rec. 709 primaries as their ``chromaticities`` attribute.
 
     Returns:
         The path written.
@@ -596,17 +625,26 @@ def write_image(
         return atomic_write(p, lambda tmp: _write_exr(tmp, img, half=bits == 16))
     if fmt == "TIFF":
         data = img if bits == 32 else _quantize(img, bits)
-        return atomic_write(p, lambda tmp: _write_tiff(tmp, data))
+        icc = None if bits == 32 else _srgb_icc()
+        return atomic_write(p, lambda tmp: _write_tiff(tmp, data, icc))
     if fmt == "JPEG" and img.shape[2] == 4:
         raise InputError(f"{p}: expected an image without alpha for JPEG, got 4 channels")
     if fmt == "JPEG" and not 1 <= quality <= 100:
         raise InputError(f"{p}: expected JPEG quality in [1, 100], got {quality!r}")
     codes = _quantize(img, bits)
+    icc = _srgb_icc() if img.shape[2] >= 3 else None
     if fmt == "JPEG":
-        return atomic_write(p, lambda tmp: _write_pil(tmp, codes, "JPEG", quality=quality))
+        return atomic_write(p, lambda tmp: _write_pil(tmp, codes, "JPEG", quality=quality, icc_profile=icc, exif=exif))
     if bits == 16:
-        return atomic_write(p, lambda tmp: _write_bytes(tmp, imagecodecs.png_encode(codes)))
-    return atomic_write(p, lambda tmp: _write_pil(tmp, codes, "PNG"))
+        data = imagecodecs.png_encode(codes)
+        return atomic_write(p, lambda tmp: _write_bytes(tmp, _png_with_icc(data, icc) if icc else data))
+    return atomic_write(p, lambda tmp: _write_pil(tmp, codes, "PNG", icc_profile=icc))
+
+
+def _srgb_icc() -> bytes:
+    from .photo import srgb_icc
+
+    return srgb_icc()
 
 
 def write_disparity(path: str | os.PathLike[str], d: npt.ArrayLike) -> Path:
