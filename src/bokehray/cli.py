@@ -113,8 +113,12 @@ def build_parser() -> argparse.ArgumentParser:
     o.add_argument("--bit-depth", type=int, choices=(8, 16, 32), help="PNG 8/16, TIFF 16/32 (float)")
     o.add_argument("--half", action="store_true", help="EXR: write half floats")
     o.add_argument("--jpeg-quality", type=int, default=95, metavar="Q", help="JPEG output quality 1..100 (default 95)")
+    o.add_argument("--no-highlight-reconstruction", action="store_true",
+                   help="keep the clipped highlights of a PNG/JPEG/integer TIFF as they are (by default they are "
+                   "re-inflated so that lamps give bright bokeh; never done for EXR/float TIFF)")
     o.add_argument("--highlight-boost", type=float, default=0.0,
-                   help="re-inflate clipped highlights (pixels near 1.0) by this strength (0 = off, try 4)")
+                   help="instead of the reconstruction: the older uniform boost of every pixel near 1.0 "
+                   "(1 + S t^2; 0 = off)")
     from .levels import LEVELS
 
     o.add_argument("--quality", choices=tuple(LEVELS), default="preview",
@@ -394,6 +398,11 @@ def cmd_render(args: argparse.Namespace) -> int:
             _say(args, f"focus: on the subject around pixel ({subject.x}, {subject.y}), d_f = {d_f:.3f} (the nearest "
                  f"region holding {subject.share:.0%} of the centre-weighted frame; --focus-at X,Y to choose)")
         blur = BlurParams(k, d_f)
+    if photo.is_display_referred(args.image) and not args.no_highlight_reconstruction and args.highlight_boost == 0:
+        image, found = photo.reconstruct_highlights(image)
+        if found:
+            _say(args, f"highlights: {found} clipped highlight{'s' * (found > 1)} reconstructed (display-referred "
+                 "input; --no-highlight-reconstruction keeps them clipped)")
     t_read = time.perf_counter() - t0
 
     _start_warp(args)

@@ -366,3 +366,83 @@ def srgb_icc() -> bytes:
 
 
 _SRGB_ICC: bytes | None = None
+
+
+# --------------------------------------------------------------------------- clipped highlights
+
+HIGHLIGHT_GAIN = 5.0
+"""Radiance given to the clipped channels deep inside a clipped highlight (in units of the clip level)."""
+
+HIGHLIGHT_RAMP_PX = 1.5
+"""Distance from a highlight's edge (pixels) over which the gain ramps from 1 to ``HIGHLIGHT_GAIN``."""
+
+CLIP_LEVEL = 0.99
+"""A channel at or above this linear value (8-bit code 254 or more) is clipped."""
+
+
+def is_display_referred(path: str | os.PathLike[str]) -> bool:
+    """PNG, JPEG and integer TIFF files hold display-referred codes clipped at 1; EXR and float TIFF are linear."""
+    suffix = Path(path).suffix.lower()
+    if suffix in (".png", ".jpg", ".jpeg"):
+        return True
+    if suffix in (".tif", ".tiff"):
+        import tifffile
+
+        try:
+            with tifffile.TiffFile(path) as tf:
+                return tf.pages[0].dtype.kind in "iu"
+        except Exception:  # noqa: BLE001 - the reader has already reported an unreadable file
+            return False
+    return False
+
+
+def reconstruct_highlights(image: np.ndarray) -> tuple[np.ndarray, int]:
+    """Re-inflate the clipped highlights of a display-referred photo; returns ``(image, highlights found)``.
+
+    An 8-bit file stores a lamp of radiance 5 as 1.0, so its bokeh ball comes out dim. Here:
+
+    1. a *highlight* is a connected (8-neighbour) region of pixels with a channel >= ``CLIP_LEVEL`` that holds at
+       least one pixel with every colour channel clipped (a white-clipped core: lamps, the sun, speculars;
+       a saturated but unclipped colour, or one clipped channel alone, is left as it is);
+    2. its colour is that of its unclipped rim (the pixels just outside, minus the median of a ring 3-4 px out:
+       the rim's partial coverage shows the light's hue before it clipped), normalised to a brightest channel of 1;
+    3. each *clipped* channel becomes ``max(1, g * colour)`` with ``g`` ramping from 1 at the edge to
+       ``HIGHLIGHT_GAIN`` at ``HIGHLIGHT_RAMP_PX`` inside; unclipped channels keep their (exact) values.
+
+    Alpha, if present, is not touched. The rule and its measured effect are in docs/usage.md and
+    benchmarks/bench_highlights.py.
+    """
+    from scipy import ndimage as ndi
+
+    img = np.asarray(image, np.float32)
+    rgb = img[..., :3]
+    clipped_ch = rgb >= CLIP_LEVEL
+    clipped = clipped_ch.any(axis=2)
+    if not clipped.any():
+        return img, 0
+    eight = np.ones((3, 3), bool)
+    labels, n = ndi.label(clipped, structure=eight)
+    idx = np.arange(1, n + 1)
+    cores = ndi.maximum(clipped_ch.all(axis=2), labels, idx).astype(bool)
+    if not cores.any():
+        return img, 0
+    rim = ndi.binary_dilation(clipped, eight, 1) & ~clipped
+    ring = ndi.binary_dilation(clipped, eight, 4) & ~ndi.binary_dilation(clipped, eight, 2)
+    rim_lab = ndi.grey_dilation(labels, footprint=eight) * rim
+    ring_lab = ndi.grey_dilation(labels, size=(9, 9)) * ring
+    colour = np.ones((n + 1, 3), np.float64)
+    for c in range(3):
+        rim_mean = np.asarray(ndi.mean(rgb[..., c], rim_lab, idx), np.float64)
+        ring_median = np.asarray(ndi.median(rgb[..., c], ring_lab, idx), np.float64)
+        colour[1:, c] = np.nan_to_num(rim_mean - ring_median, nan=0.0)
+    colour = np.clip(colour, 0.0, None)
+    peak = colour.max(axis=1, keepdims=True)
+    colour = np.where(peak > 0.02, colour / np.maximum(peak, 1e-12), 1.0)  # no usable rim: white
+    colour[0] = 1.0
+    keep = np.concatenate([[False], cores])[labels]
+    dist = ndi.distance_transform_edt(clipped)
+    gain = 1.0 + (HIGHLIGHT_GAIN - 1.0) * np.clip(dist / HIGHLIGHT_RAMP_PX, 0.0, 1.0)
+    target = np.maximum(gain[..., None] * colour[labels], 1.0).astype(np.float32)
+    out = img.copy()
+    out[..., :3] = np.where(clipped_ch & keep[..., None], target, rgb)
+    return out, int(cores.sum())

@@ -233,3 +233,56 @@ def test_millimetre_png_with_depth_scale_and_a_lens(tmp_path, capsys, files):
     assert code == 0, err
     assert "7.8% of" in out and "infinitely far (sky)" in out
     assert "d_f = 1.0000" in out  # focused on the subject, the nearest depth
+
+
+# --------------------------------------------------------------------------- clipped highlights
+
+
+def _lamp_scene():
+    """A dark frame with a warm lamp of radiance (6, 3, 1.5) of radius 4 px, stored clipped in 8 bits."""
+    h = w = 40
+    yy, xx = np.mgrid[:h, :w]
+    cover = np.clip(4.5 - np.hypot(yy - 20, xx - 20), 0, 1)[..., None]  # antialiased rim: partial coverage
+    hdr = 0.02 + cover * np.array([6.0, 3.0, 1.5])
+    codes = np.round(br.io.linear_to_srgb(np.clip(hdr, 0, 1)) * 255)
+    return hdr.astype(np.float32), br.io.srgb_to_linear(codes / 255.0)
+
+
+def test_a_clipped_lamp_is_re_inflated_with_its_rim_colour():
+    hdr, img8 = _lamp_scene()
+    out, found = photo.reconstruct_highlights(img8)
+    assert found == 1
+    clipped = img8 >= photo.CLIP_LEVEL
+    np.testing.assert_array_equal(out[~clipped], img8[~clipped])  # unclipped channels are exact: kept
+    assert (out[clipped] >= 1.0).all()
+    centre = out[20, 20]
+    assert centre.max() == pytest.approx(photo.HIGHLIGHT_GAIN)
+    assert centre[0] > centre[1] > centre[2] - 1e-6  # warm, as the rim shows
+    # the light's energy comes back much closer to the truth than the clipped file has it
+    assert abs(out.sum() - hdr.sum()) < 0.5 * abs(img8.sum() - hdr.sum())
+
+
+def test_reconstruction_leaves_unclipped_and_one_channel_clipped_images_alone():
+    rng = np.random.default_rng(0)
+    img = (rng.random((30, 30, 3)) * 0.9).astype(np.float32)
+    assert photo.reconstruct_highlights(img)[1] == 0
+    red = img.copy()
+    red[5:12, 5:12, 0] = 1.0  # a saturated red clipped in one channel: no white core, not a light
+    out, found = photo.reconstruct_highlights(red)
+    assert found == 0 and np.array_equal(out, red)
+
+
+def test_render_reconstructs_for_8_bit_but_never_for_exr(tmp_path, capsys):
+    hdr, img8 = _lamp_scene()
+    d = np.full(img8.shape[:2], 0.5, np.float32)
+    br.write_disparity(tmp_path / "d.png", d)
+    png, exr = br.write_image(tmp_path / "l.png", img8), br.write_image(tmp_path / "l.exr", img8)
+    common = ["--disparity", tmp_path / "d.png", "--blur", 10, "--focus", 0.0]
+    code, out, _ = run(capsys, "render", png, *common, "-o", tmp_path / "a.exr")
+    assert code == 0 and "1 clipped highlight reconstructed" in out
+    code, out, _ = run(capsys, "render", png, *common, "-o", tmp_path / "b.exr", "--no-highlight-reconstruction")
+    assert code == 0 and "highlight" not in out
+    code, out, _ = run(capsys, "render", exr, *common, "-o", tmp_path / "c.exr")
+    assert code == 0 and "highlight" not in out
+    a, b, c = (br.read_image(tmp_path / f"{n}.exr") for n in "abc")
+    assert a.sum() > 2 * b.sum() and np.allclose(b, c, atol=1e-6)
