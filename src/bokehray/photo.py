@@ -412,37 +412,40 @@ def reconstruct_highlights(image: np.ndarray) -> tuple[np.ndarray, int]:
     Alpha, if present, is not touched. The rule and its measured effect are in docs/usage.md and
     benchmarks/bench_highlights.py.
     """
-    from scipy import ndimage as ndi
-
     img = np.asarray(image, np.float32)
     rgb = img[..., :3]
     clipped_ch = rgb >= CLIP_LEVEL
-    clipped = clipped_ch.any(axis=2)
-    if not clipped.any():
+    if not clipped_ch.all(axis=2).any():  # no white-clipped core anywhere: nothing to do (and no scipy import)
         return img, 0
+    from scipy import ndimage as ndi
+
+    clipped = clipped_ch.any(axis=2)
     eight = np.ones((3, 3), bool)
     labels, n = ndi.label(clipped, structure=eight)
-    idx = np.arange(1, n + 1)
-    cores = ndi.maximum(clipped_ch.all(axis=2), labels, idx).astype(bool)
-    if not cores.any():
-        return img, 0
-    rim = ndi.binary_dilation(clipped, eight, 1) & ~clipped
-    ring = ndi.binary_dilation(clipped, eight, 4) & ~ndi.binary_dilation(clipped, eight, 2)
-    rim_lab = ndi.grey_dilation(labels, footprint=eight) * rim
-    ring_lab = ndi.grey_dilation(labels, size=(9, 9)) * ring
-    colour = np.ones((n + 1, 3), np.float64)
-    for c in range(3):
-        rim_mean = np.asarray(ndi.mean(rgb[..., c], rim_lab, idx), np.float64)
-        ring_median = np.asarray(ndi.median(rgb[..., c], ring_lab, idx), np.float64)
-        colour[1:, c] = np.nan_to_num(rim_mean - ring_median, nan=0.0)
-    colour = np.clip(colour, 0.0, None)
-    peak = colour.max(axis=1, keepdims=True)
-    colour = np.where(peak > 0.02, colour / np.maximum(peak, 1e-12), 1.0)  # no usable rim: white
-    colour[0] = 1.0
-    keep = np.concatenate([[False], cores])[labels]
-    dist = ndi.distance_transform_edt(clipped)
-    gain = 1.0 + (HIGHLIGHT_GAIN - 1.0) * np.clip(dist / HIGHLIGHT_RAMP_PX, 0.0, 1.0)
-    target = np.maximum(gain[..., None] * colour[labels], 1.0).astype(np.float32)
     out = img.copy()
-    out[..., :3] = np.where(clipped_ch & keep[..., None], target, rgb)
-    return out, int(cores.sum())
+    found = 0
+    h, w = clipped.shape
+    pad = 5  # the rim (1 px) and the background ring (3-4 px) around each highlight
+    for i, box in enumerate(ndi.find_objects(labels), start=1):
+        y0, y1 = max(0, box[0].start - pad), min(h, box[0].stop + pad)
+        x0, x1 = max(0, box[1].start - pad), min(w, box[1].stop + pad)
+        mine = labels[y0:y1, x0:x1] == i
+        ch = clipped_ch[y0:y1, x0:x1] & mine[..., None]
+        if not ch.all(axis=2).any():
+            continue  # no white core: a saturated colour, not a light
+        found += 1
+        crop = rgb[y0:y1, x0:x1]
+        others = clipped[y0:y1, x0:x1] & ~mine  # another highlight's pixels are neither rim nor background
+        rim = ndi.binary_dilation(mine, eight, 1) & ~mine & ~others
+        ring = ndi.binary_dilation(mine, eight, 4) & ~ndi.binary_dilation(mine, eight, 2) & ~others
+        colour = np.ones(3)
+        if rim.any() and ring.any():
+            diff = np.clip(crop[rim].mean(axis=0) - np.median(crop[ring], axis=0), 0.0, None)
+            if diff.max() > 0.02:  # a usable rim; else white
+                colour = diff / diff.max()
+        dist = ndi.distance_transform_edt(np.pad(mine, 1))[1:-1, 1:-1]
+        gain = 1.0 + (HIGHLIGHT_GAIN - 1.0) * np.clip(dist / HIGHLIGHT_RAMP_PX, 0.0, 1.0)
+        target = np.maximum(gain[..., None] * colour, 1.0).astype(np.float32)
+        view = out[y0:y1, x0:x1, :3]
+        view[ch] = target[ch]
+    return out, found
