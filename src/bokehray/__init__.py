@@ -43,7 +43,39 @@ _EXPORTS: dict[str, str] = {
 }  # fmt: skip
 """Public name -> the submodule that defines it ("" for a submodule exported as itself)."""
 
-__all__ = sorted([*_EXPORTS, "__version__"])
+__all__ = [
+    "Aperture",
+    "BlurParams",
+    "BokehrayError",
+    "DepthNormalization",
+    "InputError",
+    "Layer",
+    "LayerOptions",
+    "MemoryOptions",
+    "NumericalError",
+    "PreviewOptions",
+    "PreviewStats",
+    "QUALITIES",
+    "RaytraceOptions",
+    "RaytraceStats",
+    "RenderStats",
+    "ResourceError",
+    "ThinLens",
+    "__version__",
+    "boost_highlights",
+    "datasets",
+    "depth_from_disparity",
+    "disparity_from_depth",
+    "focus_at",
+    "raytrace_layers",
+    "read_depth",
+    "read_disparity",
+    "read_image",
+    "render",
+    "render_with_stats",
+    "write_disparity",
+    "write_image",
+]
 
 
 def __getattr__(name: str) -> Any:
@@ -64,6 +96,7 @@ def __dir__() -> list[str]:
 
 
 if TYPE_CHECKING:  # what type checkers and IDEs see: the eager imports
+    # (__all__ above must list exactly the names of _EXPORTS; tests/cli_io/test_startup.py checks it)
     from . import datasets
     from .errors import BokehrayError, InputError, NumericalError, ResourceError
     from .io import read_depth, read_disparity, read_image, write_disparity, write_image

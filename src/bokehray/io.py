@@ -345,7 +345,7 @@ def _load(path: Path, fmt: str, exr_channels: tuple[tuple[str, ...], ...]) -> np
         else:
             a = _load_npy(path)
     if fmt in ("PNG", "JPEG", "TIFF") and a.ndim in (2, 3):
-        from .photo import apply_orientation, embedded
+        from .embedded import apply_orientation, embedded
 
         a = apply_orientation(a, embedded(path, fmt).orientation)  # EXIF orientation: the pixels as displayed
     if a.ndim not in (2, 3):
@@ -402,7 +402,7 @@ def read_image(path: str | os.PathLike[str]) -> np.ndarray:
             # a tiny alpha (1e-22) under a large colour overflows float32 (found by fuzzing)
             _check_finite(out, f"{p}: colour / alpha (OpenEXR stores premultiplied colour) overflows float32:")
     elif a.dtype in (np.uint8, np.uint16):
-        from .photo import embedded, to_srgb_codes
+        from .embedded import embedded, to_srgb_codes
 
         a = to_srgb_codes(a, embedded(p, fmt), str(p))  # an embedded ICC profile (Display P3, Adobe RGB) -> sRGB
         out = np.empty(a.shape, np.float32)
@@ -501,7 +501,7 @@ def _write_exr(tmp: str, img: np.ndarray, *, half: bool) -> None:
     dtype = np.float16 if half else np.float32
     names = "Y" if img.shape[2] == 1 else "RGBA"[: img.shape[2]]
     chans = {n: np.ascontiguousarray(img[..., i], dtype=dtype) for i, n in enumerate(names)}
-    from .photo import SRGB_CHROMATICITIES
+    from .embedded import SRGB_CHROMATICITIES
 
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
               "chromaticities": SRGB_CHROMATICITIES}  # linear Rec. 709 / sRGB primaries, D65
@@ -642,7 +642,7 @@ def write_image(
 
 
 def _srgb_icc() -> bytes:
-    from .photo import srgb_icc
+    from .embedded import srgb_icc
 
     return srgb_icc()
 

@@ -89,3 +89,9 @@ def test_level_registry_reads_each_level_module():
 
     assert LEVELS["preview"].whole_image_bytes == preview.WHOLE_IMAGE_B
     assert LEVELS["raytrace"].whole_image_bytes == raytrace.WHOLE_IMAGE_B
+
+
+def test_all_lists_exactly_the_lazy_exports():
+    import bokehray as br
+
+    assert set(br.__all__) == set(br._EXPORTS) | {"__version__"}
