@@ -82,8 +82,14 @@ def build_parser() -> argparse.ArgumentParser:
                      "any other range with --normalize")
     src.add_argument("--depth", help="metric depth map in metres: EXR, float TIFF or NPY; integer PNG/TIFF/NPY "
                      "codes with --depth-scale. Depth <= 0 or inf = no depth: infinitely far (sky)")
+    src.add_argument("--depth-model", metavar="DIR",
+                     help="no map: estimate one with a local Depth Anything (V1/V2) or DPT checkpoint folder "
+                     "(transformers layout; never downloads; needs the 'depth' extra)")
     r.add_argument("-o", "--output", required=True, help="output: .png .jpg .tif .exr")
     dm = r.add_argument_group("depth conventions")
+    dm.add_argument("--save-depth", action="store_true",
+                    help="with --depth-model: also write the estimated disparity beside the output "
+                    "(OUTPUT-disparity.png, 16-bit; reuse it with --disparity)")
     dm.add_argument("--normalize", action="store_true",
                     help="the --disparity map is relative (any range, e.g. a depth model's inverse depth): map its "
                     "0.5th..99.5th percentiles to 0..1")
@@ -212,20 +218,46 @@ def _layer_options(args: argparse.Namespace):
     return LayerOptions(**kw)
 
 
-def _progress_bar(args: argparse.Namespace):
-    """A tqdm bar over depth layers, shown on a terminal only."""
-    if args.quiet or not sys.stderr.isatty():
-        return None, None
-    from tqdm import tqdm
+class _Progress:
+    """One bar over the stages of a render (read, depth estimation, render with its layers, write), on a
+    terminal only; each stage owns a share of the bar in proportion to its usual cost."""
 
-    bar = tqdm(total=0, desc="layers", unit="layer", leave=False, file=sys.stderr)
+    def __init__(self, args: argparse.Namespace, stages: dict[str, float]) -> None:
+        self.bar = None
+        total = sum(stages.values())
+        self.start, at = {}, 0.0
+        for name, weight in stages.items():
+            self.start[name] = (100.0 * at / total, 100.0 * weight / total)
+            at += weight
+        if args.quiet or not sys.stderr.isatty():
+            return
+        from tqdm import tqdm
 
-    def update(done: int, total: int) -> None:
-        bar.total = total
-        bar.n = done
-        bar.refresh()
+        self.bar = tqdm(total=100, desc="read", leave=False, file=sys.stderr,
+                        bar_format="{desc:<7} {percentage:3.0f}%|{bar}| {elapsed}")
 
-    return bar, update
+    def stage(self, name: str):
+        """Enter stage ``name``; returns ``update(fraction)`` for progress within it."""
+        base, share = self.start[name]
+
+        def update(fraction: float) -> None:
+            if self.bar is not None:
+                self.bar.n = min(100.0, base + share * max(0.0, min(1.0, fraction)))
+                self.bar.refresh()
+
+        if self.bar is not None:
+            self.bar.set_description_str(name)
+        update(0.0)
+        return update
+
+    def layers(self):
+        """The render stage's ``progress(done, total)`` callback (layers of either level)."""
+        update = self.stage("render")
+        return lambda done, total: update(done / total if total else 1.0)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
 
 
 def _resize(a: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -268,6 +300,11 @@ def _check_render_flags(args: argparse.Namespace) -> bool:
         raise InputError("give the blur either as --amount/--blur with --focus, or as a physical lens, not both")
     if physical and (args.focal_length is None or args.f_number is None):
         raise InputError("a physical lens needs both --focal-length and --f-number")
+    if args.depth_model is not None and (args.normalize or args.invert):
+        raise InputError("--normalize and --invert describe a --disparity map; a --depth-model's output is "
+                         "normalised with its known polarity")
+    if args.save_depth and args.depth_model is None:
+        raise InputError("--save-depth writes the map a --depth-model estimated; it needs --depth-model")
     if args.depth is not None and (args.normalize or args.invert):
         raise InputError("--normalize and --invert describe a relative --disparity map; a --depth map is metric "
                          "(near = small), and is converted to disparity with the thin-lens normalisation")
@@ -287,12 +324,29 @@ def _check_render_flags(args: argparse.Namespace) -> bool:
     return physical
 
 
-def _read_map(args: argparse.Namespace, h: int, w: int):
+def _disparity_path(output: str) -> Path:
+    out = Path(output)
+    return out.with_name(f"{out.stem}-disparity.png")
+
+
+def _read_map(args: argparse.Namespace, h: int, w: int, image: np.ndarray | None = None, stage=None):
     """The disparity map by the conventions the flags state; ``(d, DepthNormalization or None)``."""
     from . import io, photo
     from .lens import DepthNormalization
 
     norm = None
+    if args.depth_model is not None:
+        from .depth_model import estimate_disparity
+
+        t = time.perf_counter()
+        disparity, info = estimate_disparity(image, args.depth_model, device=args.device,
+                                             progress=stage)
+        _say(args, f"depth: estimated by the {info['model']} model in {args.depth_model} at "
+             f"{info['input_size'][1]}x{info['input_size'][0]} ({info['what']}) in {time.perf_counter() - t:.1f} s")
+        if args.save_depth:
+            saved = io.write_disparity(_disparity_path(args.output), disparity)
+            _say(args, f"depth: saved to {saved} (reuse it with --disparity {saved})")
+        return np.ascontiguousarray(disparity, np.float32), None
     if args.depth is not None:
         depth = photo.read_depth_map(args.depth, scale=args.depth_scale)
         if args.z_near is not None or args.z_far is not None:
@@ -354,15 +408,24 @@ def _say_embedded(args: argparse.Namespace, path: str):
 
 def cmd_render(args: argparse.Namespace) -> int:
     physical = _check_render_flags(args)  # before any import that takes time
+    _check_output(args.output, args)
+    bar = _Progress(args, {"read": 5, **({"depth": 30} if args.depth_model else {}), "render": 60, "write": 5})
+    try:
+        return _render(args, physical, bar)
+    finally:
+        bar.close()
+
+
+def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> int:
     from . import io, photo
     from .lens import BlurParams, ThinLens
 
-    _check_output(args.output, args)
     t0 = time.perf_counter()
+    bar.stage("read")
     image = io.read_image(args.image)
     h, w = image.shape[:2]
     meta = _say_embedded(args, args.image)
-    disparity, norm = _read_map(args, h, w)
+    disparity, norm = _read_map(args, h, w, image, bar.stage("depth") if args.depth_model else None)
 
     if physical:
         focus_m = args.focus_distance
@@ -409,17 +472,13 @@ def cmd_render(args: argparse.Namespace) -> int:
     from .options import RaytraceOptions
     from .pipeline import render_with_stats
 
-    bar, update = _progress_bar(args)
-    try:
-        rt_opts = RaytraceOptions(max_spp=args.max_spp)  # validated whatever the quality
-        out, stats = render_with_stats(image, disparity, blur, _aperture(args), quality=args.quality,
-                                       device=args.device, options=rt_opts if args.quality == "raytrace" else None,
-                                       layers=_layer_options(args), highlight_boost=args.highlight_boost,
-                                       progress=update, refine=args.refine)
-    finally:
-        if bar is not None:
-            bar.close()
+    rt_opts = RaytraceOptions(max_spp=args.max_spp)  # validated whatever the quality
+    out, stats = render_with_stats(image, disparity, blur, _aperture(args), quality=args.quality,
+                                   device=args.device, options=rt_opts if args.quality == "raytrace" else None,
+                                   layers=_layer_options(args), highlight_boost=args.highlight_boost,
+                                   progress=bar.layers(), refine=args.refine)
     t1 = time.perf_counter()
+    bar.stage("write")
     path = io.write_image(args.output, out, bit_depth=args.bit_depth, half=args.half, quality=args.jpeg_quality,
                           exif=photo.exif_for_output(meta))  # JPEG keeps the photo's EXIF, orientation reset
     t_write = time.perf_counter() - t1
