@@ -286,3 +286,19 @@ def test_render_reconstructs_for_8_bit_but_never_for_exr(tmp_path, capsys):
     assert code == 0 and "highlight" not in out
     a, b, c = (br.read_image(tmp_path / f"{n}.exr") for n in "abc")
     assert a.sum() > 2 * b.sum() and np.allclose(b, c, atol=1e-6)
+
+
+def test_progress_bar_covers_every_stage_on_a_terminal(files, tmp_path, capsys, monkeypatch):
+    import sys
+
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True, raising=False)
+    for quality in ("preview", "raytrace"):
+        code = main([str(a) for a in ("render", files["img"], "--disparity", files["disp"], "-o",
+                                      tmp_path / "o.png", "--blur", 6, "--focus", 0.5, "--quality", quality,
+                                      "--max-spp", 4)])
+        err = capsys.readouterr().err
+        assert code == 0
+        for stage in ("read", "render", "write"):
+            assert stage in err, (quality, stage, err)
+        if quality == "preview":  # the preview reports its layers: the bar reaches the end of the render stage
+            assert " 93%" in err  # read 5 + render 60 of 70 = 93 %: every layer was counted
