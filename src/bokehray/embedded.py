@@ -109,7 +109,7 @@ def orientation_words(orientation: int) -> str:
 def to_srgb_codes(codes: np.ndarray, meta: Embedded, source: str) -> np.ndarray:
     """Convert integer RGB(A) codes encoded in the embedded profile's colour space to sRGB codes with littleCMS
     (Pillow's ImageCms; relative colorimetric intent, black-point compensation off). Colours outside the sRGB
-    gamut are clipped to it. 16-bit codes are converted at 8-bit precision (littleCMS through Pillow takes
+    gamut are clipped to it. A profile of another colour space (CMYK, grey) is ignored. 16-bit codes are converted at 8-bit precision (littleCMS through Pillow takes
     8-bit RGB only), then scaled back to 16 bits. Grey images and images without a profile pass unchanged."""
     if meta.is_srgb or codes.ndim != 3 or codes.shape[2] < 3:
         return codes
@@ -119,6 +119,8 @@ def to_srgb_codes(codes: np.ndarray, meta: Embedded, source: str) -> np.ndarray:
 
     try:
         src = ImageCms.ImageCmsProfile(_io.BytesIO(meta.icc))
+        if src.profile.xcolor_space.strip() != "RGB":
+            return codes  # a CMYK or grey profile describes codes Pillow has already converted to RGB: keep them
         dst = ImageCms.ImageCmsProfile(ImageCms.createProfile("sRGB"))
         transform = ImageCms.buildTransform(src, dst, "RGB", "RGB",
                                             renderingIntent=ImageCms.Intent.RELATIVE_COLORIMETRIC)

@@ -150,3 +150,15 @@ def test_resizing_a_map_of_the_other_orientation_is_refused(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 2 and "d.png" in err and "aspect ratio" in err and "rotated" in err
     assert not (tmp_path / "o.png").exists()
+
+
+def test_a_profile_of_another_colour_space_is_ignored(tmp_path, codes):
+    lab = ImageCms.ImageCmsProfile(ImageCms.createProfile("LAB")).tobytes()  # not RGB: nothing to convert from
+    Image.fromarray(codes).save(tmp_path / "lab.png", icc_profile=lab)
+    np.testing.assert_array_equal(br.read_image(tmp_path / "lab.png"), bio.srgb_to_linear(codes / 255.0))
+
+
+def test_an_unreadable_profile_is_an_error_naming_the_file(tmp_path, codes):
+    Image.fromarray(codes).save(tmp_path / "bad.png", icc_profile=b"not an icc profile at all" * 8)
+    with pytest.raises(br.InputError, match="bad.png"):
+        br.read_image(tmp_path / "bad.png")
