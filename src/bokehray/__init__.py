@@ -10,35 +10,41 @@ Quick start::
 
 Layout (docs/architecture.md): ``scene`` builds the layered scene from a photo; ``levels`` holds the quality
 ladder (``preview``, ``raytrace``, the ``refine`` hook) over it; ``tiling`` bounds memory for every level;
-``pipeline`` is the public entry point.
+``pipeline`` is the public entry point; ``photo`` holds the conventions of photos and depth maps as people have
+them (orientation, colour profiles, depth conventions, default blur and focus).
+
+The names below are resolved lazily (PEP 562): ``import bokehray`` costs a few milliseconds and imports
+neither Warp nor the image codecs; the first use of ``br.render`` (or any other export) imports its module.
 """
 
 from __future__ import annotations
 
-import warp as _wp
+import importlib
+import importlib.util
+from typing import TYPE_CHECKING, Any
 
-_wp.config.log_level = _wp.LOG_WARNING  # no banner or per-module load lines
+from ._quiet import quiet_warp_on_import
 
-from . import datasets  # noqa: E402
-from .errors import BokehrayError, InputError, NumericalError, OutputError, ResourceError  # noqa: E402
-from .io import read_depth, read_disparity, read_image, write_disparity, write_image  # noqa: E402
-from .lens import (  # noqa: E402
-    Aperture,
-    BlurParams,
-    DepthNormalization,
-    ThinLens,
-    depth_from_disparity,
-    disparity_from_depth,
-)
-from .levels.raytrace import Layer, raytrace_layers  # noqa: E402
-from .options import LayerOptions, MemoryOptions, PreviewOptions, RaytraceOptions  # noqa: E402
-from .pipeline import QUALITIES, boost_highlights, focus_at, render, render_with_stats  # noqa: E402
-from .stats import PreviewStats, RaytraceStats, RenderStats  # noqa: E402
+quiet_warp_on_import()  # whoever imports Warp later: no banner or per-module load lines
 
 __version__ = "0.1.0"
 
+_EXPORTS: dict[str, str] = {
+    "datasets": "",
+    "BokehrayError": "errors", "InputError": "errors", "NumericalError": "errors", "OutputError": "errors",
+    "ResourceError": "errors",
+    "read_depth": "io", "read_disparity": "io", "read_image": "io", "write_disparity": "io", "write_image": "io",
+    "Aperture": "lens", "BlurParams": "lens", "DepthNormalization": "lens", "ThinLens": "lens",
+    "depth_from_disparity": "lens", "disparity_from_depth": "lens",
+    "Layer": "levels.raytrace", "raytrace_layers": "levels.raytrace",
+    "LayerOptions": "options", "MemoryOptions": "options", "PreviewOptions": "options", "RaytraceOptions": "options",
+    "QUALITIES": "pipeline", "boost_highlights": "pipeline", "focus_at": "pipeline", "render": "pipeline",
+    "render_with_stats": "pipeline",
+    "PreviewStats": "stats", "RaytraceStats": "stats", "RenderStats": "stats",
+}  # fmt: skip
+"""Public name -> the submodule that defines it ("" for a submodule exported as itself)."""
+
 __all__ = [
-    "QUALITIES",
     "Aperture",
     "BlurParams",
     "BokehrayError",
@@ -51,6 +57,7 @@ __all__ = [
     "OutputError",
     "PreviewOptions",
     "PreviewStats",
+    "QUALITIES",
     "RaytraceOptions",
     "RaytraceStats",
     "RenderStats",
@@ -71,3 +78,32 @@ __all__ = [
     "write_disparity",
     "write_image",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    module = _EXPORTS.get(name)
+    if module is None:
+        if not name.startswith("_") and importlib.util.find_spec(f"{__name__}.{name}") is not None:
+            return importlib.import_module(f".{name}", __name__)  # a submodule: br.io, br.photo, ...
+        raise AttributeError(f"module 'bokehray' has no attribute {name!r}")
+    value = importlib.import_module(f".{name}" if module == "" else f".{module}", __name__)
+    if module != "":
+        value = getattr(value, name)
+    globals()[name] = value  # resolved once: later lookups do not come back here
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))
+
+
+if TYPE_CHECKING:  # what type checkers and IDEs see: the eager imports
+    # (__all__ above must list exactly the names of _EXPORTS; tests/cli_io/test_startup.py checks it)
+    from . import datasets
+    from .errors import BokehrayError, InputError, NumericalError, OutputError, ResourceError
+    from .io import read_depth, read_disparity, read_image, write_disparity, write_image
+    from .lens import Aperture, BlurParams, DepthNormalization, ThinLens, depth_from_disparity, disparity_from_depth
+    from .levels.raytrace import Layer, raytrace_layers
+    from .options import LayerOptions, MemoryOptions, PreviewOptions, RaytraceOptions
+    from .pipeline import QUALITIES, boost_highlights, focus_at, render, render_with_stats
+    from .stats import PreviewStats, RaytraceStats, RenderStats

@@ -1,12 +1,8 @@
 """Command line: ``bokehray render``, ``synth``, ``demo``, ``train-refiner`` and ``bench``.
 
-Every input problem, and every failure to write an output (disk full, permissions),
-is reported as one line ``bokehray: error: ...`` naming the file, with exit code 2
-(``--debug`` shows the traceback and any warnings). Outputs are written atomically,
-and only after the render succeeded, so a failed run never leaves a partial file.
-Ctrl-C exits 130 and SIGTERM 143, both after removing the temporary file of a write
-in progress; temporaries left by a killed run (SIGKILL) are removed by the next write
-to the same path (docs/robustness.md).
+Every input problem is reported as one line ``bokehray: error: ...`` with exit
+code 2 (``--debug`` shows the traceback). Outputs are written atomically, and
+only after the render succeeded, so a failed run never leaves a partial file.
 """
 
 from __future__ import annotations
@@ -14,6 +10,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import math
 import re
 import signal
 import sys
@@ -26,6 +23,7 @@ import numpy as np
 
 from ._quiet import collect_warnings, init_warp_quietly
 from .errors import BokehrayError, InputError
+from .photo import AMOUNT_DEFAULT, AMOUNT_K_FRACTION
 
 EXIT_INPUT = 2
 EXIT_INTERRUPTED = 130  # 128 + SIGINT
@@ -110,21 +108,42 @@ def build_parser() -> argparse.ArgumentParser:
     r = sub.add_parser(
         "render",
         help="render one image with a disparity (or depth) map",
-        description="CoC radius in pixels = K * |d - d_f| (d: disparity in [0, 1], 1 = nearest). Give the blur as "
-        "--blur K with --focus D_F or --focus-at X,Y, or as a physical lens (--focal-length, --f-number, "
-        "--focus-distance, --sensor-width) with a metric --depth map.",
+        description="CoC radius in pixels = K * |d - d_f| (d: disparity in [0, 1], 1 = nearest). With only an image "
+        "and a map it picks the blur (--amount 50) and focuses on the subject (the nearest region holding 3% of the "
+        "centre-weighted frame) and says so. Or give --amount/--blur K with --focus D_F or --focus-at X,Y, or a "
+        "physical lens (--focal-length, --f-number, --focus-distance, --sensor-width) with a metric --depth map. "
+        "docs/usage.md walks through it.",
     )
     r.add_argument("image", help="all-in-focus image: PNG/JPEG/TIFF (sRGB, 8/16-bit) or EXR/float TIFF (linear)")
     src = r.add_mutually_exclusive_group(required=True)
-    src.add_argument("--disparity", help="disparity map in [0, 1], 1 = nearest: PNG 8/16-bit, EXR, TIFF, NPY")
-    src.add_argument("--depth", help="metric depth map in metres: EXR, float TIFF or NPY")
+    src.add_argument("--disparity", help="disparity map in [0, 1], 1 = nearest (PNG 8/16-bit, EXR, TIFF, NPY); "
+                     "any other range with --normalize")
+    src.add_argument("--depth", help="metric depth map in metres: EXR, float TIFF or NPY; integer PNG/TIFF/NPY "
+                     "codes with --depth-scale. Depth <= 0 or inf = no depth: infinitely far (sky)")
+    src.add_argument("--depth-model", metavar="DIR",
+                     help="no map: estimate one with a local Depth Anything (V1/V2) or DPT checkpoint folder "
+                     "(transformers layout; never downloads; needs the 'depth' extra)")
     r.add_argument("-o", "--output", required=True, help="output: .png .jpg .tif .exr")
-    b = r.add_argument_group("blur as K and focus disparity")
-    b.add_argument("--blur", type=float, help="K: CoC radius in pixels per unit disparity")
-    b.add_argument("--focus", type=float, help="focus disparity d_f in [0, 1]")
+    dm = r.add_argument_group("depth conventions")
+    dm.add_argument("--save-depth", action="store_true",
+                    help="with --depth-model: also write the estimated disparity beside the output "
+                    "(OUTPUT-disparity.png, 16-bit; reuse it with --disparity)")
+    dm.add_argument("--normalize", action="store_true",
+                    help="the --disparity map is relative (any range, e.g. a depth model's inverse depth): map its "
+                    "0.5th..99.5th percentiles to 0..1")
+    dm.add_argument("--invert", action="store_true", help="the --disparity map is near-is-dark: use 1 - d")
+    dm.add_argument("--depth-scale", type=float, metavar="M", help="metres per code of an integer --depth map "
+                    "(0.001 for a 16-bit millimetre PNG); multiplies a float map")
+    b = r.add_argument_group("blur and focus")
+    blur = b.add_mutually_exclusive_group()
+    blur.add_argument("--amount", type=float, metavar="0..100",
+                      help=f"blur strength independent of resolution: K = amount/100 x "
+                      f"{AMOUNT_K_FRACTION:.0%} of the image diagonal (default {AMOUNT_DEFAULT:g})".replace("%", "%%"))
+    blur.add_argument("--blur", type=float, metavar="K", help="K: CoC radius in pixels per unit disparity")
+    b.add_argument("--focus", type=float, metavar="D_F", help="focus disparity d_f in [0, 1]")
     b.add_argument("--focus-at", type=_parse_xy, metavar="X,Y",
                    help="focus where this pixel is (median disparity in a 9 x 9 window)")
-    lens = r.add_argument_group("blur as a physical thin lens (needs --depth)")
+    lens = r.add_argument_group("blur as a physical thin lens (needs a metric --depth map)")
     lens.add_argument("--focal-length", type=float, metavar="MM", help="focal length in millimetres")
     lens.add_argument("--f-number", type=float, metavar="N", help="f-number (aperture diameter = f / N)")
     lens.add_argument("--focus-distance", type=float, metavar="M", help="focus distance in metres")
@@ -133,11 +152,17 @@ def build_parser() -> argparse.ArgumentParser:
     lens.add_argument("--z-far", type=float, help="depth normalisation: farthest depth, inf allowed (default: max)")
     _add_lens_args(r)
     o = r.add_argument_group("input and output")
-    o.add_argument("--resize-disparity", action="store_true", help="resize a disparity/depth map of another size")
+    o.add_argument("--resize-disparity", action="store_true", help="resize a disparity/depth map of another size "
+                   "(same aspect ratio)")
     o.add_argument("--bit-depth", type=int, choices=(8, 16, 32), help="PNG 8/16, TIFF 16/32 (float)")
     o.add_argument("--half", action="store_true", help="EXR: write half floats")
+    o.add_argument("--jpeg-quality", type=int, default=95, metavar="Q", help="JPEG output quality 1..100 (default 95)")
+    o.add_argument("--no-highlight-reconstruction", action="store_true",
+                   help="keep the clipped highlights of a PNG/JPEG/integer TIFF as they are (by default they are "
+                   "re-inflated so that lamps give bright bokeh; never done for EXR/float TIFF)")
     o.add_argument("--highlight-boost", type=float, default=0.0,
-                   help="re-inflate clipped highlights of 8-bit inputs (0 = off, try 4)")
+                   help="instead of the reconstruction: the older uniform boost of every pixel near 1.0 "
+                   "(1 + S t^2; 0 = off)")
     from .levels import LEVELS
 
     o.add_argument("--quality", choices=tuple(LEVELS), default="preview",
@@ -234,20 +259,46 @@ def _layer_options(args: argparse.Namespace):
     return LayerOptions(**kw)
 
 
-def _progress_bar(args: argparse.Namespace):
-    """A tqdm bar over depth layers, shown on a terminal only."""
-    if args.quiet or not sys.stderr.isatty():
-        return None, None
-    from tqdm import tqdm
+class _Progress:
+    """One bar over the stages of a render (read, depth estimation, render with its layers, write), on a
+    terminal only; each stage owns a share of the bar in proportion to its usual cost."""
 
-    bar = tqdm(total=0, desc="layers", unit="layer", leave=False, file=sys.stderr)
+    def __init__(self, args: argparse.Namespace, stages: dict[str, float]) -> None:
+        self.bar = None
+        total = sum(stages.values())
+        self.start, at = {}, 0.0
+        for name, weight in stages.items():
+            self.start[name] = (100.0 * at / total, 100.0 * weight / total)
+            at += weight
+        if args.quiet or not sys.stderr.isatty():
+            return
+        from tqdm import tqdm
 
-    def update(done: int, total: int) -> None:
-        bar.total = total
-        bar.n = done
-        bar.refresh()
+        self.bar = tqdm(total=100, desc="read", leave=False, file=sys.stderr,
+                        bar_format="{desc:<7} {percentage:3.0f}%|{bar}| {elapsed}")
 
-    return bar, update
+    def stage(self, name: str):
+        """Enter stage ``name``; returns ``update(fraction)`` for progress within it."""
+        base, share = self.start[name]
+
+        def update(fraction: float) -> None:
+            if self.bar is not None:
+                self.bar.n = min(100.0, base + share * max(0.0, min(1.0, fraction)))
+                self.bar.refresh()
+
+        if self.bar is not None:
+            self.bar.set_description_str(name)
+        update(0.0)
+        return update
+
+    def layers(self):
+        """The render stage's ``progress(done, total)`` callback (layers of either level)."""
+        update = self.stage("render")
+        return lambda done, total: update(done / total if total else 1.0)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
 
 
 def _resize(a: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -260,6 +311,140 @@ def _check_output(path: str, args: argparse.Namespace) -> None:
     from .io import check_output_path
 
     check_output_path(path, bit_depth=getattr(args, "bit_depth", None), half=getattr(args, "half", False))
+
+
+def _say(args: argparse.Namespace, text: str) -> None:
+    if not args.quiet:
+        print(text)
+
+
+def _warn(args: argparse.Namespace, text: str) -> None:
+    if not args.quiet:
+        print(f"bokehray: warning: {text}", file=sys.stderr)
+
+
+def _check_render_flags(args: argparse.Namespace) -> bool:
+    """Contradictions between flags, found before any file is read (and before Warp starts). Returns whether
+    the blur is a physical lens."""
+    physical = any(v is not None for v in (args.focal_length, args.f_number, args.focus_distance))
+    given_focus = [name for name, v in (("--focus", args.focus), ("--focus-at", args.focus_at),
+                                        ("--focus-distance", args.focus_distance)) if v is not None]
+    if len(given_focus) > 1:
+        raise InputError(f"{' and '.join(given_focus)} contradict each other: give the focus one way")
+    if physical and args.depth is None:
+        how = " (--normalize/--invert describe a relative map)" if args.normalize or args.invert else ""
+        raise InputError("a physical lens (--focal-length/--f-number/--focus-distance) needs metric depth, and "
+                         f"a --disparity map{how} has no scale: give a depth map in metres with --depth (an integer "
+                         "map with --depth-scale, e.g. 0.001 for millimetres), or set the blur with --amount/--blur "
+                         "and the focus with --focus/--focus-at")
+    if physical and (args.blur is not None or args.amount is not None or args.focus is not None):
+        raise InputError("give the blur either as --amount/--blur with --focus, or as a physical lens, not both")
+    if physical and (args.focal_length is None or args.f_number is None):
+        raise InputError("a physical lens needs both --focal-length and --f-number")
+    if args.depth_model is not None and (args.normalize or args.invert):
+        raise InputError("--normalize and --invert describe a --disparity map; a --depth-model's output is "
+                         "normalised with its known polarity")
+    if args.save_depth and args.depth_model is None:
+        raise InputError("--save-depth writes the map a --depth-model estimated; it needs --depth-model")
+    if args.depth is not None and (args.normalize or args.invert):
+        raise InputError("--normalize and --invert describe a relative --disparity map; a --depth map is metric "
+                         "(near = small), and is converted to disparity with the thin-lens normalisation")
+    if args.depth_scale is not None and args.depth is None:
+        raise InputError("--depth-scale converts the codes of an integer --depth map to metres; it needs --depth")
+    if args.blur is not None and args.blur < 0:
+        raise InputError(f"--blur: expected K >= 0, got {args.blur:g}")
+    if args.z_near is not None or args.z_far is not None:
+        if args.depth is None:
+            raise InputError("--z-near/--z-far normalise a metric --depth map; they need --depth")
+    if not 1 <= args.jpeg_quality <= 100:
+        raise InputError(f"--jpeg-quality: expected 1..100, got {args.jpeg_quality}")
+    if args.amount is not None:
+        from .photo import k_from_amount
+
+        k_from_amount(args.amount, 1, 1)  # the range check
+    return physical
+
+
+def _disparity_path(output: str) -> Path:
+    out = Path(output)
+    return out.with_name(f"{out.stem}-disparity.png")
+
+
+def _read_map(args: argparse.Namespace, h: int, w: int, image: np.ndarray | None = None, stage=None):
+    """The disparity map by the conventions the flags state; ``(d, DepthNormalization or None)``."""
+    from . import io, photo
+    from .lens import DepthNormalization
+
+    norm = None
+    if args.depth_model is not None:
+        from .depth_model import estimate_disparity
+
+        t = time.perf_counter()
+        disparity, info = estimate_disparity(image, args.depth_model, device=args.device,
+                                             progress=stage)
+        _say(args, f"depth: estimated by the {info['model']} model in {args.depth_model} at "
+             f"{info['input_size'][1]}x{info['input_size'][0]} ({info['what']}) in {time.perf_counter() - t:.1f} s")
+        if args.save_depth:
+            saved = io.write_disparity(_disparity_path(args.output), disparity)
+            _say(args, f"depth: saved to {saved} (reuse it with --disparity {saved})")
+        return np.ascontiguousarray(disparity, np.float32), None
+    if args.depth is not None:
+        depth = photo.read_depth_map(args.depth, scale=args.depth_scale)
+        if args.z_near is not None or args.z_far is not None:
+            finite = depth[np.isfinite(depth) & (depth > 0)]
+            zn = args.z_near if args.z_near is not None else float(finite.min()) if finite.size else 1.0
+            zf = args.z_far if args.z_far is not None else float(finite.max()) if finite.size else np.inf
+            norm = DepthNormalization(zn, zf)
+        # resize after the conversion: disparity interpolates where depth cannot (inf for sky)
+        disparity, norm, missing = photo.depth_to_disparity(depth, norm, source=args.depth)
+        if missing > 0:
+            _say(args, f"depth: {missing:.1%} of {args.depth} is 0, negative or infinite (no depth): taken as "
+                 "infinitely far (sky)")
+        source = args.depth
+    else:
+        source = args.disparity
+        raw = io.read_disparity(source)
+        if args.normalize:
+            disparity = photo.normalize_relative(raw, invert=args.invert, source=source)
+            lo, hi = np.percentile(raw, photo.NORMALIZE_PERCENTILES)
+            _say(args, f"disparity: {source} normalised from [{lo:.4g}, {hi:.4g}] (0.5th..99.5th percentiles) "
+                 f"to [0, 1]{', inverted' if args.invert else ''}")
+        else:
+            if raw.size and (raw.min() < 0.0 or raw.max() > 1.0):
+                raise InputError(f"{source}: expected disparity in [0, 1] (1 = nearest), got values in "
+                                 f"[{float(raw.min()):.4g}, {float(raw.max()):.4g}]: pass --normalize for a relative "
+                                 "map of any range (add --invert if near is dark), or give metric depth with --depth")
+            disparity = 1.0 - raw if args.invert else raw
+        reverse, why = photo.looks_reversed(disparity)
+        if reverse:
+            fix = "drop --invert" if args.invert else "pass --invert"
+            _warn(args, f"{source}: the map looks reversed ({why}); if near is dark in it, {fix}")
+    _say_embedded(args, source)
+    if disparity.shape != (h, w):
+        mh, mw = disparity.shape
+        if not args.resize_disparity:
+            raise InputError(f"{source}: map is {mw}x{mh}, image is {w}x{h}; pass --resize-disparity to resize it")
+        if abs(math.log((mw / mh) / (w / h))) > 0.02:
+            raise InputError(f"{source}: map is {mw}x{mh}, image is {w}x{h}: a different aspect ratio, so resizing "
+                             "would stretch it (was one of them rotated? the image's EXIF orientation is applied)")
+        disparity = _resize(disparity, (h, w))
+    return np.ascontiguousarray(disparity, np.float32), norm
+
+
+def _say_embedded(args: argparse.Namespace, path: str):
+    """What the reader did with the file's orientation and colour profile, said in one line."""
+    from . import photo
+    from .io import _FORMATS
+
+    meta = photo.embedded(Path(path), _FORMATS.get(Path(path).suffix.lower(), ""))
+    done = []
+    if meta.orientation != 1:
+        done.append(f"EXIF orientation {meta.orientation} applied ({photo.orientation_words(meta.orientation)})")
+    if not meta.is_srgb:
+        done.append(f"colour profile '{meta.icc_name}' converted to sRGB")
+    if done:
+        _say(args, f"{'image' if path == args.image else 'map'}: {'; '.join(done)}")
+    return meta
 
 
 def _check_sizes_from_headers(args: argparse.Namespace) -> None:
@@ -276,48 +461,34 @@ def _check_sizes_from_headers(args: argparse.Namespace) -> None:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    from . import io
-    from .lens import BlurParams, DepthNormalization, ThinLens, disparity_from_depth
-    from .pipeline import focus_at, render_with_stats
+    physical = _check_render_flags(args)  # before any import that takes time
+    _check_output(args.output, args)
+    _check_sizes_from_headers(args)
+    bar = _Progress(args, {"read": 5, **({"depth": 30} if args.depth_model else {}), "render": 60, "write": 5})
+    try:
+        return _render(args, physical, bar)
+    finally:
+        bar.close()
+
+
+def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> int:
+    from . import io, photo
+    from .lens import BlurParams, ThinLens
     from .validate import check_radiance
 
-    _check_output(args.output, args)
     t0 = time.perf_counter()
-    _check_sizes_from_headers(args)
+    bar.stage("read")
     image = io.read_image(args.image)
     check_radiance(image, str(args.image))  # the limit every level has, with the file named
     h, w = image.shape[:2]
-
-    lens_args = (args.focal_length, args.f_number, args.focus_distance)
-    physical = any(v is not None for v in lens_args)
-    if physical and args.depth is None:
-        raise InputError("a physical lens (--focal-length/--f-number/--focus-distance) needs a metric --depth map")
-    if physical and (args.blur is not None or args.focus is not None):
-        raise InputError("give the blur either as --blur/--focus or as a physical lens, not both")
-
-    if args.depth is not None:
-        depth = io.read_depth(args.depth)
-        norm = None
-        if args.z_near is not None or args.z_far is not None:
-            zn = args.z_near if args.z_near is not None else float(np.min(depth))
-            zf = args.z_far if args.z_far is not None else float(np.max(depth))
-            norm = DepthNormalization(zn, zf)
-        # resize after the conversion: disparity interpolates where depth cannot (inf for sky)
-        disparity, norm = disparity_from_depth(depth, norm)
-    else:
-        disparity, norm = io.read_disparity(args.disparity, check_range=True), None
-    if disparity.shape != (h, w):
-        source = args.depth or args.disparity
-        if not args.resize_disparity:
-            raise InputError(f"{source}: map is {disparity.shape[1]}x{disparity.shape[0]}, image is {w}x{h}; "
-                             "pass --resize-disparity to resize it")
-        disparity = _resize(disparity, (h, w))
+    meta = _say_embedded(args, args.image)
+    disparity, norm = _read_map(args, h, w, image, bar.stage("depth") if args.depth_model else None)
 
     if physical:
-        if args.focal_length is None or args.f_number is None:
-            raise InputError("a physical lens needs both --focal-length and --f-number")
         focus_m = args.focus_distance
         if args.focus_at is not None:
+            from .pipeline import focus_at
+
             x, y = args.focus_at
             focus_m = float(norm.depth(focus_at(disparity, x, y)))
             if not np.isfinite(focus_m):
@@ -328,30 +499,45 @@ def cmd_render(args: argparse.Namespace) -> int:
         lens = ThinLens(args.focal_length, args.f_number, focus_m, args.sensor_width)
         blur = lens.blur_params(norm, w)
     else:
-        if args.blur is None:
-            raise InputError("give the blur strength: --blur K (or a physical lens with --depth)")
-        if args.blur < 0:
-            raise InputError(f"--blur: expected K >= 0, got {args.blur:g}")
-        if (args.focus is None) == (args.focus_at is None):
-            raise InputError("give the focus as exactly one of --focus D_F or --focus-at X,Y")
-        d_f = args.focus if args.focus is not None else focus_at(disparity, *args.focus_at)
-        blur = BlurParams(args.blur, d_f)
+        if args.blur is not None:
+            k = args.blur
+        else:
+            amount = AMOUNT_DEFAULT if args.amount is None else args.amount
+            k = photo.k_from_amount(amount, h, w)
+            _say(args, f"blur: --amount {amount:g} -> K = {k:.1f} px ({amount / 100 * AMOUNT_K_FRACTION:.1%} of the "
+                 f"{math.hypot(h, w):.0f}-px diagonal){'' if args.amount is not None else ' (the default)'}")
+        if args.focus is not None:
+            d_f = args.focus
+        elif args.focus_at is not None:
+            from .pipeline import focus_at
+
+            d_f = focus_at(disparity, *args.focus_at)
+        else:
+            subject = photo.subject_focus(disparity)
+            d_f = subject.d_f
+            _say(args, f"focus: on the subject around pixel ({subject.x}, {subject.y}), d_f = {d_f:.3f} (the nearest "
+                 f"region holding {subject.share:.0%} of the centre-weighted frame; --focus-at X,Y to choose)")
+        blur = BlurParams(k, d_f)
+    if photo.is_display_referred(args.image) and not args.no_highlight_reconstruction and args.highlight_boost == 0:
+        image, found = photo.reconstruct_highlights(image)
+        if found:
+            _say(args, f"highlights: {found} clipped highlight{'s' * (found > 1)} reconstructed (display-referred "
+                 "input; --no-highlight-reconstruction keeps them clipped)")
     t_read = time.perf_counter() - t0
 
-    bar, update = _progress_bar(args)
-    try:
-        from .options import RaytraceOptions
+    _start_warp(args)
+    from .options import RaytraceOptions
+    from .pipeline import render_with_stats
 
-        rt_opts = RaytraceOptions(max_spp=args.max_spp)  # validated whatever the quality
-        out, stats = render_with_stats(image, disparity, blur, _aperture(args), quality=args.quality,
-                                       device=args.device, options=rt_opts if args.quality == "raytrace" else None,
-                                       layers=_layer_options(args), highlight_boost=args.highlight_boost,
-                                       progress=update, refine=args.refine)
-    finally:
-        if bar is not None:
-            bar.close()
+    rt_opts = RaytraceOptions(max_spp=args.max_spp)  # validated whatever the quality
+    out, stats = render_with_stats(image, disparity, blur, _aperture(args), quality=args.quality,
+                                   device=args.device, options=rt_opts if args.quality == "raytrace" else None,
+                                   layers=_layer_options(args), highlight_boost=args.highlight_boost,
+                                   progress=bar.layers(), refine=args.refine)
     t1 = time.perf_counter()
-    path = io.write_image(args.output, out, bit_depth=args.bit_depth, half=args.half)
+    bar.stage("write")
+    path = io.write_image(args.output, out, bit_depth=args.bit_depth, half=args.half, quality=args.jpeg_quality,
+                          exif=photo.exif_for_output(meta))  # JPEG keeps the photo's EXIF, orientation reset
     t_write = time.perf_counter() - t1
     if not args.quiet:
         max_coc = float(blur.coc_radius(disparity).max())
@@ -373,6 +559,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from .lens import BlurParams
     from .pipeline import render_with_stats
 
+    _start_warp(args)
     w, h = args.size
     out_dir = Path(args.output)
     scene = build_demo_scene(width=w, height=h)
@@ -434,6 +621,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
         levels = tuple(float(v) for v in args.blur_levels.split(","))
     except ValueError:
         raise InputError(f"--blur-levels: expected comma-separated numbers, got {args.blur_levels!r}") from None
+    _start_warp(args)
     config = SynthConfig(size=args.size, blur_levels=levels, aperture=_aperture(args), max_spp=args.max_spp,
                          fg_dir=args.fg, bg_dir=args.bg)
     paths = generate(config, args.n, args.output, seed=args.seed, workers=args.workers, progress=not args.quiet,
@@ -455,6 +643,7 @@ def _refiner_module(name: str):
 
 def cmd_train_refiner(args: argparse.Namespace) -> int:
     train = _refiner_module("train")
+    _start_warp(args)
     if args.threads is not None:
         if args.threads < 1:
             raise InputError(f"--threads: expected >= 1, got {args.threads}")
@@ -473,6 +662,12 @@ def cmd_train_refiner(args: argparse.Namespace) -> int:
     if not args.quiet:
         print(f"wrote {weights}")
     return 0
+
+
+def _start_warp(args: argparse.Namespace) -> None:
+    """Initialise Warp (0.6 s import, module cache) only once a command is about to compute, so that
+    ``--help`` and argument errors return at once."""
+    init_warp_quietly(getattr(args, "debug", False))
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -512,8 +707,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         code, message = None, None
         with collect_warnings(debug) as warned:
             try:
-                init_warp_quietly(debug)
-                code = _run(args)
+                code = _run(args)  # each command starts Warp when it computes (_start_warp): --help stays fast
             except BokehrayError as e:
                 if debug:
                     raise

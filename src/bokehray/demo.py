@@ -24,7 +24,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import colour
 import numpy as np
 from scipy import ndimage
 from skimage import data as skdata
@@ -67,7 +66,9 @@ class DemoScene:
 
 def _linear(img: np.ndarray) -> np.ndarray:
     x = img.astype(np.float32) / 255.0
-    return np.asarray(colour.cctf_decoding(x, function="sRGB"), dtype=np.float32)
+    from .io import srgb_to_linear  # the same numbers as colour-science's sRGB decoding, without its import
+
+    return srgb_to_linear(x)
 
 
 def _cover(tex: np.ndarray, h: int, w: int, centre: tuple[float, float] = (0.5, 0.5)) -> np.ndarray:
@@ -302,7 +303,9 @@ def contact_sheet(
         im = np.clip(np.nan_to_num(im, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
         th = max(round(tile_width * im.shape[0] / im.shape[1]), 1)
         im = np.clip(resize(im, (th, tile_width, 3), order=1, anti_aliasing=True), 0.0, 1.0)
-        tiles.append(np.round(np.asarray(colour.cctf_encoding(im, function="sRGB")) * 255.0).astype(np.uint8))
+        from .io import linear_to_srgb
+
+        tiles.append(np.round(linear_to_srgb(im).astype(np.float64) * 255.0).astype(np.uint8))
     cols = min(columns, len(tiles))
     rows = math.ceil(len(tiles) / cols)
     cell_h = max(t.shape[0] for t in tiles) + _LABEL_H

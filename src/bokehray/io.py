@@ -28,7 +28,6 @@ from collections.abc import Callable, Iterator
 from functools import cache
 from pathlib import Path
 
-import colour
 import imagecodecs
 import numpy as np
 import numpy.typing as npt
@@ -60,14 +59,35 @@ _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _HALF_MAX = 65504.0
 
 
+_SRGB_KNEE = 12.92 * 0.0031308
+"""Encoded value of the linear knee 0.0031308 (0.04044994): where the decoding switches segments, as
+colour-science has it (the standard's 0.04045 differs by 6e-8 and both segments agree there to 1e-9)."""
+
+
 def srgb_to_linear(x: npt.ArrayLike) -> np.ndarray:
-    """Decode sRGB-encoded values in [0, 1] to linear light (IEC 61966-2-1), as float32."""
-    return np.asarray(colour.models.eotf_sRGB(np.asarray(x, dtype=np.float32)), dtype=np.float32)
+    """Decode sRGB-encoded values in [0, 1] to linear light (IEC 61966-2-1), as float32.
+
+    The piecewise curve ``x / 12.92`` up to the image of 0.0031308 under the encoding (0.04044994),
+    ``((x + 0.055) / 1.055) ** 2.4`` above, evaluated in float64
+    and rounded once to float32: the same numbers as colour-science's ``eotf_sRGB`` (tested), without its 1.5 s
+    import. Values below 0 follow the linear segment; NaN stays NaN.
+    """
+    v = np.asarray(x, dtype=np.float32).astype(np.float64)
+    with np.errstate(invalid="ignore"):
+        out = np.where(v <= _SRGB_KNEE, v / 12.92, ((np.maximum(v, _SRGB_KNEE) + 0.055) / 1.055) ** 2.4)
+    return out.astype(np.float32)
 
 
 def linear_to_srgb(x: npt.ArrayLike) -> np.ndarray:
-    """Encode linear-light values with the sRGB transfer function (IEC 61966-2-1), as float32."""
-    return np.asarray(colour.models.eotf_inverse_sRGB(np.asarray(x, dtype=np.float32)), dtype=np.float32)
+    """Encode linear-light values with the sRGB transfer function (IEC 61966-2-1), as float32.
+
+    ``12.92 x`` below 0.0031308, ``1.055 x ** (1 / 2.4) - 0.055`` above, in float64 rounded once to float32 (the
+    same numbers as colour-science's ``eotf_inverse_sRGB``, tested).
+    """
+    v = np.asarray(x, dtype=np.float32).astype(np.float64)
+    with np.errstate(invalid="ignore"):
+        out = np.where(v <= 0.0031308, v * 12.92, 1.055 * np.maximum(v, 0.0031308) ** (1 / 2.4) - 0.055)
+    return out.astype(np.float32)
 
 
 @cache
@@ -398,6 +418,10 @@ def _load(path: Path, fmt: str, exr_channels: tuple[tuple[str, ...], ...]) -> np
             a = _load_exr(path, exr_channels)
         else:
             a = _load_npy(path)
+    if fmt in ("PNG", "JPEG", "TIFF") and a.ndim in (2, 3):
+        from .embedded import apply_orientation, embedded
+
+        a = apply_orientation(a, embedded(path, fmt).orientation)  # EXIF orientation: the pixels as displayed
     if a.ndim not in (2, 3):
         raise InputError(f"{path}: expected an H x W or H x W x C image, got shape {a.shape}")
     _check_dims(path, a.shape[0], a.shape[1])
@@ -431,15 +455,20 @@ def read_size(path: str | os.PathLike[str]) -> tuple[int, int]:
     with _decoding(p, fmt):
         if fmt == "PNG":
             w, h, _ = _png_header(p)
-            return int(h), int(w)
-        if fmt == "JPEG":
+            hw = int(h), int(w)
+        elif fmt == "JPEG":
             with Image.open(p, formats=["JPEG"]) as im:
-                return int(im.height), int(im.width)
-        if fmt == "TIFF":
-            return _load_tiff(p, size_only=True)
-        if fmt == "EXR":
+                hw = int(im.height), int(im.width)
+        elif fmt == "TIFF":
+            hw = _load_tiff(p, size_only=True)
+        elif fmt == "EXR":
             return _exr_size(p)
-        return _load_npy(p, size_only=True)
+        else:
+            return _load_npy(p, size_only=True)
+        from .embedded import embedded
+
+        # the size as read: EXIF orientations 5-8 turn the picture a quarter (read_image applies them)
+        return hw[::-1] if embedded(p, fmt).orientation in (5, 6, 7, 8) else hw
 
 
 def read_image(path: str | os.PathLike[str]) -> np.ndarray:
@@ -473,6 +502,9 @@ def read_image(path: str | os.PathLike[str]) -> np.ndarray:
             # a tiny alpha (1e-22) under a large colour overflows float32 (found by fuzzing)
             _check_finite(out, f"{p}: colour / alpha (OpenEXR stores premultiplied colour) overflows float32:")
     elif a.dtype in (np.uint8, np.uint16):
+        from .embedded import embedded, to_srgb_codes
+
+        a = to_srgb_codes(a, embedded(p, fmt), str(p))  # an embedded ICC profile (Display P3, Adobe RGB) -> sRGB
         out = np.empty(a.shape, np.float32)
         out[..., :n_colour] = _srgb_lut(a.dtype.itemsize * 8)[a[..., :n_colour]]
         out[..., n_colour:] = a[..., n_colour:] / np.float32(np.iinfo(a.dtype).max)
@@ -668,22 +700,38 @@ def _write_exr(tmp: str, img: np.ndarray, *, half: bool) -> None:
     dtype = np.float16 if half else np.float32
     names = "Y" if img.shape[2] == 1 else "RGBA"[: img.shape[2]]
     chans = {n: np.ascontiguousarray(img[..., i], dtype=dtype) for i, n in enumerate(names)}
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    from .embedded import SRGB_CHROMATICITIES
+
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
+              "chromaticities": SRGB_CHROMATICITIES}  # linear Rec. 709 / sRGB primaries, D65
     with OpenEXR.File(header, chans) as f:
         f.write(tmp)
 
 
-def _write_tiff(tmp: str, img: np.ndarray) -> None:
+def _write_tiff(tmp: str, img: np.ndarray, icc: bytes | None = None) -> None:
     photometric = "minisblack" if img.shape[2] == 1 else "rgb"
-    tifffile.imwrite(tmp, img[..., 0] if img.shape[2] == 1 else img, photometric=photometric, compression="zlib")
+    extra = {"iccprofile": icc} if icc is not None and img.shape[2] >= 3 else {}
+    tifffile.imwrite(tmp, img[..., 0] if img.shape[2] == 1 else img, photometric=photometric, compression="zlib",
+                     **extra)
 
 
-def _write_pil(tmp: str, codes: np.ndarray, fmt: str, **options: int) -> None:
+def _write_pil(tmp: str, codes: np.ndarray, fmt: str, **options: object) -> None:
     # Encoded in memory, then written by Python: Pillow (13.0) saving a JPEG straight to a full disk stops at
     # the first short write and reports success, leaving a truncated file (found on a 4 KB tmpfs).
+    options = {k: v for k, v in options.items() if v is not None}
     buf = io.BytesIO()
     Image.fromarray(codes[..., 0] if codes.shape[2] == 1 else codes).save(buf, format=fmt, **options)
     _write_bytes(tmp, buf.getbuffer())
+
+
+def _png_with_icc(data: bytes, icc: bytes) -> bytes:
+    """``data`` (a PNG) with an iCCP chunk holding ``icc`` right after IHDR (the 16-bit encoder writes none)."""
+    import zlib
+
+    body = b"sRGB\x00\x00" + zlib.compress(icc)  # profile name, NUL, compression method 0, zlib stream
+    chunk = struct.pack(">I", len(body)) + b"iCCP" + body + struct.pack(">I", zlib.crc32(b"iCCP" + body))
+    end_ihdr = 8 + 8 + 13 + 4  # signature, IHDR length + type, IHDR data, CRC
+    return data[:end_ihdr] + chunk + data[end_ihdr:]
 
 
 def _write_bytes(tmp: str, data: bytes | memoryview) -> None:
@@ -731,6 +779,7 @@ def write_image(
     bit_depth: int | None = None,
     half: bool = False,
     quality: int = 95,
+    exif: bytes | None = None,
 ) -> Path:
     """Write a linear float image atomically, choosing the format from the extension.
 
@@ -747,6 +796,11 @@ def write_image(
         bit_depth: Bits per sample, or None for the format's default.
         half: Write OpenEXR HALF channels.
         quality: JPEG quality, 1 to 100.
+        exif: an EXIF block to embed in a JPEG (``bokehray.photo.exif_for_output`` keeps the input's, with the
+            orientation reset), or None.
+
+    Display-referred outputs are tagged sRGB: an sRGB ICC profile in PNG, JPEG and integer TIFF; EXR files carry
+    the sRGB / Rec. 709 primaries as their ``chromaticities`` attribute.
 
     Returns:
         The path written.
@@ -777,17 +831,26 @@ def write_image(
         return atomic_write(p, lambda tmp: _write_exr(tmp, img, half=bits == 16))
     if fmt == "TIFF":
         data = img if bits == 32 else _quantize(img, bits)
-        return atomic_write(p, lambda tmp: _write_tiff(tmp, data))
+        icc = None if bits == 32 else _srgb_icc()
+        return atomic_write(p, lambda tmp: _write_tiff(tmp, data, icc))
     if fmt == "JPEG" and img.shape[2] == 4:
         raise InputError(f"{p}: expected an image without alpha for JPEG, got 4 channels")
     if fmt == "JPEG" and not 1 <= quality <= 100:
         raise InputError(f"{p}: expected JPEG quality in [1, 100], got {quality!r}")
     codes = _quantize(img, bits)
+    icc = _srgb_icc() if img.shape[2] >= 3 else None
     if fmt == "JPEG":
-        return atomic_write(p, lambda tmp: _write_pil(tmp, codes, "JPEG", quality=quality))
+        return atomic_write(p, lambda tmp: _write_pil(tmp, codes, "JPEG", quality=quality, icc_profile=icc, exif=exif))
     if bits == 16:
-        return atomic_write(p, lambda tmp: _write_bytes(tmp, imagecodecs.png_encode(codes)))
-    return atomic_write(p, lambda tmp: _write_pil(tmp, codes, "PNG"))
+        data = imagecodecs.png_encode(codes)
+        return atomic_write(p, lambda tmp: _write_bytes(tmp, _png_with_icc(data, icc) if icc else data))
+    return atomic_write(p, lambda tmp: _write_pil(tmp, codes, "PNG", icc_profile=icc))
+
+
+def _srgb_icc() -> bytes:
+    from .embedded import srgb_icc
+
+    return srgb_icc()
 
 
 def write_disparity(path: str | os.PathLike[str], d: npt.ArrayLike) -> Path:

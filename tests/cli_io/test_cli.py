@@ -94,9 +94,16 @@ def test_resize_disparity(tmp_path, scene, capsys):
         (["--disparity", "missing.png", "--blur", 4, "--focus", 0.5], "does not exist"),
         (["--disparity", "{disp_png}", "--blur", -1, "--focus", 0.5], "K >= 0"),
         (["--disparity", "{disp_png}", "--blur", 4, "--focus", 1.5], r"\[0, 1\]"),
-        (["--disparity", "{disp_png}", "--blur", 4], "exactly one of --focus"),
-        (["--disparity", "{disp_png}", "--focus", 0.5], "--blur K"),
-        (["--disparity", "{disp_png}", "--focal-length", 50, "--f-number", 2, "--focus-distance", 2], "--depth"),
+        (["--disparity", "{disp_png}", "--blur", 4, "--focus", 0.5, "--focus-at", "3,4"], "contradict"),
+        (["--depth", "{depth}", "--focal-length", 50, "--f-number", 2, "--focus-distance", 2, "--focus-at", "3,4"],
+         "--focus-at and --focus-distance contradict"),
+        (["--disparity", "{disp_png}", "--amount", 130], r"\[0, 100\]"),
+        (["--disparity", "{bad_disp}"], "--normalize"),
+        (["--depth", "{depth}", "--normalize"], "relative --disparity"),
+        (["--disparity", "{disp_png}", "--depth-scale", 0.001], "needs --depth"),
+        (["--disparity", "{disp_png}", "--jpeg-quality", 0], "--jpeg-quality"),
+        (["--disparity", "{disp_png}", "--focal-length", 50, "--f-number", 2, "--focus-distance", 2],
+         "needs metric depth.*--depth.*--depth-scale"),
         (["--depth", "{depth}", "--focal-length", 50, "--focus-distance", 2], "--f-number"),
         (["--disparity", "{bad_disp}", "--blur", 4, "--focus", 0.5], r"\[0, 1\]"),
         (["--disparity", "{nan_disp}", "--blur", 4, "--focus", 0.5], "NaN"),
@@ -193,6 +200,7 @@ def test_render_raytrace_quality_reports_rays(scene, tmp_path, capsys):
         ["render", "x.png", "--disparity", "d.png"],  # no -o
         ["render", "x.png", "-o", "o.png"],  # neither --disparity nor --depth
         ["render", "x.png", "--disparity", "d.png", "-o", "o.png", "--focus-at", "5"],
+        ["render", "x.png", "--disparity", "d.png", "-o", "o.png", "--blur", "4", "--amount", "30"],
         ["frobnicate"],
     ],
 )

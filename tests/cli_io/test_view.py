@@ -59,7 +59,6 @@ BAD = [
     ({"blur": 10.0, "focus": 1.5}, ["--blur", "10", "--focus", "1.5"]),
     ({"blur": 10.0, "focus_at": [480, 3]}, ["--blur", "10", "--focus-at", "480,3"]),
     ({"blur": 10.0, "focus_at": [-1, 3]}, ["--blur", "10", "--focus-at=-1,3"]),
-    ({"blur": 10.0}, ["--blur", "10"]),
     ({"blur": 10.0, "focus": 0.5, "focus_at": [1, 1]}, ["--blur", "10", "--focus", "0.5", "--focus-at", "1,1"]),
     ({"blur": 10.0, "focus": 0.5, "aperture": "polygon", "blades": 40},
      ["--blur", "10", "--focus", "0.5", "--aperture", "polygon", "--blades", "40"]),

@@ -8,7 +8,27 @@
 See docs/benchmarks.md. Importing this package needs neither torch, bpy nor GEGL.
 """
 
-from .methods import Method, registry, select
-from .run import Case, SynthSplit, pareto_front, run_bench, write_reports
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+_EXPORTS = {"Method": "methods", "registry": "methods", "select": "methods", "Case": "run", "SynthSplit": "run",
+            "pareto_front": "run", "run_bench": "run", "write_reports": "run"}
+"""Resolved on first use (PEP 562): ``bokehray --help`` builds the bench sub-parser without the loop's imports."""
 
 __all__ = ["Case", "Method", "SynthSplit", "pareto_front", "registry", "run_bench", "select", "write_reports"]
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _EXPORTS:
+        raise AttributeError(f"module 'bokehray.bench' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f".{_EXPORTS[name]}", __name__), name)
+    globals()[name] = value
+    return value
+
+
+if TYPE_CHECKING:
+    from .methods import Method, registry, select
+    from .run import Case, SynthSplit, pareto_front, run_bench, write_reports

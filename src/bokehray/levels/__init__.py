@@ -5,24 +5,24 @@
   layer stacks (``bokehray.raytrace_layers``, ``bokehray synth``).
 - the refine hook (:mod:`.refine`): the optional neural pass over a preview render.
 
-``LEVELS`` is the registry the API, the CLI and the benchmark read their choices from.
+``LEVELS`` is the registry the API, the CLI and the benchmark read their choices from; a level's module is
+imported when it first renders (reading the registry imports no renderer and no Warp).
 """
 
 from __future__ import annotations
 
 from ..options import PreviewOptions, RaytraceOptions
 from .base import Level, RenderContext
-from . import preview, raytrace
 
 __all__ = ["LEVELS", "Level", "RenderContext", "get_level"]
 
 LEVELS: dict[str, Level] = {
     level.name: level
     for level in (
-        Level("preview", "layered occlusion-aware scatter (fast)", PreviewOptions, preview.render_preview,
-              preview.WHOLE_IMAGE_B),
-        Level("raytrace", "the layers ray traced through the aperture", RaytraceOptions, raytrace.render_raytrace,
-              raytrace.WHOLE_IMAGE_B),
+        Level("preview", "layered occlusion-aware scatter (fast)", PreviewOptions, f"{__name__}.preview",
+              "render_preview"),
+        Level("raytrace", "the layers ray traced through the aperture", RaytraceOptions, f"{__name__}.raytrace",
+              "render_raytrace"),
     )
 }
 

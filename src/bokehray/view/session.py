@@ -157,16 +157,22 @@ def parse_params(body: object, disparity: np.ndarray) -> RenderParams:
     unknown = sorted(set(body) - _PARAM_KEYS - {"stage"})
     if unknown:
         raise InputError(f"parameters: unknown {', '.join(map(repr, unknown))}")
-    if body.get("blur") is None:
-        raise InputError("give the blur strength: --blur K (or a physical lens with --depth)")
-    k = _number(body, "blur", "--blur", 0.0)
+    from .. import photo
+
+    if body.get("blur") is None:  # the CLI's default: --amount 50 of the image diagonal
+        k = photo.k_from_amount(photo.AMOUNT_DEFAULT, *disparity.shape)
+    else:
+        k = _number(body, "blur", "--blur", 0.0)
     if k < 0:
         raise InputError(f"--blur: expected K >= 0, got {k:g}")
     focus_val, at = body.get("focus"), body.get("focus_at")
-    if (focus_val is None) == (at is None):
-        raise InputError("give the focus as exactly one of --focus D_F or --focus-at X,Y")
+    if focus_val is not None and at is not None:
+        raise InputError("--focus and --focus-at contradict each other: give the focus one way")
     focus: float | None = None
     xy: tuple[int, int] | None = None
+    if focus_val is None and at is None:  # the CLI's default: focus on the subject
+        focus_val = photo.subject_focus(disparity).d_f
+        body = {**body, "focus": focus_val}
     if at is not None:
         if (not isinstance(at, list) or len(at) != 2
                 or any(isinstance(v, bool) or not isinstance(v, int) for v in at)):
@@ -387,6 +393,8 @@ class ViewSession:
     def command(self, p: RenderParams, output: str | Path, *, bit_depth: int | None = None,
                 half: bool = False) -> str:
         """The ``bokehray render`` command line that writes the same image."""
+        from .. import photo
+
         q = shlex.quote
         img = str(Path(self.image_path).resolve()) if self.image_path else "IMAGE"
         args = ["bokehray", "render", q(img)]
@@ -403,6 +411,9 @@ class ViewSession:
                      "--curvature", _fmt(p.curvature)]
         if p.highlight_boost:
             args += ["--highlight-boost", _fmt(p.highlight_boost)]
+        elif self.image_path and photo.is_display_referred(self.image_path):
+            # the page shows a display-referred photo's highlights as they are (its boost control instead)
+            args.append("--no-highlight-reconstruction")
         if p.quality != "preview":
             args += ["--quality", p.quality, "--max-spp", str(p.max_spp)]
         if bit_depth is not None:

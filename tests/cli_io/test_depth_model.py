@@ -1,0 +1,140 @@
+"""--depth-model: Depth Anything and DPT checkpoints from a local folder, tested on tiny random models of the same
+architectures that the test builds and saves itself (never a download), and the polarity of their outputs."""
+
+import json
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+transformers = pytest.importorskip("transformers")
+
+import bokehray as br  # noqa: E402
+from bokehray import depth_model  # noqa: E402
+from bokehray.cli import main  # noqa: E402
+
+PRE = {"size": {"height": 56, "width": 56}, "keep_aspect_ratio": True, "ensure_multiple_of": 14,
+       "image_mean": [0.485, 0.456, 0.406], "image_std": [0.229, 0.224, 0.225]}
+
+
+def _save(model, folder, pre=None):
+    transformers.utils.logging.disable_progress_bar()
+    model.save_pretrained(folder)
+    if pre is not None:
+        (folder / "preprocessor_config.json").write_text(json.dumps(pre))
+    return folder
+
+
+@pytest.fixture(scope="module")
+def models(tmp_path_factory):
+    root = tmp_path_factory.mktemp("depth-models")
+    torch.manual_seed(0)
+    backbone = transformers.Dinov2Config(hidden_size=32, num_hidden_layers=4, num_attention_heads=2,
+                                         intermediate_size=64, patch_size=14, image_size=56,
+                                         out_features=["stage1", "stage2", "stage3", "stage4"],
+                                         reshape_hidden_states=False)
+    cfg = transformers.DepthAnythingConfig(backbone_config=backbone, reassemble_hidden_size=32,
+                                           neck_hidden_sizes=[8, 16, 32, 32], fusion_hidden_size=16,
+                                           head_hidden_size=8)
+    da = _save(transformers.DepthAnythingForDepthEstimation(cfg).eval(), root / "da", PRE)
+    metric_cfg = transformers.DepthAnythingConfig(**{**cfg.to_dict(), "depth_estimation_type": "metric",
+                                                     "max_depth": 20})
+    metric_model = transformers.DepthAnythingForDepthEstimation(metric_cfg).eval()
+    last = [m for m in metric_model.head.modules() if isinstance(m, torch.nn.Conv2d)][-1]
+    with torch.no_grad():  # a random head's sigmoid sits at 0.5 everywhere: spread it so depth varies
+        last.weight *= 300.0
+        last.bias.zero_()
+    metric = _save(metric_model, root / "da-metric", PRE)
+    dpt_cfg = transformers.DPTConfig(hidden_size=32, num_hidden_layers=4, num_attention_heads=2, intermediate_size=64,
+                                     image_size=64, patch_size=16, backbone_out_indices=[0, 1, 2, 3],
+                                     neck_hidden_sizes=[8, 16, 32, 32], fusion_hidden_size=16,
+                                     use_auxiliary_head=False)
+    dpt = _save(transformers.DPTForDepthEstimation(dpt_cfg).eval(), root / "dpt")
+    return {"da": da, "metric": metric, "dpt": dpt}
+
+
+@pytest.fixture(scope="module")
+def photo():
+    rng = np.random.default_rng(0)
+    img = np.zeros((40, 60, 3), np.float32)
+    img[:] = np.linspace(0, 1, 60, dtype=np.float32)[None, :, None]
+    img[10:30, 20:40] = rng.random((20, 20, 3))
+    return img
+
+
+def _raw(folder, img):
+    cfg = json.loads((folder / "config.json").read_text())
+    cls = (transformers.DepthAnythingForDepthEstimation if cfg["model_type"] == "depth_anything"
+           else transformers.DPTForDepthEstimation)
+    th, tw, mean, std = depth_model._input_size(folder, cfg, *img.shape[:2])
+    return depth_model.predict(cls.from_pretrained(str(folder), local_files_only=True).eval(), img, (th, tw), mean, std)
+
+
+def _rank_corr(a, b):
+    ra, rb = np.argsort(np.argsort(a.ravel())), np.argsort(np.argsort(b.ravel()))
+    return float(np.corrcoef(ra, rb)[0, 1])
+
+
+@pytest.mark.parametrize("name", ["da", "dpt"])
+def test_relative_models_near_is_large(models, photo, name):
+    """Relative models predict inverse depth: the larger the prediction, the nearer, so disparity follows it."""
+    d, info = depth_model.estimate_disparity(photo, models[name])
+    assert d.shape == photo.shape[:2] and d.dtype == np.float32 and d.min() >= 0 and d.max() <= 1
+    assert info["kind"] == "relative"
+    raw = _raw(models[name], photo)
+    inside = (d > 0) & (d < 1)  # outside the percentile clip, ties
+    assert _rank_corr(raw[inside], d[inside]) > 0.999
+    np.testing.assert_allclose(d, br.photo.normalize_relative(raw), atol=1e-6)
+
+
+def test_metric_model_near_is_small(models, photo):
+    """A metric model predicts metres: the larger the prediction, the farther, so disparity runs against it."""
+    d, info = depth_model.estimate_disparity(photo, models["metric"])
+    assert info["kind"] == "metric" and "1/z" in info["what"]
+    raw = _raw(models["metric"], photo)
+    assert _rank_corr(raw, d) < -0.999
+    assert d[np.unravel_index(np.argmin(raw), raw.shape)] == pytest.approx(1.0)  # the nearest point is nearest
+
+
+def test_input_size_follows_the_processor():
+    cfg = {"model_type": "depth_anything"}
+    from pathlib import Path
+
+    nowhere = Path("/nonexistent-folder")
+    assert depth_model._input_size(nowhere, cfg, 3000, 4000)[:2] == (518, 686)  # short side 518, multiple of 14
+    assert depth_model._input_size(nowhere, {"model_type": "dpt", "image_size": 384}, 3000, 4000)[:2] == (384, 384)
+
+
+@pytest.mark.parametrize(("setup", "message"), [
+    (lambda p: None, "no depth model there|there is none"),
+    (lambda p: p.mkdir(), "no config.json"),
+    (lambda p: (p.mkdir(), (p / "config.json").write_text('{"model_type": "bert"}')), "'bert' is not a supported"),
+    (lambda p: (p.mkdir(), (p / "config.json").write_text('{"model_type": "dpt"}')), "cannot load"),
+])
+def test_bad_model_folders_are_one_line_errors(tmp_path, photo, setup, message):
+    folder = tmp_path / "model"
+    setup(folder)
+    with pytest.raises(br.InputError, match=message):
+        depth_model.estimate_disparity(photo, folder)
+
+
+def test_a_hub_name_is_not_downloaded(photo, monkeypatch):
+    monkeypatch.chdir("/tmp")
+    with pytest.raises(br.InputError, match="there is none"):
+        depth_model.estimate_disparity(photo, "depth-anything/Depth-Anything-V2-Small-hf")
+
+
+def test_cli_depth_model_renders_and_saves_the_map(models, photo, tmp_path, capsys):
+    img = br.write_image(tmp_path / "p.png", photo)
+    code = main(["render", str(img), "--depth-model", str(models["da"]), "-o", str(tmp_path / "o.jpg"),
+                 "--save-depth"])
+    out = capsys.readouterr()
+    assert code == 0, out.err
+    assert "depth: estimated by the Depth Anything (V1/V2) model" in out.out and "Loading" not in out.err
+    saved = tmp_path / "o-disparity.png"
+    assert f"saved to {saved}" in out.out
+    want, _ = depth_model.estimate_disparity(br.read_image(img), models["da"])
+    np.testing.assert_allclose(br.read_disparity(saved), want, atol=1 / 65535 + 1e-6)
+    code = main(["render", str(img), "--depth-model", str(models["da"]), "-o", str(tmp_path / "x.png"),
+                 "--normalize"])
+    assert code == 2 and "--normalize" in capsys.readouterr().err

@@ -1,0 +1,304 @@
+"""Photos and depth maps as people have them (bokehray.photo and the render command's defaults): the blur amount,
+the default focus on the subject, relative / reversed / integer / missing depth, and the CLI's messages."""
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+import bokehray as br
+from bokehray import photo
+from bokehray.cli import main
+from bokehray.demo import build_demo_scene
+
+DEVSET = Path("/work/shared/data/pathtraced-dev")
+if not DEVSET.exists():
+    DEVSET = Path(__file__).resolve().parents[3] / "shared" / "data" / "pathtraced-dev"
+DEV_SCENES = ("d1_wire_mesh", "d2_leafy_twig", "d3_lamps_ring_writing")
+
+
+def run(capsys, *args):
+    code = main([str(a) for a in args])
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+@pytest.fixture(scope="module")
+def demo():
+    return build_demo_scene(width=384, height=256)
+
+
+# --------------------------------------------------------------------------- blur amount
+
+
+@pytest.mark.parametrize(("h", "w"), [(256, 384), (816, 1224), (3000, 4000)])
+def test_amount_is_a_fraction_of_the_diagonal(h, w):
+    assert photo.k_from_amount(0, h, w) == 0.0
+    assert photo.k_from_amount(100, h, w) == pytest.approx(photo.AMOUNT_K_FRACTION * math.hypot(h, w))
+    k = photo.k_from_amount(50, h, w)
+    assert k / math.hypot(h, w) == pytest.approx(0.03)  # the same look at every resolution
+    assert photo.amount_from_k(k, h, w) == pytest.approx(50)
+
+
+@pytest.mark.parametrize("bad", [-1, 100.5, float("nan"), float("inf"), True, "50"])
+def test_amount_out_of_range_is_refused(bad):
+    with pytest.raises(br.InputError, match="amount"):
+        photo.k_from_amount(bad, 10, 10)
+
+
+# --------------------------------------------------------------------------- default focus
+
+
+def test_default_focus_lands_on_the_demo_cat(demo):
+    subject = photo.subject_focus(demo.disparity)
+    assert 0.86 <= subject.d_f <= 0.92  # the cat: 0.92 at the centre, 0.86 at the rim; grass (0.95+) is skipped
+    h, w = demo.disparity.shape
+    assert w / 2 < subject.x < w and 0 < subject.y < h  # the cat sits right of centre
+    assert abs(subject.d_f - demo.focus_near) * demo.k_px < 3.0  # within a few pixels of CoC of the demo's focus
+
+
+@pytest.mark.skipif(not DEVSET.exists(), reason="the path-traced dev set is not here")
+@pytest.mark.parametrize("name", DEV_SCENES)
+def test_default_focus_lands_on_the_devset_subject(name):
+    """The subject of each dev-set scene is its nearest layer (mesh, twig, ring: focus F0); the default focus must
+    fall inside that layer's disparity range, not on the large layers behind it."""
+    info = json.loads((DEVSET / name / "info.json").read_text())
+    d = br.read_disparity(DEVSET / name / "disparity.exr")
+    z = br.read_depth(DEVSET / name / "depth.exr")
+    near = z <= 1.8  # every scene's front layer lies within 1.14 .. 1.71 scene units, the next beyond 2.5
+    subject = photo.subject_focus(d)
+    assert float(d[near].min()) - 1e-6 <= subject.d_f <= float(d[near].max()) + 1e-6
+    assert abs(subject.d_f - info["focus_disparities"][0]) * 32 < 4.0  # < 4 px CoC from F0 at the largest K
+    assert near[subject.y, subject.x] or subject.share < 0.2  # a sparse layer's centroid may fall in a gap
+
+
+@given(hnp.arrays(np.float32, st.tuples(st.integers(1, 40), st.integers(1, 40)),
+                  elements=st.floats(0, 1, width=32)))
+def test_default_focus_is_a_disparity_of_the_map(d):
+    subject = photo.subject_focus(d)
+    assert float(d.min()) <= subject.d_f <= float(d.max())
+    assert subject.d_f in d
+    assert 0 <= subject.x < d.shape[1] + 1 and 0 <= subject.y < d.shape[0] + 1
+    assert 0 < subject.share <= 1 + 1e-9
+
+
+# --------------------------------------------------------------------------- depth conventions
+
+
+@given(hnp.arrays(np.float64, st.tuples(st.integers(2, 30), st.integers(2, 30)),
+                  elements=st.floats(-1e4, 1e4, allow_nan=False)),
+       st.booleans())
+def test_normalize_is_in_range_and_keeps_the_order(v, invert):
+    if v.max() == v.min():
+        with pytest.raises(br.InputError, match="constant"):
+            photo.normalize_relative(v)
+        return
+    d = photo.normalize_relative(v, invert=invert)
+    assert d.dtype == np.float32 and d.min() >= 0 and d.max() <= 1
+    flat_v, flat_d = v.ravel(), d.ravel().astype(np.float64)
+    order = np.argsort(flat_v, kind="stable")
+    steps = np.diff(flat_d[order])
+    assert (steps <= 1e-6).all() if invert else (steps >= -1e-6).all()
+
+
+def test_normalize_uses_robust_percentiles():
+    rng = np.random.default_rng(0)
+    v = rng.uniform(0.39, 6.87, (200, 200))  # a raw relative inverse-depth map
+    v[0, 0] = 1e6  # one wild outlier does not squash the rest
+    d = photo.normalize_relative(v)
+    assert d[0, 0] == 1.0
+    assert 0.45 < float(np.median(d)) < 0.55
+
+
+def test_reversed_map_is_flagged_and_the_right_one_is_not(demo):
+    assert photo.looks_reversed(demo.disparity) == (False, "")
+    flagged, why = photo.looks_reversed(1.0 - demo.disparity)
+    assert flagged and "border" in why
+
+
+@pytest.mark.skipif(not DEVSET.exists(), reason="the path-traced dev set is not here")
+@pytest.mark.parametrize("name", DEV_SCENES)
+def test_reversed_heuristic_on_the_devset(name):
+    d = br.read_disparity(DEVSET / name / "disparity.exr")
+    assert not photo.looks_reversed(d)[0]
+    assert photo.looks_reversed(1.0 - d)[0]
+
+
+def test_missing_depth_is_infinitely_far():
+    z = np.full((8, 10), 2.0)
+    z[:, :5] = 4.0
+    z[0, 0], z[1, 1], z[2, 2] = 0.0, -3.0, np.inf
+    d, norm, missing = photo.depth_to_disparity(z, source="z.npy")
+    assert missing == pytest.approx(3 / 80)
+    assert d[0, 0] == d[1, 1] == d[2, 2] == 0.0
+    assert norm.z_near_m == 2.0 and math.isinf(norm.z_far_m)
+    z[3, 3] = np.nan
+    with pytest.raises(br.InputError, match=r"z\.npy: .*NaN at \(y, x\) = \(3, 3\)"):
+        photo.depth_to_disparity(z, source="z.npy")
+    with pytest.raises(br.InputError, match="no pixel has a depth"):
+        photo.depth_to_disparity(np.zeros((3, 3)), source="z.npy")
+
+
+def test_integer_depth_needs_a_scale(tmp_path):
+    from PIL import Image
+
+    mm = np.full((6, 8), 1500, np.uint16)
+    mm[:, 4:] = 3000
+    Image.fromarray(mm).save(tmp_path / "mm.png")
+    with pytest.raises(br.InputError, match=r"mm\.png: holds integer codes .*--depth-scale"):
+        photo.read_depth_map(tmp_path / "mm.png")
+    z = photo.read_depth_map(tmp_path / "mm.png", scale=0.001)
+    np.testing.assert_allclose(z, mm * 0.001)
+    with pytest.raises(br.InputError, match="--depth-scale"):
+        photo.read_depth_map(tmp_path / "mm.png", scale=0.0)
+
+
+# --------------------------------------------------------------------------- the command line
+
+
+@pytest.fixture
+def files(tmp_path, demo):
+    return {
+        "img": br.write_image(tmp_path / "in.png", demo.image),
+        "disp": br.write_disparity(tmp_path / "d.png", demo.disparity),
+        "rev": br.write_disparity(tmp_path / "rev.png", 1.0 - demo.disparity),
+    }
+
+
+def test_image_and_map_alone_render_with_defaults_said(files, tmp_path, capsys, demo):
+    code, out, err = run(capsys, "render", files["img"], "--disparity", files["disp"], "-o", tmp_path / "o.png")
+    assert code == 0, err
+    assert "blur: --amount 50 -> K = 13.8 px (3.0% of the 462-px diagonal) (the default)" in out
+    assert "focus: on the subject" in out and err == ""
+    d_f = float(out.split("d_f = ")[1].split(" ")[0])
+    assert 0.86 <= d_f <= 0.92
+    assert br.read_image(tmp_path / "o.png").shape == demo.image.shape
+
+
+def test_amount_is_the_same_look_at_two_resolutions(tmp_path, capsys):
+    small, big = build_demo_scene(width=192, height=128), build_demo_scene(width=384, height=256)
+    ks = []
+    for s, name in ((small, "s"), (big, "b")):
+        img, disp = br.write_image(tmp_path / f"{name}.png", s.image), br.write_disparity(tmp_path / f"{name}d.png",
+                                                                                          s.disparity)
+        code, out, err = run(capsys, "render", img, "--disparity", disp, "-o", tmp_path / f"{name}o.png",
+                             "--amount", 40, "--focus", 0.5)
+        assert code == 0, err
+        ks.append(float(out.split("(K = ")[1].split(" ")[0]))
+    assert ks[1] == pytest.approx(2 * ks[0], rel=1e-3)  # twice the pixels across: twice K, the same look
+
+
+def test_reversed_map_warns_and_invert_renders_the_same(files, tmp_path, capsys):
+    code, out, err = run(capsys, "render", files["img"], "--disparity", files["rev"], "-o", tmp_path / "r.png",
+                         "--blur", 8, "--focus", 0.5)
+    assert code == 0
+    assert err.startswith("bokehray: warning:") and "rev.png" in err and "--invert" in err and err.count("\n") == 1
+    code, _, err = run(capsys, "render", files["img"], "--disparity", files["rev"], "-o", tmp_path / "i.png",
+                       "--blur", 8, "--focus", 0.5, "--invert")
+    assert code == 0 and err == ""
+    code, _, err = run(capsys, "render", files["img"], "--disparity", files["disp"], "-o", tmp_path / "n.png",
+                       "--blur", 8, "--focus", 0.5)
+    a, b = br.read_image(tmp_path / "i.png"), br.read_image(tmp_path / "n.png")
+    assert np.abs(a - b).max() < 2e-2  # 1 - (1 - d) through 16-bit codes: the same render up to rounding
+
+
+def test_relative_map_of_any_range_with_normalize(files, tmp_path, capsys, demo):
+    raw = (0.39 + 6.48 * demo.disparity).astype(np.float32)  # a raw relative inverse-depth map, 0.39 .. 6.87
+    np.save(tmp_path / "rel.npy", raw)
+    code, _, err = run(capsys, "render", files["img"], "--disparity", tmp_path / "rel.npy", "-o", tmp_path / "o.png")
+    assert code == 2 and "rel.npy" in err and "--normalize" in err
+    code, out, err = run(capsys, "render", files["img"], "--disparity", tmp_path / "rel.npy", "-o", tmp_path / "o.png",
+                         "--normalize")
+    assert code == 0, err
+    assert "normalised from [" in out and "percentiles" in out
+
+
+def test_millimetre_png_with_depth_scale_and_a_lens(tmp_path, capsys, files):
+    from PIL import Image
+
+    h, w = 256, 384
+    mm = np.full((h, w), 4000, np.uint16)
+    mm[60:200, 200:330] = 1200  # a subject at 1.2 m before a wall at 4 m
+    mm[:20] = 0  # no measurement: sky
+    Image.fromarray(mm).save(tmp_path / "mm.png")
+    code, _, err = run(capsys, "render", files["img"], "--depth", tmp_path / "mm.png", "-o", tmp_path / "o.png")
+    assert code == 2 and "mm.png" in err and "--depth-scale" in err
+    code, out, err = run(capsys, "render", files["img"], "--depth", tmp_path / "mm.png", "-o", tmp_path / "o.png",
+                         "--depth-scale", 0.001, "--focal-length", 50, "--f-number", 2, "--focus-distance", 1.2)
+    assert code == 0, err
+    assert "7.8% of" in out and "infinitely far (sky)" in out
+    assert "d_f = 1.0000" in out  # focused on the subject, the nearest depth
+
+
+# --------------------------------------------------------------------------- clipped highlights
+
+
+def _lamp_scene():
+    """A dark frame with a warm lamp of radiance (6, 3, 1.5) of radius 4 px, stored clipped in 8 bits."""
+    h = w = 40
+    yy, xx = np.mgrid[:h, :w]
+    cover = np.clip(4.5 - np.hypot(yy - 20, xx - 20), 0, 1)[..., None]  # antialiased rim: partial coverage
+    hdr = 0.02 + cover * np.array([6.0, 3.0, 1.5])
+    codes = np.round(br.io.linear_to_srgb(np.clip(hdr, 0, 1)) * 255)
+    return hdr.astype(np.float32), br.io.srgb_to_linear(codes / 255.0)
+
+
+def test_a_clipped_lamp_is_re_inflated_with_its_rim_colour():
+    hdr, img8 = _lamp_scene()
+    out, found = photo.reconstruct_highlights(img8)
+    assert found == 1
+    clipped = img8 >= photo.CLIP_LEVEL
+    np.testing.assert_array_equal(out[~clipped], img8[~clipped])  # unclipped channels are exact: kept
+    assert (out[clipped] >= 1.0).all()
+    centre = out[20, 20]
+    assert centre.max() == pytest.approx(photo.HIGHLIGHT_GAIN)
+    assert centre[0] > centre[1] > centre[2] - 1e-6  # warm, as the rim shows
+    # the light's energy comes back much closer to the truth than the clipped file has it
+    assert abs(out.sum() - hdr.sum()) < 0.5 * abs(img8.sum() - hdr.sum())
+
+
+def test_reconstruction_leaves_unclipped_and_one_channel_clipped_images_alone():
+    rng = np.random.default_rng(0)
+    img = (rng.random((30, 30, 3)) * 0.9).astype(np.float32)
+    assert photo.reconstruct_highlights(img)[1] == 0
+    red = img.copy()
+    red[5:12, 5:12, 0] = 1.0  # a saturated red clipped in one channel: no white core, not a light
+    out, found = photo.reconstruct_highlights(red)
+    assert found == 0 and np.array_equal(out, red)
+
+
+def test_render_reconstructs_for_8_bit_but_never_for_exr(tmp_path, capsys):
+    hdr, img8 = _lamp_scene()
+    d = np.full(img8.shape[:2], 0.5, np.float32)
+    br.write_disparity(tmp_path / "d.png", d)
+    png, exr = br.write_image(tmp_path / "l.png", img8), br.write_image(tmp_path / "l.exr", img8)
+    common = ["--disparity", tmp_path / "d.png", "--blur", 10, "--focus", 0.0]
+    code, out, _ = run(capsys, "render", png, *common, "-o", tmp_path / "a.exr")
+    assert code == 0 and "1 clipped highlight reconstructed" in out
+    code, out, _ = run(capsys, "render", png, *common, "-o", tmp_path / "b.exr", "--no-highlight-reconstruction")
+    assert code == 0 and "highlight" not in out
+    code, out, _ = run(capsys, "render", exr, *common, "-o", tmp_path / "c.exr")
+    assert code == 0 and "highlight" not in out
+    a, b, c = (br.read_image(tmp_path / f"{n}.exr") for n in "abc")
+    assert a.sum() > 2 * b.sum() and np.allclose(b, c, atol=1e-6)
+
+
+def test_progress_bar_covers_every_stage_on_a_terminal(files, tmp_path, capsys, monkeypatch):
+    import sys
+
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True, raising=False)
+    for quality in ("preview", "raytrace"):
+        code = main([str(a) for a in ("render", files["img"], "--disparity", files["disp"], "-o",
+                                      tmp_path / "o.png", "--blur", 6, "--focus", 0.5, "--quality", quality,
+                                      "--max-spp", 4)])
+        err = capsys.readouterr().err
+        assert code == 0
+        for stage in ("read", "render", "write"):
+            assert stage in err, (quality, stage, err)
+        if quality == "preview":  # the preview reports its layers: the bar reaches the end of the render stage
+            assert " 93%" in err  # read 5 + render 60 of 70 = 93 %: every layer was counted
