@@ -120,7 +120,9 @@ def build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--size", type=int, default=512, help="image side in pixels (default 512)")
     sy.add_argument("--blur-levels", default="10,20,30", help="K values, comma separated (default 10,20,30)")
     sy.add_argument("--max-spp", type=int, default=64, help="rays per pixel cap (default 64)")
-    sy.add_argument("--workers", type=int, default=None, help="worker processes (default: all cores)")
+    from .executor import add_executor_args
+
+    add_executor_args(sy)
     sy.add_argument("--overwrite", action="store_true", help="replace scenes that exist already")
     _add_lens_args(sy)
     sy.add_argument("--debug", action="store_true", help="show tracebacks")
@@ -376,7 +378,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
     config = SynthConfig(size=args.size, blur_levels=levels, aperture=_aperture(args), max_spp=args.max_spp,
                          fg_dir=args.fg, bg_dir=args.bg)
     paths = generate(config, args.n, args.output, seed=args.seed, workers=args.workers, progress=not args.quiet,
-                     overwrite=args.overwrite)
+                     overwrite=args.overwrite, executor=args.executor, scheduler=args.scheduler)
     if not args.quiet:
         print(f"wrote {len(paths)} scenes to {args.output}")
     return 0
