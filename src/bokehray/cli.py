@@ -57,6 +57,7 @@ class _Parser(argparse.ArgumentParser):
 
 def build_parser() -> argparse.ArgumentParser:
     from . import __version__
+    from .batch import add_batch_args, parse_sweep
 
     parser = _Parser(
         prog="bokehray",
@@ -78,8 +79,8 @@ def build_parser() -> argparse.ArgumentParser:
     src.add_argument("--depth", help="metric depth map in metres: EXR, float TIFF or NPY")
     r.add_argument("-o", "--output", required=True, help="output: .png .jpg .tif .exr")
     b = r.add_argument_group("blur as K and focus disparity")
-    b.add_argument("--blur", type=float, help="K: CoC radius in pixels per unit disparity")
-    b.add_argument("--focus", type=float, help="focus disparity d_f in [0, 1]")
+    b.add_argument("--blur", type=parse_sweep, help="K: CoC radius in pixels per unit disparity")
+    b.add_argument("--focus", type=parse_sweep, help="focus disparity d_f in [0, 1]")
     b.add_argument("--focus-at", type=_parse_xy, metavar="X,Y",
                    help="focus where this pixel is (median disparity in a 9 x 9 window)")
     lens = r.add_argument_group("blur as a physical thin lens (needs --depth)")
@@ -105,6 +106,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="then run the neural refiner near depth edges (preview quality; needs the 'refiner' extra); "
                    "default: the shipped weights, or WEIGHTS from bokehray train-refiner")
     _add_device_args(r)
+    add_batch_args(r)  # folders, globs, manifests, sweeps: bokehray.batch
 
     sy = sub.add_parser(
         "synth",
@@ -220,6 +222,10 @@ def _check_output(path: str, args: argparse.Namespace) -> None:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
+    from .batch import is_batch, run_batch
+
+    if is_batch(args):  # folders, globs, manifests or a focal sweep (docs/scale.md)
+        return run_batch(args)
     from . import io
     from .lens import BlurParams, DepthNormalization, ThinLens, disparity_from_depth
     from .pipeline import focus_at, render_with_stats
