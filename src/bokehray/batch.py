@@ -7,8 +7,8 @@ The command line names the photos with the positional argument (a file, a folder
 * **a suffix** (``--map-suffix _disp``): ``IMG_01.jpg`` pairs with ``IMG_01_disp.png``, the maps may then lie in
   the photos' folder (files whose stem ends with the suffix are maps, not photos);
 * **a manifest CSV** (``--disparity pairs.csv``): a header with ``image`` and ``disparity`` (or ``depth``, or
-  ``map``) columns; ``image`` is a photo's file name (or its path relative to the photos' folder), the map path
-  is relative to the CSV's folder. Rows for photos that are not among the inputs are ignored.
+  ``map``) columns; ``image`` is a photo's path (relative to the CSV's folder, like the map's) or just its file
+  name. Rows for photos that are not among the inputs are ignored.
 
 Each photo gives one output ``OUT/<stem>.<ext>`` (``--output-format``, default: the photo's own format); with a
 sweep (``--focus 0.1:0.9:9`` or ``--blur 4,8,16``) each photo gives a focal stack ``OUT/<stem>_focus_0.100.<ext>``
@@ -164,9 +164,10 @@ def find_pairs(images: str, maps: str, *, kind: str = "disparity", suffix: str =
         table = _manifest(mp, kind)
         files, root = _listing(images, IMAGE_EXTS, "image")
         pairs = []
+        by_path = {(mp.parent / k).resolve(): m for k, m in table.items()}
         for f in files:
-            keys = [f.name, str(f)] + ([str(f.relative_to(root))] if root is not None else [])
-            m = next((table[k] for k in keys if k in table), None)
+            keys = [f.name] + ([str(f.relative_to(root))] if root is not None else [])
+            m = by_path.get(f.resolve()) or next((table[k] for k in keys if k in table), None)
             pairs.append(Pair(f, m) if m is not None else Pair(f, None, f"no {kind} map listed in {mp}"))
         return pairs
     if mp.suffix.lower() == ".csv":

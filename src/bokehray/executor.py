@@ -211,7 +211,8 @@ class DaskExecutor(Executor):
                 self.address = scheduler
             else:
                 self._cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                             host="127.0.0.1", dashboard_address=None, silence_logs=logging.ERROR)
+                                             host="127.0.0.1",
+                                             dashboard_address="127.0.0.1:0", silence_logs=logging.ERROR)
                 self.client = Client(self._cluster)
                 self.address = self._cluster.scheduler_address
         except BaseException:
