@@ -4,12 +4,12 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint bench-quick bench-compare-quick soak-quick clean
+.PHONY: demo test lint bench-quick bench-compare-quick bench-scale-quick soak-quick clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e ".[dev,refiner]"
+	$(BIN)/pip install --quiet -e ".[dev,refiner,distributed]"
 	touch $(STAMP)
 
 demo: $(STAMP)
@@ -30,6 +30,10 @@ bench-quick: $(STAMP)
 # are not installed are skipped with a one-line message
 bench-compare-quick: $(STAMP)
 	$(BIN)/bokehray bench --quick --out out/bench
+
+# local pool vs Dask with 2 workers: engine cost per task, scenes/min, MP/s (docs/scale.md)
+bench-scale-quick: $(STAMP)
+	$(BIN)/python benchmarks/bench_scale.py --quick --out out/bench-scale --plots out/bench-scale
 
 soak-quick: $(STAMP)
 	$(BIN)/python benchmarks/soak.py --cases 300 --seed 1

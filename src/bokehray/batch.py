@@ -26,6 +26,7 @@ import csv
 import glob
 import hashlib
 import json
+import os
 import sys
 import time
 from collections.abc import Sequence
@@ -227,11 +228,13 @@ class RenderSettings:
     bit_depth: int | None = None
     half: bool = False
     device: str = "cpu"
+    threads: int | None = None  # preview CPU threads per render (None: all cores); the output does not depend on it
 
     def fingerprint(self) -> str:
-        """What makes two renders of the same inputs the same (the device is not part of it)."""
+        """What makes two renders of the same inputs the same (the device and threads are not part of it)."""
         d = asdict(self)
         d.pop("device")
+        d.pop("threads")
         return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 
@@ -280,7 +283,7 @@ def render_file(task: RenderTask) -> dict:
 
     from . import io
     from .lens import Aperture, DepthNormalization, disparity_from_depth
-    from .options import LayerOptions, RaytraceOptions
+    from .options import LayerOptions, PreviewOptions, RaytraceOptions
     from .pipeline import render_with_stats
 
     t0 = time.perf_counter()
@@ -310,8 +313,9 @@ def render_file(task: RenderTask) -> dict:
     layers = LayerOptions(**({"max_layers": s.max_layers} if s.max_layers is not None else {}),
                           **({} if s.fill else {"fill": False}))
     rt = RaytraceOptions(max_spp=s.max_spp)
+    options = rt if s.quality == "raytrace" else PreviewOptions(threads=s.threads) if s.quality == "preview" else None
     out, stats = render_with_stats(image, disparity, blur, aperture, quality=s.quality, device=s.device,
-                                   options=rt if s.quality == "raytrace" else None, layers=layers,
+                                   options=options, layers=layers,
                                    highlight_boost=s.highlight_boost, refine=s.refine)
     io.write_image(task.output, out, bit_depth=s.bit_depth, half=s.half)
     return {"output": task.output, "pixels": h * w, "seconds": time.perf_counter() - t0,
@@ -463,6 +467,9 @@ def run_batch(args: argparse.Namespace) -> int:
         if todo:
             with make_executor(args.executor, workers=args.workers, scheduler=args.scheduler,
                                tasks=len(todo)) as ex:
+                if ex.workers > 1 and not args.scheduler:  # the workers share this machine's cores
+                    share = max(1, (os.cpu_count() or 1) // ex.workers)
+                    todo = [replace(t, settings=replace(t.settings, threads=share)) for t in todo]
                 if not quiet:
                     print(f"rendering {len(todo)} of {len(tasks)} outputs on {ex.describe()}"
                           + (f" ({skipped} done already)" if skipped else ""), file=sys.stderr)

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import logging
+import subprocess
+import sys
 import time
 
 import pytest
@@ -107,3 +109,29 @@ def test_remove_stale_temporaries_touches_only_the_named_outputs(tmp_path):
     assert remove_stale_temporaries(tmp_path, names) == 2
     left = sorted(p.name for p in tmp_path.iterdir())
     assert left == [".a.pngx", ".b.png.q.png", ".scene_00001.old-abc", ".scene_000010.tmp-1", "a.png"]
+
+
+def test_bench_split_and_synth_cli_go_through_the_seam(tmp_path, capsys):
+    from bokehray.bench.run import SynthSplit, synth_cases
+    from bokehray.cli import build_parser
+
+    split = SynthSplit(scenes=2, size=40, blur_levels=(5.0,), max_spp=4, seed=11)
+    cases, root = synth_cases(split, tmp_path, workers=2, executor="local", progress=False, log=lambda s: None)
+    assert len(cases) == 2 * 2 and (root / "COMPLETE").is_file()
+    assert not [p for p in root.iterdir() if p.name.startswith(".")]
+    for cmd in (["bench"], ["synth", "-o", "x"]):
+        args = build_parser().parse_args([*cmd, "--executor", "dask", "--scheduler", "tcp://127.0.0.1:8786"])
+        assert args.executor == "dask" and args.scheduler == "tcp://127.0.0.1:8786"
+
+
+def test_dask_missing_is_one_clear_line(monkeypatch):
+    monkeypatch.setitem(sys.modules, "distributed", None)  # as if the extra were not installed
+    with pytest.raises(InputError, match=r"--executor dask needs its extra: pip install 'bokehray\[distributed\]'"):
+        make_executor("dask", workers=1)
+
+
+def test_import_bokehray_imports_no_dask():
+    code = ("import sys, bokehray, bokehray.batch, bokehray.executor, bokehray.cli; bokehray.cli.build_parser(); "
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('dask', 'distributed')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"
