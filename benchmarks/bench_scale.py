@@ -94,9 +94,15 @@ def main() -> int:
     ap.add_argument("--rounds", type=int, default=None, help="timed rounds per executor (default 2, quick 1)")
     ap.add_argument("--default-scenes", type=int, default=None,
                     help="512 px default scenes timed in this process (default 3, quick 1)")
+    ap.add_argument("--plot-only", metavar="JSON", help="redraw the plot of an earlier result and stop")
     ap.add_argument("--out", default=str(common.REPO / "benchmarks" / "results"))
     ap.add_argument("--plots", default=str(common.REPO / "docs" / "img"))
     args = ap.parse_args()
+    if args.plot_only:
+        import json
+
+        _plot(json.loads(Path(args.plot_only).read_text()), Path(args.plots) / "scale_throughput.png")
+        return 0
     rounds = args.rounds or (1 if args.quick else 2)
     args.default_scenes = args.default_scenes or (1 if args.quick else 3)
     w = args.workers
@@ -178,12 +184,14 @@ def main() -> int:
                               "noop_tasks": noop_n}
         # scenes at the default size (512 px, K 10/20/30, 64 spp), in this process: time and bytes (EXR + PNG)
         out = tmp / "default-scene"
-        secs = []
+        secs, cpus = [], []
         for i in range(args.default_scenes):
-            t = time.perf_counter()
+            c, t = time.process_time(), time.perf_counter()
             _generate_one((SynthConfig(), 0, i, str(out), True))
             secs.append(time.perf_counter() - t)
+            cpus.append(time.process_time() - c)
         result["default_scene_seconds_inline"] = secs
+        result["default_scene_cpu_seconds_inline"] = cpus
         result["synth_bytes_per_scene"][512] = {k: v / args.default_scenes if k != "by_extension" else
                                                 {e: b / args.default_scenes for e, b in v.items()}
                                                 for k, v in _bytes(out).items()}
@@ -211,9 +219,11 @@ def _plot(result: dict, path: Path) -> None:
 
     rows = result["executors"]
     names = list(rows)
-    fig, axes = plt.subplots(1, 3, figsize=(11, 3.2))
-    for ax, key, title in zip(axes, ("synth_scenes_per_minute", "render_mp_per_second", "noop_us_per_task"),
-                              ("synth: scenes / min", "batch render: MP / s", "engine cost: us / no-op task")):
+    fig, axes = plt.subplots(1, 4, figsize=(14, 3.3))
+    for ax, key, title in zip(axes, ("synth_scenes_per_minute", "render_mp_per_second", "synth_cpu_seconds_per_scene",
+                                     "noop_us_per_task"),
+                              ("synth: scenes / min (wall)", "batch render: MP / s (wall)",
+                               "synth: CPU s / scene (all processes)", "engine cost: us / no-op task")):
         vals = [rows[n][key] for n in names]
         ax.bar(names, vals, color=["#888", "#4a7", "#47a"])
         ax.set_title(title, fontsize=10)
@@ -221,7 +231,8 @@ def _plot(result: dict, path: Path) -> None:
             ax.text(i, v, f"{v:.3g}", ha="center", va="bottom", fontsize=9)
         ax.set_yscale("log" if key == "noop_us_per_task" else "linear")
     wl = result["workload"]
-    fig.suptitle(f"{result['machine']['cores']} cores; synth {wl['synth']['scenes']} x {wl['synth']['size']} px, "
+    cores = ", ".join(f"{n} {rows[n]['synth_cores_used']:.2f}" for n in names)
+    fig.suptitle(f"{result['machine']['cores']} cores shared (cores this run got in synth: {cores}); synth {wl['synth']['scenes']} x {wl['synth']['size']} px, "
                  f"render {wl['render']['photos']} x {wl['render']['size'][0]}x{wl['render']['size'][1]} preview",
                  fontsize=10)
     fig.tight_layout()
