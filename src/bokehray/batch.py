@@ -463,6 +463,7 @@ def run_batch(args: argparse.Namespace) -> int:
     quiet = args.quiet
     done_pixels, t0 = 0, time.perf_counter()
     failed_outputs: set[str] = set()
+    finished = 0
     try:
         if todo:
             with make_executor(args.executor, workers=args.workers, scheduler=args.scheduler,
@@ -477,10 +478,15 @@ def run_batch(args: argparse.Namespace) -> int:
                     for o in ex.map(render_file, todo):
                         if o.ok:
                             done_pixels += o.value["pixels"]
+                            finished += 1
                         else:
                             failures.append((todo[o.index].image, o.error))
                             failed_outputs.add(todo[o.index].output)
                         bar.update()
+    except KeyboardInterrupt:
+        print(f"bokehray: interrupted after {finished} of {len(todo)} renders; they are complete in {out}, "
+              "run the same command again to render the rest", file=sys.stderr)
+        return 130
     finally:
         remove_stale_temporaries(out, names)
     wall = time.perf_counter() - t0
