@@ -96,10 +96,10 @@ def _is_glob(text: str) -> bool:
 def is_batch(args: argparse.Namespace) -> bool:
     """Whether ``bokehray render`` was given many inputs or a sweep (else: the single-file path)."""
     maps = args.disparity or args.depth
+    # a single photo with a folder as its map stays on the single-file path (which names the folder as the error)
     return (Path(args.image).is_dir() or (_is_glob(args.image) and not Path(args.image).exists())
             or isinstance(args.focus, tuple) or isinstance(args.blur, tuple)
-            or (maps is not None and (Path(maps).is_dir() or maps.lower().endswith(".csv")
-                                      or (_is_glob(maps) and not Path(maps).exists()))))
+            or (maps is not None and (maps.lower().endswith(".csv") or (_is_glob(maps) and not Path(maps).exists()))))
 
 
 # --------------------------------------------------------------------------- pairing
