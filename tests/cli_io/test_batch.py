@@ -218,3 +218,24 @@ def test_batch_and_synth_are_byte_identical_on_local_pool_and_dask(shoot, capsys
     assert len(outs["local"]) == 1 + 6 + 3 + 2 * 9  # state, 6 frames, 3 GIFs, 2 scenes of 9 files
     assert outs["local"].keys() == outs["dask"].keys()
     assert [k for k in outs["local"] if outs["local"][k] != outs["dask"][k]] == []
+
+
+@given(st.sets(st.from_regex(r"[A-Za-z0-9][A-Za-z0-9_-]{0,8}", fullmatch=True), min_size=1, max_size=6),
+       st.sampled_from(["", "_disp", "-d"]), st.booleans())
+def test_every_photo_pairs_with_its_own_map(stems, suffix, same_folder):
+    import tempfile
+    from pathlib import Path
+
+    stems = {s for s in stems if not (suffix and s.endswith(suffix))}  # a photo named like a map is a map
+    same_folder = same_folder and bool(suffix)  # without a suffix the maps must live apart (tested above)
+    with tempfile.TemporaryDirectory() as tmp:
+        photos = Path(tmp) / "photos"
+        maps = photos if same_folder else Path(tmp) / "maps"
+        photos.mkdir()
+        maps.mkdir(exist_ok=True)
+        for s in stems:
+            (photos / f"{s}.jpg").write_bytes(b"")
+            (maps / f"{s}{suffix}.png").write_bytes(b"")
+        pairs = find_pairs(str(photos), str(maps), suffix=suffix)
+        assert sorted(p.image.stem for p in pairs) == sorted(stems)
+        assert all(p.map is not None and p.map.name == f"{p.image.stem}{suffix}.png" for p in pairs)
