@@ -4,12 +4,12 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint bench-quick bench-compare-quick bench-view-quick soak-quick clean
+.PHONY: demo test lint bench-quick bench-compare-quick bench-view-quick bench-scale-quick soak-quick clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e ".[dev,refiner,view,test-browser]"
+	$(BIN)/pip install --quiet -e ".[dev,refiner,view,test-browser,distributed]"
 	touch $(STAMP)
 
 demo: $(STAMP)
@@ -34,6 +34,9 @@ bench-compare-quick: $(STAMP)
 # live-preview latency of bokehray view (docs/view.md); the full run writes benchmarks/results and docs/img
 bench-view-quick: $(STAMP)
 	$(BIN)/python benchmarks/bench_view.py --quick --out out/bench-view
+# local pool vs Dask with 2 workers: engine cost per task, scenes/min, MP/s (docs/scale.md)
+bench-scale-quick: $(STAMP)
+	$(BIN)/python benchmarks/bench_scale.py --quick --out out/bench-scale --plots out/bench-scale
 
 soak-quick: $(STAMP)
 	$(BIN)/python benchmarks/soak.py --cases 300 --seed 1

@@ -97,6 +97,7 @@ class _Parser(argparse.ArgumentParser):
 
 def build_parser() -> argparse.ArgumentParser:
     from . import __version__
+    from .batch import add_batch_args, parse_sweep
 
     parser = _Parser(
         prog="bokehray",
@@ -139,8 +140,8 @@ def build_parser() -> argparse.ArgumentParser:
     blur.add_argument("--amount", type=float, metavar="0..100",
                       help=f"blur strength independent of resolution: K = amount/100 x "
                       f"{AMOUNT_K_FRACTION:.0%} of the image diagonal (default {AMOUNT_DEFAULT:g})".replace("%", "%%"))
-    blur.add_argument("--blur", type=float, metavar="K", help="K: CoC radius in pixels per unit disparity")
-    b.add_argument("--focus", type=float, metavar="D_F", help="focus disparity d_f in [0, 1]")
+    blur.add_argument("--blur", type=parse_sweep, metavar="K", help="K: CoC radius in pixels per unit disparity")
+    b.add_argument("--focus", type=parse_sweep, metavar="D_F", help="focus disparity d_f in [0, 1]; a list or START:STOP:COUNT renders a focal sweep")
     b.add_argument("--focus-at", type=_parse_xy, metavar="X,Y",
                    help="focus where this pixel is (median disparity in a 9 x 9 window)")
     lens = r.add_argument_group("blur as a physical thin lens (needs a metric --depth map)")
@@ -172,6 +173,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="then run the neural refiner near depth edges (preview quality; needs the 'refiner' extra); "
                    "default: the shipped weights, or WEIGHTS from bokehray train-refiner")
     _add_device_args(r)
+    add_batch_args(r)  # folders, globs, manifests, sweeps: bokehray.batch
 
     sy = sub.add_parser(
         "synth",
@@ -187,7 +189,9 @@ def build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--size", type=int, default=512, help="image side in pixels (default 512)")
     sy.add_argument("--blur-levels", default="10,20,30", help="K values, comma separated (default 10,20,30)")
     sy.add_argument("--max-spp", type=int, default=64, help="rays per pixel cap (default 64)")
-    sy.add_argument("--workers", type=int, default=None, help="worker processes (default: all cores)")
+    from .executor import add_executor_args
+
+    add_executor_args(sy)
     sy.add_argument("--overwrite", action="store_true", help="replace scenes that exist already")
     _add_lens_args(sy)
     sy.add_argument("--debug", action="store_true", help="show tracebacks")
@@ -461,6 +465,17 @@ def _check_sizes_from_headers(args: argparse.Namespace) -> None:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
+    from .batch import is_batch, run_batch
+
+    if is_batch(args):  # folders, globs, manifests or a focal sweep (docs/scale.md)
+        return run_batch(args)
+    render_one(args)
+    return 0
+
+
+def render_one(args: argparse.Namespace) -> dict:
+    """One photo, as ``bokehray render IMAGE ... -o OUTPUT`` does it; every batch task runs this too (with
+    ``quiet``), so a batch output is the single-file output. Returns what was done (output, pixels, K, d_f)."""
     physical = _check_render_flags(args)  # before any import that takes time
     _check_output(args.output, args)
     _check_sizes_from_headers(args)
@@ -471,7 +486,7 @@ def cmd_render(args: argparse.Namespace) -> int:
         bar.close()
 
 
-def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> int:
+def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:
     from . import io, photo
     from .lens import BlurParams, ThinLens
     from .validate import check_radiance
@@ -526,12 +541,14 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> int:
     t_read = time.perf_counter() - t0
 
     _start_warp(args)
-    from .options import RaytraceOptions
+    from .options import PreviewOptions, RaytraceOptions
     from .pipeline import render_with_stats
 
     rt_opts = RaytraceOptions(max_spp=args.max_spp)  # validated whatever the quality
+    # a batch's worker processes share the machine's cores (``threads``; the output does not depend on it)
+    level_options = rt_opts if args.quality == "raytrace" else PreviewOptions(threads=getattr(args, "threads", None))
     out, stats = render_with_stats(image, disparity, blur, _aperture(args), quality=args.quality,
-                                   device=args.device, options=rt_opts if args.quality == "raytrace" else None,
+                                   device=args.device, options=level_options,
                                    layers=_layer_options(args), highlight_boost=args.highlight_boost,
                                    progress=bar.layers(), refine=args.refine)
     t1 = time.perf_counter()
@@ -550,7 +567,8 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> int:
         info["stage_seconds"] = {"read": round(t_read, 4), **info["stage_seconds"], "write": round(t_write, 4)}
         info["blur"] = {"K_px": blur.k_px, "focus_disparity": blur.focus_disparity}
         print(json.dumps(info, indent=2))
-    return 0
+    return {"output": str(path), "pixels": h * w, "seconds": time.perf_counter() - t0, "k_px": blur.k_px,
+            "focus_disparity": blur.focus_disparity}
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -625,7 +643,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
     config = SynthConfig(size=args.size, blur_levels=levels, aperture=_aperture(args), max_spp=args.max_spp,
                          fg_dir=args.fg, bg_dir=args.bg)
     paths = generate(config, args.n, args.output, seed=args.seed, workers=args.workers, progress=not args.quiet,
-                     overwrite=args.overwrite)
+                     overwrite=args.overwrite, executor=args.executor, scheduler=args.scheduler)
     if not args.quiet:
         print(f"wrote {len(paths)} scenes to {args.output}")
     return 0

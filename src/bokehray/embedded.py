@@ -152,7 +152,12 @@ def srgb_icc() -> bytes:
     if _SRGB_ICC is None:
         from PIL import ImageCms
 
-        _SRGB_ICC = ImageCms.ImageCmsProfile(ImageCms.createProfile("sRGB")).tobytes()
+        icc = bytearray(ImageCms.ImageCmsProfile(ImageCms.createProfile("sRGB")).tobytes())
+        # littleCMS stamps the profile with the time it was made (header bytes 24-35) and the MD5 of the result
+        # (84-99): a fixed date and no ID (zeros: "not computed", ICC.1 7.2.18) keep outputs byte-reproducible
+        icc[24:36] = struct.pack(">6H", 2026, 1, 1, 0, 0, 0)
+        icc[84:100] = bytes(16)
+        _SRGB_ICC = bytes(icc)
     return _SRGB_ICC
 
 

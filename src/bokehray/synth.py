@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import math
 import os
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -276,11 +275,15 @@ def _generate_one(args: tuple[SynthConfig, int, int, str, bool]) -> str:
 
 
 def generate(config: SynthConfig, n: int, out: str | os.PathLike, *, seed: int = 0, workers: int | None = None,
-             progress: bool = True, overwrite: bool = False) -> list[str]:
-    """Generate ``n`` scenes into ``out`` (BLB layout), in parallel over worker processes.
+             progress: bool = True, overwrite: bool = False, executor: str = "local",
+             scheduler: str | None = None) -> list[str]:
+    """Generate ``n`` scenes into ``out`` (BLB layout), in parallel on ``executor`` (:mod:`bokehray.executor`).
 
-    Existing scenes are an error unless ``overwrite`` (checked before any rendering).
+    Existing scenes are an error unless ``overwrite`` (checked before any rendering). Each scene is written
+    atomically by the worker that made it; the first scene that fails stops the run with its error.
     """
+    from .executor import make_executor, remove_stale_temporaries
+
     if n < 1:
         raise InputError(f"-n: expected at least 1 scene, got {n}")
     if workers is not None and workers < 1:
@@ -295,24 +298,17 @@ def generate(config: SynthConfig, n: int, out: str | os.PathLike, *, seed: int =
         _files(config.bg_dir, "background")
     Path(out).mkdir(parents=True, exist_ok=True)
     jobs = [(config, seed, i, str(out), overwrite) for i in range(n)]
-    workers = max(1, min(workers or os.cpu_count() or 1, n))
     from tqdm import tqdm
 
-    bar = tqdm(total=n, desc="scenes", unit="scene", disable=not progress)
-    done: list[str] = []
-    if workers == 1:
-        for job in jobs:
-            done.append(_generate_one(job))
-            bar.update()
-    else:
-        import multiprocessing
-
-        from ._quiet import init_warp_quietly
-
-        with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
-                                 initializer=init_warp_quietly) as pool:
-            for path in pool.map(_generate_one, jobs):
-                done.append(path)
+    done: dict[int, str] = {}
+    try:
+        with make_executor(executor, workers=workers, scheduler=scheduler, tasks=n) as ex, \
+                tqdm(total=n, desc="scenes", unit="scene", disable=not progress) as bar:
+            for o in ex.map(_generate_one, jobs):
+                if not o.ok:
+                    raise InputError(f"scene_{o.index:05d}: {o.error}")
+                done[o.index] = o.value
                 bar.update()
-    bar.close()
-    return done
+    finally:  # what workers killed mid-scene left behind (their scenes were rerun)
+        remove_stale_temporaries(Path(out), [f"scene_{i:05d}" for i in range(n)])
+    return [done[i] for i in range(n)]

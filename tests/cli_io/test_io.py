@@ -638,3 +638,19 @@ def test_read_size_refuses_what_it_cannot_read(tmp_path):
         bio.read_size(tmp_path / "x.png")
     with _raises(tmp_path / "nope.exr", "does not exist"):
         bio.read_size(tmp_path / "nope.exr")
+
+
+def test_outputs_are_byte_reproducible_across_processes(tmp_path):
+    """The sRGB profile tagging PNG/JPEG/TIFF outputs is made by littleCMS, which stamps the time it was made: two
+    runs wrote different bytes for the same image (found comparing batch outputs of two executors)."""
+    import subprocess
+    import sys
+
+    code = ("import sys, numpy as np, bokehray as br; "
+            "br.write_image(sys.argv[1], np.linspace(0, 1, 48, dtype=np.float32).reshape(4, 4, 3))")
+    outs = []
+    for i in range(2):
+        p = tmp_path / f"o{i}.png"
+        subprocess.run([sys.executable, "-c", code, str(p)], check=True)
+        outs.append(p.read_bytes())
+    assert outs[0] == outs[1]

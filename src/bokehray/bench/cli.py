@@ -35,7 +35,10 @@ def add_parser(sub) -> argparse.ArgumentParser:
     b.add_argument("--out", default="out/bench", help="folder for JSON/CSV/markdown results (default out/bench)")
     b.add_argument("--plots", help="folder for the PNG plots (default: --out)")
     b.add_argument("--cache", help="cache of the synthetic test split (default $BOKEHRAY_CACHE or ~/.cache/bokehray)")
-    b.add_argument("--workers", type=int, default=None, help="processes generating the synthetic split")
+    from ..executor import add_executor_args
+
+    add_executor_args(b, workers_help="processes generating the synthetic split (the timing itself runs in this "
+                      "process, one method at a time)")
     b.add_argument("--debug", action="store_true", help="show tracebacks")
     b.add_argument("--quiet", action="store_true", help="print only the summary")
     return b
@@ -71,7 +74,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
     else:
         split = QUICK_SPLIT if args.quick else SynthSplit()
         cache = Path(args.cache) if args.cache else default_cache()
-        cases, root = synth_cases(split, cache, workers=args.workers, progress=not args.quiet, log=log)
+        cases, root = synth_cases(split, cache, workers=args.workers, progress=not args.quiet, log=log,
+                                   executor=args.executor, scheduler=args.scheduler)
         cases = cases[: args.limit] if args.limit else cases
         tag, source = "synth-quick" if args.quick else "synth", str(root)
     runs = args.runs or (2 if args.quick else 3)

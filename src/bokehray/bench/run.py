@@ -95,7 +95,8 @@ def default_cache() -> Path:
 
 
 def synth_cases(split: SynthSplit, cache: Path, *, workers: int | None = None, progress: bool = True,
-                log: Callable[[str], None] = print) -> tuple[list[Case], Path]:
+                log: Callable[[str], None] = print, executor: str = "local",
+                scheduler: str | None = None) -> tuple[list[Case], Path]:
     """The synthetic test split, generated once into ``cache`` (BLB layout) and read back."""
     from ..datasets import BLBDataset
     from ..synth import SynthConfig, generate
@@ -107,7 +108,8 @@ def synth_cases(split: SynthSplit, cache: Path, *, workers: int | None = None, p
             f"into {root}")
         t = time.perf_counter()
         config = SynthConfig(size=split.size, blur_levels=split.blur_levels, max_spp=split.max_spp)
-        generate(config, split.scenes, root, seed=split.seed, workers=workers, progress=progress, overwrite=True)
+        generate(config, split.scenes, root, seed=split.seed, workers=workers, progress=progress, overwrite=True,
+                 executor=executor, scheduler=scheduler)
         done.write_text(json.dumps({"split": split.__dict__ | {"blur_levels": list(split.blur_levels)},
                                     "seconds": round(time.perf_counter() - t, 1)}) + "\n")
     return _blb(BLBDataset(root)), root

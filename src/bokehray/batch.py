@@ -1,0 +1,459 @@
+"""``bokehray render`` on many inputs: folders, globs, manifests, focal sweeps (docs/scale.md).
+
+The command line names the photos with the positional argument (a file, a folder or a glob) and their maps with
+``--disparity`` or ``--depth`` (a file, a folder, a glob or a manifest CSV). A photo finds its map by one rule:
+
+* **same stem**: ``shoot/IMG_01.jpg`` pairs with ``maps/IMG_01.png`` (any map extension: PNG, TIFF, EXR, NPY);
+* **a suffix** (``--map-suffix _disp``): ``IMG_01.jpg`` pairs with ``IMG_01_disp.png``, the maps may then lie in
+  the photos' folder (files whose stem ends with the suffix are maps, not photos);
+* **a manifest CSV** (``--disparity pairs.csv``): a header with ``image`` and ``disparity`` (or ``depth``, or
+  ``map``) columns; ``image`` is a photo's path (relative to the CSV's folder, like the map's) or just its file
+  name. Rows for photos that are not among the inputs are ignored.
+
+Each photo gives one output ``OUT/<stem>.<ext>`` (``--output-format``, default: the photo's own format); with a
+sweep (``--focus 0.1:0.9:9`` or ``--blur 4,8,16``) each photo gives a focal stack ``OUT/<stem>_focus_0.100.<ext>``
+... and an animated ``OUT/<stem>_focus_sweep.gif`` (Pillow). Renders are tasks ``(input paths, settings)`` on an
+executor (:mod:`bokehray.executor`), written atomically by their worker. A rerun skips the outputs that exist: a
+file there is complete (atomic writes) and was made with the same settings (``OUT/bokehray-batch.json`` holds
+them; other settings or foreign files are refused unless ``--overwrite``). A photo that fails is reported in the
+summary at the end and never stops the batch; the command then exits with 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import glob
+import hashlib
+import json
+import os
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+from .errors import InputError
+
+__all__ = ["Pair", "RenderSettings", "RenderTask", "add_batch_args", "find_pairs", "is_batch", "parse_sweep",
+           "render_file", "run_batch", "sweep_values"]
+
+IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr")
+MAP_EXTS = (".png", ".tif", ".tiff", ".exr", ".npy")
+OUTPUT_FORMATS = ("png", "jpg", "tif", "exr")
+STATE_FILE = "bokehray-batch.json"
+MAX_SWEEP = 1000
+
+
+# --------------------------------------------------------------------------- the command line
+
+
+def parse_sweep(text: str) -> float | tuple[float, ...]:
+    """``0.5`` -> 0.5; ``0.2,0.4,0.6`` -> a list; ``START:STOP:COUNT`` -> COUNT values from START to STOP."""
+    try:
+        if ":" in text:
+            parts = text.split(":")
+            if len(parts) != 3:
+                raise ValueError
+            start, stop, count = float(parts[0]), float(parts[1]), int(parts[2])
+            if not 2 <= count <= MAX_SWEEP:
+                raise argparse.ArgumentTypeError(f"a range needs 2..{MAX_SWEEP} values, got {count} in {text!r}")
+            return tuple(start + (stop - start) * i / (count - 1) for i in range(count))
+        if "," in text:
+            values = tuple(float(v) for v in text.split(",") if v.strip())
+            if not 1 <= len(values) <= MAX_SWEEP:
+                raise ValueError
+            return values
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, a list A,B,C or a range START:STOP:COUNT, "
+                                         f"got {text!r}") from None
+
+
+def add_batch_args(r: argparse.ArgumentParser) -> None:
+    """The batch options of ``bokehray render`` (called from :func:`bokehray.cli.build_parser`)."""
+    from .executor import add_executor_args
+
+    g = r.add_argument_group(
+        "many inputs (docs/scale.md)",
+        "IMAGE may be a folder or a glob ('shoot/*.jpg'), --disparity/--depth a folder, a glob or a manifest CSV "
+        "(columns image,disparity); -o is then a folder. --focus/--blur also take a list (0.2,0.4) or a range "
+        "(START:STOP:COUNT): a focal stack and an animated GIF per image.")
+    g.add_argument("--map-suffix", default="", metavar="SUFFIX",
+                   help="a map's stem is the image's stem plus SUFFIX (e.g. _disp; default: the same stem)")
+    g.add_argument("--output-format", choices=OUTPUT_FORMATS, help="format of the outputs (default: the input's)")
+    g.add_argument("--overwrite", action="store_true",
+                   help="render everything again (default: skip outputs that exist, made with the same settings)")
+    g.add_argument("--gif-width", type=int, default=640, help="width of the animated sweep preview (default 640)")
+    g.add_argument("--fps", type=float, default=6.0, help="frames per second of the sweep preview (default 6)")
+    add_executor_args(r, workers_help="worker processes (default: all cores, at most one per render)")
+
+
+def _is_glob(text: str) -> bool:
+    return any(c in text for c in "*?[")
+
+
+def is_batch(args: argparse.Namespace) -> bool:
+    """Whether ``bokehray render`` was given many inputs or a sweep (else: the single-file path)."""
+    maps = args.disparity or args.depth
+    # a single photo with a folder as its map stays on the single-file path (which names the folder as the error)
+    return (Path(args.image).is_dir() or (_is_glob(args.image) and not Path(args.image).exists())
+            or isinstance(args.focus, tuple) or isinstance(args.blur, tuple)
+            or (maps is not None and (maps.lower().endswith(".csv") or (_is_glob(maps) and not Path(maps).exists()))))
+
+
+# --------------------------------------------------------------------------- pairing
+
+
+@dataclass(frozen=True)
+class Pair:
+    """A photo and its map (``map`` None: no map found, ``problem`` says why)."""
+
+    image: Path
+    map: Path | None
+    problem: str | None = None
+
+
+def _natural_key(p: Path) -> list:
+    from .datasets import _natural_key as key
+
+    return key(str(p))
+
+
+def _listing(spec: str, exts: tuple[str, ...], what: str) -> tuple[list[Path], Path | None]:
+    """Files named by a folder, a glob or one file; and the folder they are relative to."""
+    p = Path(spec)
+    if p.is_dir():
+        files = [f for f in p.iterdir() if f.is_file() and not f.name.startswith(".") and f.suffix.lower() in exts]
+        return sorted(files, key=_natural_key), p
+    if p.is_file():
+        return [p], p.parent
+    if _is_glob(spec):
+        files = [Path(f) for f in glob.glob(spec, recursive=True)]
+        files = [f for f in files if f.is_file() and f.suffix.lower() in exts]
+        return sorted(files, key=_natural_key), None
+    raise InputError(f"{spec}: no such {what} file or folder")
+
+
+def _manifest(path: Path, kind: str) -> dict[str, Path]:
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as fh:
+            rows = list(csv.DictReader(fh))
+            header = [h.strip().lower() for h in (rows[0].keys() if rows else [])]
+    except (OSError, UnicodeDecodeError, csv.Error) as e:
+        raise InputError(f"{path}: cannot read the manifest CSV ({e})") from None
+    if not rows:
+        raise InputError(f"{path}: the manifest CSV has no rows (expected a header image,{kind} and one row a pair)")
+    col = next((c for c in (kind, "map") if c in header), None)
+    if "image" not in header or col is None:
+        raise InputError(f"{path}: the manifest CSV needs the columns image and {kind} (or map), got "
+                         f"{', '.join(header)}")
+    out: dict[str, Path] = {}
+    for n, row in enumerate(rows, start=2):
+        row = {k.strip().lower(): (v or "").strip() for k, v in row.items() if k is not None}
+        if not row.get("image") or not row.get(col):
+            raise InputError(f"{path}: line {n}: expected an image and a {kind} path")
+        m = Path(row[col])
+        out[row["image"]] = m if m.is_absolute() else path.parent / m
+    return out
+
+
+def find_pairs(images: str, maps: str, *, kind: str = "disparity", suffix: str = "") -> list[Pair]:
+    """The photos named by ``images`` and their maps from ``maps`` (module docstring: the pairing rule)."""
+    mp = Path(maps)
+    if mp.suffix.lower() == ".csv" and mp.is_file():
+        table = _manifest(mp, kind)
+        files, root = _listing(images, IMAGE_EXTS, "image")
+        pairs = []
+        by_path = {(mp.parent / k).resolve(): m for k, m in table.items()}
+        for f in files:
+            keys = [f.name] + ([str(f.relative_to(root))] if root is not None else [])
+            m = by_path.get(f.resolve()) or next((table[k] for k in keys if k in table), None)
+            pairs.append(Pair(f, m) if m is not None else Pair(f, None, f"no {kind} map listed in {mp}"))
+        return pairs
+    if mp.suffix.lower() == ".csv":
+        raise InputError(f"{maps}: no such manifest CSV")
+    map_files, _ = _listing(maps, MAP_EXTS, kind)
+    by_stem: dict[str, list[Path]] = {}
+    for m in map_files:
+        by_stem.setdefault(m.stem, []).append(m)
+    files, _ = _listing(images, IMAGE_EXTS, "image")
+    map_set = {m.resolve() for m in map_files}
+    if suffix:
+        files = [f for f in files if not f.stem.endswith(suffix)]
+    elif Path(images).is_file() and mp.is_file():
+        return [Pair(Path(images), mp)]
+    else:
+        shared = [f for f in files if f.resolve() in map_set]
+        if shared:
+            raise InputError(f"{maps}: the maps are among the images ({shared[0]}); name them with a suffix and "
+                             "pass --map-suffix (e.g. IMG_01.jpg and IMG_01_disp.png with --map-suffix _disp)")
+    pairs = []
+    for f in files:
+        cands = [m for m in by_stem.get(f.stem + suffix, []) if m.resolve() != f.resolve()]
+        if len(cands) == 1:
+            pairs.append(Pair(f, cands[0]))
+        elif not cands:
+            pairs.append(Pair(f, None, f"no {kind} map named {f.stem + suffix}.* in {maps}"))
+        else:
+            pairs.append(Pair(f, None, f"{len(cands)} {kind} maps match: " + ", ".join(c.name for c in cands)))
+    return pairs
+
+
+# --------------------------------------------------------------------------- one render (a task)
+
+
+_NOT_SETTINGS = frozenset({
+    "command", "image", "disparity", "depth", "output",  # the task's own paths
+    "map_suffix", "output_format", "overwrite", "gif_width", "fps", "executor", "workers", "scheduler",  # the batch's
+    "quiet", "debug", "stats",  # how a process talks, not what it renders
+})
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """Everything a render depends on besides its input paths: the single-file ``bokehray render`` arguments,
+    as (name, value) pairs, so a batch task renders exactly what the single-file command does with them."""
+
+    kind: str = "disparity"  # or "depth" (metric, metres)
+    args: tuple[tuple[str, object], ...] = ()
+    threads: int | None = None  # preview CPU threads per render (None: all cores); the output does not depend on it
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> RenderSettings:
+        kept = {k: v for k, v in vars(args).items() if k not in _NOT_SETTINGS}
+        return cls("depth" if args.depth is not None else "disparity", tuple(sorted(kept.items())))
+
+    @classmethod
+    def defaults(cls, kind: str = "disparity", **overrides) -> RenderSettings:
+        """The command line's defaults with ``overrides`` (e.g. ``blur=20.0, focus=0.5``)."""
+        from .cli import build_parser
+
+        ns = build_parser().parse_args(["render", "IMAGE", f"--{kind}", "MAP", "-o", "OUT.png"])
+        for k, v in overrides.items():
+            if not hasattr(ns, k):
+                raise InputError(f"render settings: unknown option {k!r}")
+            setattr(ns, k, v)
+        return cls.from_args(ns)
+
+    def get(self, name: str):
+        return dict(self.args)[name]
+
+    def with_values(self, **values) -> RenderSettings:
+        """The same settings with some arguments replaced (a sweep's frame)."""
+        d = dict(self.args)
+        d.update(values)
+        return replace(self, args=tuple(sorted(d.items())))
+
+    def namespace(self, image: str, map_path: str, output: str) -> argparse.Namespace:
+        ns = argparse.Namespace(**dict(self.args), image=image, output=output, quiet=True, stats=False, debug=False,
+                                threads=self.threads)
+        ns.disparity, ns.depth = (None, map_path) if self.kind == "depth" else (map_path, None)
+        return ns
+
+    def fingerprint(self) -> str:
+        """What makes two renders of the same inputs the same (the device and threads are not part of it)."""
+        d = {k: v for k, v in self.args if k != "device"}
+        d["kind"] = self.kind
+        return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+@dataclass(frozen=True)
+class RenderTask:
+    image: str
+    map: str
+    output: str
+    settings: RenderSettings = field(default_factory=RenderSettings.defaults)
+
+
+def render_file(task: RenderTask) -> dict:
+    """Render one photo to ``task.output`` (written atomically) with the single-file render of the CLI; a pure
+    function of the inputs and settings."""
+    from .cli import render_one
+
+    return render_one(task.settings.namespace(task.image, task.map, task.output))
+
+
+# --------------------------------------------------------------------------- the batch
+
+
+def sweep_values(args: argparse.Namespace) -> tuple[str | None, tuple[float, ...]]:
+    """The swept parameter (``focus``, ``blur`` or None) and its values."""
+    f, b = isinstance(args.focus, tuple), isinstance(args.blur, tuple)
+    if f and b:
+        raise InputError("sweep one of --focus or --blur, not both")
+    if not (f or b):
+        return None, ()
+    name = "focus" if f else "blur"
+    values = args.focus if f else args.blur
+    if len(set(values)) != len(values):
+        raise InputError(f"--{name}: the values repeat ({', '.join(f'{v:g}' for v in values)})")
+    return name, values
+
+
+def _settings(args: argparse.Namespace) -> RenderSettings:
+    if args.max_layers is not None and args.max_layers < 1:
+        raise InputError(f"--max-layers: expected >= 1, got {args.max_layers}")
+    if args.depth_model:
+        raise InputError("--depth-model: one photo at a time (render each, or save their maps with --save-depth "
+                         "and batch with --disparity)")
+    return RenderSettings.from_args(args)
+
+
+def _frame_name(stem: str, name: str, value: float) -> str:
+    return f"{stem}_focus_{value:.3f}" if name == "focus" else f"{stem}_blur_{value:g}"
+
+
+def _gif(frames: Sequence[Path], path: Path, width: int, fps: float) -> Path:
+    """An animated preview of a focal stack (8-bit sRGB, ``width`` px wide), written atomically."""
+    import numpy as np
+    from PIL import Image
+
+    from . import io
+
+    images = []
+    for f in frames:
+        rgb = np.clip(io.linear_to_srgb(np.clip(io.read_image(f)[..., :3], 0.0, 1.0)), 0.0, 1.0)
+        im = Image.fromarray(np.round(rgb * 255.0).astype(np.uint8))
+        if im.width > width:
+            im = im.resize((width, max(1, round(im.height * width / im.width))), Image.Resampling.LANCZOS)
+        images.append(im)
+    duration = max(20, round(1000.0 / fps))
+
+    def encode(tmp: str) -> None:
+        images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=duration, loop=0)
+
+    return io.atomic_write(path, encode)
+
+
+def _state(out: Path, fingerprint: str, outputs: Sequence[str], overwrite: bool) -> None:
+    """Refuse to skip outputs made with other settings (or not by a batch); then record this batch's settings."""
+    from . import io
+
+    state = out / STATE_FILE
+    existing = [o for o in outputs if (out / o).exists()]
+    if existing and not overwrite:
+        try:
+            old = json.loads(state.read_text()).get("settings")
+        except (OSError, ValueError, AttributeError):
+            old = None
+        if old is None:
+            raise InputError(f"{out / existing[0]}: exists and was not written by a bokehray batch; pass "
+                             "--overwrite to replace it, or choose another output folder")
+        if old != fingerprint:
+            raise InputError(f"{out}: holds {len(existing)} renders made with other settings ({existing[0]}, ...); "
+                             "pass --overwrite to render them again, or choose another output folder")
+    text = json.dumps({"settings": fingerprint, "outputs": len(outputs)}, indent=2) + "\n"
+    io.atomic_write(state, lambda tmp: Path(tmp).write_text(text))
+
+
+def run_batch(args: argparse.Namespace) -> int:
+    """``bokehray render`` with many inputs or a sweep: plan, skip what is done, run, summarise."""
+    from tqdm import tqdm
+
+    from .executor import make_executor, remove_stale_temporaries
+
+    if args.map_suffix and "/" in args.map_suffix:
+        raise InputError(f"--map-suffix: expected a file-name suffix, got {args.map_suffix!r}")
+    if args.gif_width < 8:
+        raise InputError(f"--gif-width: expected at least 8 px, got {args.gif_width}")
+    if not 0.1 <= args.fps <= 50:
+        raise InputError(f"--fps: expected 0.1..50, got {args.fps:g}")
+    if args.stats:
+        raise InputError("--stats: single-file renders only (a batch prints its throughput at the end)")
+    name, values = sweep_values(args)
+    settings = _settings(args)
+    out = Path(args.output)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: many outputs go into a folder, got an existing file")
+    if out.suffix.lower() in (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr") and not out.exists():
+        raise InputError(f"{out}: many outputs go into a folder, got a file name; give a folder with -o")
+    pairs = find_pairs(args.image, args.disparity or args.depth, kind=settings.kind, suffix=args.map_suffix)
+    if not pairs:
+        raise InputError(f"{args.image}: no images found ({', '.join(IMAGE_EXTS)})")
+    ext = "." + args.output_format if args.output_format else None
+
+    failures: list[tuple[str, str]] = []
+    tasks: list[RenderTask] = []
+    stacks: dict[Path, list[Path]] = {}  # gif -> frames
+    seen: dict[str, Path] = {}
+    for pair in pairs:
+        if pair.map is None:
+            failures.append((str(pair.image), pair.problem or "no map"))
+            continue
+        suffix = ext or (".jpg" if pair.image.suffix.lower() == ".jpeg" else pair.image.suffix.lower())
+        suffix = ".tif" if suffix == ".tiff" else suffix
+        stem = pair.image.stem
+        if stem in seen:
+            failures.append((str(pair.image), f"its output name is that of {seen[stem]}; rename one of them"))
+            continue
+        seen[stem] = pair.image
+        if name is None:
+            tasks.append(RenderTask(str(pair.image), str(pair.map), str(out / f"{stem}{suffix}"), settings))
+            continue
+        frames = []
+        for v in values:
+            frame = out / f"{_frame_name(stem, name, v)}{suffix}"
+            frames.append(frame)
+            tasks.append(RenderTask(str(pair.image), str(pair.map), str(frame), settings.with_values(**{name: v})))
+        stacks[out / f"{stem}_{name}_sweep.gif"] = frames
+    from .io import check_output_path
+
+    for t in {Path(t.output).suffix: t for t in tasks}.values():  # one output of each format
+        check_output_path(t.output, bit_depth=settings.get("bit_depth"), half=settings.get("half"))
+    out.mkdir(parents=True, exist_ok=True)
+    names = [Path(t.output).name for t in tasks] + [g.name for g in stacks]
+    _state(out, settings.fingerprint(), names, args.overwrite)
+    todo = [t for t in tasks if args.overwrite or not Path(t.output).exists()]
+    skipped = len(tasks) - len(todo)
+    quiet = args.quiet
+    done_pixels, t0 = 0, time.perf_counter()
+    failed_outputs: set[str] = set()
+    finished = 0
+    try:
+        if todo:
+            with make_executor(args.executor, workers=args.workers, scheduler=args.scheduler,
+                               tasks=len(todo)) as ex:
+                if ex.workers > 1 and not args.scheduler:  # the workers share this machine's cores
+                    share = max(1, (os.cpu_count() or 1) // ex.workers)
+                    todo = [replace(t, settings=replace(t.settings, threads=share)) for t in todo]
+                if not quiet:
+                    print(f"rendering {len(todo)} of {len(tasks)} outputs on {ex.describe()}"
+                          + (f" ({skipped} done already)" if skipped else ""), file=sys.stderr)
+                with tqdm(total=len(todo), desc="render", unit="img", disable=quiet, file=sys.stderr) as bar:
+                    for o in ex.map(render_file, todo):
+                        if o.ok:
+                            done_pixels += o.value["pixels"]
+                            finished += 1
+                        else:
+                            failures.append((todo[o.index].image, o.error))
+                            failed_outputs.add(todo[o.index].output)
+                        bar.update()
+    except KeyboardInterrupt:
+        print(f"bokehray: interrupted after {finished} of {len(todo)} renders; they are complete in {out}, "
+              "run the same command again to render the rest", file=sys.stderr)
+        return 130
+    finally:
+        remove_stale_temporaries(out, names)
+    wall = time.perf_counter() - t0
+    gifs = 0
+    for gif, frames in stacks.items():
+        if any(str(f) in failed_outputs for f in frames):
+            continue
+        if args.overwrite or not gif.exists() or any(f.stat().st_mtime > gif.stat().st_mtime for f in frames):
+            try:
+                _gif(frames, gif, args.gif_width, args.fps)
+                gifs += 1
+            except Exception as e:  # noqa: BLE001 - a preview that fails is reported like a render
+                failures.append((str(gif), f"{type(e).__name__}: {e}".splitlines()[0]))
+    rendered = len(todo) - len(failed_outputs)
+    if not quiet:
+        rate = f", {done_pixels / 1e6 / wall:.2f} MP/s" if rendered and wall > 0 else ""
+        print(f"{rendered} rendered, {skipped} skipped (complete), {len(failures)} failed"
+              + (f", {gifs} sweep previews" if stacks else "") + f" -> {out} ({wall:.1f} s{rate})")
+    if failures:
+        print(f"bokehray: {len(failures)} input{'s' if len(failures) != 1 else ''} failed:", file=sys.stderr)
+        for path, why in failures:
+            print(f"  {path}: {why}", file=sys.stderr)
+        return 2
+    return 0
