@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -49,22 +50,24 @@ class Layer:
 
 @dataclass(frozen=True)
 class RaytraceOptions:
-    """Sampling of the aperture.
+    """The aperture quadrature (``bokehray.quadrature``; docs/raytracer.md).
 
     Args:
-        samples_per_px2: rays per square pixel of the largest CoC a pixel can
-            see: ``spp = ceil(samples_per_px2 * pi * r^2)``, clamped. The rays are
-            points of a spiral on the CoC's circumscribed disc; with a polygon
-            aperture only those inside it (polygon area / disc area of them) are traced.
-        max_spp: most rays per pixel.
-        min_spp: fewest rays per pixel (1 where everything is in focus).
-        seed: rotates the per-pixel sample patterns; renders are deterministic for a seed.
+        samples_per_px2: cells per square pixel of the largest CoC a pixel can
+            see: the aperture is cut into ``g = ceil(2 r sqrt(samples_per_px2))``
+            strips of square-ish cells (about ``(pi / 4) g^2`` of them) plus thin
+            cells along its outline. Each cell is one ray whose texture lookups
+            average the cell's footprint, so this sets how finely occlusion between
+            layers is resolved, not the noise (there is none).
+        max_spp: caps the strips at ``g <= sqrt(4 max_spp / pi)`` (about ``max_spp``
+            full cells; the outline adds thin ones: ``RaytraceStats`` reports all rays).
+        min_spp: the fewest full cells per pixel; 1 lets in-focus pixels (CoC below half a
+            pixel) take the single centre ray.
     """
 
     samples_per_px2: float = 0.5
     max_spp: int = 128
     min_spp: int = 1
-    seed: int = 0
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.samples_per_px2) and self.samples_per_px2 > 0):
@@ -72,6 +75,12 @@ class RaytraceOptions:
         if not 1 <= self.min_spp <= self.max_spp <= 65536:
             raise InputError(f"rays per pixel: expected 1 <= min_spp <= max_spp <= 65536, "
                              f"got {self.min_spp}, {self.max_spp}")
+
+    def strip_range(self) -> tuple[int, int]:
+        """(fewest, most) strips across the aperture."""
+        g_max = max(1, int(math.floor(math.sqrt(4.0 * self.max_spp / math.pi) + 1e-9)))
+        g_min = 0 if self.min_spp <= 1 else min(g_max, int(math.ceil(math.sqrt(4.0 * self.min_spp / math.pi) - 1e-9)))
+        return g_min, g_max
 
 
 @dataclass
@@ -146,6 +155,7 @@ def raytrace_layers(
     *,
     options: RaytraceOptions | None = None,
     device: str = "cpu",
+    progress: Callable[[int, int], None] | None = None,
 ) -> tuple[np.ndarray, RaytraceStats]:
     """Ray trace a front-to-back stack of layers through a thin lens.
 
@@ -155,6 +165,8 @@ def raytrace_layers(
         blur: ``K`` and ``d_f``: a point at disparity ``d`` spreads into the
             aperture of radius ``K |d - d_f|`` px.
         aperture: disc (default) or bladed polygon.
+        progress: called as ``progress(done, total)`` (units of work) between bands of rows;
+            an exception it raises (or Ctrl-C) stops the trace within one band.
 
     Returns:
         ``(H x W x 4, stats)``: premultiplied RGB and the coverage (1 minus the
@@ -173,7 +185,8 @@ def raytrace_layers(
         disp[i] = _layer_disparity_at_pixels(lyr, h, w)
         if lyr.plane is not None:
             planes[i] = (*lyr.plane, 1.0)
-    return _trace(rgba, disp, planes, blur, aperture or Aperture(), options or RaytraceOptions(), device, t0)
+    return _trace(rgba, disp, planes, blur, aperture or Aperture(), options or RaytraceOptions(), device, t0,
+                  progress=progress)
 
 
 def _trace(
@@ -189,16 +202,18 @@ def _trace(
     ranges: np.ndarray | None = None,
     r_px: np.ndarray | None = None,
     core: tuple[int, int, int, int] | None = None,
-    origin: tuple[int, int] = (0, 0),
+    progress: Callable[[int, int], None] | None = None,
 ) -> tuple[np.ndarray, RaytraceStats]:
     """Launch the kernel on packed layers: ``rgba`` (n, H, W, 4) premultiplied, ``disp`` (n, H, W) the
     disparity of every layer at every pixel, ``planes`` (n, 4) ``(a, b, c, 1)`` for plane layers, else 0.
 
     A tile of a larger render passes what depends on the whole image: each layer's disparity
     range (``ranges``, n x 2), the visible CoC of the traced pixels (``r_px``), the traced
-    pixels ``core`` = (y0, y1, x0, x1) inside the textures, and the textures' ``origin`` (y, x)
-    in the whole image. Returns the traced pixels only.
+    pixels ``core`` = (y0, y1, x0, x1) inside the textures. Returns the traced pixels only.
+    ``progress(done, total)`` is called between bands of rows (``bokehray.raytrace_launch``).
     """
+    from .raytrace_launch import choose_levels, summed_area, trace_bands  # noqa: PLC0415
+
     n, h, w = disp.shape
     core = (0, h, 0, w) if core is None else core
     if ranges is None:
@@ -207,38 +222,14 @@ def _trace(
         r_px = np.zeros((h, w), np.float32)
         for i in range(n):
             np.maximum(r_px, _visible_coc(blur.coc_radius(disp[i]), rgba[i, ..., 3] > 0), out=r_px)
-    spp = np.clip(np.ceil(options.samples_per_px2 * np.pi * r_px * r_px), options.min_spp, options.max_spp)
-    spp = np.where(r_px < 0.5, options.min_spp, spp).astype(np.int32)
-    blade_rows = aperture.blade_discs()
-    blades = blade_rows if len(blade_rows) else np.zeros((1, 4), np.float32)
+        r_px = r_px[core[0] : core[1], core[2] : core[3]]
+    levels, table, strips = choose_levels(r_px, aperture, options.samples_per_px2, options.strip_range())
+    sat = summed_area(rgba)
     t1 = time.perf_counter()
-
-    out = wp.empty(spp.shape, dtype=wp.vec4, device=device)
-    wp.launch(
-        bk.raytrace_kernel,
-        dim=spp.shape,
-        inputs=[
-            wp.array(rgba, dtype=wp.vec4, device=device),
-            wp.array(disp, dtype=float, device=device),
-            wp.array(planes, dtype=wp.vec4, device=device),
-            wp.array(np.ascontiguousarray(ranges, np.float32), dtype=wp.vec2, device=device),
-            n,
-            float(blur.k_px),
-            float(blur.focus_disparity),
-            wp.array(blades, dtype=wp.vec4, device=device),
-            len(blade_rows),
-            wp.array(spp, dtype=wp.int32, device=device),
-            int(options.seed),
-            int(core[2]),
-            int(core[0]),
-            int(origin[1]),
-            int(origin[0]),
-        ],
-        outputs=[out],
-        device=device,
-    )
-    result = out.numpy()
-    stats = RaytraceStats(layers=n, samples_total=int(spp.sum()), spp_mean=float(spp.mean()), spp_max=int(spp.max()))
+    result = trace_bands(sat, disp, planes, ranges, float(blur.k_px), float(blur.focus_disparity), table, levels,
+                         (core[0], core[2]), device, progress=progress)
+    rays = table.count(levels)
+    stats = RaytraceStats(layers=n, samples_total=int(rays.sum()), spp_mean=float(rays.mean()), spp_max=int(rays.max()))
     stats.stage_seconds = {"setup": t1 - t0, "trace": time.perf_counter() - t1, "total": time.perf_counter() - t0}
     return result, stats
 
@@ -275,6 +266,7 @@ def render_raytrace(
     preview_options: PreviewOptions | None = None,
     options: RaytraceOptions | None = None,
     device: str = "cpu",
+    progress: Callable[[int, int], None] | None = None,
 ) -> tuple[np.ndarray, RaytraceStats]:
     """Photo mode: build layers from one RGB image and its disparity, then ray trace them.
 
@@ -303,11 +295,12 @@ def render_raytrace(
     t0 = time.perf_counter()
     if tile is None:
         rgba, disp = _photo_textures(plans, image, s, sid, blur, device)
-        out, stats = _trace(rgba, disp, np.zeros((len(plans), 4), np.float32), blur, aperture, options, device, t0)
+        out, stats = _trace(rgba, disp, np.zeros((len(plans), 4), np.float32), blur, aperture, options, device, t0,
+                            progress=progress)
         del rgba, disp
     else:
         out, stats = _trace_tiles(image, s, sid, plans, blur, aperture, options, device, max_coc,
-                                  -(-tile // 16) * 16, t0)
+                                  -(-tile // 16) * 16, t0, progress)
     stats.memory_estimate_mb = need / _tiling.MB
     cov = out[..., 3:4]
     rgb = np.where(cov > 1e-4, out[..., :3] / np.maximum(cov, 1e-12), image[..., :3])
@@ -316,7 +309,7 @@ def render_raytrace(
 
 def _trace_tiles(image: np.ndarray, s: np.ndarray, sid: np.ndarray, plans: list, blur: BlurParams,
                  aperture: Aperture, options: RaytraceOptions, device: str, max_coc: float, tile: int,
-                 t0: float) -> tuple[np.ndarray, RaytraceStats]:
+                 t0: float, progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, RaytraceStats]:
     """Photo mode tile by tile, equal to the untiled trace.
 
     Pass 1 builds each tile's layers on its window and gathers what the
@@ -355,7 +348,7 @@ def _trace_tiles(image: np.ndarray, s: np.ndarray, sid: np.ndarray, plans: list,
 
     out = np.empty((h, w, 4), np.float32)
     stats = RaytraceStats(layers=n)
-    for core in cores:
+    for k, core in enumerate(cores):
         (wy0, wx0), (y0, y1, x0, x1), rgba, disp = window_layers(core)
         cy0, cy1, cx0, cx1 = core
         r_px = np.zeros((cy1 - cy0, cx1 - cx0), np.float32)
@@ -363,8 +356,10 @@ def _trace_tiles(image: np.ndarray, s: np.ndarray, sid: np.ndarray, plans: list,
             sub = reach[i][cy0 // grid : -(-cy1 // grid), cx0 // grid : -(-cx1 // grid)]  # cores start on the grid
             mask = np.repeat(np.repeat(sub, grid, 0), grid, 1)[: cy1 - cy0, : cx1 - cx0]
             np.maximum(r_px, np.where(mask, blur.coc_radius(disp[i, y0:y1, x0:x1]), 0.0).astype(np.float32), out=r_px)
+        tile_progress = None if progress is None else (
+            lambda done, total, k=k: progress(k * 1000 + int(1000 * done / max(total, 1)), 1000 * len(cores)))
         part, st = _trace(rgba, disp, np.zeros((n, 4), np.float32), blur, aperture, options, device, t0,
-                          ranges=ranges, r_px=r_px, core=(y0, y1, x0, x1), origin=(wy0, wx0))
+                          ranges=ranges, r_px=r_px, core=(y0, y1, x0, x1), progress=tile_progress)
         out[cy0:cy1, cx0:cx1] = part
         stats.samples_total += st.samples_total
         stats.spp_max = max(stats.spp_max, st.spp_max)

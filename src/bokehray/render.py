@@ -124,7 +124,7 @@ def render_with_stats(
     def run(rgb: np.ndarray, report=None):
         if quality == "raytrace":
             return render_raytrace(rgb, d, blur, aperture, preview_options=opts, options=raytrace_options,
-                                   device=device)
+                                   device=device, progress=report)
         return render_preview(rgb, s, aperture, options=opts, device=device, progress=report)
 
     out_rgb, stats = run(np.ascontiguousarray(work[..., :3]), progress)
