@@ -12,7 +12,7 @@ number of cells sets only how finely occlusion *between* layers is resolved
 (within a cell, the nearer layer's mean coverage multiplies the farther
 layer's mean colour) and how well a tilted plane's footprint is approximated.
 
-The partition for ``g`` strips across the aperture's diameter: the aperture
+The partition for ``g >= 2`` strips across the aperture's diameter: the aperture
 (unit circumradius, rows as in ``bokehray_kernels.aperture.chord``) is cut
 into ``g`` horizontal strips of height ``2 / g``. In each strip the interval
 common to all its sub-rows is split into square-ish full-height cells; what
@@ -21,6 +21,8 @@ whose outer edge is the chord's end at the sub-row's centre (consecutive
 sub-rows whose ends differ by less than a tolerance are merged, keeping
 their area). The cells are boxes ``(ux, uy, hx, hy)`` (centre and half
 sizes) and their weights are their areas over the total, so they sum to 1.
+With ``g = 1`` the partition is one cell: the square of the aperture's area on
+its centroid (a box blur of the right size, for a cap of one ray per pixel).
 """
 
 from __future__ import annotations
@@ -92,6 +94,16 @@ def cells(aperture: Aperture, strips: int, *, sub_rows: int = 32, tol: float | N
     g = int(strips)
     if g < 1:
         raise ValueError("strips must be >= 1")
+    if g == 1:
+        # one cell: the square of the aperture's area on its centroid (a box blur of the right size)
+        yy = np.linspace(-1.0, 1.0, 4001)
+        lo, hi = aperture_chords(aperture, yy)
+        wdt = np.maximum(hi - lo, 0.0)
+        area = float(np.trapezoid(wdt, yy))
+        cy = float(np.trapezoid(wdt * yy, yy)) / area
+        cx = float(np.trapezoid(wdt * 0.5 * (lo + hi), yy)) / area
+        half = 0.5 * math.sqrt(area)
+        return np.array([[cx, cy, half, half, 1.0]])
     hs = 2.0 / g
     m = max(1, int(sub_rows))
     dv = hs / m
@@ -154,6 +166,7 @@ class CellTable:
     boxes: np.ndarray
     weights: np.ndarray
     offsets: np.ndarray
+    parts: tuple = ()  #: (strips, outline) of levels 1, 2, ...
 
     def count(self, level: np.ndarray | int) -> np.ndarray:
         return np.diff(self.offsets)[level]
@@ -174,7 +187,8 @@ def cell_table(aperture: Aperture, strips: list[int] | tuple[int, ...], outline:
     offsets = np.cumsum([0] + [len(r) for r in rows]).astype(np.int32)
     allrows = np.concatenate(rows, axis=0)
     return CellTable(strips=(0, *map(int, strips)), boxes=np.ascontiguousarray(allrows[:, :4], np.float32),
-                     weights=np.ascontiguousarray(allrows[:, 4], np.float32), offsets=offsets)
+                     weights=np.ascontiguousarray(allrows[:, 4], np.float32), offsets=offsets,
+                     parts=tuple((int(g), float(outline)) for g in strips))
 
 
 def strips_for_radius(r_px: np.ndarray, samples_per_px2: float) -> np.ndarray:

@@ -59,9 +59,10 @@ class RaytraceOptions:
             cells along its outline. Each cell is one ray whose texture lookups
             average the cell's footprint, so this sets how finely occlusion between
             layers is resolved, not the noise (there is none).
-        max_spp: caps the strips at ``g <= sqrt(4 max_spp / pi)`` (about ``max_spp``
-            full cells; the outline adds thin ones: ``RaytraceStats`` reports all rays).
-        min_spp: the fewest full cells per pixel; 1 lets in-focus pixels (CoC below half a
+        max_spp: caps the strips at ``g <= sqrt(4 max_spp / pi)``: about ``max_spp`` full cells,
+            plus the thin cells along the outline (25-100 at radii above a few pixels;
+            ``RaytraceStats`` reports all rays). 1 is a single box cell of the aperture's area.
+        min_spp: the fewest rays per pixel; 1 lets in-focus pixels (CoC below half a
             pixel) take the single centre ray.
     """
 
@@ -76,9 +77,11 @@ class RaytraceOptions:
             raise InputError(f"rays per pixel: expected 1 <= min_spp <= max_spp <= 65536, "
                              f"got {self.min_spp}, {self.max_spp}")
 
-    def strip_range(self) -> tuple[int, int]:
-        """(fewest, most) strips across the aperture."""
-        g_max = max(1, int(math.floor(math.sqrt(4.0 * self.max_spp / math.pi) + 1e-9)))
+    def strip_range(self, aperture: Aperture | None = None) -> tuple[int, int]:
+        """(fewest, most) strips across the aperture (0 fewest: in-focus pixels take the centre ray)."""
+        from .raytrace_launch import strip_cap  # noqa: PLC0415
+
+        g_max = strip_cap(self.max_spp)
         g_min = 0 if self.min_spp <= 1 else min(g_max, int(math.ceil(math.sqrt(4.0 * self.min_spp / math.pi) - 1e-9)))
         return g_min, g_max
 
@@ -94,6 +97,7 @@ class RaytraceStats:
     image_tiles: int = 1
     memory_estimate_mb: float = 0.0
     stage_seconds: dict[str, float] = field(default_factory=dict)
+    partitions: list = field(default_factory=list)  #: (strips, outline) of each aperture partition used
     refine: dict | None = None  #: what ``refine=`` did (tiles refined, share, seconds), None without it
 
     def as_dict(self) -> dict:
@@ -223,13 +227,14 @@ def _trace(
         for i in range(n):
             np.maximum(r_px, _visible_coc(blur.coc_radius(disp[i]), rgba[i, ..., 3] > 0), out=r_px)
         r_px = r_px[core[0] : core[1], core[2] : core[3]]
-    levels, table, strips = choose_levels(r_px, aperture, options.samples_per_px2, options.strip_range())
+    levels, table, strips = choose_levels(r_px, aperture, options.samples_per_px2, options.strip_range(aperture))
     sat = summed_area(rgba)
     t1 = time.perf_counter()
     result = trace_bands(sat, disp, planes, ranges, float(blur.k_px), float(blur.focus_disparity), table, levels,
                          (core[0], core[2]), device, progress=progress)
     rays = table.count(levels)
-    stats = RaytraceStats(layers=n, samples_total=int(rays.sum()), spp_mean=float(rays.mean()), spp_max=int(rays.max()))
+    stats = RaytraceStats(layers=n, samples_total=int(rays.sum()), spp_mean=float(rays.mean()), spp_max=int(rays.max()),
+                          partitions=[[int(g), float(ol)] for g, ol in table.parts])
     stats.stage_seconds = {"setup": t1 - t0, "trace": time.perf_counter() - t1, "total": time.perf_counter() - t0}
     return result, stats
 

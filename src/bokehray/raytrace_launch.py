@@ -22,7 +22,7 @@ import bokehray_kernels as bk
 from .lens import Aperture
 from .quadrature import OUTLINE, CellTable, cell_table, strips_for_radius
 
-__all__ = ["BAND_CELL_LAYERS", "choose_levels", "summed_area", "tables", "trace_bands"]
+__all__ = ["BAND_CELL_LAYERS", "choose_levels", "strip_cap", "summed_area", "tables", "trace_bands"]
 
 BAND_CELL_LAYERS = 1_500_000
 """Work per band (cell rays x layers): about 0.1-0.2 s on one CPU core."""
@@ -74,8 +74,13 @@ def tables(aperture: Aperture, parts: tuple[tuple[int, float], ...]) -> CellTabl
         weights = [np.ones(1, np.float32)] + [t.weights[1:] for t in tables]
         offsets = np.cumsum([0] + [len(b) for b in boxes]).astype(np.int32)
         _TABLE_CACHE[key] = CellTable(strips=(0, *[g for g, _ in key_parts]), boxes=np.concatenate(boxes),
-                                      weights=np.concatenate(weights), offsets=offsets)
+                                      weights=np.concatenate(weights), offsets=offsets, parts=key_parts)
     return _TABLE_CACHE[key]
+
+
+def strip_cap(max_cells: int) -> int:
+    """The most strips whose full cells, about ``(pi / 4) g^2``, number at most ``max_cells`` (>= 1)."""
+    return max(1, int(math.floor(math.sqrt(4.0 * max_cells / math.pi) + 1e-9)))
 
 
 def trace_bands(

@@ -31,14 +31,42 @@ def box_mean(tex: np.ndarray, cx: float, cy: float, hx: float, hy: float) -> np.
 
 
 def trace(layers: list[tuple[np.ndarray, tuple[float, float, float]]], k: float, d_f: float,
-          cells: np.ndarray) -> np.ndarray:
-    """Plane layers only, nearest first: ``(rgba straight-alpha H x W x 4, (a, b, c))``.
+          spp, aperture=None) -> np.ndarray:
+    """Plane layers only, nearest first: ``(rgba straight-alpha H x W x 4, (a, b, c))``; images of
+    at most 16 x 16 px (one tile of the kernel's content grid: every layer with content reaches
+    every pixel).
 
-    ``cells``: rows ``(ux, uy, hx, hy, weight)``; a row with ``hx = 0`` is a centre ray
-    whose lookup is a 1 px box (bilinear). For a ray from pixel centre ``x`` through
-    ``u`` the hit on the plane ``d = g.p + c`` solves ``p = x + k (g.p + c - d_f) u``.
+    ``spp``: an int (that many rays everywhere, as ``RaytraceOptions(samples_per_px2=1e6,
+    max_spp=spp, min_spp=spp)``), a ``RaytraceOptions``, or an ``(n, 5)`` array of cells
+    ``(ux, uy, hx, hy, weight)`` used at every pixel. Otherwise a pixel's cells are those the
+    launcher picks for the largest CoC among layers with content (``bokehray.raytrace_launch``,
+    tested on its own); a cell with ``hx = 0`` is the centre ray, whose lookup is a 1 px box
+    (bilinear). For a ray from pixel centre ``x`` through ``u`` the hit on the plane
+    ``d = g.p + c`` solves ``p = x + k (g.p + c - d_f) u``.
     """
+    import bokehray as br
+    from bokehray.raytrace_launch import choose_levels
+
     h, w = layers[0][0].shape[:2]
+    assert h <= 16 and w <= 16
+    aperture = aperture or br.Aperture()
+    yy, xx = np.mgrid[0:h, 0:w] + 0.5
+    if isinstance(spp, np.ndarray):
+        pixel_cells = lambda y, x: spp  # noqa: E731
+    else:
+        opts = br.RaytraceOptions(samples_per_px2=1e6, max_spp=spp, min_spp=spp) if isinstance(spp, int) else spp
+        r = np.zeros((h, w))
+        for tex, (a, b, c) in layers:
+            if (tex[..., 3] > 0).any():
+                r = np.maximum(r, np.abs(k * (a * xx + b * yy + c - d_f)))
+        levels, table, _ = choose_levels(r.astype(np.float32), aperture, opts.samples_per_px2,
+                                         opts.strip_range(aperture))
+        rows = np.concatenate([table.boxes, table.weights[:, None]], axis=1).astype(np.float64)
+
+        def pixel_cells(y, x):
+            lv = levels[y, x]
+            return rows[table.offsets[lv] : table.offsets[lv + 1]]
+
     # premultiplied colour: a straight-alpha texel of alpha 0 has no colour to lend
     layers = [(np.concatenate([t[..., :3] * t[..., 3:], t[..., 3:]], axis=2).astype(np.float64), p)
               for t, p in layers]
@@ -46,12 +74,14 @@ def trace(layers: list[tuple[np.ndarray, tuple[float, float, float]]], k: float,
     for y in range(h):
         for x in range(w):
             acc = np.zeros(4)
-            for ux, uy, hx, hy, weight in cells:
+            for ux, uy, hx, hy, weight in pixel_cells(y, x):
                 u = np.array([ux, uy])
                 colour, trans = np.zeros(3), 1.0
                 for tex, (a, b, c) in layers:
                     g = np.array([a, b])
                     m = np.eye(2) - k * np.outer(u, g)  # (I - k u g^T) p = x + k (c - d_f) u
+                    if abs(np.linalg.det(m)) < 1e-6:
+                        continue  # the ray grazes the plane: no hit
                     p = np.linalg.solve(m, np.array([x + 0.5, y + 0.5]) + k * (c - d_f) * u)
                     rad = abs(k * (g @ p + c - d_f))
                     if hx > 0:
