@@ -59,9 +59,10 @@ class RaytraceOptions:
             cells along its outline. Each cell is one ray whose texture lookups
             average the cell's footprint, so this sets how finely occlusion between
             layers is resolved, not the noise (there is none).
-        max_spp: caps the strips at ``g <= sqrt(4 max_spp / pi)``: about ``max_spp`` full cells,
-            plus the thin cells along the outline (25-100 at radii above a few pixels;
-            ``RaytraceStats`` reports all rays). 1 is a single box cell of the aperture's area.
+        max_spp: most rays (cells) per pixel: the strips are capped at ``sqrt(4 max_spp / pi)``
+            and, where the full cells and the thin cells along the outline exceed it, the outline
+            is coarsened, then strips dropped (``bokehray.raytrace_launch.choose_levels``).
+            1 is a single box cell of the aperture's area.
         min_spp: the fewest rays per pixel; 1 lets in-focus pixels (CoC below half a
             pixel) take the single centre ray.
     """
@@ -77,7 +78,7 @@ class RaytraceOptions:
             raise InputError(f"rays per pixel: expected 1 <= min_spp <= max_spp <= 65536, "
                              f"got {self.min_spp}, {self.max_spp}")
 
-    def strip_range(self, aperture: Aperture | None = None) -> tuple[int, int]:
+    def strip_range(self) -> tuple[int, int]:
         """(fewest, most) strips across the aperture (0 fewest: in-focus pixels take the centre ray)."""
         from .raytrace_launch import strip_cap  # noqa: PLC0415
 
@@ -227,7 +228,8 @@ def _trace(
         for i in range(n):
             np.maximum(r_px, _visible_coc(blur.coc_radius(disp[i]), rgba[i, ..., 3] > 0), out=r_px)
         r_px = r_px[core[0] : core[1], core[2] : core[3]]
-    levels, table, strips = choose_levels(r_px, aperture, options.samples_per_px2, options.strip_range(aperture))
+    levels, table, strips = choose_levels(r_px, aperture, options.samples_per_px2, options.strip_range(),
+                                           options.max_spp)
     sat = summed_area(rgba)
     t1 = time.perf_counter()
     result = trace_bands(sat, disp, planes, ranges, float(blur.k_px), float(blur.focus_disparity), table, levels,

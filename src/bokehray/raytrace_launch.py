@@ -37,26 +37,57 @@ def summed_area(rgba: np.ndarray) -> np.ndarray:
     return sat
 
 
-def choose_levels(r_px: np.ndarray, aperture: Aperture, samples_per_px2: float, strip_range: tuple[int, int]
-                  ) -> tuple[np.ndarray, CellTable, np.ndarray]:
+def choose_levels(r_px: np.ndarray, aperture: Aperture, samples_per_px2: float, strip_range: tuple[int, int],
+                  max_cells: int | None = None) -> tuple[np.ndarray, CellTable, np.ndarray]:
     """Per pixel, the index of its cell partition; the table; and the strips per pixel.
 
     A pixel whose visible CoC ``r`` is below half a pixel takes the centre ray (level 0)
-    unless ``strip_range[0] > 0``. Each partition's outline is resolved to
-    ``max(OUTLINE, 0.25 px / r)`` at the largest ``r`` that uses it.
+    unless ``strip_range[0] > 0``. Otherwise it takes ``ceil(2 r sqrt(samples_per_px2))``
+    strips (within ``strip_range``) and an outline resolved to ``max(OUTLINE, 0.25 px / r)``,
+    with ``r`` rounded up to a half octave; the choice depends on the pixel alone (a tiled
+    render traces the same cells). Where that partition has more than ``max_cells`` cells,
+    ``_fit`` trades strips and outline down to the cap.
     """
     g_min, g_max = strip_range
-    g = np.clip(strips_for_radius(r_px, samples_per_px2), max(g_min, 1), g_max)
-    g = np.where(r_px < 0.5, g_min, g)
-    used = sorted(int(v) for v in np.unique(g) if v > 0)
-    levels = np.zeros(r_px.shape, np.int32)
+    r = np.asarray(r_px, np.float64)
+    g = np.clip(strips_for_radius(r, samples_per_px2), max(g_min, 1), g_max)
+    g = np.where(r < 0.5, g_min, g)
+    b = np.ceil(2.0 * np.log2(np.maximum(r, 0.5))).astype(np.int64)
+    key = np.where(g > 0, g * 64 + (b + 2), 0)
+    levels = np.zeros(r.shape, np.int32)
     parts = []
-    for i, gv in enumerate(used):
-        sel = g == gv
-        levels[sel] = i + 1
-        parts.append((gv, max(OUTLINE, 0.25 / max(float(r_px[sel].max()), 0.5))))
+    for i, kv in enumerate(int(v) for v in np.unique(key) if v > 0):
+        gv, bv = divmod(kv, 64)
+        outline = max(OUTLINE, 0.25 / 2.0 ** ((bv - 2) / 2.0))
+        parts.append(_fit(aperture, gv, outline, max_cells))
+        levels[key == kv] = i + 1
     table = tables(aperture, tuple(parts))
     return levels, table, g
+
+
+def _count(aperture: Aperture, g: int, outline: float) -> int:
+    return int(tables(aperture, ((g, outline),)).count(1))
+
+
+def _fit(aperture: Aperture, g: int, outline: float, max_cells: int | None) -> tuple[int, float]:
+    """(strips, outline) with at most ``max_cells`` cells: first fewer strips (down to 4), then a coarser
+    outline (to 0.1), then fewer strips (to 2), a coarser outline (to 0.5), and at last one cell.
+    The outline goes first because it is the shape of every bokeh ball; the strips only refine
+    occlusion between layers."""
+    if max_cells is None:
+        return g, outline
+    while _count(aperture, g, outline) > max_cells:
+        if g > 4:
+            g -= 1
+        elif outline < 0.1:
+            outline = min(0.1, outline * 1.25)
+        elif g > 2:
+            g -= 1
+        elif outline < 0.5:
+            outline = min(0.5, outline * 1.25)
+        else:
+            return 1, outline
+    return g, outline
 
 
 _TABLE_CACHE: dict = {}

@@ -59,8 +59,8 @@ def trace(layers: list[tuple[np.ndarray, tuple[float, float, float]]], k: float,
         for tex, (a, b, c) in layers:
             if (tex[..., 3] > 0).any():
                 r = np.maximum(r, np.abs(k * (a * xx + b * yy + c - d_f)))
-        levels, table, _ = choose_levels(r.astype(np.float32), aperture, opts.samples_per_px2,
-                                         opts.strip_range(aperture))
+        levels, table, _ = choose_levels(r.astype(np.float32), aperture, opts.samples_per_px2, opts.strip_range(),
+                                         opts.max_spp)
         rows = np.concatenate([table.boxes, table.weights[:, None]], axis=1).astype(np.float64)
 
         def pixel_cells(y, x):
