@@ -55,8 +55,8 @@ PREVIEW_REGION_B = 60
 # distance map (4), radius-pyramid difference buffers (16 x 4/3 and 2 spare columns).
 PREVIEW_LAYER_B = 80
 # Ray tracer, per pixel of the traced region and per layer: the packed texture (16 + 4) on the
-# host and its device copy.
-RAYTRACE_LAYER_B = 40
+# host and its float64 summed-area table (32; read in place on the CPU, copied to a GPU).
+RAYTRACE_LAYER_B = 56
 # Ray tracer, per pixel of the traced region: image, CoC, slice ids on the device, a layer's
 # sources and fill pyramid while it is built, ray counts, result and normalised result.
 RAYTRACE_REGION_B = 150
