@@ -97,8 +97,10 @@ def build_parser() -> argparse.ArgumentParser:
     o.add_argument("--highlight-boost", type=float, default=0.0,
                    help="re-inflate clipped highlights of 8-bit inputs (0 = off, try 4)")
     o.add_argument("--quality", choices=("preview", "raytrace"), default="preview",
-                   help="preview: layered scatter (fast); raytrace: the same layers ray traced (exact, slower)")
-    o.add_argument("--max-spp", type=int, default=128, help="raytrace: most rays per pixel (default 128)")
+                   help="preview: layered scatter, fast, and the more accurate level for photos; raytrace: the "
+                   "same layers ray traced, much slower and on photos measured slightly below the preview "
+                   "(docs/raytracer.md; it is the exact renderer of true layer stacks, used by 'synth')")
+    o.add_argument("--max-spp", type=int, default=128, help="raytrace: most rays (aperture cells) per pixel (default 128)")
     o.add_argument("--refine", nargs="?", const=True, default=False, metavar="WEIGHTS",
                    help="then run the neural refiner near depth edges (preview quality; needs the 'refiner' extra); "
                    "default: the shipped weights, or WEIGHTS from bokehray train-refiner")
@@ -117,7 +119,7 @@ def build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--bg", help="folder of background photos; default: photos bundled with scikit-image")
     sy.add_argument("--size", type=int, default=512, help="image side in pixels (default 512)")
     sy.add_argument("--blur-levels", default="10,20,30", help="K values, comma separated (default 10,20,30)")
-    sy.add_argument("--max-spp", type=int, default=64, help="rays per pixel cap (default 64)")
+    sy.add_argument("--max-spp", type=int, default=64, help="most rays (aperture cells) per pixel (default 64)")
     sy.add_argument("--workers", type=int, default=None, help="worker processes (default: all cores)")
     sy.add_argument("--overwrite", action="store_true", help="replace scenes that exist already")
     _add_lens_args(sy)

@@ -173,8 +173,10 @@ def render(
         disparity: H x W in [0, 1], 1 = nearest.
         blur: ``K`` and ``d_f``; CoC radius ``K * |d - d_f|`` pixels.
         aperture: disc (default) or bladed polygon.
-        quality: ``"preview"`` (occlusion-aware layered scatter) or ``"raytrace"``
-            (the same layers ray traced through the aperture: slower, converges).
+        quality: ``"preview"`` (occlusion-aware layered scatter: the more accurate level for photos)
+            or ``"raytrace"`` (the same layers ray traced through the aperture: much slower, and on
+            photos measured slightly below the preview, docs/raytracer.md; exact for true layer
+            stacks, :func:`bokehray.raytrace_layers`).
         device: Warp device, ``"cpu"`` or ``"cuda"`` / ``"cuda:N"``.
         options: layering knobs (:class:`PreviewOptions`), used by both levels.
         raytrace_options: aperture sampling of ``"raytrace"`` (:class:`RaytraceOptions`).
