@@ -302,8 +302,11 @@ def render_raytrace(
     t0 = time.perf_counter()
     if tile is None:
         rgba, disp = _photo_textures(plans, image, s, sid, blur, device)
-        out, stats = _trace(rgba, disp, np.zeros((len(plans), 4), np.float32), blur, aperture, options, device, t0,
-                            progress=progress)
+        t_layers = time.perf_counter()
+        out, stats = _trace(rgba, disp, np.zeros((len(plans), 4), np.float32), blur, aperture, options, device,
+                            t_layers, progress=progress)
+        stats.stage_seconds = {"layers": t_layers - t0, **stats.stage_seconds,
+                               "total": stats.stage_seconds["total"] + t_layers - t0}
         del rgba, disp
     else:
         out, stats = _trace_tiles(image, s, sid, plans, blur, aperture, options, device, max_coc,
@@ -355,6 +358,7 @@ def _trace_tiles(image: np.ndarray, s: np.ndarray, sid: np.ndarray, plans: list,
 
     out = np.empty((h, w, 4), np.float32)
     stats = RaytraceStats(layers=n)
+    traced = 0.0
     for k, core in enumerate(cores):
         (wy0, wx0), (y0, y1, x0, x1), rgba, disp = window_layers(core)
         cy0, cy1, cx0, cx1 = core
@@ -365,12 +369,16 @@ def _trace_tiles(image: np.ndarray, s: np.ndarray, sid: np.ndarray, plans: list,
             np.maximum(r_px, np.where(mask, blur.coc_radius(disp[i, y0:y1, x0:x1]), 0.0).astype(np.float32), out=r_px)
         tile_progress = None if progress is None else (
             lambda done, total, k=k: progress(k * 1000 + int(1000 * done / max(total, 1)), 1000 * len(cores)))
-        part, st = _trace(rgba, disp, np.zeros((n, 4), np.float32), blur, aperture, options, device, t0,
-                          ranges=ranges, r_px=r_px, core=(y0, y1, x0, x1), progress=tile_progress)
+        part, st = _trace(rgba, disp, np.zeros((n, 4), np.float32), blur, aperture, options, device,
+                          time.perf_counter(), ranges=ranges, r_px=r_px, core=(y0, y1, x0, x1),
+                          progress=tile_progress)
         out[cy0:cy1, cx0:cx1] = part
         stats.samples_total += st.samples_total
         stats.spp_max = max(stats.spp_max, st.spp_max)
+        traced += st.stage_seconds["total"]
+        stats.partitions += [p for p in st.partitions if p not in stats.partitions]
     stats.spp_mean = stats.samples_total / float(h * w)
     stats.image_tiles = len(cores)
-    stats.stage_seconds = {"total": time.perf_counter() - t0}
+    total = time.perf_counter() - t0
+    stats.stage_seconds = {"layers (both passes)": total - traced, "trace": traced, "total": total}
     return out, stats
