@@ -14,6 +14,19 @@ import math
 import numpy as np
 
 
+def bilinear(tex: np.ndarray, px: float, py: float) -> np.ndarray:
+    """Bilinear lookup between texel centres, clamped to the edge (the PISA oracle's sampler)."""
+    h, w = tex.shape[:2]
+    fx = min(max(px - 0.5, 0.0), w - 1.0)
+    fy = min(max(py - 0.5, 0.0), h - 1.0)
+    x0, y0 = int(math.floor(fx)), int(math.floor(fy))
+    x1, y1 = min(x0 + 1, w - 1), min(y0 + 1, h - 1)
+    tx, ty = fx - x0, fy - y0
+    top = tex[y0, x0] * (1 - tx) + tex[y0, x1] * tx
+    bot = tex[y1, x0] * (1 - tx) + tex[y1, x1] * tx
+    return top * (1 - ty) + bot * ty
+
+
 def box_mean(tex: np.ndarray, cx: float, cy: float, hx: float, hy: float) -> np.ndarray:
     """Mean of ``tex`` (H x W x C, constant per texel, border continued) over ``[cx +- hx] x [cy +- hy]``."""
     h, w = tex.shape[:2]
