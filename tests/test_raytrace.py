@@ -251,7 +251,7 @@ def test_ctrl_c_in_the_cli_leaves_no_output(tmp_path):
     t = time.perf_counter()
     proc.send_signal(signal.SIGINT)
     proc.wait(timeout=20)
-    assert time.perf_counter() - t < 3.0  # the render stops within a second; the interpreter then exits
+    assert time.perf_counter() - t < 5.0  # the render stops within a second (above); the interpreter then exits
     assert proc.returncode == 130 and not out.exists()
     assert b"Traceback" not in proc.stderr.read()
 
