@@ -234,7 +234,7 @@ def plot(stack: dict, path: Path) -> None:
     if before.exists():
         old = [r for r in json.loads(before.read_text())["rows"] if isinstance(r["spp"], int)]
         ax.semilogx([r["median"] for r in old], [r["psnr_db"] for r in old], "s--", color="C7",
-                    label="layer stack: former spiral point samples (8..256 rays; earlier run, vs 1024 rays)")
+                    label="layer stack: former spiral point samples (8..256 rays; earlier, quiet run; vs 1024 rays)")
     marks = {"preview": ("D", "C1"), "raytrace (photo mode)": ("^", "C2")}
     for name, r in stack["from_pinhole_photo"].items():
         m, c = marks[name]
@@ -242,7 +242,7 @@ def plot(stack: dict, path: Path) -> None:
     ax.set_xlabel("median time per render, 512 x 512 (s)")
     ax.set_ylabel("PSNR vs converged render (dB)")
     ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=7, loc="lower right")
+    ax.legend(fontsize=7, loc="upper left")
     ax.set_title("3-layer scene (strands r = 24, card r = 12, sharp background)", fontsize=9)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
