@@ -19,8 +19,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
-import bokehray_kernels as bk
-
 from ._scatter import PreviewOptions, _box_max_tiles, _dilate, _layer_sources, cap_coc, plan_layers
 from .errors import InputError
 from .lens import Aperture, BlurParams
@@ -228,7 +226,7 @@ def _trace(
         for i in range(n):
             np.maximum(r_px, _visible_coc(blur.coc_radius(disp[i]), rgba[i, ..., 3] > 0), out=r_px)
         r_px = r_px[core[0] : core[1], core[2] : core[3]]
-    levels, table, strips = choose_levels(r_px, aperture, options.samples_per_px2, options.strip_range(),
+    levels, table, _ = choose_levels(r_px, aperture, options.samples_per_px2, options.strip_range(),
                                            options.max_spp)
     sat = summed_area(rgba)
     t1 = time.perf_counter()
@@ -360,7 +358,7 @@ def _trace_tiles(image: np.ndarray, s: np.ndarray, sid: np.ndarray, plans: list,
     stats = RaytraceStats(layers=n)
     traced = 0.0
     for k, core in enumerate(cores):
-        (wy0, wx0), (y0, y1, x0, x1), rgba, disp = window_layers(core)
+        _, (y0, y1, x0, x1), rgba, disp = window_layers(core)
         cy0, cy1, cx0, cx1 = core
         r_px = np.zeros((cy1 - cy0, cx1 - cx0), np.float32)
         for i in range(n):
