@@ -168,7 +168,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     o.add_argument("--quality", choices=tuple(LEVELS), default="preview",
                    help="; ".join(f"{name}: {level.summary}" for name, level in LEVELS.items()))
-    o.add_argument("--max-spp", type=int, default=128, help="raytrace: most rays per pixel (default 128)")
+    o.add_argument("--max-spp", type=int, default=128, help="raytrace: most rays (aperture cells) per pixel (default 128)")
     o.add_argument("--refine", nargs="?", const=True, default=False, metavar="WEIGHTS",
                    help="then run the neural refiner near depth edges (preview quality; needs the 'refiner' extra); "
                    "default: the shipped weights, or WEIGHTS from bokehray train-refiner")
@@ -188,7 +188,7 @@ def build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--bg", help="folder of background photos; default: photos bundled with scikit-image")
     sy.add_argument("--size", type=int, default=512, help="image side in pixels (default 512)")
     sy.add_argument("--blur-levels", default="10,20,30", help="K values, comma separated (default 10,20,30)")
-    sy.add_argument("--max-spp", type=int, default=64, help="rays per pixel cap (default 64)")
+    sy.add_argument("--max-spp", type=int, default=64, help="most rays (aperture cells) per pixel (default 64)")
     from .executor import add_executor_args
 
     add_executor_args(sy)

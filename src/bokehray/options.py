@@ -101,28 +101,29 @@ class PreviewOptions:
 
 @dataclass(frozen=True, slots=True)
 class RaytraceOptions:
-    """Sampling of the aperture, read only by the ray tracer (``bokehray.levels.raytrace``).
+    """The aperture quadrature, read only by the ray tracer (``bokehray.levels.quadrature``; docs/raytracer.md).
 
     Args:
-        samples_per_px2: rays per square pixel of the largest CoC a pixel can see:
-            ``spp = ceil(samples_per_px2 * pi * r^2)``, clamped. The rays are points of a spiral on the CoC's
-            circumscribed disc; with a polygon aperture only those inside it (polygon area / disc area of them)
-            are traced.
-        max_spp: most rays per pixel.
-        min_spp: fewest rays per pixel (1 where everything is in focus).
-        seed: rotates the per-pixel sample patterns; renders are deterministic for a seed.
+        samples_per_px2: cells per square pixel of the largest CoC a pixel can see: the aperture is cut into
+            ``g = ceil(2 r sqrt(samples_per_px2))`` strips of square-ish cells (about ``(pi / 4) g^2`` of them)
+            plus thin cells along its outline. Each cell is one ray whose texture lookups average the cell's
+            footprint, so this sets how finely occlusion between layers is resolved, not the noise (there is none).
+        max_spp: most rays (cells) per pixel: the strips are capped at ``sqrt(4 max_spp / pi)`` and, where the
+            full cells and the thin cells along the outline exceed it, the outline is coarsened, then strips
+            dropped (``bokehray.levels.raytrace_launch.choose_levels``). 1 is a single box cell of the aperture's
+            area.
+        min_spp: the fewest rays per pixel; 1 lets in-focus pixels (CoC below half a pixel) take the single centre
+            ray.
     """
 
     samples_per_px2: float = 0.5
     max_spp: int = 128
     min_spp: int = 1
-    seed: int = 0
 
     def __post_init__(self) -> None:
         check_number(self.samples_per_px2, "samples_per_px2", 0.0, lo_open=True)
         check_int(self.max_spp, "max_spp")
         check_int(self.min_spp, "min_spp")
-        check_int(self.seed, "seed")
         if not 1 <= self.min_spp <= self.max_spp <= 65536:
             raise InputError(f"rays per pixel: expected 1 <= min_spp <= max_spp <= 65536, "
                              f"got {self.min_spp}, {self.max_spp}")

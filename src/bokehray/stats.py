@@ -61,8 +61,10 @@ class PreviewStats(RenderStats):
 
 @dataclass(slots=True)
 class RaytraceStats(RenderStats):
-    """The ray tracer's counters: rays traced in all, per pixel on average and at most."""
+    """The ray tracer's counters: rays (aperture cells) traced in all, per pixel on average and at most, and the
+    aperture partitions used as (strips, outline) pairs."""
 
     samples_total: int = 0
     spp_mean: float = 0.0
     spp_max: int = 0
+    partitions: list = field(default_factory=list)

@@ -251,7 +251,7 @@ def _generate_one(args: tuple[SynthConfig, int, int, str, bool]) -> str:
     image, disparity = _pinhole(layers)
     focus = [_mean_disparity(layers[0]), _mean_disparity(layers[-1])]
     renders, spp = [], []
-    opts = RaytraceOptions(max_spp=config.max_spp, seed=index)
+    opts = RaytraceOptions(max_spp=config.max_spp)
     for k_index, k in enumerate(config.blur_levels):
         for f_index, d_f in enumerate(focus):
             out_img, st = raytrace_layers(layers, BlurParams(k, d_f), config.aperture, options=opts)

@@ -1,7 +1,6 @@
 """Issue 18, items 3, 4, 5, 7 and 8: regression tests for broken promises of the render core.
 
-Each test states the promise; each failed before its fix (the adversarial run's cases). Item 5 for the
-ray tracer is marked ``xfail(strict=True)`` until the ray tracer traces in interruptible chunks.
+Each test states the promise; each failed before its fix (the adversarial run's cases).
 
 The IO items of the same issue (1, 2, 6 and the questionable inputs) are fixed and tested in
 tests/cli_io/test_io.py, tests/stress/test_stress_io.py and tests/cli_io/test_cli.py.
@@ -113,8 +112,6 @@ def test_refine_tile_search_is_bounded_by_the_image_not_the_blur():
 # --------------------------------------------------------------------------- 5: Ctrl-C during the ray tracer
 
 
-@pytest.mark.xfail(strict=True, reason="issue 18.5: the ray tracer runs as one Warp launch; SIGINT is handled only "
-                   "when it returns (74 s after Ctrl-C on 1024 x 1024)")
 def test_ctrl_c_stops_the_ray_tracer_within_a_second_or_two(tmp_path):
     img, d = _scene(384, 384)
     src = bio.write_image(tmp_path / "in.exr", img)

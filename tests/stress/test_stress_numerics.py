@@ -207,7 +207,7 @@ def test_one_ray_per_pixel_matches_the_reference(spp):
     layers = [(_tex(rng, 8, 9, (np.arange(9) >= 4) * np.ones((8, 1))), (0.0, 0.0, 0.8)),  # a hard alpha edge
               (_tex(rng, 8, 9, 1.0), (0.02, -0.01, 0.2))]
     got, st_ = raytrace_layers([Layer(t, plane=p) for t, p in layers], br.BlurParams(7.0, 0.4), options=_fixed(spp))
-    assert st_.spp_max == spp
+    assert st_.spp_max <= spp  # a cap: one box cell for 1 (and 2) rays
     np.testing.assert_allclose(got, raytrace_ref.trace(layers, 7.0, 0.4, spp), atol=2e-5)
 
 

@@ -1,22 +1,21 @@
 """The layered ray tracer: exact thin-lens renders of layer stacks, and the ``raytrace`` quality level.
 
-Rays through sampled points of the aperture are intersected with every layer and composited front to back
-(kernel: ``bokehray_kernels.raytrace``). For a stack of planar RGBA layers this converges to the exact thin-lens
-image as the samples grow (:func:`raytrace_layers`); for a photo, the layered scene is the preview's
-(``bokehray.scene``: the same depth slices, hidden regions filled), ray traced instead of scattered
-(:func:`render_raytrace`). See docs/raytracer.md.
+The aperture is cut into box cells (``levels.quadrature``), one ray per cell, intersected with every layer and
+composited front to back, each layer's texture averaged exactly over the cell's footprint (kernel:
+``bokehray_kernels.raytrace``; launches in interruptible row bands: ``levels.raytrace_launch``). For a stack of
+RGBA layers this is the thin-lens image up to the stated bias (:func:`raytrace_layers`); for a photo, the layered
+scene is the preview's (``bokehray.scene``: the same depth slices, hidden regions filled), ray traced instead of
+scattered (:func:`render_raytrace`). See docs/raytracer.md.
 """
 
 from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-import warp as wp
-
-import bokehray_kernels as bk
 
 from .. import scene as sc
 from .. import tiling
@@ -25,15 +24,17 @@ from ..lens import Aperture, BlurParams
 from ..options import RaytraceOptions
 from ..stats import RaytraceStats
 from ..validate import check_finite, check_radiance, check_type
-from .base import RenderContext
+from .base import Progress, RenderContext
+from .raytrace_launch import choose_levels, strip_range, summed_area, trace_bands
 
 __all__ = ["Layer", "raytrace_layers", "render_raytrace"]
 
 # Bytes per pixel (float32 = 4 bytes), checked against measured peaks by benchmarks/bench_memory.py.
 WHOLE_IMAGE_B = 48
 """Whole-image arrays: signed CoC, layer ids, the plan's sort keys, output."""
-LAYER_B = 40
-"""Per pixel of the traced region and per layer: the packed texture (16 + 4) on the host and its device copy."""
+LAYER_B = 56
+"""Per pixel of the traced region and per layer: the packed texture (16 + 4) on the host and its float64
+summed-area table (32; read in place on the CPU, copied to a GPU)."""
 REGION_B = 150
 """Per pixel of the traced region: image, CoC, layer ids on the device, a layer's sources and fill pyramid while
 it is built, ray counts, result and normalised result."""
@@ -73,13 +74,12 @@ class _Stack:
 @dataclass(frozen=True, slots=True, eq=False)
 class _Part:
     """What a tile of a larger trace takes from the whole image: each layer's disparity range (the march
-    bounds, n x 2), the visible CoC of the traced pixels (the ray counts), the traced pixels ``core`` (y0, y1,
-    x0, x1) inside the textures, and the textures' ``origin`` (y, x) in the whole image."""
+    bounds, n x 2), the visible CoC of the traced pixels (the ray counts), and the traced pixels ``core`` (y0, y1,
+    x0, x1) inside the textures."""
 
     ranges: np.ndarray
     r_px: np.ndarray
     core: tiling.Box
-    origin: tuple[int, int]
 
 
 def _validate_layers(layers: list[Layer]) -> tuple[int, int]:
@@ -136,6 +136,7 @@ def raytrace_layers(
     *,
     options: RaytraceOptions | None = None,
     device: str = "cpu",
+    progress: Callable[[int, int], None] | None = None,
 ) -> tuple[np.ndarray, RaytraceStats]:
     """Ray trace a front-to-back stack of layers through a thin lens.
 
@@ -146,6 +147,8 @@ def raytrace_layers(
             aperture of radius ``K |d - d_f|`` px.
         aperture: disc (default) or bladed polygon.
         options: aperture sampling (:class:`~bokehray.RaytraceOptions`).
+        progress: called as ``progress(done, total)`` (units of work) between bands of rows;
+            an exception it raises (or Ctrl-C) stops the trace within one band.
 
     Returns:
         ``(H x W x 4, stats)``: premultiplied RGB and the coverage (1 minus the
@@ -169,7 +172,7 @@ def raytrace_layers(
         disp[i] = _layer_disparity_at_pixels(lyr, h, w)
         if lyr.plane is not None:
             planes[i] = (*lyr.plane, 1.0)
-    out, stats = _trace(_Stack(rgba, disp, planes), blur, aperture, options, device, t0)
+    out, stats = _trace(_Stack(rgba, disp, planes), blur, aperture, options, device, t0, progress=progress)
     stats.shape, stats.device = (h, w), device
     return out, stats
 
@@ -181,48 +184,25 @@ def _whole_part(stack: _Stack, blur: BlurParams, grid: int) -> _Part:
     r_px = np.zeros((h, w), np.float32)
     for i in range(n):
         np.maximum(r_px, _visible_coc(blur.coc_radius(stack.disp[i]), stack.rgba[i, ..., 3] > 0, grid), out=r_px)
-    return _Part(ranges, r_px, (0, h, 0, w), (0, 0))
+    return _Part(ranges, r_px, (0, h, 0, w))
 
 
 def _trace(stack: _Stack, blur: BlurParams, aperture: Aperture, options: RaytraceOptions, device: str, t0: float,
-           part: _Part | None = None, grid: int = 16) -> tuple[np.ndarray, RaytraceStats]:
-    """Launch the kernel on packed layers; returns the traced pixels (``part.core``) only."""
+           part: _Part | None = None, grid: int = 16, progress: Progress | None = None
+           ) -> tuple[np.ndarray, RaytraceStats]:
+    """Trace packed layers in row bands (``levels.raytrace_launch``); returns the traced pixels (``part.core``) only."""
     part = _whole_part(stack, blur, grid) if part is None else part
-    r_px = part.r_px
-    spp = np.clip(np.ceil(options.samples_per_px2 * np.pi * r_px * r_px), options.min_spp, options.max_spp)
-    spp = np.where(r_px < 0.5, options.min_spp, spp).astype(np.int32)
-    blade_rows = aperture.blade_discs()
-    blades = blade_rows if len(blade_rows) else np.zeros((1, 4), np.float32)
+    core = part.core
+    levels, table, _ = choose_levels(part.r_px, aperture, options.samples_per_px2, strip_range(options),
+                                     options.max_spp)
+    sat = summed_area(stack.rgba)
     t1 = time.perf_counter()
-
-    out = wp.empty(spp.shape, dtype=wp.vec4, device=device)
-    core, origin = part.core, part.origin
-    wp.launch(
-        bk.raytrace_kernel,
-        dim=spp.shape,
-        inputs=[
-            wp.array(stack.rgba, dtype=wp.vec4, device=device),
-            wp.array(stack.disp, dtype=float, device=device),
-            wp.array(stack.planes, dtype=wp.vec4, device=device),
-            wp.array(np.ascontiguousarray(part.ranges, np.float32), dtype=wp.vec2, device=device),
-            stack.n,
-            float(blur.k_px),
-            float(blur.focus_disparity),
-            wp.array(blades, dtype=wp.vec4, device=device),
-            len(blade_rows),
-            wp.array(spp, dtype=wp.int32, device=device),
-            int(options.seed),
-            int(core[2]),
-            int(core[0]),
-            int(origin[1]),
-            int(origin[0]),
-        ],
-        outputs=[out],
-        device=device,
-    )
-    result = out.numpy()
-    stats = RaytraceStats(quality="raytrace", layers=stack.n, samples_total=int(spp.sum()),
-                          spp_mean=float(spp.mean()), spp_max=int(spp.max()))
+    result = trace_bands(sat, stack.disp, stack.planes, part.ranges, float(blur.k_px), float(blur.focus_disparity),
+                         table, levels, (core[0], core[2]), device, progress=progress)
+    rays = table.count(levels)
+    stats = RaytraceStats(quality="raytrace", layers=stack.n, samples_total=int(rays.sum()),
+                          spp_mean=float(rays.mean()), spp_max=int(rays.max()),
+                          partitions=[[int(g), float(ol)] for g, ol in table.parts])
     stats.stage_seconds = {"setup": t1 - t0, "trace": time.perf_counter() - t1, "total": time.perf_counter() - t0}
     return result, stats
 
@@ -286,7 +266,11 @@ def render_raytrace(ctx: RenderContext) -> tuple[np.ndarray, RaytraceStats]:
     t0 = time.perf_counter()
     if tile is None:
         stack = _photo_stack(scene, image, s, scene.ids, blur, ctx.device)
-        out, stats = _trace(stack, blur, ctx.aperture, options, ctx.device, t0, grid=grid)
+        t_layers = time.perf_counter()
+        part = _whole_part(stack, blur, grid)
+        out, stats = _trace(stack, blur, ctx.aperture, options, ctx.device, t_layers, part, grid, ctx.progress)
+        stats.stage_seconds = {"layers": t_layers - t0, **stats.stage_seconds,
+                               "total": stats.stage_seconds["total"] + t_layers - t0}
         del stack
     else:
         out, stats = _trace_tiles(ctx, scene, -(-tile // grid) * grid, halo, align, t0)
@@ -332,9 +316,12 @@ def _trace_tiles(ctx: RenderContext, scene: sc.LayeredScene, tile: int, halo: in
     reach = [sc.dilate(content[i], int(np.ceil(float(coc_max[i]) / grid)) + 1) for i in range(n)]
 
     stats = RaytraceStats(quality="raytrace", layers=n)
+    all_cores = tiling.cores(h, w, tile)
+    traced = 0.0
 
     def trace_core(core: tiling.Box) -> np.ndarray:
-        (wy0, _, wx0, _), (y0, y1, x0, x1), stack = window_stack(core)
+        nonlocal traced
+        _, (y0, y1, x0, x1), stack = window_stack(core)
         cy0, cy1, cx0, cx1 = core
         r_px = np.zeros((cy1 - cy0, cx1 - cx0), np.float32)
         for i in range(n):
@@ -342,14 +329,20 @@ def _trace_tiles(ctx: RenderContext, scene: sc.LayeredScene, tile: int, halo: in
             mask = sc.grid_to_pixels(sub, grid, (cy1 - cy0, cx1 - cx0))
             np.maximum(r_px, np.where(mask, blur.coc_radius(stack.disp[i, y0:y1, x0:x1]), 0.0).astype(np.float32),
                        out=r_px)
-        part, st = _trace(stack, blur, ctx.aperture, ctx.options, ctx.device, t0,
-                          _Part(ranges, r_px, (y0, y1, x0, x1), (wy0, wx0)), grid)
+        k = all_cores.index(core)
+        tile_progress = None if ctx.progress is None else (
+            lambda done, total: ctx.progress(k * 1000 + int(1000 * done / max(total, 1)), 1000 * len(all_cores)))
+        part, st = _trace(stack, blur, ctx.aperture, ctx.options, ctx.device, time.perf_counter(),
+                          _Part(ranges, r_px, (y0, y1, x0, x1)), grid, tile_progress)
         stats.samples_total += st.samples_total
         stats.spp_max = max(stats.spp_max, st.spp_max)
+        stats.partitions += [p for p in st.partitions if p not in stats.partitions]
+        traced += st.stage_seconds["total"]
         return part
 
     out = np.empty((h, w, 4), np.float32)
     stats.image_tiles = tiling.render_tiles(out, tile, trace_core)
     stats.spp_mean = stats.samples_total / float(h * w)
-    stats.stage_seconds = {"total": time.perf_counter() - t0}
+    total = time.perf_counter() - t0
+    stats.stage_seconds = {"layers (both passes)": total - traced, "trace": traced, "total": total}
     return out, stats
