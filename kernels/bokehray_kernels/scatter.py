@@ -29,40 +29,91 @@ wp.set_module_options({"enable_backward": False})
 MAX_LEVELS = 6
 """Pyramid levels 0..5: radii up to ``r0 * 32`` cost O(r0) per source."""
 
+SAG_PX = wp.constant(0.02)
+"""Largest sag [px] of a chord end inside a sub-row (before the ``MAX_SUB`` cap)."""
+
+MAX_SUB = wp.constant(32)
+"""Most sub-rows per pixel row (reached only next to the poles of a shape)."""
+
 
 @wp.func
-def _deposit_span(buf: wp.array2d(dtype=wp.vec4), row: int, a: float, b: float, v: wp.vec4):
-    # buf is (H, W + 2): column W and W + 1 absorb the right ends, never read back.
+def _hat_cdf(u: float) -> float:
+    # integral from -inf to u of the hat max(0, 1 - |t|)
+    if u <= -1.0:
+        return 0.0
+    if u <= 0.0:
+        return 0.5 * (1.0 + u) * (1.0 + u)
+    if u <= 1.0:
+        return 1.0 - 0.5 * (1.0 - u) * (1.0 - u)
+    return 1.0
+
+
+@wp.func
+def _deposit_end(buf: wp.array2d(dtype=wp.vec4), row: int, p0: float, p1: float, v: wp.vec4):
+    """One end of a span whose position moves linearly from ``p0`` to ``p1`` over the sub-row.
+
+    A step at ``p`` (pixel-box integrated) is the difference pair ``(1 - f, f)`` at
+    ``(floor(p), floor(p) + 1)``, i.e. the hat weights ``max(0, 1 - |p - j|)`` at every
+    column ``j``. A position uniform on ``[p0, p1]`` deposits the mean hat weights, in
+    closed form; positions left of 0 (right of W) deposit at column 0 (W): the span is
+    clipped to the image. ``buf`` is (H, W + 2): columns W and W + 1 are never read back.
+    """
     w = float(buf.shape[1] - 2)
-    a = wp.clamp(a, 0.0, w)
-    b = wp.clamp(b, 0.0, w)
-    if b <= a:
+    lo = wp.min(p0, p1)
+    hi = wp.max(p0, p1)
+    span = hi - lo
+    if span < 1.0e-4:
+        p = wp.clamp(0.5 * (lo + hi), 0.0, w)
+        k = int(wp.floor(p))
+        f = p - float(k)
+        wp.atomic_add(buf, row, k, v * (1.0 - f))
+        wp.atomic_add(buf, row, k + 1, v * f)
         return
-    ka = int(wp.floor(a))
-    fa = a - float(ka)
-    kb = int(wp.floor(b))
-    fb = b - float(kb)
-    wp.atomic_add(buf, row, ka, v * (1.0 - fa))
-    wp.atomic_add(buf, row, ka + 1, v * fa)
-    wp.atomic_add(buf, row, kb, -v * (1.0 - fb))
-    wp.atomic_add(buf, row, kb + 1, -v * fb)
-
-
-@wp.func
-def _row_part(k: int, j: int, n_sub: int, top: float, bot: float) -> wp.vec2:
-    # j-th of n_sub equal sub-rows of pixel row k, clipped to [top, bot]: (start, end)
-    step = 1.0 / float(n_sub)
-    t0 = wp.max(float(k) + float(j) * step, top)
-    t1 = wp.min(float(k) + float(j + 1) * step, bot)
-    return wp.vec2(t0, t1)
+    inv = 1.0 / span
+    if lo < 0.0:
+        wp.atomic_add(buf, row, 0, v * ((wp.min(hi, 0.0) - lo) * inv))
+    if hi > w:
+        wp.atomic_add(buf, row, int(w), v * ((hi - wp.max(lo, w)) * inv))
+    mlo = wp.max(lo, 0.0)
+    mhi = wp.min(hi, w)
+    if mhi > mlo:
+        j0 = int(wp.floor(mlo))
+        j1 = int(wp.floor(mhi)) + 1
+        for j in range(j0, j1 + 1):
+            fj = float(j)
+            wgt = (_hat_cdf(mhi - fj) - _hat_cdf(mlo - fj)) * inv
+            if wgt != 0.0:
+                wp.atomic_add(buf, row, j, v * wgt)
 
 
 @wp.func
 def _signed_chord(y: float, rho: float, blades: wp.array(dtype=wp.vec4), n_blades: int, sgn: float) -> wp.vec2:
+    # the chord at height y (relative to the centre); empty chords collapse to their middle
+    c = wp.vec2()
     if sgn < 0.0:
-        c = chord(-y, rho, blades, n_blades)
-        return wp.vec2(-c[1], -c[0])
-    return chord(y, rho, blades, n_blades)
+        cc = chord(-y, rho, blades, n_blades)
+        c = wp.vec2(-cc[1], -cc[0])
+    else:
+        c = chord(y, rho, blades, n_blades)
+    if c[1] < c[0]:
+        m = 0.5 * (c[0] + c[1])
+        c = wp.vec2(m, m)
+    return c
+
+
+@wp.func
+def _n_sub(t0: float, t1: float, yc: float, rho: float, blades: wp.array(dtype=wp.vec4), n_blades: int,
+           sgn: float) -> int:
+    """Sub-rows of the row part ``[t0, t1]``: enough that each chord end is straight to ``SAG_PX``.
+
+    The deviation of the chord ends at mid-height from the straight line between the
+    ends at ``t0`` and ``t1`` is the sag; splitting in ``n`` divides a smooth sag by ``n^2``.
+    """
+    c0 = _signed_chord(t0 - yc, rho, blades, n_blades, sgn)
+    cm = _signed_chord(0.5 * (t0 + t1) - yc, rho, blades, n_blades, sgn)
+    c1 = _signed_chord(t1 - yc, rho, blades, n_blades, sgn)
+    sag = wp.max(wp.abs(cm[0] - 0.5 * (c0[0] + c1[0])), wp.abs(cm[1] - 0.5 * (c0[1] + c1[1])))
+    return wp.clamp(int(wp.ceil(wp.sqrt(sag / SAG_PX))), 1, MAX_SUB)
 
 
 @wp.func
@@ -85,33 +136,43 @@ def _scatter_one(
         bot = yc - extent[0] * rho
     ky0 = int(wp.floor(top))
     ky1 = int(wp.floor(bot))
-    # small shapes: several sub-rows per pixel row keep the midpoint rule accurate
-    n_sub = wp.clamp(int(wp.ceil(4.0 / rho)), 1, 4)
+    # pass 1: the area of the piecewise-linear shape (trapezoids), inside the image or not
     norm = float(0.0)
     for k in range(ky0, ky1 + 1):
-        for j in range(n_sub):
-            t = _row_part(k, j, n_sub, top, bot)
-            h = t[1] - t[0]
-            if h > 0.0:
-                c = _signed_chord(0.5 * (t[0] + t[1]) - yc, rho, blades, n_blades, sgn)
-                if c[1] > c[0]:
-                    norm += h * (c[1] - c[0])
+        t0 = wp.max(float(k), top)
+        t1 = wp.min(float(k + 1), bot)
+        if t1 > t0:
+            n = _n_sub(t0, t1, yc, rho, blades, n_blades, sgn)
+            step = (t1 - t0) / float(n)
+            c0 = _signed_chord(t0 - yc, rho, blades, n_blades, sgn)
+            for j in range(n):
+                c1 = _signed_chord(t0 + float(j + 1) * step - yc, rho, blades, n_blades, sgn)
+                norm += step * 0.5 * ((c0[1] - c0[0]) + (c1[1] - c1[0]))
+                c0 = c1
     if norm <= 0.0:
         # degenerate shape at this radius: keep the energy at the centre
         r = wp.clamp(int(wp.floor(yc)), 0, buf.shape[0] - 1)
-        _deposit_span(buf, r, wp.floor(xc), wp.floor(xc) + 1.0, v)
+        _deposit_end(buf, r, wp.floor(xc), wp.floor(xc), v)
+        _deposit_end(buf, r, wp.floor(xc) + 1.0, wp.floor(xc) + 1.0, -v)
         return
     inv = 1.0 / norm
+    # pass 2: each sub-row is a trapezoid; its two ends are deposited exactly (pixel-area integrated)
     k0 = wp.max(ky0, 0)
     k1 = wp.min(ky1, buf.shape[0] - 1)
     for k in range(k0, k1 + 1):
-        for j in range(n_sub):
-            t = _row_part(k, j, n_sub, top, bot)
-            h = t[1] - t[0]
-            if h > 0.0:
-                c = _signed_chord(0.5 * (t[0] + t[1]) - yc, rho, blades, n_blades, sgn)
-                if c[1] > c[0]:
-                    _deposit_span(buf, k, xc + c[0], xc + c[1], v * (h * inv))
+        t0 = wp.max(float(k), top)
+        t1 = wp.min(float(k + 1), bot)
+        if t1 > t0:
+            n = _n_sub(t0, t1, yc, rho, blades, n_blades, sgn)
+            step = (t1 - t0) / float(n)
+            vv = v * (step * inv)
+            c0 = _signed_chord(t0 - yc, rho, blades, n_blades, sgn)
+            for j in range(n):
+                c1 = _signed_chord(t0 + float(j + 1) * step - yc, rho, blades, n_blades, sgn)
+                if (c0[1] - c0[0]) + (c1[1] - c1[0]) > 0.0:
+                    _deposit_end(buf, k, xc + c0[0], xc + c1[0], vv)
+                    _deposit_end(buf, k, xc + c0[1], xc + c1[1], -vv)
+                c0 = c1
 
 
 @wp.kernel

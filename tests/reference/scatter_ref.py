@@ -48,12 +48,39 @@ def inside(px: np.ndarray, py: np.ndarray, rho: float, blades: np.ndarray) -> np
     return ok
 
 
+SAG_PX = 0.02  # largest sag of a chord end inside a sub-row (docs/renderer.md)
+MAX_SUB = 32  # most sub-rows per pixel row
+
+
+def _mean_clamped(p0: float, p1: float, lo: float, hi: float) -> float:
+    """Mean over u in [0, 1] of clamp(p0 + (p1 - p0) u, lo, hi), in closed form."""
+    if abs(p1 - p0) < 1e-4:
+        return min(max(0.5 * (p0 + p1), lo), hi)
+
+    def g(p: float) -> float:  # an antiderivative of clamp(p, lo, hi)
+        if p <= lo:
+            return lo * p
+        if p <= hi:
+            return lo * lo + 0.5 * (p * p - lo * lo)
+        return lo * lo + 0.5 * (hi * hi - lo * lo) + hi * (p - hi)
+
+    return (g(p1) - g(p0)) / (p1 - p0)
+
+
 def footprint(xc: float, yc: float, rho: float, blades: np.ndarray, h: int, w: int,
               extent: tuple[float, float] = (-1.0, 1.0)) -> np.ndarray:
     """Weights a source at (xc, yc) (continuous pixel coords) spreads over an h x w grid (level 0).
 
     ``extent``: the shape's vertical extent at unit radius (rows outside it are empty).
     A positive ``rho`` (in front of focus) draws the shape point-reflected.
+
+    Discretisation (docs/renderer.md): each pixel row, clipped to the extent, is cut into
+    ``n`` equal sub-rows, ``n = clamp(ceil(sqrt(sag / SAG_PX)), 1, MAX_SUB)`` where the sag is
+    how far the chord ends at mid-row lie from the straight line between the ends at the row's
+    top and bottom. Each sub-row is the trapezoid between the chords at its top and bottom; a
+    pixel gets the trapezoid's area over it, computed here as the mean over the sub-row's height
+    of the overlap of ``[a(y), b(y)]`` with ``[x, x + 1]`` (ends linear in y). The weights are
+    divided by the summed trapezoid area of the whole shape, inside the image or not.
     """
     if rho > 0 and len(blades):
         # point reflection: a shape S at -S; blades (n, h, R) -> (-n, h, R), extent (a, b) -> (-b, -a)
@@ -65,24 +92,33 @@ def footprint(xc: float, yc: float, rho: float, blades: np.ndarray, h: int, w: i
     if rho < 0.5:
         out[int(math.floor(yc)), int(math.floor(xc))] = 1.0
         return out
-    rows = []
-    n_sub = min(4, max(1, math.ceil(4.0 / rho)))
+
+    def ch(y: float) -> tuple[float, float]:
+        lo, hi = chord(y - yc, rho, blades)
+        if hi < lo:
+            lo = hi = 0.5 * (lo + hi)
+        return xc + lo, xc + hi
+
     top, bot = yc + extent[0] * rho, yc + extent[1] * rho
+    traps = []  # (row, height, (a0, b0), (a1, b1))
     for k in range(math.floor(top), math.floor(bot) + 1):
-        for j in range(n_sub):
-            t0, t1 = max(k + j / n_sub, top), min(k + (j + 1) / n_sub, bot)
-            if t1 <= t0:
-                continue
-            lo, hi = chord(0.5 * (t0 + t1) - yc, rho, blades)
-            if hi > lo:
-                rows.append((k, t1 - t0, xc + lo, xc + hi))
-    total = sum(hk * (b - a) for _, hk, a, b in rows)
-    for k, hk, a, b in rows:
-        if not 0 <= k < h:
+        t0, t1 = max(k, top), min(k + 1, bot)
+        if t1 <= t0:
+            continue
+        (a0, b0), (am, bm), (a1, b1) = ch(t0), ch(0.5 * (t0 + t1)), ch(t1)
+        sag = max(abs(am - 0.5 * (a0 + a1)), abs(bm - 0.5 * (b0 + b1)))
+        n = min(MAX_SUB, max(1, math.ceil(math.sqrt(sag / SAG_PX))))
+        for j in range(n):
+            s0, s1 = t0 + j * (t1 - t0) / n, t0 + (j + 1) * (t1 - t0) / n
+            traps.append((k, s1 - s0, ch(s0), ch(s1)))
+    total = sum(hk * 0.5 * ((e0[1] - e0[0]) + (e1[1] - e1[0])) for _, hk, e0, e1 in traps)
+    for k, hk, (a0, b0), (a1, b1) in traps:
+        if not 0 <= k < h or (b0 - a0) + (b1 - a1) <= 0:
             continue
         for x in range(w):
-            overlap = min(b, x + 1, w) - max(a, x, 0)
-            if overlap > 0:
+            # overlap of [a, b] with [x, x + 1] is clamp(b) - clamp(a); its mean over the sub-row
+            overlap = _mean_clamped(b0, b1, x, x + 1) - _mean_clamped(a0, a1, x, x + 1)
+            if overlap != 0:
                 out[k, x] += hk * overlap / total
     return out
 
@@ -123,3 +159,40 @@ def layered(image: np.ndarray, signed_coc: np.ndarray, edges: np.ndarray, blades
         acc = colour * alpha[..., None] + (1 - alpha[..., None]) * acc
         opacity = alpha + (1 - alpha) * opacity
     return np.where(opacity[..., None] > 1e-4, acc / np.maximum(opacity, 1e-12)[..., None], image)
+
+
+def area_coverage(xc: float, yc: float, rho: float, blades: np.ndarray, h: int, w: int,
+                  n_super: int = 64) -> np.ndarray:
+    """The analytic shape integrated over every pixel of an h x w grid, normalised to sum 1 over the plane.
+
+    Shape of circumradius ``|rho|`` centred at ``(xc, yc)`` (continuous pixel coordinates); a
+    positive ``rho`` (in front of focus) is the point reflection. Pixels of the shape's bounding
+    box are classified on a 4 x 4 grid; those not all in or all out (and their neighbours) are
+    supersampled ``n_super`` x ``n_super``. The normalisation is over the whole bounding box,
+    inside the image or not, so a shape cut by the frame keeps only what falls inside.
+    """
+    sgn = -1.0 if rho > 0 else 1.0
+    rho = abs(rho)
+
+    def grid(ys: np.ndarray, xs: np.ndarray, n: int) -> np.ndarray:
+        sub = (np.arange(n) + 0.5) / n
+        py = (ys[:, None] + sub[None, :]).ravel()
+        px = (xs[:, None] + sub[None, :]).ravel()
+        c = inside(sgn * (px[None, :] - xc), sgn * (py[:, None] - yc), rho, blades)
+        return c.reshape(len(ys), n, len(xs), n).mean(axis=(1, 3))
+
+    y0, y1 = int(math.floor(yc - rho)) - 1, int(math.ceil(yc + rho)) + 2
+    x0, x1 = int(math.floor(xc - rho)) - 1, int(math.ceil(xc + rho)) + 2
+    ys, xs = np.arange(y0, y1, dtype=np.float64), np.arange(x0, x1, dtype=np.float64)
+    fine = np.concatenate([grid(ys[i:i + 64], xs, 4) for i in range(0, len(ys), 64)])
+    mixed = np.pad((fine > 0) & (fine < 1), 1)
+    mixed = mixed[1:-1, 1:-1] | mixed[:-2, 1:-1] | mixed[2:, 1:-1] | mixed[1:-1, :-2] | mixed[1:-1, 2:]
+    for iy in np.unique(np.nonzero(mixed)[0]):
+        cols = np.flatnonzero(mixed[iy])
+        fine[iy, cols] = grid(ys[iy:iy + 1], xs[cols], n_super)[0]
+    fine /= fine.sum()
+    out = np.zeros((h, w))
+    oy0, oy1, ox0, ox1 = max(0, y0), min(h, y1), max(0, x0), min(w, x1)
+    if oy1 > oy0 and ox1 > ox0:
+        out[oy0:oy1, ox0:ox1] = fine[oy0 - y0:oy1 - y0, ox0 - x0:ox1 - x0]
+    return out
