@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 
 import bokehray_kernels as bk
 from bokehray import Aperture
-from bokehray._scatter import PreviewOptions, layer_edges, render_preview
+from bokehray._scatter import PreviewOptions, aperture_area, layer_edges, render_preview
 from reference import scatter_ref
 from tolerances import (
     ENERGY_RTOL,
@@ -67,7 +67,7 @@ def _point_response(ap: Aperture, radius: float, size: int, device: str, offset=
     blades, n = _blades_wp(ap, device)
     wp.launch(bk.scatter_kernel, dim=(size, size),
               inputs=[wp.array(src, dtype=wp.vec4, device=device), wp.array(radius_map, device=device), blades, n,
-                      wp.vec2(*ap.vertical_extent()), r0, levels, *bufs], device=device)
+                      wp.vec2(*ap.vertical_extent()), aperture_area(ap), r0, levels, *bufs], device=device)
     for lv in range(levels):
         wp.launch(bk.prefix_rows_kernel, dim=bufs[lv].shape[0], inputs=[bufs[lv]], device=device)
     out = wp.empty((size, size), dtype=wp.vec4, device=device)
@@ -119,7 +119,7 @@ def test_scatter_matches_reference(ap, device, rng):
     blades, n = _blades_wp(ap, device)
     wp.launch(bk.scatter_kernel, dim=(h, w),
               inputs=[wp.array(src, dtype=wp.vec4, device=device), wp.array(radius, device=device), blades, n,
-                      wp.vec2(*ap.vertical_extent()), 1e6, 1, *bufs], device=device)
+                      wp.vec2(*ap.vertical_extent()), aperture_area(ap), 1e6, 1, *bufs], device=device)
     wp.launch(bk.prefix_rows_kernel, dim=h, inputs=[bufs[0]], device=device)
     got = bufs[0].numpy()[:, :w]
     want = scatter_ref.scatter(src.astype(np.float64), radius, ap.blade_discs(), ap.vertical_extent())

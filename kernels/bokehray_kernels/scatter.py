@@ -1,22 +1,25 @@
 """Row-span scatter of aperture-shaped CoCs on a radius pyramid, and layer compositing.
 
 Each source pixel spreads a ``vec4`` (premultiplied RGB, coverage) over its
-aperture shape. The shape is cut into pixel rows; each row is one interval
-``[a, b]`` deposited into a per-row *difference* buffer with four adds
-(antialiased, fractional ends), and a prefix sum along each row turns the
-differences into per-pixel coverage. A source therefore costs O(rows), not
-O(r^2). Sources whose radius exceeds ``r0`` are scattered on a coarser level
-``l`` (pixel size ``2^l``) where their radius is at most ``r0``, so the cost per
-source is bounded by O(r0) whatever its radius; ``resolve_levels_kernel``
-brings the levels back to full resolution (bilinear, energy preserving).
+aperture shape. The shape is cut into pixel rows; each row is one or more
+spans deposited into a per-row *difference* buffer (a few adds per end), and a
+prefix sum along each row turns the differences into per-pixel coverage. A
+source therefore costs O(rows), not O(r^2). Sources whose radius exceeds ``r0``
+are scattered on a coarser level ``l`` (pixel size ``2^l``) where their radius is
+at most ``r0``, unless the launcher routes them to level 0 (``exact`` flag: the
+salient sources, docs/renderer.md); ``resolve_levels_kernel`` brings the levels
+back to full resolution (bilinear, energy preserving).
 
-Each row ``k`` is split into ``n = clamp(ceil(4 / rho), 1, 4)`` equal sub-rows;
-each sub-row gets the weight ``h * (b - a) / sum over all sub-rows of h * (b - a)``
-where ``h`` is the part of the sub-row inside the shape's vertical extent and the
-chord ``[a, b]`` is taken at the middle of that part (midpoint rule). The normalisation
-is over the whole shape, inside the image or not, so every source deposits
-exactly its value (minus what falls outside the image), at every radius,
-including radii below one pixel.
+Area-exact spans: a pixel row (clipped to the shape's vertical extent) is split
+into ``n`` sub-rows where its chord ends bend (``n`` from the sag of the ends at
+mid-row, at most ``MAX_SUB``; graded towards the shape's top and bottom). In a
+sub-row each end moves linearly between its positions at the sub-row's edges,
+shifted by 2/3 of its sag at mid-height (Simpson's rule for its mean position),
+and is deposited as the exact pixel-box integral of that moving step (a ramp
+over the columns it crosses). Spans carry density ``v / (area * rho^2)`` (the
+shape's exact area); what the sub-rows' summed area differs from it goes on
+the centre row's chord, so every source deposits exactly its value (minus what
+falls outside the image), at every radius, including radii below one pixel.
 """
 
 import warp as wp
@@ -29,10 +32,10 @@ wp.set_module_options({"enable_backward": False})
 MAX_LEVELS = 6
 """Pyramid levels 0..5: radii up to ``r0 * 32`` cost O(r0) per source."""
 
-SAG_PX = wp.constant(0.02)
+SAG_PX = wp.constant(0.25)
 """Largest sag [px] of a chord end inside a sub-row (before the ``MAX_SUB`` cap)."""
 
-MAX_SUB = wp.constant(32)
+MAX_SUB = wp.constant(4)
 """Most sub-rows per pixel row (reached only next to the poles of a shape)."""
 
 
@@ -70,6 +73,23 @@ def _deposit_end(buf: wp.array2d(dtype=wp.vec4), row: int, p0: float, p1: float,
         wp.atomic_add(buf, row, k + 1, v * f)
         return
     inv = 1.0 / span
+    if span <= 1.0 and lo >= 0.0 and hi <= w:
+        # the common case in closed form: three columns k, k + 1, k + 2
+        k = int(wp.floor(lo))
+        f = lo - float(k)
+        g = f + span
+        wk = 0.5 * (1.0 - f) * (1.0 - f)
+        w2 = float(0.0)
+        if g <= 1.0:
+            wk -= 0.5 * (1.0 - g) * (1.0 - g)
+        else:
+            w2 = 0.5 * (g - 1.0) * (g - 1.0) * inv
+        wk *= inv
+        wp.atomic_add(buf, row, k, v * wk)
+        wp.atomic_add(buf, row, k + 1, v * (1.0 - wk - w2))
+        if w2 > 0.0:
+            wp.atomic_add(buf, row, k + 2, v * w2)
+        return
     if lo < 0.0:
         wp.atomic_add(buf, row, 0, v * ((wp.min(hi, 0.0) - lo) * inv))
     if hi > w:
@@ -102,18 +122,36 @@ def _signed_chord(y: float, rho: float, blades: wp.array(dtype=wp.vec4), n_blade
 
 
 @wp.func
-def _n_sub(t0: float, t1: float, yc: float, rho: float, blades: wp.array(dtype=wp.vec4), n_blades: int,
-           sgn: float) -> int:
-    """Sub-rows of the row part ``[t0, t1]``: enough that each chord end is straight to ``SAG_PX``.
+def _n_sub(c0: wp.vec2, cm: wp.vec2, c1: wp.vec2) -> int:
+    """Sub-rows of a row part with chords ``c0``, ``cm``, ``c1`` at its top, middle and bottom.
 
-    The deviation of the chord ends at mid-height from the straight line between the
-    ends at ``t0`` and ``t1`` is the sag; splitting in ``n`` divides a smooth sag by ``n^2``.
+    The sag is how far the chord ends at mid-height lie from the straight line between
+    the ends at top and bottom; splitting in ``n`` divides a smooth sag by ``n^2``.
     """
-    c0 = _signed_chord(t0 - yc, rho, blades, n_blades, sgn)
-    cm = _signed_chord(0.5 * (t0 + t1) - yc, rho, blades, n_blades, sgn)
-    c1 = _signed_chord(t1 - yc, rho, blades, n_blades, sgn)
     sag = wp.max(wp.abs(cm[0] - 0.5 * (c0[0] + c1[0])), wp.abs(cm[1] - 0.5 * (c0[1] + c1[1])))
-    return wp.clamp(int(wp.ceil(wp.sqrt(sag / SAG_PX))), 1, MAX_SUB)
+    if sag <= SAG_PX:
+        return 1
+    return wp.min(int(wp.ceil(wp.sqrt(sag / SAG_PX))), MAX_SUB)
+
+
+@wp.func
+def _sub_edge(t0: float, t1: float, j: int, n: int, at_top: int, at_bot: int) -> float:
+    """Height of the j-th of n sub-row edges of ``[t0, t1]``.
+
+    Uniform, except in a row holding the shape's top (bottom) end, where a rounded shape's
+    chord ends move like the square root of the distance to it: there the edges are graded
+    (quadratically near that end, cosine spacing), so the ends move about equally per sub-row.
+    """
+    u = float(j) / float(n)
+    if at_top != 0 and at_bot != 0:
+        u = 0.5 - 0.5 * wp.cos(u * 3.14159265358979)
+    elif at_top != 0:
+        u = 1.0 - wp.cos(u * 1.5707963267949)
+    elif at_bot != 0:
+        u = wp.sin(u * 1.5707963267949)
+    if j == n:
+        u = 1.0
+    return t0 + (t1 - t0) * u
 
 
 @wp.func
@@ -126,6 +164,7 @@ def _scatter_one(
     blades: wp.array(dtype=wp.vec4),
     n_blades: int,
     extent: wp.vec2,
+    area: float,
     sgn: float,
 ):
     # sgn = -1 draws the shape point-reflected (sources in front of the focal plane)
@@ -136,43 +175,66 @@ def _scatter_one(
         bot = yc - extent[0] * rho
     ky0 = int(wp.floor(top))
     ky1 = int(wp.floor(bot))
-    # pass 1: the area of the piecewise-linear shape (trapezoids), inside the image or not
-    norm = float(0.0)
+    h = buf.shape[0]
+    # One pass. Each sub-row is the trapezoid between the chords at its top and bottom edge,
+    # deposited with density v / (area rho^2) (the shape's exact area); its two ends are exact
+    # pixel-integrated ramps. Trapezoids are inscribed in the convex shape, so their summed area
+    # ``tr`` (the whole shape's, inside the image or not) is at most the exact area: the
+    # remainder goes on the centre row's chord, so the source deposits exactly v.
+    inv = 1.0 / (area * rho * rho)
+    tr = float(0.0)
+    t_prev = top
+    c_prev = _signed_chord(t_prev - yc, rho, blades, n_blades, sgn)
     for k in range(ky0, ky1 + 1):
-        t0 = wp.max(float(k), top)
+        t0 = t_prev
         t1 = wp.min(float(k + 1), bot)
-        if t1 > t0:
-            n = _n_sub(t0, t1, yc, rho, blades, n_blades, sgn)
-            step = (t1 - t0) / float(n)
-            c0 = _signed_chord(t0 - yc, rho, blades, n_blades, sgn)
-            for j in range(n):
-                c1 = _signed_chord(t0 + float(j + 1) * step - yc, rho, blades, n_blades, sgn)
-                norm += step * 0.5 * ((c0[1] - c0[0]) + (c1[1] - c1[0]))
-                c0 = c1
-    if norm <= 0.0:
-        # degenerate shape at this radius: keep the energy at the centre
-        r = wp.clamp(int(wp.floor(yc)), 0, buf.shape[0] - 1)
-        _deposit_end(buf, r, wp.floor(xc), wp.floor(xc), v)
-        _deposit_end(buf, r, wp.floor(xc) + 1.0, wp.floor(xc) + 1.0, -v)
-        return
-    inv = 1.0 / norm
-    # pass 2: each sub-row is a trapezoid; its two ends are deposited exactly (pixel-area integrated)
-    k0 = wp.max(ky0, 0)
-    k1 = wp.min(ky1, buf.shape[0] - 1)
-    for k in range(k0, k1 + 1):
-        t0 = wp.max(float(k), top)
-        t1 = wp.min(float(k + 1), bot)
-        if t1 > t0:
-            n = _n_sub(t0, t1, yc, rho, blades, n_blades, sgn)
-            step = (t1 - t0) / float(n)
-            vv = v * (step * inv)
-            c0 = _signed_chord(t0 - yc, rho, blades, n_blades, sgn)
-            for j in range(n):
-                c1 = _signed_chord(t0 + float(j + 1) * step - yc, rho, blades, n_blades, sgn)
-                if (c0[1] - c0[0]) + (c1[1] - c1[0]) > 0.0:
-                    _deposit_end(buf, k, xc + c0[0], xc + c1[0], vv)
-                    _deposit_end(buf, k, xc + c0[1], xc + c1[1], -vv)
-                c0 = c1
+        if t1 <= t0:
+            continue
+        c0 = c_prev
+        c1 = _signed_chord(t1 - yc, rho, blades, n_blades, sgn)
+        cm = _signed_chord(0.5 * (t0 + t1) - yc, rho, blades, n_blades, sgn)
+        n = _n_sub(c0, cm, c1)
+        at_top = int(k == ky0)
+        at_bot = int(k == ky1)
+        inside = k >= 0 and k < h
+        ca = c0
+        ta = t0
+        for j in range(n):
+            tb = t1
+            cb = c1
+            if j < n - 1:
+                tb = _sub_edge(t0, t1, j + 1, n, at_top, at_bot)
+                cb = _signed_chord(tb - yc, rho, blades, n_blades, sgn)
+            cmid = cm
+            if n > 1:
+                cmid = _signed_chord(0.5 * (ta + tb) - yc, rho, blades, n_blades, sgn)
+            # Simpson: the ends' mean positions are (a0 + 4 a_mid + a1) / 6, so the straight
+            # ramps are shifted by 2/3 of the sag; the sub-row's area is Simpson's
+            da = (2.0 / 3.0) * (cmid[0] - 0.5 * (ca[0] + cb[0]))
+            db = (2.0 / 3.0) * (cmid[1] - 0.5 * (ca[1] + cb[1]))
+            hh = tb - ta
+            wsum = (ca[1] - ca[0]) + (cb[1] - cb[0]) + 2.0 * (db - da)
+            tr += hh * 0.5 * wsum
+            if inside and wsum > 0.0:
+                vv = v * (hh * inv)
+                _deposit_end(buf, k, xc + ca[0] + da, xc + cb[0] + da, vv)
+                _deposit_end(buf, k, xc + ca[1] + db, xc + cb[1] + db, -vv)
+            ca = cb
+            ta = tb
+        t_prev = t1
+        c_prev = c1
+    rest = 1.0 - tr * inv
+    if rest != 0.0:
+        r = wp.clamp(int(wp.floor(yc)), 0, h - 1)
+        cc = _signed_chord(0.0, rho, blades, n_blades, sgn)
+        a = xc + cc[0]
+        b = xc + cc[1]
+        if b - a < 1.0:
+            a = wp.floor(xc)
+            b = a + 1.0
+        vr = v * (rest / (b - a))
+        _deposit_end(buf, r, a, a, vr)
+        _deposit_end(buf, r, b, b, -vr)
 
 
 @wp.kernel
@@ -182,6 +244,7 @@ def scatter_kernel(
     blades: wp.array(dtype=wp.vec4),
     n_blades: int,
     extent: wp.vec2,
+    area: float,
     r0: float,
     n_levels: int,
     buf0: wp.array2d(dtype=wp.vec4),
@@ -222,17 +285,17 @@ def scatter_kernel(
     yc = (float(y) + 0.5) * scale
     rho = r * scale
     if lev == 0:
-        _scatter_one(buf0, xc, yc, rho, v, blades, n_blades, extent, sgn)
+        _scatter_one(buf0, xc, yc, rho, v, blades, n_blades, extent, area, sgn)
     elif lev == 1:
-        _scatter_one(buf1, xc, yc, rho, v, blades, n_blades, extent, sgn)
+        _scatter_one(buf1, xc, yc, rho, v, blades, n_blades, extent, area, sgn)
     elif lev == 2:
-        _scatter_one(buf2, xc, yc, rho, v, blades, n_blades, extent, sgn)
+        _scatter_one(buf2, xc, yc, rho, v, blades, n_blades, extent, area, sgn)
     elif lev == 3:
-        _scatter_one(buf3, xc, yc, rho, v, blades, n_blades, extent, sgn)
+        _scatter_one(buf3, xc, yc, rho, v, blades, n_blades, extent, area, sgn)
     elif lev == 4:
-        _scatter_one(buf4, xc, yc, rho, v, blades, n_blades, extent, sgn)
+        _scatter_one(buf4, xc, yc, rho, v, blades, n_blades, extent, area, sgn)
     else:
-        _scatter_one(buf5, xc, yc, rho, v, blades, n_blades, extent, sgn)
+        _scatter_one(buf5, xc, yc, rho, v, blades, n_blades, extent, area, sgn)
 
 
 @wp.kernel

@@ -313,6 +313,24 @@ def _levels_for(max_radius: float, r0: float) -> int:
     return n
 
 
+def aperture_area(aperture: Aperture) -> float:
+    """Area of the aperture at unit circumradius (the scatter's normalisation, docs/renderer.md).
+
+    A disc is pi; N straight blades the inscribed regular polygon; curved blades add on each
+    side the circular segment of radius 1 / curvature through the two vertices (that arc lies
+    inside the unit circle, so the CoC disc does not clip it).
+    """
+    if aperture.is_disc:
+        return math.pi
+    n = aperture.blades
+    poly = 0.5 * n * math.sin(2.0 * math.pi / n)
+    if aperture.curvature < 1e-4:  # as Aperture.blade_discs: straight
+        return poly
+    big_r = 1.0 / aperture.curvature
+    theta = 2.0 * math.asin(math.sin(math.pi / n) / big_r)
+    return poly + n * 0.5 * big_r * big_r * (theta - math.sin(theta))
+
+
 def _layer_sources(
     layer: _Layer, image: wp.array, signed_coc: wp.array, slice_id: wp.array, filled: wp.array, device: str
 ) -> tuple[wp.array, wp.array]:
@@ -377,6 +395,7 @@ def _render_layer(
     blades: wp.array,
     n_blades: int,
     extent: wp.vec2,
+    area: float,
     opts: PreviewOptions,
     device: str,
 ) -> wp.array:
@@ -392,7 +411,7 @@ def _render_layer(
         else:
             bufs.append(bufs[0] if lv > 0 else None)
     wp.launch(bk.scatter_kernel, dim=(h, w),
-              inputs=[src, coc, blades, n_blades, extent, float(opts.level_radius_px), n_levels, *bufs], device=device)
+              inputs=[src, coc, blades, n_blades, extent, area, float(opts.level_radius_px), n_levels, *bufs], device=device)
     for lv in range(n_levels):
         wp.launch(bk.prefix_rows_kernel, dim=bufs[lv].shape[0], inputs=[bufs[lv]], device=device)
     out = src  # the sources are scattered: reuse their memory for the result
@@ -476,6 +495,7 @@ def _render_region(
     blade_rows = aperture.blade_discs()
     blades = wp.array(blade_rows if len(blade_rows) else np.zeros((1, 4), np.float32), dtype=wp.vec4, device=device)
     extent = wp.vec2(*aperture.vertical_extent())
+    area = aperture_area(aperture)
     acc = wp.zeros((h, w), dtype=wp.vec4, device=device)
 
     # Layers render independently (Warp CPU launches release the GIL); they are
@@ -486,7 +506,8 @@ def _render_region(
     filled = wp.zeros(max(lyr.index for lyr in layers) + 1, dtype=wp.int32, device=device)
 
     def render_layer(lyr: _Layer) -> wp.array:
-        return _render_layer(lyr, img_wp, s_wp, sid_wp, filled, blades, len(blade_rows), extent, options, device)
+        return _render_layer(lyr, img_wp, s_wp, sid_wp, filled, blades, len(blade_rows), extent, area, options,
+                             device)
 
     with ThreadPoolExecutor(max_workers=threads) as pool:
         pending: list[tuple[_Layer, Future]] = []

@@ -48,8 +48,8 @@ def inside(px: np.ndarray, py: np.ndarray, rho: float, blades: np.ndarray) -> np
     return ok
 
 
-SAG_PX = 0.02  # largest sag of a chord end inside a sub-row (docs/renderer.md)
-MAX_SUB = 32  # most sub-rows per pixel row
+SAG_PX = 0.25  # a chord end's sag inside a row above which the row is split (docs/renderer.md)
+MAX_SUB = 4  # most sub-rows per pixel row
 
 
 def _mean_clamped(p0: float, p1: float, lo: float, hi: float) -> float:
@@ -67,31 +67,92 @@ def _mean_clamped(p0: float, p1: float, lo: float, hi: float) -> float:
     return (g(p1) - g(p0)) / (p1 - p0)
 
 
+def analytic_area(blades: int, curvature: float) -> float:
+    """Area of the aperture of unit circumradius: a disc, or the inscribed regular polygon plus,
+    for curved blades, one circular segment of radius 1 / curvature on each side."""
+    if blades == 0 or curvature >= 1.0:
+        return math.pi
+    poly = 0.5 * blades * math.sin(2.0 * math.pi / blades)
+    if curvature < 1e-4:
+        return poly
+    big_r = 1.0 / curvature
+    theta = 2.0 * math.asin(math.sin(math.pi / blades) / big_r)
+    return poly + blades * 0.5 * big_r * big_r * (theta - math.sin(theta))
+
+
+def rows_area(blades: np.ndarray) -> float:
+    """:func:`analytic_area` of the shape given by its blade rows (``Aperture.blade_discs``)."""
+    blades = np.asarray(blades, np.float64)
+    if len(blades) == 0:
+        return math.pi
+    return analytic_area(len(blades), 1.0 / blades[0, 3] if blades[0, 3] > 0 else 0.0)
+
+
+def unit_area(blades: np.ndarray, n: int = 2000) -> float:
+    """Area of the aperture of unit circumradius, numerically: point-in-shape counts on an n x n
+    grid, refined (64 x 64 per cell) in the cells the shape's outline crosses."""
+    c = (np.arange(n) + 0.5) * (2.0 / n) - 1.0
+    ins = inside(c[None, :], c[:, None], 1.0, blades)
+    edge = np.zeros_like(ins)
+    edge[:-1] |= ins[:-1] != ins[1:]
+    edge[1:] |= ins[:-1] != ins[1:]
+    edge[:, :-1] |= ins[:, :-1] != ins[:, 1:]
+    edge[:, 1:] |= ins[:, :-1] != ins[:, 1:]
+    cell = (2.0 / n) ** 2
+    total = float((ins & ~edge).sum()) * cell
+    sub = ((np.arange(64) + 0.5) / 64 - 0.5) * (2.0 / n)
+    iy, ix = np.nonzero(edge)
+    for i in range(0, len(iy), 2000):
+        py = c[iy[i:i + 2000], None, None] + sub[None, :, None]
+        px = c[ix[i:i + 2000], None, None] + sub[None, None, :]
+        total += float(inside(px, py, 1.0, blades).mean(axis=(1, 2)).sum()) * cell
+    return total
+
+
+def _sub_edges(t0: float, t1: float, n: int, at_top: bool, at_bot: bool) -> list[float]:
+    """Edges of the n sub-rows of [t0, t1]: uniform, graded towards a shape end the row holds."""
+    u = np.arange(n + 1) / n
+    if at_top and at_bot:
+        u = 0.5 - 0.5 * np.cos(np.pi * u)
+    elif at_top:
+        u = 1.0 - np.cos(0.5 * np.pi * u)
+    elif at_bot:
+        u = np.sin(0.5 * np.pi * u)
+    u[-1] = 1.0
+    return [t0 + (t1 - t0) * x for x in u]
+
+
 def footprint(xc: float, yc: float, rho: float, blades: np.ndarray, h: int, w: int,
-              extent: tuple[float, float] = (-1.0, 1.0)) -> np.ndarray:
+              extent: tuple[float, float] = (-1.0, 1.0), area: float | None = None) -> np.ndarray:
     """Weights a source at (xc, yc) (continuous pixel coords) spreads over an h x w grid (level 0).
 
-    ``extent``: the shape's vertical extent at unit radius (rows outside it are empty).
+    ``extent``: the shape's vertical extent at unit radius (rows outside it are empty);
+    ``area``: its area at unit radius (default: :func:`rows_area`).
     A positive ``rho`` (in front of focus) draws the shape point-reflected.
 
     Discretisation (docs/renderer.md): each pixel row, clipped to the extent, is cut into
-    ``n`` equal sub-rows, ``n = clamp(ceil(sqrt(sag / SAG_PX)), 1, MAX_SUB)`` where the sag is
-    how far the chord ends at mid-row lie from the straight line between the ends at the row's
-    top and bottom. Each sub-row is the trapezoid between the chords at its top and bottom; a
-    pixel gets the trapezoid's area over it, computed here as the mean over the sub-row's height
-    of the overlap of ``[a(y), b(y)]`` with ``[x, x + 1]`` (ends linear in y). The weights are
-    divided by the summed trapezoid area of the whole shape, inside the image or not.
+    ``n`` sub-rows, ``n = clamp(ceil(sqrt(sag / SAG_PX)), 1, MAX_SUB)`` where the sag is how far
+    the chord ends at mid-row lie from the straight line between the ends at the row's top and
+    bottom; uniform, or graded towards the shape's end in its first and last row. Each sub-row
+    is a span whose ends move linearly from their positions at its top edge to those at its
+    bottom edge, shifted by 2/3 of the sag measured at its middle (Simpson's rule: the end's
+    mean position is (a0 + 4 a_mid + a1) / 6); a pixel gets the span's area over it (the mean
+    over the sub-row's height of the overlap of ``[a(y), b(y)]`` with ``[x, x + 1]``) divided by
+    the shape's exact area. What the sub-rows' summed area misses of (or adds to) the exact area
+    is added as a uniform span on the centre row's chord, so the source deposits exactly 1.
     """
     if rho > 0 and len(blades):
         # point reflection: a shape S at -S; blades (n, h, R) -> (-n, h, R), extent (a, b) -> (-b, -a)
         flipped = np.asarray(blades, np.float64).copy()
         flipped[:, :2] *= -1
-        return footprint(xc, yc, -rho, flipped, h, w, (-extent[1], -extent[0]))
+        return footprint(xc, yc, -rho, flipped, h, w, (-extent[1], -extent[0]), area)
     rho = abs(rho)
     out = np.zeros((h, w))
     if rho < 0.5:
         out[int(math.floor(yc)), int(math.floor(xc))] = 1.0
         return out
+    if area is None:
+        area = rows_area(blades)
 
     def ch(y: float) -> tuple[float, float]:
         lo, hi = chord(y - yc, rho, blades)
@@ -99,27 +160,38 @@ def footprint(xc: float, yc: float, rho: float, blades: np.ndarray, h: int, w: i
             lo = hi = 0.5 * (lo + hi)
         return xc + lo, xc + hi
 
+    def add_span(k: int, weight: float, a0: float, b0: float, a1: float, b1: float) -> None:
+        for x in range(w):
+            # overlap of [a, b] with [x, x + 1] is clamp(b) - clamp(a); its mean over the sub-row
+            overlap = _mean_clamped(b0, b1, x, x + 1) - _mean_clamped(a0, a1, x, x + 1)
+            out[k, x] += weight * overlap
+
+    total = area * rho * rho
     top, bot = yc + extent[0] * rho, yc + extent[1] * rho
-    traps = []  # (row, height, (a0, b0), (a1, b1))
-    for k in range(math.floor(top), math.floor(bot) + 1):
+    k_top, k_bot = math.floor(top), math.floor(bot)
+    inscribed = 0.0
+    for k in range(k_top, k_bot + 1):
         t0, t1 = max(k, top), min(k + 1, bot)
         if t1 <= t0:
             continue
         (a0, b0), (am, bm), (a1, b1) = ch(t0), ch(0.5 * (t0 + t1)), ch(t1)
         sag = max(abs(am - 0.5 * (a0 + a1)), abs(bm - 0.5 * (b0 + b1)))
-        n = min(MAX_SUB, max(1, math.ceil(math.sqrt(sag / SAG_PX))))
-        for j in range(n):
-            s0, s1 = t0 + j * (t1 - t0) / n, t0 + (j + 1) * (t1 - t0) / n
-            traps.append((k, s1 - s0, ch(s0), ch(s1)))
-    total = sum(hk * 0.5 * ((e0[1] - e0[0]) + (e1[1] - e1[0])) for _, hk, e0, e1 in traps)
-    for k, hk, (a0, b0), (a1, b1) in traps:
-        if not 0 <= k < h or (b0 - a0) + (b1 - a1) <= 0:
-            continue
-        for x in range(w):
-            # overlap of [a, b] with [x, x + 1] is clamp(b) - clamp(a); its mean over the sub-row
-            overlap = _mean_clamped(b0, b1, x, x + 1) - _mean_clamped(a0, a1, x, x + 1)
-            if overlap != 0:
-                out[k, x] += hk * overlap / total
+        n = 1 if sag <= SAG_PX else min(MAX_SUB, math.ceil(math.sqrt(sag / SAG_PX)))
+        edges = _sub_edges(t0, t1, n, k == k_top, k == k_bot)
+        for s0, s1 in zip(edges[:-1], edges[1:]):
+            (a0, b0), (am, bm), (a1, b1) = ch(s0), ch(0.5 * (s0 + s1)), ch(s1)
+            # Simpson: each end is the straight ramp between its positions at the sub-row's
+            # edges, shifted so its mean position is (a0 + 4 a_mid + a1) / 6
+            da, db = (2.0 / 3.0) * (am - 0.5 * (a0 + a1)), (2.0 / 3.0) * (bm - 0.5 * (b0 + b1))
+            wsum = (b0 - a0) + (b1 - a1) + 2.0 * (db - da)
+            inscribed += (s1 - s0) * 0.5 * wsum
+            if 0 <= k < h and wsum > 0:
+                add_span(k, (s1 - s0) / total, a0 + da, b0 + db, a1 + da, b1 + db)
+    rest = 1.0 - inscribed / total
+    a, b = ch(yc)
+    if b - a < 1.0:
+        a, b = math.floor(xc), math.floor(xc) + 1.0
+    add_span(min(max(math.floor(yc), 0), h - 1), rest / (b - a), a, b, a, b)
     return out
 
 
@@ -128,11 +200,12 @@ def scatter(src: np.ndarray, radius: np.ndarray, blades: np.ndarray,
     """Scatter every source ``src[y, x]`` (any channels) with ``radius[y, x]``."""
     h, w = radius.shape
     out = np.zeros(src.shape, np.float64)
+    area = rows_area(blades)
     for y in range(h):
         for x in range(w):
             if not np.any(src[y, x]):
                 continue
-            fp = footprint(x + 0.5, y + 0.5, float(radius[y, x]), blades, h, w, extent)  # signed
+            fp = footprint(x + 0.5, y + 0.5, float(radius[y, x]), blades, h, w, extent, area)  # signed
             out += fp[..., None] * src[y, x][None, None, :]
     return out
 

@@ -18,7 +18,7 @@ import warp as wp
 
 import bokehray as br
 import bokehray_kernels as bk
-from bokehray._scatter import PreviewOptions, cap_coc, layer_edges, render_preview
+from bokehray._scatter import PreviewOptions, aperture_area, cap_coc, layer_edges, render_preview
 from bokehray.raytrace import Layer, RaytraceOptions, raytrace_layers
 
 from . import raytrace_ref, scatter_ref
@@ -72,7 +72,7 @@ def scatter_case(seed: int, device: str = "cpu") -> tuple[float, float, str]:
     blades = wp.array(rows if len(rows) else np.zeros((1, 4), np.float32), dtype=wp.vec4, device=device)
     wp.launch(bk.scatter_kernel, dim=(h, w),
               inputs=[wp.array(src, dtype=wp.vec4, device=device), wp.array(radius, device=device), blades, len(rows),
-                      wp.vec2(*ap.vertical_extent()), 1e6, 1, *bufs], device=device)
+                      wp.vec2(*ap.vertical_extent()), aperture_area(ap), 1e6, 1, *bufs], device=device)
     wp.launch(bk.prefix_rows_kernel, dim=h, inputs=[bufs[0]], device=device)
     got = bufs[0].numpy()[:, :w]
     want = scatter_ref.scatter(src.astype(np.float64), radius.astype(np.float64), rows, ap.vertical_extent())
