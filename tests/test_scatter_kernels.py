@@ -66,7 +66,8 @@ def _point_response(ap: Aperture, radius: float, size: int, device: str, offset=
     bufs += [bufs[0]] * (bk.MAX_LEVELS - levels)
     blades, n = _blades_wp(ap, device)
     wp.launch(bk.scatter_kernel, dim=(size, size),
-              inputs=[wp.array(src, dtype=wp.vec4, device=device), wp.array(radius_map, device=device), blades, n,
+              inputs=[wp.array(src, dtype=wp.vec4, device=device), wp.array(radius_map, device=device),
+                              wp.zeros((1, 1), dtype=wp.uint8, device=device), blades, n,
                       wp.vec2(*ap.vertical_extent()), aperture_area(ap), r0, levels, *bufs], device=device)
     for lv in range(levels):
         wp.launch(bk.prefix_rows_kernel, dim=bufs[lv].shape[0], inputs=[bufs[lv]], device=device)
@@ -118,7 +119,8 @@ def test_scatter_matches_reference(ap, device, rng):
     bufs += [bufs[0]] * (bk.MAX_LEVELS - 1)
     blades, n = _blades_wp(ap, device)
     wp.launch(bk.scatter_kernel, dim=(h, w),
-              inputs=[wp.array(src, dtype=wp.vec4, device=device), wp.array(radius, device=device), blades, n,
+              inputs=[wp.array(src, dtype=wp.vec4, device=device), wp.array(radius, device=device),
+                              wp.zeros((1, 1), dtype=wp.uint8, device=device), blades, n,
                       wp.vec2(*ap.vertical_extent()), aperture_area(ap), 1e6, 1, *bufs], device=device)
     wp.launch(bk.prefix_rows_kernel, dim=h, inputs=[bufs[0]], device=device)
     got = bufs[0].numpy()[:, :w]

@@ -167,63 +167,71 @@ def _scatter_one(
     area: float,
     sgn: float,
 ):
-    # sgn = -1 draws the shape point-reflected (sources in front of the focal plane)
-    top = yc + extent[0] * rho
-    bot = yc + extent[1] * rho
+    # sgn = -1 draws the shape point-reflected (sources in front of the focal plane). Heights
+    # are relative to the centre (u = y - yc; exact for row edges), so the same source is cut
+    # into the same sub-rows wherever it lies (tiles equal the untiled render).
+    u_top = extent[0] * rho
+    u_bot = extent[1] * rho
     if sgn < 0.0:
-        top = yc - extent[1] * rho
-        bot = yc - extent[0] * rho
-    ky0 = int(wp.floor(top))
-    ky1 = int(wp.floor(bot))
+        u_top = -extent[1] * rho
+        u_bot = -extent[0] * rho
+    ky0 = int(wp.floor(yc + u_top))
+    ky1 = int(wp.floor(yc + u_bot))
     h = buf.shape[0]
-    # One pass. Each sub-row is the trapezoid between the chords at its top and bottom edge,
-    # deposited with density v / (area rho^2) (the shape's exact area); its two ends are exact
-    # pixel-integrated ramps. Trapezoids are inscribed in the convex shape, so their summed area
-    # ``tr`` (the whole shape's, inside the image or not) is at most the exact area: the
-    # remainder goes on the centre row's chord, so the source deposits exactly v.
+    # One pass. Each sub-row is deposited with density v / (area rho^2) (the shape's exact
+    # area); its ends are exact pixel-integrated ramps. What the sub-rows' summed area ``tr``
+    # (the whole shape's, inside the image or not) differs from the exact area goes on the
+    # centre row's chord, so the source deposits exactly v.
     inv = 1.0 / (area * rho * rho)
-    tr = float(0.0)
-    t_prev = top
-    c_prev = _signed_chord(t_prev - yc, rho, blades, n_blades, sgn)
+    tr = wp.float64(0.0)  # float64: at r = 300 a float32 sum's rounding would be as large as a pixel's share
+    # the extent is padded by 1e-5 (aperture.vertical_extent): the chords at the shape's ends are
+    # taken 2e-5 inside, where they are not empty (a vertex, or a flat blade edge)
+    inset = 2.0e-5 * rho
+    u_prev = u_top
+    c_prev = _signed_chord(u_top + inset, rho, blades, n_blades, sgn)
     for k in range(ky0, ky1 + 1):
-        t0 = t_prev
-        t1 = wp.min(float(k + 1), bot)
-        if t1 <= t0:
+        u0 = u_prev
+        u1 = wp.min(float(k + 1) - yc, u_bot)
+        if u1 <= u0:
             continue
         c0 = c_prev
-        c1 = _signed_chord(t1 - yc, rho, blades, n_blades, sgn)
-        cm = _signed_chord(0.5 * (t0 + t1) - yc, rho, blades, n_blades, sgn)
+        c1 = wp.vec2()
+        if u1 >= u_bot:
+            c1 = _signed_chord(u_bot - inset, rho, blades, n_blades, sgn)
+        else:
+            c1 = _signed_chord(u1, rho, blades, n_blades, sgn)
+        cm = _signed_chord(0.5 * (u0 + u1), rho, blades, n_blades, sgn)
         n = _n_sub(c0, cm, c1)
         at_top = int(k == ky0)
         at_bot = int(k == ky1)
         inside = k >= 0 and k < h
         ca = c0
-        ta = t0
+        ua = u0
         for j in range(n):
-            tb = t1
+            ub = u1
             cb = c1
             if j < n - 1:
-                tb = _sub_edge(t0, t1, j + 1, n, at_top, at_bot)
-                cb = _signed_chord(tb - yc, rho, blades, n_blades, sgn)
+                ub = _sub_edge(u0, u1, j + 1, n, at_top, at_bot)
+                cb = _signed_chord(ub, rho, blades, n_blades, sgn)
             cmid = cm
             if n > 1:
-                cmid = _signed_chord(0.5 * (ta + tb) - yc, rho, blades, n_blades, sgn)
+                cmid = _signed_chord(0.5 * (ua + ub), rho, blades, n_blades, sgn)
             # Simpson: the ends' mean positions are (a0 + 4 a_mid + a1) / 6, so the straight
             # ramps are shifted by 2/3 of the sag; the sub-row's area is Simpson's
             da = (2.0 / 3.0) * (cmid[0] - 0.5 * (ca[0] + cb[0]))
             db = (2.0 / 3.0) * (cmid[1] - 0.5 * (ca[1] + cb[1]))
-            hh = tb - ta
+            hh = ub - ua
             wsum = (ca[1] - ca[0]) + (cb[1] - cb[0]) + 2.0 * (db - da)
-            tr += hh * 0.5 * wsum
+            tr += wp.float64(hh * 0.5 * wsum)
             if inside and wsum > 0.0:
                 vv = v * (hh * inv)
                 _deposit_end(buf, k, xc + ca[0] + da, xc + cb[0] + da, vv)
                 _deposit_end(buf, k, xc + ca[1] + db, xc + cb[1] + db, -vv)
             ca = cb
-            ta = tb
-        t_prev = t1
+            ua = ub
+        u_prev = u1
         c_prev = c1
-    rest = 1.0 - tr * inv
+    rest = float(wp.float64(1.0) - tr * wp.float64(inv))
     if rest != 0.0:
         r = wp.clamp(int(wp.floor(yc)), 0, h - 1)
         cc = _signed_chord(0.0, rho, blades, n_blades, sgn)
@@ -237,10 +245,22 @@ def _scatter_one(
         _deposit_end(buf, r, b, b, -vr)
 
 
+@wp.func
+def level_of(r: float, r0: float, n_levels: int) -> int:
+    """Pyramid level of a source of radius ``r``: the first where ``r / 2^l <= r0`` (at most ``n_levels - 1``)."""
+    lev = int(0)
+    scale = float(1.0)
+    while r * scale > r0 and lev < n_levels - 1:
+        lev += 1
+        scale *= 0.5
+    return lev
+
+
 @wp.kernel
 def scatter_kernel(
     src: wp.array2d(dtype=wp.vec4),
     coc: wp.array2d(dtype=float),
+    exact: wp.array2d(dtype=wp.uint8),
     blades: wp.array(dtype=wp.vec4),
     n_blades: int,
     extent: wp.vec2,
@@ -256,9 +276,12 @@ def scatter_kernel(
 ):
     """Scatter every source of ``src`` (local coordinates) with radius ``|coc|`` [px].
 
-    ``extent`` is the shape's vertical extent ``(y_top, y_bottom)`` at unit radius. A
-    positive (in-front-of-focus) ``coc`` draws the shape point-reflected, as a
-    thin lens does: the aperture's orientation is that of background bokeh.
+    ``extent`` is the shape's vertical extent ``(y_top, y_bottom)`` and ``area`` its area,
+    both at unit circumradius. A positive (in-front-of-focus) ``coc`` draws the shape
+    point-reflected, as a thin lens does: the aperture's orientation is that of background bokeh.
+    ``exact[y, x] != 0`` scatters that source's light (RGB) at level 0 (full resolution)
+    whatever its radius, its coverage on its pyramid level; ``exact`` may be a 1 x 1 array
+    when nothing is routed.
 
     ``buf<l>`` is the difference buffer of level ``l``, ``(ceil(H/2^l), ceil(W/2^l) + 2)``.
     """
@@ -276,11 +299,15 @@ def scatter_kernel(
         wp.atomic_add(buf0, y, x, v)
         wp.atomic_add(buf0, y, x + 1, -v)
         return
-    lev = int(0)
-    scale = float(1.0)
-    while r * scale > r0 and lev < n_levels - 1:
-        lev += 1
-        scale *= 0.5
+    lev = level_of(r, r0, n_levels)
+    if lev > 0 and exact.shape[0] == src.shape[0] and exact.shape[1] == src.shape[1]:
+        if exact[y, x] != wp.uint8(0):
+            # a salient source: its light at full resolution (the exact outline), its coverage
+            # on its pyramid level like its neighbours' (the layer's coverage stays as smooth)
+            _scatter_one(buf0, float(x) + 0.5, float(y) + 0.5, r, wp.vec4(v[0], v[1], v[2], 0.0), blades,
+                         n_blades, extent, area, sgn)
+            v = wp.vec4(0.0, 0.0, 0.0, v[3])
+    scale = 1.0 / float(1 << lev)
     xc = (float(x) + 0.5) * scale
     yc = (float(y) + 0.5) * scale
     rho = r * scale
@@ -296,6 +323,146 @@ def scatter_kernel(
         _scatter_one(buf4, xc, yc, rho, v, blades, n_blades, extent, area, sgn)
     else:
         _scatter_one(buf5, xc, yc, rho, v, blades, n_blades, extent, area, sgn)
+
+
+@wp.kernel
+def radiance_mean_kernel(src: wp.array2d(dtype=wp.vec4), means: wp.array3d(dtype=float),
+                         counts: wp.array3d(dtype=float)):
+    """Level 1 of the radiance pyramid: mean over each 2 x 2 cell of the sources' (R + G + B) / 3.
+
+    Premultiplied radiance, so sources of zero coverage count as black; cells cut by the
+    array's edge average the pixels they hold (``counts``). Level ``k`` lives in ``means[k - 1]``.
+    """
+    cy, cx = wp.tid()
+    acc = float(0.0)
+    n = float(0.0)
+    for dy in range(2):
+        for dx in range(2):
+            y = 2 * cy + dy
+            x = 2 * cx + dx
+            if y < src.shape[0] and x < src.shape[1]:
+                v = src[y, x]
+                acc += (v[0] + v[1] + v[2]) / 3.0
+                n += 1.0
+    means[0, cy, cx] = acc / n
+    counts[0, cy, cx] = n
+
+
+@wp.kernel
+def halve_mean_kernel(means: wp.array3d(dtype=float), counts: wp.array3d(dtype=float), k: int, fine_h: int,
+                      fine_w: int):
+    """Radiance pyramid level ``k + 1`` (in ``means[k]``) from level ``k``: pixel-count-weighted 2 x 2 means."""
+    cy, cx = wp.tid()
+    acc = float(0.0)
+    n = float(0.0)
+    for dy in range(2):
+        for dx in range(2):
+            y = 2 * cy + dy
+            x = 2 * cx + dx
+            if y < fine_h and x < fine_w:
+                c = counts[k - 1, y, x]
+                acc += means[k - 1, y, x] * c
+                n += c
+    means[k, cy, cx] = acc / n
+    counts[k, cy, cx] = n
+
+
+@wp.kernel
+def salience_kernel(
+    src: wp.array2d(dtype=wp.vec4),
+    coc: wp.array2d(dtype=float),
+    means: wp.array3d(dtype=float),
+    counts: wp.array3d(dtype=float),
+    r0: float,
+    n_levels: int,
+    visible: float,
+    floor: float,
+    score: wp.array2d(dtype=float),
+):
+    """How far a pyramid-level source's own disc stands out of its neighbourhood (> 0: salient).
+
+    A source of level ``l >= 1`` whose radiance ``q`` exceeds the mean ``m`` of its
+    neighbourhood (the 3 x 3 cells of its level around its own, cells beyond the array left
+    out) by ``e = q - m`` lights its disc ``e / (pi r^2)`` above the blurred surroundings
+    (about ``m``). Its outline is visible when that exceeds ``visible * max(m, floor)``;
+    ``score`` is the excess energy beyond that threshold, 0 for every other source.
+    ``means[k]`` and ``counts[k]`` hold pyramid level ``k + 1`` (padded to the shape of level 1).
+    """
+    y, x = wp.tid()
+    score[y, x] = 0.0
+    v = src[y, x]
+    r = wp.abs(coc[y, x])
+    if v[3] == 0.0 or r < 0.5:
+        return
+    lev = level_of(r, r0, n_levels)
+    if lev == 0:
+        return
+    hl = (src.shape[0] + (1 << lev) - 1) >> lev
+    wl = (src.shape[1] + (1 << lev) - 1) >> lev
+    cy = y >> lev
+    cx = x >> lev
+    acc = float(0.0)
+    n = float(0.0)
+    for dy in range(-1, 2):
+        for dx in range(-1, 2):
+            yy = cy + dy
+            xx = cx + dx
+            if yy >= 0 and yy < hl and xx >= 0 and xx < wl:
+                c = counts[lev - 1, yy, xx]
+                acc += means[lev - 1, yy, xx] * c
+                n += c
+    m = acc / n
+    q = (v[0] + v[1] + v[2]) / 3.0
+    s = (q - m) - visible * wp.max(m, floor) * 3.14159265 * r * r
+    if s > 0.0:
+        score[y, x] = s
+
+
+@wp.kernel
+def route_cells_kernel(
+    score: wp.array2d(dtype=float),
+    coc: wp.array2d(dtype=float),
+    r0: float,
+    n_levels: int,
+    lev: int,
+    per_cell: int,
+    exact: wp.array2d(dtype=wp.uint8),
+):
+    """Mark for level 0 at most ``per_cell`` salient sources of level ``lev`` in each level cell.
+
+    One thread per cell of ``2^lev x 2^lev`` px: the sources of that level with the largest
+    scores (ties: the first in row order). A level-0 source costs ``2^lev`` times the rows of
+    its pyramid scatter, so the routed work is at most ``per_cell / 2^lev`` times what the
+    cell's pyramid sources cost whatever the content.
+    """
+    cy, cx = wp.tid()
+    side = 1 << lev
+    y0 = cy * side
+    x0 = cx * side
+    y1 = wp.min(y0 + side, score.shape[0])
+    x1 = wp.min(x0 + side, score.shape[1])
+    bound = float(1.0e38)  # scores above it (or equal, earlier in row order) are already taken
+    by = int(-1)
+    bx = int(-1)
+    for _ in range(per_cell):
+        best = float(0.0)
+        iy = int(-1)
+        ix = int(-1)
+        for y in range(y0, y1):
+            for x in range(x0, x1):
+                s = score[y, x]
+                if s > best and level_of(wp.abs(coc[y, x]), r0, n_levels) == lev:
+                    after = s < bound or (s == bound and (y > by or (y == by and x > bx)))
+                    if after:
+                        best = s
+                        iy = y
+                        ix = x
+        if iy < 0:
+            return
+        exact[iy, ix] = wp.uint8(1)
+        bound = best
+        by = iy
+        bx = ix
 
 
 @wp.kernel

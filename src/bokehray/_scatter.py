@@ -57,6 +57,9 @@ class PreviewOptions:
             of the memory available when the render starts. A render that cannot
             fit even in tiles raises :class:`~bokehray.errors.ResourceError` before
             allocating anything large.
+        exact_highlights: scatter the sources whose own disc outline is visible (lights,
+            highlights; ``route_salient``) at full resolution instead of on the radius
+            pyramid (the default); False is the faster, approximate mode (``--quality fast``).
     """
 
     max_layers: int = 8
@@ -68,6 +71,7 @@ class PreviewOptions:
     threads: int | None = None
     tile_size: int | None = None
     memory_limit_mb: float | None = None
+    exact_highlights: bool = True
 
     def __post_init__(self) -> None:
         for name in ("max_layers", "tile_px"):
@@ -386,6 +390,47 @@ def _layer_sources(
     return src, coc
 
 
+SALIENT_VISIBLE = 0.01
+"""A source's disc outline counts as visible when its plateau exceeds 1 % of its surroundings."""
+SALIENT_FLOOR = 0.01
+"""Darkest surroundings (linear radiance) the visibility test compares with (black counts as this)."""
+
+
+def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device: str) -> wp.array:
+    """Flags (uint8, the sources' shape) of the pyramid-level sources to scatter at level 0 instead.
+
+    A source on pyramid level ``l`` gets its outline blurred by about ``2^l`` px. That is
+    invisible where many similar discs overlap (smooth content), not where one source stands
+    out: ``bk.salience_kernel`` scores each source's excess radiance over its neighbourhood
+    mean (the 3 x 3 level-``l`` cells of a radiance pyramid around it) against ``SALIENT_VISIBLE * pi r^2 *
+    max(mean, SALIENT_FLOOR)``; ``bk.route_cells_kernel`` then keeps, in each level-``l`` cell,
+    the ``max(1, 2^(l-1))`` best-scored of them, so the level-0 work stays below half of the
+    pyramid work whatever the radius (flat cost in R). Every decision depends only on
+    pyramid-aligned cells of the layer's box, so tiled renders route the same sources.
+    """
+    h, w = src.shape
+    exact = wp.zeros((h, w), dtype=wp.uint8, device=device)
+    n_means = n_levels - 1  # radiance pyramid levels 1 .. n_levels - 1
+    h1, w1 = (h + 1) // 2, (w + 1) // 2
+    means = wp.zeros((n_means, h1, w1), dtype=float, device=device)
+    counts = wp.zeros((n_means, h1, w1), dtype=float, device=device)
+    wp.launch(bk.radiance_mean_kernel, dim=(h1, w1), inputs=[src], outputs=[means, counts], device=device)
+    fh, fw = h1, w1
+    for k in range(1, n_means):
+        ch, cw = (fh + 1) // 2, (fw + 1) // 2
+        wp.launch(bk.halve_mean_kernel, dim=(ch, cw), inputs=[means, counts, k, fh, fw], device=device)
+        fh, fw = ch, cw
+    score = wp.empty((h, w), dtype=float, device=device)
+    wp.launch(bk.salience_kernel, dim=(h, w),
+              inputs=[src, coc, means, counts, float(r0), n_levels, SALIENT_VISIBLE, SALIENT_FLOOR], outputs=[score],
+              device=device)
+    for lev in range(1, n_levels):
+        side = 1 << lev
+        wp.launch(bk.route_cells_kernel, dim=((h + side - 1) // side, (w + side - 1) // side),
+                  inputs=[score, coc, float(r0), n_levels, lev, max(1, side // 2)], outputs=[exact], device=device)
+    return exact
+
+
 def _render_layer(
     layer: _Layer,
     image: wp.array,
@@ -410,13 +455,40 @@ def _render_layer(
             bufs.append(wp.zeros(shape, dtype=wp.vec4, device=device))
         else:
             bufs.append(bufs[0] if lv > 0 else None)
+    if opts.exact_highlights and n_levels > 1:
+        exact = route_salient(src, coc, n_levels, opts.level_radius_px, device)
+    else:
+        exact = wp.zeros((1, 1), dtype=wp.uint8, device=device)
     wp.launch(bk.scatter_kernel, dim=(h, w),
-              inputs=[src, coc, blades, n_blades, extent, area, float(opts.level_radius_px), n_levels, *bufs], device=device)
+              inputs=[src, coc, exact, blades, n_blades, extent, area, float(opts.level_radius_px), n_levels, *bufs], device=device)
     for lv in range(n_levels):
         wp.launch(bk.prefix_rows_kernel, dim=bufs[lv].shape[0], inputs=[bufs[lv]], device=device)
     out = src  # the sources are scattered: reuse their memory for the result
     wp.launch(bk.resolve_levels_kernel, dim=(h, w), inputs=[n_levels, *bufs], outputs=[out], device=device)
     return out
+
+
+def border_pad(signed_coc: np.ndarray, tile_px: int) -> int:
+    """Width [px] of the clamped border the preview renders around the frame (docs/renderer.md).
+
+    What lies beyond the frame is unknown; the preview takes it to be the frame's edge pixels
+    continued outwards (edge-replicated colour and signed CoC, as the ray tracer clamps its
+    textures), so light near the border is neither invented nor dropped. Only pixels within the
+    CoC of the border pixels can scatter into the frame: the pad is the largest radius found on
+    the frame's border plus one pixel (0 when it is below half a pixel), rounded up to whole
+    skip tiles (``tile_px``) so that the frame's tiles are tiles of the padded render.
+
+    A border CoC beyond half the frame's longer side (blur wider than the picture) is not
+    clamped: continuing a border that far would let a few edge pixels dominate the whole
+    render; there the old rule holds (the render is divided by the coverage it got, i.e. the
+    unknown outside is taken as the frame's own neighbourhood average).
+    """
+    if signed_coc.size == 0:
+        return 0
+    r = max(float(np.abs(signed_coc[[0, -1], :]).max()), float(np.abs(signed_coc[:, [0, -1]]).max()))
+    if r < 0.5 or r > 0.5 * max(signed_coc.shape):
+        return 0
+    return -(-(int(math.ceil(r)) + 1) // tile_px) * tile_px
 
 
 def render_preview(
@@ -433,22 +505,31 @@ def render_preview(
 
     t_start = time.perf_counter()
     stats = RenderStats(shape=image.shape[:2], device=device)
-    h, w = signed_coc.shape
-    _tiling.check_whole_image(h, w, _tiling.PREVIEW_WHOLE_IMAGE_B, options)  # before allocating anything large
     stats.max_coc_px = max(float(signed_coc.max()), -float(signed_coc.min())) if signed_coc.size else 0.0
     signed_coc = cap_coc(signed_coc)
+    pad = border_pad(signed_coc, options.tile_px)
+    h0, w0 = signed_coc.shape
+    h, w = h0 + 2 * pad, w0 + 2 * pad
+    _tiling.check_whole_image(h0, w0, _tiling.PREVIEW_WHOLE_IMAGE_B, options)  # before allocating anything large
+    if pad and _tiling.PREVIEW_WHOLE_IMAGE_B * h * w > _tiling.budget_bytes(options):
+        pad, h, w = 0, h0, w0  # the clamped border does not fit the budget: the frame alone, renormalised
+    if pad:
+        image = np.pad(image, ((pad, pad), (pad, pad), (0, 0)), mode="edge")
+        signed_coc = np.pad(signed_coc, pad, mode="edge")
     radius = np.abs(signed_coc)
 
     copy = copy_tiles(radius, options.tile_px)
     del radius
-    stats.tiles_total, stats.tiles_copied = int(copy.size), int(copy.sum())
+    t = options.tile_px  # the frame's tiles (the border pad is whole tiles)
+    frame_tiles = copy[pad // t: pad // t + -(-h0 // t), pad // t: pad // t + -(-w0 // t)]
+    stats.tiles_total, stats.tiles_copied = int(frame_tiles.size), int(frame_tiles.sum())
     copy_px = np.repeat(np.repeat(copy, options.tile_px, 0), options.tile_px, 1)[:h, :w]
 
     active = ~copy_px
     if not active.any():
         stats.stage_seconds["plan"] = time.perf_counter() - t_start
         stats.stage_seconds["total"] = stats.stage_seconds["plan"]
-        return image.copy(), stats
+        return image[pad:pad + h0, pad:pad + w0].copy(), stats
 
     sid, layers = plan_layers(signed_coc, active, options)
     del active, copy_px
@@ -465,12 +546,13 @@ def render_preview(
         out_np, n_filled = _render_region(image, signed_coc, sid, layers, aperture, options, device, threads, progress)
     else:
         out_np, n_filled = _tiling.render_preview_tiles(image, signed_coc, sid, layers, aperture, options, device,
-                                                        threads, tile, progress, stats)
+                                                        threads, tile, progress, stats,
+                                                        frame=(pad, pad + h0, pad, pad + w0))
     stats.sources_filled = n_filled
     stats.sources_scattered += n_filled
     stats.stage_seconds["layers"] = time.perf_counter() - t_plan
     stats.stage_seconds["total"] = time.perf_counter() - t_start
-    return out_np, stats
+    return np.ascontiguousarray(out_np[pad:pad + h0, pad:pad + w0]), stats
 
 
 def _render_region(

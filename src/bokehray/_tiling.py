@@ -176,11 +176,17 @@ def render_preview_tiles(
     tile: int,
     progress: Callable[[int, int], None] | None,
     stats: RenderStats,
+    frame: tuple[int, int, int, int] | None = None,
 ) -> tuple[np.ndarray, int]:
-    """Render the preview tile by tile; each tile on its window (halo included), its core copied out."""
+    """Render the preview tile by tile; each tile on its window (halo included), its core copied out.
+
+    ``frame`` (y0, y1, x0, x1): only this part of the arrays is wanted (the rest is the clamped
+    border around the frame, ``_scatter.border_pad``); the tiles cover it, the rest keeps the input.
+    """
     h, w = signed_coc.shape
     out = image.copy()  # pixels no layer reaches (copied tiles) keep the input, as finalize does
-    cores = _cores(h, w, tile)
+    fy0, fy1, fx0, fx1 = frame if frame is not None else (0, h, 0, w)
+    cores = [(y0 + fy0, y1 + fy0, x0 + fx0, x1 + fx0) for y0, y1, x0, x1 in _cores(fy1 - fy0, fx1 - fx0, tile)]
     stats.image_tiles = len(cores)
     plans = [(core, *_tile_layers(layers, core, options)) for core in cores]
     total = sum(len(lyrs) for _, _, lyrs in plans)

@@ -154,7 +154,11 @@ def footprint(xc: float, yc: float, rho: float, blades: np.ndarray, h: int, w: i
     if area is None:
         area = rows_area(blades)
 
+    top, bot = yc + extent[0] * rho, yc + extent[1] * rho
+
     def ch(y: float) -> tuple[float, float]:
+        # the extent is padded by 1e-5: at the shape's ends the chord is taken 2e-5 inside
+        y = min(max(y, top + 2e-5 * rho), bot - 2e-5 * rho)
         lo, hi = chord(y - yc, rho, blades)
         if hi < lo:
             lo = hi = 0.5 * (lo + hi)
@@ -211,13 +215,24 @@ def scatter(src: np.ndarray, radius: np.ndarray, blades: np.ndarray,
 
 
 def layered(image: np.ndarray, signed_coc: np.ndarray, edges: np.ndarray, blades: np.ndarray,
-            extent: tuple[float, float] = (-1.0, 1.0)) -> np.ndarray:
+            extent: tuple[float, float] = (-1.0, 1.0), border: bool = True) -> np.ndarray:
     """Layered preview without fill, pyramid or tile skipping (docs/renderer.md, "compositing rule").
 
+    Border rule (``border=True``): the frame is extended by its edge pixels (colour and signed CoC
+    replicated outwards) as far as the largest CoC on its border reaches, rendered, and cropped;
+    not when that CoC exceeds half the frame's longer side (then only the final division applies).
     Layer ``i`` holds the pixels with ``edges[i] <= s < edges[i + 1]``; each layer scatters (RGB, 1) of its own
     pixels; layers are composited back to front with opacity ``min(coverage, 1)``
     and colour ``sum / coverage``; the result is divided by the total opacity.
     """
+    if border:
+        rim = np.concatenate([signed_coc[0], signed_coc[-1], signed_coc[:, 0], signed_coc[:, -1]])
+        r = float(np.abs(rim).max())
+        pad = math.ceil(r) + 1 if 0.5 <= r <= 0.5 * max(signed_coc.shape) else 0
+        if pad:
+            big = layered(np.pad(image, ((pad, pad), (pad, pad), (0, 0)), mode="edge"),
+                          np.pad(signed_coc, pad, mode="edge"), edges, blades, extent, border=False)
+            return big[pad:-pad, pad:-pad]
     ids = np.searchsorted(edges, signed_coc, side="right") - 1
     h, w, _ = image.shape
     acc = np.zeros((h, w, 3))
