@@ -441,6 +441,21 @@ def route_cells_kernel(
     x0 = cx * side
     y1 = wp.min(y0 + side, score.shape[0])
     x1 = wp.min(x0 + side, score.shape[1])
+    n = int(0)  # salient sources of this level in the cell; only a few cells have any
+    for y in range(y0, y1):
+        for x in range(x0, x1):
+            if score[y, x] > 0.0:
+                if level_of(wp.abs(coc[y, x]), r0, n_levels) == lev:
+                    n += 1
+    if n == 0:
+        return
+    if n <= per_cell:
+        for y in range(y0, y1):
+            for x in range(x0, x1):
+                if score[y, x] > 0.0:
+                    if level_of(wp.abs(coc[y, x]), r0, n_levels) == lev:
+                        exact[y, x] = wp.uint8(1)
+        return
     bound = float(1.0e38)  # scores above it (or equal, earlier in row order) are already taken
     by = int(-1)
     bx = int(-1)

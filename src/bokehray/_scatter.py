@@ -392,8 +392,8 @@ def _layer_sources(
 
 SALIENT_VISIBLE = 0.01
 """A source's disc outline counts as visible when its plateau exceeds 1 % of its surroundings."""
-SALIENT_FLOOR = 0.01
-"""Darkest surroundings (linear radiance) the visibility test compares with (black counts as this)."""
+SALIENT_FLOOR = 1e-6
+"""Darkest surroundings (linear radiance) the visibility test compares with: on black every light shows."""
 
 
 def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device: str) -> wp.array:
@@ -468,15 +468,16 @@ def _render_layer(
     return out
 
 
-def border_pad(signed_coc: np.ndarray, tile_px: int) -> int:
-    """Width [px] of the clamped border the preview renders around the frame (docs/renderer.md).
+def border_pad(signed_coc: np.ndarray, tile_px: int) -> tuple[int, int, int, int]:
+    """Widths [px] (top, bottom, left, right) of the clamped border the preview renders around the frame.
 
     What lies beyond the frame is unknown; the preview takes it to be the frame's edge pixels
     continued outwards (edge-replicated colour and signed CoC, as the ray tracer clamps its
-    textures), so light near the border is neither invented nor dropped. Only pixels within the
-    CoC of the border pixels can scatter into the frame: the pad is the largest radius found on
-    the frame's border plus one pixel (0 when it is below half a pixel), rounded up to whole
-    skip tiles (``tile_px``) so that the frame's tiles are tiles of the padded render.
+    textures), so light near the border is neither invented nor dropped (docs/renderer.md).
+    Only pixels within the CoC of a border pixel can scatter into the frame: each side's pad is
+    the largest radius found on that side (corners included) plus one pixel, 0 when it is below
+    half a pixel, rounded up to whole skip tiles (``tile_px``) so that the frame's tiles are
+    tiles of the padded render.
 
     A border CoC beyond half the frame's longer side (blur wider than the picture) is not
     clamped: continuing a border that far would let a few edge pixels dominate the whole
@@ -484,11 +485,13 @@ def border_pad(signed_coc: np.ndarray, tile_px: int) -> int:
     unknown outside is taken as the frame's own neighbourhood average).
     """
     if signed_coc.size == 0:
-        return 0
-    r = max(float(np.abs(signed_coc[[0, -1], :]).max()), float(np.abs(signed_coc[:, [0, -1]]).max()))
-    if r < 0.5 or r > 0.5 * max(signed_coc.shape):
-        return 0
-    return -(-(int(math.ceil(r)) + 1) // tile_px) * tile_px
+        return 0, 0, 0, 0
+    limit = 0.5 * max(signed_coc.shape)
+    rims = (signed_coc[0, :], signed_coc[-1, :], signed_coc[:, 0], signed_coc[:, -1])
+    radii = [float(np.abs(rim).max()) for rim in rims]
+    if max(radii) > limit:
+        return 0, 0, 0, 0
+    return tuple(-(-(int(math.ceil(r)) + 1) // tile_px) * tile_px if r >= 0.5 else 0 for r in radii)
 
 
 def render_preview(
@@ -507,21 +510,21 @@ def render_preview(
     stats = RenderStats(shape=image.shape[:2], device=device)
     stats.max_coc_px = max(float(signed_coc.max()), -float(signed_coc.min())) if signed_coc.size else 0.0
     signed_coc = cap_coc(signed_coc)
-    pad = border_pad(signed_coc, options.tile_px)
+    pt, pb, pl, pr = border_pad(signed_coc, options.tile_px)
     h0, w0 = signed_coc.shape
-    h, w = h0 + 2 * pad, w0 + 2 * pad
+    h, w = h0 + pt + pb, w0 + pl + pr
     _tiling.check_whole_image(h0, w0, _tiling.PREVIEW_WHOLE_IMAGE_B, options)  # before allocating anything large
-    if pad and _tiling.PREVIEW_WHOLE_IMAGE_B * h * w > _tiling.budget_bytes(options):
-        pad, h, w = 0, h0, w0  # the clamped border does not fit the budget: the frame alone, renormalised
-    if pad:
-        image = np.pad(image, ((pad, pad), (pad, pad), (0, 0)), mode="edge")
-        signed_coc = np.pad(signed_coc, pad, mode="edge")
+    if (h, w) != (h0, w0) and _tiling.PREVIEW_WHOLE_IMAGE_B * h * w > _tiling.budget_bytes(options):
+        (pt, pb, pl, pr), h, w = (0, 0, 0, 0), h0, w0  # the clamped border does not fit: the frame alone
+    if (h, w) != (h0, w0):
+        image = np.pad(image, ((pt, pb), (pl, pr), (0, 0)), mode="edge")
+        signed_coc = np.pad(signed_coc, ((pt, pb), (pl, pr)), mode="edge")
     radius = np.abs(signed_coc)
 
     copy = copy_tiles(radius, options.tile_px)
     del radius
     t = options.tile_px  # the frame's tiles (the border pad is whole tiles)
-    frame_tiles = copy[pad // t: pad // t + -(-h0 // t), pad // t: pad // t + -(-w0 // t)]
+    frame_tiles = copy[pt // t: pt // t + -(-h0 // t), pl // t: pl // t + -(-w0 // t)]
     stats.tiles_total, stats.tiles_copied = int(frame_tiles.size), int(frame_tiles.sum())
     copy_px = np.repeat(np.repeat(copy, options.tile_px, 0), options.tile_px, 1)[:h, :w]
 
@@ -529,7 +532,7 @@ def render_preview(
     if not active.any():
         stats.stage_seconds["plan"] = time.perf_counter() - t_start
         stats.stage_seconds["total"] = stats.stage_seconds["plan"]
-        return image[pad:pad + h0, pad:pad + w0].copy(), stats
+        return image[pt:pt + h0, pl:pl + w0].copy(), stats
 
     sid, layers = plan_layers(signed_coc, active, options)
     del active, copy_px
@@ -547,12 +550,12 @@ def render_preview(
     else:
         out_np, n_filled = _tiling.render_preview_tiles(image, signed_coc, sid, layers, aperture, options, device,
                                                         threads, tile, progress, stats,
-                                                        frame=(pad, pad + h0, pad, pad + w0))
+                                                        frame=(pt, pt + h0, pl, pl + w0))
     stats.sources_filled = n_filled
     stats.sources_scattered += n_filled
     stats.stage_seconds["layers"] = time.perf_counter() - t_plan
     stats.stage_seconds["total"] = time.perf_counter() - t_start
-    return np.ascontiguousarray(out_np[pad:pad + h0, pad:pad + w0]), stats
+    return np.ascontiguousarray(out_np[pt:pt + h0, pl:pl + w0]), stats
 
 
 def _render_region(

@@ -219,20 +219,21 @@ def layered(image: np.ndarray, signed_coc: np.ndarray, edges: np.ndarray, blades
     """Layered preview without fill, pyramid or tile skipping (docs/renderer.md, "compositing rule").
 
     Border rule (``border=True``): the frame is extended by its edge pixels (colour and signed CoC
-    replicated outwards) as far as the largest CoC on its border reaches, rendered, and cropped;
+    replicated outwards) on each side as far as the largest CoC on that side reaches, rendered, and cropped;
     not when that CoC exceeds half the frame's longer side (then only the final division applies).
     Layer ``i`` holds the pixels with ``edges[i] <= s < edges[i + 1]``; each layer scatters (RGB, 1) of its own
     pixels; layers are composited back to front with opacity ``min(coverage, 1)``
     and colour ``sum / coverage``; the result is divided by the total opacity.
     """
     if border:
-        rim = np.concatenate([signed_coc[0], signed_coc[-1], signed_coc[:, 0], signed_coc[:, -1]])
-        r = float(np.abs(rim).max())
-        pad = math.ceil(r) + 1 if 0.5 <= r <= 0.5 * max(signed_coc.shape) else 0
-        if pad:
-            big = layered(np.pad(image, ((pad, pad), (pad, pad), (0, 0)), mode="edge"),
-                          np.pad(signed_coc, pad, mode="edge"), edges, blades, extent, border=False)
-            return big[pad:-pad, pad:-pad]
+        rims = (signed_coc[0], signed_coc[-1], signed_coc[:, 0], signed_coc[:, -1])
+        radii = [float(np.abs(rim).max()) for rim in rims]
+        if max(radii) <= 0.5 * max(signed_coc.shape):
+            t, b, l, r = (math.ceil(x) + 1 if x >= 0.5 else 0 for x in radii)
+            if t + b + l + r:
+                big = layered(np.pad(image, ((t, b), (l, r), (0, 0)), mode="edge"),
+                              np.pad(signed_coc, ((t, b), (l, r)), mode="edge"), edges, blades, extent, border=False)
+                return big[t:t + image.shape[0], l:l + image.shape[1]]
     ids = np.searchsorted(edges, signed_coc, side="right") - 1
     h, w, _ = image.shape
     acc = np.zeros((h, w, 3))
