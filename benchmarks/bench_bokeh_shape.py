@@ -83,10 +83,11 @@ def hdr_plane(radius: float, options: PreviewOptions, device: str, size=(1024, 7
     yy, xx = np.mgrid[0:h, 0:w]
     base = 0.03 + 0.02 * np.sin(xx / 23.0) * np.cos(yy / 17.0) + 0.015 * rng.random((h, w))
     image = np.repeat(base[..., None], 3, axis=2) * np.array([1.0, 0.9, 0.8])
-    for _ in range(120):  # HDR lights: single pixels and small blobs, 5 - 200 x the background
+    for _ in range(120):  # HDR lights: single pixels and small blobs whose balls reach 0.3 - 30 x the background
         y, x = int(rng.integers(0, h)), int(rng.integers(0, w))
         k = int(rng.integers(1, 4))
-        image[y:y + k, x:x + k] += rng.uniform(0.2, 8.0) * rng.uniform(0.5, 1.0, 3)
+        energy = math.exp(rng.uniform(math.log(300.0), math.log(30000.0)))
+        image[y:y + k, x:x + k] += energy / (k * k) * rng.uniform(0.5, 1.0, 3)
     image = image.astype(np.float32)
     s = np.full((h, w), -radius, np.float32)
     t = time.perf_counter()
@@ -98,10 +99,14 @@ def hdr_plane(radius: float, options: PreviewOptions, device: str, size=(1024, 7
     want = np.stack([scipy.signal.fftconvolve(big[..., i], kernel, mode="same") for i in range(3)], -1)
     want = want[pad:-pad, pad:-pad]
     mse = float(np.mean((out - want) ** 2))
+    c = int(math.ceil(radius))
+    mse_in = float(np.mean((out[c:-c, c:-c] - want[c:-c, c:-c]) ** 2))  # farther than R from the border
     tm = lambda a: a / (1 + a)  # noqa: E731
     mse_tm = float(np.mean((tm(np.maximum(out, 0)) - tm(want)) ** 2))
-    return {"size": [w, h], "radius": radius, "psnr_linear_db": 10 * math.log10(float(want.max()) ** 2 / mse),
-            "psnr_tonemapped_db": 10 * math.log10(1.0 / mse_tm), "seconds": seconds, "peak": float(want.max())}
+    peak = float(want.max())
+    return {"size": [w, h], "radius": radius, "psnr_linear_db": 10 * math.log10(peak ** 2 / mse),
+            "psnr_linear_interior_db": 10 * math.log10(peak ** 2 / mse_in),
+            "psnr_tonemapped_db": 10 * math.log10(1.0 / mse_tm), "seconds": seconds, "peak": peak}
 
 
 def _median_time(fn, runs: int) -> dict:
@@ -141,6 +146,34 @@ def time_vs_radius(radii, runs: int, device: str, size=(1536, 1024), modes=("exa
         print(f"  R={r}: " + ", ".join(f"{m} {row[m]['median']:.3f} s ({row[m]['over_fft']:.1f}x fft)" for m in modes)
               + f", fft {ref['median'] * 1e3:.1f} ms", file=sys.stderr, flush=True)
     return rows
+
+
+def devset_variants() -> dict:
+    return {"preview (default)": PreviewOptions(),
+            "preview, fast (no exact highlights)": PreviewOptions(exact_highlights=False),
+            "preview, renormalised border (the rule before)": PreviewOptions(clamp_border=False)}
+
+
+def devset(data: Path, crops=(0, 24)) -> dict:
+    """Dev-set scores (its own score.py) of the preview variants, whole frame and with borders cropped."""
+    import subprocess
+    import tempfile
+
+    from benchmarks import bench_devset
+
+    out = {}
+    for name, opts in devset_variants().items():
+        with tempfile.TemporaryDirectory() as tmp:
+            bench_devset.render_set(data, Path(tmp), opts)
+            for crop in crops:
+                text = subprocess.run([sys.executable, str(data / "score.py"), tmp, "--crop", str(crop)],
+                                      capture_output=True, text=True, check=True).stdout
+                line = next(ln for ln in text.splitlines() if ln.strip().startswith("mean over"))
+                psnr, ssim, band_psnr, band_ssim = map(float, line.split()[-4:])
+                out[f"{name}, crop {crop}"] = {"psnr": psnr, "ssim": ssim, "band_psnr": band_psnr,
+                                               "band_ssim": band_ssim, "table": text}
+                print(f"  {name}, {crop} px border ignored: {psnr:.2f} dB (band {band_psnr:.2f})", flush=True)
+    return out
 
 
 def plot(result: dict, path: Path) -> None:
@@ -187,15 +220,26 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--runs", type=int, default=5, help="warm runs per timing (median)")
     ap.add_argument("--out", type=Path, help="folder for the JSON and the plot (default: benchmarks/results, docs/img)")
+    ap.add_argument("--devset", type=Path, nargs="?", const=REPO.parent / "shared" / "data" / "pathtraced-dev",
+                    help="also score the path-traced dev set (default location ../shared/data/pathtraced-dev)")
+    ap.add_argument("--only-devset", action="store_true", help="score the dev set only")
     args = ap.parse_args(argv)
     _quiet_warp()
     t0 = time.perf_counter()
     radii = (16, 64) if args.quick else RADII
     result = {"benchmark": "bokeh_shape", "quick": args.quick, "device": args.device,
               "machine": common.machine_info(), "point_light": {}, "hdr_plane": {}}
+    if args.devset or args.only_devset:
+        data = args.devset or REPO.parent / "shared" / "data" / "pathtraced-dev"
+        print("dev set (PSNR, mean over 18 renders):")
+        result["devset"] = devset(data)
+        if args.only_devset:
+            js = (args.out or REPO / "benchmarks" / "results") / "bokeh_shape--devset.json"
+            common.write_json(js, result)
+            print(f"wrote {js}")
+            return 0
     print("point light (relative L1 / plateau peak over mean / energy error):")
-    for mode, opts in (("default", PreviewOptions()), ("fast", PreviewOptions(exact_highlights=False)),
-                       ("no pyramid", PreviewOptions(level_radius_px=1e6))):
+    for mode, opts in (("default", PreviewOptions()), ("fast", PreviewOptions(exact_highlights=False))):
         for name, aper in APERTURES.items():
             rows = [point_light(aper, r, sg, opts, args.device) for r in radii for sg in (-1.0, 1.0)]
             result["point_light"][f"{name} ({mode})" if mode != "default" else name] = rows
@@ -206,7 +250,8 @@ def main(argv: list[str] | None = None) -> int:
     for mode, opts in (("default", PreviewOptions()), ("fast", PreviewOptions(exact_highlights=False))):
         result["hdr_plane"][mode] = hdr_plane(96.0, opts, args.device, size=size)
         r = result["hdr_plane"][mode]
-        print(f"HDR plane {size[0]}x{size[1]} R=96 {mode}: {r['psnr_linear_db']:.1f} dB linear, "
+        print(f"HDR plane {size[0]}x{size[1]} R=96 {mode}: {r['psnr_linear_db']:.1f} dB linear "
+              f"({r['psnr_linear_interior_db']:.1f} dB farther than R from the border), "
               f"{r['psnr_tonemapped_db']:.1f} dB tone-mapped ({r['seconds']:.2f} s)", flush=True)
     print("time vs R (demo scene, focus near):")
     result["time_vs_radius"] = time_vs_radius((16, 32) if args.quick else TIME_RADII, 2 if args.quick else args.runs,

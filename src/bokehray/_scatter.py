@@ -60,6 +60,9 @@ class PreviewOptions:
         exact_highlights: scatter the sources whose own disc outline is visible (lights,
             highlights; ``route_salient``) at full resolution instead of on the radius
             pyramid (the default); False is the faster, approximate mode (``--quality fast``).
+        clamp_border: take the unknown outside the frame as its edge pixels continued
+            outwards (``border_pad``, the default); False divides by the coverage the
+            frame got instead (the rule before, which brightens lights near the border).
     """
 
     max_layers: int = 8
@@ -72,6 +75,7 @@ class PreviewOptions:
     tile_size: int | None = None
     memory_limit_mb: float | None = None
     exact_highlights: bool = True
+    clamp_border: bool = True
 
     def __post_init__(self) -> None:
         for name in ("max_layers", "tile_px"):
@@ -390,7 +394,7 @@ def _layer_sources(
     return src, coc
 
 
-SALIENT_VISIBLE = 0.01
+SALIENT_VISIBLE = 0.002
 """A source's disc outline counts as visible when its plateau exceeds 1 % of its surroundings."""
 SALIENT_FLOOR = 1e-6
 """Darkest surroundings (linear radiance) the visibility test compares with: on black every light shows."""
@@ -510,7 +514,7 @@ def render_preview(
     stats = RenderStats(shape=image.shape[:2], device=device)
     stats.max_coc_px = max(float(signed_coc.max()), -float(signed_coc.min())) if signed_coc.size else 0.0
     signed_coc = cap_coc(signed_coc)
-    pt, pb, pl, pr = border_pad(signed_coc, options.tile_px)
+    pt, pb, pl, pr = border_pad(signed_coc, options.tile_px) if options.clamp_border else (0, 0, 0, 0)
     h0, w0 = signed_coc.shape
     h, w = h0 + pt + pb, w0 + pl + pr
     _tiling.check_whole_image(h0, w0, _tiling.PREVIEW_WHOLE_IMAGE_B, options)  # before allocating anything large
