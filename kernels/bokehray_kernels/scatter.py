@@ -326,15 +326,15 @@ def scatter_kernel(
 
 
 @wp.kernel
-def radiance_mean_kernel(src: wp.array2d(dtype=wp.vec4), means: wp.array3d(dtype=float),
+def radiance_mean_kernel(src: wp.array2d(dtype=wp.vec4), means: wp.array3d(dtype=wp.vec2),
                          counts: wp.array3d(dtype=float)):
-    """Level 1 of the radiance pyramid: mean over each 2 x 2 cell of the sources' (R + G + B) / 3.
+    """Level 1 of the radiance pyramid: mean over each 2 x 2 cell of ((R + G + B) / 3, coverage).
 
     Premultiplied radiance, so sources of zero coverage count as black; cells cut by the
     array's edge average the pixels they hold (``counts``). Level ``k`` lives in ``means[k - 1]``.
     """
     cy, cx = wp.tid()
-    acc = float(0.0)
+    acc = wp.vec2()
     n = float(0.0)
     for dy in range(2):
         for dx in range(2):
@@ -342,18 +342,18 @@ def radiance_mean_kernel(src: wp.array2d(dtype=wp.vec4), means: wp.array3d(dtype
             x = 2 * cx + dx
             if y < src.shape[0] and x < src.shape[1]:
                 v = src[y, x]
-                acc += (v[0] + v[1] + v[2]) / 3.0
+                acc += wp.vec2((v[0] + v[1] + v[2]) / 3.0, v[3])
                 n += 1.0
     means[0, cy, cx] = acc / n
     counts[0, cy, cx] = n
 
 
 @wp.kernel
-def halve_mean_kernel(means: wp.array3d(dtype=float), counts: wp.array3d(dtype=float), k: int, fine_h: int,
+def halve_mean_kernel(means: wp.array3d(dtype=wp.vec2), counts: wp.array3d(dtype=float), k: int, fine_h: int,
                       fine_w: int):
     """Radiance pyramid level ``k + 1`` (in ``means[k]``) from level ``k``: pixel-count-weighted 2 x 2 means."""
     cy, cx = wp.tid()
-    acc = float(0.0)
+    acc = wp.vec2()
     n = float(0.0)
     for dy in range(2):
         for dx in range(2):
@@ -371,7 +371,7 @@ def halve_mean_kernel(means: wp.array3d(dtype=float), counts: wp.array3d(dtype=f
 def salience_kernel(
     src: wp.array2d(dtype=wp.vec4),
     coc: wp.array2d(dtype=float),
-    means: wp.array3d(dtype=float),
+    means: wp.array3d(dtype=wp.vec2),
     counts: wp.array3d(dtype=float),
     r0: float,
     n_levels: int,
@@ -379,14 +379,16 @@ def salience_kernel(
     floor: float,
     score: wp.array2d(dtype=float),
 ):
-    """How far a pyramid-level source's own disc stands out of its neighbourhood (> 0: salient).
+    """How far a pyramid-level source's own disc stands out of its layer's neighbourhood (> 0: salient).
 
-    A source of level ``l >= 1`` whose radiance ``q`` exceeds the mean ``m`` of its
-    neighbourhood (the 3 x 3 cells of its level around its own, cells beyond the array left
-    out) by ``e = q - m`` lights its disc ``e / (pi r^2)`` above the blurred surroundings
-    (about ``m``). Its outline is visible when that exceeds ``visible * max(m, floor)``;
-    ``score`` is the excess energy beyond that threshold, 0 for every other source.
-    ``means[k]`` and ``counts[k]`` hold pyramid level ``k + 1`` (padded to the shape of level 1).
+    The neighbourhood is the 3 x 3 cells of the source's level ``l >= 1`` around its own (cells
+    beyond the array left out): mean premultiplied radiance ``m`` and coverage ``a_m``, so the
+    layer's local colour is ``m / a_m``. A source of radiance ``q`` and coverage ``a`` carries
+    ``e = q - a m / a_m`` more light than its coverage of the local colour (0 on a constant
+    image, whatever the layer's shape); its disc then lights ``e / (pi r^2)`` above the blurred
+    surroundings (about ``m``), and its outline is visible when that exceeds
+    ``visible * max(m, floor)``. ``score`` is the excess energy beyond that threshold, 0 for
+    every other source. ``means[k]``, ``counts[k]``: pyramid level ``k + 1`` (padded to level 1).
     """
     y, x = wp.tid()
     score[y, x] = 0.0
@@ -401,7 +403,7 @@ def salience_kernel(
     wl = (src.shape[1] + (1 << lev) - 1) >> lev
     cy = y >> lev
     cx = x >> lev
-    acc = float(0.0)
+    acc = wp.vec2()
     n = float(0.0)
     for dy in range(-1, 2):
         for dx in range(-1, 2):
@@ -411,9 +413,11 @@ def salience_kernel(
                 c = counts[lev - 1, yy, xx]
                 acc += means[lev - 1, yy, xx] * c
                 n += c
-    m = acc / n
+    m = acc[0] / n
+    a_m = acc[1] / n
     q = (v[0] + v[1] + v[2]) / 3.0
-    s = (q - m) - visible * wp.max(m, floor) * 3.14159265 * r * r
+    e = q - v[3] * m / a_m  # a_m > 0: the source itself has coverage
+    s = e - visible * wp.max(m, floor) * 3.14159265 * r * r
     if s > 0.0:
         score[y, x] = s
 

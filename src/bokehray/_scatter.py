@@ -405,8 +405,8 @@ def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device
 
     A source on pyramid level ``l`` gets its outline blurred by about ``2^l`` px. That is
     invisible where many similar discs overlap (smooth content), not where one source stands
-    out: ``bk.salience_kernel`` scores each source's excess radiance over its neighbourhood
-    mean (the 3 x 3 level-``l`` cells of a radiance pyramid around it) against ``SALIENT_VISIBLE * pi r^2 *
+    out: ``bk.salience_kernel`` scores each source's excess radiance over its coverage of the
+    layer's local colour (the 3 x 3 level-``l`` cells of a radiance pyramid around it) against ``SALIENT_VISIBLE * pi r^2 *
     max(mean, SALIENT_FLOOR)``; ``bk.route_cells_kernel`` then keeps, in each level-``l`` cell,
     the ``max(1, 2^(l-1))`` best-scored of them, so the level-0 work stays below half of the
     pyramid work whatever the radius (flat cost in R). Every decision depends only on
@@ -416,7 +416,7 @@ def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device
     exact = wp.zeros((h, w), dtype=wp.uint8, device=device)
     n_means = n_levels - 1  # radiance pyramid levels 1 .. n_levels - 1
     h1, w1 = (h + 1) // 2, (w + 1) // 2
-    means = wp.zeros((n_means, h1, w1), dtype=float, device=device)
+    means = wp.zeros((n_means, h1, w1), dtype=wp.vec2, device=device)
     counts = wp.zeros((n_means, h1, w1), dtype=float, device=device)
     wp.launch(bk.radiance_mean_kernel, dim=(h1, w1), inputs=[src], outputs=[means, counts], device=device)
     fh, fw = h1, w1
