@@ -285,3 +285,52 @@ def area_coverage(xc: float, yc: float, rho: float, blades: np.ndarray, h: int, 
     if oy1 > oy0 and ox1 > ox0:
         out[oy0:oy1, ox0:ox1] = fine[oy0 - y0:oy1 - y0, ox0 - x0:ox1 - x0]
     return out
+
+
+def level_of(r: float, r0: float, n_levels: int) -> int:
+    """Pyramid level of a source of radius r: the first l with r / 2^l <= r0 (at most n_levels - 1)."""
+    lev = 0
+    while r / 2 ** lev > r0 and lev < n_levels - 1:
+        lev += 1
+    return lev
+
+
+def salient(src: np.ndarray, coc: np.ndarray, r0: float, n_levels: int, visible: float, floor: float
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """(score, routed mask) of the salient-source routing (docs/renderer.md), by plain loops.
+
+    For a source of level l >= 1: the mean premultiplied radiance m and coverage a_m over the
+    pixels of the 3 x 3 level-l cells around its own (cut to the array), the excess
+    e = q - a m / a_m, score = e - visible max(m, floor) pi r^2 where positive. Then in each
+    level-l cell, the max(1, 2^(l-1)) best-scored salient sources of level l (ties: row order).
+    """
+    h, w = coc.shape
+    q = src[..., :3].mean(-1)
+    a = src[..., 3]
+    score = np.zeros((h, w))
+    lev = np.zeros((h, w), int)
+    for y in range(h):
+        for x in range(w):
+            r = abs(float(coc[y, x]))
+            if a[y, x] == 0 or r < 0.5:
+                continue
+            lv = lev[y, x] = level_of(r, r0, n_levels)
+            if lv == 0:
+                continue
+            s = 2 ** lv
+            cy, cx = y // s, x // s
+            ys = slice(max(0, (cy - 1) * s), min(h, (cy + 2) * s))
+            xs = slice(max(0, (cx - 1) * s), min(w, (cx + 2) * s))
+            m, a_m = q[ys, xs].mean(), a[ys, xs].mean()
+            e = q[y, x] - a[y, x] * m / a_m
+            score[y, x] = max(0.0, e - visible * max(m, floor) * math.pi * r * r)
+    routed = np.zeros((h, w), bool)
+    for lv in range(1, n_levels):
+        s = 2 ** lv
+        for cy in range(0, h, s):
+            for cx in range(0, w, s):
+                cand = [(-score[y, x], y, x) for y in range(cy, min(h, cy + s)) for x in range(cx, min(w, cx + s))
+                        if score[y, x] > 0 and lev[y, x] == lv]
+                for _, y, x in sorted(cand)[: max(1, s // 2)]:
+                    routed[y, x] = True
+    return score, routed
