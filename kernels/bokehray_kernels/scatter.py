@@ -246,6 +246,60 @@ def _scatter_one(
 
 
 @wp.func
+def _scatter_coarse(
+    buf: wp.array2d(dtype=wp.vec4),
+    xc: float,
+    yc: float,
+    rho: float,
+    v: wp.vec4,
+    blades: wp.array(dtype=wp.vec4),
+    n_blades: int,
+    extent: wp.vec2,
+    area: float,
+    sgn: float,
+):
+    """The cheap span rule of the pyramid levels: one sharp-ended span per row (its mid-height chord).
+
+    Their outline is blurred by the bilinear upsampling anyway (about one coarse pixel), so the
+    sub-row ramps of ``_scatter_one`` would buy nothing there. Same normalisation: density
+    ``v / (area rho^2)``, the remainder on the centre row's chord, so the source deposits exactly v.
+    """
+    u_top = extent[0] * rho
+    u_bot = extent[1] * rho
+    if sgn < 0.0:
+        u_top = -extent[1] * rho
+        u_bot = -extent[0] * rho
+    ky0 = int(wp.floor(yc + u_top))
+    ky1 = int(wp.floor(yc + u_bot))
+    h = buf.shape[0]
+    inv = 1.0 / (area * rho * rho)
+    tr = wp.float64(0.0)
+    for k in range(ky0, ky1 + 1):
+        u0 = wp.max(float(k) - yc, u_top)
+        u1 = wp.min(float(k + 1) - yc, u_bot)
+        if u1 > u0:
+            c = _signed_chord(0.5 * (u0 + u1), rho, blades, n_blades, sgn)
+            hh = u1 - u0
+            tr += wp.float64(hh * (c[1] - c[0]))
+            if k >= 0 and k < h and c[1] > c[0]:
+                vv = v * (hh * inv)
+                _deposit_end(buf, k, xc + c[0], xc + c[0], vv)
+                _deposit_end(buf, k, xc + c[1], xc + c[1], -vv)
+    rest = float(wp.float64(1.0) - tr * wp.float64(inv))
+    if rest != 0.0:
+        r = wp.clamp(int(wp.floor(yc)), 0, h - 1)
+        cc = _signed_chord(0.0, rho, blades, n_blades, sgn)
+        a = xc + cc[0]
+        b = xc + cc[1]
+        if b - a < 1.0:
+            a = wp.floor(xc)
+            b = a + 1.0
+        vr = v * (rest / (b - a))
+        _deposit_end(buf, r, a, a, vr)
+        _deposit_end(buf, r, b, b, -vr)
+
+
+@wp.func
 def level_of(r: float, r0: float, n_levels: int) -> int:
     """Pyramid level of a source of radius ``r``: the first where ``r / 2^l <= r0`` (at most ``n_levels - 1``)."""
     lev = int(0)
@@ -314,15 +368,15 @@ def scatter_kernel(
     if lev == 0:
         _scatter_one(buf0, xc, yc, rho, v, blades, n_blades, extent, area, sgn)
     elif lev == 1:
-        _scatter_one(buf1, xc, yc, rho, v, blades, n_blades, extent, area, sgn)
+        _scatter_coarse(buf1, xc, yc, rho, v, blades, n_blades, extent, area, sgn)
     elif lev == 2:
-        _scatter_one(buf2, xc, yc, rho, v, blades, n_blades, extent, area, sgn)
+        _scatter_coarse(buf2, xc, yc, rho, v, blades, n_blades, extent, area, sgn)
     elif lev == 3:
-        _scatter_one(buf3, xc, yc, rho, v, blades, n_blades, extent, area, sgn)
+        _scatter_coarse(buf3, xc, yc, rho, v, blades, n_blades, extent, area, sgn)
     elif lev == 4:
-        _scatter_one(buf4, xc, yc, rho, v, blades, n_blades, extent, area, sgn)
+        _scatter_coarse(buf4, xc, yc, rho, v, blades, n_blades, extent, area, sgn)
     else:
-        _scatter_one(buf5, xc, yc, rho, v, blades, n_blades, extent, area, sgn)
+        _scatter_coarse(buf5, xc, yc, rho, v, blades, n_blades, extent, area, sgn)
 
 
 @wp.kernel
