@@ -214,6 +214,24 @@ def plot(result: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def ball_figure(path: Path, device: str = "cpu") -> None:
+    """Two lights (one 70 px from the left border) on a dark plane, 7 curved blades, R = 60:
+    the pyramid alone (fast mode, left) and the default (right), tone-mapped c / (1 + c)."""
+    import imageio.v3 as iio
+
+    n = 200
+    img = np.full((n, n, 3), 0.02, np.float32)
+    img[100, 100], img[100, 30] = 3000.0, 800.0
+    s = np.full((n, n), -60.0, np.float32)
+    ap = bokehray.Aperture(blades=7, rotation_deg=10.0, curvature=0.2)
+    row = []
+    for o in (PreviewOptions(exact_highlights=False), PreviewOptions()):
+        out, _ = render_preview(img, s, ap, options=o, device=device)
+        row.append(np.clip(out / (1 + out), 0, 1) ** (1 / 2.2))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    iio.imwrite(path, (np.concatenate(row, 1) * 255).astype(np.uint8))
+
+
 def replot(js: Path, png: Path) -> None:
     """Redraw the figure from a JSON this script wrote."""
     import json
@@ -285,7 +303,8 @@ def main(argv: list[str] | None = None) -> int:
         png = (args.out or REPO / "docs" / "img") / f"bokeh_shape{suffix}.png"
         common.write_json(js, result)
         plot(result, png)
-        print(f"wrote {js} and {png}")
+        ball_figure(png.with_name(f"bokeh_ball{suffix}.png"), args.device)
+        print(f"wrote {js}, {png} and {png.with_name(f'bokeh_ball{suffix}.png')}")
     return 0
 
 
