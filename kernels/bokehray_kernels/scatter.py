@@ -20,6 +20,9 @@ over the columns it crosses). Spans carry density ``v / (area * rho^2)`` (the
 shape's exact area); what the sub-rows' summed area differs from it goes on
 the centre row's chord, so every source deposits exactly its value (minus what
 falls outside the image), at every radius, including radii below one pixel.
+The pyramid levels (``_scatter_coarse``) use one sharp span per row at its
+mid-height chord, with the same normalisation: the upsampling blurs their
+outline by a coarse pixel anyway.
 """
 
 import warp as wp

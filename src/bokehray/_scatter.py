@@ -2,6 +2,8 @@
 
 Pipeline (all heavy work in ``bokehray_kernels``):
 
+0. The frame is extended by its edge pixels (colour and signed CoC) as far as its
+   border's CoC reaches (``border_pad``: the clamped border), rendered, and cropped.
 1. Signed CoC ``s = K (d - d_f)`` per pixel. Tiles whose pixels, and every pixel
    within CoC reach of them, have ``|s| < 0.5`` are *copied*: never scattered,
    never composited.
@@ -10,7 +12,8 @@ Pipeline (all heavy work in ``bokehray_kernels``):
 3. Each layer, independently (one worker thread per CPU core): its pixels
    become sources ``(RGB, 1)``; where a nearer layer hides it, within the CoC
    reach of the nearer layers, it is extended by pull-push filling; all
-   sources are scattered with their own exact radius on the radius pyramid.
+   sources are scattered with their own exact radius on the radius pyramid,
+   the light of the salient ones (``route_salient``) at full resolution.
 4. Layers are composited back to front with "over" (opacity = scattered
    coverage clipped to 1, colour normalised by coverage), and the result is
    divided by the total opacity.
