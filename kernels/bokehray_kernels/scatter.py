@@ -1,22 +1,28 @@
 """Row-span scatter of aperture-shaped CoCs on a radius pyramid, and layer compositing.
 
 Each source pixel spreads a ``vec4`` (premultiplied RGB, coverage) over its
-aperture shape. The shape is cut into pixel rows; each row is one interval
-``[a, b]`` deposited into a per-row *difference* buffer with four adds
-(antialiased, fractional ends), and a prefix sum along each row turns the
-differences into per-pixel coverage. A source therefore costs O(rows), not
-O(r^2). Sources whose radius exceeds ``r0`` are scattered on a coarser level
-``l`` (pixel size ``2^l``) where their radius is at most ``r0``, so the cost per
-source is bounded by O(r0) whatever its radius; ``resolve_levels_kernel``
-brings the levels back to full resolution (bilinear, energy preserving).
+aperture shape. The shape is cut into pixel rows; each row is one or more
+spans deposited into a per-row *difference* buffer (a few adds per end), and a
+prefix sum along each row turns the differences into per-pixel coverage. A
+source therefore costs O(rows), not O(r^2). Sources whose radius exceeds ``r0``
+are scattered on a coarser level ``l`` (pixel size ``2^l``) where their radius is
+at most ``r0``, unless the launcher routes them to level 0 (``exact`` flag: the
+salient sources, docs/renderer.md); ``resolve_levels_kernel`` brings the levels
+back to full resolution (bilinear, energy preserving).
 
-Each row ``k`` is split into ``n = clamp(ceil(4 / rho), 1, 4)`` equal sub-rows;
-each sub-row gets the weight ``h * (b - a) / sum over all sub-rows of h * (b - a)``
-where ``h`` is the part of the sub-row inside the shape's vertical extent and the
-chord ``[a, b]`` is taken at the middle of that part (midpoint rule). The normalisation
-is over the whole shape, inside the image or not, so every source deposits
-exactly its value (minus what falls outside the image), at every radius,
-including radii below one pixel.
+Area-exact spans: a pixel row (clipped to the shape's vertical extent) is split
+into ``n`` sub-rows where its chord ends bend (``n`` from the sag of the ends at
+mid-row, at most ``MAX_SUB``; graded towards the shape's top and bottom). In a
+sub-row each end moves linearly between its positions at the sub-row's edges,
+shifted by 2/3 of its sag at mid-height (Simpson's rule for its mean position),
+and is deposited as the exact pixel-box integral of that moving step (a ramp
+over the columns it crosses). Spans carry density ``v / (area * rho^2)`` (the
+shape's exact area); what the sub-rows' summed area differs from it goes on
+the centre row's chord, so every source deposits exactly its value (minus what
+falls outside the image), at every radius, including radii below one pixel.
+The pyramid levels (``_scatter_coarse``) use one sharp span per row at its
+mid-height chord, with the same normalisation: the upsampling blurs their
+outline by a coarse pixel anyway.
 """
 
 import warp as wp
@@ -29,40 +35,126 @@ wp.set_module_options({"enable_backward": False})
 MAX_LEVELS = 6
 """Pyramid levels 0..5: radii up to ``r0 * 32`` cost O(r0) per source."""
 
+SAG_PX = wp.constant(0.25)
+"""Largest sag [px] of a chord end inside a sub-row (before the ``MAX_SUB`` cap)."""
+
+MAX_SUB = wp.constant(4)
+"""Most sub-rows per pixel row (reached only next to the poles of a shape)."""
+
 
 @wp.func
-def _deposit_span(buf: wp.array2d(dtype=wp.vec4), row: int, a: float, b: float, v: wp.vec4):
-    # buf is (H, W + 2): column W and W + 1 absorb the right ends, never read back.
+def _hat_cdf(u: float) -> float:
+    # integral from -inf to u of the hat max(0, 1 - |t|)
+    if u <= -1.0:
+        return 0.0
+    if u <= 0.0:
+        return 0.5 * (1.0 + u) * (1.0 + u)
+    if u <= 1.0:
+        return 1.0 - 0.5 * (1.0 - u) * (1.0 - u)
+    return 1.0
+
+
+@wp.func
+def _deposit_end(buf: wp.array2d(dtype=wp.vec4), row: int, p0: float, p1: float, v: wp.vec4):
+    """One end of a span whose position moves linearly from ``p0`` to ``p1`` over the sub-row.
+
+    A step at ``p`` (pixel-box integrated) is the difference pair ``(1 - f, f)`` at
+    ``(floor(p), floor(p) + 1)``, i.e. the hat weights ``max(0, 1 - |p - j|)`` at every
+    column ``j``. A position uniform on ``[p0, p1]`` deposits the mean hat weights, in
+    closed form; positions left of 0 (right of W) deposit at column 0 (W): the span is
+    clipped to the image. ``buf`` is (H, W + 2): columns W and W + 1 are never read back.
+    """
     w = float(buf.shape[1] - 2)
-    a = wp.clamp(a, 0.0, w)
-    b = wp.clamp(b, 0.0, w)
-    if b <= a:
+    lo = wp.min(p0, p1)
+    hi = wp.max(p0, p1)
+    span = hi - lo
+    if span < 1.0e-4:
+        p = wp.clamp(0.5 * (lo + hi), 0.0, w)
+        k = int(wp.floor(p))
+        f = p - float(k)
+        wp.atomic_add(buf, row, k, v * (1.0 - f))
+        wp.atomic_add(buf, row, k + 1, v * f)
         return
-    ka = int(wp.floor(a))
-    fa = a - float(ka)
-    kb = int(wp.floor(b))
-    fb = b - float(kb)
-    wp.atomic_add(buf, row, ka, v * (1.0 - fa))
-    wp.atomic_add(buf, row, ka + 1, v * fa)
-    wp.atomic_add(buf, row, kb, -v * (1.0 - fb))
-    wp.atomic_add(buf, row, kb + 1, -v * fb)
-
-
-@wp.func
-def _row_part(k: int, j: int, n_sub: int, top: float, bot: float) -> wp.vec2:
-    # j-th of n_sub equal sub-rows of pixel row k, clipped to [top, bot]: (start, end)
-    step = 1.0 / float(n_sub)
-    t0 = wp.max(float(k) + float(j) * step, top)
-    t1 = wp.min(float(k) + float(j + 1) * step, bot)
-    return wp.vec2(t0, t1)
+    inv = 1.0 / span
+    if span <= 1.0 and lo >= 0.0 and hi <= w:
+        # the common case in closed form: three columns k, k + 1, k + 2
+        k = int(wp.floor(lo))
+        f = lo - float(k)
+        g = f + span
+        wk = 0.5 * (1.0 - f) * (1.0 - f)
+        w2 = float(0.0)
+        if g <= 1.0:
+            wk -= 0.5 * (1.0 - g) * (1.0 - g)
+        else:
+            w2 = 0.5 * (g - 1.0) * (g - 1.0) * inv
+        wk *= inv
+        wp.atomic_add(buf, row, k, v * wk)
+        wp.atomic_add(buf, row, k + 1, v * (1.0 - wk - w2))
+        if w2 > 0.0:
+            wp.atomic_add(buf, row, k + 2, v * w2)
+        return
+    if lo < 0.0:
+        wp.atomic_add(buf, row, 0, v * ((wp.min(hi, 0.0) - lo) * inv))
+    if hi > w:
+        wp.atomic_add(buf, row, int(w), v * ((hi - wp.max(lo, w)) * inv))
+    mlo = wp.max(lo, 0.0)
+    mhi = wp.min(hi, w)
+    if mhi > mlo:
+        j0 = int(wp.floor(mlo))
+        j1 = int(wp.floor(mhi)) + 1
+        for j in range(j0, j1 + 1):
+            fj = float(j)
+            wgt = (_hat_cdf(mhi - fj) - _hat_cdf(mlo - fj)) * inv
+            if wgt != 0.0:
+                wp.atomic_add(buf, row, j, v * wgt)
 
 
 @wp.func
 def _signed_chord(y: float, rho: float, blades: wp.array(dtype=wp.vec4), n_blades: int, sgn: float) -> wp.vec2:
+    # the chord at height y (relative to the centre); empty chords collapse to their middle
+    c = wp.vec2()
     if sgn < 0.0:
-        c = chord(-y, rho, blades, n_blades)
-        return wp.vec2(-c[1], -c[0])
-    return chord(y, rho, blades, n_blades)
+        cc = chord(-y, rho, blades, n_blades)
+        c = wp.vec2(-cc[1], -cc[0])
+    else:
+        c = chord(y, rho, blades, n_blades)
+    if c[1] < c[0]:
+        m = 0.5 * (c[0] + c[1])
+        c = wp.vec2(m, m)
+    return c
+
+
+@wp.func
+def _n_sub(c0: wp.vec2, cm: wp.vec2, c1: wp.vec2) -> int:
+    """Sub-rows of a row part with chords ``c0``, ``cm``, ``c1`` at its top, middle and bottom.
+
+    The sag is how far the chord ends at mid-height lie from the straight line between
+    the ends at top and bottom; splitting in ``n`` divides a smooth sag by ``n^2``.
+    """
+    sag = wp.max(wp.abs(cm[0] - 0.5 * (c0[0] + c1[0])), wp.abs(cm[1] - 0.5 * (c0[1] + c1[1])))
+    if sag <= SAG_PX:
+        return 1
+    return wp.min(int(wp.ceil(wp.sqrt(sag / SAG_PX))), MAX_SUB)
+
+
+@wp.func
+def _sub_edge(t0: float, t1: float, j: int, n: int, at_top: int, at_bot: int) -> float:
+    """Height of the j-th of n sub-row edges of ``[t0, t1]``.
+
+    Uniform, except in a row holding the shape's top (bottom) end, where a rounded shape's
+    chord ends move like the square root of the distance to it: there the edges are graded
+    (quadratically near that end, cosine spacing), so the ends move about equally per sub-row.
+    """
+    u = float(j) / float(n)
+    if at_top != 0 and at_bot != 0:
+        u = 0.5 - 0.5 * wp.cos(u * 3.14159265358979)
+    elif at_top != 0:
+        u = 1.0 - wp.cos(u * 1.5707963267949)
+    elif at_bot != 0:
+        u = wp.sin(u * 1.5707963267949)
+    if j == n:
+        u = 1.0
+    return t0 + (t1 - t0) * u
 
 
 @wp.func
@@ -75,52 +167,161 @@ def _scatter_one(
     blades: wp.array(dtype=wp.vec4),
     n_blades: int,
     extent: wp.vec2,
+    area: float,
     sgn: float,
 ):
-    # sgn = -1 draws the shape point-reflected (sources in front of the focal plane)
-    top = yc + extent[0] * rho
-    bot = yc + extent[1] * rho
+    # sgn = -1 draws the shape point-reflected (sources in front of the focal plane). Heights
+    # are relative to the centre (u = y - yc; exact for row edges), so the same source is cut
+    # into the same sub-rows wherever it lies (tiles equal the untiled render).
+    u_top = extent[0] * rho
+    u_bot = extent[1] * rho
     if sgn < 0.0:
-        top = yc - extent[1] * rho
-        bot = yc - extent[0] * rho
-    ky0 = int(wp.floor(top))
-    ky1 = int(wp.floor(bot))
-    # small shapes: several sub-rows per pixel row keep the midpoint rule accurate
-    n_sub = wp.clamp(int(wp.ceil(4.0 / rho)), 1, 4)
-    norm = float(0.0)
+        u_top = -extent[1] * rho
+        u_bot = -extent[0] * rho
+    ky0 = int(wp.floor(yc + u_top))
+    ky1 = int(wp.floor(yc + u_bot))
+    h = buf.shape[0]
+    # One pass. Each sub-row is deposited with density v / (area rho^2) (the shape's exact
+    # area); its ends are exact pixel-integrated ramps. What the sub-rows' summed area ``tr``
+    # (the whole shape's, inside the image or not) differs from the exact area goes on the
+    # centre row's chord, so the source deposits exactly v.
+    inv = 1.0 / (area * rho * rho)
+    tr = wp.float64(0.0)  # float64: at r = 300 a float32 sum's rounding would be as large as a pixel's share
+    # the extent is padded by 1e-5 (aperture.vertical_extent): the chords at the shape's ends are
+    # taken 2e-5 inside, where they are not empty (a vertex, or a flat blade edge)
+    inset = 2.0e-5 * rho
+    u_prev = u_top
+    c_prev = _signed_chord(u_top + inset, rho, blades, n_blades, sgn)
     for k in range(ky0, ky1 + 1):
-        for j in range(n_sub):
-            t = _row_part(k, j, n_sub, top, bot)
-            h = t[1] - t[0]
-            if h > 0.0:
-                c = _signed_chord(0.5 * (t[0] + t[1]) - yc, rho, blades, n_blades, sgn)
-                if c[1] > c[0]:
-                    norm += h * (c[1] - c[0])
-    if norm <= 0.0:
-        # degenerate shape at this radius: keep the energy at the centre
-        r = wp.clamp(int(wp.floor(yc)), 0, buf.shape[0] - 1)
-        _deposit_span(buf, r, wp.floor(xc), wp.floor(xc) + 1.0, v)
-        return
-    inv = 1.0 / norm
-    k0 = wp.max(ky0, 0)
-    k1 = wp.min(ky1, buf.shape[0] - 1)
-    for k in range(k0, k1 + 1):
-        for j in range(n_sub):
-            t = _row_part(k, j, n_sub, top, bot)
-            h = t[1] - t[0]
-            if h > 0.0:
-                c = _signed_chord(0.5 * (t[0] + t[1]) - yc, rho, blades, n_blades, sgn)
-                if c[1] > c[0]:
-                    _deposit_span(buf, k, xc + c[0], xc + c[1], v * (h * inv))
+        u0 = u_prev
+        u1 = wp.min(float(k + 1) - yc, u_bot)
+        if u1 <= u0:
+            continue
+        c0 = c_prev
+        c1 = wp.vec2()
+        if u1 >= u_bot:
+            c1 = _signed_chord(u_bot - inset, rho, blades, n_blades, sgn)
+        else:
+            c1 = _signed_chord(u1, rho, blades, n_blades, sgn)
+        cm = _signed_chord(0.5 * (u0 + u1), rho, blades, n_blades, sgn)
+        n = _n_sub(c0, cm, c1)
+        at_top = int(k == ky0)
+        at_bot = int(k == ky1)
+        inside = k >= 0 and k < h
+        ca = c0
+        ua = u0
+        for j in range(n):
+            ub = u1
+            cb = c1
+            if j < n - 1:
+                ub = _sub_edge(u0, u1, j + 1, n, at_top, at_bot)
+                cb = _signed_chord(ub, rho, blades, n_blades, sgn)
+            cmid = cm
+            if n > 1:
+                cmid = _signed_chord(0.5 * (ua + ub), rho, blades, n_blades, sgn)
+            # Simpson: the ends' mean positions are (a0 + 4 a_mid + a1) / 6, so the straight
+            # ramps are shifted by 2/3 of the sag; the sub-row's area is Simpson's
+            da = (2.0 / 3.0) * (cmid[0] - 0.5 * (ca[0] + cb[0]))
+            db = (2.0 / 3.0) * (cmid[1] - 0.5 * (ca[1] + cb[1]))
+            hh = ub - ua
+            wsum = (ca[1] - ca[0]) + (cb[1] - cb[0]) + 2.0 * (db - da)
+            tr += wp.float64(hh * 0.5 * wsum)
+            if inside and wsum > 0.0:
+                vv = v * (hh * inv)
+                _deposit_end(buf, k, xc + ca[0] + da, xc + cb[0] + da, vv)
+                _deposit_end(buf, k, xc + ca[1] + db, xc + cb[1] + db, -vv)
+            ca = cb
+            ua = ub
+        u_prev = u1
+        c_prev = c1
+    rest = float(wp.float64(1.0) - tr * wp.float64(inv))
+    if rest != 0.0:
+        r = wp.clamp(int(wp.floor(yc)), 0, h - 1)
+        cc = _signed_chord(0.0, rho, blades, n_blades, sgn)
+        a = xc + cc[0]
+        b = xc + cc[1]
+        if b - a < 1.0:
+            a = wp.floor(xc)
+            b = a + 1.0
+        vr = v * (rest / (b - a))
+        _deposit_end(buf, r, a, a, vr)
+        _deposit_end(buf, r, b, b, -vr)
+
+
+@wp.func
+def _scatter_coarse(
+    buf: wp.array2d(dtype=wp.vec4),
+    xc: float,
+    yc: float,
+    rho: float,
+    v: wp.vec4,
+    blades: wp.array(dtype=wp.vec4),
+    n_blades: int,
+    extent: wp.vec2,
+    area: float,
+    sgn: float,
+):
+    """The cheap span rule of the pyramid levels: one sharp-ended span per row (its mid-height chord).
+
+    Their outline is blurred by the bilinear upsampling anyway (about one coarse pixel), so the
+    sub-row ramps of ``_scatter_one`` would buy nothing there. Same normalisation: density
+    ``v / (area rho^2)``, the remainder on the centre row's chord, so the source deposits exactly v.
+    """
+    u_top = extent[0] * rho
+    u_bot = extent[1] * rho
+    if sgn < 0.0:
+        u_top = -extent[1] * rho
+        u_bot = -extent[0] * rho
+    ky0 = int(wp.floor(yc + u_top))
+    ky1 = int(wp.floor(yc + u_bot))
+    h = buf.shape[0]
+    inv = 1.0 / (area * rho * rho)
+    tr = wp.float64(0.0)
+    for k in range(ky0, ky1 + 1):
+        u0 = wp.max(float(k) - yc, u_top)
+        u1 = wp.min(float(k + 1) - yc, u_bot)
+        if u1 > u0:
+            c = _signed_chord(0.5 * (u0 + u1), rho, blades, n_blades, sgn)
+            hh = u1 - u0
+            tr += wp.float64(hh * (c[1] - c[0]))
+            if k >= 0 and k < h and c[1] > c[0]:
+                vv = v * (hh * inv)
+                _deposit_end(buf, k, xc + c[0], xc + c[0], vv)
+                _deposit_end(buf, k, xc + c[1], xc + c[1], -vv)
+    rest = float(wp.float64(1.0) - tr * wp.float64(inv))
+    if rest != 0.0:
+        r = wp.clamp(int(wp.floor(yc)), 0, h - 1)
+        cc = _signed_chord(0.0, rho, blades, n_blades, sgn)
+        a = xc + cc[0]
+        b = xc + cc[1]
+        if b - a < 1.0:
+            a = wp.floor(xc)
+            b = a + 1.0
+        vr = v * (rest / (b - a))
+        _deposit_end(buf, r, a, a, vr)
+        _deposit_end(buf, r, b, b, -vr)
+
+
+@wp.func
+def level_of(r: float, r0: float, n_levels: int) -> int:
+    """Pyramid level of a source of radius ``r``: the first where ``r / 2^l <= r0`` (at most ``n_levels - 1``)."""
+    lev = int(0)
+    scale = float(1.0)
+    while r * scale > r0 and lev < n_levels - 1:
+        lev += 1
+        scale *= 0.5
+    return lev
 
 
 @wp.kernel
 def scatter_kernel(
     src: wp.array2d(dtype=wp.vec4),
     coc: wp.array2d(dtype=float),
+    exact: wp.array2d(dtype=wp.uint8),
     blades: wp.array(dtype=wp.vec4),
     n_blades: int,
     extent: wp.vec2,
+    area: float,
     r0: float,
     n_levels: int,
     buf0: wp.array2d(dtype=wp.vec4),
@@ -132,9 +333,12 @@ def scatter_kernel(
 ):
     """Scatter every source of ``src`` (local coordinates) with radius ``|coc|`` [px].
 
-    ``extent`` is the shape's vertical extent ``(y_top, y_bottom)`` at unit radius. A
-    positive (in-front-of-focus) ``coc`` draws the shape point-reflected, as a
-    thin lens does: the aperture's orientation is that of background bokeh.
+    ``extent`` is the shape's vertical extent ``(y_top, y_bottom)`` and ``area`` its area,
+    both at unit circumradius. A positive (in-front-of-focus) ``coc`` draws the shape
+    point-reflected, as a thin lens does: the aperture's orientation is that of background bokeh.
+    ``exact[y, x] != 0`` scatters that source's light (RGB) at level 0 (full resolution)
+    whatever its radius, its coverage on its pyramid level; ``exact`` may be a 1 x 1 array
+    when nothing is routed.
 
     ``buf<l>`` is the difference buffer of level ``l``, ``(ceil(H/2^l), ceil(W/2^l) + 2)``.
     """
@@ -152,26 +356,189 @@ def scatter_kernel(
         wp.atomic_add(buf0, y, x, v)
         wp.atomic_add(buf0, y, x + 1, -v)
         return
-    lev = int(0)
-    scale = float(1.0)
-    while r * scale > r0 and lev < n_levels - 1:
-        lev += 1
-        scale *= 0.5
+    lev = level_of(r, r0, n_levels)
+    if lev > 0 and exact.shape[0] == src.shape[0] and exact.shape[1] == src.shape[1]:
+        if exact[y, x] != wp.uint8(0):
+            # a salient source: its light at full resolution (the exact outline), its coverage
+            # on its pyramid level like its neighbours' (the layer's coverage stays as smooth)
+            _scatter_one(buf0, float(x) + 0.5, float(y) + 0.5, r, wp.vec4(v[0], v[1], v[2], 0.0), blades,
+                         n_blades, extent, area, sgn)
+            v = wp.vec4(0.0, 0.0, 0.0, v[3])
+    scale = 1.0 / float(1 << lev)
     xc = (float(x) + 0.5) * scale
     yc = (float(y) + 0.5) * scale
     rho = r * scale
     if lev == 0:
-        _scatter_one(buf0, xc, yc, rho, v, blades, n_blades, extent, sgn)
+        _scatter_one(buf0, xc, yc, rho, v, blades, n_blades, extent, area, sgn)
     elif lev == 1:
-        _scatter_one(buf1, xc, yc, rho, v, blades, n_blades, extent, sgn)
+        _scatter_coarse(buf1, xc, yc, rho, v, blades, n_blades, extent, area, sgn)
     elif lev == 2:
-        _scatter_one(buf2, xc, yc, rho, v, blades, n_blades, extent, sgn)
+        _scatter_coarse(buf2, xc, yc, rho, v, blades, n_blades, extent, area, sgn)
     elif lev == 3:
-        _scatter_one(buf3, xc, yc, rho, v, blades, n_blades, extent, sgn)
+        _scatter_coarse(buf3, xc, yc, rho, v, blades, n_blades, extent, area, sgn)
     elif lev == 4:
-        _scatter_one(buf4, xc, yc, rho, v, blades, n_blades, extent, sgn)
+        _scatter_coarse(buf4, xc, yc, rho, v, blades, n_blades, extent, area, sgn)
     else:
-        _scatter_one(buf5, xc, yc, rho, v, blades, n_blades, extent, sgn)
+        _scatter_coarse(buf5, xc, yc, rho, v, blades, n_blades, extent, area, sgn)
+
+
+@wp.kernel
+def radiance_mean_kernel(src: wp.array2d(dtype=wp.vec4), means: wp.array3d(dtype=wp.vec2),
+                         counts: wp.array3d(dtype=float)):
+    """Level 1 of the radiance pyramid: mean over each 2 x 2 cell of ((R + G + B) / 3, coverage).
+
+    Premultiplied radiance, so sources of zero coverage count as black; cells cut by the
+    array's edge average the pixels they hold (``counts``). Level ``k`` lives in ``means[k - 1]``.
+    """
+    cy, cx = wp.tid()
+    acc = wp.vec2()
+    n = float(0.0)
+    for dy in range(2):
+        for dx in range(2):
+            y = 2 * cy + dy
+            x = 2 * cx + dx
+            if y < src.shape[0] and x < src.shape[1]:
+                v = src[y, x]
+                acc += wp.vec2((v[0] + v[1] + v[2]) / 3.0, v[3])
+                n += 1.0
+    means[0, cy, cx] = acc / n
+    counts[0, cy, cx] = n
+
+
+@wp.kernel
+def halve_mean_kernel(means: wp.array3d(dtype=wp.vec2), counts: wp.array3d(dtype=float), k: int, fine_h: int,
+                      fine_w: int):
+    """Radiance pyramid level ``k + 1`` (in ``means[k]``) from level ``k``: pixel-count-weighted 2 x 2 means."""
+    cy, cx = wp.tid()
+    acc = wp.vec2()
+    n = float(0.0)
+    for dy in range(2):
+        for dx in range(2):
+            y = 2 * cy + dy
+            x = 2 * cx + dx
+            if y < fine_h and x < fine_w:
+                c = counts[k - 1, y, x]
+                acc += means[k - 1, y, x] * c
+                n += c
+    means[k, cy, cx] = acc / n
+    counts[k, cy, cx] = n
+
+
+@wp.kernel
+def salience_kernel(
+    src: wp.array2d(dtype=wp.vec4),
+    coc: wp.array2d(dtype=float),
+    means: wp.array3d(dtype=wp.vec2),
+    counts: wp.array3d(dtype=float),
+    r0: float,
+    n_levels: int,
+    visible: float,
+    floor: float,
+    score: wp.array2d(dtype=float),
+):
+    """How far a pyramid-level source's own disc stands out of its layer's neighbourhood (> 0: salient).
+
+    The neighbourhood is the 3 x 3 cells of the source's level ``l >= 1`` around its own (cells
+    beyond the array left out): mean premultiplied radiance ``m`` and coverage ``a_m``, so the
+    layer's local colour is ``m / a_m``. A source of radiance ``q`` and coverage ``a`` carries
+    ``e = q - a m / a_m`` more light than its coverage of the local colour (0 on a constant
+    image, whatever the layer's shape); its disc then lights ``e / (pi r^2)`` above the blurred
+    surroundings (about ``m``), and its outline is visible when that exceeds
+    ``visible * max(m, floor)``. ``score`` is the excess energy beyond that threshold, 0 for
+    every other source. ``means[k]``, ``counts[k]``: pyramid level ``k + 1`` (padded to level 1).
+    """
+    y, x = wp.tid()
+    score[y, x] = 0.0
+    v = src[y, x]
+    r = wp.abs(coc[y, x])
+    if v[3] == 0.0 or r < 0.5:
+        return
+    lev = level_of(r, r0, n_levels)
+    if lev == 0:
+        return
+    hl = (src.shape[0] + (1 << lev) - 1) >> lev
+    wl = (src.shape[1] + (1 << lev) - 1) >> lev
+    cy = y >> lev
+    cx = x >> lev
+    acc = wp.vec2()
+    n = float(0.0)
+    for dy in range(-1, 2):
+        for dx in range(-1, 2):
+            yy = cy + dy
+            xx = cx + dx
+            if yy >= 0 and yy < hl and xx >= 0 and xx < wl:
+                c = counts[lev - 1, yy, xx]
+                acc += means[lev - 1, yy, xx] * c
+                n += c
+    m = acc[0] / n
+    a_m = acc[1] / n
+    q = (v[0] + v[1] + v[2]) / 3.0
+    e = q - v[3] * m / a_m  # a_m > 0: the source itself has coverage
+    s = e - visible * wp.max(m, floor) * 3.14159265 * r * r
+    if s > 0.0:
+        score[y, x] = s
+
+
+@wp.kernel
+def route_cells_kernel(
+    score: wp.array2d(dtype=float),
+    coc: wp.array2d(dtype=float),
+    r0: float,
+    n_levels: int,
+    lev: int,
+    per_cell: int,
+    exact: wp.array2d(dtype=wp.uint8),
+):
+    """Mark for level 0 at most ``per_cell`` salient sources of level ``lev`` in each level cell.
+
+    One thread per cell of ``2^lev x 2^lev`` px: the sources of that level with the largest
+    scores (ties: the first in row order). A level-0 source costs ``2^lev`` times the rows of
+    its pyramid scatter, so the routed work is at most ``per_cell / 2^lev`` times what the
+    cell's pyramid sources cost whatever the content.
+    """
+    cy, cx = wp.tid()
+    side = 1 << lev
+    y0 = cy * side
+    x0 = cx * side
+    y1 = wp.min(y0 + side, score.shape[0])
+    x1 = wp.min(x0 + side, score.shape[1])
+    n = int(0)  # salient sources of this level in the cell; only a few cells have any
+    for y in range(y0, y1):
+        for x in range(x0, x1):
+            if score[y, x] > 0.0:
+                if level_of(wp.abs(coc[y, x]), r0, n_levels) == lev:
+                    n += 1
+    if n == 0:
+        return
+    if n <= per_cell:
+        for y in range(y0, y1):
+            for x in range(x0, x1):
+                if score[y, x] > 0.0:
+                    if level_of(wp.abs(coc[y, x]), r0, n_levels) == lev:
+                        exact[y, x] = wp.uint8(1)
+        return
+    bound = float(1.0e38)  # scores above it (or equal, earlier in row order) are already taken
+    by = int(-1)
+    bx = int(-1)
+    for _ in range(per_cell):
+        best = float(0.0)
+        iy = int(-1)
+        ix = int(-1)
+        for y in range(y0, y1):
+            for x in range(x0, x1):
+                s = score[y, x]
+                if s > best and level_of(wp.abs(coc[y, x]), r0, n_levels) == lev:
+                    after = s < bound or (s == bound and (y > by or (y == by and x > bx)))
+                    if after:
+                        best = s
+                        iy = y
+                        ix = x
+        if iy < 0:
+            return
+        exact[iy, ix] = wp.uint8(1)
+        bound = best
+        by = iy
+        bx = ix
 
 
 @wp.kernel

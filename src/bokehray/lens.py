@@ -28,7 +28,7 @@ from .errors import InputError
 MAX_K_PX = 1.0e5
 """Largest K accepted: a CoC of 100 000 px is beyond any image; larger values only exhaust memory."""
 
-__all__ = ["MAX_K_PX", "Aperture", "BlurParams", "DepthNormalization", "ThinLens", "disparity_from_depth", "depth_from_disparity"]
+__all__ = ["MAX_K_PX", "Aperture", "BlurParams", "aperture_area", "DepthNormalization", "ThinLens", "disparity_from_depth", "depth_from_disparity"]
 
 
 def _finite(name: str, value: float, *, lo: float | None = None, lo_open: bool = False) -> float:
@@ -304,3 +304,21 @@ class ThinLens:
         k_abs = blur.k_px / norm.inv_span
         aperture = k_abs * 2.0 * (z_f - f) * pitch / (f * z_f)
         return cls(focal_length_mm, f / aperture, z_f, sensor_width_mm)
+
+
+def aperture_area(aperture: Aperture) -> float:
+    """Area of the aperture at unit circumradius (the scatter's normalisation, docs/renderer.md).
+
+    A disc is pi; N straight blades the inscribed regular polygon; curved blades add on each
+    side the circular segment of radius 1 / curvature through the two vertices (that arc lies
+    inside the unit circle, so the CoC disc does not clip it).
+    """
+    if aperture.is_disc:
+        return math.pi
+    n = aperture.blades
+    poly = 0.5 * n * math.sin(2.0 * math.pi / n)
+    if aperture.curvature < 1e-4:  # as Aperture.blade_discs: straight
+        return poly
+    big_r = 1.0 / aperture.curvature
+    theta = 2.0 * math.asin(math.sin(math.pi / n) / big_r)
+    return poly + n * 0.5 * big_r * big_r * (theta - math.sin(theta))

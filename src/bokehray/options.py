@@ -85,10 +85,18 @@ class PreviewOptions:
         level_radius_px: largest radius scattered at a pyramid level before moving to the next coarser one
             (cost per source is O(level_radius_px)).
         threads: worker threads on the CPU (default: all cores).
+        exact_highlights: scatter the light of sources whose own disc outline is visible (lights, highlights:
+            ``levels.preview.route_salient``) at full resolution instead of on the radius pyramid (the default);
+            False leaves every source on the pyramid (measured in docs/renderer.md).
+        clamp_border: take the unknown outside the frame as its edge pixels continued outwards
+            (``levels.preview.border_pad``, the default); False divides by the coverage the frame got instead (the
+            rule before, which brightens lights near the border).
     """
 
     level_radius_px: float = 8.0
     threads: int | None = None
+    exact_highlights: bool = True
+    clamp_border: bool = True
 
     def __post_init__(self) -> None:
         check_number(self.level_radius_px, "level_radius_px", 0.0, lo_open=True)
@@ -97,6 +105,9 @@ class PreviewOptions:
         if self.threads is not None and (isinstance(self.threads, bool) or not isinstance(self.threads, int)
                                          or self.threads < 1):
             raise InputError(f"threads: expected None (all cores) or an integer >= 1, got {self.threads!r}")
+        for name in ("exact_highlights", "clamp_border"):
+            if not isinstance(getattr(self, name), bool):
+                raise InputError(f"{name}: expected True or False, got {getattr(self, name)!r}")
 
 
 @dataclass(frozen=True, slots=True)

@@ -95,10 +95,12 @@ def window(extent: Box, core: Box, halo: int, align: int) -> Box:
     return (*span(gy0, gy1, cy0, cy1, halo, align), *span(gx0, gx1, cx0, cx1, halo, align))
 
 
-def render_tiles(out: np.ndarray, tile: int, render_core: Callable[[Box], np.ndarray | None]) -> int:
+def render_tiles(out: np.ndarray, tile: int, render_core: Callable[[Box], np.ndarray | None],
+                 region: Box | None = None) -> int:
     """Fill ``out`` (H x W x C) tile by tile: ``render_core(core)`` returns the core's pixels, or None to keep what
-    ``out`` holds there. Returns the number of tiles."""
-    all_cores = cores(out.shape[0], out.shape[1], tile)
+    ``out`` holds there. The tiles cover ``region`` (default: all of ``out``). Returns the number of tiles."""
+    y0, y1, x0, x1 = (0, out.shape[0], 0, out.shape[1]) if region is None else region
+    all_cores = [(a + y0, b + y0, c + x0, d + x0) for a, b, c, d in cores(y1 - y0, x1 - x0, tile)]
     for core in all_cores:
         part = render_core(core)
         if part is not None:

@@ -11,12 +11,15 @@ from bokehray import Aperture
 from bokehray import LayerOptions, PreviewOptions
 from bokehray.levels.preview import render_signed_coc
 from bokehray.scene import layer_edges
+from bokehray.lens import aperture_area
 from reference import scatter_ref
 from tolerances import (
     ENERGY_RTOL,
     FOOTPRINT_L1,
-    KERNEL_VS_REFERENCE_ATOL,
+    POINT_LIGHT_L1,
     PYRAMID_REL_MAE,
+    SCATTER_VS_REFERENCE_ATOL,
+    SHAPE_L1_LEVEL0,
 )
 
 APERTURES = [
@@ -68,8 +71,9 @@ def _point_response(ap: Aperture, radius: float, size: int, device: str, offset=
     bufs += [bufs[0]] * (bk.MAX_LEVELS - levels)
     blades, n = _blades_wp(ap, device)
     wp.launch(bk.scatter_kernel, dim=(size, size),
-              inputs=[wp.array(src, dtype=wp.vec4, device=device), wp.array(radius_map, device=device), blades, n,
-                      wp.vec2(*ap.vertical_extent()), r0, levels, *bufs], device=device)
+              inputs=[wp.array(src, dtype=wp.vec4, device=device), wp.array(radius_map, device=device),
+                              wp.zeros((1, 1), dtype=wp.uint8, device=device), blades, n,
+                      wp.vec2(*ap.vertical_extent()), aperture_area(ap), r0, levels, *bufs], device=device)
     for lv in range(levels):
         wp.launch(bk.prefix_rows_kernel, dim=bufs[lv].shape[0], inputs=[bufs[lv]], device=device)
     out = wp.empty((size, size), dtype=wp.vec4, device=device)
@@ -120,12 +124,13 @@ def test_scatter_matches_reference(ap, device, rng):
     bufs += [bufs[0]] * (bk.MAX_LEVELS - 1)
     blades, n = _blades_wp(ap, device)
     wp.launch(bk.scatter_kernel, dim=(h, w),
-              inputs=[wp.array(src, dtype=wp.vec4, device=device), wp.array(radius, device=device), blades, n,
-                      wp.vec2(*ap.vertical_extent()), 1e6, 1, *bufs], device=device)
+              inputs=[wp.array(src, dtype=wp.vec4, device=device), wp.array(radius, device=device),
+                              wp.zeros((1, 1), dtype=wp.uint8, device=device), blades, n,
+                      wp.vec2(*ap.vertical_extent()), aperture_area(ap), 1e6, 1, *bufs], device=device)
     wp.launch(bk.prefix_rows_kernel, dim=h, inputs=[bufs[0]], device=device)
     got = bufs[0].numpy()[:, :w]
     want = scatter_ref.scatter(src.astype(np.float64), radius, ap.blade_discs(), ap.vertical_extent())
-    np.testing.assert_allclose(got, want, atol=KERNEL_VS_REFERENCE_ATOL)
+    np.testing.assert_allclose(got, want, atol=SCATTER_VS_REFERENCE_ATOL)
 
 
 @pytest.mark.parametrize("ap", APERTURES[:2], ids=str)
@@ -219,3 +224,80 @@ def test_small_bright_layer_over_black_keeps_its_energy():
     assert stats.layers == 2
     # all the light arrives: none is cut off at the edge of the small layer's box
     np.testing.assert_allclose(out.sum(), img.sum(), rtol=1e-3)
+
+
+# --------------------------------------------------------------------- exact shapes at every radius
+
+
+def test_analytic_aperture_area_matches_the_shape():
+    """The scatter's normalisation (the aperture's area) against point-in-shape counting."""
+    for ap in APERTURES + [Aperture(blades=3, curvature=0.9, rotation_deg=20.0), Aperture(blades=7, curvature=0.3)]:
+        want = scatter_ref.unit_area(ap.blade_discs())
+        assert abs(aperture_area(ap) - want) < 2e-5 * want, ap
+        assert abs(scatter_ref.rows_area(ap.blade_discs()) - aperture_area(ap)) < 1e-6
+
+
+@pytest.mark.parametrize("ap", [Aperture(), Aperture(blades=6, rotation_deg=15.0),
+                                Aperture(blades=5, rotation_deg=10.0, curvature=0.3)], ids=str)
+@pytest.mark.parametrize("radius", [-4.3, 5.1, -6.3, 7.7])
+def test_level0_footprint_is_area_exact(ap, radius, device):
+    """Level-0 spans vs the analytic shape integrated over each pixel, behind and in front of the focus."""
+    size = 21
+    got = _point_response(ap, radius, size, device)
+    want = scatter_ref.area_coverage(size // 2 + 0.5, size // 2 + 0.5, radius, ap.blade_discs(), size, size)
+    assert np.abs(got - want).sum() < SHAPE_L1_LEVEL0, np.abs(got - want).sum()
+
+
+def _point_light(ap: Aperture, radius: float, size: int, centre: tuple[int, int], options=None):
+    image = np.zeros((size, size, 3), np.float32)
+    image[centre] = 1.0
+    out, _ = render_signed_coc(image, np.full((size, size), radius, np.float32), ap, options=options)
+    want = scatter_ref.area_coverage(centre[1] + 0.5, centre[0] + 0.5, radius, ap.blade_discs(), size, size)
+    return out[..., 0].astype(np.float64), want
+
+
+@pytest.mark.parametrize("ap", [Aperture(), Aperture(blades=6, rotation_deg=15.0),
+                                Aperture(blades=7, rotation_deg=5.0, curvature=0.4)], ids=str)
+@pytest.mark.parametrize("radius", [-12.0, 21.0, -40.0])
+def test_point_light_has_the_exact_shape_at_pyramid_radii(ap, radius):
+    """A light on black at radii of pyramid levels 1-3: the exact outline, a flat plateau, its energy."""
+    size = int(2 * abs(radius)) + 25
+    got, want = _point_light(ap, radius, size, (size // 2, size // 2))
+    assert np.abs(got - want).sum() < POINT_LIGHT_L1
+    full = want >= want.max() * (1 - 1e-9)
+    assert got[full].max() / got[full].mean() < 1.01
+    assert abs(got.sum() - 1.0) < 1e-3
+    # the fast mode keeps the pyramid's blurred outline: the test above can fail
+    fast, _ = _point_light(ap, radius, size, (size // 2, size // 2), PreviewOptions(exact_highlights=False))
+    assert np.abs(fast - want).sum() > 10 * POINT_LIGHT_L1
+
+
+@pytest.mark.parametrize("ap", [Aperture(), Aperture(blades=5, rotation_deg=30.0)], ids=str)
+def test_light_near_the_border_keeps_what_the_frame_cuts_of_it(ap):
+    """Clamped border: a light 6 px inside the frame at R = 20 is the analytic shape cut by the frame,
+    no brighter at its rim (the renormalising rule amplified it there)."""
+    size = 90
+    got, want = _point_light(ap, -20.0, size, (45, 6))
+    assert np.abs(got - want).sum() < POINT_LIGHT_L1
+    np.testing.assert_allclose(got.sum(), want.sum(), rtol=1e-3)
+    assert want.sum() < 0.9  # a good part of it falls outside
+    old, _ = _point_light(ap, -20.0, size, (45, 6), PreviewOptions(clamp_border=False))
+    assert old.sum() > want.sum() * 1.05  # the rule before invented light
+
+
+def test_salient_routing_matches_reference(device, rng):
+    """route_salient (radiance pyramid, salience, per-cell cap) against the plain-loop reference."""
+    from bokehray.levels.preview import SALIENT_FLOOR, SALIENT_VISIBLE, route_salient
+
+    h, w = 37, 45
+    src = np.zeros((h, w, 4), np.float32)
+    src[..., :3] = rng.random((h, w, 3)) * 0.1
+    src[..., 3] = (rng.random((h, w)) < 0.8).astype(np.float32)
+    lights = rng.random((h, w)) < 0.15
+    src[lights, :3] += rng.uniform(1, 400, (lights.sum(), 1))
+    src[..., :3] *= src[..., 3:]
+    coc = (rng.uniform(0.3, 60, (h, w)) * rng.choice([-1, 1], (h, w))).astype(np.float32)
+    exact = route_salient(wp.array(src, dtype=wp.vec4, device=device), wp.array(coc, device=device), 4, 8.0, device)
+    score, want = scatter_ref.salient(src.astype(np.float64), coc, 8.0, 4, SALIENT_VISIBLE, SALIENT_FLOOR)
+    assert want.sum() > 20 and (score > 0).sum() > want.sum()  # the cap binds somewhere
+    np.testing.assert_array_equal(exact.numpy().astype(bool), want)

@@ -48,42 +48,154 @@ def inside(px: np.ndarray, py: np.ndarray, rho: float, blades: np.ndarray) -> np
     return ok
 
 
+SAG_PX = 0.25  # a chord end's sag inside a row above which the row is split (docs/renderer.md)
+MAX_SUB = 4  # most sub-rows per pixel row
+
+
+def _mean_clamped(p0: float, p1: float, lo: float, hi: float) -> float:
+    """Mean over u in [0, 1] of clamp(p0 + (p1 - p0) u, lo, hi), in closed form."""
+    if abs(p1 - p0) < 1e-4:
+        return min(max(0.5 * (p0 + p1), lo), hi)
+
+    def g(p: float) -> float:  # an antiderivative of clamp(p, lo, hi)
+        if p <= lo:
+            return lo * p
+        if p <= hi:
+            return lo * lo + 0.5 * (p * p - lo * lo)
+        return lo * lo + 0.5 * (hi * hi - lo * lo) + hi * (p - hi)
+
+    return (g(p1) - g(p0)) / (p1 - p0)
+
+
+def analytic_area(blades: int, curvature: float) -> float:
+    """Area of the aperture of unit circumradius: a disc, or the inscribed regular polygon plus,
+    for curved blades, one circular segment of radius 1 / curvature on each side."""
+    if blades == 0 or curvature >= 1.0:
+        return math.pi
+    poly = 0.5 * blades * math.sin(2.0 * math.pi / blades)
+    if curvature < 1e-4:
+        return poly
+    big_r = 1.0 / curvature
+    theta = 2.0 * math.asin(math.sin(math.pi / blades) / big_r)
+    return poly + blades * 0.5 * big_r * big_r * (theta - math.sin(theta))
+
+
+def rows_area(blades: np.ndarray) -> float:
+    """:func:`analytic_area` of the shape given by its blade rows (``Aperture.blade_discs``)."""
+    blades = np.asarray(blades, np.float64)
+    if len(blades) == 0:
+        return math.pi
+    return analytic_area(len(blades), 1.0 / blades[0, 3] if blades[0, 3] > 0 else 0.0)
+
+
+def unit_area(blades: np.ndarray, n: int = 2000) -> float:
+    """Area of the aperture of unit circumradius, numerically: point-in-shape counts on an n x n
+    grid, refined (64 x 64 per cell) in the cells the shape's outline crosses."""
+    c = (np.arange(n) + 0.5) * (2.0 / n) - 1.0
+    ins = inside(c[None, :], c[:, None], 1.0, blades)
+    edge = np.zeros_like(ins)
+    edge[:-1] |= ins[:-1] != ins[1:]
+    edge[1:] |= ins[:-1] != ins[1:]
+    edge[:, :-1] |= ins[:, :-1] != ins[:, 1:]
+    edge[:, 1:] |= ins[:, :-1] != ins[:, 1:]
+    cell = (2.0 / n) ** 2
+    total = float((ins & ~edge).sum()) * cell
+    sub = ((np.arange(64) + 0.5) / 64 - 0.5) * (2.0 / n)
+    iy, ix = np.nonzero(edge)
+    for i in range(0, len(iy), 2000):
+        py = c[iy[i:i + 2000], None, None] + sub[None, :, None]
+        px = c[ix[i:i + 2000], None, None] + sub[None, None, :]
+        total += float(inside(px, py, 1.0, blades).mean(axis=(1, 2)).sum()) * cell
+    return total
+
+
+def _sub_edges(t0: float, t1: float, n: int, at_top: bool, at_bot: bool) -> list[float]:
+    """Edges of the n sub-rows of [t0, t1]: uniform, graded towards a shape end the row holds."""
+    u = np.arange(n + 1) / n
+    if at_top and at_bot:
+        u = 0.5 - 0.5 * np.cos(np.pi * u)
+    elif at_top:
+        u = 1.0 - np.cos(0.5 * np.pi * u)
+    elif at_bot:
+        u = np.sin(0.5 * np.pi * u)
+    u[-1] = 1.0
+    return [t0 + (t1 - t0) * x for x in u]
+
+
 def footprint(xc: float, yc: float, rho: float, blades: np.ndarray, h: int, w: int,
-              extent: tuple[float, float] = (-1.0, 1.0)) -> np.ndarray:
+              extent: tuple[float, float] = (-1.0, 1.0), area: float | None = None) -> np.ndarray:
     """Weights a source at (xc, yc) (continuous pixel coords) spreads over an h x w grid (level 0).
 
-    ``extent``: the shape's vertical extent at unit radius (rows outside it are empty).
+    ``extent``: the shape's vertical extent at unit radius (rows outside it are empty);
+    ``area``: its area at unit radius (default: :func:`rows_area`).
     A positive ``rho`` (in front of focus) draws the shape point-reflected.
+
+    Discretisation (docs/renderer.md): each pixel row, clipped to the extent, is cut into
+    ``n`` sub-rows, ``n = clamp(ceil(sqrt(sag / SAG_PX)), 1, MAX_SUB)`` where the sag is how far
+    the chord ends at mid-row lie from the straight line between the ends at the row's top and
+    bottom; uniform, or graded towards the shape's end in its first and last row. Each sub-row
+    is a span whose ends move linearly from their positions at its top edge to those at its
+    bottom edge, shifted by 2/3 of the sag measured at its middle (Simpson's rule: the end's
+    mean position is (a0 + 4 a_mid + a1) / 6); a pixel gets the span's area over it (the mean
+    over the sub-row's height of the overlap of ``[a(y), b(y)]`` with ``[x, x + 1]``) divided by
+    the shape's exact area. What the sub-rows' summed area misses of (or adds to) the exact area
+    is added as a uniform span on the centre row's chord, so the source deposits exactly 1.
     """
     if rho > 0 and len(blades):
         # point reflection: a shape S at -S; blades (n, h, R) -> (-n, h, R), extent (a, b) -> (-b, -a)
         flipped = np.asarray(blades, np.float64).copy()
         flipped[:, :2] *= -1
-        return footprint(xc, yc, -rho, flipped, h, w, (-extent[1], -extent[0]))
+        return footprint(xc, yc, -rho, flipped, h, w, (-extent[1], -extent[0]), area)
     rho = abs(rho)
     out = np.zeros((h, w))
     if rho < 0.5:
         out[int(math.floor(yc)), int(math.floor(xc))] = 1.0
         return out
-    rows = []
-    n_sub = min(4, max(1, math.ceil(4.0 / rho)))
+    if area is None:
+        area = rows_area(blades)
+
     top, bot = yc + extent[0] * rho, yc + extent[1] * rho
-    for k in range(math.floor(top), math.floor(bot) + 1):
-        for j in range(n_sub):
-            t0, t1 = max(k + j / n_sub, top), min(k + (j + 1) / n_sub, bot)
-            if t1 <= t0:
-                continue
-            lo, hi = chord(0.5 * (t0 + t1) - yc, rho, blades)
-            if hi > lo:
-                rows.append((k, t1 - t0, xc + lo, xc + hi))
-    total = sum(hk * (b - a) for _, hk, a, b in rows)
-    for k, hk, a, b in rows:
-        if not 0 <= k < h:
-            continue
+
+    def ch(y: float) -> tuple[float, float]:
+        # the extent is padded by 1e-5: at the shape's ends the chord is taken 2e-5 inside
+        y = min(max(y, top + 2e-5 * rho), bot - 2e-5 * rho)
+        lo, hi = chord(y - yc, rho, blades)
+        if hi < lo:
+            lo = hi = 0.5 * (lo + hi)
+        return xc + lo, xc + hi
+
+    def add_span(k: int, weight: float, a0: float, b0: float, a1: float, b1: float) -> None:
         for x in range(w):
-            overlap = min(b, x + 1, w) - max(a, x, 0)
-            if overlap > 0:
-                out[k, x] += hk * overlap / total
+            # overlap of [a, b] with [x, x + 1] is clamp(b) - clamp(a); its mean over the sub-row
+            overlap = _mean_clamped(b0, b1, x, x + 1) - _mean_clamped(a0, a1, x, x + 1)
+            out[k, x] += weight * overlap
+
+    total = area * rho * rho
+    top, bot = yc + extent[0] * rho, yc + extent[1] * rho
+    k_top, k_bot = math.floor(top), math.floor(bot)
+    inscribed = 0.0
+    for k in range(k_top, k_bot + 1):
+        t0, t1 = max(k, top), min(k + 1, bot)
+        if t1 <= t0:
+            continue
+        (a0, b0), (am, bm), (a1, b1) = ch(t0), ch(0.5 * (t0 + t1)), ch(t1)
+        sag = max(abs(am - 0.5 * (a0 + a1)), abs(bm - 0.5 * (b0 + b1)))
+        n = 1 if sag <= SAG_PX else min(MAX_SUB, math.ceil(math.sqrt(sag / SAG_PX)))
+        edges = _sub_edges(t0, t1, n, k == k_top, k == k_bot)
+        for s0, s1 in zip(edges[:-1], edges[1:]):
+            (a0, b0), (am, bm), (a1, b1) = ch(s0), ch(0.5 * (s0 + s1)), ch(s1)
+            # Simpson: each end is the straight ramp between its positions at the sub-row's
+            # edges, shifted so its mean position is (a0 + 4 a_mid + a1) / 6
+            da, db = (2.0 / 3.0) * (am - 0.5 * (a0 + a1)), (2.0 / 3.0) * (bm - 0.5 * (b0 + b1))
+            wsum = (b0 - a0) + (b1 - a1) + 2.0 * (db - da)
+            inscribed += (s1 - s0) * 0.5 * wsum
+            if 0 <= k < h and wsum > 0:
+                add_span(k, (s1 - s0) / total, a0 + da, b0 + db, a1 + da, b1 + db)
+    rest = 1.0 - inscribed / total
+    a, b = ch(yc)
+    if b - a < 1.0:
+        a, b = math.floor(xc), math.floor(xc) + 1.0
+    add_span(min(max(math.floor(yc), 0), h - 1), rest / (b - a), a, b, a, b)
     return out
 
 
@@ -92,23 +204,36 @@ def scatter(src: np.ndarray, radius: np.ndarray, blades: np.ndarray,
     """Scatter every source ``src[y, x]`` (any channels) with ``radius[y, x]``."""
     h, w = radius.shape
     out = np.zeros(src.shape, np.float64)
+    area = rows_area(blades)
     for y in range(h):
         for x in range(w):
             if not np.any(src[y, x]):
                 continue
-            fp = footprint(x + 0.5, y + 0.5, float(radius[y, x]), blades, h, w, extent)  # signed
+            fp = footprint(x + 0.5, y + 0.5, float(radius[y, x]), blades, h, w, extent, area)  # signed
             out += fp[..., None] * src[y, x][None, None, :]
     return out
 
 
 def layered(image: np.ndarray, signed_coc: np.ndarray, edges: np.ndarray, blades: np.ndarray,
-            extent: tuple[float, float] = (-1.0, 1.0)) -> np.ndarray:
+            extent: tuple[float, float] = (-1.0, 1.0), border: bool = True) -> np.ndarray:
     """Layered preview without fill, pyramid or tile skipping (docs/renderer.md, "compositing rule").
 
+    Border rule (``border=True``): the frame is extended by its edge pixels (colour and signed CoC
+    replicated outwards) on each side as far as the largest CoC on that side reaches, rendered, and cropped;
+    not when that CoC exceeds half the frame's longer side (then only the final division applies).
     Layer ``i`` holds the pixels with ``edges[i] <= s < edges[i + 1]``; each layer scatters (RGB, 1) of its own
     pixels; layers are composited back to front with opacity ``min(coverage, 1)``
     and colour ``sum / coverage``; the result is divided by the total opacity.
     """
+    if border:
+        rims = (signed_coc[0], signed_coc[-1], signed_coc[:, 0], signed_coc[:, -1])
+        radii = [float(np.abs(rim).max()) for rim in rims]
+        if max(radii) <= 0.5 * max(signed_coc.shape):
+            t, b, l, r = (math.ceil(x) + 1 if x >= 0.5 else 0 for x in radii)
+            if t + b + l + r:
+                big = layered(np.pad(image, ((t, b), (l, r), (0, 0)), mode="edge"),
+                              np.pad(signed_coc, ((t, b), (l, r)), mode="edge"), edges, blades, extent, border=False)
+                return big[t:t + image.shape[0], l:l + image.shape[1]]
     ids = np.searchsorted(edges, signed_coc, side="right") - 1
     h, w, _ = image.shape
     acc = np.zeros((h, w, 3))
@@ -123,3 +248,89 @@ def layered(image: np.ndarray, signed_coc: np.ndarray, edges: np.ndarray, blades
         acc = colour * alpha[..., None] + (1 - alpha[..., None]) * acc
         opacity = alpha + (1 - alpha) * opacity
     return np.where(opacity[..., None] > 1e-4, acc / np.maximum(opacity, 1e-12)[..., None], image)
+
+
+def area_coverage(xc: float, yc: float, rho: float, blades: np.ndarray, h: int, w: int,
+                  n_super: int = 64) -> np.ndarray:
+    """The analytic shape integrated over every pixel of an h x w grid, normalised to sum 1 over the plane.
+
+    Shape of circumradius ``|rho|`` centred at ``(xc, yc)`` (continuous pixel coordinates); a
+    positive ``rho`` (in front of focus) is the point reflection. Pixels of the shape's bounding
+    box are classified on a 4 x 4 grid; those not all in or all out (and their neighbours) are
+    supersampled ``n_super`` x ``n_super``. The normalisation is over the whole bounding box,
+    inside the image or not, so a shape cut by the frame keeps only what falls inside.
+    """
+    sgn = -1.0 if rho > 0 else 1.0
+    rho = abs(rho)
+
+    def grid(ys: np.ndarray, xs: np.ndarray, n: int) -> np.ndarray:
+        sub = (np.arange(n) + 0.5) / n
+        py = (ys[:, None] + sub[None, :]).ravel()
+        px = (xs[:, None] + sub[None, :]).ravel()
+        c = inside(sgn * (px[None, :] - xc), sgn * (py[:, None] - yc), rho, blades)
+        return c.reshape(len(ys), n, len(xs), n).mean(axis=(1, 3))
+
+    y0, y1 = int(math.floor(yc - rho)) - 1, int(math.ceil(yc + rho)) + 2
+    x0, x1 = int(math.floor(xc - rho)) - 1, int(math.ceil(xc + rho)) + 2
+    ys, xs = np.arange(y0, y1, dtype=np.float64), np.arange(x0, x1, dtype=np.float64)
+    fine = np.concatenate([grid(ys[i:i + 64], xs, 4) for i in range(0, len(ys), 64)])
+    mixed = np.pad((fine > 0) & (fine < 1), 1)
+    mixed = mixed[1:-1, 1:-1] | mixed[:-2, 1:-1] | mixed[2:, 1:-1] | mixed[1:-1, :-2] | mixed[1:-1, 2:]
+    for iy in np.unique(np.nonzero(mixed)[0]):
+        cols = np.flatnonzero(mixed[iy])
+        fine[iy, cols] = grid(ys[iy:iy + 1], xs[cols], n_super)[0]
+    fine /= fine.sum()
+    out = np.zeros((h, w))
+    oy0, oy1, ox0, ox1 = max(0, y0), min(h, y1), max(0, x0), min(w, x1)
+    if oy1 > oy0 and ox1 > ox0:
+        out[oy0:oy1, ox0:ox1] = fine[oy0 - y0:oy1 - y0, ox0 - x0:ox1 - x0]
+    return out
+
+
+def level_of(r: float, r0: float, n_levels: int) -> int:
+    """Pyramid level of a source of radius r: the first l with r / 2^l <= r0 (at most n_levels - 1)."""
+    lev = 0
+    while r / 2 ** lev > r0 and lev < n_levels - 1:
+        lev += 1
+    return lev
+
+
+def salient(src: np.ndarray, coc: np.ndarray, r0: float, n_levels: int, visible: float, floor: float
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """(score, routed mask) of the salient-source routing (docs/renderer.md), by plain loops.
+
+    For a source of level l >= 1: the mean premultiplied radiance m and coverage a_m over the
+    pixels of the 3 x 3 level-l cells around its own (cut to the array), the excess
+    e = q - a m / a_m, score = e - visible max(m, floor) pi r^2 where positive. Then in each
+    level-l cell, the max(1, 2^(l-1)) best-scored salient sources of level l (ties: row order).
+    """
+    h, w = coc.shape
+    q = src[..., :3].mean(-1)
+    a = src[..., 3]
+    score = np.zeros((h, w))
+    lev = np.zeros((h, w), int)
+    for y in range(h):
+        for x in range(w):
+            r = abs(float(coc[y, x]))
+            if a[y, x] == 0 or r < 0.5:
+                continue
+            lv = lev[y, x] = level_of(r, r0, n_levels)
+            if lv == 0:
+                continue
+            s = 2 ** lv
+            cy, cx = y // s, x // s
+            ys = slice(max(0, (cy - 1) * s), min(h, (cy + 2) * s))
+            xs = slice(max(0, (cx - 1) * s), min(w, (cx + 2) * s))
+            m, a_m = q[ys, xs].mean(), a[ys, xs].mean()
+            e = q[y, x] - a[y, x] * m / a_m
+            score[y, x] = max(0.0, e - visible * max(m, floor) * math.pi * r * r)
+    routed = np.zeros((h, w), bool)
+    for lv in range(1, n_levels):
+        s = 2 ** lv
+        for cy in range(0, h, s):
+            for cx in range(0, w, s):
+                cand = [(-score[y, x], y, x) for y in range(cy, min(h, cy + s)) for x in range(cx, min(w, cx + s))
+                        if score[y, x] > 0 and lev[y, x] == lv]
+                for _, y, x in sorted(cand)[: max(1, s // 2)]:
+                    routed[y, x] = True
+    return score, routed

@@ -22,6 +22,7 @@ from bokehray.levels.preview import render_signed_coc
 from bokehray.levels.raytrace import Layer, raytrace_layers
 from bokehray.options import LayerOptions, PreviewOptions, RaytraceOptions
 from bokehray.scene import cap_coc, copy_tiles, grid_to_pixels, layer_edges
+from bokehray.lens import aperture_area
 
 from . import raytrace_ref, scatter_ref
 
@@ -73,8 +74,9 @@ def scatter_case(seed: int, device: str = "cpu") -> tuple[float, float, str]:
     rows = ap.blade_discs()
     blades = wp.array(rows if len(rows) else np.zeros((1, 4), np.float32), dtype=wp.vec4, device=device)
     wp.launch(bk.scatter_kernel, dim=(h, w),
-              inputs=[wp.array(src, dtype=wp.vec4, device=device), wp.array(radius, device=device), blades, len(rows),
-                      wp.vec2(*ap.vertical_extent()), 1e6, 1, *bufs], device=device)
+              inputs=[wp.array(src, dtype=wp.vec4, device=device), wp.array(radius, device=device),
+                      wp.zeros((1, 1), dtype=wp.uint8, device=device), blades, len(rows),
+                      wp.vec2(*ap.vertical_extent()), aperture_area(ap), 1e6, 1, *bufs], device=device)
     wp.launch(bk.prefix_rows_kernel, dim=h, inputs=[bufs[0]], device=device)
     got = bufs[0].numpy()[:, :w]
     want = scatter_ref.scatter(src.astype(np.float64), radius.astype(np.float64), rows, ap.vertical_extent())

@@ -2,13 +2,15 @@
 
 Pipeline (all heavy work in ``bokehray_kernels``):
 
+0. The frame is extended by its edge pixels (colour and signed CoC) as far as its border's CoC reaches
+   (:func:`border_pad`: the clamped border), rendered, and cropped.
 1. Tiles whose pixels, and every pixel within CoC reach of them, have ``|s| < 0.5`` are *copied*: never
    scattered, never composited (``bokehray.scene.copy_tiles``).
 2. The rest is the layered scene (``bokehray.scene.build_scene``): layers by ``s``, ids growing towards the
    camera, each with its box, radius bound and fill reach.
 3. Each layer, independently (one worker thread per CPU core): its sources (its own pixels and the fill of what
    nearer layers hide, ``bokehray.scene.build_layer_sources``) are scattered with their own exact radius on
-   the radius pyramid.
+   the radius pyramid, the light of the salient ones (:func:`route_salient`) at full resolution.
 4. Layers are composited back to front with "over" (opacity = scattered coverage clipped to 1, colour
    normalised by coverage), and the result is divided by the total opacity.
 
@@ -17,6 +19,7 @@ Large renders go tile by tile through ``bokehray.tiling`` with exact halos (``bo
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -29,11 +32,12 @@ import bokehray_kernels as bk
 
 from .. import scene as sc
 from .. import tiling
+from ..lens import aperture_area
 from ..options import PreviewOptions
 from ..stats import PreviewStats
 from .base import Progress, RenderContext
 
-__all__ = ["render_preview", "render_signed_coc"]
+__all__ = ["border_pad", "render_preview", "render_signed_coc", "route_salient"]
 
 # Bytes per pixel, from the arrays each stage allocates (float32 = 4 bytes); checked against measured peaks by
 # benchmarks/bench_memory.py (docs/robustness.md).
@@ -54,7 +58,9 @@ class _Scatter:
     blades: wp.array
     n_blades: int
     extent: wp.vec2
+    area: float  # the aperture's area at unit circumradius: the spans' normalisation
     level_radius_px: float
+    exact_highlights: bool
     threads: int
     device: str
 
@@ -62,6 +68,73 @@ class _Scatter:
 def _region_bytes(window_px: int, layer_areas: list[int], threads: int) -> int:
     in_flight = sorted(layer_areas, reverse=True)[: threads + 1]  # threads + 1 layers in flight
     return REGION_B * window_px + LAYER_B * sum(in_flight)
+
+
+SALIENT_VISIBLE = 0.002
+"""A source's disc outline counts as visible when its plateau exceeds 0.2 % of its surroundings."""
+SALIENT_FLOOR = 1e-6
+"""Darkest surroundings (linear radiance) the visibility test compares with: on black every light shows."""
+
+
+def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device: str) -> wp.array:
+    """Flags (uint8, the sources' shape) of the pyramid-level sources to scatter at level 0 instead.
+
+    A source on pyramid level ``l`` gets its outline blurred by about ``2^l`` px. That is
+    invisible where many similar discs overlap (smooth content), not where one source stands
+    out: ``bk.salience_kernel`` scores each source's excess radiance over its coverage of the
+    layer's local colour (the 3 x 3 level-``l`` cells of a radiance pyramid around it) against ``SALIENT_VISIBLE * pi r^2 *
+    max(mean, SALIENT_FLOOR)``; ``bk.route_cells_kernel`` then keeps, in each level-``l`` cell,
+    the ``max(1, 2^(l-1))`` best-scored of them, so the level-0 work stays below half of the
+    pyramid work whatever the radius (flat cost in R). Every decision depends only on
+    pyramid-aligned cells of the layer's box, so tiled renders route the same sources.
+    """
+    h, w = src.shape
+    exact = wp.zeros((h, w), dtype=wp.uint8, device=device)
+    n_means = n_levels - 1  # radiance pyramid levels 1 .. n_levels - 1
+    h1, w1 = (h + 1) // 2, (w + 1) // 2
+    means = wp.zeros((n_means, h1, w1), dtype=wp.vec2, device=device)
+    counts = wp.zeros((n_means, h1, w1), dtype=float, device=device)
+    wp.launch(bk.radiance_mean_kernel, dim=(h1, w1), inputs=[src], outputs=[means, counts], device=device)
+    fh, fw = h1, w1
+    for k in range(1, n_means):
+        ch, cw = (fh + 1) // 2, (fw + 1) // 2
+        wp.launch(bk.halve_mean_kernel, dim=(ch, cw), inputs=[means, counts, k, fh, fw], device=device)
+        fh, fw = ch, cw
+    score = wp.empty((h, w), dtype=float, device=device)
+    wp.launch(bk.salience_kernel, dim=(h, w),
+              inputs=[src, coc, means, counts, float(r0), n_levels, SALIENT_VISIBLE, SALIENT_FLOOR], outputs=[score],
+              device=device)
+    for lev in range(1, n_levels):
+        side = 1 << lev
+        wp.launch(bk.route_cells_kernel, dim=((h + side - 1) // side, (w + side - 1) // side),
+                  inputs=[score, coc, float(r0), n_levels, lev, max(1, side // 2)], outputs=[exact], device=device)
+    return exact
+
+
+def border_pad(signed_coc: np.ndarray, tile_px: int) -> tuple[int, int, int, int]:
+    """Widths [px] (top, bottom, left, right) of the clamped border the preview renders around the frame.
+
+    What lies beyond the frame is unknown; the preview takes it to be the frame's edge pixels
+    continued outwards (edge-replicated colour and signed CoC, as the ray tracer clamps its
+    textures), so light near the border is neither invented nor dropped (docs/renderer.md).
+    Only pixels within the CoC of a border pixel can scatter into the frame: each side's pad is
+    the largest radius found on that side (corners included) plus one pixel, 0 when it is below
+    half a pixel, rounded up to whole skip tiles (``tile_px``) so that the frame's tiles are
+    tiles of the padded render.
+
+    A border CoC beyond half the frame's longer side (blur wider than the picture) is not
+    clamped: continuing a border that far would let a few edge pixels dominate the whole
+    render; there the old rule holds (the render is divided by the coverage it got, i.e. the
+    unknown outside is taken as the frame's own neighbourhood average).
+    """
+    if signed_coc.size == 0:
+        return 0, 0, 0, 0
+    limit = 0.5 * max(signed_coc.shape)
+    rims = (signed_coc[0, :], signed_coc[-1, :], signed_coc[:, 0], signed_coc[:, -1])
+    radii = [float(np.abs(rim).max()) for rim in rims]
+    if max(radii) > limit:
+        return 0, 0, 0, 0
+    return tuple(-(-(int(math.ceil(r)) + 1) // tile_px) * tile_px if r >= 0.5 else 0 for r in radii)
 
 
 def _area(box: tiling.Box) -> int:
@@ -73,19 +146,29 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
     options: PreviewOptions = ctx.options
     t_start = time.perf_counter()
     image, s = ctx.image, ctx.signed_coc
-    h, w = s.shape
-    stats = PreviewStats(quality="preview", shape=(h, w), device=ctx.device)
-    tiling.check_whole_image(h, w, WHOLE_IMAGE_B, ctx.memory)  # before allocating anything large
+    h0, w0 = s.shape
+    stats = PreviewStats(quality="preview", shape=(h0, w0), device=ctx.device)
+    tiling.check_whole_image(h0, w0, WHOLE_IMAGE_B, ctx.memory)  # before allocating anything large
     stats.max_coc_px = max(float(s.max()), -float(s.min())) if s.size else 0.0
 
     grid = ctx.layers.tile_px
+    pt, pb, pl, pr = border_pad(s, grid) if options.clamp_border else (0, 0, 0, 0)
+    h, w = h0 + pt + pb, w0 + pl + pr
+    if (h, w) != (h0, w0) and WHOLE_IMAGE_B * h * w > tiling.budget_bytes(ctx.memory):
+        (pt, pb, pl, pr), h, w = (0, 0, 0, 0), h0, w0  # the clamped border does not fit: the frame alone
+    if (h, w) != (h0, w0):
+        image = np.pad(image, ((pt, pb), (pl, pr), (0, 0)), mode="edge")
+        s = np.pad(s, ((pt, pb), (pl, pr)), mode="edge")
+    frame = (pt, pt + h0, pl, pl + w0)
+
     copy = sc.copy_tiles(np.abs(s), grid)
-    stats.tiles_total, stats.tiles_copied = int(copy.size), int(copy.sum())
+    frame_tiles = copy[pt // grid : pt // grid + -(-h0 // grid), pl // grid : pl // grid + -(-w0 // grid)]
+    stats.tiles_total, stats.tiles_copied = int(frame_tiles.size), int(frame_tiles.sum())  # the frame's tiles
     active = ~sc.grid_to_pixels(copy, grid, (h, w))
     if not active.any():
         stats.stage_seconds["plan"] = time.perf_counter() - t_start
         stats.stage_seconds["total"] = stats.stage_seconds["plan"]
-        return image.copy(), stats
+        return ctx.image.copy(), stats
 
     scene = sc.build_scene(s, active, ctx.layers, options.level_radius_px)
     del active
@@ -107,20 +190,21 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
     blade_rows = ctx.aperture.blade_discs()
     scatter = _Scatter(
         wp.array(blade_rows if len(blade_rows) else np.zeros((1, 4), np.float32), dtype=wp.vec4, device=ctx.device),
-        len(blade_rows), wp.vec2(*ctx.aperture.vertical_extent()), float(options.level_radius_px), threads,
-        ctx.device)
+        len(blade_rows), wp.vec2(*ctx.aperture.vertical_extent()), aperture_area(ctx.aperture),
+        float(options.level_radius_px), bool(options.exact_highlights), threads, ctx.device)
     t_plan = time.perf_counter()
     stats.stage_seconds["plan"] = t_plan - t_start
 
     if tile is None:
         out, n_filled = _render_window(image, s, scene.ids, scene.layers, scene.n_slots, scatter, ctx.progress)
     else:
-        out, n_filled, stats.image_tiles = _render_tiled(image, s, scene, scatter, tile, ctx.progress)
+        out, n_filled, stats.image_tiles = _render_tiled(image, s, scene, scatter, tile, frame, ctx.progress)
     stats.sources_filled = n_filled
     stats.sources_scattered += n_filled
     stats.stage_seconds["layers"] = time.perf_counter() - t_plan
     stats.stage_seconds["total"] = time.perf_counter() - t_start
-    return out, stats
+    y0, y1, x0, x1 = frame
+    return np.ascontiguousarray(out[y0:y1, x0:x1]), stats
 
 
 def _tile_layers(scene: sc.LayeredScene, core: tiling.Box) -> tuple[tiling.Box, list[sc.LayerRecord]]:
@@ -143,11 +227,14 @@ def _tile_layers(scene: sc.LayeredScene, core: tiling.Box) -> tuple[tiling.Box, 
 
 
 def _render_tiled(image: np.ndarray, s: np.ndarray, scene: sc.LayeredScene, scatter: _Scatter, tile: int,
-                  progress: Progress | None) -> tuple[np.ndarray, int, int]:
-    """Render tile by tile, each tile on its window (halo included), its core copied out."""
-    h, w = s.shape
+                  frame: tiling.Box, progress: Progress | None) -> tuple[np.ndarray, int, int]:
+    """Render tile by tile, each tile on its window (halo included), its core copied out; the tiles cover the
+    ``frame`` (the rest is the clamped border around it)."""
     out = image.copy()  # pixels no layer reaches (copied tiles) keep the input, as finalize does
-    plans = {core: _tile_layers(scene, core) for core in tiling.cores(h, w, tile)}
+    fy0, fy1, fx0, fx1 = frame
+    plans = {(a + fy0, b + fy0, c + fx0, d + fx0): None
+             for a, b, c, d in tiling.cores(fy1 - fy0, fx1 - fx0, tile)}
+    plans = {core: _tile_layers(scene, core) for core in plans}
     total = sum(len(local) for _, local in plans.values())
     done, n_filled = 0, 0
 
@@ -167,7 +254,7 @@ def _render_tiled(image: np.ndarray, s: np.ndarray, scene: sc.LayeredScene, scat
         cy0, cy1, cx0, cx1 = core
         return part[cy0 - wy0 : cy1 - wy0, cx0 - wx0 : cx1 - wx0]
 
-    n_tiles = tiling.render_tiles(out, tile, render_core)
+    n_tiles = tiling.render_tiles(out, tile, render_core, frame)
     return out, n_filled, n_tiles
 
 
@@ -185,9 +272,13 @@ def _render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scat
             bufs.append(wp.zeros(shape, dtype=wp.vec4, device=device))
         else:
             bufs.append(bufs[0] if lv > 0 else None)
+    if scatter.exact_highlights and n_levels > 1:
+        exact = route_salient(src, coc, n_levels, scatter.level_radius_px, device)
+    else:
+        exact = wp.zeros((1, 1), dtype=wp.uint8, device=device)
     wp.launch(bk.scatter_kernel, dim=(h, w),
-              inputs=[src, coc, scatter.blades, scatter.n_blades, scatter.extent, scatter.level_radius_px, n_levels,
-                      *bufs], device=device)
+              inputs=[src, coc, exact, scatter.blades, scatter.n_blades, scatter.extent, scatter.area,
+                      scatter.level_radius_px, n_levels, *bufs], device=device)
     for lv in range(n_levels):
         wp.launch(bk.prefix_rows_kernel, dim=bufs[lv].shape[0], inputs=[bufs[lv]], device=device)
     out = src  # the sources are scattered: reuse their memory for the result
