@@ -19,6 +19,7 @@ effect is measured on the same inputs.
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import sys
 import time
@@ -71,6 +72,9 @@ def main() -> None:
     ap.add_argument("--band-margin", type=float, default=None,
                     help="RefineOptions.band_margin_px (inf: no band restriction); default: the option's default")
     ap.add_argument("--no-raytrace", action="store_true", help="skip the raytrace level (for quick sweeps)")
+    ap.add_argument("--timing", action="store_true",
+                    help="instead: time preview and refine at 1536 x 1024 (a dev-set scene scaled up; --devset DIR)")
+    ap.add_argument("--runs", type=int, default=3, help="--timing: warm runs per case (medians reported)")
     ap.add_argument("--out", default=str(REPO / "benchmarks/results/refiner.json"))
     ap.add_argument("--plot", default=str(REPO / "docs/img/refiner_robustness.png"))
     args = ap.parse_args()
@@ -88,6 +92,8 @@ def main() -> None:
     ropts = RefineOptions() if args.band_margin is None else RefineOptions(band_margin_px=args.band_margin)
 
     model = load_refiner(args.weights)
+    if args.timing:
+        return timing(args, model, ropts)
     if args.devset:
         samples = list(devset_samples(Path(args.devset)))
         conditions = DEV_CONDITIONS
@@ -130,6 +136,53 @@ def main() -> None:
     plot(summary, args.plot)
 
 
+def timing(args, model, ropts) -> None:
+    """Preview vs preview + refine at 1536 x 1024, medians of warm runs, with the tiles refined."""
+    import bokehray as br
+    from scipy import ndimage
+
+    from bokehray_refiner.data import corrupt_disparity
+    from bokehray_refiner.refine import refine
+
+    root = Path(args.devset or "../shared/data/pathtraced-dev")
+    scene = root / "d2_leafy_twig"  # a twig and a card over a receding ground: a typical edge share
+    image = br.read_image(scene / "image.exr")[..., :3]
+    disp = br.read_disparity(scene / "disparity.exr")
+    h, w = 1024, 1536
+    y0 = (image.shape[0] - 320 * h // w) // 2
+    crop = (slice(y0, y0 + 320 * h // w), slice(None))
+    zoom = (h / (320 * h // w), w / 320)
+    image = np.clip(ndimage.zoom(image[crop], zoom + (1,), order=1), 0, None)[:h, :w].astype(np.float32)
+    disp = ndimage.zoom(disp[crop], zoom, order=0)[:h, :w].astype(np.float32)
+    blur = br.BlurParams(32.0, 0.8)  # focus on the twig, background CoC up to ~25 px
+    ungated = replace(ropts, gate=replace(ropts.gate, enabled=False))
+    rows = []
+    for kind, amount in (("none", 0), ("erode", 3), ("estimator", 8)):
+        d = np.clip(corrupt_disparity(disp, kind, amount), 0, 1)
+        pre = br.render(image, d, blur)  # warm-up
+        refine(image, d, blur, pre, model=model, options=ropts)
+        tp, tg, tu = [], [], []
+        for _ in range(args.runs):
+            t0 = time.perf_counter()
+            pre = br.render(image, d, blur)
+            tp.append(time.perf_counter() - t0)
+            _, st = refine(image, d, blur, pre, model=model, options=ropts)
+            tg.append(st.seconds)
+            _, su = refine(image, d, blur, pre, model=model, options=ungated)
+            tu.append(su.seconds)
+        row = {"disparity": f"{kind} {amount}", "preview_s": float(np.median(tp)), "refine_s": float(np.median(tg)),
+               "refine_ungated_s": float(np.median(tu)), "tiles_total": st.tiles_total,
+               "tiles_near_edges": st.tiles_near_edges, "tiles_refined": st.tiles_refined,
+               "tiles_refined_ungated": su.tiles_refined, "band_share": st.band_pixels / d.size,
+               "gate_open": st.gate_open}
+        row["ratio"] = (row["preview_s"] + row["refine_s"]) / row["preview_s"]
+        row["ratio_ungated"] = (row["preview_s"] + row["refine_ungated_s"]) / row["preview_s"]
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    write_json(args.out, {"machine": machine_info(), "size": [h, w], "k_px": blur.k_px, "runs": args.runs,
+                          "torch_threads": args.threads, "rows": rows})
+
+
 def summarise(rows: list[dict], conditions=CONDITIONS) -> list[dict]:
     out = []
     for kind, amount in conditions:
@@ -169,7 +222,7 @@ def plot(summary: list[dict], path: str) -> None:
     def key(x):
         return ("none", 0) if x == 0 else (("erode", -x) if x < 0 else ("dilate", x))
 
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.6), dpi=120)
+    fig, axes = plt.subplots(1, 3, figsize=(14, 3.8), dpi=120)
     for method, style in (("preview", "o-"), ("raytrace", "s-"), ("refine", "^-"), ("refine_ungated", "v:")):
         for ax, metric in zip(axes, ("psnr", "band_psnr")):
             ys = [next((r[metric] for r in summary if (r["corruption"], r["px"]) == key(x) and r["method"] == method),
@@ -182,6 +235,23 @@ def plot(summary: list[dict], path: str) -> None:
         ax.set_title(title)
         ax.grid(alpha=0.3)
         ax.legend()
+    conds = list(dict.fromkeys((r["corruption"], r["px"]) for r in summary))
+    ax = axes[2]
+    for j, (method, color) in enumerate((("refine", "tab:green"), ("refine_ungated", "tab:red"))):
+        gains = []
+        for c in conds:
+            get = {r["method"]: r["band_psnr"] for r in summary if (r["corruption"], r["px"]) == c}
+            best = max(get["preview"], get.get("raytrace", -math.inf))
+            gains.append(get[method] - best)
+        ax.bar(np.arange(len(conds)) + 0.4 * j - 0.2, gains, 0.4, color=color, label=method)
+    ax.axhline(0, color="k", lw=0.8)
+    ax.axhline(-0.1, color="k", lw=0.6, ls=":")
+    ax.set_xticks(np.arange(len(conds)), [f"{k} {p}" if p else k for k, p in conds], rotation=45, ha="right",
+                  fontsize=8)
+    ax.set_ylabel("band PSNR - best classical level (dB)")
+    ax.set_title("per corruption")
+    ax.grid(alpha=0.3, axis="y")
+    ax.legend()
     fig.tight_layout()
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path)
