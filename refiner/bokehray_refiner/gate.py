@@ -48,6 +48,7 @@ class GateOptions:
         highlight_margin_px: extra reach around a clipped light's CoC.
         open_dilated: also open where the colour edge lies on the depth edge's near side (a too fat near region).
             Off: the shipped model made dilated edges worse on the dev set (docs/refiner.md).
+        floor: gates below this are 0, so tiles with only a trace of an open gate are not run.
     """
 
     enabled: bool = True
@@ -60,6 +61,7 @@ class GateOptions:
     highlight: bool = True
     highlight_margin_px: float = 3.0
     open_dilated: bool = False
+    floor: float = 0.05
 
 
 def _normals(disparity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -179,4 +181,5 @@ def refine_gate(image: np.ndarray, focus_srgb: np.ndarray, disparity: np.ndarray
     gate = open_[iy, ix]
     if options.highlight:
         gate *= highlight_guard(image, classical, coc, options.highlight_margin_px)
+    gate[gate < options.floor] = 0.0
     return gate.astype(np.float32)
