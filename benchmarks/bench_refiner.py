@@ -1,19 +1,23 @@
 """Does the refiner fix what wrong depth breaks? Preview, raytrace and refine on the dev set or a synthetic split.
 
-The disparity handed to every method is the true one eroded or dilated by 0-5 px
-(paper fig. 7); the target is the exact render of the true scene. Scores are
-PSNR/SSIM in sRGB after clipping (``bokehray.metrics``), over the whole image
-and within 8 px of a depth discontinuity of the *true* disparity.
-
-    bokehray synth -n 24 -o /tmp/refiner-test --seed 9000 --size 256 --blur-levels 8,16,24
-    python benchmarks/bench_refiner.py --data /tmp/refiner-test --pairs 48
+The disparity handed to every method is the true one, or it eroded / dilated by 1-5 px (paper
+fig. 7), blurred, shifted, or a depth estimator's kind of map (``bokehray_refiner.data.corrupt_disparity``);
+the target is the exact render of the true scene. Scores are PSNR/SSIM in sRGB after clipping
+(``bokehray.metrics``), over the whole image and within 8 px of a depth discontinuity of the
+*true* disparity. Every case is scored with the refiner gated (the default) and ungated
+(``GateOptions(enabled=False)``), so the gate's effect is measured on the same inputs.
 
     # the path-traced dev set (exact thin-lens renders; band from its depth.exr as its score.py does)
-    python benchmarks/bench_refiner.py --devset ../shared/data/pathtraced-dev
+    python benchmarks/bench_refiner.py --devset ../shared/data/pathtraced-dev --threads 1
 
-With ``--devset`` every render of the set is scored under each corruption, with the
-refiner gated (the default) and ungated (``GateOptions(enabled=False)``), so the gate's
-effect is measured on the same inputs.
+    # a held-out synthetic split
+    bokehray synth -n 8 -o /tmp/refiner-split --seed 9000 --size 256 --blur-levels 8,16,24
+    python benchmarks/bench_refiner.py --data /tmp/refiner-split --pairs 16 --all-corruptions --no-raytrace --threads 1
+
+    # time at 1536 x 1024 (a dev-set scene scaled up), medians of warm runs, with the tiles refined
+    python benchmarks/bench_refiner.py --timing --devset ../shared/data/pathtraced-dev --threads 1 --runs 3
+
+Writes ``benchmarks/results/refiner_{devset,synth,time}.json`` and ``docs/img/refiner_{devset,synth}.png``.
 """
 
 from __future__ import annotations
@@ -75,9 +79,12 @@ def main() -> None:
     ap.add_argument("--timing", action="store_true",
                     help="instead: time preview and refine at 1536 x 1024 (a dev-set scene scaled up; --devset DIR)")
     ap.add_argument("--runs", type=int, default=3, help="--timing: warm runs per case (medians reported)")
-    ap.add_argument("--out", default=str(REPO / "benchmarks/results/refiner.json"))
-    ap.add_argument("--plot", default=str(REPO / "docs/img/refiner_robustness.png"))
+    ap.add_argument("--out", default=None, help="JSON (default: benchmarks/results/refiner_devset.json, _synth.json or _time.json)")
+    ap.add_argument("--plot", default=None, help="plot (default: docs/img/refiner_devset.png or refiner_synth.png)")
     args = ap.parse_args()
+    tag = "time" if args.timing else ("devset" if args.devset else "synth")
+    args.out = args.out or str(REPO / f"benchmarks/results/refiner_{tag}.json")
+    args.plot = args.plot or str(REPO / f"docs/img/refiner_{tag}.png")
 
     import torch
 
@@ -223,12 +230,13 @@ def plot(summary: list[dict], path: str) -> None:
         return ("none", 0) if x == 0 else (("erode", -x) if x < 0 else ("dilate", x))
 
     fig, axes = plt.subplots(1, 3, figsize=(14, 3.8), dpi=120)
-    for method, style in (("preview", "o-"), ("raytrace", "s-"), ("refine", "^-"), ("refine_ungated", "v:")):
+    for method, style, color in (("preview", "o-", "tab:blue"), ("raytrace", "s-", "tab:orange"),
+                                 ("refine", "^-", "tab:green"), ("refine_ungated", "v:", "tab:red")):
         for ax, metric in zip(axes, ("psnr", "band_psnr")):
             ys = [next((r[metric] for r in summary if (r["corruption"], r["px"]) == key(x) and r["method"] == method),
                        None) for x in xs]
             if None not in ys:
-                ax.plot(xs, ys, style, label=method)
+                ax.plot(xs, ys, style, color=color, label=method)
     for ax, title in zip(axes, ("whole image", "within 8 px of depth edges")):
         ax.set_xlabel("disparity error: erosion (-) / dilation (+), px")
         ax.set_ylabel("PSNR (dB)")
