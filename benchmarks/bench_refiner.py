@@ -1,17 +1,29 @@
-"""Does the refiner fix what wrong depth breaks? Preview, raytrace and refine on a held-out synthetic split.
+"""Does the refiner fix what wrong depth breaks? Preview, raytrace and refine on the dev set or a synthetic split.
 
-The disparity handed to every method is the true one eroded or dilated by 0-5 px
-(paper fig. 7); the target is the exact render of the true scene. Scores are
-PSNR/SSIM in sRGB after clipping (``bokehray.metrics``), over the whole image
-and within 8 px of a depth discontinuity of the *true* disparity.
+The disparity handed to every method is the true one, or it eroded / dilated by 1-5 px (paper
+fig. 7), blurred, shifted, or a depth estimator's kind of map (``bokehray_refiner.data.corrupt_disparity``);
+the target is the exact render of the true scene. Scores are PSNR/SSIM in sRGB after clipping
+(``bokehray.metrics``), over the whole image and within 8 px of a depth discontinuity of the
+*true* disparity. Every case is scored with the refiner gated (the default) and ungated
+(``GateOptions(enabled=False)``), so the gate's effect is measured on the same inputs.
 
-    bokehray synth -n 24 -o /tmp/refiner-test --seed 9000 --size 256 --blur-levels 8,16,24
-    python benchmarks/bench_refiner.py --data /tmp/refiner-test --pairs 48
+    # the path-traced dev set (exact thin-lens renders; band from its depth.exr as its score.py does)
+    python benchmarks/bench_refiner.py --devset ../shared/data/pathtraced-dev --threads 1
+
+    # a held-out synthetic split
+    bokehray synth -n 8 -o /tmp/refiner-split --seed 9000 --size 256 --blur-levels 8,16,24
+    python benchmarks/bench_refiner.py --data /tmp/refiner-split --pairs 16 --all-corruptions --no-raytrace --threads 1
+
+    # time at 1536 x 1024 (a dev-set scene scaled up), medians of warm runs, with the tiles refined
+    python benchmarks/bench_refiner.py --timing --devset ../shared/data/pathtraced-dev --threads 1 --runs 3
+
+Writes ``benchmarks/results/refiner_{devset,synth,time}.json`` and ``docs/img/refiner_{devset,synth}.png``.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import sys
 import time
@@ -22,13 +34,41 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from common import REPO, machine_info, write_json  # noqa: E402
+from dataclasses import replace  # noqa: E402
 
 CONDITIONS = [("none", 0), ("erode", 1), ("erode", 3), ("erode", 5), ("dilate", 1), ("dilate", 3), ("dilate", 5)]
+DEV_CONDITIONS = CONDITIONS + [("blur", 3), ("shift", 2), ("estimator", 4)]
+METHODS = ("preview", "raytrace", "refine", "refine_ungated")
+
+
+def devset_samples(root: Path):
+    """(name, image, disparity, blur, target, band) for every render of the path-traced dev set."""
+    import importlib.util
+    import json
+
+    import bokehray as br
+
+    spec = importlib.util.spec_from_file_location("devset_score", root / "score.py")
+    sc = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(sc)
+    for info_path in sorted(root.glob("*/info.json")):
+        scene = info_path.parent
+        info = json.loads(info_path.read_text())
+        image = br.read_image(scene / "image.exr")
+        disparity = br.read_disparity(scene / "disparity.exr")
+        band = sc.discontinuity_band(sc.read_exr(str(scene / "depth.exr")), 8.0)
+        for r in info["renders"]:
+            blur = br.BlurParams(r["K"], min(1.0, max(0.0, r["focus_disparity"])))
+            target = sc.read_exr(str(scene / f"{r['file']}.exr"))[..., :3]
+            yield f"{scene.name}/{r['file']}", image, disparity, blur, target, band
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", required=True, help="held-out BLB-layout folder (never used for training)")
+    src = ap.add_mutually_exclusive_group(required=True)
+    src.add_argument("--data", help="held-out BLB-layout folder (never used for training)")
+    src.add_argument("--devset", help="the path-traced dev set folder (with score.py)")
+    ap.add_argument("--all-corruptions", action="store_true", help="synthetic split: also blur, shift, estimator")
     ap.add_argument("--pairs", type=int, default=48, help="pairs to score (every k-th pair of the folder)")
     ap.add_argument("--weights", help="refiner weights (default: the shipped ones)")
     ap.add_argument("--max-spp", type=int, default=64, help="raytrace rays per pixel cap")
@@ -36,9 +76,15 @@ def main() -> None:
     ap.add_argument("--band-margin", type=float, default=None,
                     help="RefineOptions.band_margin_px (inf: no band restriction); default: the option's default")
     ap.add_argument("--no-raytrace", action="store_true", help="skip the raytrace level (for quick sweeps)")
-    ap.add_argument("--out", default=str(REPO / "benchmarks/results/refiner.json"))
-    ap.add_argument("--plot", default=str(REPO / "docs/img/refiner_robustness.png"))
+    ap.add_argument("--timing", action="store_true",
+                    help="instead: time preview and refine at 1536 x 1024 (a dev-set scene scaled up; --devset DIR)")
+    ap.add_argument("--runs", type=int, default=3, help="--timing: warm runs per case (medians reported)")
+    ap.add_argument("--out", default=None, help="JSON (default: benchmarks/results/refiner_devset.json, _synth.json or _time.json)")
+    ap.add_argument("--plot", default=None, help="plot (default: docs/img/refiner_devset.png or refiner_synth.png)")
     args = ap.parse_args()
+    tag = "time" if args.timing else ("devset" if args.devset else "synth")
+    args.out = args.out or str(REPO / f"benchmarks/results/refiner_{tag}.json")
+    args.plot = args.plot or str(REPO / f"docs/img/refiner_{tag}.png")
 
     import torch
 
@@ -53,43 +99,104 @@ def main() -> None:
     ropts = RefineOptions() if args.band_margin is None else RefineOptions(band_margin_px=args.band_margin)
 
     model = load_refiner(args.weights)
-    ds = BLBDataset(args.data)
-    step = max(1, len(ds) // args.pairs)
-    idx = list(range(0, len(ds), step))[: args.pairs]
+    if args.timing:
+        return timing(args, model, ropts)
+    if args.devset:
+        samples = list(devset_samples(Path(args.devset)))
+        conditions = DEV_CONDITIONS
+    else:
+        ds = BLBDataset(args.data)
+        step = max(1, len(ds) // args.pairs)
+        idx = list(range(0, len(ds), step))[: args.pairs]
+        samples = [(s.name, s.image, s.disparity, br.BlurParams(s.k_px, s.focus_disparity), s.target,
+                    discontinuity_band(s.disparity)) for s in (ds[i] for i in idx)]
+        conditions = DEV_CONDITIONS if args.all_corruptions else CONDITIONS
+    ungated = replace(ropts, gate=replace(ropts.gate, enabled=False))
     rows = []
-    for n, i in enumerate(idx):
-        s = ds[i]
-        blur = br.BlurParams(s.k_px, s.focus_disparity)
-        band = discontinuity_band(s.disparity)
-        for kind, amount in CONDITIONS:
-            d = np.clip(corrupt_disparity(s.disparity, kind, amount), 0.0, 1.0)
+    for n, (name, image, disparity, blur, target, band) in enumerate(samples):
+        for kind, amount in conditions:
+            d = np.clip(corrupt_disparity(disparity, kind, amount), 0.0, 1.0)
             t0 = time.perf_counter()
-            preview = br.render(s.image, d, blur)
+            preview = br.render(image, d, blur)
             t_preview = time.perf_counter() - t0
             t0 = time.perf_counter()
-            ray = preview if args.no_raytrace else br.render(
-                s.image, d, blur, quality="raytrace", options=br.RaytraceOptions(max_spp=args.max_spp))
+            ray = None if args.no_raytrace else br.render(
+                image, d, blur, quality="raytrace", options=br.RaytraceOptions(max_spp=args.max_spp))
             t_ray = time.perf_counter() - t0
-            refined, st = refine(s.image, d, blur, preview, model=model, options=ropts)
-            for method, img, t in (("preview", preview, t_preview), ("raytrace", ray, t_ray),
-                                   ("refine", refined, t_preview + st.seconds)):
-                rows.append({"pair": s.name, "k_px": s.k_px, "corruption": kind, "px": amount, "method": method,
-                             "seconds": t, "share_refined": st.share_refined if method == "refine" else None}
-                            | score(img, s.target, band))
-        print(f"{n + 1}/{len(idx)} {s.name}", flush=True)
-    summary = summarise(rows)
-    write_json(args.out, {"machine": machine_info(), "data": str(args.data), "pairs": len(idx),
-                          "weights": str(args.weights or "shipped"), "refine_options": ropts.__dict__,
+            refined, st = refine(image, d, blur, preview, model=model, options=ropts)
+            raw, st_raw = refine(image, d, blur, preview, model=model, options=ungated)
+            for method, img, t, stx in (("preview", preview, t_preview, None), ("raytrace", ray, t_ray, None),
+                                        ("refine", refined, t_preview + st.seconds, st),
+                                        ("refine_ungated", raw, t_preview + st_raw.seconds, st_raw)):
+                if img is None:
+                    continue
+                rows.append({"pair": name, "k_px": blur.k_px, "corruption": kind, "px": amount, "method": method,
+                             "seconds": t, "share_refined": stx.share_refined if stx else None,
+                             "gate_open": stx.gate_open if stx else None} | score(img, target, band))
+        print(f"{n + 1}/{len(samples)} {name}", flush=True)
+    data_label = str(args.devset or args.data)
+    summary = summarise(rows, conditions)
+    write_json(args.out, {"machine": machine_info(), "data": data_label, "pairs": len(samples),
+                          "weights": str(args.weights or "shipped"), "refine_options": repr(ropts),
                           "summary": summary, "rows": rows})
     print_table(summary)
     plot(summary, args.plot)
 
 
-def summarise(rows: list[dict]) -> list[dict]:
+def timing(args, model, ropts) -> None:
+    """Preview vs preview + refine at 1536 x 1024, medians of warm runs, with the tiles refined."""
+    import bokehray as br
+    from scipy import ndimage
+
+    from bokehray_refiner.data import corrupt_disparity
+    from bokehray_refiner.refine import refine
+
+    root = Path(args.devset or "../shared/data/pathtraced-dev")
+    scene = root / "d2_leafy_twig"  # a twig and a card over a receding ground: a typical edge share
+    image = br.read_image(scene / "image.exr")[..., :3]
+    disp = br.read_disparity(scene / "disparity.exr")
+    h, w = 1024, 1536
+    y0 = (image.shape[0] - 320 * h // w) // 2
+    crop = (slice(y0, y0 + 320 * h // w), slice(None))
+    zoom = (h / (320 * h // w), w / 320)
+    image = np.clip(ndimage.zoom(image[crop], zoom + (1,), order=1), 0, None)[:h, :w].astype(np.float32)
+    disp = ndimage.zoom(disp[crop], zoom, order=0)[:h, :w].astype(np.float32)
+    blur = br.BlurParams(32.0, 0.8)  # focus on the twig, background CoC up to ~25 px
+    ungated = replace(ropts, gate=replace(ropts.gate, enabled=False))
+    rows = []
+    for kind, amount in (("none", 0), ("erode", 3), ("estimator", 8)):
+        d = np.clip(corrupt_disparity(disp, kind, amount), 0, 1)
+        pre = br.render(image, d, blur)  # warm-up
+        refine(image, d, blur, pre, model=model, options=ropts)
+        tp, tg, tu = [], [], []
+        for _ in range(args.runs):
+            t0 = time.perf_counter()
+            pre = br.render(image, d, blur)
+            tp.append(time.perf_counter() - t0)
+            _, st = refine(image, d, blur, pre, model=model, options=ropts)
+            tg.append(st.seconds)
+            _, su = refine(image, d, blur, pre, model=model, options=ungated)
+            tu.append(su.seconds)
+        row = {"disparity": f"{kind} {amount}", "preview_s": float(np.median(tp)), "refine_s": float(np.median(tg)),
+               "refine_ungated_s": float(np.median(tu)), "tiles_total": st.tiles_total,
+               "tiles_near_edges": st.tiles_near_edges, "tiles_refined": st.tiles_refined,
+               "tiles_refined_ungated": su.tiles_refined, "band_share": st.band_pixels / d.size,
+               "gate_open": st.gate_open}
+        row["ratio"] = (row["preview_s"] + row["refine_s"]) / row["preview_s"]
+        row["ratio_ungated"] = (row["preview_s"] + row["refine_ungated_s"]) / row["preview_s"]
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    write_json(args.out, {"machine": machine_info(), "size": [h, w], "k_px": blur.k_px, "runs": args.runs,
+                          "torch_threads": args.threads, "rows": rows})
+
+
+def summarise(rows: list[dict], conditions=CONDITIONS) -> list[dict]:
     out = []
-    for kind, amount in CONDITIONS:
-        for method in ("preview", "raytrace", "refine"):
+    for kind, amount in conditions:
+        for method in METHODS:
             sel = [r for r in rows if r["corruption"] == kind and r["px"] == amount and r["method"] == method]
+            if not sel:
+                continue
             band = [r["band_psnr"] for r in sel if not math.isnan(r["band_psnr"])]
             out.append({"corruption": kind, "px": amount, "method": method,
                         "psnr": float(np.mean([r["psnr"] for r in sel])),
@@ -97,8 +204,10 @@ def summarise(rows: list[dict]) -> list[dict]:
                         "band_psnr": float(np.mean(band)) if band else math.nan,
                         "band_ssim": float(np.nanmean([r["band_ssim"] for r in sel])),
                         "seconds": float(np.median([r["seconds"] for r in sel])),
-                        "share_refined": float(np.mean([r["share_refined"] for r in sel])) if method == "refine"
-                        else None})
+                        "share_refined": float(np.mean([r["share_refined"] for r in sel]))
+                        if method.startswith("refine") else None,
+                        "gate_open": float(np.mean([r["gate_open"] for r in sel]))
+                        if method.startswith("refine") else None})
     return out
 
 
@@ -120,18 +229,37 @@ def plot(summary: list[dict], path: str) -> None:
     def key(x):
         return ("none", 0) if x == 0 else (("erode", -x) if x < 0 else ("dilate", x))
 
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.6), dpi=120)
-    for method, style in (("preview", "o-"), ("raytrace", "s-"), ("refine", "^-")):
+    fig, axes = plt.subplots(1, 3, figsize=(14, 3.8), dpi=120)
+    for method, style, color in (("preview", "o-", "tab:blue"), ("raytrace", "s-", "tab:orange"),
+                                 ("refine", "^-", "tab:green"), ("refine_ungated", "v:", "tab:red")):
         for ax, metric in zip(axes, ("psnr", "band_psnr")):
-            ys = [next(r[metric] for r in summary if (r["corruption"], r["px"]) == key(x) and r["method"] == method)
-                  for x in xs]
-            ax.plot(xs, ys, style, label=method)
+            ys = [next((r[metric] for r in summary if (r["corruption"], r["px"]) == key(x) and r["method"] == method),
+                       None) for x in xs]
+            if None not in ys:
+                ax.plot(xs, ys, style, color=color, label=method)
     for ax, title in zip(axes, ("whole image", "within 8 px of depth edges")):
         ax.set_xlabel("disparity error: erosion (-) / dilation (+), px")
         ax.set_ylabel("PSNR (dB)")
         ax.set_title(title)
         ax.grid(alpha=0.3)
         ax.legend()
+    conds = list(dict.fromkeys((r["corruption"], r["px"]) for r in summary))
+    ax = axes[2]
+    for j, (method, color) in enumerate((("refine", "tab:green"), ("refine_ungated", "tab:red"))):
+        gains = []
+        for c in conds:
+            get = {r["method"]: r["band_psnr"] for r in summary if (r["corruption"], r["px"]) == c}
+            best = max(get["preview"], get.get("raytrace", -math.inf))
+            gains.append(get[method] - best)
+        ax.bar(np.arange(len(conds)) + 0.4 * j - 0.2, gains, 0.4, color=color, label=method)
+    ax.axhline(0, color="k", lw=0.8)
+    ax.axhline(-0.1, color="k", lw=0.6, ls=":")
+    ax.set_xticks(np.arange(len(conds)), [f"{k} {p}" if p else k for k, p in conds], rotation=45, ha="right",
+                  fontsize=8)
+    ax.set_ylabel("band PSNR - best classical level (dB)")
+    ax.set_title("per corruption")
+    ax.grid(alpha=0.3, axis="y")
+    ax.legend()
     fig.tight_layout()
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path)

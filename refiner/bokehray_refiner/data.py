@@ -23,9 +23,11 @@ from bokehray.io import linear_to_srgb
 from bokehray.lens import BlurParams
 from bokehray.pipeline import render
 
-__all__ = ["CORRUPTIONS", "CORRUPTION_PROBS", "PairBank", "corrupt_disparity"]
+__all__ = ["CORRUPTIONS", "CORRUPTION_PROBS", "EVAL_CORRUPTIONS", "PairBank", "corrupt_disparity"]
 
 CORRUPTIONS = ("none", "erode", "dilate", "blur", "shift")
+EVAL_CORRUPTIONS = CORRUPTIONS + ("estimator",)
+"""Also accepted by :func:`corrupt_disparity` (evaluation only; training draws from :data:`CORRUPTIONS`)."""
 CORRUPTION_PROBS = (0.35, 0.25, 0.25, 0.075, 0.075)
 """Default share of each corruption in :data:`CORRUPTIONS` order."""
 
@@ -36,7 +38,9 @@ def corrupt_disparity(d: np.ndarray, kind: str, amount: int, rng: np.random.Gene
     Args:
         kind: ``"none"``; ``"erode"`` / ``"dilate"`` (grey-level, disc of radius ``amount`` px: near regions
             shrink / grow, paper fig. 7); ``"blur"`` (Gaussian, sigma ``amount`` / 2 px); ``"shift"`` (the
-            map moves by up to ``amount`` px in a random direction: misaligned edges).
+            map moves by up to ``amount`` px in a random direction: misaligned edges); ``"estimator"``
+            (what a monocular depth network gives: the map area-averaged to 1/``amount`` resolution and
+            upsampled bilinearly, so it is smooth and its edges sit up to ``amount / 2`` px off).
     """
     d = np.asarray(d, np.float32)
     if kind == "none" or amount == 0:
@@ -51,7 +55,18 @@ def corrupt_disparity(d: np.ndarray, kind: str, amount: int, rng: np.random.Gene
         dy, dx = int(round(amount * np.sin(a))), int(round(amount * np.cos(a)))
         p = amount
         return np.pad(d, p, mode="edge")[p - dy: p - dy + d.shape[0], p - dx: p - dx + d.shape[1]].copy()
-    raise InputError(f"corruption: expected one of {CORRUPTIONS}, got {kind!r}")
+    if kind == "estimator":
+        from scipy import ndimage
+
+        f = int(amount)
+        h, w = d.shape
+        hp, wp = -(-h // f) * f, -(-w // f) * f
+        low = np.pad(d, ((0, hp - h), (0, wp - w)), mode="edge").reshape(hp // f, f, wp // f, f).mean(axis=(1, 3))
+        yy = (np.arange(h, dtype=np.float32) + 0.5) / f - 0.5
+        xx = (np.arange(w, dtype=np.float32) + 0.5) / f - 0.5
+        grid = np.stack(np.meshgrid(yy, xx, indexing="ij"))
+        return ndimage.map_coordinates(low, grid, order=1, mode="nearest").astype(np.float32)
+    raise InputError(f"corruption: expected one of {EVAL_CORRUPTIONS}, got {kind!r}")
 
 
 @dataclass

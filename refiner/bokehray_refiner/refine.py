@@ -7,8 +7,11 @@ CoC jump exceeds ``min_jump_px`` lies within reach (the larger CoC radius at
 that edge) of it. Each refined tile runs with a halo of context; its
 correction (refined minus classical, in sRGB) is feathered to 0 across the
 halo, so refined and untouched tiles meet without a seam. The correction is
-also kept only within (the edge's CoC + a margin) of a depth edge; every other
-pixel is bit-identical to the classical render.
+also kept only within (the edge's CoC + a margin) of a depth edge, and only as
+far as the confidence gate (``gate.py``) lets it through: where the depth edge
+sits on a colour edge of the photo, or over a clipped light, the classical render
+is kept. Every other pixel is bit-identical to the classical render; tiles the
+gate closes entirely are not run through the network.
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ from bokehray.io import linear_to_srgb, srgb_to_linear
 from bokehray.lens import BlurParams
 from bokehray.pisa import PisaMaskOptions
 
+from .gate import GateOptions, refine_gate
 from .masks import PisaMaskProvider
 from .model import BokehRefiner, RefinerConfig
 from .tiles import raised_cosine_ramp
@@ -52,6 +56,7 @@ class RefineOptions:
             most this many pixels, one pass over the whole frame replaces them (same blend weights).
         band_margin_px, band_feather_px: the correction is kept only within (the edge's CoC + margin) of a
             depth edge, fading out over the feather: farther away a depth error cannot change the image.
+        gate: the confidence gate (``GateOptions(enabled=False)`` lets the whole band through).
     """
 
     tile: int = 64
@@ -61,6 +66,7 @@ class RefineOptions:
     full_frame_px: int = 4_000_000
     band_margin_px: float = 6.0
     band_feather_px: float = 4.0
+    gate: GateOptions = GateOptions()
 
     def __post_init__(self) -> None:
         if self.tile < 8 or self.tile % 8 or self.halo < 0 or self.halo % 8:
@@ -77,6 +83,9 @@ class RefineStats:
     tiles_total: int = 0
     tiles_refined: int = 0
     seconds: float = 0.0
+    tiles_near_edges: int = 0  #: tiles within reach of a depth edge, before the gate
+    band_pixels: int = 0  #: pixels of the edge band (where a depth error can change the image)
+    gate_open: float = 0.0  #: mean gate over the band: the share of the correction let through
 
     @property
     def share_refined(self) -> float:
@@ -84,7 +93,9 @@ class RefineStats:
 
     def as_dict(self) -> dict:
         return {"tiles_total": self.tiles_total, "tiles_refined": self.tiles_refined,
-                "share_refined": self.share_refined, "seconds": self.seconds}
+                "share_refined": self.share_refined, "seconds": self.seconds,
+                "tiles_near_edges": self.tiles_near_edges, "band_pixels": self.band_pixels,
+                "gate_open": self.gate_open}
 
 
 def load_refiner(path: str | os.PathLike | None = None, device: str = "cpu") -> BokehRefiner:
@@ -193,16 +204,28 @@ def refine(
     coc = blur.signed_coc(disparity).astype(np.float32)
     reach = edge_reach(coc, options.min_jump_px)
     need = _tiles_near(reach, options.tile)
-    stats = RefineStats(tiles_total=int(need.size), tiles_refined=int(need.sum()))
+    stats = RefineStats(tiles_total=int(need.size), tiles_near_edges=int(need.sum()))
+    t, halo = options.tile, options.halo
+    if need.any():
+        full_band = edge_band(reach, options.band_margin_px, options.band_feather_px)
+        focus_srgb = linear_to_srgb(np.clip(image[..., :3], 0.0, 1.0))
+        band = full_band * refine_gate(image, focus_srgb, disparity, classical, coc, options.min_jump_px,
+                                       options.gate)
+        stats.band_pixels = int((full_band > 0).sum())
+        stats.gate_open = float(band.sum() / full_band.sum()) if full_band.sum() > 0 else 0.0
+        ty, tx = need.shape
+        padded = np.zeros((ty * t, tx * t), np.float32)
+        padded[:h, :w] = band
+        need &= padded.reshape(ty, t, tx, t).max(axis=(1, 3)) > 0  # a tile the gate closes is not run
+    stats.tiles_refined = int(need.sum())
     if not need.any():
         stats.seconds = time.perf_counter() - t0
         return classical.astype(np.float32, copy=True), stats
-    t, halo = options.tile, options.halo
     size = t + 2 * halo
     ph, pw = need.shape[0] * t - h + halo, need.shape[1] * t - w + halo  # pad to whole tiles plus the halo
     pad3 = ((halo, ph), (halo, pw), (0, 0))
     base = np.clip(classical[..., :3], 0.0, 1.0)
-    f_srgb = np.pad(linear_to_srgb(np.clip(image[..., :3], 0.0, 1.0)), pad3, mode="reflect")
+    f_srgb = np.pad(focus_srgb, pad3, mode="reflect")
     r_srgb = np.pad(linear_to_srgb(base), pad3, mode="reflect")
     d_pad = np.pad(disparity.astype(np.float32), pad3[:2], mode="reflect")
     coc_pad = np.pad(coc, pad3[:2], mode="reflect")
@@ -232,7 +255,6 @@ def refine(
             for sl, dlt in zip(chunk, run(chunk)):
                 acc[sl] += dlt * wt
     delta = (acc / np.maximum(wsum, 1.0))[halo:halo + h, halo:halo + w]
-    band = edge_band(reach, options.band_margin_px, options.band_feather_px)
     delta *= band[..., None]
     fixed = srgb_to_linear(np.clip(r_srgb[halo:halo + h, halo:halo + w] + delta, 0.0, 1.0))
     out = classical.astype(np.float32, copy=True)

@@ -217,17 +217,27 @@ def make_scene(config: SynthConfig, seed: int, index: int) -> tuple[list[Layer],
     return layers, {"layers": desc}
 
 
+FOREGROUND_COVERAGE = 1.0 / 255.0
+"""A foreground layer labels a pixel's disparity wherever its alpha exceeds this (any visible coverage)."""
+
+
 def _pinhole(layers: list[Layer]) -> tuple[np.ndarray, np.ndarray]:
-    """All-in-focus image and disparity: the front-most layer with alpha >= 0.5 gives the depth."""
+    """All-in-focus image and disparity: the front-most foreground with any coverage gives the depth.
+
+    Mixed edge pixels and sub-pixel strands (alpha < 0.5) are labelled with the foreground's disparity, not
+    the background's: with an alpha >= 0.5 rule the "exact" map would itself be eroded at thin structures,
+    and the refiner's training inputs and targets would disagree about which depth is right.
+    """
     img, _ = raytrace_layers(layers, BlurParams(0.0, 0.0), options=RaytraceOptions(max_spp=1))
     n = layers[0].rgba.shape[0]
     yy, xx = (np.mgrid[0:n, 0:n] + 0.5).astype(np.float32)
     disparity = np.zeros((n, n), np.float32)
     taken = np.zeros((n, n), bool)
-    for lyr in layers:  # nearest first
+    for i, lyr in enumerate(layers):  # nearest first; the last one is the background
         a, b, c = lyr.plane
         d = a * xx + b * yy + c
-        hit = (lyr.rgba[..., 3] >= 0.5) & ~taken
+        alpha = lyr.rgba[..., 3]
+        hit = ((alpha > FOREGROUND_COVERAGE) if i < len(layers) - 1 else (alpha >= 0.5)) & ~taken
         disparity[hit] = d[hit]
         taken |= hit
     return img[..., :3], np.clip(disparity, 0.0, 1.0)

@@ -95,3 +95,23 @@ def test_existing_scenes_need_overwrite(tmp_path):
         generate(SMALL, 1, tmp_path, seed=0, workers=1, progress=False)
     generate(SMALL, 1, tmp_path, seed=1, workers=1, progress=False, overwrite=True)
     assert json.loads((tmp_path / "scene_00000" / "info.json").read_text())["seed"] == 1
+
+
+def test_any_foreground_coverage_is_labelled_with_the_foregrounds_depth():
+    """Mixed edge pixels and sub-pixel strands (alpha < 0.5) take the foreground's disparity, not the background's."""
+    from bokehray.levels.raytrace import Layer
+    from bokehray.synth import _pinhole
+
+    n = 16
+    fg = np.zeros((n, n, 4), np.float32)
+    fg[..., :3] = 0.8
+    fg[4:12, 4:8, 3] = 1.0  # a solid block
+    fg[4:12, 8, 3] = 0.3  # its antialiased edge
+    fg[2, :, 3] = 0.1  # a sub-pixel strand
+    fg[0, 0, 3] = 0.5 / 255  # invisible dust
+    bg = np.ones((n, n, 4), np.float32)
+    bg[..., :3] = 0.2
+    layers = [Layer(fg, plane=(0.0, 0.0, 0.9)), Layer(bg, plane=(0.0, 0.0, 0.1))]
+    _, d = _pinhole(layers)
+    assert np.allclose(d[4:12, 4:9], 0.9) and np.allclose(d[2], 0.9)
+    assert d[0, 0] == pytest.approx(0.1) and np.allclose(d[13:], 0.1) and np.allclose(d[4:12, 9:], 0.1)

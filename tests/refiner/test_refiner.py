@@ -4,6 +4,8 @@ import json
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 torch = pytest.importorskip("torch")
 
@@ -11,6 +13,7 @@ import bokehray as br  # noqa: E402
 from bokehray.errors import InputError  # noqa: E402
 from bokehray.synth import SynthConfig, generate  # noqa: E402
 from bokehray_refiner.data import PairBank, corrupt_disparity  # noqa: E402
+from bokehray_refiner.gate import GateOptions  # noqa: E402
 from bokehray_refiner.masks import PisaMaskProvider  # noqa: E402
 from bokehray_refiner.model import BokehRefiner, fingerprint  # noqa: E402
 from bokehray_refiner.refine import DEFAULT_WEIGHTS, RefineOptions, load_refiner, refine, tiles_to_refine  # noqa
@@ -27,6 +30,9 @@ def pairs(tmp_path_factory):
 @pytest.fixture(scope="module")
 def bank(pairs):
     return PairBank(str(pairs), variants=1, seed=0, progress=False)
+
+
+UNGATED = GateOptions(enabled=False)  # the tiling and blending mechanics, without the confidence gate
 
 
 def _cfg(pairs, out, **kw):
@@ -138,7 +144,7 @@ def test_refine_touches_only_tiles_near_depth_edges():
     with torch.no_grad():
         model.head.bias.fill_(0.05)  # a model that changes every pixel it sees
     classical = br.render(img, d, blur)
-    out, stats = refine(img, d, blur, classical, model=model, options=RefineOptions(tile=64, halo=16))
+    out, stats = refine(img, d, blur, classical, model=model, options=RefineOptions(tile=64, halo=16, gate=UNGATED))
     assert 0 < stats.tiles_refined < stats.tiles_total and stats.share_refined == stats.tiles_refined / 16
     assert np.array_equal(out[160:, 160:], classical[160:, 160:])  # far from the edge: bit-identical
     assert np.abs(out[:40, :40] - classical[:40, :40]).max() > 0.01
@@ -154,8 +160,8 @@ def test_full_frame_and_tiled_refinement_blend_the_same_way():
     with torch.no_grad():
         model.head.bias.fill_(0.03)  # a constant correction: both paths must place it identically
     classical = br.render(img, d, blur)
-    full, s1 = refine(img, d, blur, classical, model=model)
-    tiled, s2 = refine(img, d, blur, classical, model=model, options=RefineOptions(full_frame_px=0))
+    full, s1 = refine(img, d, blur, classical, model=model, options=RefineOptions(gate=UNGATED))
+    tiled, s2 = refine(img, d, blur, classical, model=model, options=RefineOptions(full_frame_px=0, gate=UNGATED))
     assert s1.tiles_refined == s2.tiles_refined == s1.tiles_total
     np.testing.assert_allclose(full, tiled, rtol=0, atol=1e-5)
     assert np.abs(full - classical).mean() > 0.01
@@ -238,3 +244,80 @@ def test_tile_search_is_bounded_by_the_grid_not_the_blur():
     need = _tiles_near(reach, 16)
     assert need.all()
     np.testing.assert_array_equal(need, _tiles_near(np.minimum(reach, 200.0), 16))
+
+
+def _edge_scene(seed: int = 0, size: int = 128):
+    """A textured near block over a textured far plane: colour edges exactly on the depth edges."""
+    rng = np.random.default_rng(seed)
+    from scipy import ndimage
+
+    far = ndimage.gaussian_filter(rng.uniform(0.05, 0.35, (size, size, 3)), (1.5, 1.5, 0)).astype(np.float32)
+    near = ndimage.gaussian_filter(rng.uniform(0.5, 0.9, (size, size, 3)), (1.5, 1.5, 0)).astype(np.float32)
+    d = np.full((size, size), 0.2, np.float32)
+    d[24:104, 20:60] = 0.9
+    img = np.where((d > 0.5)[..., None], near, far).astype(np.float32)
+    return img, d
+
+
+def test_gate_trusts_depth_edges_on_colour_edges_and_opens_where_the_map_is_eroded():
+    from bokehray.io import linear_to_srgb
+    from bokehray_refiner.gate import refine_gate
+
+    img, d = _edge_scene()
+    blur = br.BlurParams(12.0, 0.9)
+    f = linear_to_srgb(img)
+    gates = {}
+    for kind, px in (("none", 0), ("erode", 3), ("dilate", 3)):
+        dc = corrupt_disparity(d, kind, px)
+        g = refine_gate(img, f, dc, br.render(img, dc, blur), blur.signed_coc(dc), 1.0)
+        assert g.dtype == np.float32 and 0.0 <= g.min() and g.max() <= 1.0
+        edge = np.abs(np.diff(dc, axis=1)) > 0.1
+        gates[kind] = float(g[:, :-1][edge].mean())
+    assert gates["none"] < 0.05 < 0.8 < gates["erode"]  # exact: closed; eroded near region: open
+    assert gates["dilate"] < 0.05  # too fat near regions: the shipped model is not trusted there
+    open_all = refine_gate(img, f, d, img, blur.signed_coc(d), 1.0, GateOptions(enabled=False))
+    assert np.array_equal(open_all, np.ones_like(d))
+    flat = np.full_like(d, 0.5)
+    assert not refine_gate(img, f, flat, img, blur.signed_coc(flat), 1.0).any()  # no depth edge: nothing opens
+
+
+@pytest.mark.parametrize("which", ["biased", "shipped"])
+def test_a_defocused_light_near_a_depth_edge_keeps_its_energy_and_gains_no_core(which):
+    img, d = _edge_scene(1)
+    yy, xx = np.mgrid[0:128, 0:128]
+    light = np.hypot(yy - 64, xx - 76) <= 3.0  # 16 px from the near block's edge, on the far plane
+    img[light] = 8.0
+    blur = br.BlurParams(16.0, 0.9)  # the light's CoC: 11.2 px, its ball reaches the edge
+    dc = corrupt_disparity(d, "erode", 3)  # so that the gate opens along the edge
+    model = load_refiner() if which == "shipped" else BokehRefiner()
+    if which == "biased":
+        with torch.no_grad():
+            model.head.bias.fill_(0.05)  # a model that changes every pixel it is allowed to
+    classical = br.render(img, dc, blur)
+    out, st = refine(img, dc, blur, classical, model=model)
+    assert st.tiles_refined > 0 and st.gate_open > 0.05  # the gate is open at the eroded edge...
+    ball = np.hypot(yy - 64, xx - 76) <= 11.2 + 2
+    assert out[ball].sum() == pytest.approx(classical[ball].sum(), rel=0.02)  # ...but the light keeps its energy
+    assert out[light].max() <= 1.02 * classical[light].max()  # and no in-focus core comes back
+    assert out[light].max() < 0.5 * 8.0
+    assert np.isfinite(out).all()
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**16), k=st.floats(0.0, 40.0), df=st.floats(0.0, 1.0), edges=st.integers(0, 6))
+def test_gate_is_a_weight_and_stays_shut_without_depth_edges(seed, k, df, edges):
+    from bokehray.io import linear_to_srgb
+    from bokehray_refiner.gate import refine_gate
+
+    rng = np.random.default_rng(seed)
+    img = rng.uniform(0, 1.5, (40, 48, 3)).astype(np.float32)  # includes clipped values
+    d = np.full((40, 48), rng.uniform(0, 1), np.float32)
+    for _ in range(edges):
+        y, x = rng.integers(0, 36), rng.integers(0, 44)
+        d[y:y + rng.integers(1, 20), x:x + rng.integers(1, 20)] = rng.uniform(0, 1)
+    blur = br.BlurParams(k, df)
+    coc = blur.signed_coc(d)
+    g = refine_gate(img, linear_to_srgb(np.clip(img, 0, 1)), d, img, coc, 1.0)
+    assert g.shape == d.shape and np.isfinite(g).all() and g.min() >= 0 and g.max() <= 1
+    if not (np.abs(np.diff(coc, axis=0)) > 1).any() and not (np.abs(np.diff(coc, axis=1)) > 1).any():
+        assert not g.any()

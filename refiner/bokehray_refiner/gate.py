@@ -1,0 +1,185 @@
+"""The refiner's confidence gate: where the depth map can be trusted, the classical render is already right.
+
+A depth edge that sits exactly on a colour edge of the all-in-focus image is
+most likely right, and then the classical render is exact there (up to what no
+single image holds); the refiner, trained on synthetic pairs, can only make it
+worse. A depth edge a few pixels away from the strongest colour edge across it
+(an eroded, dilated, smeared or shifted map) is where a depth error breaks the
+classical render, and where the refiner is allowed to act.
+
+:func:`edge_agreement` measures this at every depth-edge pixel: along the depth
+edge's normal it samples the colour step ``|f(t + 1/2) - f(t - 1/2)|`` (sRGB,
+bilinear) at offsets ``t`` in ``[-radius, radius]``, and takes the ratio of the
+strongest step within ``near_px`` of the depth edge to the strongest one in the
+whole window. Ratios are averaged along the edge (a Gaussian over edge pixels),
+because real depth errors are coherent along an edge while texture near an edge
+is not. The gate is ``1 - smoothstep(lo, hi, ratio)``: closed (0) where the colour
+edge sits on the depth edge, open (1) where it is displaced. Edges without a
+colour step worth the name (``min_step``) are trusted: there a displaced depth edge
+changes little.
+
+:func:`highlight_guard` closes the gate over the footprint of every clipped light
+of the all-in-focus image and wherever the classical render is above 1: the model
+sees clipped sRGB there, so its correction could neither conserve the light's
+energy nor tell a bokeh ball from its in-focus core.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["GateOptions", "edge_agreement", "highlight_guard", "refine_gate"]
+
+
+@dataclass(frozen=True)
+class GateOptions:
+    """Parameters of the confidence gate (chosen on synthetic validation pairs, docs/refiner.md).
+
+    Args:
+        enabled: False lets every band pixel through (the ungated refiner, for measurements).
+        radius_px: how far across a depth edge the colour edge is searched.
+        near_px: a colour edge within this distance of the depth edge counts as "on" it.
+        lo, hi: agreement ratios below ``lo`` open the gate fully, above ``hi`` close it.
+        sigma_px: smoothing of the agreement along the edge.
+        min_step: colour steps (sRGB, Euclidean over RGB) below this are "no colour edge".
+        highlight: close the gate over clipped lights (see :func:`highlight_guard`).
+        highlight_margin_px: extra reach around a clipped light's CoC.
+        open_dilated: also open where the colour edge lies on the depth edge's near side (a too fat near region).
+            Off: the shipped model made dilated edges worse on the dev set (docs/refiner.md).
+        floor: gates below this are 0, so tiles with only a trace of an open gate are not run.
+    """
+
+    enabled: bool = True
+    radius_px: float = 6.0
+    near_px: float = 0.5
+    lo: float = 0.55
+    hi: float = 0.85
+    sigma_px: float = 6.0
+    min_step: float = 0.03
+    highlight: bool = True
+    highlight_margin_px: float = 3.0
+    open_dilated: bool = False
+    floor: float = 0.05
+
+
+def _normals(disparity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    from scipy import ndimage
+
+    d = ndimage.gaussian_filter(disparity.astype(np.float32), 1.0)
+    gy, gx = ndimage.sobel(d, 0), ndimage.sobel(d, 1)
+    n = np.hypot(gy, gx)
+    n = np.where(n > 0, n, 1.0)
+    return gy / n, gx / n
+
+
+def edge_agreement(focus_srgb: np.ndarray, disparity: np.ndarray, edges: list[tuple[np.ndarray, np.ndarray, int]],
+                   options: GateOptions = GateOptions()) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Agreement ratio in [0, 1] of colour and depth edges, per depth-edge pixel.
+
+    Args:
+        focus_srgb: ``H x W x 3`` all-in-focus image, sRGB in [0, 1].
+        disparity: ``H x W`` disparity the render used.
+        edges: per axis, the ``(ys, xs, axis)`` of edge pixels ``a`` whose pair ``(a, a + e_axis)`` is a depth edge.
+
+    Returns:
+        ``(ys, xs, ratio)`` over all edge pixels (the midpoint's pixel ``a``), smoothed along the edge;
+        ratio 1 where there is no colour step (``min_step``).
+    """
+    from scipy import ndimage
+
+    ny, nx = _normals(disparity)
+    steps = np.arange(-options.radius_px, options.radius_px + 1e-6, 0.5, dtype=np.float32)
+    near = np.abs(steps) <= options.near_px + 1e-6
+    all_y, all_x, all_r = [], [], []
+    chans = [np.ascontiguousarray(focus_srgb[..., c], np.float32) for c in range(3)]
+    for ys, xs, axis in edges:
+        if ys.size == 0:
+            continue
+        my = ys + (0.5 if axis == 0 else 0.0)
+        mx = xs + (0.5 if axis == 1 else 0.0)
+        uy, ux = ny[ys, xs], nx[ys, xs]
+        zero = (uy == 0) & (ux == 0)  # flat gradient after smoothing: use the pair's own axis
+        uy = np.where(zero, 1.0 if axis == 0 else 0.0, uy)
+        ux = np.where(zero, 1.0 if axis == 1 else 0.0, ux)
+        offs = np.concatenate([steps - 0.5, steps[-1:] + 0.5])  # sample points between which the steps lie
+        py = my[:, None] + offs[None, :] * uy[:, None]
+        px = mx[:, None] + offs[None, :] * ux[:, None]
+        coords = np.stack([py.ravel(), px.ravel()])
+        samp = np.stack([ndimage.map_coordinates(c, coords, order=1, mode="nearest").reshape(py.shape)
+                         for c in chans], -1)
+        step = np.linalg.norm(np.diff(samp, axis=1), axis=-1)  # (edges, len(steps))
+        # without open_dilated only the far side is searched: a colour edge beyond the depth edge on its near
+        # side means a too fat near region (or the far edge of a thin structure), where the gate stays closed
+        best = (step if options.open_dilated else step[:, steps <= options.near_px + 1e-6]).max(axis=1)
+        ratio = np.where(best >= options.min_step, step[:, near].max(axis=1) / np.maximum(best, 1e-12), 1.0)
+        all_y.append(ys)
+        all_x.append(xs)
+        all_r.append(ratio.astype(np.float32))
+    if not all_y:
+        e = np.zeros(0, np.int64)
+        return e, e, np.zeros(0, np.float32)
+    ys, xs, r = np.concatenate(all_y), np.concatenate(all_x), np.concatenate(all_r)
+    if options.sigma_px > 0:  # normalised convolution over the edge pixels only
+        h, w = disparity.shape
+        num, den = np.zeros((h, w), np.float32), np.zeros((h, w), np.float32)
+        np.add.at(num, (ys, xs), r)
+        np.add.at(den, (ys, xs), 1.0)
+        num = ndimage.gaussian_filter(num, options.sigma_px)
+        den = ndimage.gaussian_filter(den, options.sigma_px)
+        r = num[ys, xs] / np.maximum(den[ys, xs], 1e-12)
+    return ys, xs, np.clip(r, 0.0, 1.0).astype(np.float32)
+
+
+def _smoothstep(lo: float, hi: float, x: np.ndarray) -> np.ndarray:
+    t = np.clip((x - lo) / max(hi - lo, 1e-6), 0.0, 1.0)
+    return t * t * (3 - 2 * t)
+
+
+def highlight_guard(image: np.ndarray, classical: np.ndarray, coc: np.ndarray, margin_px: float) -> np.ndarray:
+    """1 where the refiner may act, 0 over clipped lights' footprints and wherever the classical render is > 1."""
+    from scipy import ndimage
+
+    lit = image[..., :3].max(-1) >= 1.0
+    hot = classical[..., :3].max(-1) > 1.0
+    guard = np.ones(coc.shape, np.float32)
+    if lit.any():
+        dist, (iy, ix) = ndimage.distance_transform_edt(~lit, return_indices=True)
+        guard[dist <= np.abs(coc[iy, ix]) + margin_px] = 0.0
+    if hot.any():
+        guard[ndimage.binary_dilation(hot, iterations=int(np.ceil(margin_px)))] = 0.0
+    return guard
+
+
+def refine_gate(image: np.ndarray, focus_srgb: np.ndarray, disparity: np.ndarray, classical: np.ndarray,
+                coc: np.ndarray, min_jump_px: float, options: GateOptions = GateOptions()) -> np.ndarray:
+    """The gate in [0, 1] per pixel: how much of the refiner's correction is let through.
+
+    Each pixel takes the gate of its nearest depth-edge pixel (edges where the CoC jumps by more than
+    ``min_jump_px``), times the highlight guard. Without depth edges the gate is 0 everywhere.
+    """
+    from scipy import ndimage
+
+    h, w = coc.shape
+    if not options.enabled:
+        return np.ones((h, w), np.float32)
+    edges = []
+    for ax in (0, 1):
+        a = np.take(coc, range(coc.shape[ax] - 1), axis=ax)
+        b = np.take(coc, range(1, coc.shape[ax]), axis=ax)
+        ys, xs = np.nonzero(np.abs(a - b) > min_jump_px)
+        edges.append((ys, xs, ax))
+    ys, xs, ratio = edge_agreement(focus_srgb, disparity, edges, options)
+    if ys.size == 0:
+        return np.zeros((h, w), np.float32)
+    open_ = np.zeros((h, w), np.float32)
+    mark = np.zeros((h, w), bool)
+    np.maximum.at(open_, (ys, xs), 1.0 - _smoothstep(options.lo, options.hi, ratio))
+    mark[ys, xs] = True
+    _, (iy, ix) = ndimage.distance_transform_edt(~mark, return_indices=True)
+    gate = open_[iy, ix]
+    if options.highlight:
+        gate *= highlight_guard(image, classical, coc, options.highlight_margin_px)
+    gate[gate < options.floor] = 0.0
+    return gate.astype(np.float32)
