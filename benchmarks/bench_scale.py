@@ -117,7 +117,11 @@ def main() -> int:
                     "load_average_before": os.getloadavg()}
     try:
         pairs, k, d_f = photos(tmp / "photos", photo_n, pw, ph)
-        settings = RenderSettings.defaults(blur=k, focus=d_f, no_highlight_reconstruction=True)
+        from bokehray.cli import build_parser
+
+        settings = RenderSettings.from_args(build_parser().parse_args(
+            ["render", "IMAGE", "--disparity", "MAP", "-o", "OUT.png", "--blur", str(k), "--focus", str(d_f),
+             "--no-highlight-reconstruction"]))
         cfg = SynthConfig(size=synth_size)
         kinds = {"inline": ("local", 1), f"local-{w}": ("local", w), f"dask-{w}": ("dask", w)}
         exs, startup = {}, {}

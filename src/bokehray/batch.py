@@ -224,18 +224,6 @@ class RenderSettings:
         kept = {k: v for k, v in vars(args).items() if k not in _NOT_SETTINGS}
         return cls("depth" if args.depth is not None else "disparity", tuple(sorted(kept.items())))
 
-    @classmethod
-    def defaults(cls, kind: str = "disparity", **overrides) -> RenderSettings:
-        """The command line's defaults with ``overrides`` (e.g. ``blur=20.0, focus=0.5``)."""
-        from .cli import build_parser
-
-        ns = build_parser().parse_args(["render", "IMAGE", f"--{kind}", "MAP", "-o", "OUT.png"])
-        for k, v in overrides.items():
-            if not hasattr(ns, k):
-                raise InputError(f"render settings: unknown option {k!r}")
-            setattr(ns, k, v)
-        return cls.from_args(ns)
-
     def get(self, name: str):
         return dict(self.args)[name]
 
@@ -263,13 +251,13 @@ class RenderTask:
     image: str
     map: str
     output: str
-    settings: RenderSettings = field(default_factory=RenderSettings.defaults)
+    settings: RenderSettings = field(default_factory=RenderSettings)
 
 
 def render_file(task: RenderTask) -> dict:
     """Render one photo to ``task.output`` (written atomically) with the single-file render of the CLI; a pure
     function of the inputs and settings."""
-    from .cli import render_one
+    from .render_job import render_one
 
     return render_one(task.settings.namespace(task.image, task.map, task.output))
 

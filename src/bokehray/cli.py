@@ -10,19 +10,18 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
-import math
 import re
 import signal
 import sys
 import threading
-import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
 
-from ._quiet import collect_warnings, init_warp_quietly
+from ._quiet import collect_warnings
 from .errors import BokehrayError, InputError
+from .render_job import aperture_of, layer_options_of, render_one, start_warp
 from .photo import AMOUNT_DEFAULT, AMOUNT_K_FRACTION
 
 EXIT_INPUT = 2
@@ -242,228 +241,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _aperture(args: argparse.Namespace):
-    from .lens import Aperture
-
-    if args.aperture == "disc":
-        return Aperture()
-    return Aperture(blades=args.blades, rotation_deg=args.rotation, curvature=args.curvature)
-
-
-def _layer_options(args: argparse.Namespace):
-    from .options import LayerOptions
-
-    kw = {}
-    if args.max_layers is not None:
-        if args.max_layers < 1:
-            raise InputError(f"--max-layers: expected >= 1, got {args.max_layers}")
-        kw["max_layers"] = args.max_layers
-    if args.no_fill:
-        kw["fill"] = False
-    return LayerOptions(**kw)
-
-
-class _Progress:
-    """One bar over the stages of a render (read, depth estimation, render with its layers, write), on a
-    terminal only; each stage owns a share of the bar in proportion to its usual cost."""
-
-    def __init__(self, args: argparse.Namespace, stages: dict[str, float]) -> None:
-        self.bar = None
-        total = sum(stages.values())
-        self.start, at = {}, 0.0
-        for name, weight in stages.items():
-            self.start[name] = (100.0 * at / total, 100.0 * weight / total)
-            at += weight
-        if args.quiet or not sys.stderr.isatty():
-            return
-        from tqdm import tqdm
-
-        self.bar = tqdm(total=100, desc="read", leave=False, file=sys.stderr,
-                        bar_format="{desc:<7} {percentage:3.0f}%|{bar}| {elapsed}")
-
-    def stage(self, name: str):
-        """Enter stage ``name``; returns ``update(fraction)`` for progress within it."""
-        base, share = self.start[name]
-
-        def update(fraction: float) -> None:
-            if self.bar is not None:
-                self.bar.n = min(100.0, base + share * max(0.0, min(1.0, fraction)))
-                self.bar.refresh()
-
-        if self.bar is not None:
-            self.bar.set_description_str(name)
-        update(0.0)
-        return update
-
-    def layers(self):
-        """The render stage's ``progress(done, total)`` callback (layers of either level)."""
-        update = self.stage("render")
-        return lambda done, total: update(done / total if total else 1.0)
-
-    def close(self) -> None:
-        if self.bar is not None:
-            self.bar.close()
-
-
-def _resize(a: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    from skimage.transform import resize
-
-    return resize(a, shape, order=1, mode="edge", anti_aliasing=False, preserve_range=True).astype(np.float32)
-
-
-def _check_output(path: str, args: argparse.Namespace) -> None:
-    from .io import check_output_path
-
-    check_output_path(path, bit_depth=getattr(args, "bit_depth", None), half=getattr(args, "half", False))
-
-
-def _say(args: argparse.Namespace, text: str) -> None:
-    if not args.quiet:
-        print(text)
-
-
-def _warn(args: argparse.Namespace, text: str) -> None:
-    if not args.quiet:
-        print(f"bokehray: warning: {text}", file=sys.stderr)
-
-
-def _check_render_flags(args: argparse.Namespace) -> bool:
-    """Contradictions between flags, found before any file is read (and before Warp starts). Returns whether
-    the blur is a physical lens."""
-    physical = any(v is not None for v in (args.focal_length, args.f_number, args.focus_distance))
-    given_focus = [name for name, v in (("--focus", args.focus), ("--focus-at", args.focus_at),
-                                        ("--focus-distance", args.focus_distance)) if v is not None]
-    if len(given_focus) > 1:
-        raise InputError(f"{' and '.join(given_focus)} contradict each other: give the focus one way")
-    if physical and args.depth is None:
-        how = " (--normalize/--invert describe a relative map)" if args.normalize or args.invert else ""
-        raise InputError("a physical lens (--focal-length/--f-number/--focus-distance) needs metric depth, and "
-                         f"a --disparity map{how} has no scale: give a depth map in metres with --depth (an integer "
-                         "map with --depth-scale, e.g. 0.001 for millimetres), or set the blur with --amount/--blur "
-                         "and the focus with --focus/--focus-at")
-    if physical and (args.blur is not None or args.amount is not None or args.focus is not None):
-        raise InputError("give the blur either as --amount/--blur with --focus, or as a physical lens, not both")
-    if physical and (args.focal_length is None or args.f_number is None):
-        raise InputError("a physical lens needs both --focal-length and --f-number")
-    if args.depth_model is not None and (args.normalize or args.invert):
-        raise InputError("--normalize and --invert describe a --disparity map; a --depth-model's output is "
-                         "normalised with its known polarity")
-    if args.save_depth and args.depth_model is None:
-        raise InputError("--save-depth writes the map a --depth-model estimated; it needs --depth-model")
-    if args.depth is not None and (args.normalize or args.invert):
-        raise InputError("--normalize and --invert describe a relative --disparity map; a --depth map is metric "
-                         "(near = small), and is converted to disparity with the thin-lens normalisation")
-    if args.depth_scale is not None and args.depth is None:
-        raise InputError("--depth-scale converts the codes of an integer --depth map to metres; it needs --depth")
-    if args.blur is not None and args.blur < 0:
-        raise InputError(f"--blur: expected K >= 0, got {args.blur:g}")
-    if args.z_near is not None or args.z_far is not None:
-        if args.depth is None:
-            raise InputError("--z-near/--z-far normalise a metric --depth map; they need --depth")
-    if not 1 <= args.jpeg_quality <= 100:
-        raise InputError(f"--jpeg-quality: expected 1..100, got {args.jpeg_quality}")
-    if args.amount is not None:
-        from .photo import k_from_amount
-
-        k_from_amount(args.amount, 1, 1)  # the range check
-    return physical
-
-
-def _disparity_path(output: str) -> Path:
-    out = Path(output)
-    return out.with_name(f"{out.stem}-disparity.png")
-
-
-def _read_map(args: argparse.Namespace, h: int, w: int, image: np.ndarray | None = None, stage=None):
-    """The disparity map by the conventions the flags state; ``(d, DepthNormalization or None)``."""
-    from . import io, photo
-    from .lens import DepthNormalization
-
-    norm = None
-    if args.depth_model is not None:
-        from .depth_model import estimate_disparity
-
-        t = time.perf_counter()
-        disparity, info = estimate_disparity(image, args.depth_model, device=args.device,
-                                             progress=stage)
-        _say(args, f"depth: estimated by the {info['model']} model in {args.depth_model} at "
-             f"{info['input_size'][1]}x{info['input_size'][0]} ({info['what']}) in {time.perf_counter() - t:.1f} s")
-        if args.save_depth:
-            saved = io.write_disparity(_disparity_path(args.output), disparity)
-            _say(args, f"depth: saved to {saved} (reuse it with --disparity {saved})")
-        return np.ascontiguousarray(disparity, np.float32), None
-    if args.depth is not None:
-        depth = photo.read_depth_map(args.depth, scale=args.depth_scale)
-        if args.z_near is not None or args.z_far is not None:
-            finite = depth[np.isfinite(depth) & (depth > 0)]
-            zn = args.z_near if args.z_near is not None else float(finite.min()) if finite.size else 1.0
-            zf = args.z_far if args.z_far is not None else float(finite.max()) if finite.size else np.inf
-            norm = DepthNormalization(zn, zf)
-        # resize after the conversion: disparity interpolates where depth cannot (inf for sky)
-        disparity, norm, missing = photo.depth_to_disparity(depth, norm, source=args.depth)
-        if missing > 0:
-            _say(args, f"depth: {missing:.1%} of {args.depth} is 0, negative or infinite (no depth): taken as "
-                 "infinitely far (sky)")
-        source = args.depth
-    else:
-        source = args.disparity
-        raw = io.read_disparity(source)
-        if args.normalize:
-            disparity = photo.normalize_relative(raw, invert=args.invert, source=source)
-            lo, hi = np.percentile(raw, photo.NORMALIZE_PERCENTILES)
-            _say(args, f"disparity: {source} normalised from [{lo:.4g}, {hi:.4g}] (0.5th..99.5th percentiles) "
-                 f"to [0, 1]{', inverted' if args.invert else ''}")
-        else:
-            if raw.size and (raw.min() < 0.0 or raw.max() > 1.0):
-                raise InputError(f"{source}: expected disparity in [0, 1] (1 = nearest), got values in "
-                                 f"[{float(raw.min()):.4g}, {float(raw.max()):.4g}]: pass --normalize for a relative "
-                                 "map of any range (add --invert if near is dark), or give metric depth with --depth")
-            disparity = 1.0 - raw if args.invert else raw
-        reverse, why = photo.looks_reversed(disparity)
-        if reverse:
-            fix = "drop --invert" if args.invert else "pass --invert"
-            _warn(args, f"{source}: the map looks reversed ({why}); if near is dark in it, {fix}")
-    _say_embedded(args, source)
-    if disparity.shape != (h, w):
-        mh, mw = disparity.shape
-        if not args.resize_disparity:
-            raise InputError(f"{source}: map is {mw}x{mh}, image is {w}x{h}; pass --resize-disparity to resize it")
-        if abs(math.log((mw / mh) / (w / h))) > 0.02:
-            raise InputError(f"{source}: map is {mw}x{mh}, image is {w}x{h}: a different aspect ratio, so resizing "
-                             "would stretch it (was one of them rotated? the image's EXIF orientation is applied)")
-        disparity = _resize(disparity, (h, w))
-    return np.ascontiguousarray(disparity, np.float32), norm
-
-
-def _say_embedded(args: argparse.Namespace, path: str):
-    """What the reader did with the file's orientation and colour profile, said in one line."""
-    from . import photo
-    from .io import _FORMATS
-
-    meta = photo.embedded(Path(path), _FORMATS.get(Path(path).suffix.lower(), ""))
-    done = []
-    if meta.orientation != 1:
-        done.append(f"EXIF orientation {meta.orientation} applied ({photo.orientation_words(meta.orientation)})")
-    if not meta.is_srgb:
-        done.append(f"colour profile '{meta.icc_name}' converted to sRGB")
-    if done:
-        _say(args, f"{'image' if path == args.image else 'map'}: {'; '.join(done)}")
-    return meta
-
-
-def _check_sizes_from_headers(args: argparse.Namespace) -> None:
-    """Refuse an image and map of different sizes from their headers, before decoding either (a 64 MP PNG takes
-    seconds to decode); the readers still check each file in full afterwards."""
-    from .io import read_size
-
-    source = args.depth or args.disparity
-    if args.resize_disparity or source is None:
-        return
-    (h, w), (mh, mw) = read_size(args.image), read_size(source)
-    if (mh, mw) != (h, w):
-        raise InputError(f"{source}: map is {mw}x{mh}, image is {w}x{h}; pass --resize-disparity to resize it")
-
-
 def cmd_render(args: argparse.Namespace) -> int:
     from .batch import is_batch, run_batch
 
@@ -473,116 +250,18 @@ def cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
-def render_one(args: argparse.Namespace) -> dict:
-    """One photo, as ``bokehray render IMAGE ... -o OUTPUT`` does it; every batch task runs this too (with
-    ``quiet``), so a batch output is the single-file output. Returns what was done (output, pixels, K, d_f)."""
-    physical = _check_render_flags(args)  # before any import that takes time
-    _check_output(args.output, args)
-    _check_sizes_from_headers(args)
-    bar = _Progress(args, {"read": 5, **({"depth": 30} if args.depth_model else {}), "render": 60, "write": 5})
-    try:
-        return _render(args, physical, bar)
-    finally:
-        bar.close()
-
-
-def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:
-    from . import io, photo
-    from .lens import BlurParams, ThinLens
-    from .validate import check_radiance
-
-    t0 = time.perf_counter()
-    bar.stage("read")
-    image = io.read_image(args.image)
-    check_radiance(image, str(args.image))  # the limit every level has, with the file named
-    h, w = image.shape[:2]
-    meta = _say_embedded(args, args.image)
-    disparity, norm = _read_map(args, h, w, image, bar.stage("depth") if args.depth_model else None)
-
-    if physical:
-        focus_m = args.focus_distance
-        if args.focus_at is not None:
-            from .pipeline import focus_at
-
-            x, y = args.focus_at
-            focus_m = float(norm.depth(focus_at(disparity, x, y)))
-            if not np.isfinite(focus_m):
-                raise InputError(f"--focus-at {x},{y}: that point is at infinity (sky); a thin lens focused there "
-                                 "needs --focus-distance, or click on a surface")
-        if focus_m is None:
-            raise InputError("a physical lens needs --focus-distance or --focus-at X,Y")
-        lens = ThinLens(args.focal_length, args.f_number, focus_m, args.sensor_width)
-        blur = lens.blur_params(norm, w)
-    else:
-        if args.blur is not None:
-            k = args.blur
-        else:
-            amount = AMOUNT_DEFAULT if args.amount is None else args.amount
-            k = photo.k_from_amount(amount, h, w)
-            _say(args, f"blur: --amount {amount:g} -> K = {k:.1f} px ({amount / 100 * AMOUNT_K_FRACTION:.1%} of the "
-                 f"{math.hypot(h, w):.0f}-px diagonal){'' if args.amount is not None else ' (the default)'}")
-        if args.focus is not None:
-            d_f = args.focus
-        elif args.focus_at is not None:
-            from .pipeline import focus_at
-
-            d_f = focus_at(disparity, *args.focus_at)
-        else:
-            subject = photo.subject_focus(disparity)
-            d_f = subject.d_f
-            _say(args, f"focus: on the subject around pixel ({subject.x}, {subject.y}), d_f = {d_f:.3f} (the nearest "
-                 f"region holding {subject.share:.0%} of the centre-weighted frame; --focus-at X,Y to choose)")
-        blur = BlurParams(k, d_f)
-    if photo.is_display_referred(args.image) and not args.no_highlight_reconstruction and args.highlight_boost == 0:
-        image, found = photo.reconstruct_highlights(image)
-        if found:
-            _say(args, f"highlights: {found} clipped highlight{'s' * (found > 1)} reconstructed (display-referred "
-                 "input; --no-highlight-reconstruction keeps them clipped)")
-    t_read = time.perf_counter() - t0
-
-    _start_warp(args)
-    from .options import PreviewOptions, RaytraceOptions
-    from .pipeline import render_with_stats
-
-    rt_opts = RaytraceOptions(max_spp=args.max_spp)  # validated whatever the quality
-    # a batch's worker processes share the machine's cores (``threads``; the output does not depend on it)
-    level_options = rt_opts if args.quality == "raytrace" else PreviewOptions(threads=getattr(args, "threads", None))
-    out, stats = render_with_stats(image, disparity, blur, _aperture(args), quality=args.quality,
-                                   device=args.device, options=level_options,
-                                   layers=_layer_options(args), highlight_boost=args.highlight_boost,
-                                   progress=bar.layers(), refine=args.refine)
-    t1 = time.perf_counter()
-    bar.stage("write")
-    path = io.write_image(args.output, out, bit_depth=args.bit_depth, half=args.half, quality=args.jpeg_quality,
-                          exif=photo.exif_for_output(meta))  # JPEG keeps the photo's EXIF, orientation reset
-    t_write = time.perf_counter() - t1
-    if not args.quiet:
-        max_coc = float(blur.coc_radius(disparity).max())
-        refined = (f", refined {stats.refine['tiles_refined']}/{stats.refine['tiles_total']} tiles"
-                   if stats.refine else "")
-        print(f"wrote {path}  (K = {blur.k_px:.3f} px, d_f = {blur.focus_disparity:.4f}, "
-              f"max CoC {max_coc:.1f} px, {stats.stage_seconds.get('total', 0.0):.2f} s{refined})")
-    if args.stats:
-        info = stats.as_dict()
-        info["stage_seconds"] = {"read": round(t_read, 4), **info["stage_seconds"], "write": round(t_write, 4)}
-        info["blur"] = {"K_px": blur.k_px, "focus_disparity": blur.focus_disparity}
-        print(json.dumps(info, indent=2))
-    return {"output": str(path), "pixels": h * w, "seconds": time.perf_counter() - t0, "k_px": blur.k_px,
-            "focus_disparity": blur.focus_disparity}
-
-
 def cmd_demo(args: argparse.Namespace) -> int:
     from . import io
     from .demo import build_demo_scene, contact_sheet
     from .lens import BlurParams
     from .pipeline import render_with_stats
 
-    _start_warp(args)
+    start_warp(args)
     w, h = args.size
     out_dir = Path(args.output)
     scene = build_demo_scene(width=w, height=h)
-    aperture = _aperture(args)
-    opts = _layer_options(args)
+    aperture = aperture_of(args)
+    opts = layer_options_of(args)
     written: list[tuple[str, Path]] = []
 
     def save(name: str, img: np.ndarray, what: str) -> None:
@@ -639,8 +318,8 @@ def cmd_synth(args: argparse.Namespace) -> int:
         levels = tuple(float(v) for v in args.blur_levels.split(","))
     except ValueError:
         raise InputError(f"--blur-levels: expected comma-separated numbers, got {args.blur_levels!r}") from None
-    _start_warp(args)
-    config = SynthConfig(size=args.size, blur_levels=levels, aperture=_aperture(args), max_spp=args.max_spp,
+    start_warp(args)
+    config = SynthConfig(size=args.size, blur_levels=levels, aperture=aperture_of(args), max_spp=args.max_spp,
                          fg_dir=args.fg, bg_dir=args.bg)
     paths = generate(config, args.n, args.output, seed=args.seed, workers=args.workers, progress=not args.quiet,
                      overwrite=args.overwrite, executor=args.executor, scheduler=args.scheduler)
@@ -661,7 +340,7 @@ def _refiner_module(name: str):
 
 def cmd_train_refiner(args: argparse.Namespace) -> int:
     train = _refiner_module("train")
-    _start_warp(args)
+    start_warp(args)
     if args.threads is not None:
         if args.threads < 1:
             raise InputError(f"--threads: expected >= 1, got {args.threads}")
@@ -680,12 +359,6 @@ def cmd_train_refiner(args: argparse.Namespace) -> int:
     if not args.quiet:
         print(f"wrote {weights}")
     return 0
-
-
-def _start_warp(args: argparse.Namespace) -> None:
-    """Initialise Warp (0.6 s import, module cache) only once a command is about to compute, so that
-    ``--help`` and argument errors return at once."""
-    init_warp_quietly(getattr(args, "debug", False))
 
 
 def _run(args: argparse.Namespace) -> int:
