@@ -25,6 +25,7 @@ lint: $(STAMP)
 
 bench-quick: $(STAMP)
 	$(BIN)/python benchmarks/bench_preview.py --quick
+	$(BIN)/python benchmarks/bench_bokeh_shape.py --quick
 
 # run time against error, bokehray levels and peers side by side (docs/benchmarks.md); peers that
 # are not installed are skipped with a one-line message

@@ -107,9 +107,8 @@ def study_stack(device: str, runs: int, size: int) -> dict:
 
 def _exact_plane(tex: np.ndarray, r: float, aperture: br.Aperture) -> np.ndarray:
     from reference import raytrace_ref
-    from test_raytrace import _inside
 
-    return raytrace_ref.disc_convolution(tex, r, _inside(aperture))
+    return raytrace_ref.disc_convolution(tex, r, raytrace_ref.inside(aperture))
 
 
 def study_plane(device: str, runs: int) -> dict:

@@ -23,22 +23,6 @@ from reference import raytrace_ref
 APERTURES = [br.Aperture(), br.Aperture(blades=6, rotation_deg=10.0), br.Aperture(blades=5, curvature=0.3)]
 
 
-def _inside(aperture: br.Aperture):
-    """Indicator of the unit-circumradius aperture, from its blade constraints (independent of the chords)."""
-    rows = aperture.blade_discs().astype(np.float64)
-
-    def f(x, y):
-        ok = x * x + y * y < 1.0
-        for nx, ny, h, big_r in rows:
-            if big_r == 0.0:
-                ok = ok & (nx * x + ny * y < h)
-            else:
-                ok = ok & ((x - h * nx) ** 2 + (y - h * ny) ** 2 < big_r * big_r)
-        return ok
-
-    return f
-
-
 def _psnr_lin(a, b):
     return float(10 * np.log10(1.0 / np.mean((np.asarray(a, np.float64) - b) ** 2)))
 
@@ -83,7 +67,7 @@ def test_cells_partition_the_aperture(aperture, strips):
     for ux, uy, hx, hy, _ in c:
         count += (np.abs(xx - ux) < hx) & (np.abs(yy - uy) < hy)
     assert count.max() == 1  # no overlaps
-    truth = _inside(aperture)(xx, yy)
+    truth = raytrace_ref.inside(aperture)(xx, yy)
     sym_diff = np.mean((count > 0) != truth) * 4.0
     assert sym_diff < 1.5 * outline * np.pi  # outline tolerance, in unit-circumradius units times the perimeter
 
@@ -94,7 +78,7 @@ def test_one_strip_is_one_box_of_the_apertures_area_on_its_centroid(aperture):
     n = 2001
     g = (np.arange(n) + 0.5) / n * 2 - 1
     xx, yy = np.meshgrid(g, g)
-    inside = _inside(aperture)(xx, yy)
+    inside = raytrace_ref.inside(aperture)(xx, yy)
     np.testing.assert_allclose(4 * hx * hy, inside.mean() * 4.0, rtol=2e-3)
     np.testing.assert_allclose([ux, uy], [xx[inside].mean(), yy[inside].mean()], atol=2e-3)
     assert hx == hy and weight == 1.0
@@ -107,7 +91,7 @@ def test_single_fronto_parallel_layer_is_the_exact_disc_convolution_at_defaults(
     tex = np.concatenate([rng.random((h, w, 3)), np.ones((h, w, 1))], 2).astype(np.float32)
     blur = br.BlurParams(20.0, 0.5)  # layer at d = 0: radius 10 px, behind focus
     got, _ = raytrace_layers([Layer(tex, plane=(0, 0, 0.0))], blur, device=device)
-    want = raytrace_ref.disc_convolution(tex[..., :3], 10.0, _inside(br.Aperture()))
+    want = raytrace_ref.disc_convolution(tex[..., :3], 10.0, raytrace_ref.inside(br.Aperture()))
     assert _psnr_lin(got[..., :3], want) > 45.0
     srgb = lambda x: br.io.linear_to_srgb(np.clip(x, 0, 1))  # noqa: E731
     assert _psnr_lin(srgb(got[..., :3]), srgb(want)) > 45.0
@@ -130,7 +114,7 @@ def test_point_light_spread_is_the_exact_aperture(aperture, radius):
     spread = got[..., 0] / 1000.0
     light = np.zeros((n, n, 1))
     light[c, c] = 1.0
-    want = raytrace_ref.disc_convolution(light, float(radius), _inside(aperture), sub=8)[..., 0]
+    want = raytrace_ref.disc_convolution(light, float(radius), raytrace_ref.inside(aperture), sub=8)[..., 0]
     np.testing.assert_allclose(spread.sum(), 1.0, atol=1e-4)  # energy conserved
     assert np.abs(spread - want).sum() < 0.04
     # two pixels inside the outline: a flat plateau of the right height

@@ -132,3 +132,19 @@ def disc_convolution(tex: np.ndarray, r: float, inside, sub: int = 16) -> np.nda
             if wgt:
                 out += wgt * pad[big_r - dy : big_r - dy + h, big_r - dx : big_r - dx + w]
     return out
+
+
+def inside(aperture):
+    """Indicator of the unit-circumradius aperture, from its blade constraints (independent of the chords)."""
+    rows = aperture.blade_discs().astype(np.float64)
+
+    def f(x, y):
+        ok = x * x + y * y < 1.0
+        for nx, ny, h, big_r in rows:
+            if big_r == 0.0:
+                ok = ok & (nx * x + ny * y < h)
+            else:
+                ok = ok & ((x - h * nx) ** 2 + (y - h * ny) ** 2 < big_r * big_r)
+        return ok
+
+    return f
