@@ -19,7 +19,7 @@ from ._quiet import init_warp_quietly
 from .errors import InputError
 from .photo import AMOUNT_DEFAULT, AMOUNT_K_FRACTION
 
-__all__ = ["aperture_of", "layer_options_of", "render_one", "start_warp"]
+__all__ = ["aperture_of", "layer_options_of", "read_map", "render_one", "start_warp"]
 
 
 def start_warp(args: argparse.Namespace) -> None:
@@ -219,6 +219,18 @@ def _read_map(args: argparse.Namespace, h: int, w: int, image: np.ndarray | None
                              "would stretch it (was one of them rotated? the image's EXIF orientation is applied)")
         disparity = _resize(disparity, (h, w))
     return np.ascontiguousarray(disparity, np.float32), norm
+
+
+def read_map(image: np.ndarray, *, disparity: str | None = None, depth: str | None = None,
+             depth_model: str | None = None, resize_disparity: bool = False, device: str = "cpu"):
+    """The disparity map of ``image`` exactly as ``bokehray render`` reads it with these flags (and the defaults of
+    the others): ``(d, DepthNormalization or None)``. Used by ``bokehray view``."""
+    if sum(v is not None for v in (disparity, depth, depth_model)) != 1:
+        raise InputError("give exactly one of --disparity D, --depth D or --depth-model DIR")
+    args = argparse.Namespace(disparity=disparity, depth=depth, depth_model=depth_model, depth_scale=None,
+                              normalize=False, invert=False, z_near=None, z_far=None, resize_disparity=resize_disparity,
+                              save_depth=False, output="", device=device, quiet=True)
+    return _read_map(args, image.shape[0], image.shape[1], image)
 
 
 def _say_embedded(args: argparse.Namespace, path: str):

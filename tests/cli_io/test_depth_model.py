@@ -138,3 +138,23 @@ def test_cli_depth_model_renders_and_saves_the_map(models, photo, tmp_path, caps
     code = main(["render", str(img), "--depth-model", str(models["da"]), "-o", str(tmp_path / "x.png"),
                  "--normalize"])
     assert code == 2 and "--normalize" in capsys.readouterr().err
+
+
+def test_view_estimates_the_map_as_render_does_and_exports_the_same_image(models, photo, tmp_path, capsys):
+    """bokehray view --depth-model: the page's map is render's map, and its export is what the shown command writes."""
+    pytest.importorskip("starlette")
+    import shlex
+
+    from bokehray.view.session import ViewSession, parse_params
+
+    img = br.write_image(tmp_path / "p.png", photo)
+    session = ViewSession.from_files(str(img), depth_model=str(models["da"]), export_dir=tmp_path)
+    want, _ = depth_model.estimate_disparity(br.read_image(img), models["da"])
+    np.testing.assert_array_equal(session.disparity, want)
+    p = parse_params({"blur": 6.0, "focus": 0.5}, session.disparity)
+    written, command = session.export(p, "png", None)
+    argv = shlex.split(command)
+    assert argv[argv.index("--depth-model") + 1] == str(models["da"].resolve())
+    argv[argv.index("-o") + 1] = str(tmp_path / "again.png")
+    assert main(argv[1:]) == 0, capsys.readouterr().err
+    assert (tmp_path / "again.png").read_bytes() == written.read_bytes()

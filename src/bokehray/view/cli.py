@@ -20,7 +20,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
     v.add_argument("image", help="all-in-focus image: PNG/JPEG/TIFF (sRGB, 8/16-bit) or EXR/float TIFF (linear)")
     src = v.add_mutually_exclusive_group(required=True)
     src.add_argument("--disparity", help="disparity map in [0, 1], 1 = nearest: PNG 8/16-bit, EXR, TIFF, NPY")
-    src.add_argument("--depth", help="metric depth map in metres: EXR, float TIFF or NPY (min-max normalised)")
+    src.add_argument("--depth", help="metric depth map in metres: EXR, float TIFF or NPY (as bokehray render reads it)")
+    src.add_argument("--depth-model", metavar="DIR", help="no map: estimate one with a local Depth Anything / DPT "
+                     "checkpoint folder, as bokehray render --depth-model does (never downloads)")
     v.add_argument("--resize-disparity", action="store_true", help="resize a disparity/depth map of another size")
     v.add_argument("--host", default="127.0.0.1",
                    help="address to listen on (default 127.0.0.1; anything else exposes the page to the network)")
@@ -59,7 +61,7 @@ def cmd_view(args: argparse.Namespace) -> int:
         device = str(wp.get_device(args.device))
     except (RuntimeError, ValueError) as e:
         raise InputError(f"--device: {args.device!r} is not available here ({e})") from None
-    session = ViewSession.from_files(args.image, disparity=args.disparity, depth=args.depth,
+    session = ViewSession.from_files(args.image, disparity=args.disparity, depth=args.depth, depth_model=args.depth_model,
                                      resize_disparity=args.resize_disparity, export_dir=export_dir,
                                      proxy_long_side=args.proxy_size, display_long_side=args.display_size,
                                      device=device)

@@ -225,6 +225,7 @@ class ViewSession:
 
     def __init__(self, image: np.ndarray, disparity: np.ndarray, *, proxy_long_side: int = 640,
                  display_long_side: int = 2048, image_path: str | None = None, disparity_path: str | None = None,
+                 depth_model_path: str | None = None,
                  depth_path: str | None = None, resize_disparity: bool = False, export_dir: str | Path = ".",
                  device: str = "cpu") -> None:
         if proxy_long_side < 16:
@@ -241,6 +242,7 @@ class ViewSession:
                              f"{self.disparity.shape}")
         self.device = device
         self.image_path, self.disparity_path, self.depth_path = image_path, disparity_path, depth_path
+        self.depth_model_path = depth_model_path
         self.resize_disparity = resize_disparity
         self.export_dir = Path(export_dir).resolve()
         # the proxies: f x f box means in linear light (K scales by 1/f), finest first; see ProxyLadder
@@ -256,26 +258,16 @@ class ViewSession:
 
     @classmethod
     def from_files(cls, image_path: str, *, disparity: str | None = None, depth: str | None = None,
-                   resize_disparity: bool = False, **kw) -> ViewSession:
-        """Read the inputs as ``bokehray render`` does (same readers, checks and messages)."""
-        if (disparity is None) == (depth is None):
-            raise InputError("give exactly one of --disparity D or --depth D")
-        image = br.read_image(image_path)
-        h, w = image.shape[:2]
-        if depth is not None:
-            d, _ = br.disparity_from_depth(br.read_depth(depth))
-        else:
-            d = br.read_disparity(disparity, check_range=True)
-        if d.shape != (h, w):
-            source = depth or disparity
-            if not resize_disparity:
-                raise InputError(f"{source}: map is {d.shape[1]}x{d.shape[0]}, image is {w}x{h}; "
-                                 "pass --resize-disparity to resize it")
-            from skimage.transform import resize
+                   depth_model: str | None = None, resize_disparity: bool = False, **kw) -> ViewSession:
+        """Read the inputs as ``bokehray render`` does (the same readers, depth conventions, checks and messages;
+        ``depth_model`` estimates the map with a local checkpoint, as ``--depth-model`` does)."""
+        from ..render_job import read_map
 
-            d = resize(d, (h, w), order=1, mode="edge", anti_aliasing=False, preserve_range=True).astype(np.float32)
+        image = br.read_image(image_path)
+        d, _ = read_map(image, disparity=disparity, depth=depth, depth_model=depth_model,
+                        resize_disparity=resize_disparity, device=kw.get("device", "cpu"))
         return cls(image, d, image_path=image_path, disparity_path=disparity, depth_path=depth,
-                   resize_disparity=resize_disparity, **kw)
+                   depth_model_path=depth_model, resize_disparity=resize_disparity, **kw)
 
     # --- what does not change -------------------------------------------------------------------------
     def _cached(self, name: str, make) -> bytes:
@@ -306,8 +298,8 @@ class ViewSession:
 
     def info(self) -> dict:
         names = {"image": Path(self.image_path).name if self.image_path else "(array)",
-                 "map": Path(self.depth_path or self.disparity_path or "(array)").name,
-                 "map_kind": "depth" if self.depth_path else "disparity"}
+                 "map": Path(self.depth_model_path or self.depth_path or self.disparity_path or "(array)").name,
+                 "map_kind": "depth model" if self.depth_model_path else "depth" if self.depth_path else "disparity"}
         return {
             "width": self.w, "height": self.h, "files": names,
             "proxy": {"factor": self.proxy_factor, "width": self.proxy_image.shape[1],
@@ -398,7 +390,9 @@ class ViewSession:
         q = shlex.quote
         img = str(Path(self.image_path).resolve()) if self.image_path else "IMAGE"
         args = ["bokehray", "render", q(img)]
-        if self.depth_path:
+        if self.depth_model_path:
+            args += ["--depth-model", q(str(Path(self.depth_model_path).resolve()))]
+        elif self.depth_path:
             args += ["--depth", q(str(Path(self.depth_path).resolve()))]
         else:
             args += ["--disparity", q(str(Path(self.disparity_path).resolve()) if self.disparity_path else "D")]
