@@ -118,6 +118,14 @@ class Aperture:
         if self.is_disc:
             return -1.0, 1.0
         y = np.linspace(-1.0, 1.0, 200_001)
+        lo, hi = self.chords(y)
+        inside = np.flatnonzero(hi > lo)
+        return float(y[inside[0]]) - 1e-5, float(y[inside[-1]]) + 1e-5
+
+    def chords(self, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The shape's chord ``[lo, hi]`` at heights ``y`` (unit circumradius; ``hi <= lo`` where the row misses
+        it), in float64: the NumPy form of ``bokehray_kernels.aperture.chord``."""
+        y = np.asarray(y, np.float64)
         lo = -np.sqrt(np.maximum(1.0 - y * y, 0.0))
         hi = -lo
         for nx, ny, h, big_r in self.blade_discs().astype(np.float64):
@@ -134,8 +142,7 @@ class Aperture:
                 sq = np.sqrt(np.maximum(q, 0.0))
                 lo = np.where(q > 0, np.maximum(lo, h * nx - sq), hi)
                 hi = np.where(q > 0, np.minimum(hi, h * nx + sq), lo)
-        inside = np.flatnonzero(hi > lo)
-        return float(y[inside[0]]) - 1e-5, float(y[inside[-1]]) + 1e-5
+        return lo, hi
 
     def blade_discs(self) -> np.ndarray:
         """The shape as an intersection of constraints, for a unit circumradius.

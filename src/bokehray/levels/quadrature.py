@@ -37,32 +37,7 @@ from ..lens import Aperture
 OUTLINE = 0.02
 """Default outline tolerance of the cell partitions (unit-circumradius units)."""
 
-__all__ = ["OUTLINE", "CellTable", "aperture_chords", "cells", "cell_table", "strips_for_radius"]
-
-
-def aperture_chords(aperture: Aperture, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(lo, hi)`` of the unit-circumradius aperture on the rows ``y`` (empty where ``lo >= hi``).
-
-    Float64 NumPy version of ``bokehray_kernels.aperture.chord``.
-    """
-    y = np.asarray(y, np.float64)
-    lo = -np.sqrt(np.maximum(1.0 - y * y, 0.0))
-    hi = -lo.copy()
-    for nx, ny, h, big_r in aperture.blade_discs().astype(np.float64):
-        if big_r == 0.0:
-            rhs = h - ny * y
-            if nx > 1e-7:
-                hi = np.minimum(hi, rhs / nx)
-            elif nx < -1e-7:
-                lo = np.maximum(lo, rhs / nx)
-            else:
-                hi = np.where(rhs < 0, lo, hi)
-        else:
-            q = big_r * big_r - (y - h * ny) ** 2
-            sq = np.sqrt(np.maximum(q, 0.0))
-            lo = np.where(q > 0, np.maximum(lo, h * nx - sq), hi)
-            hi = np.where(q > 0, np.minimum(hi, h * nx + sq), lo)
-    return lo, hi
+__all__ = ["OUTLINE", "CellTable", "cells", "cell_table", "strips_for_radius"]
 
 
 def _merge_ends(ends: np.ndarray, tol: float) -> list[tuple[int, int, float]]:
@@ -97,7 +72,7 @@ def cells(aperture: Aperture, strips: int, *, sub_rows: int = 32, tol: float | N
     if g == 1:
         # one cell: the square of the aperture's area on its centroid (a box blur of the right size)
         yy = np.linspace(-1.0, 1.0, 4001)
-        lo, hi = aperture_chords(aperture, yy)
+        lo, hi = aperture.chords(yy)
         wdt = np.maximum(hi - lo, 0.0)
         area = float(np.trapezoid(wdt, yy))
         cy = float(np.trapezoid(wdt * yy, yy)) / area
@@ -122,7 +97,7 @@ def cells(aperture: Aperture, strips: int, *, sub_rows: int = 32, tol: float | N
     for j in range(g):
         v0 = -1.0 + j * hs
         vc = v0 + (np.arange(m) + 0.5) * dv
-        lo, hi = aperture_chords(aperture, vc)
+        lo, hi = aperture.chords(vc)
         ok = hi > lo
         if not ok.any():
             continue
