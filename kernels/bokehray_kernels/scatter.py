@@ -158,6 +158,25 @@ def _sub_edge(t0: float, t1: float, j: int, n: int, at_top: int, at_bot: int) ->
 
 
 @wp.func
+def _deposit_rest(buf: wp.array2d(dtype=wp.vec4), xc: float, yc: float, rho: float, v: wp.vec4, rest: float,
+                  blades: wp.array(dtype=wp.vec4), n_blades: int, sgn: float):
+    # the share ``rest`` of ``v`` the rows did not deposit (the exact-area normalisation's remainder): on the
+    # centre row's chord (at least one pixel wide), so every source deposits exactly its value
+    if rest == 0.0:
+        return
+    r = wp.clamp(int(wp.floor(yc)), 0, buf.shape[0] - 1)
+    cc = _signed_chord(0.0, rho, blades, n_blades, sgn)
+    a = xc + cc[0]
+    b = xc + cc[1]
+    if b - a < 1.0:
+        a = wp.floor(xc)
+        b = a + 1.0
+    vr = v * (rest / (b - a))
+    _deposit_end(buf, r, a, a, vr)
+    _deposit_end(buf, r, b, b, -vr)
+
+
+@wp.func
 def _scatter_one(
     buf: wp.array2d(dtype=wp.vec4),
     xc: float,
@@ -234,18 +253,7 @@ def _scatter_one(
             ua = ub
         u_prev = u1
         c_prev = c1
-    rest = float(wp.float64(1.0) - tr * wp.float64(inv))
-    if rest != 0.0:
-        r = wp.clamp(int(wp.floor(yc)), 0, h - 1)
-        cc = _signed_chord(0.0, rho, blades, n_blades, sgn)
-        a = xc + cc[0]
-        b = xc + cc[1]
-        if b - a < 1.0:
-            a = wp.floor(xc)
-            b = a + 1.0
-        vr = v * (rest / (b - a))
-        _deposit_end(buf, r, a, a, vr)
-        _deposit_end(buf, r, b, b, -vr)
+    _deposit_rest(buf, xc, yc, rho, v, float(wp.float64(1.0) - tr * wp.float64(inv)), blades, n_blades, sgn)
 
 
 @wp.func
@@ -288,18 +296,7 @@ def _scatter_coarse(
                 vv = v * (hh * inv)
                 _deposit_end(buf, k, xc + c[0], xc + c[0], vv)
                 _deposit_end(buf, k, xc + c[1], xc + c[1], -vv)
-    rest = float(wp.float64(1.0) - tr * wp.float64(inv))
-    if rest != 0.0:
-        r = wp.clamp(int(wp.floor(yc)), 0, h - 1)
-        cc = _signed_chord(0.0, rho, blades, n_blades, sgn)
-        a = xc + cc[0]
-        b = xc + cc[1]
-        if b - a < 1.0:
-            a = wp.floor(xc)
-            b = a + 1.0
-        vr = v * (rest / (b - a))
-        _deposit_end(buf, r, a, a, vr)
-        _deposit_end(buf, r, b, b, -vr)
+    _deposit_rest(buf, xc, yc, rho, v, float(wp.float64(1.0) - tr * wp.float64(inv)), blades, n_blades, sgn)
 
 
 @wp.func
