@@ -60,7 +60,7 @@ def boost_highlights(image: np.ndarray, strength: float, threshold: float = 0.95
     Off by default, and never used for metrics. A boost that would take a pixel beyond the radiance a render
     takes (:data:`~bokehray.validate.MAX_RADIANCE`) is refused, naming the pixel.
     """
-    if not strength <= np.finfo(np.float32).max:  # the kernels compute in float32
+    if not strength <= float(np.finfo(np.float32).max):  # the kernels compute in float32 (a Python float: no cast)
         raise InputError(f"highlight_boost: expected a value within float32's range (3.4e38), got {strength:g}")
     peak = image.max(axis=2, keepdims=True)
     with np.errstate(over="ignore", invalid="ignore"):  # an overflow is refused below, naming the pixel
