@@ -387,6 +387,15 @@ def _os_error_line(e: OSError) -> str:
     return str(e)
 
 
+def _exit_now(code: int) -> None:
+    """End the process at once: the outputs are complete or absent (atomic writes), temporaries are removed."""
+    import os
+
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     with _sigterm_raises():
         try:
@@ -414,7 +423,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                 # atomic writes removed their temporary file on the way out: nothing partial is left
                 what = "terminated (SIGTERM)" if isinstance(e, Terminated) else "interrupted"
                 print(f"bokehray: {what}; no partial output was left", file=sys.stderr)
-                return EXIT_TERMINATED if isinstance(e, Terminated) else EXIT_INTERRUPTED
+                code = EXIT_TERMINATED if isinstance(e, Terminated) else EXIT_INTERRUPTED
+                if argv is None:  # the command itself (not a caller's main([...])): do not wait at exit for a
+                    _exit_now(code)  # worker thread still inside a native launch (up to seconds on a 12 MP layer)
+                return code
         if message is not None:  # one line; warnings raised on the way to the error are dropped (--debug shows them)
             print(f"bokehray: error: {message}", file=sys.stderr)
             return EXIT_INPUT

@@ -213,3 +213,42 @@ def test_the_right_types_still_work():
     assert br.focus_at(d, 1, 2) == pytest.approx(float(np.median(d[0:7, 0:6])))
     assert br.RaytraceOptions(max_spp=3).max_spp == 3 and br.BlurParams(4, 0.5).k_px == 4.0
     assert issubclass(ResourceError, MemoryError)
+
+
+def test_ctrl_c_stops_the_preview_within_a_second_while_layers_are_in_flight(tmp_path):
+    """Issue 18.5 for the preview: Ctrl-C arrived in the main thread but the pool of layer renders was waited for
+    (2.96 s on a 13 MP render; up to a layer's whole render). A layer render that takes 60 s stands in here."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    img, d = _scene(64, 64)
+    br.write_image(tmp_path / "i.exr", img)
+    br.write_disparity(tmp_path / "d.png", d)
+    code = (
+        "import sys, time\n"
+        "import bokehray.levels.preview as pv\n"
+        "def slow(*a, **k):\n"
+        "    print('LAYER', flush=True)\n"
+        "    time.sleep(60)\n"
+        "pv._render_layer = slow\n"
+        "from bokehray.cli import main\n"
+        "sys.exit(main())\n"
+    )
+    out = tmp_path / "o.png"
+    proc = subprocess.Popen([sys.executable, "-c", code, "render", str(tmp_path / "i.exr"), "--disparity",
+                             str(tmp_path / "d.png"), "-o", str(out), "--blur", "8", "--focus", "0.5", "--quiet"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "LAYER", proc.stderr.read()
+        t = time.perf_counter()
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=30)
+        waited = time.perf_counter() - t
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 130 and waited < 1.5, (waited, err)
+    assert err.strip() == "bokehray: interrupted; no partial output was left" and not out.exists()

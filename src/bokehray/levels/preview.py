@@ -300,7 +300,8 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
     # Layers render independently (Warp CPU launches release the GIL); they are composited strictly back to
     # front as they complete, with at most ``threads + 1`` layers in flight to bound memory.
     done = 0
-    with ThreadPoolExecutor(max_workers=scatter.threads) as pool:
+    pool = ThreadPoolExecutor(max_workers=scatter.threads)
+    try:
         pending: list[tuple[sc.LayerRecord, Future]] = []
         it = iter(layers)
 
@@ -320,6 +321,12 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
             done += 1
             if progress is not None:
                 progress(done, len(layers))
+    except BaseException:
+        # Ctrl-C, or a progress callback that abandons the render: return at once, not after the layers in
+        # flight (their results are dropped; the command line then exits without waiting for them)
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown(wait=True)
 
     result = wp.empty((h, w), dtype=wp.vec3, device=device)
     wp.launch(bk.finalize_kernel, dim=(h, w), inputs=[acc, arrays.image, arrays.ids], outputs=[result], device=device)
