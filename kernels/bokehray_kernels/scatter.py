@@ -158,6 +158,14 @@ def _sub_edge(t0: float, t1: float, j: int, n: int, at_top: int, at_bot: int) ->
 
 
 @wp.func
+def _signed_extent(extent: wp.vec2, rho: float, sgn: float) -> wp.vec2:
+    # the shape's vertical extent (top, bottom) at radius rho, point-reflected for sgn < 0 (in front of focus)
+    if sgn < 0.0:
+        return wp.vec2(-extent[1] * rho, -extent[0] * rho)
+    return wp.vec2(extent[0] * rho, extent[1] * rho)
+
+
+@wp.func
 def _deposit_rest(buf: wp.array2d(dtype=wp.vec4), xc: float, yc: float, rho: float, v: wp.vec4, rest: float,
                   blades: wp.array(dtype=wp.vec4), n_blades: int, sgn: float):
     # the share ``rest`` of ``v`` the rows did not deposit (the exact-area normalisation's remainder): on the
@@ -192,11 +200,9 @@ def _scatter_one(
     # sgn = -1 draws the shape point-reflected (sources in front of the focal plane). Heights
     # are relative to the centre (u = y - yc; exact for row edges), so the same source is cut
     # into the same sub-rows wherever it lies (tiles equal the untiled render).
-    u_top = extent[0] * rho
-    u_bot = extent[1] * rho
-    if sgn < 0.0:
-        u_top = -extent[1] * rho
-        u_bot = -extent[0] * rho
+    span = _signed_extent(extent, rho, sgn)
+    u_top = span[0]
+    u_bot = span[1]
     ky0 = int(wp.floor(yc + u_top))
     ky1 = int(wp.floor(yc + u_bot))
     h = buf.shape[0]
@@ -275,11 +281,9 @@ def _scatter_coarse(
     sub-row ramps of ``_scatter_one`` would buy nothing there. Same normalisation: density
     ``v / (area rho^2)``, the remainder on the centre row's chord, so the source deposits exactly v.
     """
-    u_top = extent[0] * rho
-    u_bot = extent[1] * rho
-    if sgn < 0.0:
-        u_top = -extent[1] * rho
-        u_bot = -extent[0] * rho
+    span = _signed_extent(extent, rho, sgn)
+    u_top = span[0]
+    u_bot = span[1]
     ky0 = int(wp.floor(yc + u_top))
     ky1 = int(wp.floor(yc + u_bot))
     h = buf.shape[0]
