@@ -47,7 +47,7 @@ def layer_sources_kernel(
     fill_weight: wp.array2d(dtype=float),
     fill_known: wp.array2d(dtype=float),
 ):
-    """Sources of one layer in local coordinates: (RGB, 1) on its pixels, 0 elsewhere.
+    """Sources of one layer in local coordinates: (RGB, 1) on its pixels; every array must come zeroed.
 
     ``coc`` receives the *signed* CoC (the scatter takes its magnitude; the
     ray tracer turns it back into disparity).
@@ -60,11 +60,10 @@ def layer_sources_kernel(
     gy = y + y0
     gx = x + x0
     sid = slice_id[gy, gx]
+    if sid < 0 or sid > layer:
+        return  # copied, or hidden by a nearer layer: the arrays' zeros stand
     if with_fill != 0:
-        if sid >= 0 and sid <= layer:
-            fill_known[y, x] = 1.0
-        else:
-            fill_known[y, x] = 0.0
+        fill_known[y, x] = 1.0
     if sid == layer:
         c = image[gy, gx]
         s = signed_coc[gy, gx]
@@ -73,12 +72,6 @@ def layer_sources_kernel(
         if with_fill != 0:
             fill_total[y, x] = wp.vec4(_tonemap(c[0]), _tonemap(c[1]), _tonemap(c[2]), s)
             fill_weight[y, x] = 1.0
-    else:
-        src[y, x] = wp.vec4()
-        coc[y, x] = 0.0
-        if with_fill != 0:
-            fill_total[y, x] = wp.vec4()
-            fill_weight[y, x] = 0.0
 
 
 @wp.kernel
@@ -108,17 +101,20 @@ def pull_kernel(
     coarse_known[y, x] = k
 
 
-@wp.kernel
-def push_kernel(
-    coarse_value: wp.array2d(dtype=wp.vec4),
-    coarse_density: wp.array2d(dtype=float),
-    coarse_has: wp.array2d(dtype=float),
-    top: int,
-    total: wp.array2d(dtype=wp.vec4),
-    weight: wp.array2d(dtype=float),
-    known: wp.array2d(dtype=float),
-):
-    """Turn one level's sums into (value, density, has) in place, interpolating what it lacks.
+@wp.struct
+class Pushed:
+    """One texel of a pushed level: mean value, density, and whether the density is known (1) or not (0)."""
+
+    value: wp.vec4
+    density: float
+    has: float
+
+
+@wp.func
+def push_texel(coarse_value: wp.array2d(dtype=wp.vec4), coarse_density: wp.array2d(dtype=float),
+               coarse_has: wp.array2d(dtype=float), top: int, x: int, y: int, total: wp.vec4, w: float,
+               k: float) -> Pushed:
+    """Texel ``(y, x)`` of a level with sums (``total``, weight ``w``, known ``k``), pushed from the coarser level.
 
     ``value``: mean (tone-mapped RGB, signed CoC) of the layer's own pixels.
     ``density``: the share of the visible (not hidden) pixels that belong to the
@@ -128,12 +124,9 @@ def push_kernel(
     pixel, both come from the coarser level (bilinear, weighted by what it has).
     With ``top != 0`` there is no coarser level.
     """
-    y, x = wp.tid()
-    w = weight[y, x]
-    k = known[y, x]
     v = wp.vec4()
     if w > 0.0:
-        v = total[y, x] / w
+        v = total / w
     density = float(0.0)
     has = float(0.0)
     if k > 0.0:
@@ -166,9 +159,32 @@ def push_kernel(
             if ds > 1.0e-8:
                 v = (coarse_value[t.y0, t.x0] * d00 + coarse_value[t.y0, t.x1] * d01 + coarse_value[t.y1, t.x0] * d10
                      + coarse_value[t.y1, t.x1] * d11) / ds
-    total[y, x] = v
-    weight[y, x] = density
-    known[y, x] = has
+    p = Pushed()
+    p.value = v
+    p.density = density
+    p.has = has
+    return p
+
+
+@wp.kernel
+def push_kernel(
+    coarse_value: wp.array2d(dtype=wp.vec4),
+    coarse_density: wp.array2d(dtype=float),
+    coarse_has: wp.array2d(dtype=float),
+    top: int,
+    total: wp.array2d(dtype=wp.vec4),
+    weight: wp.array2d(dtype=float),
+    known: wp.array2d(dtype=float),
+):
+    """Turn one level's sums into (value, density, has) in place, interpolating what it lacks (:func:`push_texel`).
+
+    The preview pushes levels down to 1 only: :func:`fill_sources_kernel` pushes the level-0 texels it fills.
+    """
+    y, x = wp.tid()
+    p = push_texel(coarse_value, coarse_density, coarse_has, top, x, y, total[y, x], weight[y, x], known[y, x])
+    total[y, x] = p.value
+    weight[y, x] = p.density
+    known[y, x] = p.has
 
 
 @wp.kernel
@@ -177,8 +193,12 @@ def fill_sources_kernel(
     layer: int,
     x0: int,
     y0: int,
-    fill_value: wp.array2d(dtype=wp.vec4),
-    fill_density: wp.array2d(dtype=float),
+    fill_total: wp.array2d(dtype=wp.vec4),
+    fill_weight: wp.array2d(dtype=float),
+    fill_known: wp.array2d(dtype=float),
+    coarse_value: wp.array2d(dtype=wp.vec4),
+    coarse_density: wp.array2d(dtype=float),
+    coarse_has: wp.array2d(dtype=float),
     dist_l1: wp.array2d(dtype=float),
     signed_coc: wp.array2d(dtype=float),
     s_lo: float,
@@ -188,6 +208,10 @@ def fill_sources_kernel(
     n_filled: wp.array(dtype=wp.int32),
 ):
     """Add the filled colour as sources where a nearer layer hides this one.
+
+    ``fill_*`` are level 0's sums (not pushed), ``coarse_*`` level 1 pushed: each hidden
+    pixel pushes its own level-0 texel (:func:`push_texel`, exactly what ``push_kernel``
+    would have stored there), so level 0 is never pushed as a whole.
 
     Opacity is the layer's extrapolated density: 1 for a continuous surface,
     the stroke coverage for a sparse layer (premultiplied, like every source).
@@ -200,11 +224,13 @@ def fill_sources_kernel(
     y, x = wp.tid()
     gy = y + y0
     gx = x + x0
-    density = fill_density[y, x]
-    if slice_id[gy, gx] <= layer or density < 0.02:
-        return
-    if dist_l1[y, x] <= _GATE * wp.abs(signed_coc[gy, gx]) + 1.0:
-        v = fill_value[y, x]
+    if slice_id[gy, gx] <= layer or dist_l1[y, x] > _GATE * wp.abs(signed_coc[gy, gx]) + 1.0:
+        return  # not hidden, or behind a hider too sharp to reveal it
+    p = push_texel(coarse_value, coarse_density, coarse_has, 0, x, y, fill_total[y, x], fill_weight[y, x],
+                   fill_known[y, x])
+    density = p.density
+    if density >= 0.02:
+        v = p.value
         a = wp.min(density, 1.0)
         src[y, x] = wp.vec4(_untonemap(v[0]) * a, _untonemap(v[1]) * a, _untonemap(v[2]) * a, a)
         coc[y, x] = wp.clamp(v[3], s_lo, s_hi)

@@ -340,13 +340,13 @@ def build_layer_sources(layer: LayerRecord, arrays: LayerSources) -> tuple[wp.ar
     device = arrays.device
     y0, y1, x0, x1 = layer.bbox
     h, w = y1 - y0, x1 - x0
-    src = wp.empty((h, w), dtype=wp.vec4, device=device)
-    coc = wp.empty((h, w), dtype=float, device=device)
+    src = wp.zeros((h, w), dtype=wp.vec4, device=device)  # zeroed: the kernel writes the layer's pixels only
+    coc = wp.zeros((h, w), dtype=float, device=device)
     fill = layer.filled
     pp_shape = (h, w) if fill else (1, 1)  # the pull-push pyramid, only when this layer is filled
-    totals = [wp.empty(pp_shape, dtype=wp.vec4, device=device)]
-    weights = [wp.empty(pp_shape, dtype=float, device=device)]
-    knowns = [wp.empty(pp_shape, dtype=float, device=device)]
+    totals = [wp.zeros(pp_shape, dtype=wp.vec4, device=device)]
+    weights = [wp.zeros(pp_shape, dtype=float, device=device)]
+    knowns = [wp.zeros(pp_shape, dtype=float, device=device)]
     wp.launch(
         bk.layer_sources_kernel,
         dim=(h, w),
@@ -364,7 +364,7 @@ def build_layer_sources(layer: LayerRecord, arrays: LayerSources) -> tuple[wp.ar
             wp.launch(bk.pull_kernel, dim=(ch, cw), inputs=[totals[-2], weights[-2], knowns[-2]],
                       outputs=[totals[-1], weights[-1], knowns[-1]], device=device)
         top = len(totals) - 1
-        for lv in range(top, -1, -1):
+        for lv in range(top, 0, -1):  # down to level 1: the fill pushes the level-0 texels it needs
             c = min(lv + 1, top)  # the top level has no coarser level (flag 1): it passes itself
             wp.launch(bk.push_kernel, dim=totals[lv].shape,
                       inputs=[totals[c], weights[c], knowns[c], int(lv == top)],
@@ -377,8 +377,8 @@ def build_layer_sources(layer: LayerRecord, arrays: LayerSources) -> tuple[wp.ar
         wp.launch(
             bk.fill_sources_kernel,
             dim=(h, w),
-            inputs=[arrays.ids, layer.index, x0, y0, totals[0], weights[0], dist, arrays.signed_coc, layer.s_lo,
-                    layer.s_hi],
+            inputs=[arrays.ids, layer.index, x0, y0, totals[0], weights[0], knowns[0], totals[1], weights[1],
+                    knowns[1], dist, arrays.signed_coc, layer.s_lo, layer.s_hi],
             outputs=[src, coc, arrays.filled],
             device=device,
         )

@@ -96,13 +96,13 @@ def _run_fill(scene, pull_levels, band: int = 64) -> dict:
     layer = scene["layer"]
     fill = pull_levels is not None
     image, scoc, sid = _wp(scene["image"], wp.vec3), _wp(scene["scoc"], float), _wp(scene["sid"], wp.int32)
-    src = wp.empty((h, w), dtype=wp.vec4, device=DEVICE)
-    coc = wp.empty((h, w), dtype=float, device=DEVICE)
+    src = wp.zeros((h, w), dtype=wp.vec4, device=DEVICE)  # the kernel writes the layer's pixels only
+    coc = wp.zeros((h, w), dtype=float, device=DEVICE)
     filled = wp.zeros(scene["n_layers"], dtype=wp.int32, device=DEVICE)
     pp = (h, w) if fill else (1, 1)
-    totals = [wp.empty(pp, dtype=wp.vec4, device=DEVICE)]
-    weights = [wp.empty(pp, dtype=float, device=DEVICE)]
-    knowns = [wp.empty(pp, dtype=float, device=DEVICE)]
+    totals = [wp.zeros(pp, dtype=wp.vec4, device=DEVICE)]
+    weights = [wp.zeros(pp, dtype=float, device=DEVICE)]
+    knowns = [wp.zeros(pp, dtype=float, device=DEVICE)]
     wp.launch(bk.layer_sources_kernel, dim=(h, w), inputs=[image, scoc, sid, layer, x0, y0, int(fill)],
               outputs=[src, coc, totals[0], weights[0], knowns[0]], device=DEVICE)
     out = {}
@@ -116,18 +116,21 @@ def _run_fill(scene, pull_levels, band: int = 64) -> dict:
             wp.launch(bk.pull_kernel, dim=shape, inputs=[totals[-2], weights[-2], knowns[-2]],
                       outputs=[totals[-1], weights[-1], knowns[-1]], device=DEVICE)
         top = len(totals) - 1
-        for lv in range(top, -1, -1):
+        for lv in range(top, 0, -1):  # as the preview: down to level 1
             c = min(lv + 1, top)
             wp.launch(bk.push_kernel, dim=totals[lv].shape, inputs=[totals[c], weights[c], knowns[c], int(lv == top)],
                       outputs=[totals[lv], weights[lv], knowns[lv]], device=DEVICE)
         dist = wp.empty((h, w), dtype=float, device=DEVICE)
         wp.launch(bk.row_distance_kernel, dim=h, inputs=[sid, layer, x0, y0, w], outputs=[dist], device=DEVICE)
         wp.launch(bk.column_distance_kernel, dim=(w + band - 1) // band, inputs=[dist, h, band], device=DEVICE)
-        # the pushed level 0, read before the fill (the fill does not write it)
-        out.update(value=totals[0].numpy(), density=weights[0].numpy(), has=knowns[0].numpy(), distance=dist.numpy())
         wp.launch(bk.fill_sources_kernel, dim=(h, w),
-                  inputs=[sid, layer, x0, y0, totals[0], weights[0], dist, scoc, scene["s_lo"], scene["s_hi"]],
+                  inputs=[sid, layer, x0, y0, totals[0], weights[0], knowns[0], totals[1], weights[1], knowns[1],
+                          dist, scoc, scene["s_lo"], scene["s_hi"]],
                   outputs=[src, coc, filled], device=DEVICE)
+        # level 0 pushed as a whole (what the fill pushed texel by texel), for the comparison with the oracle
+        wp.launch(bk.push_kernel, dim=totals[0].shape, inputs=[totals[1], weights[1], knowns[1], 0],
+                  outputs=[totals[0], weights[0], knowns[0]], device=DEVICE)
+        out.update(value=totals[0].numpy(), density=weights[0].numpy(), has=knowns[0].numpy(), distance=dist.numpy())
     out.update(src=src.numpy(), coc=coc.numpy(), n_filled=filled.numpy())
     return out
 
@@ -155,9 +158,9 @@ def test_layer_sources_kernel_matches_reference(scene, with_fill):
     y0, y1, x0, x1 = scene["bbox"]
     h, w = y1 - y0, x1 - x0
     layer = scene["layer"]
-    src, coc = wp.empty((h, w), dtype=wp.vec4, device=DEVICE), wp.empty((h, w), dtype=float, device=DEVICE)
-    total = wp.empty((h, w), dtype=wp.vec4, device=DEVICE)
-    weight, known = wp.empty((h, w), dtype=float, device=DEVICE), wp.empty((h, w), dtype=float, device=DEVICE)
+    src, coc = wp.zeros((h, w), dtype=wp.vec4, device=DEVICE), wp.zeros((h, w), dtype=float, device=DEVICE)
+    total = wp.zeros((h, w), dtype=wp.vec4, device=DEVICE)
+    weight, known = wp.zeros((h, w), dtype=float, device=DEVICE), wp.zeros((h, w), dtype=float, device=DEVICE)
     wp.launch(bk.layer_sources_kernel, dim=(h, w),
               inputs=[_wp(scene["image"], wp.vec3), _wp(scene["scoc"], float), _wp(scene["sid"], wp.int32), layer,
                       x0, y0, int(with_fill)],
@@ -254,16 +257,21 @@ def test_row_then_column_pass_is_the_city_block_distance(scene, band):
 
 @given(scene=scenes(), seed=st.integers(0, 2**32 - 1))
 def test_fill_sources_kernel_matches_reference(scene, seed):
-    """Arbitrary fill values, densities (some above 1), distances and prior sources, CoC beyond the layer's range."""
+    """Arbitrary level-0 sums and pushed level 1 (densities around the cut, some above 1), distances, prior
+    sources, CoC beyond the layer's range: the kernel pushes each hidden texel itself, then fills."""
     rng = np.random.default_rng(seed)
     y0, y1, x0, x1 = scene["bbox"]
     h, w = y1 - y0, x1 - x0
     layer = scene["layer"]
-    value = rng.uniform(0, 0.98, (h, w, 4))
-    value[..., 3] = rng.uniform(-20, 20, (h, w))
+    total, weight, known = _level_sums(rng, h, w, 0)
+    ch, cw = (h + 1) // 2, (w + 1) // 2
+    c_value = rng.uniform(0, 0.98, (ch, cw, 4))
+    c_value[..., 3] = rng.uniform(-20, 20, (ch, cw))
     # empty, around the MIN_FILL_DENSITY cut, partial, opaque, and above 1 (clipped to an opacity of 1)
-    density = rng.choice([0.0, 0.04, 0.5, 1.0, 1.3], (h, w)) * rng.uniform(0.25, 1.0, (h, w))
-    density = density.astype(np.float32).astype(np.float64)
+    c_density = rng.choice([0.0, 0.04, 0.5, 1.0, 1.3], (ch, cw)) * rng.uniform(0.25, 1.0, (ch, cw))
+    c_density = c_density.astype(np.float32).astype(np.float64)
+    c_has = (rng.random((ch, cw)) < 0.8).astype(np.float64)
+    value, density, _ = fill_ref.push(c_value, c_density, c_has, False, total, weight, known)
     dist = rng.integers(0, 12, (h, w)).astype(np.float64)
     dist[rng.random((h, w)) < 0.1] = 1e9
     src0 = rng.uniform(0, 2, (h, w, 4))
@@ -271,18 +279,19 @@ def test_fill_sources_kernel_matches_reference(scene, seed):
     n0 = rng.integers(0, 5, scene["n_layers"])
     reach = fill_ref.SQRT2 * np.abs(scene["scoc"][y0:y1, x0:x1].astype(np.float64)) + 1.0
     assume(not np.any(np.abs(dist - reach) <= 1e-5 * reach))
-    assume(not np.any(np.abs(density - fill_ref.MIN_FILL_DENSITY) <= 1e-6))
+    assume(not np.any(np.abs(density - fill_ref.MIN_FILL_DENSITY) <= 1e-5))
     src, coc, filled = _wp(src0, wp.vec4), _wp(coc0, float), wp.array(n0.astype(np.int32), device=DEVICE)
     wp.launch(bk.fill_sources_kernel, dim=(h, w),
-              inputs=[_wp(scene["sid"], wp.int32), layer, x0, y0, _wp(value, wp.vec4), _wp(density, float),
+              inputs=[_wp(scene["sid"], wp.int32), layer, x0, y0, _wp(total, wp.vec4), _wp(weight, float),
+                      _wp(known, float), _wp(c_value, wp.vec4), _wp(c_density, float), _wp(c_has, float),
                       _wp(dist, float), _wp(scene["scoc"], float), scene["s_lo"], scene["s_hi"]],
               outputs=[src, coc, filled], device=DEVICE)
-    w_src, w_coc, w_n = fill_ref.fill_sources(scene["sid"], layer, x0, y0, value.astype(np.float32),
-                                              density, dist, scene["scoc"], scene["s_lo"],
-                                              scene["s_hi"], src0.astype(np.float32), coc0.astype(np.float32), n0)
+    w_src, w_coc, w_n = fill_ref.fill_sources(scene["sid"], layer, x0, y0, value, density, dist, scene["scoc"],
+                                              scene["s_lo"], scene["s_hi"], src0.astype(np.float32),
+                                              coc0.astype(np.float32), n0)
     got = src.numpy()
-    assert np.all(np.abs(got - w_src) <= _colour_tol(w_src) + 1e-6 * np.abs(w_src))
-    np.testing.assert_allclose(coc.numpy(), w_coc, rtol=1e-6, atol=ATOL)
+    assert np.all(np.abs(got - w_src) <= _colour_tol(w_src) + 1e-5 * np.abs(w_src))
+    np.testing.assert_allclose(coc.numpy(), w_coc, rtol=1e-5, atol=ATOL)
     np.testing.assert_array_equal(filled.numpy(), w_n)
 
 
