@@ -13,7 +13,6 @@ from .scatter import (
     halve_mean_kernel as halve_mean_kernel,
     radiance_mean_kernel as radiance_mean_kernel,
     route_cells_kernel as route_cells_kernel,
-    salience_kernel as salience_kernel,
     prefix_rows_kernel as prefix_rows_kernel,
     resolve_levels_kernel as resolve_levels_kernel,
     scatter_kernel as scatter_kernel,
@@ -48,6 +47,5 @@ __all__ = [
     "radiance_mean_kernel",
     "resolve_levels_kernel",
     "route_cells_kernel",
-    "salience_kernel",
     "scatter_kernel",
 ]

@@ -425,44 +425,65 @@ def halve_mean_kernel(means: wp.array3d(dtype=wp.vec2), counts: wp.array3d(dtype
     counts[k, cy, cx] = n
 
 
+@wp.func
+def _excess(v: wp.vec4, r: float, m: float, a_m: float, visible: float, floor: float) -> float:
+    # how far a source (premultiplied radiance, coverage v; radius r) stands out of local colour m / a_m
+    q = (v[0] + v[1] + v[2]) / 3.0
+    e = q - v[3] * m / a_m  # a_m > 0: the source itself has coverage
+    return e - visible * wp.max(m, floor) * 3.14159265 * r * r
+
+
+@wp.func
+def _on_level(v: wp.vec4, r: float, r0: float, n_levels: int, lev: int) -> bool:
+    # the source has coverage and scatters on pyramid level ``lev`` >= 1 (level_of(r) == lev, without its loop:
+    # r * 2^-l is exact in binary floating point, as in level_of)
+    if v[3] == 0.0 or r < 0.5:
+        return False
+    scale = 1.0 / float(1 << lev)
+    if r * (2.0 * scale) <= r0:
+        return False  # a lower level
+    return r * scale <= r0 or lev == n_levels - 1
+
+
 @wp.kernel
-def salience_kernel(
+def route_cells_kernel(
     src: wp.array2d(dtype=wp.vec4),
     coc: wp.array2d(dtype=float),
     means: wp.array3d(dtype=wp.vec2),
     counts: wp.array3d(dtype=float),
     r0: float,
     n_levels: int,
+    lev: int,
+    per_cell: int,
     visible: float,
     floor: float,
-    score: wp.array2d(dtype=float),
+    exact: wp.array2d(dtype=wp.uint8),
 ):
-    """How far a pyramid-level source's own disc stands out of its layer's neighbourhood (> 0: salient).
+    """Mark for level 0 at most ``per_cell`` salient sources of level ``lev`` in each level cell.
 
-    The neighbourhood is the 3 x 3 cells of the source's level ``l >= 1`` around its own (cells
-    beyond the array left out): mean premultiplied radiance ``m`` and coverage ``a_m``, so the
-    layer's local colour is ``m / a_m``. A source of radiance ``q`` and coverage ``a`` carries
+    One thread per cell of ``2^lev x 2^lev`` px. Salience: how far a source's own disc stands
+    out of its layer's neighbourhood, the 3 x 3 level-``lev`` cells around its own (cells beyond
+    the array left out): mean premultiplied radiance ``m`` and coverage ``a_m``, so the layer's
+    local colour is ``m / a_m``. A source of radiance ``q`` and coverage ``a`` carries
     ``e = q - a m / a_m`` more light than its coverage of the local colour (0 on a constant
     image, whatever the layer's shape); its disc then lights ``e / (pi r^2)`` above the blurred
     surroundings (about ``m``), and its outline is visible when that exceeds
-    ``visible * max(m, floor)``. ``score`` is the excess energy beyond that threshold, 0 for
-    every other source. ``means[k]``, ``counts[k]``: pyramid level ``k + 1`` (padded to level 1).
+    ``visible * max(m, floor)``: the score is the excess beyond that, salient where > 0. The
+    cell keeps its sources of that level with the largest scores (ties: the first in row order).
+    A level-0 source costs ``2^lev`` times the rows of its pyramid scatter, so the routed work is
+    at most ``per_cell / 2^lev`` times what the cell's pyramid sources cost whatever the content.
+    ``means[k]``, ``counts[k]``: radiance pyramid level ``k + 1`` (padded to level 1).
     """
-    y, x = wp.tid()
-    score[y, x] = 0.0
-    v = src[y, x]
-    r = wp.abs(coc[y, x])
-    if v[3] == 0.0 or r < 0.5:
-        return
-    lev = level_of(r, r0, n_levels)
-    if lev == 0:
-        return
-    hl = (src.shape[0] + (1 << lev) - 1) >> lev
-    wl = (src.shape[1] + (1 << lev) - 1) >> lev
-    cy = y >> lev
-    cx = x >> lev
+    cy, cx = wp.tid()
+    side = 1 << lev
+    y0 = cy * side
+    x0 = cx * side
+    y1 = wp.min(y0 + side, src.shape[0])
+    x1 = wp.min(x0 + side, src.shape[1])
+    hl = (src.shape[0] + side - 1) >> lev
+    wl = (src.shape[1] + side - 1) >> lev
     acc = wp.vec2()
-    n = float(0.0)
+    nc = float(0.0)
     for dy in range(-1, 2):
         for dx in range(-1, 2):
             yy = cy + dy
@@ -470,52 +491,26 @@ def salience_kernel(
             if yy >= 0 and yy < hl and xx >= 0 and xx < wl:
                 c = counts[lev - 1, yy, xx]
                 acc += means[lev - 1, yy, xx] * c
-                n += c
-    m = acc[0] / n
-    a_m = acc[1] / n
-    q = (v[0] + v[1] + v[2]) / 3.0
-    e = q - v[3] * m / a_m  # a_m > 0: the source itself has coverage
-    s = e - visible * wp.max(m, floor) * 3.14159265 * r * r
-    if s > 0.0:
-        score[y, x] = s
-
-
-@wp.kernel
-def route_cells_kernel(
-    score: wp.array2d(dtype=float),
-    coc: wp.array2d(dtype=float),
-    r0: float,
-    n_levels: int,
-    lev: int,
-    per_cell: int,
-    exact: wp.array2d(dtype=wp.uint8),
-):
-    """Mark for level 0 at most ``per_cell`` salient sources of level ``lev`` in each level cell.
-
-    One thread per cell of ``2^lev x 2^lev`` px: the sources of that level with the largest
-    scores (ties: the first in row order). A level-0 source costs ``2^lev`` times the rows of
-    its pyramid scatter, so the routed work is at most ``per_cell / 2^lev`` times what the
-    cell's pyramid sources cost whatever the content.
-    """
-    cy, cx = wp.tid()
-    side = 1 << lev
-    y0 = cy * side
-    x0 = cx * side
-    y1 = wp.min(y0 + side, score.shape[0])
-    x1 = wp.min(x0 + side, score.shape[1])
+                nc += c
+    m = acc[0] / nc
+    a_m = acc[1] / nc
     n = int(0)  # salient sources of this level in the cell; only a few cells have any
     for y in range(y0, y1):
         for x in range(x0, x1):
-            if score[y, x] > 0.0:
-                if level_of(wp.abs(coc[y, x]), r0, n_levels) == lev:
+            v = src[y, x]
+            r = wp.abs(coc[y, x])
+            if _on_level(v, r, r0, n_levels, lev):
+                if _excess(v, r, m, a_m, visible, floor) > 0.0:
                     n += 1
     if n == 0:
         return
     if n <= per_cell:
         for y in range(y0, y1):
             for x in range(x0, x1):
-                if score[y, x] > 0.0:
-                    if level_of(wp.abs(coc[y, x]), r0, n_levels) == lev:
+                v = src[y, x]
+                r = wp.abs(coc[y, x])
+                if _on_level(v, r, r0, n_levels, lev):
+                    if _excess(v, r, m, a_m, visible, floor) > 0.0:
                         exact[y, x] = wp.uint8(1)
         return
     bound = float(1.0e38)  # scores above it (or equal, earlier in row order) are already taken
@@ -527,13 +522,16 @@ def route_cells_kernel(
         ix = int(-1)
         for y in range(y0, y1):
             for x in range(x0, x1):
-                s = score[y, x]
-                if s > best and level_of(wp.abs(coc[y, x]), r0, n_levels) == lev:
-                    after = s < bound or (s == bound and (y > by or (y == by and x > bx)))
-                    if after:
-                        best = s
-                        iy = y
-                        ix = x
+                v = src[y, x]
+                r = wp.abs(coc[y, x])
+                if _on_level(v, r, r0, n_levels, lev):
+                    s = _excess(v, r, m, a_m, visible, floor)
+                    if s > best:
+                        after = s < bound or (s == bound and (y > by or (y == by and x > bx)))
+                        if after:
+                            best = s
+                            iy = y
+                            ix = x
         if iy < 0:
             return
         exact[iy, ix] = wp.uint8(1)

@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass
 
 import numpy as np
@@ -49,6 +49,8 @@ REGION_B = 60
 LAYER_B = 80
 """Per pixel of a layer's box in flight: sources (16 + 4), pull-push pyramid (24 x 4/3), distance map (4),
 radius-pyramid difference buffers (16 x 4/3 and 2 spare columns)."""
+RESULT_B = 16
+"""Per pixel of a rendered layer's box waiting to be composited: its premultiplied RGB and coverage."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -81,9 +83,9 @@ def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device
 
     A source on pyramid level ``l`` gets its outline blurred by about ``2^l`` px. That is
     invisible where many similar discs overlap (smooth content), not where one source stands
-    out: ``bk.salience_kernel`` scores each source's excess radiance over its coverage of the
-    layer's local colour (the 3 x 3 level-``l`` cells of a radiance pyramid around it) against ``SALIENT_VISIBLE * pi r^2 *
-    max(mean, SALIENT_FLOOR)``; ``bk.route_cells_kernel`` then keeps, in each level-``l`` cell,
+    out: ``bk.route_cells_kernel`` scores each source's excess radiance over its coverage of the
+    layer's local colour (the 3 x 3 level-``l`` cells of a radiance pyramid around it) against
+    ``SALIENT_VISIBLE * pi r^2 * max(mean, SALIENT_FLOOR)`` and keeps, in each level-``l`` cell,
     the ``max(1, 2^(l-1))`` best-scored of them, so the level-0 work stays below half of the
     pyramid work whatever the radius (flat cost in R). Every decision depends only on
     pyramid-aligned cells of the layer's box, so tiled renders route the same sources.
@@ -100,14 +102,11 @@ def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device
         ch, cw = (fh + 1) // 2, (fw + 1) // 2
         wp.launch(bk.halve_mean_kernel, dim=(ch, cw), inputs=[means, counts, k, fh, fw], device=device)
         fh, fw = ch, cw
-    score = wp.empty((h, w), dtype=float, device=device)
-    wp.launch(bk.salience_kernel, dim=(h, w),
-              inputs=[src, coc, means, counts, float(r0), n_levels, SALIENT_VISIBLE, SALIENT_FLOOR], outputs=[score],
-              device=device)
     for lev in range(1, n_levels):
         side = 1 << lev
         wp.launch(bk.route_cells_kernel, dim=((h + side - 1) // side, (w + side - 1) // side),
-                  inputs=[score, coc, float(r0), n_levels, lev, max(1, side // 2)], outputs=[exact], device=device)
+                  inputs=[src, coc, means, counts, float(r0), n_levels, lev, max(1, side // 2), SALIENT_VISIBLE,
+                          SALIENT_FLOOR], outputs=[exact], device=device)
     return exact
 
 
@@ -297,27 +296,34 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
     arrays = sc.LayerSources.upload(image, s, ids, n_slots, device)
     acc = wp.zeros((h, w), dtype=wp.vec4, device=device)
 
-    # Layers render independently (Warp CPU launches release the GIL); they are composited strictly back to
-    # front as they complete, with at most ``threads + 1`` layers in flight to bound memory.
+    # Layers render independently (Warp CPU launches release the GIL) on ``threads`` workers and are composited
+    # strictly back to front as they complete. A finished layer waiting for a slower one behind it holds only its
+    # result (16 B/px), so the next layer may start beside it as long as the working memory stays within that of
+    # ``threads + 1`` layers in flight (:func:`_region_bytes`): a large layer no longer idles the other workers.
     done = 0
+    budget = LAYER_B * sum(sorted((_area(lyr.bbox) for lyr in layers), reverse=True)[: scatter.threads + 1])
     pool = ThreadPoolExecutor(max_workers=scatter.threads)
     try:
         pending: list[tuple[sc.LayerRecord, Future]] = []
         it = iter(layers)
-
-        def submit_next() -> None:
-            lyr = next(it, None)
-            if lyr is not None:
-                pending.append((lyr, pool.submit(_render_layer, lyr, arrays, scatter)))
-
-        for _ in range(scatter.threads + 1):
-            submit_next()
-        while pending:
-            lyr, fut = pending.pop(0)
+        nxt = next(it, None)
+        while pending or nxt is not None:
+            running = [f for _, f in pending if not f.done()]
+            held = sum((LAYER_B if not f.done() else RESULT_B) * _area(lyr.bbox) for lyr, f in pending)
+            if nxt is not None and len(running) < scatter.threads and (
+                    not pending or held + LAYER_B * _area(nxt.bbox) <= budget):
+                pending.append((nxt, pool.submit(_render_layer, nxt, arrays, scatter)))
+                nxt = next(it, None)
+                continue
+            lyr, fut = pending[0]
+            if not fut.done():
+                wait(running, return_when=FIRST_COMPLETED)
+                continue
             out = fut.result()
-            submit_next()
+            pending.pop(0)
             y0, y1, x0, x1 = lyr.bbox
             wp.launch(bk.composite_kernel, dim=(y1 - y0, x1 - x0), inputs=[out, x0, y0], outputs=[acc], device=device)
+            del out
             done += 1
             if progress is not None:
                 progress(done, len(layers))
