@@ -302,3 +302,52 @@ def test_progress_bar_covers_every_stage_on_a_terminal(files, tmp_path, capsys, 
             assert stage in err, (quality, stage, err)
         if quality == "preview":  # the preview reports its layers: the bar reaches the end of the render stage
             assert " 93%" in err  # read 5 + render 60 of 70 = 93 %: every layer was counted
+
+
+# --------------------------------------------------------------------------- the highlight reconstruction's image ops
+
+
+@st.composite
+def _masks(draw):
+    h, w = draw(st.integers(1, 24)), draw(st.integers(1, 24))
+    seed = draw(st.integers(0, 2**32 - 1))
+    return np.random.default_rng(seed).random((h, w)) < draw(st.floats(0.0, 1.0))
+
+
+@given(mask=_masks())
+def test_label8_is_scipys_8_connected_labelling(mask):
+    from scipy import ndimage
+
+    labels, boxes = photo.label8(mask)
+    want, n = ndimage.label(mask, structure=np.ones((3, 3), bool))
+    np.testing.assert_array_equal(labels, want)
+    assert boxes == [(s[0].start, s[0].stop, s[1].start, s[1].stop) for s in ndimage.find_objects(want)]
+    assert len(boxes) == n
+
+
+@given(mask=_masks(), steps=st.integers(1, 5))
+def test_dilate8_is_scipys_square_dilation(mask, steps):
+    from scipy import ndimage
+
+    np.testing.assert_array_equal(photo.dilate8(mask, steps), ndimage.binary_dilation(mask, np.ones((3, 3)), steps))
+
+
+@given(mask=_masks(), cap=st.floats(0.5, 4.0))
+def test_edge_distance_is_scipys_distance_transform_capped(mask, cap):
+    from scipy import ndimage
+
+    want = np.minimum(ndimage.distance_transform_edt(np.pad(mask, 1))[1:-1, 1:-1], cap)
+    np.testing.assert_allclose(photo.edge_distance(mask, cap), want, rtol=1e-12, atol=1e-12)
+
+
+def test_the_highlight_reconstruction_does_not_import_scipy_ndimage():
+    """A render's start-up budget (issue 15): scipy.ndimage alone costs about 0.2 s to import."""
+    import subprocess
+    import sys
+
+    code = ("import sys, numpy as np; from bokehray import photo; img = np.full((20, 20, 3), 0.2, np.float32); "
+            "img[8:11, 8:11] = 1.0; assert photo.reconstruct_highlights(img)[1] == 1; "
+            "print('scipy.ndimage' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "False"
+

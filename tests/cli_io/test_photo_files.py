@@ -40,6 +40,29 @@ def test_png_orientation_is_applied_like_pillow(tmp_path, codes, orientation):
     np.testing.assert_array_equal(got, bio.srgb_to_linear(want / 255.0))
 
 
+@pytest.mark.parametrize("orientation", [3, 6, 8])
+def test_png_exif_after_the_image_data_is_found_without_decoding(tmp_path, codes, orientation):
+    """Phone exports and exiftool put the eXIf chunk after IDAT: the reader walks the chunk headers to it, and
+    reads the orientation Pillow reads after decoding the whole file."""
+    import struct
+    import zlib
+
+    plain = pyio.BytesIO()
+    Image.fromarray(codes).save(plain, format="PNG")
+    data = plain.getvalue()
+    body = _exif(orientation, make="Test")
+    chunk = struct.pack(">I", len(body)) + b"eXIf" + body + struct.pack(">I", zlib.crc32(b"eXIf" + body))
+    end = data.rindex(b"IEND") - 4  # the IEND chunk's length field
+    path = tmp_path / "late.png"
+    path.write_bytes(data[:end] + chunk + data[end:])
+    with Image.open(path) as im:
+        assert "exif" not in im.info  # not seen before the pixels are decoded
+        want = np.asarray(ImageOps.exif_transpose(im))
+    meta = photo.embedded(path, "PNG")
+    assert meta.orientation == orientation and meta.exif is not None
+    np.testing.assert_array_equal(br.read_image(path), bio.srgb_to_linear(want / 255.0))
+
+
 def test_jpeg_orientation_6_is_upright(tmp_path):
     h, w = 24, 40
     img = np.zeros((h, w, 3), np.uint8)
