@@ -319,6 +319,8 @@ def scatter_kernel(
     src: wp.array2d(dtype=wp.vec4),
     coc: wp.array2d(dtype=float),
     exact: wp.array2d(dtype=wp.uint8),
+    means: wp.array3d(dtype=wp.vec4),
+    counts: wp.array3d(dtype=float),
     blades: wp.array(dtype=wp.vec4),
     n_blades: int,
     extent: wp.vec2,
@@ -337,9 +339,12 @@ def scatter_kernel(
     ``extent`` is the shape's vertical extent ``(y_top, y_bottom)`` and ``area`` its area,
     both at unit circumradius. A positive (in-front-of-focus) ``coc`` draws the shape
     point-reflected, as a thin lens does: the aperture's orientation is that of background bokeh.
-    ``exact[y, x] != 0`` scatters that source's light (RGB) at level 0 (full resolution)
-    whatever its radius, its coverage on its pyramid level; ``exact`` may be a 1 x 1 array
-    when nothing is routed.
+    ``exact[y, x] != 0`` routes a salient source: the light it carries beyond its coverage of the
+    local colour of the layer's other sources around it (``means``, ``counts``: the radiance pyramid
+    of ``route_cells_kernel``) is scattered at level 0 (full resolution) whatever its radius, the rest (its coverage, and
+    the local colour over it) on its pyramid level like its neighbours. A constant colour thus
+    stays on the pyramid, exactly as smooth as its coverage. ``exact`` may be a 1 x 1 array when
+    nothing is routed (then ``means`` and ``counts`` are not read).
 
     ``buf<l>`` is the difference buffer of level ``l``, ``(ceil(H/2^l), ceil(W/2^l) + 2)``.
     """
@@ -360,11 +365,21 @@ def scatter_kernel(
     lev = level_of(r, r0, n_levels)
     if lev > 0 and exact.shape[0] == src.shape[0] and exact.shape[1] == src.shape[1]:
         if exact[y, x] != wp.uint8(0):
-            # a salient source: its light at full resolution (the exact outline), its coverage
-            # on its pyramid level like its neighbours' (the layer's coverage stays as smooth)
-            _scatter_one(buf0, float(x) + 0.5, float(y) + 0.5, r, wp.vec4(v[0], v[1], v[2], 0.0), blades,
-                         n_blades, extent, area, sgn)
-            v = wp.vec4(0.0, 0.0, 0.0, v[3])
+            # a salient source: its excess light over the local colour of the sources around it (itself
+            # left out) at full resolution, the exact outline; its coverage of that colour on its pyramid
+            # level like its neighbours'. Alone in its neighbourhood, all of its light goes to level 0.
+            side = 1 << lev
+            nb = neighbourhood(means, counts, lev, y >> lev, x >> lev, (src.shape[0] + side - 1) >> lev,
+                               (src.shape[1] + side - 1) >> lev)
+            rest = nb.total - v
+            base = wp.vec4(0.0, 0.0, 0.0, v[3])
+            if rest[3] > 1.0e-6 * nb.pixels:
+                k = v[3] / rest[3]
+                base = wp.vec4(wp.max(rest[0], 0.0) * k, wp.max(rest[1], 0.0) * k, wp.max(rest[2], 0.0) * k, v[3])
+            _scatter_one(buf0, float(x) + 0.5, float(y) + 0.5, r,
+                         wp.vec4(v[0] - base[0], v[1] - base[1], v[2] - base[2], 0.0), blades, n_blades, extent,
+                         area, sgn)
+            v = base
     scale = 1.0 / float(1 << lev)
     xc = (float(x) + 0.5) * scale
     yc = (float(y) + 0.5) * scale
@@ -384,34 +399,33 @@ def scatter_kernel(
 
 
 @wp.kernel
-def radiance_mean_kernel(src: wp.array2d(dtype=wp.vec4), means: wp.array3d(dtype=wp.vec2),
+def radiance_mean_kernel(src: wp.array2d(dtype=wp.vec4), means: wp.array3d(dtype=wp.vec4),
                          counts: wp.array3d(dtype=float)):
-    """Level 1 of the radiance pyramid: mean over each 2 x 2 cell of ((R + G + B) / 3, coverage).
+    """Level 1 of the radiance pyramid: mean over each 2 x 2 cell of the sources (premultiplied RGB, coverage).
 
-    Premultiplied radiance, so sources of zero coverage count as black; cells cut by the
-    array's edge average the pixels they hold (``counts``). Level ``k`` lives in ``means[k - 1]``.
+    Sources of zero coverage count as black; cells cut by the array's edge average the pixels they hold
+    (``counts``). Level ``k`` lives in ``means[k - 1]``.
     """
     cy, cx = wp.tid()
-    acc = wp.vec2()
+    acc = wp.vec4()
     n = float(0.0)
     for dy in range(2):
         for dx in range(2):
             y = 2 * cy + dy
             x = 2 * cx + dx
             if y < src.shape[0] and x < src.shape[1]:
-                v = src[y, x]
-                acc += wp.vec2((v[0] + v[1] + v[2]) / 3.0, v[3])
+                acc += src[y, x]
                 n += 1.0
     means[0, cy, cx] = acc / n
     counts[0, cy, cx] = n
 
 
 @wp.kernel
-def halve_mean_kernel(means: wp.array3d(dtype=wp.vec2), counts: wp.array3d(dtype=float), k: int, fine_h: int,
+def halve_mean_kernel(means: wp.array3d(dtype=wp.vec4), counts: wp.array3d(dtype=float), k: int, fine_h: int,
                       fine_w: int):
     """Radiance pyramid level ``k + 1`` (in ``means[k]``) from level ``k``: pixel-count-weighted 2 x 2 means."""
     cy, cx = wp.tid()
-    acc = wp.vec2()
+    acc = wp.vec4()
     n = float(0.0)
     for dy in range(2):
         for dx in range(2):
@@ -423,6 +437,35 @@ def halve_mean_kernel(means: wp.array3d(dtype=wp.vec2), counts: wp.array3d(dtype
                 n += c
     means[k, cy, cx] = acc / n
     counts[k, cy, cx] = n
+
+
+@wp.struct
+class Neighbourhood:
+    """Sum of the sources (premultiplied RGB, coverage) over some cells, and how many pixels they hold."""
+
+    total: wp.vec4
+    pixels: float
+
+
+@wp.func
+def neighbourhood(means: wp.array3d(dtype=wp.vec4), counts: wp.array3d(dtype=float), lev: int, cy: int, cx: int,
+                  hl: int, wl: int) -> Neighbourhood:
+    """The sources of the 3 x 3 level-``lev`` cells around cell ``(cy, cx)`` (cells beyond the ``hl x wl`` level
+    left out): the layer's local colour there is ``total.rgb / total.a``."""
+    acc = wp.vec4()
+    nc = float(0.0)
+    for dy in range(-1, 2):
+        for dx in range(-1, 2):
+            yy = cy + dy
+            xx = cx + dx
+            if yy >= 0 and yy < hl and xx >= 0 and xx < wl:
+                c = counts[lev - 1, yy, xx]
+                acc += means[lev - 1, yy, xx] * c
+                nc += c
+    nb = Neighbourhood()
+    nb.total = acc
+    nb.pixels = nc
+    return nb
 
 
 @wp.func
@@ -449,7 +492,7 @@ def _on_level(v: wp.vec4, r: float, r0: float, n_levels: int, lev: int) -> bool:
 def route_cells_kernel(
     src: wp.array2d(dtype=wp.vec4),
     coc: wp.array2d(dtype=float),
-    means: wp.array3d(dtype=wp.vec2),
+    means: wp.array3d(dtype=wp.vec4),
     counts: wp.array3d(dtype=float),
     r0: float,
     n_levels: int,
@@ -482,18 +525,9 @@ def route_cells_kernel(
     x1 = wp.min(x0 + side, src.shape[1])
     hl = (src.shape[0] + side - 1) >> lev
     wl = (src.shape[1] + side - 1) >> lev
-    acc = wp.vec2()
-    nc = float(0.0)
-    for dy in range(-1, 2):
-        for dx in range(-1, 2):
-            yy = cy + dy
-            xx = cx + dx
-            if yy >= 0 and yy < hl and xx >= 0 and xx < wl:
-                c = counts[lev - 1, yy, xx]
-                acc += means[lev - 1, yy, xx] * c
-                nc += c
-    m = acc[0] / nc
-    a_m = acc[1] / nc
+    nb = neighbourhood(means, counts, lev, cy, cx, hl, wl)
+    m = (nb.total[0] + nb.total[1] + nb.total[2]) / (3.0 * nb.pixels)
+    a_m = nb.total[3] / nb.pixels
     n = int(0)  # salient sources of this level in the cell; only a few cells have any
     for y in range(y0, y1):
         for x in range(x0, x1):

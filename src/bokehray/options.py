@@ -86,7 +86,8 @@ class PreviewOptions:
             (cost per source is O(level_radius_px)).
         threads: worker threads on the CPU (default: all cores).
         exact_highlights: scatter the light of sources whose own disc outline is visible (lights, highlights:
-            ``levels.preview.route_salient``) at full resolution instead of on the radius pyramid (the default);
+            ``levels.preview.route_salient``), their excess over the local colour, at full resolution instead of
+            on the radius pyramid (the default);
             False leaves every source on the pyramid (measured in docs/renderer.md).
         clamp_border: take the unknown outside the frame as its edge pixels continued outwards
             (``levels.preview.border_pad``, the default); False divides by the coverage the frame got instead (the

@@ -72,7 +72,9 @@ def _point_response(ap: Aperture, radius: float, size: int, device: str, offset=
     blades, n = _blades_wp(ap, device)
     wp.launch(bk.scatter_kernel, dim=(size, size),
               inputs=[wp.array(src, dtype=wp.vec4, device=device), wp.array(radius_map, device=device),
-                              wp.zeros((1, 1), dtype=wp.uint8, device=device), blades, n,
+                              wp.zeros((1, 1), dtype=wp.uint8, device=device),
+                      wp.zeros((1, 1, 1), dtype=wp.vec4, device=device), wp.zeros((1, 1, 1), dtype=float, device=device),
+                      blades, n,
                       wp.vec2(*ap.vertical_extent()), aperture_area(ap), r0, levels, *bufs], device=device)
     for lv in range(levels):
         wp.launch(bk.prefix_rows_kernel, dim=bufs[lv].shape[0], inputs=[bufs[lv]], device=device)
@@ -125,7 +127,9 @@ def test_scatter_matches_reference(ap, device, rng):
     blades, n = _blades_wp(ap, device)
     wp.launch(bk.scatter_kernel, dim=(h, w),
               inputs=[wp.array(src, dtype=wp.vec4, device=device), wp.array(radius, device=device),
-                              wp.zeros((1, 1), dtype=wp.uint8, device=device), blades, n,
+                              wp.zeros((1, 1), dtype=wp.uint8, device=device),
+                      wp.zeros((1, 1, 1), dtype=wp.vec4, device=device), wp.zeros((1, 1, 1), dtype=float, device=device),
+                      blades, n,
                       wp.vec2(*ap.vertical_extent()), aperture_area(ap), 1e6, 1, *bufs], device=device)
     wp.launch(bk.prefix_rows_kernel, dim=h, inputs=[bufs[0]], device=device)
     got = bufs[0].numpy()[:, :w]
@@ -297,7 +301,8 @@ def test_salient_routing_matches_reference(device, rng):
     src[lights, :3] += rng.uniform(1, 400, (lights.sum(), 1))
     src[..., :3] *= src[..., 3:]
     coc = (rng.uniform(0.3, 60, (h, w)) * rng.choice([-1, 1], (h, w))).astype(np.float32)
-    exact = route_salient(wp.array(src, dtype=wp.vec4, device=device), wp.array(coc, device=device), 4, 8.0, device)
+    exact, _, _ = route_salient(wp.array(src, dtype=wp.vec4, device=device), wp.array(coc, device=device), 4, 8.0,
+                                device)
     score, want = scatter_ref.salient(src.astype(np.float64), coc, 8.0, 4, SALIENT_VISIBLE, SALIENT_FLOOR)
     assert want.sum() > 20 and (score > 0).sum() > want.sum()  # the cap binds somewhere
     np.testing.assert_array_equal(exact.numpy().astype(bool), want)

@@ -10,7 +10,7 @@ Pipeline (all heavy work in ``bokehray_kernels``):
    camera, each with its box, radius bound and fill reach.
 3. Each layer, independently (one worker thread per CPU core): its sources (its own pixels and the fill of what
    nearer layers hide, ``bokehray.scene.build_layer_sources``) are scattered with their own exact radius on
-   the radius pyramid, the light of the salient ones (:func:`route_salient`) at full resolution.
+   the radius pyramid, the excess light of the salient ones (:func:`route_salient`) at full resolution.
 4. Layers are composited back to front with "over" (opacity = scattered coverage clipped to 1, colour
    normalised by coverage), and the result is divided by the total opacity.
 
@@ -78,8 +78,10 @@ SALIENT_FLOOR = 1e-6
 """Darkest surroundings (linear radiance) the visibility test compares with: on black every light shows."""
 
 
-def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device: str) -> wp.array:
-    """Flags (uint8, the sources' shape) of the pyramid-level sources to scatter at level 0 instead.
+def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float,
+                  device: str) -> tuple[wp.array, wp.array, wp.array]:
+    """Flags (uint8, the sources' shape) of the pyramid-level sources whose excess light to scatter at level 0, and
+    the radiance pyramid (means, counts) the scatter takes each one's local colour from.
 
     A source on pyramid level ``l`` gets its outline blurred by about ``2^l`` px. That is
     invisible where many similar discs overlap (smooth content), not where one source stands
@@ -94,7 +96,7 @@ def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device
     exact = wp.zeros((h, w), dtype=wp.uint8, device=device)
     n_means = n_levels - 1  # radiance pyramid levels 1 .. n_levels - 1
     h1, w1 = (h + 1) // 2, (w + 1) // 2
-    means = wp.zeros((n_means, h1, w1), dtype=wp.vec2, device=device)
+    means = wp.zeros((n_means, h1, w1), dtype=wp.vec4, device=device)
     counts = wp.zeros((n_means, h1, w1), dtype=float, device=device)
     wp.launch(bk.radiance_mean_kernel, dim=(h1, w1), inputs=[src], outputs=[means, counts], device=device)
     fh, fw = h1, w1
@@ -107,7 +109,7 @@ def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device
         wp.launch(bk.route_cells_kernel, dim=((h + side - 1) // side, (w + side - 1) // side),
                   inputs=[src, coc, means, counts, float(r0), n_levels, lev, max(1, side // 2), SALIENT_VISIBLE,
                           SALIENT_FLOOR], outputs=[exact], device=device)
-    return exact
+    return exact, means, counts
 
 
 def border_pad(signed_coc: np.ndarray, tile_px: int) -> tuple[int, int, int, int]:
@@ -272,11 +274,12 @@ def _render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scat
         else:
             bufs.append(bufs[0] if lv > 0 else None)
     if scatter.exact_highlights and n_levels > 1:
-        exact = route_salient(src, coc, n_levels, scatter.level_radius_px, device)
+        exact, means, counts = route_salient(src, coc, n_levels, scatter.level_radius_px, device)
     else:
         exact = wp.zeros((1, 1), dtype=wp.uint8, device=device)
+        means, counts = wp.zeros((1, 1, 1), dtype=wp.vec4, device=device), wp.zeros((1, 1, 1), dtype=float, device=device)
     wp.launch(bk.scatter_kernel, dim=(h, w),
-              inputs=[src, coc, exact, scatter.blades, scatter.n_blades, scatter.extent, scatter.area,
+              inputs=[src, coc, exact, means, counts, scatter.blades, scatter.n_blades, scatter.extent, scatter.area,
                       scatter.level_radius_px, n_levels, *bufs], device=device)
     for lv in range(n_levels):
         wp.launch(bk.prefix_rows_kernel, dim=bufs[lv].shape[0], inputs=[bufs[lv]], device=device)
