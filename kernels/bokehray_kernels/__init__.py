@@ -12,7 +12,9 @@ from .scatter import (
     finalize_kernel as finalize_kernel,
     halve_mean_kernel as halve_mean_kernel,
     radiance_mean_kernel as radiance_mean_kernel,
+    cluster_cells_kernel as cluster_cells_kernel,
     route_cells_kernel as route_cells_kernel,
+    scatter_clusters_kernel as scatter_clusters_kernel,
     prefix_rows_kernel as prefix_rows_kernel,
     resolve_levels_kernel as resolve_levels_kernel,
     scatter_kernel as scatter_kernel,
@@ -47,5 +49,7 @@ __all__ = [
     "radiance_mean_kernel",
     "resolve_levels_kernel",
     "route_cells_kernel",
+    "scatter_clusters_kernel",
+    "cluster_cells_kernel",
     "scatter_kernel",
 ]

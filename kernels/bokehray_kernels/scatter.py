@@ -371,14 +371,11 @@ def scatter_kernel(
             side = 1 << lev
             nb = neighbourhood(means, counts, lev, y >> lev, x >> lev, (src.shape[0] + side - 1) >> lev,
                                (src.shape[1] + side - 1) >> lev)
-            rest = nb.total - v
-            base = wp.vec4(0.0, 0.0, 0.0, v[3])
-            if rest[3] > 1.0e-6 * nb.pixels:
-                k = v[3] / rest[3]
-                base = wp.vec4(wp.max(rest[0], 0.0) * k, wp.max(rest[1], 0.0) * k, wp.max(rest[2], 0.0) * k, v[3])
-            _scatter_one(buf0, float(x) + 0.5, float(y) + 0.5, r,
-                         wp.vec4(v[0] - base[0], v[1] - base[1], v[2] - base[2], 0.0), blades, n_blades, extent,
-                         area, sgn)
+            base = routed_base(v, nb)
+            if exact[y, x] == wp.uint8(1):  # routed alone; 2: its excess is in its cell's cluster source
+                _scatter_one(buf0, float(x) + 0.5, float(y) + 0.5, r,
+                             wp.vec4(v[0] - base[0], v[1] - base[1], v[2] - base[2], 0.0), blades, n_blades, extent,
+                             area, sgn)
             v = base
     scale = 1.0 / float(1 << lev)
     xc = (float(x) + 0.5) * scale
@@ -466,6 +463,17 @@ def neighbourhood(means: wp.array3d(dtype=wp.vec4), counts: wp.array3d(dtype=flo
     nb.total = acc
     nb.pixels = nc
     return nb
+
+
+@wp.func
+def routed_base(v: wp.vec4, nb: Neighbourhood) -> wp.vec4:
+    """What of a routed source stays on the pyramid: its coverage, carrying the local colour of the other sources
+    in its neighbourhood ``nb`` (itself left out; none there: black). The rest of its light goes to level 0."""
+    rest = nb.total - v
+    if rest[3] > 1.0e-6 * nb.pixels:
+        k = v[3] / rest[3]
+        return wp.vec4(wp.max(rest[0], 0.0) * k, wp.max(rest[1], 0.0) * k, wp.max(rest[2], 0.0) * k, v[3])
+    return wp.vec4(0.0, 0.0, 0.0, v[3])
 
 
 @wp.func
@@ -572,6 +580,121 @@ def route_cells_kernel(
         bound = best
         by = iy
         bx = ix
+
+
+@wp.kernel
+def cluster_cells_kernel(
+    src: wp.array2d(dtype=wp.vec4),
+    coc: wp.array2d(dtype=float),
+    means: wp.array3d(dtype=wp.vec4),
+    counts: wp.array3d(dtype=float),
+    r0: float,
+    n_levels: int,
+    lev: int,
+    visible: float,
+    floor: float,
+    exact: wp.array2d(dtype=wp.uint8),
+    cluster_light: wp.array3d(dtype=wp.vec4),
+    cluster_shape: wp.array3d(dtype=wp.vec4),
+):
+    """After ``route_cells_kernel``: the rest of a level-``lev`` cell's excess light, when together it is visible.
+
+    An extended light (a lamp, a window) is many sources, each too faint alone to show its outline, whose
+    outlines coincide: together they draw a sharp-edged ball. The cell's sources of that level not routed
+    alone and with positive excess ``e = q - a m / a_m`` (``route_cells_kernel``) are its *cluster*; when the
+    summed excess ``E`` beats the visibility threshold at the excess-weighted mean radius, their excess light
+    (what ``routed_base`` does not keep on the pyramid) goes to level 0 gathered per block of ``2^b`` px,
+    ``b = max(1, lev - 2)``, one source at each block's excess-weighted centroid:
+    ``cluster_light[lev - 1, by, bx] = (RGB, summed excess)``, ``cluster_shape[...] = (x, y, signed CoC, 1)``,
+    and the members are marked 2 in ``exact``. At most 16 level-0 sources per cell, whose rows are at most
+    twice those of the cell's pyramid sources (level 3), whatever the radius.
+    """
+    cy, cx = wp.tid()
+    side = 1 << lev
+    y0 = cy * side
+    x0 = cx * side
+    y1 = wp.min(y0 + side, src.shape[0])
+    x1 = wp.min(x0 + side, src.shape[1])
+    nb = neighbourhood(means, counts, lev, cy, cx, (src.shape[0] + side - 1) >> lev, (src.shape[1] + side - 1) >> lev)
+    m = (nb.total[0] + nb.total[1] + nb.total[2]) / (3.0 * nb.pixels)
+    a_m = nb.total[3] / nb.pixels
+    e_sum = float(0.0)
+    light = wp.vec3()
+    px = float(0.0)
+    py = float(0.0)
+    ps = float(0.0)
+    for y in range(y0, y1):
+        for x in range(x0, x1):
+            v = src[y, x]
+            r = wp.abs(coc[y, x])
+            if exact[y, x] == wp.uint8(0) and _on_level(v, r, r0, n_levels, lev):
+                e = (v[0] + v[1] + v[2]) / 3.0 - v[3] * m / a_m
+                if e > 0.0:
+                    base = routed_base(v, nb)
+                    light += wp.vec3(v[0] - base[0], v[1] - base[1], v[2] - base[2])
+                    e_sum += e
+                    px += e * (float(x) + 0.5)
+                    py += e * (float(y) + 0.5)
+                    ps += e * coc[y, x]
+    if e_sum <= 0.0:
+        return
+    s_mean = ps / e_sum
+    if e_sum - visible * wp.max(m, floor) * 3.14159265 * s_mean * s_mean <= 0.0:
+        return
+    # visible together: its members' excess goes to level 0, gathered per block of 2^b px, b = max(1, lev - 2)
+    # (a block's members lie within 2^(b-1) px of their centroid, at most 1/32 of the radius, so the gathered
+    # sources keep the cluster's own soft outline; at most 16 blocks a cell, so the cost stays flat in R)
+    b = wp.max(1, lev - 2)
+    bs = 1 << b
+    for by in range(y0 >> b, (y1 + bs - 1) >> b):
+        for bx in range(x0 >> b, (x1 + bs - 1) >> b):
+            b_e = float(0.0)
+            b_light = wp.vec3()
+            b_x = float(0.0)
+            b_y = float(0.0)
+            b_s = float(0.0)
+            for y in range(by * bs, wp.min(by * bs + bs, y1)):
+                for x in range(bx * bs, wp.min(bx * bs + bs, x1)):
+                    v = src[y, x]
+                    r = wp.abs(coc[y, x])
+                    if exact[y, x] == wp.uint8(0) and _on_level(v, r, r0, n_levels, lev):
+                        e = (v[0] + v[1] + v[2]) / 3.0 - v[3] * m / a_m
+                        if e > 0.0:
+                            base = routed_base(v, nb)
+                            b_light += wp.vec3(v[0] - base[0], v[1] - base[1], v[2] - base[2])
+                            b_e += e
+                            b_x += e * (float(x) + 0.5)
+                            b_y += e * (float(y) + 0.5)
+                            b_s += e * coc[y, x]
+                            exact[y, x] = wp.uint8(2)
+            if b_e > 0.0:
+                cluster_light[lev - 1, by, bx] = wp.vec4(b_light[0], b_light[1], b_light[2], b_e)
+                cluster_shape[lev - 1, by, bx] = wp.vec4(b_x / b_e, b_y / b_e, b_s / b_e, 1.0)
+
+
+@wp.kernel
+def scatter_clusters_kernel(
+    cluster_light: wp.array3d(dtype=wp.vec4),
+    cluster_shape: wp.array3d(dtype=wp.vec4),
+    lev: int,
+    blades: wp.array(dtype=wp.vec4),
+    n_blades: int,
+    extent: wp.vec2,
+    area: float,
+    buf0: wp.array2d(dtype=wp.vec4),
+):
+    """Scatter the level-``lev`` cluster sources (``cluster_cells_kernel``; one thread per block) at level 0:
+    light, no coverage."""
+    by, bx = wp.tid()
+    shape = cluster_shape[lev - 1, by, bx]
+    if shape[3] == 0.0:
+        return
+    light = cluster_light[lev - 1, by, bx]
+    sgn = float(1.0)
+    if shape[2] > 0.0:
+        sgn = -1.0
+    _scatter_one(buf0, shape[0], shape[1], wp.abs(shape[2]), wp.vec4(light[0], light[1], light[2], 0.0), blades,
+                 n_blades, extent, area, sgn)
 
 
 @wp.kernel

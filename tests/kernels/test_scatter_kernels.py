@@ -301,8 +301,50 @@ def test_salient_routing_matches_reference(device, rng):
     src[lights, :3] += rng.uniform(1, 400, (lights.sum(), 1))
     src[..., :3] *= src[..., 3:]
     coc = (rng.uniform(0.3, 60, (h, w)) * rng.choice([-1, 1], (h, w))).astype(np.float32)
-    exact, _, _ = route_salient(wp.array(src, dtype=wp.vec4, device=device), wp.array(coc, device=device), 4, 8.0,
-                                device)
+    routing = route_salient(wp.array(src, dtype=wp.vec4, device=device), wp.array(coc, device=device), 4, 8.0, device)
+    exact = routing.exact
     score, want = scatter_ref.salient(src.astype(np.float64), coc, 8.0, 4, SALIENT_VISIBLE, SALIENT_FLOOR)
     assert want.sum() > 20 and (score > 0).sum() > want.sum()  # the cap binds somewhere
-    np.testing.assert_array_equal(exact.numpy().astype(bool), want)
+    np.testing.assert_array_equal(exact.numpy() == 1, want)
+
+
+def test_extended_lights_are_gathered_like_the_reference(device, rng):
+    """cluster_cells_kernel: blobs of lights, each pixel too faint alone to be routed, are gathered per block."""
+    from bokehray.levels.preview import SALIENT_FLOOR, SALIENT_VISIBLE, route_salient
+
+    h, w = 40, 52
+    src = np.zeros((h, w, 4), np.float32)
+    src[..., :3] = rng.random((h, w, 3)) * 0.05
+    src[..., 3] = 1.0
+    for y, x in ((9, 11), (25, 30), (30, 8)):  # 5 x 5 lamps of many dim-ish pixels
+        src[y:y + 5, x:x + 5, :3] += rng.uniform(0.5, 3.0, 3).astype(np.float32)
+    coc = np.full((h, w), -30.0, np.float32)
+    coc[:, w // 2:] = 20.0
+    routing = route_salient(wp.array(src, dtype=wp.vec4, device=device), wp.array(coc, device=device), 3, 8.0, device)
+    exact = routing.exact.numpy()
+    members, sources = scatter_ref.clusters(src.astype(np.float64), coc, exact == 1, 8.0, 3, SALIENT_VISIBLE,
+                                            SALIENT_FLOOR)
+    assert members.sum() > 30 and len(sources) > 5  # the lamps' pixels are gathered
+    np.testing.assert_array_equal(exact == 2, members)
+    shape, light = routing.cluster_shape.numpy(), routing.cluster_light.numpy()
+    got = [(s[:3].astype(np.float64), li[:3]) for s, li in zip(shape.reshape(-1, 4), light.reshape(-1, 4))
+           if s[3] == 1.0]
+    assert len(got) == len(sources)
+    for x, y, c, rgb in sources:  # each reference source has its twin in the kernel's output
+        pos, lit = min(got, key=lambda g: np.hypot(g[0][0] - x, g[0][1] - y))
+        np.testing.assert_allclose(pos, [x, y, c], rtol=1e-5, atol=1e-4)
+        np.testing.assert_allclose(lit, rgb, rtol=1e-4, atol=1e-4)
+
+
+def test_an_extended_light_keeps_its_energy_and_round_shape(device):
+    """A 5 x 5 lamp of moderate radiance at R = 40: the preview's ball is the exact one (pyramid off) to 1 %."""
+    size = 141
+    image = np.full((size, size, 3), 0.02, np.float32)
+    image[68:73, 68:73] = 2.0
+    s = np.full((size, size), -40.0, np.float32)
+    got, _ = render_signed_coc(image, s, Aperture(), device=device)
+    exact, _ = render_signed_coc(image, s, Aperture(), options=PreviewOptions(level_radius_px=1000), device=device)
+    pyramid, _ = render_signed_coc(image, s, Aperture(), options=PreviewOptions(exact_highlights=False), device=device)
+    err = np.abs(got - exact).sum() / np.abs(exact - 0.02).sum()
+    assert err < 0.01
+    assert np.abs(pyramid - exact).sum() / np.abs(exact - 0.02).sum() > 3 * err  # the pyramid alone is worse

@@ -334,3 +334,56 @@ def salient(src: np.ndarray, coc: np.ndarray, r0: float, n_levels: int, visible:
                 for _, y, x in sorted(cand)[: max(1, s // 2)]:
                     routed[y, x] = True
     return score, routed
+
+
+def clusters(src: np.ndarray, coc: np.ndarray, routed: np.ndarray, r0: float, n_levels: int, visible: float,
+             floor: float) -> tuple[np.ndarray, list[tuple[float, float, float, np.ndarray]]]:
+    """(member mask, cluster sources) of the extended-light gathering (docs/renderer.md), by plain loops.
+
+    In each level-l cell (l >= 1), the sources of level l not ``routed`` alone whose excess over the 3 x 3
+    cells' mean, e = q - a m / a_m, is positive are the cluster. When their summed excess E beats
+    visible max(m, floor) pi s^2 (s: the e-weighted mean signed CoC), each member's light beyond its coverage
+    of the other sources' local colour goes into the source of its block of 2^b px, b = max(1, l - 2): at the
+    members' e-weighted centroid (pixel centres), with their e-weighted mean signed CoC. Returns the members
+    and the sources as (x, y, signed CoC, RGB).
+    """
+    h, w = coc.shape
+    q = src[..., :3].mean(-1)
+    members = np.zeros((h, w), bool)
+    sources = []
+    for lv in range(1, n_levels):
+        s = 2 ** lv
+        for cy in range(0, h, s):
+            for cx in range(0, w, s):
+                ys = slice(max(0, cy - s), min(h, cy + 2 * s))
+                xs = slice(max(0, cx - s), min(w, cx + 2 * s))
+                total = src[ys, xs].sum(axis=(0, 1))
+                n = src[ys, xs].shape[0] * src[ys, xs].shape[1]
+                m, a_m = total[:3].mean() / n, total[3] / n
+                cell = []
+                for y in range(cy, min(h, cy + s)):
+                    for x in range(cx, min(w, cx + s)):
+                        r = abs(float(coc[y, x]))
+                        if routed[y, x] or src[y, x, 3] == 0 or r < 0.5 or level_of(r, r0, n_levels) != lv:
+                            continue
+                        e = q[y, x] - src[y, x, 3] * m / a_m
+                        if e > 0:
+                            rest = total - src[y, x]
+                            base = np.zeros(3) if rest[3] <= 1e-6 * n else np.maximum(rest[:3], 0) * src[y, x, 3] / rest[3]
+                            cell.append((y, x, e, src[y, x, :3] - base))
+                if not cell:
+                    continue
+                e_sum = sum(c[2] for c in cell)
+                s_mean = sum(c[2] * coc[c[0], c[1]] for c in cell) / e_sum
+                if e_sum - visible * max(m, floor) * math.pi * s_mean ** 2 <= 0:
+                    continue
+                b = 2 ** max(1, lv - 2)
+                blocks = {}
+                for y, x, e, light in cell:
+                    members[y, x] = True
+                    blocks.setdefault((y // b, x // b), []).append((y, x, e, light))
+                for part in blocks.values():
+                    pe = sum(c[2] for c in part)
+                    sources.append((sum(c[2] * (c[1] + 0.5) for c in part) / pe, sum(c[2] * (c[0] + 0.5) for c in part) / pe,
+                                    sum(c[2] * coc[c[0], c[1]] for c in part) / pe, sum(c[3] for c in part)))
+    return members, sources

@@ -78,10 +78,19 @@ SALIENT_FLOOR = 1e-6
 """Darkest surroundings (linear radiance) the visibility test compares with: on black every light shows."""
 
 
-def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float,
-                  device: str) -> tuple[wp.array, wp.array, wp.array]:
-    """Flags (uint8, the sources' shape) of the pyramid-level sources whose excess light to scatter at level 0, and
-    the radiance pyramid (means, counts) the scatter takes each one's local colour from.
+@dataclass(frozen=True, slots=True)
+class Routing:
+    """What :func:`route_salient` decided for one layer's sources (see ``bk.scatter_kernel``)."""
+
+    exact: wp.array  # uint8 per source: 1 routed alone, 2 in its cell's cluster, 0 on the pyramid
+    means: wp.array  # the radiance pyramid, levels 1 .. n - 1 (the routed sources' local colour)
+    counts: wp.array
+    cluster_light: wp.array  # per level and 2 x 2 block: the cluster's excess light there (RGB, summed excess)
+    cluster_shape: wp.array  # per level and 2 x 2 block: (x, y, signed CoC, 1 if it holds cluster members)
+
+
+def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device: str) -> Routing:
+    """Which pyramid-level sources send their excess light to level 0: alone, or as their cell's cluster.
 
     A source on pyramid level ``l`` gets its outline blurred by about ``2^l`` px. That is
     invisible where many similar discs overlap (smooth content), not where one source stands
@@ -89,8 +98,10 @@ def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float,
     layer's local colour (the 3 x 3 level-``l`` cells of a radiance pyramid around it) against
     ``SALIENT_VISIBLE * pi r^2 * max(mean, SALIENT_FLOOR)`` and keeps, in each level-``l`` cell,
     the ``max(1, 2^(l-1))`` best-scored of them, so the level-0 work stays below half of the
-    pyramid work whatever the radius (flat cost in R). Every decision depends only on
-    pyramid-aligned cells of the layer's box, so tiled renders route the same sources.
+    pyramid work whatever the radius (flat cost in R). ``bk.cluster_cells_kernel`` then gathers the rest of
+    each cell's excess light into one source when together it is visible (an extended light: each of its
+    pixels is too faint alone). Every decision depends only on pyramid-aligned cells of the layer's box, so
+    tiled renders route the same sources.
     """
     h, w = src.shape
     exact = wp.zeros((h, w), dtype=wp.uint8, device=device)
@@ -109,7 +120,14 @@ def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float,
         wp.launch(bk.route_cells_kernel, dim=((h + side - 1) // side, (w + side - 1) // side),
                   inputs=[src, coc, means, counts, float(r0), n_levels, lev, max(1, side // 2), SALIENT_VISIBLE,
                           SALIENT_FLOOR], outputs=[exact], device=device)
-    return exact, means, counts
+    light = wp.zeros((n_means, h1, w1), dtype=wp.vec4, device=device)
+    shape = wp.zeros((n_means, h1, w1), dtype=wp.vec4, device=device)
+    for lev in range(1, n_levels):
+        side = 1 << lev
+        wp.launch(bk.cluster_cells_kernel, dim=((h + side - 1) // side, (w + side - 1) // side),
+                  inputs=[src, coc, means, counts, float(r0), n_levels, lev, SALIENT_VISIBLE, SALIENT_FLOOR],
+                  outputs=[exact, light, shape], device=device)
+    return Routing(exact, means, counts, light, shape)
 
 
 def border_pad(signed_coc: np.ndarray, tile_px: int) -> tuple[int, int, int, int]:
@@ -273,14 +291,21 @@ def _render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scat
             bufs.append(wp.zeros(shape, dtype=wp.vec4, device=device))
         else:
             bufs.append(bufs[0] if lv > 0 else None)
+    routing = None
     if scatter.exact_highlights and n_levels > 1:
-        exact, means, counts = route_salient(src, coc, n_levels, scatter.level_radius_px, device)
+        routing = route_salient(src, coc, n_levels, scatter.level_radius_px, device)
+        exact, means, counts = routing.exact, routing.means, routing.counts
     else:
         exact = wp.zeros((1, 1), dtype=wp.uint8, device=device)
         means, counts = wp.zeros((1, 1, 1), dtype=wp.vec4, device=device), wp.zeros((1, 1, 1), dtype=float, device=device)
     wp.launch(bk.scatter_kernel, dim=(h, w),
               inputs=[src, coc, exact, means, counts, scatter.blades, scatter.n_blades, scatter.extent, scatter.area,
                       scatter.level_radius_px, n_levels, *bufs], device=device)
+    if routing is not None:
+        for lev in range(1, n_levels):
+            wp.launch(bk.scatter_clusters_kernel, dim=routing.cluster_shape.shape[1:],
+                      inputs=[routing.cluster_light, routing.cluster_shape, lev, scatter.blades, scatter.n_blades,
+                              scatter.extent, scatter.area], outputs=[bufs[0]], device=device)
     for lv in range(n_levels):
         wp.launch(bk.prefix_rows_kernel, dim=bufs[lv].shape[0], inputs=[bufs[lv]], device=device)
     out = src  # the sources are scattered: reuse their memory for the result
