@@ -1,5 +1,9 @@
 """``render --refine``: the shipped refiner applied where depth errors show, blended into the classical render.
 
+First (with a ``rerender`` callback, which the pipeline always passes) the colour-guided depth correction
+(``bokehray.depthfix``) moves depth edges that sit off the photo's colour edges back onto them, and the classical
+level renders again on the corrected map; the steps below then work on that render and that map.
+
 Depth errors only change the image where a depth discontinuity meets a
 non-trivial blur; elsewhere the classical render is already right. So the
 image is cut into tiles, and a tile is refined only if a discontinuity whose

@@ -293,9 +293,13 @@ def _vote(img, cur, sus, offs, space, snap, options, new, keep=None, one_sided=F
         # evidence on both sides: the pixel's own layer, or (a pixel inside a smeared edge) both other layers
         two_sided = known[:, 1] | (known[:, 0] & known[:, 2]) | one_sided
         ok = two_sided & known[n, best] & (a_best >= options.contrast * a_rest) & (a_best >= options.min_affinity)
-        med = weighted_median(vals, np.where(np.where(best[:, None] == 0, cls[0], cls[2]), wt, 0.0))
-        ok &= np.isfinite(med)
-        new[py[ok], px[ok]] = med[ok]
+        if not ok.any():
+            continue
+        sel = np.nonzero(ok)[0]  # the median (a sort) only where the vote moves the pixel
+        mine = np.where(best[sel, None] == 0, cls[0][sel], cls[2][sel])
+        med = weighted_median(vals[sel], np.where(mine, wt[sel], 0.0))
+        fin = np.isfinite(med)
+        new[py[sel][fin], px[sel][fin]] = med[fin]
 
 
 def correct_disparity(focus_srgb: np.ndarray, disparity: np.ndarray, k_px: float,
