@@ -38,7 +38,7 @@ from dataclasses import replace  # noqa: E402
 
 CONDITIONS = [("none", 0), ("erode", 1), ("erode", 3), ("erode", 5), ("dilate", 1), ("dilate", 3), ("dilate", 5)]
 DEV_CONDITIONS = CONDITIONS + [("blur", 3), ("shift", 2), ("estimator", 4)]
-METHODS = ("preview", "raytrace", "refine", "refine_ungated")
+METHODS = ("preview", "raytrace", "depthfix", "refine", "refine_ungated", "refine_nofix")
 
 
 def devset_samples(root: Path):
@@ -76,6 +76,11 @@ def main() -> None:
     ap.add_argument("--band-margin", type=float, default=None,
                     help="RefineOptions.band_margin_px (inf: no band restriction); default: the option's default")
     ap.add_argument("--no-raytrace", action="store_true", help="skip the raytrace level (for quick sweeps)")
+    ap.add_argument("--reuse-raytrace", default=None,
+                    help="take the raytrace rows from this earlier JSON of the same data instead of rendering them "
+                         "(the ray tracer does not depend on the refiner)")
+    ap.add_argument("--no-nofix", action="store_true", help="skip refine_nofix (the refiner without the depth fix)")
+    ap.add_argument("--no-ungated", action="store_true", help="skip refine_ungated (and, with --timing, its timing)")
     ap.add_argument("--timing", action="store_true",
                     help="instead: time preview and refine at 1536 x 1024 (a dev-set scene scaled up; --devset DIR)")
     ap.add_argument("--runs", type=int, default=3, help="--timing: warm runs per case (medians reported)")
@@ -112,6 +117,13 @@ def main() -> None:
                     discontinuity_band(s.disparity)) for s in (ds[i] for i in idx)]
         conditions = DEV_CONDITIONS if args.all_corruptions else CONDITIONS
     ungated = replace(ropts, gate=replace(ropts.gate, enabled=False))
+    fix_only = replace(ropts, neural=False)
+    nofix = replace(ropts, depthfix=replace(ropts.depthfix, enabled=False))
+    old_ray = {}
+    if args.reuse_raytrace:
+        for r in json.loads(Path(args.reuse_raytrace).read_text())["rows"]:
+            if r["method"] == "raytrace":
+                old_ray[(r["pair"], r["corruption"], r["px"])] = r
     rows = []
     for n, (name, image, disparity, blur, target, band) in enumerate(samples):
         for kind, amount in conditions:
@@ -120,19 +132,31 @@ def main() -> None:
             preview = br.render(image, d, blur)
             t_preview = time.perf_counter() - t0
             t0 = time.perf_counter()
-            ray = None if args.no_raytrace else br.render(
+            ray = None if (args.no_raytrace or args.reuse_raytrace) else br.render(
                 image, d, blur, quality="raytrace", options=br.RaytraceOptions(max_spp=args.max_spp))
             t_ray = time.perf_counter() - t0
-            refined, st = refine(image, d, blur, preview, model=model, options=ropts)
-            raw, st_raw = refine(image, d, blur, preview, model=model, options=ungated)
+            if (name, kind, amount) in old_ray:
+                rows.append(old_ray[(name, kind, amount)] | {"reused": True})
+            rer = lambda dd, im=image, bl=blur: br.render(im, dd, bl)  # noqa: E731  (the preview on the fixed map)
+            fixed, st_fix = refine(image, d, blur, preview, options=fix_only, rerender=rer)
+            refined, st = refine(image, d, blur, preview, model=model, options=ropts, rerender=rer)
+            raw, st_raw = (None, None) if args.no_ungated else refine(image, d, blur, preview, model=model,
+                                                                       options=ungated, rerender=rer)
+            plain, st_plain = (None, None) if args.no_nofix else refine(image, d, blur, preview, model=model,
+                                                                         options=nofix)
             for method, img, t, stx in (("preview", preview, t_preview, None), ("raytrace", ray, t_ray, None),
+                                        ("depthfix", fixed, t_preview + st_fix.seconds, st_fix),
                                         ("refine", refined, t_preview + st.seconds, st),
-                                        ("refine_ungated", raw, t_preview + st_raw.seconds, st_raw)):
+                                        ("refine_ungated", raw, t_preview + (st_raw.seconds if st_raw else 0),
+                                         st_raw),
+                                        ("refine_nofix", plain, t_preview + (st_plain.seconds if st_plain else 0),
+                                         st_plain)):
                 if img is None:
                     continue
                 rows.append({"pair": name, "k_px": blur.k_px, "corruption": kind, "px": amount, "method": method,
                              "seconds": t, "share_refined": stx.share_refined if stx else None,
-                             "gate_open": stx.gate_open if stx else None} | score(img, target, band))
+                             "gate_open": stx.gate_open if stx else None,
+                             "depth_fixed_px": stx.depth_fixed_px if stx else None} | score(img, target, band))
         print(f"{n + 1}/{len(samples)} {name}", flush=True)
     data_label = str(args.devset or args.data)
     summary = summarise(rows, conditions)
@@ -166,24 +190,30 @@ def timing(args, model, ropts) -> None:
     rows = []
     for kind, amount in (("none", 0), ("erode", 3), ("estimator", 8)):
         d = np.clip(corrupt_disparity(disp, kind, amount), 0, 1)
+        rer = lambda dd: br.render(image, dd, blur)  # noqa: E731
         pre = br.render(image, d, blur)  # warm-up
-        refine(image, d, blur, pre, model=model, options=ropts)
-        tp, tg, tu = [], [], []
+        refine(image, d, blur, pre, model=model, options=ropts, rerender=rer)
+        tp, tg, tu, tf, tr = [], [], [], [], []
         for _ in range(args.runs):
             t0 = time.perf_counter()
             pre = br.render(image, d, blur)
             tp.append(time.perf_counter() - t0)
-            _, st = refine(image, d, blur, pre, model=model, options=ropts)
+            _, st = refine(image, d, blur, pre, model=model, options=ropts, rerender=rer)
             tg.append(st.seconds)
-            _, su = refine(image, d, blur, pre, model=model, options=ungated)
-            tu.append(su.seconds)
+            tf.append(st.depthfix_seconds)
+            tr.append(st.rerender_seconds)
+            if not args.no_ungated:
+                _, su = refine(image, d, blur, pre, model=model, options=ungated, rerender=rer)
+                tu.append(su.seconds)
         row = {"disparity": f"{kind} {amount}", "preview_s": float(np.median(tp)), "refine_s": float(np.median(tg)),
-               "refine_ungated_s": float(np.median(tu)), "tiles_total": st.tiles_total,
+               "refine_ungated_s": float(np.median(tu)) if tu else None, "tiles_total": st.tiles_total,
                "tiles_near_edges": st.tiles_near_edges, "tiles_refined": st.tiles_refined,
-               "tiles_refined_ungated": su.tiles_refined, "band_share": st.band_pixels / d.size,
-               "gate_open": st.gate_open}
+               "tiles_refined_ungated": su.tiles_refined if tu else None, "band_share": st.band_pixels / d.size,
+               "gate_open": st.gate_open, "depthfix_s": float(np.median(tf)), "rerender_s": float(np.median(tr)),
+               "depth_fixed_px": st.depth_fixed_px}
+        row["refine_over_preview"] = row["refine_s"] / row["preview_s"]
         row["ratio"] = (row["preview_s"] + row["refine_s"]) / row["preview_s"]
-        row["ratio_ungated"] = (row["preview_s"] + row["refine_ungated_s"]) / row["preview_s"]
+        row["ratio_ungated"] = (row["preview_s"] + row["refine_ungated_s"]) / row["preview_s"] if tu else None
         rows.append(row)
         print(json.dumps(row), flush=True)
     write_json(args.out, {"machine": machine_info(), "size": [h, w], "k_px": blur.k_px, "runs": args.runs,
@@ -205,9 +235,10 @@ def summarise(rows: list[dict], conditions=CONDITIONS) -> list[dict]:
                         "band_ssim": float(np.nanmean([r["band_ssim"] for r in sel])),
                         "seconds": float(np.median([r["seconds"] for r in sel])),
                         "share_refined": float(np.mean([r["share_refined"] for r in sel]))
-                        if method.startswith("refine") else None,
+                        if method.startswith("refine") or method == "depthfix" else None,
                         "gate_open": float(np.mean([r["gate_open"] for r in sel]))
-                        if method.startswith("refine") else None})
+                        if method.startswith("refine") else None,
+                        "depth_fixed_px": float(np.mean([r.get("depth_fixed_px") or 0 for r in sel]))})
     return out
 
 
@@ -231,7 +262,8 @@ def plot(summary: list[dict], path: str) -> None:
 
     fig, axes = plt.subplots(1, 3, figsize=(14, 3.8), dpi=120)
     for method, style, color in (("preview", "o-", "tab:blue"), ("raytrace", "s-", "tab:orange"),
-                                 ("refine", "^-", "tab:green"), ("refine_ungated", "v:", "tab:red")):
+                                 ("depthfix", "d-", "tab:purple"), ("refine", "^-", "tab:green"),
+                                 ("refine_ungated", "v:", "tab:red")):
         for ax, metric in zip(axes, ("psnr", "band_psnr")):
             ys = [next((r[metric] for r in summary if (r["corruption"], r["px"]) == key(x) and r["method"] == method),
                        None) for x in xs]
@@ -245,13 +277,14 @@ def plot(summary: list[dict], path: str) -> None:
         ax.legend()
     conds = list(dict.fromkeys((r["corruption"], r["px"]) for r in summary))
     ax = axes[2]
-    for j, (method, color) in enumerate((("refine", "tab:green"), ("refine_ungated", "tab:red"))):
+    bars = (("depthfix", "tab:purple"), ("refine", "tab:green"), ("refine_ungated", "tab:red"))
+    for j, (method, color) in enumerate(bars):
         gains = []
         for c in conds:
             get = {r["method"]: r["band_psnr"] for r in summary if (r["corruption"], r["px"]) == c}
             best = max(get["preview"], get.get("raytrace", -math.inf))
-            gains.append(get[method] - best)
-        ax.bar(np.arange(len(conds)) + 0.4 * j - 0.2, gains, 0.4, color=color, label=method)
+            gains.append(get.get(method, math.nan) - best)
+        ax.bar(np.arange(len(conds)) + 0.27 * (j - 1), gains, 0.27, color=color, label=method)
     ax.axhline(0, color="k", lw=0.8)
     ax.axhline(-0.1, color="k", lw=0.6, ls=":")
     ax.set_xticks(np.arange(len(conds)), [f"{k} {p}" if p else k for k, p in conds], rotation=45, ha="right",

@@ -1,5 +1,9 @@
 """``render --refine``: the shipped refiner applied where depth errors show, blended into the classical render.
 
+First (with a ``rerender`` callback, which the pipeline always passes) the colour-guided depth correction
+(``bokehray.depthfix``) moves depth edges that sit off the photo's colour edges back onto them, and the classical
+level renders again on the corrected map; the steps below then work on that render and that map.
+
 Depth errors only change the image where a depth discontinuity meets a
 non-trivial blur; elsewhere the classical render is already right. So the
 image is cut into tiles, and a tile is refined only if a discontinuity whose
@@ -19,7 +23,8 @@ from __future__ import annotations
 import json
 import os
 import time
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
 
@@ -28,6 +33,7 @@ import torch
 from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file
 
+from bokehray.depthfix import DepthFixOptions, correct_disparity
 from bokehray.errors import InputError
 from bokehray.io import linear_to_srgb, srgb_to_linear
 from bokehray.lens import BlurParams
@@ -57,6 +63,9 @@ class RefineOptions:
         band_margin_px, band_feather_px: the correction is kept only within (the edge's CoC + margin) of a
             depth edge, fading out over the feather: farther away a depth error cannot change the image.
         gate: the confidence gate (``GateOptions(enabled=False)`` lets the whole band through).
+        depthfix: the colour-guided depth correction run first (``bokehray.depthfix``); it needs a ``rerender``
+            callback in :func:`refine` (the classical level again, on the corrected disparity).
+        neural: False stops after the depth correction (the neural residual is not run).
     """
 
     tile: int = 64
@@ -67,6 +76,8 @@ class RefineOptions:
     band_margin_px: float = 6.0
     band_feather_px: float = 4.0
     gate: GateOptions = GateOptions()
+    depthfix: DepthFixOptions = DepthFixOptions()
+    neural: bool = True
 
     def __post_init__(self) -> None:
         if self.tile < 8 or self.tile % 8 or self.halo < 0 or self.halo % 8:
@@ -86,6 +97,10 @@ class RefineStats:
     tiles_near_edges: int = 0  #: tiles within reach of a depth edge, before the gate
     band_pixels: int = 0  #: pixels of the edge band (where a depth error can change the image)
     gate_open: float = 0.0  #: mean gate over the band: the share of the correction let through
+    depth_fixed_px: int = 0  #: pixels whose disparity the depth correction changed (then the level ran again)
+    depthfix_seconds: float = 0.0  #: the correction itself
+    rerender_seconds: float = 0.0  #: the classical level again, on the corrected disparity
+    disparity: np.ndarray | None = field(default=None, repr=False)  #: the corrected disparity (None: unchanged)
 
     @property
     def share_refined(self) -> float:
@@ -95,7 +110,8 @@ class RefineStats:
         return {"tiles_total": self.tiles_total, "tiles_refined": self.tiles_refined,
                 "share_refined": self.share_refined, "seconds": self.seconds,
                 "tiles_near_edges": self.tiles_near_edges, "band_pixels": self.band_pixels,
-                "gate_open": self.gate_open}
+                "gate_open": self.gate_open, "depth_fixed_px": self.depth_fixed_px,
+                "depthfix_seconds": self.depthfix_seconds, "rerender_seconds": self.rerender_seconds}
 
 
 def load_refiner(path: str | os.PathLike | None = None, device: str = "cpu") -> BokehRefiner:
@@ -185,8 +201,14 @@ def refine(
     classical: np.ndarray,
     model: BokehRefiner | None = None,
     options: RefineOptions = RefineOptions(),
+    rerender: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> tuple[np.ndarray, RefineStats]:
     """Refine a classical render where depth discontinuities meet blur.
+
+    First, with ``rerender``, the colour-guided depth correction (``bokehray.depthfix``): where a depth edge
+    sits off the photo's colour edge, the disparity there is corrected and ``rerender(corrected)`` renders
+    the classical level again; the neural residual (behind its gate) then corrects that render, seeing the
+    corrected disparity. Without ``rerender``, or where nothing is corrected, the render is the given one.
 
     Args:
         image: the all-in-focus ``H x W x 3`` scene-linear image.
@@ -194,17 +216,36 @@ def refine(
         blur: its ``K`` and ``d_f``.
         classical: the classical render (``H x W x 3``, scene-linear).
         model: a loaded refiner (default: the shipped weights).
+        rerender: ``disparity -> H x W x 3`` render of the same classical level (the pipeline passes its own).
 
     Returns:
         The refined render (scene-linear float32; untouched pixels are the classical values exactly) and stats.
     """
     t0 = time.perf_counter()
-    model = model or load_refiner()
     h, w = disparity.shape
+    fixed_px, t_fix, t_re, d_fixed = 0, 0.0, 0.0, None
+    if rerender is not None and options.depthfix.enabled:
+        from scipy import ndimage
+
+        t1 = time.perf_counter()
+        focus_srgb = linear_to_srgb(np.clip(image[..., :3], 0.0, 1.0))
+        lights = ndimage.binary_dilation(image[..., :3].max(-1) >= 1.0, iterations=2)  # never moved, never votes
+        d_new, changed = correct_disparity(focus_srgb, disparity, blur.k_px, options.depthfix, keep=lights)
+        t_fix = time.perf_counter() - t1
+        if changed.any():
+            t1 = time.perf_counter()
+            classical = np.asarray(rerender(d_new), np.float32)
+            t_re = time.perf_counter() - t1
+            disparity, d_fixed, fixed_px = d_new, d_new, int(changed.sum())
     coc = blur.signed_coc(disparity).astype(np.float32)
     reach = edge_reach(coc, options.min_jump_px)
     need = _tiles_near(reach, options.tile)
-    stats = RefineStats(tiles_total=int(need.size), tiles_near_edges=int(need.sum()))
+    if not options.neural:
+        need[:] = False
+    else:
+        model = model or load_refiner()
+    stats = RefineStats(tiles_total=int(need.size), tiles_near_edges=int(need.sum()), depth_fixed_px=fixed_px,
+                        depthfix_seconds=t_fix, rerender_seconds=t_re, disparity=d_fixed)
     t, halo = options.tile, options.halo
     if need.any():
         full_band = edge_band(reach, options.band_margin_px, options.band_feather_px)

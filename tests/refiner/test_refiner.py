@@ -1,6 +1,7 @@
 """The small refiner: identity at initialisation, training, exact resume, shipped weights, ``--refine``."""
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -321,3 +322,54 @@ def test_gate_is_a_weight_and_stays_shut_without_depth_edges(seed, k, df, edges)
     assert g.shape == d.shape and np.isfinite(g).all() and g.min() >= 0 and g.max() <= 1
     if not (np.abs(np.diff(coc, axis=0)) > 1).any() and not (np.abs(np.diff(coc, axis=1)) > 1).any():
         assert not g.any()
+
+
+def test_depth_fix_corrects_the_map_and_renders_the_level_again_before_the_residual():
+    img, d = _edge_scene(2)
+    blur = br.BlurParams(12.0, 0.9)
+    dc = corrupt_disparity(d, "erode", 3)
+    calls = []
+
+    def rerender(dd):
+        calls.append(dd.copy())
+        return br.render(img, dd, blur)
+
+    classical = br.render(img, dc, blur)
+    out, st = refine(img, dc, blur, classical, model=BokehRefiner(), rerender=rerender)  # a zero residual
+    assert len(calls) == 1 and st.depth_fixed_px > 0 and st.as_dict()["depth_fixed_px"] == st.depth_fixed_px
+    assert np.array_equal(st.disparity, calls[0])
+    wrong = lambda m: int((np.abs(m - d) > 0.05).sum())  # noqa: E731
+    assert wrong(calls[0]) < 0.2 * wrong(dc)  # the eroded near block is back on its colour edge
+    np.testing.assert_allclose(out, br.render(img, calls[0], blur), rtol=0, atol=1e-6)
+    err = lambda a: float(np.abs(a - br.render(img, d, blur)).mean())  # noqa: E731
+    assert err(out) < 0.5 * err(classical)
+    # without the callback, or with the fix off, the map and the render stay as given
+    same, st0 = refine(img, dc, blur, classical, model=BokehRefiner())
+    off, st1 = refine(img, dc, blur, classical, model=BokehRefiner(), rerender=rerender,
+                      options=RefineOptions(depthfix=replace(RefineOptions().depthfix, enabled=False)))
+    assert st0.depth_fixed_px == st1.depth_fixed_px == 0 and st0.disparity is None and len(calls) == 1
+    assert np.array_equal(same, off)
+
+
+def test_depth_fix_leaves_exact_edges_and_flat_scenes_alone():
+    img, d = _edge_scene(3)
+    blur = br.BlurParams(12.0, 0.9)
+    calls = []
+    for dd in (d, np.full_like(d, 0.9)):
+        classical = br.render(img, dd, blur)
+        out, st = refine(img, dd, blur, classical, model=BokehRefiner(),
+                         rerender=lambda x: calls.append(x) or br.render(img, x, blur))
+        assert st.depth_fixed_px == 0 and np.array_equal(out, classical)
+    assert not calls
+
+
+def test_render_api_runs_the_depth_fix_and_blurs_alpha_with_the_corrected_map(weights):
+    img, d = _edge_scene(4, 96)
+    d = d[:96, :96]
+    rgba = np.concatenate([img[:96, :96], (d > 0.5)[..., None].astype(np.float32)], axis=2)
+    blur = br.BlurParams(10.0, 0.9)
+    dc = corrupt_disparity(d, "erode", 3)
+    out, st = br.render_with_stats(rgba, dc, blur, refine=str(weights))
+    assert st.refine["depth_fixed_px"] > 0 and st.refine["rerender_seconds"] > 0
+    plain = br.render(rgba, dc, blur)
+    assert not np.array_equal(out[..., 3], plain[..., 3])  # alpha went through the level on the fixed map too

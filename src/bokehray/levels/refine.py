@@ -20,8 +20,11 @@ REFINABLE = ("preview",)
 
 
 def refine_render(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, classical: np.ndarray,
-                  weights: bool | str | os.PathLike, device: str):
-    """Run the refiner on ``classical`` (the level's RGB render); returns (refined RGB, the refiner's stats)."""
+                  weights: bool | str | os.PathLike, device: str, rerender=None):
+    """Run the refiner on ``classical`` (the level's RGB render); returns (refined RGB, the refiner's stats).
+
+    ``rerender(disparity)`` renders the level again on a corrected disparity (the refiner's depth correction).
+    """
     try:
         from bokehray_refiner.refine import load_refiner, refine
     except ImportError as e:
@@ -29,4 +32,5 @@ def refine_render(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, cl
     import torch
 
     tdev = "cuda" if device.startswith("cuda") and torch.cuda.is_available() else "cpu"
-    return refine(image, disparity, blur, classical, model=load_refiner(None if weights is True else weights, tdev))
+    return refine(image, disparity, blur, classical, model=load_refiner(None if weights is True else weights, tdev),
+                  rerender=rerender)

@@ -1,0 +1,350 @@
+"""Colour-guided depth correction: move a misplaced depth edge onto the photo's colour edge.
+
+Wrong disparity breaks a classical render mostly where a depth edge sits a few pixels away from the
+colour edge of the object it belongs to (an eroded, dilated, smeared, shifted or estimated map). The
+classical preview is exact where the disparity is right, so correcting the *disparity* near depth
+edges and rendering again can be worth more than a learned residual on the image.
+
+:func:`correct_disparity` works in three steps, NumPy/SciPy over the edge band only:
+
+1. **Suspect pixels, per hypothesis.** Along the normal of every depth-edge pair (CoC jump >
+   ``jump_px``) the colour step of the all-in-focus image is sampled on each side
+   (:func:`colour_edge_offsets`). Where the strongest step on one side is clearly off the depth edge
+   (the step on the edge over it, smoothed along the edge, below ``max_ratio``) and the stretch between
+   edge and step looks like the *other* side of the edge, the pixels of that stretch are suspect
+   (:func:`untrusted`): on the far side a too thin near region (erosion), on the near side a too fat one
+   (dilation). A third hypothesis marks pixels inside a smeared edge (:func:`smeared`: the local largest
+   and smallest disparity both differ from the pixel's by more than ``snap_px`` of CoC).
+2. **A colour vote of the trusted pixels.** For each suspect pixel, the other pixels within
+   ``radius_px`` vote, weighted by colour similarity and distance, in three classes relative to the
+   pixel's own disparity (farther, the same within ``snap_px`` of CoC, nearer). The pixel moves to the
+   weighted median of the farther or nearer class only where that class is clearly more similar in
+   colour (``contrast``, ``min_affinity``) and the evidence is two-sided (its own layer is seen among the
+   trusted pixels, or both other classes are): a thin structure whose every pixel is suspect (a 2 px wire
+   with nothing of its colour around) is left alone.
+3. ``iterations`` passes, each from the corrected map.
+
+Every output value is a disparity of the input within ``radius_px`` of the pixel (a median of
+neighbours), so the correction never invents a disparity outside the local range; pixels that do not
+move keep their input values bit for bit. The slow obvious reference is
+``tests/reference/depthfix_ref.py`` (pixel by pixel, pair by pair); tests compare the two.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["DepthFixOptions", "colour_edge_offsets", "correct_disparity", "depth_edges", "edge_pairs", "smeared",
+           "untrusted", "weighted_median"]
+
+
+@dataclass(frozen=True)
+class DepthFixOptions:
+    """Parameters of the colour-guided depth correction (docs/refiner.md).
+
+    Args:
+        enabled: False leaves the disparity as it is.
+        jump_px: a depth edge is a pair of 4-neighbours whose CoC differs by more than this.
+        band_px: how far across a depth edge the colour edge is searched (and pixels may be corrected).
+        radius_px: the vote's window radius (a disc).
+        step_px: the window is sampled on a grid of this pitch (1: every pixel).
+        sigma_colour: colour similarity scale (sRGB, Euclidean over RGB).
+        sigma_space_px: spatial fall-off of the votes.
+        min_class: a class of voters is "seen" when its spatial weights sum to at least this.
+        contrast: the winning class's mean colour similarity must exceed every other seen class's by this factor.
+        min_affinity: and be at least this.
+        snap_px: classes are relative to the pixel's own disparity, in CoC pixels.
+        iterations: passes (each recomputes the edges from the corrected map).
+        min_step: colour steps (sRGB, Euclidean) below this are no colour edge.
+        min_score: how much more (colour distance) the stretch must look like the other side than like beyond.
+        ramp_px: half-width of the window of the smeared-edge hypothesis (0: off).
+        thin_dilated: under the dilation hypothesis a pixel may move without its own layer among the
+            voters (a dilated thin structure, whose every pixel is suspect).
+        max_ratio: a colour edge counts as off the depth edge where (step on the edge) / (strongest step) is below.
+        sigma_edge_px: smoothing along the edge of the ratio, the score and the offset.
+    """
+
+    enabled: bool = True
+    jump_px: float = 1.0
+    band_px: float = 6.0
+    radius_px: float = 8.0
+    step_px: int = 1
+    sigma_colour: float = 0.08
+    sigma_space_px: float = 4.0
+    min_class: float = 1.0
+    contrast: float = 1.5
+    min_affinity: float = 0.2
+    snap_px: float = 1.0
+    iterations: int = 2
+    min_step: float = 0.03
+    min_score: float = 0.0
+    ramp_px: int = 3
+    thin_dilated: bool = True
+    max_ratio: float = 0.5
+    sigma_edge_px: float = 3.0
+
+
+def depth_edges(coc: np.ndarray, jump_px: float) -> np.ndarray:
+    """Boolean map: both pixels of every 4-neighbour pair whose CoC differs by more than ``jump_px``."""
+    e = np.zeros(coc.shape, bool)
+    jy = np.abs(np.diff(coc, axis=0)) > jump_px
+    jx = np.abs(np.diff(coc, axis=1)) > jump_px
+    e[:-1] |= jy
+    e[1:] |= jy
+    e[:, :-1] |= jx
+    e[:, 1:] |= jx
+    return e
+
+
+def weighted_median(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Row-wise weighted median: the smallest value whose cumulative weight reaches half the row's total.
+
+    ``values`` and ``weights`` are ``N x M``; rows whose weights are all 0 give ``nan``.
+    """
+    order = np.argsort(values, axis=1, kind="stable")
+    v = np.take_along_axis(values, order, axis=1)
+    c = np.cumsum(np.take_along_axis(weights, order, axis=1), axis=1)
+    total = c[:, -1:]
+    idx = np.argmax(c >= 0.5 * total, axis=1)
+    out = v[np.arange(v.shape[0]), idx]
+    return np.where(total[:, 0] > 0, out, np.nan)
+
+
+def _offsets(options: DepthFixOptions) -> np.ndarray:
+    r = int(np.floor(options.radius_px))
+    s = max(1, int(options.step_px))
+    g = np.arange(-(r // s) * s, r + 1, s)
+    oy, ox = np.meshgrid(g, g, indexing="ij")
+    keep = oy ** 2 + ox ** 2 <= options.radius_px ** 2
+    return np.stack([oy[keep], ox[keep]], 1)
+
+
+def edge_pairs(coc: np.ndarray, jump_px: float) -> list[tuple[np.ndarray, np.ndarray, int]]:
+    """Per axis, the ``(ys, xs, axis)`` of pixels ``a`` whose pair ``(a, a + e_axis)`` is a depth edge."""
+    out = []
+    for ax in (0, 1):
+        ys, xs = np.nonzero(np.abs(np.diff(coc, axis=ax)) > jump_px)
+        out.append((ys, xs, ax))
+    return out
+
+
+def colour_edge_offsets(focus_srgb: np.ndarray, disparity: np.ndarray, pairs, radius_px: float):
+    """Where the strongest colour step lies on each side of each depth-edge pair, along the edge's normal.
+
+    For every pair ``(a, a + e_axis)`` it samples the sRGB colour step ``|f(t + 1/2) - f(t - 1/2)|``
+    (bilinear, Euclidean over RGB) at ``t`` in ``[-radius_px, radius_px]`` (half-pixel steps) along the
+    normal of the depth edge (the gradient of the lightly smoothed disparity, turned towards the pair's
+    near pixel), ``t = 0`` on the edge.
+
+    Returns ``(my, mx, uy, ux, t_far, r_far, s_far, c_far, t_near, r_near, s_near, c_near)`` per pair: the
+    midpoint, the unit normal, and per side (far: ``t <= 0``, near: ``t >= 0``) the offset of the strongest
+    step, the strongest step within half a pixel of the edge divided by that side's strongest, that strongest
+    step, and how much more the stretch between edge and step looks like the other side of the edge than like
+    what lies beyond the step (colour distances; > 0: like the other side).
+    """
+    from scipy import ndimage
+
+    d = ndimage.gaussian_filter(disparity.astype(np.float32), 1.0)
+    gy, gx = ndimage.sobel(d, 0), ndimage.sobel(d, 1)
+    steps = np.arange(-radius_px, radius_px + 1e-6, 0.5, dtype=np.float32)
+    at_edge = np.abs(steps) <= 0.5 + 1e-6
+    far, near = steps <= 0.5 + 1e-6, steps >= -0.5 - 1e-6
+    offs = np.concatenate([steps - 0.5, steps[-1:] + 0.5])
+    # float64 samples of the float32 image: the argmax of nearly equal steps must not depend on rounding
+    chans = [np.ascontiguousarray(focus_srgb[..., c], np.float32).astype(np.float64) for c in range(3)]
+    cols = [[] for _ in range(12)]
+    for ys, xs, axis in pairs:
+        if ys.size == 0:
+            continue
+        my = ys + (0.5 if axis == 0 else 0.0)
+        mx = xs + (0.5 if axis == 1 else 0.0)
+        ny, nx = ys + (axis == 0), xs + (axis == 1)
+        sign = np.where(disparity[ny, nx] >= disparity[ys, xs], 1.0, -1.0)  # towards the pair's near pixel
+        gyy = (gy[ys, xs].astype(np.float64) + gy[ny, nx]) * 0.5
+        gxx = (gx[ys, xs].astype(np.float64) + gx[ny, nx]) * 0.5
+        along = gyy * (axis == 0) + gxx * (axis == 1)  # the gradient must point to the pair's near pixel
+        nn = np.hypot(gyy, gxx)
+        flat = (nn <= 1e-12) | (along * sign <= 0)
+        uy = np.where(flat, sign * (axis == 0), gyy / np.where(nn > 0, nn, 1.0))
+        ux = np.where(flat, sign * (axis == 1), gxx / np.where(nn > 0, nn, 1.0))
+        py = my[:, None] + offs[None, :] * uy[:, None]
+        px = mx[:, None] + offs[None, :] * ux[:, None]
+        coords = np.stack([py.ravel(), px.ravel()])
+        samp = np.stack([ndimage.map_coordinates(c, coords, order=1, mode="nearest").reshape(py.shape)
+                         for c in chans], -1)
+        step = np.sqrt((np.diff(samp.astype(np.float64), axis=1) ** 2).sum(-1))
+        on = step[:, at_edge].max(axis=1)
+        out = [my, mx, uy, ux]
+        rows = np.arange(ys.size)
+
+        def colour(pos, samp=samp, rows=rows):  # the sampled colour nearest to offset ``pos`` along the normal
+            j = np.clip(np.rint((pos - offs[0]) / 0.5).astype(np.int64), 0, offs.size - 1)
+            return samp[rows, j].astype(np.float64)
+
+        dist = lambda a, b: np.sqrt(((a - b) ** 2).sum(-1))  # noqa: E731
+        for side, sg in ((far, -1.0), (near, 1.0)):
+            sub = step[:, side]
+            best = sub.max(axis=1)
+            t = steps[side][np.argmax(sub, axis=1)]
+            # does the stretch between the edge and that colour step look like the *other* side of the edge
+            # (what an erosion or dilation of the map would leave there) more than like what lies beyond it?
+            mid = colour(t * 0.5)
+            score = dist(mid, colour(t + sg * 1.0)) - dist(mid, colour(-sg * 1.0))
+            out += [t, on / np.maximum(best, 1e-12), best, score]
+        for c, v in zip(cols, out):
+            c.append(np.asarray(v, np.float64))
+    if not cols[0]:
+        return tuple(np.zeros(0, np.float64) for _ in range(12))
+    return tuple(np.concatenate(c) for c in cols)
+
+
+def untrusted(focus_srgb: np.ndarray, disparity: np.ndarray, k_px: float,
+              options: DepthFixOptions = DepthFixOptions()) -> tuple[np.ndarray, np.ndarray]:
+    """Where the disparity is suspect: between a depth edge and a colour edge displaced from it, per side.
+
+    Returns two masks. *Far side* (the near region may be too thin: eroded, shifted, smeared): at each
+    depth-edge pair whose strongest colour step on the far side is strong (``min_step``) and clearly off the
+    edge (the step on the edge over it, smoothed along the edge, below ``max_ratio``), the pixels along the
+    normal from the edge to that colour step (its offset smoothed along the edge, plus half a pixel).
+    *Near side* (the near region may be too fat): the same on the near side. The other side of the edge stays
+    trusted: it is the side such an error did not touch.
+    """
+    from scipy import ndimage
+
+    h, w = disparity.shape
+    masks = (np.zeros((h, w), bool), np.zeros((h, w), bool))
+    pairs = edge_pairs(np.float32(k_px) * disparity, options.jump_px)
+    my, mx, uy, ux, *sides = colour_edge_offsets(focus_srgb, disparity, pairs, options.band_px)
+    if my.size == 0:
+        return masks
+    iy = np.clip(np.floor(my).astype(np.int64), 0, h - 1)
+    ix = np.clip(np.floor(mx).astype(np.int64), 0, w - 1)
+
+    def smooth(v, wt):  # normalised convolution over the edge pairs
+        num, den = np.zeros((h, w), np.float64), np.zeros((h, w), np.float64)
+        np.add.at(num, (iy, ix), v * wt)
+        np.add.at(den, (iy, ix), wt)
+        num = ndimage.gaussian_filter(num, options.sigma_edge_px)
+        den = ndimage.gaussian_filter(den, options.sigma_edge_px)
+        return num[iy, ix] / np.maximum(den[iy, ix], 1e-12)
+
+    ss = np.arange(0.5, options.band_px + 1.0, 0.5)
+    scores = (sides[3].astype(np.float64), sides[7].astype(np.float64))
+    for k, (mask, (t, ratio, strength, _)) in enumerate(zip(masks, (sides[0:4], sides[4:8]))):
+        strong = strength >= options.min_step
+        r_s = smooth(np.where(strong, ratio, 1.0).astype(np.float64), np.ones(my.size))
+        mine, other = smooth(scores[k], np.ones(my.size)), smooth(scores[1 - k], np.ones(my.size))
+        act = strong & (r_s < options.max_ratio) & (mine > options.min_score) & (mine > other)
+        if not act.any():
+            continue
+        t_s = smooth(t.astype(np.float64), act.astype(np.float64))
+        ok = act & (np.abs(t_s) >= 0.75)
+        sgn = np.sign(t_s[ok])
+        use = ss[None, :] <= (np.abs(t_s[ok]) + 0.5)[:, None]
+        py = my[ok, None] + (sgn[:, None] * ss[None, :]) * uy[ok, None]
+        px = mx[ok, None] + (sgn[:, None] * ss[None, :]) * ux[ok, None]
+        # pixel centres are at integer coordinates: a sample belongs to the nearest centre
+        mask[np.clip(np.rint(py[use]).astype(np.int64), 0, h - 1),
+             np.clip(np.rint(px[use]).astype(np.int64), 0, w - 1)] = True
+    return masks
+
+
+def smeared(disparity: np.ndarray, k_px: float, options: DepthFixOptions = DepthFixOptions()) -> np.ndarray:
+    """Pixels inside a smeared depth edge: both the largest and the smallest disparity within ``ramp_px``
+    (a square window) differ from the pixel's own by more than ``snap_px`` of CoC (a blurred or estimated
+    map's ramp; a surface tilted less steeply than that is left alone)."""
+    from scipy import ndimage
+
+    size = 2 * int(options.ramp_px) + 1
+    snap = options.snap_px / float(k_px)
+    d = disparity.astype(np.float64)
+    hi = ndimage.maximum_filter(d, size, mode="nearest")
+    lo = ndimage.minimum_filter(d, size, mode="nearest")
+    return (hi - d > snap) & (d - lo > snap)
+
+
+def _vote(img, cur, sus, offs, space, snap, options, new, keep=None, one_sided=False):
+    """Colour-weighted vote of the trusted pixels (not ``sus``, not ``keep``) for every pixel of ``sus``
+    (not ``keep``); writes ``new``."""
+    h, w = cur.shape
+    trusted = ~sus if keep is None else ~(sus | keep)
+    ys, xs = np.nonzero(sus if keep is None else sus & ~keep)
+    for i in range(0, ys.size, 4096):  # chunks bound the memory: 4096 x len(offs) per array
+        py, px = ys[i:i + 4096], xs[i:i + 4096]
+        qy, qx = py[:, None] + offs[None, :, 0], px[:, None] + offs[None, :, 1]
+        inside = (qy >= 0) & (qy < h) & (qx >= 0) & (qx < w)
+        qy, qx = np.clip(qy, 0, h - 1), np.clip(qx, 0, w - 1)
+        dc2 = ((img[qy, qx].astype(np.float64) - img[py, px][:, None, :]) ** 2).sum(-1)
+        sp = np.where(inside & trusted[qy, qx], space[None, :], 0.0)
+        wt = sp * np.exp(-dc2 / (2.0 * options.sigma_colour ** 2))
+        vals = cur[qy, qx]
+        rel = vals.astype(np.float64) - cur[py, px][:, None]
+        cls = [rel < -snap, np.abs(rel) <= snap, rel > snap]  # the far side, the pixel's own layer, the near side
+        seen = np.stack([(sp * c).sum(1) for c in cls], 1)  # how much of each class the window holds
+        aff = np.stack([(wt * c).sum(1) for c in cls], 1) / np.maximum(seen, 1e-300)  # its mean similarity
+        known = seen >= options.min_class
+        aff = np.where(known, aff, 0.0)
+        best = np.where(aff[:, 0] >= aff[:, 2], 0, 2)
+        n = np.arange(aff.shape[0])
+        a_best = aff[n, best]
+        a_rest = np.maximum(aff[:, 1], aff[n, 2 - best])
+        # evidence on both sides: the pixel's own layer, or (a pixel inside a smeared edge) both other layers
+        two_sided = known[:, 1] | (known[:, 0] & known[:, 2]) | one_sided
+        ok = two_sided & known[n, best] & (a_best >= options.contrast * a_rest) & (a_best >= options.min_affinity)
+        if not ok.any():
+            continue
+        sel = np.nonzero(ok)[0]  # the median (a sort) only where the vote moves the pixel
+        mine = np.where(best[sel, None] == 0, cls[0][sel], cls[2][sel])
+        med = weighted_median(vals[sel], np.where(mine, wt[sel], 0.0))
+        fin = np.isfinite(med)
+        new[py[sel][fin], px[sel][fin]] = med[fin]
+
+
+def correct_disparity(focus_srgb: np.ndarray, disparity: np.ndarray, k_px: float,
+                      options: DepthFixOptions = DepthFixOptions(),
+                      active: np.ndarray | None = None,
+                      keep: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The disparity with depth edges moved onto the colour edges, and the mask of changed pixels.
+
+    Args:
+        focus_srgb: ``H x W x 3`` all-in-focus image, sRGB in [0, 1].
+        disparity: ``H x W`` in [0, 1].
+        k_px: the blur's ``K`` (CoC radius per unit disparity): edges and thresholds are in CoC pixels.
+        active: optional ``H x W`` bool, where corrections are allowed.
+        keep: optional ``H x W`` bool, pixels that neither change nor vote (clipped lights: their sRGB colour
+            says nothing about them, and a light moved to another depth moves its whole bokeh ball).
+
+    Every output value is one of the input's values within ``radius_px`` (a median of trusted neighbours),
+    so the correction never invents a disparity outside the local range.
+    """
+    d = np.asarray(disparity, np.float32)
+    out = d.copy()
+    changed = np.zeros(d.shape, bool)
+    if not options.enabled or k_px <= 0:
+        return out, changed
+    img = np.ascontiguousarray(focus_srgb[..., :3], np.float32)
+    offs = _offsets(options)
+    space = np.exp(-(offs ** 2).sum(1) / (2.0 * options.sigma_space_px ** 2))
+    h, w = d.shape
+    snap = options.snap_px / float(k_px)
+    for _ in range(max(1, options.iterations)):
+        cur = out
+        new = cur.copy()
+        hyps = list(untrusted(img, cur, k_px, options))
+        if options.ramp_px > 0:
+            hyps.append(smeared(cur, k_px, options))
+        for h_i, sus in enumerate(hyps):  # each hypothesis with its own trusted pixels
+            if active is not None:
+                sus &= active
+            if sus.any():
+                _vote(img, cur, sus, offs, space, snap, options, new, keep,
+                      one_sided=options.thin_dilated and h_i == 1)
+        moved = new != cur
+        if not moved.any():
+            break
+        changed |= moved
+        out = new
+    changed &= out != d
+    return out, changed

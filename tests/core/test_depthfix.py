@@ -1,0 +1,139 @@
+"""The colour-guided depth correction (``bokehray.depthfix``) against its slow reference, and its invariants."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy import ndimage
+
+from bokehray.datasets import perturb_disparity
+from bokehray.depthfix import (DepthFixOptions, colour_edge_offsets, correct_disparity, edge_pairs, smeared,
+                               untrusted, weighted_median)
+from reference.depthfix_ref import (colour_edge_offsets_ref, correct_disparity_ref, edge_pairs_ref,
+                                          smeared_ref, untrusted_ref, weighted_median_ref)
+
+
+def _scene(seed=0, size=48, box=(12, 36, 10, 30), near_rgb=(0.8, 0.3, 0.2), far_rgb=(0.2, 0.5, 0.7)):
+    """A textured near block over a textured far plane; the depth step lies exactly on the colour edge."""
+    rng = np.random.default_rng(seed)
+    tex = ndimage.gaussian_filter(rng.normal(0, 0.04, (size, size, 3)), (1.0, 1.0, 0))
+    y0, y1, x0, x1 = box
+    inside = np.zeros((size, size), bool)
+    inside[y0:y1, x0:x1] = True
+    img = np.where(inside[..., None], np.array(near_rgb), np.array(far_rgb)) + tex
+    d = np.where(inside, 0.85, 0.2).astype(np.float32)
+    return np.clip(img, 0, 1).astype(np.float32), d
+
+
+def test_weighted_median_matches_the_reference():
+    rng = np.random.default_rng(3)
+    v = rng.choice(np.linspace(0, 1, 7), (200, 15)).astype(np.float32)  # ties on purpose
+    w = rng.uniform(0, 1, (200, 15)) * (rng.uniform(size=(200, 15)) < 0.7)
+    w[0] = 0.0
+    got = weighted_median(v, w)
+    ref = np.array([weighted_median_ref(list(a), list(b)) for a, b in zip(v, w)])
+    assert np.isnan(got[0]) and np.isnan(ref[0])
+    np.testing.assert_array_equal(got[1:], ref[1:])
+
+
+@pytest.mark.parametrize("kind", ["erode", "dilate", "blur"])
+def test_the_steps_match_the_reference(kind):
+    img, d = _scene(1, size=40, box=(10, 30, 8, 28))
+    if kind == "blur":
+        d = ndimage.gaussian_filter(d, 1.5).astype(np.float32)
+    else:
+        d = perturb_disparity(d, -2 if kind == "erode" else 2)
+    k = 12.0
+    opts = DepthFixOptions()
+    pairs, pairs_ref = edge_pairs(k * d, opts.jump_px), edge_pairs_ref(k * d, opts.jump_px)
+    for (ys, xs, ax), (ry, rx, rax) in zip(pairs, pairs_ref):
+        assert ax == rax and np.array_equal(ys, ry) and np.array_equal(xs, rx)
+    got = np.stack(colour_edge_offsets(img, d, pairs, opts.band_px), 1)
+    ref = colour_edge_offsets_ref(img, d, pairs, opts.band_px)
+    assert got.shape == ref.shape and got.shape[0] > 0
+    np.testing.assert_allclose(got, ref, rtol=0, atol=2e-5)
+    for m, r in zip(untrusted(img, d, k, opts), untrusted_ref(img, d, k, opts)):
+        np.testing.assert_array_equal(m, r)
+    np.testing.assert_array_equal(smeared(d, k, opts), smeared_ref(d, k, opts))
+
+
+@pytest.mark.parametrize("kind, px", [("erode", 3), ("dilate", 3), ("blur", 3), ("shift", 2)])
+def test_correction_matches_the_reference(kind, px):
+    img, d = _scene(2, size=40, box=(10, 30, 8, 28))
+    if kind == "blur":
+        dc = ndimage.gaussian_filter(d, px / 2).astype(np.float32)
+    elif kind == "shift":
+        dc = np.roll(d, (px, -px), (0, 1))
+    else:
+        dc = perturb_disparity(d, -px if kind == "erode" else px)
+    got, changed = correct_disparity(img, dc, 12.0)
+    ref = correct_disparity_ref(img, dc, 12.0)
+    assert changed.any()  # the comparison is about a correction that happened
+    np.testing.assert_array_equal(got, ref)
+    np.testing.assert_array_equal(changed, got != dc)
+
+
+@pytest.mark.parametrize("kind", ["erode", "dilate"])
+def test_a_displaced_edge_is_moved_back_onto_the_colour_edge(kind):
+    img, d = _scene(4, size=64, box=(16, 48, 12, 44))
+    dc = perturb_disparity(d, -3 if kind == "erode" else 3)
+    fixed, _ = correct_disparity(img, dc, 16.0)
+    wrong_before = int((np.abs(dc - d) > 0.05).sum())
+    wrong_after = int((np.abs(fixed - d) > 0.05).sum())
+    assert wrong_before > 300 and wrong_after < 0.1 * wrong_before
+
+
+def test_lights_to_keep_neither_move_nor_vote():
+    img, d = _scene(5)
+    dc = perturb_disparity(d, -3)
+    keep = np.zeros_like(d, bool)
+    keep[:, :24] = True
+    fixed, changed = correct_disparity(img, dc, 16.0, keep=keep)
+    assert changed.any() and not changed[keep].any()
+    np.testing.assert_array_equal(fixed, correct_disparity_ref(img, dc, 16.0, keep=keep))
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**16), k=st.floats(2.0, 40.0), blocks=st.integers(0, 4),
+       kind=st.sampled_from(["none", "erode", "dilate", "blur"]))
+def test_never_invents_a_disparity_outside_the_local_range(seed, k, blocks, kind):
+    rng = np.random.default_rng(seed)
+    img = ndimage.gaussian_filter(rng.uniform(0, 1, (36, 36, 3)), (1.5, 1.5, 0)).astype(np.float32)
+    d = np.full((36, 36), rng.uniform(0, 1), np.float32)
+    for _ in range(blocks):
+        y, x = rng.integers(0, 30, 2)
+        hh, ww = rng.integers(3, 18, 2)
+        d[y:y + hh, x:x + ww] = rng.uniform(0, 1)
+        img[y:y + hh, x:x + ww] = np.clip(img[y:y + hh, x:x + ww] + rng.uniform(-0.5, 0.5, 3), 0, 1)
+    if kind == "blur":
+        d = ndimage.gaussian_filter(d, 1.5).astype(np.float32)
+    elif kind != "none":
+        d = perturb_disparity(d, -2 if kind == "erode" else 2)
+    opts = DepthFixOptions()
+    out, changed = correct_disparity(img, d, k, opts)
+    assert out.dtype == np.float32 and np.isfinite(out).all()
+    np.testing.assert_array_equal(out[~changed], d[~changed])  # what did not move keeps its bits
+    reach = int(np.floor(opts.radius_px)) * opts.iterations
+    for y, x in zip(*np.nonzero(changed)):
+        win = d[max(y - reach, 0):y + reach + 1, max(x - reach, 0):x + reach + 1]
+        assert np.isin(out[y, x], win)  # a disparity the input holds nearby, never a new one
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**16), k=st.floats(0.0, 1e4), level=st.floats(0.0, 1.0))
+def test_a_flat_map_is_unchanged(seed, k, level):
+    img = np.random.default_rng(seed).uniform(0, 1, (24, 30, 3)).astype(np.float32)
+    d = np.full((24, 30), level, np.float32)
+    out, changed = correct_disparity(img, d, k)
+    assert not changed.any() and np.array_equal(out, d)
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**16), k=st.floats(4.0, 40.0), y0=st.integers(8, 20), x0=st.integers(8, 20),
+       hh=st.integers(12, 24), ww=st.integers(12, 24), near=st.floats(0.5, 1.0), far=st.floats(0.0, 0.45),
+       c1=st.tuples(*[st.floats(0.0, 1.0)] * 3), c2=st.tuples(*[st.floats(0.0, 1.0)] * 3))
+def test_a_step_edge_on_the_colour_edge_is_left_alone(seed, k, y0, x0, hh, ww, near, far, c1, c2):
+    img, d = _scene(seed, size=56, box=(y0, y0 + hh, x0, x0 + ww), near_rgb=c1, far_rgb=c2)
+    d = np.where(d > 0.5, near, far).astype(np.float32)
+    out, changed = correct_disparity(img, d, k)
+    assert not changed.any() and np.array_equal(out, d)
