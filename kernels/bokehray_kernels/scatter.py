@@ -663,13 +663,18 @@ def cluster_cells_kernel(
                             base = routed_base(v, nb)
                             b_light += wp.vec3(v[0] - base[0], v[1] - base[1], v[2] - base[2])
                             b_e += e
-                            b_x += e * (float(x) + 0.5)
-                            b_y += e * (float(y) + 0.5)
+                            b_x += e * (float(x - bx * bs) + 0.5)  # relative to the block: the same sums
+                            b_y += e * (float(y - by * bs) + 0.5)  # in a tile's window as in the whole box
                             b_s += e * coc[y, x]
                             exact[y, x] = wp.uint8(2)
             if b_e > 0.0:
+                # the centroid on a 1/256 px grid: exact in float32 in a window's coordinates and in the box's,
+                # so the scatter cuts the same sub-rows in both (tiled renders equal the untiled one)
+                cx_rel = wp.floor(b_x / b_e * 256.0 + 0.5) / 256.0
+                cy_rel = wp.floor(b_y / b_e * 256.0 + 0.5) / 256.0
                 cluster_light[lev - 1, by, bx] = wp.vec4(b_light[0], b_light[1], b_light[2], b_e)
-                cluster_shape[lev - 1, by, bx] = wp.vec4(b_x / b_e, b_y / b_e, b_s / b_e, 1.0)
+                cluster_shape[lev - 1, by, bx] = wp.vec4(float(bx * bs) + cx_rel, float(by * bs) + cy_rel,
+                                                         b_s / b_e, 1.0)
 
 
 @wp.kernel

@@ -378,3 +378,19 @@ def test_lights_leave_a_constant_channel_constant(seed, k, level):
     d = np.where(rng.random((h, w)) < 0.5, 0.1, 0.9).astype(np.float32)
     out = br.render(image, d, br.BlurParams(k, 0.5))
     np.testing.assert_allclose(out[..., 1], level, rtol=1e-4)
+
+
+def test_tiles_gather_extended_lights_like_the_whole_frame():
+    """Regression (found by benchmarks/soak.py): gathered light sources at arbitrary centroids were cut into other
+    sub-rows in a tile's window than in the whole frame (float32 rounding of y - yc), 1.2e-4 apart; centroids now
+    lie on a 1/256 px grid."""
+    rng = np.random.default_rng(2026998898)
+    image = np.zeros((64, 16, 4), np.float32)
+    image[..., 3] = rng.choice([0.0, 1.0, 0.3], (64, 16))  # alpha renders like a grey channel: clusters everywhere
+    lamps = np.zeros((80, 60, 3), np.float32) + 0.02
+    lamps[20:25, 13:18] = lamps[41:47, 30:35] = 1.5  # lamps that straddle the tiles' edges
+    d = np.zeros((64, 16), np.float32)
+    for img, disp in ((image, d), (lamps, np.zeros((80, 60), np.float32))):
+        whole = br.render(img, disp, br.BlurParams(9.0, 1.0))
+        tiled = br.render(img, disp, br.BlurParams(9.0, 1.0), memory=br.MemoryOptions(tile_size=24))
+        np.testing.assert_allclose(tiled, whole, rtol=0, atol=2e-5 * float(np.abs(whole).max()))

@@ -332,7 +332,8 @@ def test_extended_lights_are_gathered_like_the_reference(device, rng):
     assert len(got) == len(sources)
     for x, y, c, rgb in sources:  # each reference source has its twin in the kernel's output
         pos, lit = min(got, key=lambda g: np.hypot(g[0][0] - x, g[0][1] - y))
-        np.testing.assert_allclose(pos, [x, y, c], rtol=1e-5, atol=1e-4)
+        # positions lie on a 1/256 px grid: a float32 sum may round to the grid point next to the reference's
+        np.testing.assert_allclose(pos, [x, y, c], rtol=1e-5, atol=1 / 256 + 1e-4)
         np.testing.assert_allclose(lit, rgb, rtol=1e-4, atol=1e-4)
 
 

@@ -344,8 +344,8 @@ def clusters(src: np.ndarray, coc: np.ndarray, routed: np.ndarray, r0: float, n_
     cells' mean, e = q - a m / a_m, is positive are the cluster. When their summed excess E beats
     visible max(m, floor) pi s^2 (s: the e-weighted mean signed CoC), each member's light beyond its coverage
     of the other sources' local colour goes into the source of its block of 2^b px, b = max(1, l - 2): at the
-    members' e-weighted centroid (pixel centres), with their e-weighted mean signed CoC. Returns the members
-    and the sources as (x, y, signed CoC, RGB).
+    members' e-weighted centroid (pixel centres) rounded to 1/256 px, with their e-weighted mean signed CoC.
+    Returns the members and the sources as (x, y, signed CoC, RGB).
     """
     h, w = coc.shape
     q = src[..., :3].mean(-1)
@@ -382,8 +382,10 @@ def clusters(src: np.ndarray, coc: np.ndarray, routed: np.ndarray, r0: float, n_
                 for y, x, e, light in cell:
                     members[y, x] = True
                     blocks.setdefault((y // b, x // b), []).append((y, x, e, light))
-                for part in blocks.values():
+                for (by, bx), part in blocks.items():
                     pe = sum(c[2] for c in part)
-                    sources.append((sum(c[2] * (c[1] + 0.5) for c in part) / pe, sum(c[2] * (c[0] + 0.5) for c in part) / pe,
+                    fx = sum(c[2] * (c[1] - bx * b + 0.5) for c in part) / pe  # within the block,
+                    fy = sum(c[2] * (c[0] - by * b + 0.5) for c in part) / pe  # rounded to 1/256 px
+                    sources.append((bx * b + math.floor(fx * 256 + 0.5) / 256, by * b + math.floor(fy * 256 + 0.5) / 256,
                                     sum(c[2] * coc[c[0], c[1]] for c in part) / pe, sum(c[3] for c in part)))
     return members, sources
