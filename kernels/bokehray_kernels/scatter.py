@@ -319,8 +319,8 @@ def scatter_kernel(
     src: wp.array2d(dtype=wp.vec4),
     coc: wp.array2d(dtype=float),
     exact: wp.array2d(dtype=wp.uint8),
-    means: wp.array3d(dtype=wp.vec4),
-    counts: wp.array3d(dtype=float),
+    cell_total: wp.array3d(dtype=wp.vec4),
+    cell_pixels: wp.array3d(dtype=float),
     blades: wp.array(dtype=wp.vec4),
     n_blades: int,
     extent: wp.vec2,
@@ -340,11 +340,11 @@ def scatter_kernel(
     both at unit circumradius. A positive (in-front-of-focus) ``coc`` draws the shape
     point-reflected, as a thin lens does: the aperture's orientation is that of background bokeh.
     ``exact[y, x] != 0`` routes a salient source: the light it carries beyond its coverage of the
-    local colour of the layer's other sources around it (``means``, ``counts``: the radiance pyramid
-    of ``route_cells_kernel``) is scattered at level 0 (full resolution) whatever its radius, the rest (its coverage, and
+    local colour of the layer's other sources around it (``cell_total``, ``cell_pixels``: the
+    neighbourhoods ``route_cells_kernel`` stored) is scattered at level 0 (full resolution) whatever its radius, the rest (its coverage, and
     the local colour over it) on its pyramid level like its neighbours. A constant colour thus
     stays on the pyramid, exactly as smooth as its coverage. ``exact`` may be a 1 x 1 array when
-    nothing is routed (then ``means`` and ``counts`` are not read).
+    nothing is routed (then ``cell_total`` and ``cell_pixels`` are not read).
 
     ``buf<l>`` is the difference buffer of level ``l``, ``(ceil(H/2^l), ceil(W/2^l) + 2)``.
     """
@@ -368,9 +368,7 @@ def scatter_kernel(
             # a salient source: its excess light over the local colour of the sources around it (itself
             # left out) at full resolution, the exact outline; its coverage of that colour on its pyramid
             # level like its neighbours'. Alone in its neighbourhood, all of its light goes to level 0.
-            side = 1 << lev
-            nb = neighbourhood(means, counts, lev, y >> lev, x >> lev, (src.shape[0] + side - 1) >> lev,
-                               (src.shape[1] + side - 1) >> lev)
+            nb = stored_neighbourhood(cell_total, cell_pixels, lev, y >> lev, x >> lev)
             base = routed_base(v, nb)
             if exact[y, x] == wp.uint8(1):  # routed alone; 2: its excess is in its cell's cluster source
                 _scatter_one(buf0, float(x) + 0.5, float(y) + 0.5, r,
@@ -466,6 +464,16 @@ def neighbourhood(means: wp.array3d(dtype=wp.vec4), counts: wp.array3d(dtype=flo
 
 
 @wp.func
+def stored_neighbourhood(cell_total: wp.array3d(dtype=wp.vec4), cell_pixels: wp.array3d(dtype=float), lev: int,
+                         cy: int, cx: int) -> Neighbourhood:
+    """The neighbourhood of level-``lev`` cell ``(cy, cx)`` as ``route_cells_kernel`` stored it."""
+    nb = Neighbourhood()
+    nb.total = cell_total[lev - 1, cy, cx]
+    nb.pixels = cell_pixels[lev - 1, cy, cx]
+    return nb
+
+
+@wp.func
 def routed_base(v: wp.vec4, nb: Neighbourhood) -> wp.vec4:
     """What of a routed source stays on the pyramid: its coverage, carrying the local colour of the other sources
     in its neighbourhood ``nb`` (itself left out; none there: black). The rest of its light goes to level 0."""
@@ -509,6 +517,8 @@ def route_cells_kernel(
     visible: float,
     floor: float,
     exact: wp.array2d(dtype=wp.uint8),
+    cell_total: wp.array3d(dtype=wp.vec4),
+    cell_pixels: wp.array3d(dtype=float),
 ):
     """Mark for level 0 at most ``per_cell`` salient sources of level ``lev`` in each level cell.
 
@@ -523,7 +533,8 @@ def route_cells_kernel(
     cell keeps its sources of that level with the largest scores (ties: the first in row order).
     A level-0 source costs ``2^lev`` times the rows of its pyramid scatter, so the routed work is
     at most ``per_cell / 2^lev`` times what the cell's pyramid sources cost whatever the content.
-    ``means[k]``, ``counts[k]``: radiance pyramid level ``k + 1`` (padded to level 1).
+    ``means[k]``, ``counts[k]``: radiance pyramid level ``k + 1`` (padded to level 1). Each cell's
+    neighbourhood sums are stored in ``cell_total``, ``cell_pixels`` for the clusters and the scatter.
     """
     cy, cx = wp.tid()
     side = 1 << lev
@@ -534,6 +545,8 @@ def route_cells_kernel(
     hl = (src.shape[0] + side - 1) >> lev
     wl = (src.shape[1] + side - 1) >> lev
     nb = neighbourhood(means, counts, lev, cy, cx, hl, wl)
+    cell_total[lev - 1, cy, cx] = nb.total
+    cell_pixels[lev - 1, cy, cx] = nb.pixels
     m = (nb.total[0] + nb.total[1] + nb.total[2]) / (3.0 * nb.pixels)
     a_m = nb.total[3] / nb.pixels
     n = int(0)  # salient sources of this level in the cell; only a few cells have any
@@ -586,8 +599,8 @@ def route_cells_kernel(
 def cluster_cells_kernel(
     src: wp.array2d(dtype=wp.vec4),
     coc: wp.array2d(dtype=float),
-    means: wp.array3d(dtype=wp.vec4),
-    counts: wp.array3d(dtype=float),
+    cell_total: wp.array3d(dtype=wp.vec4),
+    cell_pixels: wp.array3d(dtype=float),
     r0: float,
     n_levels: int,
     lev: int,
@@ -615,7 +628,7 @@ def cluster_cells_kernel(
     x0 = cx * side
     y1 = wp.min(y0 + side, src.shape[0])
     x1 = wp.min(x0 + side, src.shape[1])
-    nb = neighbourhood(means, counts, lev, cy, cx, (src.shape[0] + side - 1) >> lev, (src.shape[1] + side - 1) >> lev)
+    nb = stored_neighbourhood(cell_total, cell_pixels, lev, cy, cx)
     m = (nb.total[0] + nb.total[1] + nb.total[2]) / (3.0 * nb.pixels)
     a_m = nb.total[3] / nb.pixels
     e_sum = float(0.0)

@@ -83,8 +83,8 @@ class Routing:
     """What :func:`route_salient` decided for one layer's sources (see ``bk.scatter_kernel``)."""
 
     exact: wp.array  # uint8 per source: 1 routed alone, 2 in its cell's cluster, 0 on the pyramid
-    means: wp.array  # the radiance pyramid, levels 1 .. n - 1 (the routed sources' local colour)
-    counts: wp.array
+    cell_total: wp.array  # per level-l cell: its 3 x 3 cells' sum of sources (the routed sources' local colour)
+    cell_pixels: wp.array  # and how many pixels they hold
     cluster_light: wp.array  # per level and 2 x 2 block: the cluster's excess light there (RGB, summed excess)
     cluster_shape: wp.array  # per level and 2 x 2 block: (x, y, signed CoC, 1 if it holds cluster members)
 
@@ -115,19 +115,21 @@ def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device
         ch, cw = (fh + 1) // 2, (fw + 1) // 2
         wp.launch(bk.halve_mean_kernel, dim=(ch, cw), inputs=[means, counts, k, fh, fw], device=device)
         fh, fw = ch, cw
+    cell_total = wp.zeros((n_means, h1, w1), dtype=wp.vec4, device=device)
+    cell_pixels = wp.zeros((n_means, h1, w1), dtype=float, device=device)
     for lev in range(1, n_levels):
         side = 1 << lev
         wp.launch(bk.route_cells_kernel, dim=((h + side - 1) // side, (w + side - 1) // side),
                   inputs=[src, coc, means, counts, float(r0), n_levels, lev, max(1, side // 2), SALIENT_VISIBLE,
-                          SALIENT_FLOOR], outputs=[exact], device=device)
+                          SALIENT_FLOOR], outputs=[exact, cell_total, cell_pixels], device=device)
     light = wp.zeros((n_means, h1, w1), dtype=wp.vec4, device=device)
     shape = wp.zeros((n_means, h1, w1), dtype=wp.vec4, device=device)
     for lev in range(1, n_levels):
         side = 1 << lev
         wp.launch(bk.cluster_cells_kernel, dim=((h + side - 1) // side, (w + side - 1) // side),
-                  inputs=[src, coc, means, counts, float(r0), n_levels, lev, SALIENT_VISIBLE, SALIENT_FLOOR],
+                  inputs=[src, coc, cell_total, cell_pixels, float(r0), n_levels, lev, SALIENT_VISIBLE, SALIENT_FLOOR],
                   outputs=[exact, light, shape], device=device)
-    return Routing(exact, means, counts, light, shape)
+    return Routing(exact, cell_total, cell_pixels, light, shape)
 
 
 def border_pad(signed_coc: np.ndarray, tile_px: int) -> tuple[int, int, int, int]:
@@ -294,12 +296,12 @@ def _render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scat
     routing = None
     if scatter.exact_highlights and n_levels > 1:
         routing = route_salient(src, coc, n_levels, scatter.level_radius_px, device)
-        exact, means, counts = routing.exact, routing.means, routing.counts
+        exact, totals, pixels = routing.exact, routing.cell_total, routing.cell_pixels
     else:
         exact = wp.zeros((1, 1), dtype=wp.uint8, device=device)
-        means, counts = wp.zeros((1, 1, 1), dtype=wp.vec4, device=device), wp.zeros((1, 1, 1), dtype=float, device=device)
+        totals, pixels = wp.zeros((1, 1, 1), dtype=wp.vec4, device=device), wp.zeros((1, 1, 1), dtype=float, device=device)
     wp.launch(bk.scatter_kernel, dim=(h, w),
-              inputs=[src, coc, exact, means, counts, scatter.blades, scatter.n_blades, scatter.extent, scatter.area,
+              inputs=[src, coc, exact, totals, pixels, scatter.blades, scatter.n_blades, scatter.extent, scatter.area,
                       scatter.level_radius_px, n_levels, *bufs], device=device)
     if routing is not None:
         for lev in range(1, n_levels):
