@@ -51,6 +51,15 @@ LAYER_B = 80
 radius-pyramid difference buffers (16 x 4/3 and 2 spare columns)."""
 RESULT_B = 16
 """Per pixel of a rendered layer's box waiting to be composited: its premultiplied RGB and coverage."""
+ROUTING_B_PER_LEVEL = 18
+"""Per pixel of a layer's box in flight and per coarse level of its pyramid, for :func:`route_salient`: the radiance
+pyramid, the stored neighbourhoods and the cluster sources, each (vec4 16 + 16 + 16 and two floats) on the
+level-1 grid, a quarter of the pixels; plus 1 byte a pixel for the routing flags."""
+
+
+def _layer_bytes(n_levels: int) -> int:
+    """Per pixel of a layer's box in flight, with ``n_levels`` pyramid levels (the routing's arrays included)."""
+    return LAYER_B + (1 + ROUTING_B_PER_LEVEL * (n_levels - 1) if n_levels > 1 else 0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -67,9 +76,9 @@ class _Scatter:
     device: str
 
 
-def _region_bytes(window_px: int, layer_areas: list[int], threads: int) -> int:
+def _region_bytes(window_px: int, layer_areas: list[int], threads: int, n_levels: int = 1) -> int:
     in_flight = sorted(layer_areas, reverse=True)[: threads + 1]  # threads + 1 layers in flight
-    return REGION_B * window_px + LAYER_B * sum(in_flight)
+    return REGION_B * window_px + _layer_bytes(n_levels) * sum(in_flight)
 
 
 SALIENT_VISIBLE = 0.002
@@ -200,11 +209,12 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
     stats.threads = threads
 
     whole = WHOLE_IMAGE_B * h * w
+    n_lv = stats.pyramid_levels if options.exact_highlights else 1  # the routing's arrays grow with the levels
     areas = [_area(lyr.bbox) for lyr in scene.layers]
     margin = 2 * max(sum(sc.scatter_halo(lyr, options.level_radius_px)) for lyr in scene.layers)
     tile, need = tiling.choose_tile(
-        h, w, ctx.memory, untiled_bytes=whole + _region_bytes(h * w, areas, threads), margin=margin,
-        window_bytes=lambda hy, wx: whole + _region_bytes(hy * wx, [min(a, hy * wx) for a in areas], threads),
+        h, w, ctx.memory, untiled_bytes=whole + _region_bytes(h * w, areas, threads, n_lv), margin=margin,
+        window_bytes=lambda hy, wx: whole + _region_bytes(hy * wx, [min(a, hy * wx) for a in areas], threads, n_lv),
         what=f"preview render at a largest CoC of {stats.max_coc_px:.0f} px",
     )
     stats.memory_estimate_mb = need / tiling.MB
