@@ -198,8 +198,9 @@ def _scatter_one(
     sgn: float,
 ):
     # sgn = -1 draws the shape point-reflected (sources in front of the focal plane). Heights
-    # are relative to the centre (u = y - yc; exact for row edges), so the same source is cut
-    # into the same sub-rows wherever it lies (tiles equal the untiled render).
+    # are relative to the centre (u = y - yc; exact for row edges while yc has at most 8 fractional
+    # bits: pixel centres, the clusters' 1/256 px grid), so the same source is cut into the same
+    # sub-rows wherever it lies (tiles equal the untiled render).
     span = _signed_extent(extent, rho, sgn)
     u_top = span[0]
     u_bot = span[1]
@@ -485,11 +486,30 @@ def routed_base(v: wp.vec4, nb: Neighbourhood) -> wp.vec4:
 
 
 @wp.func
-def _excess(v: wp.vec4, r: float, m: float, a_m: float, visible: float, floor: float) -> float:
-    # how far a source (premultiplied radiance, coverage v; radius r) stands out of local colour m / a_m
-    q = (v[0] + v[1] + v[2]) / 3.0
-    e = q - v[3] * m / a_m  # a_m > 0: the source itself has coverage
-    return e - visible * wp.max(m, floor) * 3.14159265 * r * r
+def _local_mean(nb: Neighbourhood) -> wp.vec2:
+    # (mean premultiplied radiance m, mean coverage a_m) of a neighbourhood: its local colour is m / a_m
+    return wp.vec2((nb.total[0] + nb.total[1] + nb.total[2]) / (3.0 * nb.pixels), nb.total[3] / nb.pixels)
+
+
+@wp.func
+def _raw_excess(v: wp.vec4, mean: wp.vec2) -> float:
+    # the light a source (premultiplied radiance, coverage v) carries beyond its coverage of the local colour
+    return (v[0] + v[1] + v[2]) / 3.0 - v[3] * mean[0] / mean[1]  # mean[1] > 0: the source itself has coverage
+
+
+@wp.func
+def _excess(v: wp.vec4, r: float, mean: wp.vec2, visible: float, floor: float) -> float:
+    # how far a source of radius r stands out of the local colour: its excess beyond the visibility threshold
+    return _raw_excess(v, mean) - visible * wp.max(mean[0], floor) * 3.14159265 * r * r
+
+
+@wp.func
+def _cluster_excess(v: wp.vec4, r: float, flag: wp.uint8, mean: wp.vec2, r0: float, n_levels: int,
+                    lev: int) -> float:
+    # a cluster member's excess (> 0): a source of level lev, not routed alone, brighter than the local colour
+    if flag == wp.uint8(0) and _on_level(v, r, r0, n_levels, lev):
+        return wp.max(_raw_excess(v, mean), 0.0)
+    return 0.0
 
 
 @wp.func
@@ -547,15 +567,14 @@ def route_cells_kernel(
     nb = neighbourhood(means, counts, lev, cy, cx, hl, wl)
     cell_total[lev - 1, cy, cx] = nb.total
     cell_pixels[lev - 1, cy, cx] = nb.pixels
-    m = (nb.total[0] + nb.total[1] + nb.total[2]) / (3.0 * nb.pixels)
-    a_m = nb.total[3] / nb.pixels
+    mean = _local_mean(nb)
     n = int(0)  # salient sources of this level in the cell; only a few cells have any
     for y in range(y0, y1):
         for x in range(x0, x1):
             v = src[y, x]
             r = wp.abs(coc[y, x])
             if _on_level(v, r, r0, n_levels, lev):
-                if _excess(v, r, m, a_m, visible, floor) > 0.0:
+                if _excess(v, r, mean, visible, floor) > 0.0:
                     n += 1
     if n == 0:
         return
@@ -565,7 +584,7 @@ def route_cells_kernel(
                 v = src[y, x]
                 r = wp.abs(coc[y, x])
                 if _on_level(v, r, r0, n_levels, lev):
-                    if _excess(v, r, m, a_m, visible, floor) > 0.0:
+                    if _excess(v, r, mean, visible, floor) > 0.0:
                         exact[y, x] = wp.uint8(1)
         return
     bound = float(1.0e38)  # scores above it (or equal, earlier in row order) are already taken
@@ -580,7 +599,7 @@ def route_cells_kernel(
                 v = src[y, x]
                 r = wp.abs(coc[y, x])
                 if _on_level(v, r, r0, n_levels, lev):
-                    s = _excess(v, r, m, a_m, visible, floor)
+                    s = _excess(v, r, mean, visible, floor)
                     if s > best:
                         after = s < bound or (s == bound and (y > by or (y == by and x > bx)))
                         if after:
@@ -629,30 +648,18 @@ def cluster_cells_kernel(
     y1 = wp.min(y0 + side, src.shape[0])
     x1 = wp.min(x0 + side, src.shape[1])
     nb = stored_neighbourhood(cell_total, cell_pixels, lev, cy, cx)
-    m = (nb.total[0] + nb.total[1] + nb.total[2]) / (3.0 * nb.pixels)
-    a_m = nb.total[3] / nb.pixels
+    mean = _local_mean(nb)
     e_sum = float(0.0)
-    light = wp.vec3()
-    px = float(0.0)
-    py = float(0.0)
     ps = float(0.0)
     for y in range(y0, y1):
         for x in range(x0, x1):
-            v = src[y, x]
-            r = wp.abs(coc[y, x])
-            if exact[y, x] == wp.uint8(0) and _on_level(v, r, r0, n_levels, lev):
-                e = (v[0] + v[1] + v[2]) / 3.0 - v[3] * m / a_m
-                if e > 0.0:
-                    base = routed_base(v, nb)
-                    light += wp.vec3(v[0] - base[0], v[1] - base[1], v[2] - base[2])
-                    e_sum += e
-                    px += e * (float(x) + 0.5)
-                    py += e * (float(y) + 0.5)
-                    ps += e * coc[y, x]
+            e = _cluster_excess(src[y, x], wp.abs(coc[y, x]), exact[y, x], mean, r0, n_levels, lev)
+            e_sum += e
+            ps += e * coc[y, x]
     if e_sum <= 0.0:
         return
     s_mean = ps / e_sum
-    if e_sum - visible * wp.max(m, floor) * 3.14159265 * s_mean * s_mean <= 0.0:
+    if e_sum - visible * wp.max(mean[0], floor) * 3.14159265 * s_mean * s_mean <= 0.0:
         return
     # visible together: its members' excess goes to level 0, gathered per block of 2^b px, b = max(1, lev - 2)
     # (a block's members lie within 2^(b-1) px of their centroid, at most 1/32 of the radius, so the gathered
@@ -669,17 +676,15 @@ def cluster_cells_kernel(
             for y in range(by * bs, wp.min(by * bs + bs, y1)):
                 for x in range(bx * bs, wp.min(bx * bs + bs, x1)):
                     v = src[y, x]
-                    r = wp.abs(coc[y, x])
-                    if exact[y, x] == wp.uint8(0) and _on_level(v, r, r0, n_levels, lev):
-                        e = (v[0] + v[1] + v[2]) / 3.0 - v[3] * m / a_m
-                        if e > 0.0:
-                            base = routed_base(v, nb)
-                            b_light += wp.vec3(v[0] - base[0], v[1] - base[1], v[2] - base[2])
-                            b_e += e
-                            b_x += e * (float(x - bx * bs) + 0.5)  # relative to the block: the same sums
-                            b_y += e * (float(y - by * bs) + 0.5)  # in a tile's window as in the whole box
-                            b_s += e * coc[y, x]
-                            exact[y, x] = wp.uint8(2)
+                    e = _cluster_excess(v, wp.abs(coc[y, x]), exact[y, x], mean, r0, n_levels, lev)
+                    if e > 0.0:
+                        base = routed_base(v, nb)
+                        b_light += wp.vec3(v[0] - base[0], v[1] - base[1], v[2] - base[2])
+                        b_e += e
+                        b_x += e * (float(x - bx * bs) + 0.5)  # relative to the block: the same sums
+                        b_y += e * (float(y - by * bs) + 0.5)  # in a tile's window as in the whole box
+                        b_s += e * coc[y, x]
+                        exact[y, x] = wp.uint8(2)
             if b_e > 0.0:
                 # the centroid on a 1/256 px grid: exact in float32 in a window's coordinates and in the box's,
                 # so the scatter cuts the same sub-rows in both (tiled renders equal the untiled one)
