@@ -168,13 +168,15 @@ def render_with_stats(
     out_rgb, stats = level.render(ctx)
     stats.max_coc_px = raw_max
     if refining:
+        corrected = {}
+
         def rerender(dd: np.ndarray) -> np.ndarray:  # the same level on the refiner's corrected disparity
-            return level.render(replace(ctx, disparity=dd, signed_coc=scene.cap_coc(blur.signed_coc(dd)),
-                                        progress=None))[0]
+            corrected["ctx"] = replace(ctx, disparity=dd, signed_coc=scene.cap_coc(blur.signed_coc(dd)))
+            return level.render(replace(corrected["ctx"], progress=None))[0]
 
         out_rgb, rstats = refine_render(work[..., :3], d, blur, out_rgb, refine, device, rerender)
         if rstats.disparity is not None:  # alpha blurs with the corrected depth too
-            ctx = replace(ctx, disparity=rstats.disparity, signed_coc=scene.cap_coc(blur.signed_coc(rstats.disparity)))
+            ctx = corrected["ctx"]
         stats.refine = rstats.as_dict()
         stats.stage_seconds["refine"] = rstats.seconds
         if "total" in stats.stage_seconds:
