@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 import bokehray_kernels as bk
 from bokehray import Aperture
 from bokehray import LayerOptions, PreviewOptions
-from bokehray.levels.preview import render_signed_coc
+from bokehray.levels.preview import no_routing, render_signed_coc
 from bokehray.scene import layer_edges
 from bokehray.lens import aperture_area
 from reference import scatter_ref
@@ -72,9 +72,7 @@ def _point_response(ap: Aperture, radius: float, size: int, device: str, offset=
     blades, n = _blades_wp(ap, device)
     wp.launch(bk.scatter_kernel, dim=(size, size),
               inputs=[wp.array(src, dtype=wp.vec4, device=device), wp.array(radius_map, device=device),
-                              wp.zeros((1, 1), dtype=wp.uint8, device=device),
-                      wp.zeros((1, 1, 1), dtype=wp.vec4, device=device), wp.zeros((1, 1, 1), dtype=float, device=device),
-                      blades, n,
+                      *no_routing(device), blades, n,
                       wp.vec2(*ap.vertical_extent()), aperture_area(ap), r0, levels, *bufs], device=device)
     for lv in range(levels):
         wp.launch(bk.prefix_rows_kernel, dim=bufs[lv].shape[0], inputs=[bufs[lv]], device=device)
@@ -127,9 +125,7 @@ def test_scatter_matches_reference(ap, device, rng):
     blades, n = _blades_wp(ap, device)
     wp.launch(bk.scatter_kernel, dim=(h, w),
               inputs=[wp.array(src, dtype=wp.vec4, device=device), wp.array(radius, device=device),
-                              wp.zeros((1, 1), dtype=wp.uint8, device=device),
-                      wp.zeros((1, 1, 1), dtype=wp.vec4, device=device), wp.zeros((1, 1, 1), dtype=float, device=device),
-                      blades, n,
+                      *no_routing(device), blades, n,
                       wp.vec2(*ap.vertical_extent()), aperture_area(ap), 1e6, 1, *bufs], device=device)
     wp.launch(bk.prefix_rows_kernel, dim=h, inputs=[bufs[0]], device=device)
     got = bufs[0].numpy()[:, :w]

@@ -18,7 +18,7 @@ import warp as wp
 
 import bokehray as br
 import bokehray_kernels as bk
-from bokehray.levels.preview import render_signed_coc
+from bokehray.levels.preview import no_routing, render_signed_coc
 from bokehray.levels.raytrace import Layer, raytrace_layers
 from bokehray.options import LayerOptions, PreviewOptions, RaytraceOptions
 from bokehray.scene import cap_coc, copy_tiles, grid_to_pixels, layer_edges
@@ -75,9 +75,7 @@ def scatter_case(seed: int, device: str = "cpu") -> tuple[float, float, str]:
     blades = wp.array(rows if len(rows) else np.zeros((1, 4), np.float32), dtype=wp.vec4, device=device)
     wp.launch(bk.scatter_kernel, dim=(h, w),
               inputs=[wp.array(src, dtype=wp.vec4, device=device), wp.array(radius, device=device),
-                      wp.zeros((1, 1), dtype=wp.uint8, device=device),
-                      wp.zeros((1, 1, 1), dtype=wp.vec4, device=device), wp.zeros((1, 1, 1), dtype=float, device=device),
-                      blades, len(rows),
+                      *no_routing(device), blades, len(rows),
                       wp.vec2(*ap.vertical_extent()), aperture_area(ap), 1e6, 1, *bufs], device=device)
     wp.launch(bk.prefix_rows_kernel, dim=h, inputs=[bufs[0]], device=device)
     got = bufs[0].numpy()[:, :w]

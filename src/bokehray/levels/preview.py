@@ -37,7 +37,7 @@ from ..options import PreviewOptions
 from ..stats import PreviewStats
 from .base import Progress, RenderContext
 
-__all__ = ["border_pad", "render_preview", "render_signed_coc", "route_salient"]
+__all__ = ["border_pad", "no_routing", "render_preview", "render_signed_coc", "route_salient"]
 
 # Bytes per pixel, from the arrays each stage allocates (float32 = 4 bytes); checked against measured peaks by
 # benchmarks/bench_memory.py (docs/robustness.md).
@@ -96,6 +96,13 @@ class Routing:
     cell_pixels: wp.array  # and how many pixels they hold
     cluster_light: wp.array  # per level and 2 x 2 block: the cluster's excess light there (RGB, summed excess)
     cluster_shape: wp.array  # per level and 2 x 2 block: (x, y, signed CoC, 1 if it holds cluster members)
+
+
+def no_routing(device: str) -> tuple[wp.array, wp.array, wp.array]:
+    """``bk.scatter_kernel``'s routing inputs (flags, neighbourhood sums and pixels) when nothing is routed:
+    1-element placeholders it does not read."""
+    return (wp.zeros((1, 1), dtype=wp.uint8, device=device), wp.zeros((1, 1, 1), dtype=wp.vec4, device=device),
+            wp.zeros((1, 1, 1), dtype=float, device=device))
 
 
 def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device: str) -> Routing:
@@ -308,8 +315,7 @@ def _render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scat
         routing = route_salient(src, coc, n_levels, scatter.level_radius_px, device)
         exact, totals, pixels = routing.exact, routing.cell_total, routing.cell_pixels
     else:
-        exact = wp.zeros((1, 1), dtype=wp.uint8, device=device)
-        totals, pixels = wp.zeros((1, 1, 1), dtype=wp.vec4, device=device), wp.zeros((1, 1, 1), dtype=float, device=device)
+        exact, totals, pixels = no_routing(device)
     wp.launch(bk.scatter_kernel, dim=(h, w),
               inputs=[src, coc, exact, totals, pixels, scatter.blades, scatter.n_blades, scatter.extent, scatter.area,
                       scatter.level_radius_px, n_levels, *bufs], device=device)
