@@ -230,7 +230,8 @@ def test_ctrl_c_stops_the_preview_within_a_second_while_layers_are_in_flight(tmp
         "import sys, time\n"
         "import bokehray.levels.preview as pv\n"
         "def slow(*a, **k):\n"
-        "    print('LAYER', flush=True)\n"
+        "    sys.stdout.write('LAYER\\n')\n"  # one write: two workers' lines never interleave
+        "    sys.stdout.flush()\n"
         "    time.sleep(60)\n"
         "pv._render_layer = slow\n"
         "from bokehray.cli import main\n"
