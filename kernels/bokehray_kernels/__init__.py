@@ -12,7 +12,6 @@ from .scatter import (
     finalize_kernel as finalize_kernel,
     halve_mean_kernel as halve_mean_kernel,
     radiance_mean_kernel as radiance_mean_kernel,
-    cluster_cells_kernel as cluster_cells_kernel,
     route_cells_kernel as route_cells_kernel,
     scatter_clusters_kernel as scatter_clusters_kernel,
     prefix_rows_kernel as prefix_rows_kernel,
@@ -50,6 +49,5 @@ __all__ = [
     "resolve_levels_kernel",
     "route_cells_kernel",
     "scatter_clusters_kernel",
-    "cluster_cells_kernel",
     "scatter_kernel",
 ]

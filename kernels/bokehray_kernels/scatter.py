@@ -29,6 +29,7 @@ import warp as wp
 
 from .aperture import chord
 from .sampling import bilinear_taps
+from .support import in_support, span_in_support
 
 wp.set_module_options({"enable_backward": False})
 
@@ -110,6 +111,16 @@ def _deposit_end(buf: wp.array2d(dtype=wp.vec4), row: int, p0: float, p1: float,
 
 
 @wp.func
+def _deposit_step(buf: wp.array2d(dtype=wp.vec4), row: int, p: float, v: wp.vec4):
+    # a sharp end at p (``_deposit_end`` with p0 = p1): the pixel-box integrated step, clipped to [0, W]
+    q = wp.clamp(p, 0.0, float(buf.shape[1] - 2))
+    k = int(wp.floor(q))
+    f = q - float(k)
+    wp.atomic_add(buf, row, k, v * (1.0 - f))
+    wp.atomic_add(buf, row, k + 1, v * f)
+
+
+@wp.func
 def _signed_chord(y: float, rho: float, blades: wp.array(dtype=wp.vec4), n_blades: int, sgn: float) -> wp.vec2:
     # the chord at height y (relative to the centre); empty chords collapse to their middle
     c = wp.vec2()
@@ -180,8 +191,8 @@ def _deposit_rest(buf: wp.array2d(dtype=wp.vec4), xc: float, yc: float, rho: flo
         a = wp.floor(xc)
         b = a + 1.0
     vr = v * (rest / (b - a))
-    _deposit_end(buf, r, a, a, vr)
-    _deposit_end(buf, r, b, b, -vr)
+    _deposit_step(buf, r, a, vr)
+    _deposit_step(buf, r, b, -vr)
 
 
 @wp.func
@@ -299,8 +310,8 @@ def _scatter_coarse(
             tr += wp.float64(hh * (c[1] - c[0]))
             if k >= 0 and k < h and c[1] > c[0]:
                 vv = v * (hh * inv)
-                _deposit_end(buf, k, xc + c[0], xc + c[0], vv)
-                _deposit_end(buf, k, xc + c[1], xc + c[1], -vv)
+                _deposit_step(buf, k, xc + c[0], vv)
+                _deposit_step(buf, k, xc + c[1], -vv)
     _deposit_rest(buf, xc, yc, rho, v, float(wp.float64(1.0) - tr * wp.float64(inv)), blades, n_blades, sgn)
 
 
@@ -536,11 +547,18 @@ def route_cells_kernel(
     per_cell: int,
     visible: float,
     floor: float,
+    support: wp.array2d(dtype=wp.uint8),
+    shift: int,
+    oy: int,
+    ox: int,
     exact: wp.array2d(dtype=wp.uint8),
     cell_total: wp.array3d(dtype=wp.vec4),
     cell_pixels: wp.array3d(dtype=float),
+    cluster_light: wp.array3d(dtype=wp.vec4),
+    cluster_shape: wp.array3d(dtype=wp.vec4),
 ):
-    """Mark for level 0 at most ``per_cell`` salient sources of level ``lev`` in each level cell.
+    """Route the level-``lev`` sources of each level cell: at most ``per_cell`` salient ones alone to level 0, and
+    the rest of the cell's excess light, when together it is visible, as its cluster.
 
     One thread per cell of ``2^lev x 2^lev`` px. Salience: how far a source's own disc stands
     out of its layer's neighbourhood, the 3 x 3 level-``lev`` cells around its own (cells beyond
@@ -550,11 +568,24 @@ def route_cells_kernel(
     image, whatever the layer's shape); its disc then lights ``e / (pi r^2)`` above the blurred
     surroundings (about ``m``), and its outline is visible when that exceeds
     ``visible * max(m, floor)``: the score is the excess beyond that, salient where > 0. The
-    cell keeps its sources of that level with the largest scores (ties: the first in row order).
-    A level-0 source costs ``2^lev`` times the rows of its pyramid scatter, so the routed work is
-    at most ``per_cell / 2^lev`` times what the cell's pyramid sources cost whatever the content.
+    cell keeps its sources of that level with the largest scores (ties: the first in row order),
+    marked 1 in ``exact``. A level-0 source costs ``2^lev`` times the rows of its pyramid scatter, so
+    the routed work is at most ``per_cell / 2^lev`` times what the cell's pyramid sources cost.
+
+    *Extended lights.* A lamp or a window is many sources, each too faint alone to show its outline,
+    whose outlines coincide: together they draw a sharp-edged ball. The cell's sources of that level not
+    routed alone and with positive excess are its *cluster*; when their summed excess ``E`` beats the
+    visibility threshold at the excess-weighted mean radius, their excess light (what ``routed_base`` does
+    not keep on the pyramid) goes to level 0 gathered per block of ``2^b`` px, ``b = max(1, lev - 2)``, one
+    source at each block's excess-weighted centroid: ``cluster_light[lev - 1, by, bx] = (RGB, summed
+    excess)``, ``cluster_shape[...] = (x, y, signed CoC, 1)``, and the members are marked 2 in ``exact``. At
+    most 16 level-0 sources per cell, whose rows are at most twice those of the cell's pyramid sources
+    (level 3), whatever the radius. ``E`` is the excess of all the cell's sources with a positive one less
+    that of the routed ones, summed in float64 in the pass that counts the salient ones.
+
     ``means[k]``, ``counts[k]``: radiance pyramid level ``k + 1`` (padded to level 1). Each cell's
-    neighbourhood sums are stored in ``cell_total``, ``cell_pixels`` for the clusters and the scatter.
+    neighbourhood sums are stored in ``cell_total``, ``cell_pixels`` for the scatter. Cells outside the
+    layer's ``support`` (``bokehray_kernels.support``) hold no source: skipped, nothing stored.
     """
     cy, cx = wp.tid()
     side = 1 << lev
@@ -562,6 +593,8 @@ def route_cells_kernel(
     x0 = cx * side
     y1 = wp.min(y0 + side, src.shape[0])
     x1 = wp.min(x0 + side, src.shape[1])
+    if not span_in_support(support, shift, oy, ox, y0, y1, x0, x1):
+        return
     hl = (src.shape[0] + side - 1) >> lev
     wl = (src.shape[1] + side - 1) >> lev
     nb = neighbourhood(means, counts, lev, cy, cx, hl, wl)
@@ -569,96 +602,69 @@ def route_cells_kernel(
     cell_pixels[lev - 1, cy, cx] = nb.pixels
     mean = _local_mean(nb)
     n = int(0)  # salient sources of this level in the cell; only a few cells have any
+    e_all = wp.float64(0.0)  # excess (> 0) of the level's sources, and its CoC moment: all of them ...
+    ps_all = wp.float64(0.0)
+    e_sal = wp.float64(0.0)  # ... and the salient ones
+    ps_sal = wp.float64(0.0)
     for y in range(y0, y1):
         for x in range(x0, x1):
             v = src[y, x]
             r = wp.abs(coc[y, x])
             if _on_level(v, r, r0, n_levels, lev):
-                if _excess(v, r, mean, visible, floor) > 0.0:
-                    n += 1
-    if n == 0:
+                e = _raw_excess(v, mean)
+                if e > 0.0:
+                    e_all += wp.float64(e)
+                    ps_all += wp.float64(e * coc[y, x])
+                    if _excess(v, r, mean, visible, floor) > 0.0:
+                        n += 1
+                        e_sal += wp.float64(e)
+                        ps_sal += wp.float64(e * coc[y, x])
+    if e_all == wp.float64(0.0):
         return
     if n <= per_cell:
-        for y in range(y0, y1):
-            for x in range(x0, x1):
-                v = src[y, x]
-                r = wp.abs(coc[y, x])
-                if _on_level(v, r, r0, n_levels, lev):
-                    if _excess(v, r, mean, visible, floor) > 0.0:
-                        exact[y, x] = wp.uint8(1)
-        return
-    bound = float(1.0e38)  # scores above it (or equal, earlier in row order) are already taken
-    by = int(-1)
-    bx = int(-1)
-    for _ in range(per_cell):
-        best = float(0.0)
-        iy = int(-1)
-        ix = int(-1)
-        for y in range(y0, y1):
-            for x in range(x0, x1):
-                v = src[y, x]
-                r = wp.abs(coc[y, x])
-                if _on_level(v, r, r0, n_levels, lev):
-                    s = _excess(v, r, mean, visible, floor)
-                    if s > best:
-                        after = s < bound or (s == bound and (y > by or (y == by and x > bx)))
-                        if after:
-                            best = s
-                            iy = y
-                            ix = x
-        if iy < 0:
-            return
-        exact[iy, ix] = wp.uint8(1)
-        bound = best
-        by = iy
-        bx = ix
-
-
-@wp.kernel
-def cluster_cells_kernel(
-    src: wp.array2d(dtype=wp.vec4),
-    coc: wp.array2d(dtype=float),
-    cell_total: wp.array3d(dtype=wp.vec4),
-    cell_pixels: wp.array3d(dtype=float),
-    r0: float,
-    n_levels: int,
-    lev: int,
-    visible: float,
-    floor: float,
-    exact: wp.array2d(dtype=wp.uint8),
-    cluster_light: wp.array3d(dtype=wp.vec4),
-    cluster_shape: wp.array3d(dtype=wp.vec4),
-):
-    """After ``route_cells_kernel``: the rest of a level-``lev`` cell's excess light, when together it is visible.
-
-    An extended light (a lamp, a window) is many sources, each too faint alone to show its outline, whose
-    outlines coincide: together they draw a sharp-edged ball. The cell's sources of that level not routed
-    alone and with positive excess ``e = q - a m / a_m`` (``route_cells_kernel``) are its *cluster*; when the
-    summed excess ``E`` beats the visibility threshold at the excess-weighted mean radius, their excess light
-    (what ``routed_base`` does not keep on the pyramid) goes to level 0 gathered per block of ``2^b`` px,
-    ``b = max(1, lev - 2)``, one source at each block's excess-weighted centroid:
-    ``cluster_light[lev - 1, by, bx] = (RGB, summed excess)``, ``cluster_shape[...] = (x, y, signed CoC, 1)``,
-    and the members are marked 2 in ``exact``. At most 16 level-0 sources per cell, whose rows are at most
-    twice those of the cell's pyramid sources (level 3), whatever the radius.
-    """
-    cy, cx = wp.tid()
-    side = 1 << lev
-    y0 = cy * side
-    x0 = cx * side
-    y1 = wp.min(y0 + side, src.shape[0])
-    x1 = wp.min(x0 + side, src.shape[1])
-    nb = stored_neighbourhood(cell_total, cell_pixels, lev, cy, cx)
-    mean = _local_mean(nb)
-    e_sum = float(0.0)
-    ps = float(0.0)
-    for y in range(y0, y1):
-        for x in range(x0, x1):
-            e = _cluster_excess(src[y, x], wp.abs(coc[y, x]), exact[y, x], mean, r0, n_levels, lev)
-            e_sum += e
-            ps += e * coc[y, x]
+        if n > 0:
+            for y in range(y0, y1):
+                for x in range(x0, x1):
+                    v = src[y, x]
+                    r = wp.abs(coc[y, x])
+                    if _on_level(v, r, r0, n_levels, lev):
+                        if _excess(v, r, mean, visible, floor) > 0.0:
+                            exact[y, x] = wp.uint8(1)
+    else:
+        e_sal = wp.float64(0.0)
+        ps_sal = wp.float64(0.0)
+        bound = float(1.0e38)  # scores above it (or equal, earlier in row order) are already taken
+        by = int(-1)
+        bx = int(-1)
+        for _ in range(per_cell):
+            best = float(0.0)
+            iy = int(-1)
+            ix = int(-1)
+            for y in range(y0, y1):
+                for x in range(x0, x1):
+                    v = src[y, x]
+                    r = wp.abs(coc[y, x])
+                    if _on_level(v, r, r0, n_levels, lev):
+                        s = _excess(v, r, mean, visible, floor)
+                        if s > best:
+                            after = s < bound or (s == bound and (y > by or (y == by and x > bx)))
+                            if after:
+                                best = s
+                                iy = y
+                                ix = x
+            if iy < 0:
+                break
+            exact[iy, ix] = wp.uint8(1)
+            e = _raw_excess(src[iy, ix], mean)
+            e_sal += wp.float64(e)
+            ps_sal += wp.float64(e * coc[iy, ix])
+            bound = best
+            by = iy
+            bx = ix
+    e_sum = float(e_all - e_sal)  # the cluster's
     if e_sum <= 0.0:
         return
-    s_mean = ps / e_sum
+    s_mean = float((ps_all - ps_sal) / (e_all - e_sal))
     if e_sum - visible * wp.max(mean[0], floor) * 3.14159265 * s_mean * s_mean <= 0.0:
         return
     # visible together: its members' excess goes to level 0, gathered per block of 2^b px, b = max(1, lev - 2)
@@ -706,7 +712,7 @@ def scatter_clusters_kernel(
     area: float,
     buf0: wp.array2d(dtype=wp.vec4),
 ):
-    """Scatter the level-``lev`` cluster sources (``cluster_cells_kernel``; one thread per block) at level 0:
+    """Scatter the level-``lev`` cluster sources (``route_cells_kernel``; one thread per block) at level 0:
     light, no coverage."""
     by, bx = wp.tid()
     shape = cluster_shape[lev - 1, by, bx]
@@ -757,10 +763,20 @@ def resolve_levels_kernel(
     buf3: wp.array2d(dtype=wp.vec4),
     buf4: wp.array2d(dtype=wp.vec4),
     buf5: wp.array2d(dtype=wp.vec4),
+    support: wp.array2d(dtype=wp.uint8),
+    shift: int,
+    oy: int,
+    ox: int,
     out: wp.array2d(dtype=wp.vec4),
 ):
-    """Sum level 0 and the bilinearly upsampled coarser levels (density-preserving) into ``out``."""
+    """Sum level 0 and the bilinearly upsampled coarser levels (density-preserving) into ``out``.
+
+    Pixels outside the layer's ``support`` are left as they are: the caller passes ``out`` zero there (the
+    preview reuses the layer's sources, which are zero there).
+    """
     y, x = wp.tid()
+    if not in_support(support, shift, oy, ox, y, x):
+        return
     h = out.shape[0]
     w = out.shape[1]
     acc = buf0[y, x]

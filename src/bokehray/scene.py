@@ -186,8 +186,13 @@ class LayerRecord:
     """One depth layer of a :class:`LayeredScene`.
 
     ``bbox`` (y0, y1, x0, x1) holds its tiles, padded by its largest CoC, its pyramid's spread and, when
-    filled, the fill's reach: every source of the layer and all of its light lie inside. ``fill_reach``: the
-    largest CoC of everything nearer (how far behind it a nearer blur can reveal); 0 when not filled.
+    filled, the fill's reach (:func:`light_pad`): every source of the layer and all of its light lie inside.
+    ``fill_reach``: the largest CoC of everything nearer (how far behind it a nearer blur can reveal); 0 when
+    not filled. ``support``: the tiles (of ``tile_px``, on the scene's grid) within that pad of the layer's
+    own tiles, the only ones its sources and light reach (a layer cut at a depth jump is often a thin
+    population spread over a frame-sized box); None: everywhere (also when ``tile_px`` is not a power of two,
+    as the kernels find tiles by shifts). ``origin``: where the coordinates ``bbox``
+    is given in start in the scene's (a tile's window; (0, 0) for the whole scene).
     """
 
     index: int
@@ -196,14 +201,43 @@ class LayerRecord:
     bbox: tuple[int, int, int, int]
     max_radius: float
     fill_reach: float
+    support: np.ndarray | None = dataclasses.field(default=None, compare=False, repr=False)
+    tile_px: int = 1
+    origin: tuple[int, int] = (0, 0)
 
     @property
     def filled(self) -> bool:
         return self.fill_reach >= FILL_MIN_REACH_PX
 
-    def moved(self, bbox: tuple[int, int, int, int]) -> LayerRecord:
-        """The same layer on another box (a tile's window, or the whole image)."""
-        return dataclasses.replace(self, bbox=bbox)
+    def moved(self, bbox: tuple[int, int, int, int], origin: tuple[int, int] | None = None) -> LayerRecord:
+        """The same layer on another box (a tile's window at ``origin`` in the scene, or the whole image)."""
+        return dataclasses.replace(self, bbox=bbox, origin=self.origin if origin is None else origin)
+
+
+@dataclass(frozen=True, slots=True)
+class LayerSupport:
+    """A layer's support on the device, as the kernels read it (``bokehray_kernels.support``): the tile mask, the
+    tile side, and the scene position of the layer box's origin."""
+
+    mask: wp.array
+    shift: int  # tiles of 2^shift px
+    oy: int
+    ox: int
+
+    @classmethod
+    def everywhere(cls, device: str) -> LayerSupport:
+        return cls(wp.ones((1, 1), dtype=wp.uint8, device=device), 30, 0, 0)  # one tile larger than any image
+
+    @classmethod
+    def of(cls, layer: LayerRecord, device: str) -> LayerSupport:
+        if layer.support is None:
+            return cls.everywhere(device)
+        y0, _, x0, _ = layer.bbox
+        return cls(wp.array(layer.support.astype(np.uint8), dtype=wp.uint8, device=device),
+                   layer.tile_px.bit_length() - 1, layer.origin[0] + y0, layer.origin[1] + x0)
+
+    def args(self) -> list:
+        return [self.mask, self.shift, self.oy, self.ox]
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -260,17 +294,40 @@ def build_scene(signed_coc: np.ndarray, active: np.ndarray, options: LayerOption
             run = max(run, max_r_slice[i])
     layers = []
     for i in np.flatnonzero(present):
-        ty, tx = np.nonzero((tile_lo <= i) & (tile_hi >= i))
+        own = (tile_lo <= i) & (tile_hi >= i)  # the tiles that may hold its pixels (a superset of those that do)
+        ty, tx = np.nonzero(own)
         reach = float(nearer_reach[i]) if options.fill else 0.0
-        pad_fill = _fill_pad(reach)
-        coarse = 0
-        if level_radius_px is not None:
-            coarse = COARSE_SCATTER_CELLS << (pyramid_levels(float(max_r_slice[i]), level_radius_px) - 1)
-        pad = pad_fill + int(math.ceil(max_r_slice[i])) + 2 + coarse
+        pad = light_pad(float(max_r_slice[i]), reach, level_radius_px)
         bbox = (max(0, ty.min() * t - pad), min(h, (ty.max() + 1) * t + pad),
                 max(0, tx.min() * t - pad), min(w, (tx.max() + 1) * t + pad))
-        layers.append(LayerRecord(int(i), float(edges[i]), float(edges[i + 1]), bbox, float(max_r_slice[i]), reach))
+        support = dilate_tiles(own, -(-pad // t)) if t & (t - 1) == 0 else None
+        layers.append(LayerRecord(int(i), float(edges[i]), float(edges[i + 1]), bbox, float(max_r_slice[i]), reach,
+                                  support, t))
     return LayeredScene(sid, edges, max_coc, tuple(layers), level_radius_px)
+
+
+def light_pad(max_radius: float, fill_reach: float, level_radius_px: float | None) -> int:
+    """How far [px] a layer's sources and light reach beyond its own pixels: the fill's reach (when filled),
+    its largest CoC plus two pixels, and the radius pyramid's spread (``level_radius_px``; None: no pyramid)."""
+    coarse = 0
+    if level_radius_px is not None:
+        coarse = COARSE_SCATTER_CELLS << (pyramid_levels(max_radius, level_radius_px) - 1)
+    return _fill_pad(fill_reach) + int(math.ceil(max_radius)) + 2 + coarse
+
+
+def dilate_tiles(mask: np.ndarray, k: int) -> np.ndarray:
+    """``mask`` (bool, a tile grid) grown by ``k`` tiles in every direction (a (2k + 1)^2 square)."""
+    if k <= 0 or not mask.any():
+        return mask.copy()
+    th, tw = mask.shape
+    sat = np.zeros((th + 1, tw + 1), np.int64)  # summed-area table: a square's count in four reads
+    sat[1:, 1:] = mask.cumsum(0).cumsum(1)
+    y = np.arange(th)
+    x = np.arange(tw)
+    ya, yb = np.clip(y - k, 0, th), np.clip(y + k + 1, 0, th)
+    xa, xb = np.clip(x - k, 0, tw), np.clip(x + k + 1, 0, tw)
+    count = sat[yb][:, xb] - sat[ya][:, xb] - sat[yb][:, xa] + sat[ya][:, xa]
+    return count > 0
 
 
 def _fill_pad(reach: float) -> int:

@@ -10,7 +10,7 @@ import bokehray_kernels as bk
 from bokehray import Aperture
 from bokehray import LayerOptions, PreviewOptions
 from bokehray.levels.preview import no_routing, render_signed_coc
-from bokehray.scene import layer_edges
+from bokehray.scene import LayerSupport, layer_edges
 from bokehray.lens import aperture_area
 from reference import scatter_ref
 from tolerances import (
@@ -77,7 +77,8 @@ def _point_response(ap: Aperture, radius: float, size: int, device: str, offset=
     for lv in range(levels):
         wp.launch(bk.prefix_rows_kernel, dim=bufs[lv].shape[0], inputs=[bufs[lv]], device=device)
     out = wp.empty((size, size), dtype=wp.vec4, device=device)
-    wp.launch(bk.resolve_levels_kernel, dim=(size, size), inputs=[levels, *bufs], outputs=[out], device=device)
+    wp.launch(bk.resolve_levels_kernel, dim=(size, size), inputs=[levels, *bufs, *LayerSupport.everywhere(device).args()],
+              outputs=[out], device=device)
     return out.numpy()[..., 0]
 
 

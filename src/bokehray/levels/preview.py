@@ -105,7 +105,8 @@ def no_routing(device: str) -> tuple[wp.array, wp.array, wp.array]:
             wp.zeros((1, 1, 1), dtype=float, device=device))
 
 
-def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device: str) -> Routing:
+def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device: str,
+                  support: sc.LayerSupport | None = None) -> Routing:
     """Which pyramid-level sources send their excess light to level 0: alone, or as their cell's cluster.
 
     A source on pyramid level ``l`` gets its outline blurred by about ``2^l`` px. That is
@@ -114,12 +115,13 @@ def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device
     layer's local colour (the 3 x 3 level-``l`` cells of a radiance pyramid around it) against
     ``SALIENT_VISIBLE * pi r^2 * max(mean, SALIENT_FLOOR)`` and keeps, in each level-``l`` cell,
     the ``max(1, 2^(l-1))`` best-scored of them, so the level-0 work stays below half of the
-    pyramid work whatever the radius (flat cost in R). ``bk.cluster_cells_kernel`` then gathers the rest of
-    each cell's excess light into one source when together it is visible (an extended light: each of its
-    pixels is too faint alone). Every decision depends only on pyramid-aligned cells of the layer's box, so
-    tiled renders route the same sources.
+    pyramid work whatever the radius (flat cost in R). In the same pass it gathers the rest of each cell's
+    excess light into one source a block when together it is visible (an extended light: each of its pixels
+    is too faint alone). Every decision depends only on pyramid-aligned cells of the layer's box, so
+    tiled renders route the same sources. Cells outside the layer's ``support`` (None: everywhere) are skipped.
     """
     h, w = src.shape
+    where = (support or sc.LayerSupport.everywhere(device)).args()
     exact = wp.zeros((h, w), dtype=wp.uint8, device=device)
     n_means = n_levels - 1  # radiance pyramid levels 1 .. n_levels - 1
     h1, w1 = (h + 1) // 2, (w + 1) // 2
@@ -133,18 +135,13 @@ def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device
         fh, fw = ch, cw
     cell_total = wp.zeros((n_means, h1, w1), dtype=wp.vec4, device=device)
     cell_pixels = wp.zeros((n_means, h1, w1), dtype=float, device=device)
-    for lev in range(1, n_levels):
-        side = 1 << lev
-        wp.launch(bk.route_cells_kernel, dim=((h + side - 1) // side, (w + side - 1) // side),
-                  inputs=[src, coc, means, counts, float(r0), n_levels, lev, max(1, side // 2), SALIENT_VISIBLE,
-                          SALIENT_FLOOR], outputs=[exact, cell_total, cell_pixels], device=device)
     light = wp.zeros((n_means, h1, w1), dtype=wp.vec4, device=device)
     shape = wp.zeros((n_means, h1, w1), dtype=wp.vec4, device=device)
     for lev in range(1, n_levels):
         side = 1 << lev
-        wp.launch(bk.cluster_cells_kernel, dim=((h + side - 1) // side, (w + side - 1) // side),
-                  inputs=[src, coc, cell_total, cell_pixels, float(r0), n_levels, lev, SALIENT_VISIBLE, SALIENT_FLOOR],
-                  outputs=[exact, light, shape], device=device)
+        wp.launch(bk.route_cells_kernel, dim=((h + side - 1) // side, (w + side - 1) // side),
+                  inputs=[src, coc, means, counts, float(r0), n_levels, lev, max(1, side // 2), SALIENT_VISIBLE,
+                          SALIENT_FLOOR, *where], outputs=[exact, cell_total, cell_pixels, light, shape], device=device)
     return Routing(exact, cell_total, cell_pixels, light, shape)
 
 
@@ -260,7 +257,7 @@ def _tile_layers(scene: sc.LayeredScene, core: tiling.Box) -> tuple[tiling.Box, 
     wy1 = max([cy1] + [b[1] for _, b in boxes])
     wx0 = min([cx0] + [b[2] for _, b in boxes])
     wx1 = max([cx1] + [b[3] for _, b in boxes])
-    local = [lyr.moved((y0 - wy0, y1 - wy0, x0 - wx0, x1 - wx0)) for lyr, (y0, y1, x0, x1) in boxes]
+    local = [lyr.moved((y0 - wy0, y1 - wy0, x0 - wx0, x1 - wx0), (wy0, wx0)) for lyr, (y0, y1, x0, x1) in boxes]
     return (wy0, wy1, wx0, wx1), local
 
 
@@ -297,10 +294,12 @@ def _render_tiled(image: np.ndarray, s: np.ndarray, scene: sc.LayeredScene, scat
 
 
 def _render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatter) -> wp.array:
-    """Scatter one layer's sources on the radius pyramid and resolve it: (premultiplied RGB, coverage) on its box."""
+    """Scatter one layer's sources on the radius pyramid and resolve it: (premultiplied RGB, coverage) on its box
+    (zero outside the layer's support)."""
     device = scatter.device
     y0, y1, x0, x1 = layer.bbox
     h, w = y1 - y0, x1 - x0
+    support = sc.LayerSupport.of(layer, device)
     src, coc = sc.build_layer_sources(layer, arrays)
     n_levels = sc.pyramid_levels(layer.max_radius, scatter.level_radius_px)
     bufs = []
@@ -312,7 +311,7 @@ def _render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scat
             bufs.append(bufs[0] if lv > 0 else None)
     routing = None
     if scatter.exact_highlights and n_levels > 1:
-        routing = route_salient(src, coc, n_levels, scatter.level_radius_px, device)
+        routing = route_salient(src, coc, n_levels, scatter.level_radius_px, device, support)
         exact, totals, pixels = routing.exact, routing.cell_total, routing.cell_pixels
     else:
         exact, totals, pixels = no_routing(device)
@@ -327,7 +326,8 @@ def _render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scat
     for lv in range(n_levels):
         wp.launch(bk.prefix_rows_kernel, dim=bufs[lv].shape[0], inputs=[bufs[lv]], device=device)
     out = src  # the sources are scattered: reuse their memory for the result
-    wp.launch(bk.resolve_levels_kernel, dim=(h, w), inputs=[n_levels, *bufs], outputs=[out], device=device)
+    wp.launch(bk.resolve_levels_kernel, dim=(h, w), inputs=[n_levels, *bufs, *support.args()], outputs=[out],
+              device=device)
     return out
 
 

@@ -1,0 +1,98 @@
+"""A layer's support (``bokehray.scene``): the tiles its sources and light can reach; the preview skips the rest."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from bokehray import Aperture, LayerOptions, MemoryOptions
+from bokehray.levels import preview as pv
+from bokehray.scene import dilate_tiles
+
+
+def _dilate_loops(mask: np.ndarray, k: int) -> np.ndarray:
+    out = np.zeros_like(mask)
+    for y, x in zip(*np.nonzero(mask)):
+        out[max(0, y - k) : y + k + 1, max(0, x - k) : x + k + 1] = True
+    return out
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 9), st.integers(1, 9), st.integers(0, 6), st.integers(0, 2**31 - 1))
+def test_dilate_tiles_matches_plain_loops(h, w, k, seed):
+    mask = np.random.default_rng(seed).random((h, w)) < 0.15
+    np.testing.assert_array_equal(dilate_tiles(mask, k), _dilate_loops(mask, k))
+
+
+def _scene(seed: int, size: int = 240) -> tuple[np.ndarray, np.ndarray]:
+    """A far textured plane with lights, two near discs in opposite corners, each in a thin ring of mixed depth
+    (the sparse layers a depth jump cuts, their boxes spanning the frame), signed CoC up to about 20 px."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[:size, :size]
+    image = rng.uniform(0.05, 1.0, (size, size, 3)).astype(np.float32)
+    image[rng.random((size, size)) < 0.02] *= 50.0
+    s = np.full((size, size), -rng.uniform(12, 20), np.float32)
+    near = rng.uniform(2, 8)
+    for cy, cx in ((40, 40), (size - 40, size - 40)):
+        d = np.hypot(yy - cy - rng.uniform(-5, 5), xx - cx - rng.uniform(-5, 5))
+        rad = rng.uniform(12, 20)
+        s[d <= rad] = near
+        ring = (d > rad) & (d <= rad + 1.5)
+        s[ring] = rng.uniform(-9, -1, ring.sum())  # intermediate depths: thin layers of their own
+    return image, s
+
+
+def _layer_outputs(monkeypatch, image, s, tile_size=None):
+    """Every layer's scatter output rendered without its support, with the support it would have had."""
+    seen = []
+    render_layer = pv._render_layer
+
+    def everywhere(layer, arrays, scatter):
+        out = render_layer(dataclasses.replace(layer, support=None), arrays, scatter)
+        seen.append((layer, out.numpy()))
+        return out
+
+    monkeypatch.setattr(pv, "_render_layer", everywhere)
+    memory = MemoryOptions(tile_size=tile_size)
+    out, _ = pv.render_signed_coc(image, s, Aperture(), layers=LayerOptions(tile_px=16), memory=memory)
+    return out, seen
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("tile_size", [None, 64])
+def test_a_layers_light_stays_inside_its_support(monkeypatch, seed, tile_size):
+    """Outside its support a layer's scattered light and coverage are nothing but the prefix sums' rounding."""
+    image, s = _scene(seed)
+    _, seen = _layer_outputs(monkeypatch, image, s, tile_size)
+    sparse = 0
+    for layer, out in seen:
+        assert layer.support is not None
+        y0, y1, x0, x1 = layer.bbox
+        ys = (np.arange(y0, y1) + layer.origin[0]) // layer.tile_px
+        xs = (np.arange(x0, x1) + layer.origin[1]) // layer.tile_px
+        inside = layer.support[ys][:, xs]
+        sparse += inside.mean() < 0.7
+        scale = max(float(np.abs(out).max()), 1e-30)
+        assert np.abs(out[~inside]).max(initial=0.0) <= 1e-6 * scale
+    assert sparse > 0  # some layer's support is much smaller than its box
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_skipping_outside_the_support_leaves_the_render(monkeypatch, seed):
+    image, s = _scene(seed)
+    want, _ = _layer_outputs(monkeypatch, image, s)
+    monkeypatch.undo()
+    got, _ = pv.render_signed_coc(image, s, Aperture(), layers=LayerOptions(tile_px=16))
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+
+
+def test_a_tile_grid_not_a_power_of_two_has_no_support():
+    from bokehray.scene import build_scene
+
+    _, s = _scene(0)
+    scene = build_scene(s, np.ones(s.shape, bool), LayerOptions(tile_px=12), 8.0)
+    assert all(layer.support is None for layer in scene.layers)
+    got, _ = pv.render_signed_coc(*_scene(0), Aperture(), layers=LayerOptions(tile_px=12))
+    assert np.isfinite(got).all()
