@@ -757,6 +757,7 @@ def _level_sample(buf: wp.array2d(dtype=wp.vec4), x: int, y: int, lev: int, full
 @wp.kernel
 def resolve_levels_kernel(
     n_levels: int,
+    first: int,
     buf0: wp.array2d(dtype=wp.vec4),
     buf1: wp.array2d(dtype=wp.vec4),
     buf2: wp.array2d(dtype=wp.vec4),
@@ -769,7 +770,8 @@ def resolve_levels_kernel(
     ox: int,
     out: wp.array2d(dtype=wp.vec4),
 ):
-    """Sum level 0 and the bilinearly upsampled coarser levels (density-preserving) into ``out``.
+    """Sum level 0 and the bilinearly upsampled coarser levels ``first .. n_levels - 1`` (density-preserving)
+    into ``out``; the levels between 0 and ``first`` hold no source (``bokehray.scene.lowest_level``).
 
     Pixels outside the layer's ``support`` are left as they are: the caller passes ``out`` zero there (the
     preview reuses the layer's sources, which are zero there).
@@ -780,15 +782,15 @@ def resolve_levels_kernel(
     h = out.shape[0]
     w = out.shape[1]
     acc = buf0[y, x]
-    if n_levels > 1:
+    if n_levels > 1 and first <= 1:
         acc = acc + _level_sample(buf1, x, y, 1, h, w)
-    if n_levels > 2:
+    if n_levels > 2 and first <= 2:
         acc = acc + _level_sample(buf2, x, y, 2, h, w)
-    if n_levels > 3:
+    if n_levels > 3 and first <= 3:
         acc = acc + _level_sample(buf3, x, y, 3, h, w)
-    if n_levels > 4:
+    if n_levels > 4 and first <= 4:
         acc = acc + _level_sample(buf4, x, y, 4, h, w)
-    if n_levels > 5:
+    if n_levels > 5 and first <= 5:
         acc = acc + _level_sample(buf5, x, y, 5, h, w)
     out[y, x] = acc
 

@@ -176,6 +176,18 @@ def pyramid_levels(max_radius: float, level_radius_px: float) -> int:
     return n
 
 
+def lowest_level(layer: LayerRecord, level_radius_px: float) -> int:
+    """The lowest pyramid level above 0 any source of ``layer`` is scattered on (0: level 1 may hold some).
+
+    Every source's signed CoC lies in the layer's range ``[s_lo, s_hi]`` (its own pixels, and the fill clamped
+    to it), so its radius is at least the range's end nearer to 0; taken a hair smaller, so that a float32
+    radius rounded onto a level's boundary stays above it."""
+    if layer.s_lo <= 0.0 <= layer.s_hi:
+        return 0
+    r_min = min(abs(layer.s_lo), abs(layer.s_hi)) * (1.0 - 1e-6)
+    return pyramid_levels(r_min, level_radius_px) - 1
+
+
 def pull_levels(fill_reach: float) -> int:
     """Levels of the pull-push pyramid that fills a layer hidden up to ``fill_reach`` px deep."""
     return max(1, min(MAX_PULL_LEVELS, int(math.ceil(math.log2(FILL_GATE_SLOPE * fill_reach + 2.0))) + 1))

@@ -77,7 +77,7 @@ def _point_response(ap: Aperture, radius: float, size: int, device: str, offset=
     for lv in range(levels):
         wp.launch(bk.prefix_rows_kernel, dim=bufs[lv].shape[0], inputs=[bufs[lv]], device=device)
     out = wp.empty((size, size), dtype=wp.vec4, device=device)
-    wp.launch(bk.resolve_levels_kernel, dim=(size, size), inputs=[levels, *bufs, *LayerSupport.everywhere(device).args()],
+    wp.launch(bk.resolve_levels_kernel, dim=(size, size), inputs=[levels, 0, *bufs, *LayerSupport.everywhere(device).args()],
               outputs=[out], device=device)
     return out.numpy()[..., 0]
 

@@ -106,7 +106,7 @@ def no_routing(device: str) -> tuple[wp.array, wp.array, wp.array]:
 
 
 def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device: str,
-                  support: sc.LayerSupport | None = None) -> Routing:
+                  support: sc.LayerSupport | None = None, first: int = 1) -> Routing:
     """Which pyramid-level sources send their excess light to level 0: alone, or as their cell's cluster.
 
     A source on pyramid level ``l`` gets its outline blurred by about ``2^l`` px. That is
@@ -118,7 +118,8 @@ def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device
     pyramid work whatever the radius (flat cost in R). In the same pass it gathers the rest of each cell's
     excess light into one source a block when together it is visible (an extended light: each of its pixels
     is too faint alone). Every decision depends only on pyramid-aligned cells of the layer's box, so
-    tiled renders route the same sources. Cells outside the layer's ``support`` (None: everywhere) are skipped.
+    tiled renders route the same sources. Cells outside the layer's ``support`` (None: everywhere) are skipped,
+    and so are the levels below ``first``, which hold no source (``bokehray.scene.lowest_level``).
     """
     h, w = src.shape
     where = (support or sc.LayerSupport.everywhere(device)).args()
@@ -137,7 +138,7 @@ def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device
     cell_pixels = wp.zeros((n_means, h1, w1), dtype=float, device=device)
     light = wp.zeros((n_means, h1, w1), dtype=wp.vec4, device=device)
     shape = wp.zeros((n_means, h1, w1), dtype=wp.vec4, device=device)
-    for lev in range(1, n_levels):
+    for lev in range(max(1, first), n_levels):
         side = 1 << lev
         wp.launch(bk.route_cells_kernel, dim=((h + side - 1) // side, (w + side - 1) // side),
                   inputs=[src, coc, means, counts, float(r0), n_levels, lev, max(1, side // 2), SALIENT_VISIBLE,
@@ -302,16 +303,17 @@ def _render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scat
     support = sc.LayerSupport.of(layer, device)
     src, coc = sc.build_layer_sources(layer, arrays)
     n_levels = sc.pyramid_levels(layer.max_radius, scatter.level_radius_px)
+    first = sc.lowest_level(layer, scatter.level_radius_px)  # levels 1 .. first - 1 stay empty
     bufs = []
     for lv in range(bk.MAX_LEVELS):
-        if lv < n_levels:
+        if lv < n_levels and (lv == 0 or lv >= first):
             shape = ((h + (1 << lv) - 1) >> lv, ((w + (1 << lv) - 1) >> lv) + 2)
             bufs.append(wp.zeros(shape, dtype=wp.vec4, device=device))
         else:
             bufs.append(bufs[0] if lv > 0 else None)
     routing = None
     if scatter.exact_highlights and n_levels > 1:
-        routing = route_salient(src, coc, n_levels, scatter.level_radius_px, device, support)
+        routing = route_salient(src, coc, n_levels, scatter.level_radius_px, device, support, first)
         exact, totals, pixels = routing.exact, routing.cell_total, routing.cell_pixels
     else:
         exact, totals, pixels = no_routing(device)
@@ -319,14 +321,15 @@ def _render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scat
               inputs=[src, coc, exact, totals, pixels, scatter.blades, scatter.n_blades, scatter.extent, scatter.area,
                       scatter.level_radius_px, n_levels, *bufs], device=device)
     if routing is not None:
-        for lev in range(1, n_levels):
+        for lev in range(max(1, first), n_levels):
             wp.launch(bk.scatter_clusters_kernel, dim=routing.cluster_shape.shape[1:],
                       inputs=[routing.cluster_light, routing.cluster_shape, lev, scatter.blades, scatter.n_blades,
                               scatter.extent, scatter.area], outputs=[bufs[0]], device=device)
     for lv in range(n_levels):
-        wp.launch(bk.prefix_rows_kernel, dim=bufs[lv].shape[0], inputs=[bufs[lv]], device=device)
+        if lv == 0 or lv >= first:
+            wp.launch(bk.prefix_rows_kernel, dim=bufs[lv].shape[0], inputs=[bufs[lv]], device=device)
     out = src  # the sources are scattered: reuse their memory for the result
-    wp.launch(bk.resolve_levels_kernel, dim=(h, w), inputs=[n_levels, *bufs, *support.args()], outputs=[out],
+    wp.launch(bk.resolve_levels_kernel, dim=(h, w), inputs=[n_levels, first, *bufs, *support.args()], outputs=[out],
               device=device)
     return out
 
