@@ -204,7 +204,8 @@ class LayerRecord:
     own tiles, the only ones its sources and light reach (a layer cut at a depth jump is often a thin
     population spread over a frame-sized box); None: everywhere (also when ``tile_px`` is not a power of two,
     as the kernels find tiles by shifts). ``origin``: where the coordinates ``bbox``
-    is given in start in the scene's (a tile's window; (0, 0) for the whole scene).
+    is given in start in the scene's (a tile's window; (0, 0) for the whole scene). ``pixels``: how many of
+    the scene's pixels are the layer's own.
     """
 
     index: int
@@ -216,6 +217,7 @@ class LayerRecord:
     support: np.ndarray | None = dataclasses.field(default=None, compare=False, repr=False)
     tile_px: int = 1
     origin: tuple[int, int] = (0, 0)
+    pixels: int = 0  # its own pixels in the whole scene
 
     @property
     def filled(self) -> bool:
@@ -314,7 +316,7 @@ def build_scene(signed_coc: np.ndarray, active: np.ndarray, options: LayerOption
                 max(0, tx.min() * t - pad), min(w, (tx.max() + 1) * t + pad))
         support = dilate_tiles(own, -(-pad // t)) if t & (t - 1) == 0 else None
         layers.append(LayerRecord(int(i), float(edges[i]), float(edges[i + 1]), bbox, float(max_r_slice[i]), reach,
-                                  support, t))
+                                  support, t, pixels=int(counts[i])))
     return LayeredScene(sid, edges, max_coc, tuple(layers), level_radius_px)
 
 

@@ -1,0 +1,61 @@
+"""The preview's layer pool: workers take layers in any order, compositing stays back to front."""
+
+import threading
+
+import numpy as np
+import pytest
+
+from bokehray import Aperture, PreviewOptions
+from bokehray.levels import preview as pv
+
+
+def _scene(size: int = 200) -> tuple[np.ndarray, np.ndarray]:
+    """A far plane, a mid plane and near discs of several depths: layers of very different costs."""
+    rng = np.random.default_rng(3)
+    yy, xx = np.mgrid[:size, :size]
+    image = rng.uniform(0.05, 1.0, (size, size, 3)).astype(np.float32)
+    image[rng.random((size, size)) < 0.01] *= 40.0
+    s = np.full((size, size), -18.0, np.float32)
+    s[:, : size // 3] = -9.0
+    for k, (cy, cx) in enumerate(((50, 60), (140, 150), (60, 150), (150, 50))):
+        s[np.hypot(yy - cy, xx - cx) <= 18 - 2 * k] = 2.0 + 3 * k
+    return image, s
+
+
+def test_renders_are_bit_identical_for_any_number_of_threads():
+    image, s = _scene()
+    want, stats = pv.render_signed_coc(image, s, Aperture(), options=PreviewOptions(threads=1))
+    assert stats.layers >= 5
+    for threads in (2, 3, 6):
+        got, _ = pv.render_signed_coc(image, s, Aperture(), options=PreviewOptions(threads=threads))
+        np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_a_free_worker_takes_the_next_layer_else_the_costliest(monkeypatch, threads):
+    """With the farthest layer held back until every other one has started, the other worker takes them
+    costliest first."""
+    image, s = _scene()
+    _, stats = pv.render_signed_coc(image, s, Aperture(), options=PreviewOptions(threads=1))
+    started, lock, all_started = [], threading.Lock(), threading.Event()
+    render_layer = pv._render_layer
+
+    def record(layer, arrays, scatter):
+        with lock:
+            started.append(layer)
+            if len(started) == stats.layers:
+                all_started.set()
+        if threads > 1 and len(started) == 1:
+            assert all_started.wait(60)
+        return render_layer(layer, arrays, scatter)
+
+    monkeypatch.setattr(pv, "_render_layer", record)
+    pv.render_signed_coc(image, s, Aperture(), options=PreviewOptions(threads=threads))
+    index = [lyr.index for lyr in started]
+    assert sorted(index) == sorted(set(index)) and len(index) == stats.layers  # each layer once
+    if threads == 1:
+        assert index == sorted(index)  # one worker: back to front
+    else:
+        assert index[0] == min(index)  # the farthest first: it is composited first
+        costs = [pv._cost(lyr) for lyr in started[1:]]
+        assert costs == sorted(costs, reverse=True) and index[1:] != sorted(index[1:])
