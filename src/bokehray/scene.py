@@ -281,9 +281,10 @@ def build_scene(signed_coc: np.ndarray, active: np.ndarray, options: LayerOption
     of everything nearer.
     """
     h, w = signed_coc.shape
-    max_coc = float(np.abs(signed_coc[active]).max())
-    edges = layer_edges(signed_coc[active], options)
-    sid = (np.searchsorted(edges, signed_coc, side="right") - 1).astype(np.int32)
+    values = signed_coc[active]
+    max_coc = max(float(values.max()), -float(values.min()))
+    edges = layer_edges(values, options)
+    sid = (np.searchsorted(_float32_edges(edges), signed_coc, side="right") - 1).astype(np.int32)
     np.clip(sid, 0, len(edges) - 2, out=sid)
     sid[~active] = -1
     n_slices = len(edges) - 1
@@ -294,7 +295,7 @@ def build_scene(signed_coc: np.ndarray, active: np.ndarray, options: LayerOption
     th, tw = -(-h // t), -(-w // t)
     pad_h, pad_w = th * t - h, tw * t - w
     sid_t = np.pad(sid, ((0, pad_h), (0, pad_w)), constant_values=-1).reshape(th, t, tw, t)
-    tile_lo = np.where(sid_t < 0, n_slices, sid_t).min(axis=(1, 3))
+    tile_lo = np.minimum(sid_t.view(np.uint32).min(axis=(1, 3)), n_slices)  # -1 (no layer) as the largest
     tile_hi = sid_t.max(axis=(1, 3))
     counts = np.bincount(sid[active], minlength=n_slices)
     present = counts > 0
@@ -318,6 +319,15 @@ def build_scene(signed_coc: np.ndarray, active: np.ndarray, options: LayerOption
         layers.append(LayerRecord(int(i), float(edges[i]), float(edges[i + 1]), bbox, float(max_r_slice[i]), reach,
                                   support, t, pixels=int(counts[i])))
     return LayeredScene(sid, edges, max_coc, tuple(layers), level_radius_px)
+
+
+def _float32_edges(edges: np.ndarray) -> np.ndarray:
+    """``edges`` (float64) as the smallest float32 values at or above them: a float32 CoC is at or above an edge
+    exactly when it is at or above its float32 version, so searching those needs no float64 copy of the map."""
+    e32 = edges.astype(np.float32)
+    low = e32.astype(np.float64) < edges
+    e32[low] = np.nextafter(e32[low], np.float32(np.inf))
+    return e32
 
 
 def light_pad(max_radius: float, fill_reach: float, level_radius_px: float | None) -> int:

@@ -96,3 +96,18 @@ def test_a_tile_grid_not_a_power_of_two_has_no_support():
     assert all(layer.support is None for layer in scene.layers)
     got, _ = pv.render_signed_coc(*_scene(0), Aperture(), layers=LayerOptions(tile_px=12))
     assert np.isfinite(got).all()
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.lists(st.floats(-300, 300, allow_nan=False), min_size=2, max_size=9, unique=True), st.integers(0, 2**31 - 1))
+def test_float32_edges_assign_every_pixel_the_float64_layer(edges, seed):
+    """The layer ids from float32 edges equal those from the float64 ones, also right at the edges."""
+    from bokehray.scene import _float32_edges
+
+    e = np.sort(np.array(edges, np.float64))
+    rng = np.random.default_rng(seed)
+    near = e.astype(np.float32)
+    values = np.concatenate([rng.uniform(e[0] - 1, e[-1] + 1, 500).astype(np.float32), near,
+                             np.nextafter(near, np.float32(-np.inf)), np.nextafter(near, np.float32(np.inf))])
+    np.testing.assert_array_equal(np.searchsorted(_float32_edges(e), values, side="right"),
+                                  np.searchsorted(e, values, side="right"))
