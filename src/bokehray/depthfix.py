@@ -36,8 +36,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["DepthFixOptions", "colour_edge_offsets", "correct_disparity", "depth_edges", "edge_pairs", "smeared",
-           "untrusted", "weighted_median"]
+__all__ = ["DepthFixOptions", "colour_edge_offsets", "correct_disparity", "depth_edges", "edge_pairs", "pass_reach",
+           "smeared", "untrusted", "weighted_median"]
 
 
 @dataclass(frozen=True)
@@ -66,6 +66,8 @@ class DepthFixOptions:
         ramp_px: half-width of the window of the smeared-edge hypothesis (0: off).
         thin_dilated: under the dilation hypothesis a pixel may move without its own layer among the
             voters (a dilated thin structure, whose every pixel is suspect).
+        incremental: passes after the first recompute only the neighbourhood (:func:`pass_reach`) of the pixels
+            the pass before moved: the same result as a pass over the whole map (tested), at a fraction of its cost.
         max_ratio: a colour edge counts as off the depth edge where (step on the edge) / (strongest step) is below.
         sigma_edge_px: smoothing along the edge of the ratio, the score and the offset.
     """
@@ -87,6 +89,7 @@ class DepthFixOptions:
     max_edge_share: float = 0.4
     ramp_px: int = 3
     thin_dilated: bool = True
+    incremental: bool = True
     max_ratio: float = 0.5
     sigma_edge_px: float = 3.0
 
@@ -226,21 +229,31 @@ def untrusted(focus_srgb: np.ndarray, disparity: np.ndarray, k_px: float,
         return masks
     iy = np.clip(np.floor(my).astype(np.int64), 0, h - 1)
     ix = np.clip(np.floor(mx).astype(np.int64), 0, w - 1)
+    flat = iy * w + ix
+    # the Gaussian is computed on the pairs' bounding box plus its truncation radius: outside it every input is 0,
+    # so the values read at the pairs are the whole frame's bit for bit (only their box costs)
+    r = int(4.0 * float(options.sigma_edge_px) + 0.5)  # scipy's truncate = 4
+    y0, y1 = max(0, int(iy.min()) - r), min(h, int(iy.max()) + r + 1)
+    x0, x1 = max(0, int(ix.min()) - r), min(w, int(ix.max()) + r + 1)
 
-    def smooth(v, wt):  # normalised convolution over the edge pairs
-        num, den = np.zeros((h, w), np.float64), np.zeros((h, w), np.float64)
-        np.add.at(num, (iy, ix), v * wt)
-        np.add.at(den, (iy, ix), wt)
-        num = ndimage.gaussian_filter(num, options.sigma_edge_px)
-        den = ndimage.gaussian_filter(den, options.sigma_edge_px)
-        return num[iy, ix] / np.maximum(den[iy, ix], 1e-12)
+    def blurred(v):  # the splatted values, smoothed, read back at the pairs
+        grid = np.bincount(flat, weights=v, minlength=h * w).reshape(h, w)  # adds in order, like np.add.at
+        return ndimage.gaussian_filter(grid[y0:y1, x0:x1], options.sigma_edge_px)[iy - y0, ix - x0]
+
+    ones = np.ones(my.size)
+    den1 = np.maximum(blurred(ones), 1e-12)  # the weights of an unweighted smoothing: shared
+
+    def smooth(v, wt=None):  # normalised convolution over the edge pairs
+        if wt is None:
+            return blurred(v * ones) / den1
+        return blurred(v * wt) / np.maximum(blurred(wt), 1e-12)
 
     ss = np.arange(0.5, options.band_px + 1.0, 0.5)
-    scores = (sides[3].astype(np.float64), sides[7].astype(np.float64))
+    scores = [smooth(sides[3].astype(np.float64)), smooth(sides[7].astype(np.float64))]
     for k, (mask, (t, ratio, strength, _)) in enumerate(zip(masks, (sides[0:4], sides[4:8]))):
         strong = strength >= options.min_step
-        r_s = smooth(np.where(strong, ratio, 1.0).astype(np.float64), np.ones(my.size))
-        mine, other = smooth(scores[k], np.ones(my.size)), smooth(scores[1 - k], np.ones(my.size))
+        r_s = smooth(np.where(strong, ratio, 1.0).astype(np.float64))
+        mine, other = scores[k], scores[1 - k]
         act = strong & (r_s < options.max_ratio) & (mine > options.min_score) & (mine > other)
         if not act.any():
             continue
@@ -270,12 +283,13 @@ def smeared(disparity: np.ndarray, k_px: float, options: DepthFixOptions = Depth
     return (hi - d > snap) & (d - lo > snap)
 
 
-def _vote(img, cur, sus, offs, space, snap, options, new, keep=None, one_sided=False):
+def _vote(img, cur, sus, offs, space, snap, options, new, keep=None, one_sided=False, targets=None):
     """Colour-weighted vote of the trusted pixels (not ``sus``, not ``keep``) for every pixel of ``sus``
-    (not ``keep``); writes ``new``."""
+    (not ``keep``; only those of ``targets`` when given); writes ``new``."""
     h, w = cur.shape
     trusted = ~sus if keep is None else ~(sus | keep)
-    ys, xs = np.nonzero(sus if keep is None else sus & ~keep)
+    voters = sus if keep is None else sus & ~keep
+    ys, xs = np.nonzero(voters if targets is None else voters & targets)
     for i in range(0, ys.size, 4096):  # chunks bound the memory: 4096 x len(offs) per array
         py, px = ys[i:i + 4096], xs[i:i + 4096]
         qy, qx = py[:, None] + offs[None, :, 0], px[:, None] + offs[None, :, 1]
@@ -307,6 +321,28 @@ def _vote(img, cur, sus, offs, space, snap, options, new, keep=None, one_sided=F
         new[py[sel][fin], px[sel][fin]] = med[fin]
 
 
+def pass_reach(options: DepthFixOptions) -> int:
+    """How far (Chebyshev px) one pass's result at a pixel depends on the map: the vote's window, the suspect
+    stretch along an edge's normal, the smoothing along the edge (scipy truncates its Gaussian at 4 sigma), the
+    edge normal (Gaussian of 1 px truncated at 4, then Sobel) and the pair itself, the smeared-edge window, plus
+    a margin of 4 px."""
+    return (int(np.ceil(options.radius_px)) + int(np.ceil(options.band_px)) + 2
+            + int(4.0 * float(options.sigma_edge_px) + 0.5) + 6 + int(options.ramp_px) + 4)
+
+
+def _pass(img, cur, k_px, options, offs, space, snap, active, keep, new, targets):
+    """One pass of the correction on ``cur``, written into ``new``; only pixels of ``targets`` (None: all) vote."""
+    hyps = list(untrusted(img, cur, k_px, options))
+    if options.ramp_px > 0:
+        hyps.append(smeared(cur, k_px, options))
+    for h_i, sus in enumerate(hyps):  # each hypothesis with its own trusted pixels
+        if active is not None:
+            sus &= active
+        if sus.any():
+            _vote(img, cur, sus, offs, space, snap, options, new, keep,
+                  one_sided=options.thin_dilated and h_i == 1, targets=targets)
+
+
 def correct_disparity(focus_srgb: np.ndarray, disparity: np.ndarray, k_px: float,
                       options: DepthFixOptions = DepthFixOptions(),
                       active: np.ndarray | None = None,
@@ -329,6 +365,8 @@ def correct_disparity(focus_srgb: np.ndarray, disparity: np.ndarray, k_px: float
     changed = np.zeros(d.shape, bool)
     if not options.enabled or k_px <= 0:
         return out, changed
+    from scipy import ndimage
+
     img = np.ascontiguousarray(focus_srgb[..., :3], np.float32)
     offs = _offsets(options)
     space = np.exp(-(offs ** 2).sum(1) / (2.0 * options.sigma_space_px ** 2))
@@ -336,22 +374,33 @@ def correct_disparity(focus_srgb: np.ndarray, disparity: np.ndarray, k_px: float
     if depth_edges(d * np.float32(k_px), options.jump_px).mean() > options.max_edge_share:
         return out, changed
     snap = options.snap_px / float(k_px)
+    everything = np.ones(d.shape, bool)
+    todo = everything  # the first pass looks at the whole map, later ones only where the last one moved pixels
+    reach = pass_reach(options)
     for _ in range(max(1, options.iterations)):
         cur = out
         new = cur.copy()
-        hyps = list(untrusted(img, cur, k_px, options))
-        if options.ramp_px > 0:
-            hyps.append(smeared(cur, k_px, options))
-        for h_i, sus in enumerate(hyps):  # each hypothesis with its own trusted pixels
-            if active is not None:
-                sus &= active
-            if sus.any():
-                _vote(img, cur, sus, offs, space, snap, options, new, keep,
-                      one_sided=options.thin_dilated and h_i == 1)
+        if todo is everything:
+            _pass(img, cur, k_px, options, offs, space, snap, active, keep, new, None)
+        else:
+            # a pixel farther than ``reach`` from every pixel the last pass moved sees the same inputs as in that
+            # pass and so gives the same (unmoved) value: each cluster of moved pixels is recomputed on its window,
+            # cut ``reach`` wider so that the window's border cannot change what the cluster's pixels see
+            lab, _n = ndimage.label(todo, structure=np.ones((3, 3), bool))
+            for n_c, (sy, sx) in enumerate(ndimage.find_objects(lab), start=1):
+                wy = slice(max(0, sy.start - reach), min(h, sy.stop + reach))
+                wx = slice(max(0, sx.start - reach), min(w, sx.stop + reach))
+                mine = lab[wy, wx] == n_c
+                part = cur[wy, wx].copy()
+                _pass(img[wy, wx], cur[wy, wx], k_px, options, offs, space, snap,
+                      None if active is None else active[wy, wx], None if keep is None else keep[wy, wx], part, mine)
+                new[wy, wx][mine] = part[mine]
         moved = new != cur
         if not moved.any():
             break
         changed |= moved
         out = new
+        if options.incremental:
+            todo = ndimage.maximum_filter(moved, size=2 * reach + 1, mode="constant")
     changed &= out != d
     return out, changed

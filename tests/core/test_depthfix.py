@@ -156,3 +156,34 @@ def test_a_noisy_map_is_left_alone_at_once(monkeypatch):
     out, changed = correct_disparity(img.astype(np.float32), d, 64.0)
     assert not changed.any()
     np.testing.assert_array_equal(out, d)
+
+
+@pytest.mark.parametrize("kind, px", [("erode", 3), ("dilate", 3), ("blur", 3), ("shift", 2), ("dilate", 5)])
+def test_later_passes_near_the_moved_pixels_only_give_the_whole_maps_result(kind, px):
+    """Passes after the first recompute only the neighbourhood of what the pass before moved
+    (``DepthFixOptions.incremental``): bit for bit the result of every pass over the whole map, on a frame large
+    enough that the moved pixels form several separate windows."""
+    from dataclasses import replace
+
+    rng = np.random.default_rng(7)
+    size = 160
+    tex = ndimage.gaussian_filter(rng.normal(0, 0.04, (size, size, 3)), (1.0, 1.0, 0))
+    img = np.full((size, size, 3), (0.2, 0.5, 0.7)) + tex
+    d = np.full((size, size), 0.2, np.float32)
+    for (y0, y1, x0, x1), c, v in (((10, 40, 12, 44), (0.8, 0.3, 0.2), 0.85), ((100, 140, 96, 150), (0.9, 0.8, 0.2), 0.7),
+                                   ((20, 60, 110, 124), (0.1, 0.1, 0.1), 0.95)):
+        img[y0:y1, x0:x1] = np.array(c) + tex[y0:y1, x0:x1]
+        d[y0:y1, x0:x1] = v
+    img = np.clip(img, 0, 1).astype(np.float32)
+    if kind == "blur":
+        dc = ndimage.gaussian_filter(d, px / 2).astype(np.float32)
+    elif kind == "shift":
+        dc = np.roll(d, (px, -px), (0, 1))
+    else:
+        dc = perturb_disparity(d, -px if kind == "erode" else px)
+    opts = DepthFixOptions(iterations=3)
+    fast, ch_fast = correct_disparity(img, dc, 16.0, opts)
+    slow, ch_slow = correct_disparity(img, dc, 16.0, replace(opts, incremental=False))
+    assert ch_slow.any()
+    np.testing.assert_array_equal(fast, slow)
+    np.testing.assert_array_equal(ch_fast, ch_slow)
