@@ -44,7 +44,8 @@ from .masks import PisaMaskProvider
 from .model import BokehRefiner, RefinerConfig
 from .tiles import raised_cosine_ramp
 
-__all__ = ["DEFAULT_WEIGHTS", "RefineOptions", "RefineStats", "load_refiner", "refine", "tiles_to_refine"]
+__all__ = ["DEFAULT_WEIGHTS", "RefineOptions", "RefineStats", "load_refiner", "refine", "refine_boxes",
+           "tiles_to_refine"]
 
 DEFAULT_WEIGHTS = Path(__file__).parent / "weights" / "refiner.safetensors"
 
@@ -66,6 +67,8 @@ class RefineOptions:
         depthfix: the colour-guided depth correction run first (``bokehray.depthfix``); it needs a ``rerender``
             callback in :func:`refine` (the classical level again, on the corrected disparity).
         neural: False stops after the depth correction (the neural residual is not run).
+        merge_tiles: neighbouring tiles to refine run as one box with one halo (:func:`refine_boxes`), blended
+            with the same per-tile weights, instead of one pass per tile, each with its own halo.
     """
 
     tile: int = 64
@@ -78,6 +81,7 @@ class RefineOptions:
     gate: GateOptions = GateOptions()
     depthfix: DepthFixOptions = DepthFixOptions()
     neural: bool = True
+    merge_tiles: bool = True
 
     def __post_init__(self) -> None:
         if self.tile < 8 or self.tile % 8 or self.halo < 0 or self.halo % 8:
@@ -100,6 +104,8 @@ class RefineStats:
     depth_fixed_px: int = 0  #: pixels whose disparity the depth correction changed (then the level ran again)
     depthfix_seconds: float = 0.0  #: the correction itself
     rerender_seconds: float = 0.0  #: the classical level again, on the corrected disparity
+    gate_seconds: float = 0.0  #: the edge band and the confidence gate
+    neural_seconds: float = 0.0  #: the network on the refined tiles and the blend
     disparity: np.ndarray | None = field(default=None, repr=False)  #: the corrected disparity (None: unchanged)
 
     @property
@@ -111,7 +117,8 @@ class RefineStats:
                 "share_refined": self.share_refined, "seconds": self.seconds,
                 "tiles_near_edges": self.tiles_near_edges, "band_pixels": self.band_pixels,
                 "gate_open": self.gate_open, "depth_fixed_px": self.depth_fixed_px,
-                "depthfix_seconds": self.depthfix_seconds, "rerender_seconds": self.rerender_seconds}
+                "depthfix_seconds": self.depthfix_seconds, "rerender_seconds": self.rerender_seconds,
+                "gate_seconds": self.gate_seconds, "neural_seconds": self.neural_seconds}
 
 
 def load_refiner(path: str | os.PathLike | None = None, device: str = "cpu") -> BokehRefiner:
@@ -193,6 +200,29 @@ def _tiles_near(reach: np.ndarray, tile: int) -> np.ndarray:
     return need
 
 
+def refine_boxes(need: np.ndarray, tile: int, halo: int) -> list[tuple[tuple[int, int, int, int], list]]:
+    """Boxes of tiles (``(ty0, ty1, tx0, tx1)`` on the tile grid, each with the tiles it stands for) that cover
+    every tile of ``need`` once: per 8-connected group of tiles, its bounding box or its rows' runs of adjacent
+    tiles, whichever has less area with the halo around each box. A tile alone is a box of its own."""
+    from scipy import ndimage
+
+    out = []
+    lab, _ = ndimage.label(need, structure=np.ones((3, 3), bool))
+    area = lambda b: ((b[1] - b[0]) * tile + 2 * halo) * ((b[3] - b[2]) * tile + 2 * halo)  # noqa: E731
+    for n, (sy, sx) in enumerate(ndimage.find_objects(lab), start=1):
+        members = [(int(y) + sy.start, int(x) + sx.start) for y, x in zip(*np.nonzero(lab[sy, sx] == n))]
+        whole = [((sy.start, sy.stop, sx.start, sx.stop), members)]
+        runs = []
+        for y, x in members:  # row-major: a run grows while the next tile is its right neighbour
+            if runs and runs[-1][0][0] == y and runs[-1][0][3] == x:
+                (ry0, ry1, rx0, _), mem = runs[-1]
+                runs[-1] = ((ry0, ry1, rx0, x + 1), mem + [(y, x)])
+            else:
+                runs.append(((y, y + 1, x, x + 1), [(y, x)]))
+        out += whole if area(whole[0][0]) <= sum(area(b) for b, _ in runs) else runs
+    return out
+
+
 @torch.no_grad()
 def refine(
     image: np.ndarray,
@@ -224,6 +254,7 @@ def refine(
     t0 = time.perf_counter()
     h, w = disparity.shape
     fixed_px, t_fix, t_re, d_fixed = 0, 0.0, 0.0, None
+    focus_srgb = None
     if rerender is not None and options.depthfix.enabled:
         from scipy import ndimage
 
@@ -247,9 +278,11 @@ def refine(
     stats = RefineStats(tiles_total=int(need.size), tiles_near_edges=int(need.sum()), depth_fixed_px=fixed_px,
                         depthfix_seconds=t_fix, rerender_seconds=t_re, disparity=d_fixed)
     t, halo = options.tile, options.halo
+    t1 = time.perf_counter()
     if need.any():
         full_band = edge_band(reach, options.band_margin_px, options.band_feather_px)
-        focus_srgb = linear_to_srgb(np.clip(image[..., :3], 0.0, 1.0))
+        if focus_srgb is None:
+            focus_srgb = linear_to_srgb(np.clip(image[..., :3], 0.0, 1.0))
         band = full_band * refine_gate(image, focus_srgb, disparity, classical, coc, options.min_jump_px,
                                        options.gate)
         stats.band_pixels = int((full_band > 0).sum())
@@ -259,47 +292,64 @@ def refine(
         padded[:h, :w] = band
         need &= padded.reshape(ty, t, tx, t).max(axis=(1, 3)) > 0  # a tile the gate closes is not run
     stats.tiles_refined = int(need.sum())
+    stats.gate_seconds = time.perf_counter() - t1
     if not need.any():
         stats.seconds = time.perf_counter() - t0
         return classical.astype(np.float32, copy=True), stats
+    t1 = time.perf_counter()
     size = t + 2 * halo
     ph, pw = need.shape[0] * t - h + halo, need.shape[1] * t - w + halo  # pad to whole tiles plus the halo
     pad3 = ((halo, ph), (halo, pw), (0, 0))
     base = np.clip(classical[..., :3], 0.0, 1.0)
     f_srgb = np.pad(focus_srgb, pad3, mode="reflect")
-    r_srgb = np.pad(linear_to_srgb(base), pad3, mode="reflect")
+    base_pad = np.pad(base, pad3, mode="reflect")  # encoded to sRGB only where the model reads it
     d_pad = np.pad(disparity.astype(np.float32), pad3[:2], mode="reflect")
     coc_pad = np.pad(coc, pad3[:2], mode="reflect")
     feather = raised_cosine_ramp(size, halo)
     wt = (feather[:, None] * feather[None, :])[..., None].astype(np.float32)
-    boxes = [(slice(int(y) * t, int(y) * t + size), slice(int(x) * t, int(x) * t + size)) for y, x in zip(*np.nonzero(need))]
-    wsum = np.zeros(r_srgb.shape[:2] + (1,), np.float32)
-    for sl in boxes:
-        wsum[sl] += wt
+    tiles = list(zip(*np.nonzero(need)))
+    wsum = np.zeros(base_pad.shape[:2] + (1,), np.float32)
+    for y, x in tiles:
+        wsum[int(y) * t:int(y) * t + size, int(x) * t:int(x) * t + size] += wt
     device = next(model.parameters()).device
     opts = PisaMaskOptions()
 
     def run(sls: list) -> np.ndarray:
         stack = lambda a: torch.from_numpy(np.stack([a[s] for s in sls])).to(device)  # noqa: E731
-        focus, render = stack(f_srgb).permute(0, 3, 1, 2), stack(r_srgb).permute(0, 3, 1, 2)
+        focus = stack(f_srgb).permute(0, 3, 1, 2)
+        render = torch.from_numpy(np.stack([linear_to_srgb(base_pad[s]) for s in sls])).to(device).permute(0, 3, 1, 2)
         pisa = PisaMaskProvider(np.stack([d_pad[s] for s in sls]), blur.focus_disparity, blur.k_px, opts,
                                 torch_device=device)
         return (model(focus, render, stack(coc_pad), pisa) - render).permute(0, 2, 3, 1).cpu().numpy()
 
+    boxes = refine_boxes(need, t, halo) if options.merge_tiles else [((int(y), int(y) + 1, int(x), int(x) + 1),
+                                                                      [(int(y), int(x))]) for y, x in tiles]
     full = d_pad.size
-    if len(boxes) * size * size >= full and full <= options.full_frame_px:
-        acc = run([(slice(None), slice(None))])[0] * wsum  # one pass over the frame costs less than the tiles
+    area = sum(((b[1] - b[0]) * t + 2 * halo) * ((b[3] - b[2]) * t + 2 * halo) for b, _ in boxes)
+    if area >= full and full <= options.full_frame_px:
+        acc = run([(slice(None), slice(None))])[0] * wsum  # one pass over the frame costs less than the boxes
     else:
-        acc = np.zeros(r_srgb.shape, np.float32)
-        for i in range(0, len(boxes), options.batch):
-            chunk = boxes[i:i + options.batch]
-            for sl, dlt in zip(chunk, run(chunk)):
-                acc[sl] += dlt * wt
+        acc = np.zeros(base_pad.shape, np.float32)
+        by_shape: dict[tuple[int, int], list] = {}
+        for (ty0, ty1, tx0, tx1), members in boxes:  # boxes of one shape run in batches
+            by_shape.setdefault((ty1 - ty0, tx1 - tx0), []).append(((ty0, ty1, tx0, tx1), members))
+        for group in by_shape.values():
+            for i in range(0, len(group), options.batch):
+                chunk = group[i:i + options.batch]
+                sls = [(slice(ty0 * t, ty1 * t + 2 * halo), slice(tx0 * t, tx1 * t + 2 * halo))
+                       for (ty0, ty1, tx0, tx1), _ in chunk]
+                for sl, ((ty0, _, tx0, _), members), dlt in zip(sls, chunk, run(sls)):
+                    # the box's correction, weighted by the blend weights of the tiles it stands for
+                    wbox = np.zeros(dlt.shape[:2] + (1,), np.float32)
+                    for y, x in members:
+                        wbox[(y - ty0) * t:(y - ty0) * t + size, (x - tx0) * t:(x - tx0) * t + size] += wt
+                    acc[sl] += dlt * wbox
     delta = (acc / np.maximum(wsum, 1.0))[halo:halo + h, halo:halo + w]
-    delta *= band[..., None]
-    fixed = srgb_to_linear(np.clip(r_srgb[halo:halo + h, halo:halo + w] + delta, 0.0, 1.0))
     out = classical.astype(np.float32, copy=True)
     touched = (wsum[halo:halo + h, halo:halo + w, 0] > 0) & (band > 0)  # elsewhere: the classical bits
-    out[..., :3][touched] = (classical[..., :3] + (fixed - base))[touched]
+    b_t = base[touched]
+    fixed = srgb_to_linear(np.clip(linear_to_srgb(b_t) + delta[touched] * band[touched][:, None], 0.0, 1.0))
+    out[..., :3][touched] = classical[..., :3][touched] + (fixed - b_t)
+    stats.neural_seconds = time.perf_counter() - t1
     stats.seconds = time.perf_counter() - t0
     return np.maximum(out, 0.0) if classical.min() >= 0 else out, stats
