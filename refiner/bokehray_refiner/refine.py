@@ -103,7 +103,8 @@ class RefineStats:
     gate_open: float = 0.0  #: mean gate over the band: the share of the correction let through
     depth_fixed_px: int = 0  #: pixels whose disparity the depth correction changed (then the level ran again)
     depthfix_seconds: float = 0.0  #: the correction itself
-    rerender_seconds: float = 0.0  #: the classical level again, on the corrected disparity
+    rerender_seconds: float = 0.0  #: the classical level again, on the corrected disparity (its only render, when
+    #: refine() was given no classical render: then not part of ``seconds``)
     gate_seconds: float = 0.0  #: the edge band and the confidence gate
     neural_seconds: float = 0.0  #: the network on the refined tiles and the blend
     disparity: np.ndarray | None = field(default=None, repr=False)  #: the corrected disparity (None: unchanged)
@@ -202,25 +203,35 @@ def _tiles_near(reach: np.ndarray, tile: int) -> np.ndarray:
 
 def refine_boxes(need: np.ndarray, tile: int, halo: int) -> list[tuple[tuple[int, int, int, int], list]]:
     """Boxes of tiles (``(ty0, ty1, tx0, tx1)`` on the tile grid, each with the tiles it stands for) that cover
-    every tile of ``need`` once: per 8-connected group of tiles, its bounding box or its rows' runs of adjacent
-    tiles, whichever has less area with the halo around each box. A tile alone is a box of its own."""
-    from scipy import ndimage
+    every tile of ``need`` once, each run with one halo around it.
 
-    out = []
-    lab, _ = ndimage.label(need, structure=np.ones((3, 3), bool))
-    area = lambda b: ((b[1] - b[0]) * tile + 2 * halo) * ((b[3] - b[2]) * tile + 2 * halo)  # noqa: E731
-    for n, (sy, sx) in enumerate(ndimage.find_objects(lab), start=1):
-        members = [(int(y) + sy.start, int(x) + sx.start) for y, x in zip(*np.nonzero(lab[sy, sx] == n))]
-        whole = [((sy.start, sy.stop, sx.start, sx.stop), members)]
-        runs = []
-        for y, x in members:  # row-major: a run grows while the next tile is its right neighbour
-            if runs and runs[-1][0][0] == y and runs[-1][0][3] == x:
-                (ry0, ry1, rx0, _), mem = runs[-1]
-                runs[-1] = ((ry0, ry1, rx0, x + 1), mem + [(y, x)])
-            else:
-                runs.append(((y, y + 1, x, x + 1), [(y, x)]))
-        out += whole if area(whole[0][0]) <= sum(area(b) for b, _ in runs) else runs
-    return out
+    Greedy: every tile starts as its own box; the two boxes whose bounding box (with its halo) has the most less
+    area than the two apart merge, until no merge saves area. The network's cost grows with the area it runs on,
+    and one halo around neighbouring tiles costs less than one around each.
+    """
+    ys, xs = np.nonzero(need)
+    boxes = np.stack([ys, ys + 1, xs, xs + 1], 1).astype(np.int64)
+    members = [[(int(y), int(x))] for y, x in zip(ys, xs)]
+
+    def area(b):
+        return ((b[..., 1] - b[..., 0]) * tile + 2 * halo) * ((b[..., 3] - b[..., 2]) * tile + 2 * halo)
+
+    while len(boxes) > 1:
+        a = area(boxes)
+        union = np.stack([np.minimum(boxes[:, None, 0], boxes[None, :, 0]), np.maximum(boxes[:, None, 1], boxes[None, :, 1]),
+                          np.minimum(boxes[:, None, 2], boxes[None, :, 2]), np.maximum(boxes[:, None, 3], boxes[None, :, 3])],
+                         -1)
+        saving = a[:, None] + a[None, :] - area(union)
+        np.fill_diagonal(saving, -1)
+        k = int(np.argmax(saving))
+        i, j = divmod(k, len(boxes))
+        if saving[i, j] <= 0:
+            break
+        boxes[i] = union[i, j]
+        members[i] += members[j]
+        boxes = np.delete(boxes, j, 0)
+        del members[j]
+    return [(tuple(int(v) for v in b), sorted(m)) for b, m in zip(boxes, members)]
 
 
 @torch.no_grad()
@@ -228,7 +239,7 @@ def refine(
     image: np.ndarray,
     disparity: np.ndarray,
     blur: BlurParams,
-    classical: np.ndarray,
+    classical: np.ndarray | None,
     model: BokehRefiner | None = None,
     options: RefineOptions = RefineOptions(),
     rerender: Callable[[np.ndarray], np.ndarray] | None = None,
@@ -239,12 +250,15 @@ def refine(
     sits off the photo's colour edge, the disparity there is corrected and ``rerender(corrected)`` renders
     the classical level again; the neural residual (behind its gate) then corrects that render, seeing the
     corrected disparity. Without ``rerender``, or where nothing is corrected, the render is the given one.
+    With ``classical=None`` the level has not rendered yet: the correction runs first and ``rerender`` renders
+    the level once, on the corrected map (or the given one where nothing moved), which is what ``render --refine``
+    does: the level renders once, not twice. That render is then not counted in ``stats.seconds``.
 
     Args:
         image: the all-in-focus ``H x W x 3`` scene-linear image.
         disparity: ``H x W`` in [0, 1], the map the classical render used.
         blur: its ``K`` and ``d_f``.
-        classical: the classical render (``H x W x 3``, scene-linear).
+        classical: the classical render (``H x W x 3``, scene-linear), or None (rendered here by ``rerender``).
         model: a loaded refiner (default: the shipped weights).
         rerender: ``disparity -> H x W x 3`` render of the same classical level (the pipeline passes its own).
 
@@ -255,6 +269,9 @@ def refine(
     h, w = disparity.shape
     fixed_px, t_fix, t_re, d_fixed = 0, 0.0, 0.0, None
     focus_srgb = None
+    first = classical is None  # the level's only render happens here: it is not part of the refine pass's time
+    if first and rerender is None:
+        raise InputError("refine: without a classical render it needs the rerender callback that renders the level")
     if rerender is not None and options.depthfix.enabled:
         from scipy import ndimage
 
@@ -268,6 +285,10 @@ def refine(
             classical = np.asarray(rerender(d_new), np.float32)
             t_re = time.perf_counter() - t1
             disparity, d_fixed, fixed_px = d_new, d_new, int(changed.sum())
+    if classical is None:  # nothing moved (or the fix is off): the level on the given map
+        t1 = time.perf_counter()
+        classical = np.asarray(rerender(disparity), np.float32)
+        t_re = time.perf_counter() - t1
     coc = blur.signed_coc(disparity).astype(np.float32)
     reach = edge_reach(coc, options.min_jump_px)
     need = _tiles_near(reach, options.tile)
@@ -294,7 +315,7 @@ def refine(
     stats.tiles_refined = int(need.sum())
     stats.gate_seconds = time.perf_counter() - t1
     if not need.any():
-        stats.seconds = time.perf_counter() - t0
+        stats.seconds = time.perf_counter() - t0 - (t_re if first else 0.0)
         return classical.astype(np.float32, copy=True), stats
     t1 = time.perf_counter()
     size = t + 2 * halo
@@ -351,5 +372,5 @@ def refine(
     fixed = srgb_to_linear(np.clip(linear_to_srgb(b_t) + delta[touched] * band[touched][:, None], 0.0, 1.0))
     out[..., :3][touched] = classical[..., :3][touched] + (fixed - b_t)
     stats.neural_seconds = time.perf_counter() - t1
-    stats.seconds = time.perf_counter() - t0
+    stats.seconds = time.perf_counter() - t0 - (t_re if first else 0.0)
     return np.maximum(out, 0.0) if classical.min() >= 0 else out, stats

@@ -407,3 +407,32 @@ def test_merged_boxes_and_single_tiles_blend_the_same_way():
     assert 0 < s1.tiles_refined == s2.tiles_refined < s1.tiles_total
     np.testing.assert_allclose(merged, single, rtol=0, atol=1e-5)
     assert np.abs(merged - classical).mean() > 1e-3
+
+
+def test_render_refine_renders_the_level_once_and_equals_fixing_an_existing_render(weights):
+    """``render --refine`` corrects the map first and renders the level once, on the corrected map: the same image
+    as rendering, correcting, then rendering again."""
+    img, d = _edge_scene(2)
+    blur = br.BlurParams(12.0, 0.9)
+    dc = corrupt_disparity(d, "erode", 3)
+    model = load_refiner(weights)
+    calls = []
+
+    def rerender(dd):
+        calls.append(dd)
+        return br.render(img, dd, blur)
+
+    once, st1 = refine(img, dc, blur, None, model=model, rerender=rerender)
+    assert len(calls) == 1 and st1.depth_fixed_px > 0 and np.array_equal(calls[0], st1.disparity)
+    twice, st2 = refine(img, dc, blur, br.render(img, dc, blur), model=model, rerender=rerender)
+    np.testing.assert_array_equal(once, twice)
+    api, st = br.render_with_stats(img, dc, blur, refine=str(weights))
+    np.testing.assert_allclose(api, once, rtol=0, atol=1e-6)
+    assert st.refine["depth_fixed_px"] == st1.depth_fixed_px
+    flat = np.full_like(d, 0.9)  # nothing to correct: the level renders once on the given map
+    calls.clear()
+    out, st3 = refine(img, flat, blur, None, model=model, rerender=rerender)
+    assert len(calls) == 1 and calls[0] is flat and st3.depth_fixed_px == 0
+    np.testing.assert_array_equal(out, br.render(img, flat, blur))
+    with pytest.raises(InputError):
+        refine(img, dc, blur, None, model=model)
