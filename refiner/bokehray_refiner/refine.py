@@ -161,15 +161,25 @@ def edge_reach(coc: np.ndarray, min_jump_px: float) -> np.ndarray:
     return reach
 
 
-def edge_band(reach: np.ndarray, margin_px: float, feather_px: float) -> np.ndarray:
-    """Weight in [0, 1]: 1 within (its nearest edge's reach + ``margin_px``) of a depth edge, a linear
-    fall-off over ``feather_px`` beyond. A depth error at an edge changes the image only that far."""
+def nearest_edge(reach: np.ndarray):
+    """Distance to the nearest depth-edge pixel (``reach > 0``) and its indices (``scipy``'s exact EDT), or None
+    without edges. Shared by the edge band and the gate, whose edge pixels are the same."""
     from scipy import ndimage
 
     edge = reach > 0
     if not edge.any():
+        return None
+    return ndimage.distance_transform_edt(~edge, return_indices=True)
+
+
+def edge_band(reach: np.ndarray, margin_px: float, feather_px: float, nearest=None) -> np.ndarray:
+    """Weight in [0, 1]: 1 within (its nearest edge's reach + ``margin_px``) of a depth edge, a linear
+    fall-off over ``feather_px`` beyond. A depth error at an edge changes the image only that far.
+    ``nearest``: :func:`nearest_edge` of ``reach`` when already computed."""
+    nearest = nearest_edge(reach) if nearest is None else nearest
+    if nearest is None:
         return np.zeros(reach.shape, np.float32)
-    dist, (iy, ix) = ndimage.distance_transform_edt(~edge, return_indices=True)
+    dist, (iy, ix) = nearest
     limit = reach[iy, ix] + margin_px
     return np.clip((limit + feather_px - dist) / feather_px, 0.0, 1.0).astype(np.float32)
 
@@ -301,11 +311,12 @@ def refine(
     t, halo = options.tile, options.halo
     t1 = time.perf_counter()
     if need.any():
-        full_band = edge_band(reach, options.band_margin_px, options.band_feather_px)
+        nearest = nearest_edge(reach)  # the gate's edge pixels are the band's: one distance transform for both
+        full_band = edge_band(reach, options.band_margin_px, options.band_feather_px, nearest)
         if focus_srgb is None:
             focus_srgb = linear_to_srgb(np.clip(image[..., :3], 0.0, 1.0))
         band = full_band * refine_gate(image, focus_srgb, disparity, classical, coc, options.min_jump_px,
-                                       options.gate)
+                                       options.gate, nearest=None if nearest is None else nearest[1])
         stats.band_pixels = int((full_band > 0).sum())
         stats.gate_open = float(band.sum() / full_band.sum()) if full_band.sum() > 0 else 0.0
         ty, tx = need.shape
