@@ -290,19 +290,31 @@ def _vote(img, cur, sus, offs, space, snap, options, new, keep=None, one_sided=F
     trusted = ~sus if keep is None else ~(sus | keep)
     voters = sus if keep is None else sus & ~keep
     ys, xs = np.nonzero(voters if targets is None else voters & targets)
+    if ys.size == 0:
+        return
+    # flat gathers from arrays padded by the window's radius: the padding is never trusted (weight 0), so it
+    # counts for nothing, as the pixels outside the image did before
+    r = int(np.abs(offs).max()) if offs.size else 0
+    wp_ = w + 2 * r
+    img_f = np.pad(img, ((r, r), (r, r), (0, 0))).reshape(-1, 3)
+    cur_f = np.pad(cur, r).ravel()
+    tru_f = np.pad(trusted, r).ravel()
+    off_f = offs[:, 0] * wp_ + offs[:, 1]
+    space32 = space.astype(np.float32)
+    snap = np.float32(snap)
     for i in range(0, ys.size, 4096):  # chunks bound the memory: 4096 x len(offs) per array
         py, px = ys[i:i + 4096], xs[i:i + 4096]
-        qy, qx = py[:, None] + offs[None, :, 0], px[:, None] + offs[None, :, 1]
-        inside = (qy >= 0) & (qy < h) & (qx >= 0) & (qx < w)
-        qy, qx = np.clip(qy, 0, h - 1), np.clip(qx, 0, w - 1)
-        dc2 = ((img[qy, qx].astype(np.float64) - img[py, px][:, None, :]) ** 2).sum(-1)
-        sp = np.where(inside & trusted[qy, qx], space[None, :], 0.0)
-        wt = sp * np.exp(-dc2 / (2.0 * options.sigma_colour ** 2))
-        vals = cur[qy, qx]
-        rel = vals.astype(np.float64) - cur[py, px][:, None]
+        p_f = (py + r) * wp_ + (px + r)
+        q = p_f[:, None] + off_f[None, :]
+        diff = img_f[q] - img[py, px][:, None, :]  # float32 colour distances: the vote's weights need no more
+        dc2 = np.einsum("ijk,ijk->ij", diff, diff)
+        sp = np.where(tru_f[q], space32[None, :], np.float32(0.0))
+        wt = sp * np.exp(dc2 * np.float32(-1.0 / (2.0 * options.sigma_colour ** 2)))
+        vals = cur_f[q]
+        rel = vals - cur[py, px][:, None]
         cls = [rel < -snap, np.abs(rel) <= snap, rel > snap]  # the far side, the pixel's own layer, the near side
         seen = np.stack([(sp * c).sum(1) for c in cls], 1)  # how much of each class the window holds
-        aff = np.stack([(wt * c).sum(1) for c in cls], 1) / np.maximum(seen, 1e-300)  # its mean similarity
+        aff = np.stack([(wt * c).sum(1) for c in cls], 1) / np.maximum(seen, np.float32(1e-30))  # mean similarity
         known = seen >= options.min_class
         aff = np.where(known, aff, 0.0)
         best = np.where(aff[:, 0] >= aff[:, 2], 0, 2)
