@@ -24,6 +24,7 @@ import json
 import os
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
@@ -346,12 +347,19 @@ def refine(
     device = next(model.parameters()).device
     opts = PisaMaskOptions()
 
-    def run(sls: list) -> np.ndarray:
+    def masks(sls: list) -> PisaMaskProvider:
+        pisa = PisaMaskProvider(np.stack([d_pad[s] for s in sls]), blur.focus_disparity, blur.k_px, opts,
+                                torch_device=device)
+        hh, ww = d_pad[sls[0]].shape
+        f = model.size_multiple
+        pisa.at(-(-hh // f), -(-ww // f))  # the grid the model's PISA block asks for (cached; Warp, off the GIL)
+        return pisa
+
+    def run(sls: list, pisa: PisaMaskProvider | None = None) -> np.ndarray:
         stack = lambda a: torch.from_numpy(np.stack([a[s] for s in sls])).to(device)  # noqa: E731
         focus = stack(f_srgb).permute(0, 3, 1, 2)
         render = torch.from_numpy(np.stack([linear_to_srgb(base_pad[s]) for s in sls])).to(device).permute(0, 3, 1, 2)
-        pisa = PisaMaskProvider(np.stack([d_pad[s] for s in sls]), blur.focus_disparity, blur.k_px, opts,
-                                torch_device=device)
+        pisa = masks(sls) if pisa is None else pisa
         return (model(focus, render, stack(coc_pad), pisa) - render).permute(0, 2, 3, 1).cpu().numpy()
 
     boxes = refine_boxes(need, t, halo) if options.merge_tiles else [((int(y), int(y) + 1, int(x), int(x) + 1),
@@ -365,12 +373,19 @@ def refine(
         by_shape: dict[tuple[int, int], list] = {}
         for (ty0, ty1, tx0, tx1), members in boxes:  # boxes of one shape run in batches
             by_shape.setdefault((ty1 - ty0, tx1 - tx0), []).append(((ty0, ty1, tx0, tx1), members))
-        for group in by_shape.values():
-            for i in range(0, len(group), options.batch):
-                chunk = group[i:i + options.batch]
-                sls = [(slice(ty0 * t, ty1 * t + 2 * halo), slice(tx0 * t, tx1 * t + 2 * halo))
-                       for (ty0, ty1, tx0, tx1), _ in chunk]
-                for sl, ((ty0, _, tx0, _), members), dlt in zip(sls, chunk, run(sls)):
+        chunks = [group[i:i + options.batch] for group in by_shape.values()
+                  for i in range(0, len(group), options.batch)]
+        slices = [[(slice(ty0 * t, ty1 * t + 2 * halo), slice(tx0 * t, tx1 * t + 2 * halo))
+                   for (ty0, ty1, tx0, tx1), _ in chunk] for chunk in chunks]
+        # the next chunk's PISA masks (Warp kernels, which release the GIL) are computed on a second thread while
+        # the network runs on this one
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            nxt = pool.submit(masks, slices[0])
+            for k, (chunk, sls) in enumerate(zip(chunks, slices)):
+                pisa = nxt.result()
+                if k + 1 < len(chunks):
+                    nxt = pool.submit(masks, slices[k + 1])
+                for sl, ((ty0, _, tx0, _), members), dlt in zip(sls, chunk, run(sls, pisa)):
                     # the box's correction, weighted by the blend weights of the tiles it stands for
                     wbox = np.zeros(dlt.shape[:2] + (1,), np.float32)
                     for y, x in members:
