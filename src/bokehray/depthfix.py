@@ -36,8 +36,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["DepthFixOptions", "colour_edge_offsets", "correct_disparity", "depth_edges", "edge_pairs", "pass_reach",
-           "smeared", "untrusted", "weighted_median"]
+__all__ = ["DepthFixOptions", "colour_edge_offsets", "correct_disparity", "depth_edges", "edge_pairs", "global_shift",
+           "pass_reach", "shift_map", "smeared", "untrusted", "weighted_median"]
 
 
 @dataclass(frozen=True)
@@ -68,6 +68,13 @@ class DepthFixOptions:
             voters (a dilated thin structure, whose every pixel is suspect).
         incremental: passes after the first recompute only the neighbourhood (:func:`pass_reach`) of the pixels
             the pass before moved: the same result as a pass over the whole map (tested), at a fraction of its cost.
+        max_shift_px: a misregistered map (the whole map shifted against the photo, as a depth sensor or an
+            estimator's resampling can leave it) is searched for up to this many pixels per axis and shifted back
+            first (:func:`global_shift`; 0: off).
+        shift_gain: a shift along an axis is taken only where it makes the colour step across the depth edges at
+            least this much stronger on *both* sides of the objects (depth edges whose near side lies before and
+            after along that axis): an eroded or dilated map also gains on one side from a shift, never on both.
+        min_shift_pairs: each side needs at least this many depth-edge pairs along the axis.
         max_ratio: a colour edge counts as off the depth edge where (step on the edge) / (strongest step) is below.
         sigma_edge_px: smoothing along the edge of the ratio, the score and the offset.
     """
@@ -90,6 +97,9 @@ class DepthFixOptions:
     ramp_px: int = 3
     thin_dilated: bool = True
     incremental: bool = True
+    max_shift_px: int = 3
+    shift_gain: float = 1.25
+    min_shift_pairs: int = 64
     max_ratio: float = 0.5
     sigma_edge_px: float = 3.0
 
@@ -333,6 +343,75 @@ def _vote(img, cur, sus, offs, space, snap, options, new, keep=None, one_sided=F
         new[py[sel][fin], px[sel][fin]] = med[fin]
 
 
+def global_shift(focus_srgb: np.ndarray, disparity: np.ndarray, k_px: float,
+                 options: DepthFixOptions = DepthFixOptions()) -> tuple[int, int]:
+    """The integer shift ``(sy, sx)`` that moves the map's depth edges onto the photo's colour edges, or (0, 0).
+
+    Per axis, the depth-edge pairs across it (CoC jump > ``jump_px``; farther than ``max_shift_px`` from the
+    border) are split by the side their near pixel lies on (before / after along the axis: the two sides of an
+    object). For each shift ``s`` in ``[-max_shift_px, max_shift_px]`` the mean colour step (sRGB, Euclidean)
+    across the pair moved by ``s`` is measured on each side. The best shift is taken only where *both* sides'
+    steps gain at least ``shift_gain`` over no shift: a map misregistered by ``s`` has every edge ``s`` off, an
+    eroded or dilated one has its two sides off in opposite directions, so no single shift helps both.
+    Moving the map by ``(sy, sx)`` (``out[y, x] = d[y - sy, x - sx]``) puts the depth edges on the colour edges.
+    """
+    m = int(options.max_shift_px)
+    h, w = disparity.shape
+    if m <= 0 or h <= 2 * m + 1 or w <= 2 * m + 1:
+        return 0, 0
+    img = np.asarray(focus_srgb[..., :3], np.float32)
+    coc = np.float32(k_px) * np.asarray(disparity, np.float32)
+    groups = []  # per axis and side: the pairs' first pixels
+    for ax in (0, 1):
+        a = np.take(coc, range(coc.shape[ax] - 1), axis=ax)
+        b = np.take(coc, range(1, coc.shape[ax]), axis=ax)
+        ys, xs = np.nonzero(np.abs(a - b) > options.jump_px)
+        ok = (ys >= m) & (ys < h - 1 - m) & (xs >= m) & (xs < w - 1 - m)
+        ys, xs = ys[ok], xs[ok]
+        after = b[ys, xs] > a[ys, xs]  # the near pixel lies after the edge along the axis
+        for side in (after, ~after):
+            gy, gx = ys[side], xs[side]
+            if gy.size > 20000:  # a regular subsample bounds the cost on large frames
+                k = -(-gy.size // 20000)
+                gy, gx = gy[::k], gx[::k]
+            groups.append((gy, gx, ax))
+    if min(g[0].size for g in groups) < options.min_shift_pairs:
+        return 0, 0
+    n = 2 * m + 1
+    prof = np.zeros((4, n, n))  # per group, per shift (sy, sx): the mean colour step across the moved pairs
+    for gi, (gy, gx, ax) in enumerate(groups):
+        for iy in range(n):
+            for ix in range(n):
+                y0, x0 = gy + (iy - m), gx + (ix - m)
+                d = img[y0 + (ax == 0), x0 + (ax == 1)].astype(np.float64) - img[y0, x0]
+                prof[gi, iy, ix] = np.sqrt((d ** 2).sum(-1)).mean()
+    score = np.exp(np.log(np.maximum(prof, 1e-12)).mean(0))  # all four groups must gain: their geometric mean
+    by, bx = np.unravel_index(int(np.argmax(score)), score.shape)
+    if (by, bx) == (m, m):
+        return 0, 0
+    gain = prof[:, by, bx] / np.maximum(prof[:, m, m], 1e-12)
+    # the axes the shift moves along must gain on both sides of the objects; none may lose
+    need = [gi for gi, (_, _, ax) in enumerate(groups) if (by - m, bx - m)[ax] != 0]
+    if (gain[need] < options.shift_gain).any() or (gain < 1.0).any():
+        return 0, 0
+    for gi in need:  # and each side's own best shift along its axis must be this one (within a pixel): an eroded
+        ax = groups[gi][2]  # or dilated map's two sides peak at opposite shifts
+        peak = np.unravel_index(int(np.argmax(prof[gi])), (n, n))[ax]
+        if abs(int(peak) - int((by, bx)[ax])) > 1:
+            return 0, 0
+    return int(by - m), int(bx - m)
+
+
+
+def shift_map(disparity: np.ndarray, sy: int, sx: int) -> np.ndarray:
+    """``out[y, x] = d[y - sy, x - sx]``, the border continued (edge values)."""
+    if sy == 0 and sx == 0:
+        return np.asarray(disparity, np.float32).copy()
+    p = max(abs(sy), abs(sx))
+    h, w = disparity.shape
+    return np.pad(np.asarray(disparity, np.float32), p, mode="edge")[p - sy:p - sy + h, p - sx:p - sx + w].copy()
+
+
 def pass_reach(options: DepthFixOptions) -> int:
     """How far (Chebyshev px) one pass's result at a pixel depends on the map: the vote's window, the suspect
     stretch along an edge's normal, the smoothing along the edge (scipy truncates its Gaussian at 4 sigma), the
@@ -386,6 +465,9 @@ def correct_disparity(focus_srgb: np.ndarray, disparity: np.ndarray, k_px: float
     if depth_edges(d * np.float32(k_px), options.jump_px).mean() > options.max_edge_share:
         return out, changed
     snap = options.snap_px / float(k_px)
+    sy, sx = global_shift(img, d, k_px, options)
+    if sy or sx:  # a misregistered map: shifted back first, all of it (lights too: the whole map was off)
+        out = shift_map(d, sy, sx)
     everything = np.ones(d.shape, bool)
     todo = everything  # the first pass looks at the whole map, later ones only where the last one moved pixels
     reach = pass_reach(options)
@@ -414,5 +496,5 @@ def correct_disparity(focus_srgb: np.ndarray, disparity: np.ndarray, k_px: float
         out = new
         if options.incremental:
             todo = ndimage.maximum_filter(moved, size=2 * reach + 1, mode="constant")
-    changed &= out != d
+    changed = out != d  # moved by the passes or by the shift, and not back
     return out, changed

@@ -7,10 +7,10 @@ from hypothesis import strategies as st
 from scipy import ndimage
 
 from bokehray.datasets import perturb_disparity
-from bokehray.depthfix import (DepthFixOptions, colour_edge_offsets, correct_disparity, edge_pairs, smeared,
-                               untrusted, weighted_median)
+from bokehray.depthfix import (DepthFixOptions, colour_edge_offsets, correct_disparity, edge_pairs, global_shift,
+                               shift_map, smeared, untrusted, weighted_median)
 from reference.depthfix_ref import (colour_edge_offsets_ref, correct_disparity_ref, edge_pairs_ref,
-                                          smeared_ref, untrusted_ref, weighted_median_ref)
+                                          global_shift_ref, smeared_ref, untrusted_ref, weighted_median_ref)
 
 
 def _scene(seed=0, size=48, box=(12, 36, 10, 30), near_rgb=(0.8, 0.3, 0.2), far_rgb=(0.2, 0.5, 0.7)):
@@ -113,7 +113,7 @@ def test_never_invents_a_disparity_outside_the_local_range(seed, k, blocks, kind
     out, changed = correct_disparity(img, d, k, opts)
     assert out.dtype == np.float32 and np.isfinite(out).all()
     np.testing.assert_array_equal(out[~changed], d[~changed])  # what did not move keeps its bits
-    reach = int(np.floor(opts.radius_px)) * opts.iterations
+    reach = int(np.floor(opts.radius_px)) * opts.iterations + opts.max_shift_px  # a shift first, then the passes
     for y, x in zip(*np.nonzero(changed)):
         win = d[max(y - reach, 0):y + reach + 1, max(x - reach, 0):x + reach + 1]
         assert np.isin(out[y, x], win)  # a disparity the input holds nearby, never a new one
@@ -187,3 +187,59 @@ def test_later_passes_near_the_moved_pixels_only_give_the_whole_maps_result(kind
     assert ch_slow.any()
     np.testing.assert_array_equal(fast, slow)
     np.testing.assert_array_equal(ch_fast, ch_slow)
+
+
+def _blocks(seed, cells=3, cell=40):
+    """Textured near blocks (one per cell of a grid, random size, place, colour and depth) over a textured far
+    plane; depth edges on the colour edges."""
+    rng = np.random.default_rng(seed)
+    size = cells * cell + 8
+    tex = ndimage.gaussian_filter(rng.normal(0, 0.04, (size, size, 3)), (1.0, 1.0, 0))
+    back = rng.uniform(0.1, 0.9, 3)
+    img = np.full((size, size, 3), back) + tex
+    d = np.full((size, size), 0.15, np.float32)
+    for cy in range(cells):
+        for cx in range(cells):
+            hh, ww = rng.integers(18, 30, 2)
+            y0 = 4 + cy * cell + rng.integers(0, cell - hh + 1)
+            x0 = 4 + cx * cell + rng.integers(0, cell - ww + 1)
+            col = rng.uniform(0.1, 0.9, 3)
+            col = np.where(np.abs(col - back).max() < 0.3, 1.0 - back, col)  # a colour edge to find
+            img[y0:y0 + hh, x0:x0 + ww] = col + tex[y0:y0 + hh, x0:x0 + ww]
+            d[y0:y0 + hh, x0:x0 + ww] = rng.uniform(0.5, 0.95)
+    return np.clip(img, 0, 1).astype(np.float32), d
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**16), sy=st.integers(-3, 3), sx=st.integers(-3, 3), k=st.floats(8.0, 40.0))
+def test_a_misregistered_map_is_shifted_back(seed, sy, sx, k):
+    """The whole map moved against the photo by up to 3 px per axis is found and moved back (docs/refiner.md)."""
+    img, d = _blocks(seed)
+    moved = shift_map(d, -sy, -sx)  # the map's content moved by (-sy, -sx): (sy, sx) puts it back
+    assert global_shift(img, moved, k) == (sy, sx)
+    fixed, _ = correct_disparity(img, moved, k)
+    inner = (slice(4, -4), slice(4, -4))  # away from the border the shift continued, as if never misregistered
+    assert (fixed[inner] != correct_disparity(img, d, k)[0][inner]).mean() < 0.005
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**16), kind=st.sampled_from(["none", "erode", "dilate", "blur"]),
+       px=st.integers(1, 5), k=st.floats(8.0, 40.0))
+def test_eroded_dilated_or_exact_maps_are_not_shifted(seed, kind, px, k):
+    """Erosion and dilation put the two sides of an object off in opposite directions: no shift helps both."""
+    img, d = _blocks(seed)
+    if kind == "blur":
+        d = ndimage.gaussian_filter(d, px / 2).astype(np.float32)
+    elif kind != "none":
+        d = perturb_disparity(d, -px if kind == "erode" else px)
+    assert global_shift(img, d, k) == (0, 0)
+
+
+@pytest.mark.parametrize("case", ["shift", "erode", "none"])
+def test_the_shift_search_matches_the_reference(case):
+    img, d = _blocks(3, cells=2)
+    opts = DepthFixOptions(min_shift_pairs=16)
+    dc = {"shift": shift_map(d, 2, -1), "erode": perturb_disparity(d, -2), "none": d}[case]
+    assert global_shift(img, dc, 16.0, opts) == global_shift_ref(img, dc, 16.0, opts)
+    if case == "shift":
+        assert global_shift(img, dc, 16.0, opts) == (-2, 1)
