@@ -288,7 +288,9 @@ def refine(
 
         t1 = time.perf_counter()
         focus_srgb = linear_to_srgb(np.clip(image[..., :3], 0.0, 1.0))
-        lights = ndimage.binary_dilation(image[..., :3].max(-1) >= 1.0, iterations=2)  # never moved, never votes
+        lights = image[..., :3].max(-1) >= 1.0  # clipped lights (dilated by 2 px) never move and never vote
+        if lights.any():
+            lights = ndimage.binary_dilation(lights, iterations=2)
         d_new, changed = correct_disparity(focus_srgb, disparity, blur.k_px, options.depthfix, keep=lights)
         t_fix = time.perf_counter() - t1
         if changed.any():
