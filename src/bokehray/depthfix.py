@@ -444,7 +444,7 @@ def correct_disparity(focus_srgb: np.ndarray, disparity: np.ndarray, k_px: float
         focus_srgb: ``H x W x 3`` all-in-focus image, sRGB in [0, 1].
         disparity: ``H x W`` in [0, 1].
         k_px: the blur's ``K`` (CoC radius per unit disparity): edges and thresholds are in CoC pixels.
-        active: optional ``H x W`` bool, where corrections are allowed.
+        active: optional ``H x W`` bool, where corrections are allowed (with it, no global shift is searched).
         keep: optional ``H x W`` bool, pixels that neither change nor vote (clipped lights: their sRGB colour
             says nothing about them, and a light moved to another depth moves its whole bokeh ball).
 
@@ -465,7 +465,7 @@ def correct_disparity(focus_srgb: np.ndarray, disparity: np.ndarray, k_px: float
     if depth_edges(d * np.float32(k_px), options.jump_px).mean() > options.max_edge_share:
         return out, changed
     snap = options.snap_px / float(k_px)
-    sy, sx = global_shift(img, d, k_px, options)
+    sy, sx = global_shift(img, d, k_px, options) if active is None else (0, 0)  # a shift moves every pixel
     if sy or sx:  # a misregistered map: shifted back first, all of it (lights too: the whole map was off)
         out = shift_map(d, sy, sx)
     everything = np.ones(d.shape, bool)

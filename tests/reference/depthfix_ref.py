@@ -249,7 +249,7 @@ def correct_disparity_ref(focus, disparity, k_px, options=DEFAULT, active=None, 
         return out
     img = np.asarray(focus[..., :3], np.float32)
     snap = options.snap_px / float(k_px)
-    sy, sx = global_shift_ref(img, d, k_px, options)
+    sy, sx = global_shift_ref(img, d, k_px, options) if active is None else (0, 0)
     if sy or sx:  # the map moved by (sy, sx), its border continued
         out = np.array([[d[min(max(y - sy, 0), d.shape[0] - 1), min(max(x - sx, 0), d.shape[1] - 1)]
                          for x in range(d.shape[1])] for y in range(d.shape[0])], np.float32)
