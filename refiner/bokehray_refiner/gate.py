@@ -153,11 +153,13 @@ def highlight_guard(image: np.ndarray, classical: np.ndarray, coc: np.ndarray, m
 
 
 def refine_gate(image: np.ndarray, focus_srgb: np.ndarray, disparity: np.ndarray, classical: np.ndarray,
-                coc: np.ndarray, min_jump_px: float, options: GateOptions = GateOptions()) -> np.ndarray:
+                coc: np.ndarray, min_jump_px: float, options: GateOptions = GateOptions(),
+                nearest: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """The gate in [0, 1] per pixel: how much of the refiner's correction is let through.
 
     Each pixel takes the gate of its nearest depth-edge pixel (edges where the CoC jumps by more than
-    ``min_jump_px``), times the highlight guard. Without depth edges the gate is 0 everywhere.
+    ``min_jump_px``), times the highlight guard. Without depth edges the gate is 0 everywhere. ``nearest``: the
+    indices ``(iy, ix)`` of every pixel's nearest edge pixel when the caller has them (the refiner's edge band).
     """
     from scipy import ndimage
 
@@ -177,7 +179,10 @@ def refine_gate(image: np.ndarray, focus_srgb: np.ndarray, disparity: np.ndarray
     mark = np.zeros((h, w), bool)
     np.maximum.at(open_, (ys, xs), 1.0 - _smoothstep(options.lo, options.hi, ratio))
     mark[ys, xs] = True
-    _, (iy, ix) = ndimage.distance_transform_edt(~mark, return_indices=True)
+    if nearest is None:
+        _, (iy, ix) = ndimage.distance_transform_edt(~mark, return_indices=True)
+    else:
+        iy, ix = nearest
     gate = open_[iy, ix]
     if options.highlight:
         gate *= highlight_guard(image, classical, coc, options.highlight_margin_px)

@@ -24,6 +24,7 @@ import json
 import os
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
@@ -44,7 +45,8 @@ from .masks import PisaMaskProvider
 from .model import BokehRefiner, RefinerConfig
 from .tiles import raised_cosine_ramp
 
-__all__ = ["DEFAULT_WEIGHTS", "RefineOptions", "RefineStats", "load_refiner", "refine", "tiles_to_refine"]
+__all__ = ["DEFAULT_WEIGHTS", "RefineOptions", "RefineStats", "load_refiner", "refine", "refine_boxes",
+           "tiles_to_refine"]
 
 DEFAULT_WEIGHTS = Path(__file__).parent / "weights" / "refiner.safetensors"
 
@@ -66,6 +68,8 @@ class RefineOptions:
         depthfix: the colour-guided depth correction run first (``bokehray.depthfix``); it needs a ``rerender``
             callback in :func:`refine` (the classical level again, on the corrected disparity).
         neural: False stops after the depth correction (the neural residual is not run).
+        merge_tiles: neighbouring tiles to refine run as one box with one halo (:func:`refine_boxes`), blended
+            with the same per-tile weights, instead of one pass per tile, each with its own halo.
     """
 
     tile: int = 64
@@ -78,6 +82,7 @@ class RefineOptions:
     gate: GateOptions = GateOptions()
     depthfix: DepthFixOptions = DepthFixOptions()
     neural: bool = True
+    merge_tiles: bool = True
 
     def __post_init__(self) -> None:
         if self.tile < 8 or self.tile % 8 or self.halo < 0 or self.halo % 8:
@@ -99,7 +104,10 @@ class RefineStats:
     gate_open: float = 0.0  #: mean gate over the band: the share of the correction let through
     depth_fixed_px: int = 0  #: pixels whose disparity the depth correction changed (then the level ran again)
     depthfix_seconds: float = 0.0  #: the correction itself
-    rerender_seconds: float = 0.0  #: the classical level again, on the corrected disparity
+    rerender_seconds: float = 0.0  #: the classical level again, on the corrected disparity (its only render, when
+    #: refine() was given no classical render: then not part of ``seconds``)
+    gate_seconds: float = 0.0  #: the edge band and the confidence gate
+    neural_seconds: float = 0.0  #: the network on the refined tiles and the blend
     disparity: np.ndarray | None = field(default=None, repr=False)  #: the corrected disparity (None: unchanged)
 
     @property
@@ -111,7 +119,8 @@ class RefineStats:
                 "share_refined": self.share_refined, "seconds": self.seconds,
                 "tiles_near_edges": self.tiles_near_edges, "band_pixels": self.band_pixels,
                 "gate_open": self.gate_open, "depth_fixed_px": self.depth_fixed_px,
-                "depthfix_seconds": self.depthfix_seconds, "rerender_seconds": self.rerender_seconds}
+                "depthfix_seconds": self.depthfix_seconds, "rerender_seconds": self.rerender_seconds,
+                "gate_seconds": self.gate_seconds, "neural_seconds": self.neural_seconds}
 
 
 def load_refiner(path: str | os.PathLike | None = None, device: str = "cpu") -> BokehRefiner:
@@ -153,15 +162,25 @@ def edge_reach(coc: np.ndarray, min_jump_px: float) -> np.ndarray:
     return reach
 
 
-def edge_band(reach: np.ndarray, margin_px: float, feather_px: float) -> np.ndarray:
-    """Weight in [0, 1]: 1 within (its nearest edge's reach + ``margin_px``) of a depth edge, a linear
-    fall-off over ``feather_px`` beyond. A depth error at an edge changes the image only that far."""
+def nearest_edge(reach: np.ndarray):
+    """Distance to the nearest depth-edge pixel (``reach > 0``) and its indices (``scipy``'s exact EDT), or None
+    without edges. Shared by the edge band and the gate, whose edge pixels are the same."""
     from scipy import ndimage
 
     edge = reach > 0
     if not edge.any():
+        return None
+    return ndimage.distance_transform_edt(~edge, return_indices=True)
+
+
+def edge_band(reach: np.ndarray, margin_px: float, feather_px: float, nearest=None) -> np.ndarray:
+    """Weight in [0, 1]: 1 within (its nearest edge's reach + ``margin_px``) of a depth edge, a linear
+    fall-off over ``feather_px`` beyond. A depth error at an edge changes the image only that far.
+    ``nearest``: :func:`nearest_edge` of ``reach`` when already computed."""
+    nearest = nearest_edge(reach) if nearest is None else nearest
+    if nearest is None:
         return np.zeros(reach.shape, np.float32)
-    dist, (iy, ix) = ndimage.distance_transform_edt(~edge, return_indices=True)
+    dist, (iy, ix) = nearest
     limit = reach[iy, ix] + margin_px
     return np.clip((limit + feather_px - dist) / feather_px, 0.0, 1.0).astype(np.float32)
 
@@ -193,12 +212,45 @@ def _tiles_near(reach: np.ndarray, tile: int) -> np.ndarray:
     return need
 
 
+def refine_boxes(need: np.ndarray, tile: int, halo: int) -> list[tuple[tuple[int, int, int, int], list]]:
+    """Boxes of tiles (``(ty0, ty1, tx0, tx1)`` on the tile grid, each with the tiles it stands for) that cover
+    every tile of ``need`` once, each run with one halo around it.
+
+    Greedy: every tile starts as its own box; the two boxes whose bounding box (with its halo) has the most less
+    area than the two apart merge, until no merge saves area. The network's cost grows with the area it runs on,
+    and one halo around neighbouring tiles costs less than one around each.
+    """
+    ys, xs = np.nonzero(need)
+    boxes = np.stack([ys, ys + 1, xs, xs + 1], 1).astype(np.int64)
+    members = [[(int(y), int(x))] for y, x in zip(ys, xs)]
+
+    def area(b):
+        return ((b[..., 1] - b[..., 0]) * tile + 2 * halo) * ((b[..., 3] - b[..., 2]) * tile + 2 * halo)
+
+    while len(boxes) > 1:
+        a = area(boxes)
+        union = np.stack([np.minimum(boxes[:, None, 0], boxes[None, :, 0]), np.maximum(boxes[:, None, 1], boxes[None, :, 1]),
+                          np.minimum(boxes[:, None, 2], boxes[None, :, 2]), np.maximum(boxes[:, None, 3], boxes[None, :, 3])],
+                         -1)
+        saving = a[:, None] + a[None, :] - area(union)
+        np.fill_diagonal(saving, -1)
+        k = int(np.argmax(saving))
+        i, j = divmod(k, len(boxes))
+        if saving[i, j] <= 0:
+            break
+        boxes[i] = union[i, j]
+        members[i] += members[j]
+        boxes = np.delete(boxes, j, 0)
+        del members[j]
+    return [(tuple(int(v) for v in b), sorted(m)) for b, m in zip(boxes, members)]
+
+
 @torch.no_grad()
 def refine(
     image: np.ndarray,
     disparity: np.ndarray,
     blur: BlurParams,
-    classical: np.ndarray,
+    classical: np.ndarray | None,
     model: BokehRefiner | None = None,
     options: RefineOptions = RefineOptions(),
     rerender: Callable[[np.ndarray], np.ndarray] | None = None,
@@ -209,12 +261,15 @@ def refine(
     sits off the photo's colour edge, the disparity there is corrected and ``rerender(corrected)`` renders
     the classical level again; the neural residual (behind its gate) then corrects that render, seeing the
     corrected disparity. Without ``rerender``, or where nothing is corrected, the render is the given one.
+    With ``classical=None`` the level has not rendered yet: the correction runs first and ``rerender`` renders
+    the level once, on the corrected map (or the given one where nothing moved), which is what ``render --refine``
+    does: the level renders once, not twice. That render is then not counted in ``stats.seconds``.
 
     Args:
         image: the all-in-focus ``H x W x 3`` scene-linear image.
         disparity: ``H x W`` in [0, 1], the map the classical render used.
         blur: its ``K`` and ``d_f``.
-        classical: the classical render (``H x W x 3``, scene-linear).
+        classical: the classical render (``H x W x 3``, scene-linear), or None (rendered here by ``rerender``).
         model: a loaded refiner (default: the shipped weights).
         rerender: ``disparity -> H x W x 3`` render of the same classical level (the pipeline passes its own).
 
@@ -224,12 +279,18 @@ def refine(
     t0 = time.perf_counter()
     h, w = disparity.shape
     fixed_px, t_fix, t_re, d_fixed = 0, 0.0, 0.0, None
+    focus_srgb = None
+    first = classical is None  # the level's only render happens here: it is not part of the refine pass's time
+    if first and rerender is None:
+        raise InputError("refine: without a classical render it needs the rerender callback that renders the level")
     if rerender is not None and options.depthfix.enabled:
         from scipy import ndimage
 
         t1 = time.perf_counter()
         focus_srgb = linear_to_srgb(np.clip(image[..., :3], 0.0, 1.0))
-        lights = ndimage.binary_dilation(image[..., :3].max(-1) >= 1.0, iterations=2)  # never moved, never votes
+        lights = image[..., :3].max(-1) >= 1.0  # clipped lights (dilated by 2 px) never move and never vote
+        if lights.any():
+            lights = ndimage.binary_dilation(lights, iterations=2)
         d_new, changed = correct_disparity(focus_srgb, disparity, blur.k_px, options.depthfix, keep=lights)
         t_fix = time.perf_counter() - t1
         if changed.any():
@@ -237,6 +298,10 @@ def refine(
             classical = np.asarray(rerender(d_new), np.float32)
             t_re = time.perf_counter() - t1
             disparity, d_fixed, fixed_px = d_new, d_new, int(changed.sum())
+    if classical is None:  # nothing moved (or the fix is off): the level on the given map
+        t1 = time.perf_counter()
+        classical = np.asarray(rerender(disparity), np.float32)
+        t_re = time.perf_counter() - t1
     coc = blur.signed_coc(disparity).astype(np.float32)
     reach = edge_reach(coc, options.min_jump_px)
     need = _tiles_near(reach, options.tile)
@@ -247,11 +312,14 @@ def refine(
     stats = RefineStats(tiles_total=int(need.size), tiles_near_edges=int(need.sum()), depth_fixed_px=fixed_px,
                         depthfix_seconds=t_fix, rerender_seconds=t_re, disparity=d_fixed)
     t, halo = options.tile, options.halo
+    t1 = time.perf_counter()
     if need.any():
-        full_band = edge_band(reach, options.band_margin_px, options.band_feather_px)
-        focus_srgb = linear_to_srgb(np.clip(image[..., :3], 0.0, 1.0))
+        nearest = nearest_edge(reach)  # the gate's edge pixels are the band's: one distance transform for both
+        full_band = edge_band(reach, options.band_margin_px, options.band_feather_px, nearest)
+        if focus_srgb is None:
+            focus_srgb = linear_to_srgb(np.clip(image[..., :3], 0.0, 1.0))
         band = full_band * refine_gate(image, focus_srgb, disparity, classical, coc, options.min_jump_px,
-                                       options.gate)
+                                       options.gate, nearest=None if nearest is None else nearest[1])
         stats.band_pixels = int((full_band > 0).sum())
         stats.gate_open = float(band.sum() / full_band.sum()) if full_band.sum() > 0 else 0.0
         ty, tx = need.shape
@@ -259,47 +327,78 @@ def refine(
         padded[:h, :w] = band
         need &= padded.reshape(ty, t, tx, t).max(axis=(1, 3)) > 0  # a tile the gate closes is not run
     stats.tiles_refined = int(need.sum())
+    stats.gate_seconds = time.perf_counter() - t1
     if not need.any():
-        stats.seconds = time.perf_counter() - t0
+        stats.seconds = time.perf_counter() - t0 - (t_re if first else 0.0)
         return classical.astype(np.float32, copy=True), stats
+    t1 = time.perf_counter()
     size = t + 2 * halo
     ph, pw = need.shape[0] * t - h + halo, need.shape[1] * t - w + halo  # pad to whole tiles plus the halo
     pad3 = ((halo, ph), (halo, pw), (0, 0))
     base = np.clip(classical[..., :3], 0.0, 1.0)
     f_srgb = np.pad(focus_srgb, pad3, mode="reflect")
-    r_srgb = np.pad(linear_to_srgb(base), pad3, mode="reflect")
+    base_pad = np.pad(base, pad3, mode="reflect")  # encoded to sRGB only where the model reads it
     d_pad = np.pad(disparity.astype(np.float32), pad3[:2], mode="reflect")
     coc_pad = np.pad(coc, pad3[:2], mode="reflect")
     feather = raised_cosine_ramp(size, halo)
     wt = (feather[:, None] * feather[None, :])[..., None].astype(np.float32)
-    boxes = [(slice(int(y) * t, int(y) * t + size), slice(int(x) * t, int(x) * t + size)) for y, x in zip(*np.nonzero(need))]
-    wsum = np.zeros(r_srgb.shape[:2] + (1,), np.float32)
-    for sl in boxes:
-        wsum[sl] += wt
+    tiles = list(zip(*np.nonzero(need)))
+    wsum = np.zeros(base_pad.shape[:2] + (1,), np.float32)
+    for y, x in tiles:
+        wsum[int(y) * t:int(y) * t + size, int(x) * t:int(x) * t + size] += wt
     device = next(model.parameters()).device
     opts = PisaMaskOptions()
 
-    def run(sls: list) -> np.ndarray:
-        stack = lambda a: torch.from_numpy(np.stack([a[s] for s in sls])).to(device)  # noqa: E731
-        focus, render = stack(f_srgb).permute(0, 3, 1, 2), stack(r_srgb).permute(0, 3, 1, 2)
+    def masks(sls: list) -> PisaMaskProvider:
         pisa = PisaMaskProvider(np.stack([d_pad[s] for s in sls]), blur.focus_disparity, blur.k_px, opts,
                                 torch_device=device)
+        hh, ww = d_pad[sls[0]].shape
+        f = model.size_multiple
+        pisa.at(-(-hh // f), -(-ww // f))  # the grid the model's PISA block asks for (cached; Warp, off the GIL)
+        return pisa
+
+    def run(sls: list, pisa: PisaMaskProvider | None = None) -> np.ndarray:
+        stack = lambda a: torch.from_numpy(np.stack([a[s] for s in sls])).to(device)  # noqa: E731
+        focus = stack(f_srgb).permute(0, 3, 1, 2)
+        render = torch.from_numpy(np.stack([linear_to_srgb(base_pad[s]) for s in sls])).to(device).permute(0, 3, 1, 2)
+        pisa = masks(sls) if pisa is None else pisa
         return (model(focus, render, stack(coc_pad), pisa) - render).permute(0, 2, 3, 1).cpu().numpy()
 
+    boxes = refine_boxes(need, t, halo) if options.merge_tiles else [((int(y), int(y) + 1, int(x), int(x) + 1),
+                                                                      [(int(y), int(x))]) for y, x in tiles]
     full = d_pad.size
-    if len(boxes) * size * size >= full and full <= options.full_frame_px:
-        acc = run([(slice(None), slice(None))])[0] * wsum  # one pass over the frame costs less than the tiles
+    area = sum(((b[1] - b[0]) * t + 2 * halo) * ((b[3] - b[2]) * t + 2 * halo) for b, _ in boxes)
+    if area >= full and full <= options.full_frame_px:
+        acc = run([(slice(None), slice(None))])[0] * wsum  # one pass over the frame costs less than the boxes
     else:
-        acc = np.zeros(r_srgb.shape, np.float32)
-        for i in range(0, len(boxes), options.batch):
-            chunk = boxes[i:i + options.batch]
-            for sl, dlt in zip(chunk, run(chunk)):
-                acc[sl] += dlt * wt
+        acc = np.zeros(base_pad.shape, np.float32)
+        by_shape: dict[tuple[int, int], list] = {}
+        for (ty0, ty1, tx0, tx1), members in boxes:  # boxes of one shape run in batches
+            by_shape.setdefault((ty1 - ty0, tx1 - tx0), []).append(((ty0, ty1, tx0, tx1), members))
+        chunks = [group[i:i + options.batch] for group in by_shape.values()
+                  for i in range(0, len(group), options.batch)]
+        slices = [[(slice(ty0 * t, ty1 * t + 2 * halo), slice(tx0 * t, tx1 * t + 2 * halo))
+                   for (ty0, ty1, tx0, tx1), _ in chunk] for chunk in chunks]
+        # the next chunk's PISA masks (Warp kernels, which release the GIL) are computed on a second thread while
+        # the network runs on this one
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            nxt = pool.submit(masks, slices[0])
+            for k, (chunk, sls) in enumerate(zip(chunks, slices)):
+                pisa = nxt.result()
+                if k + 1 < len(chunks):
+                    nxt = pool.submit(masks, slices[k + 1])
+                for sl, ((ty0, _, tx0, _), members), dlt in zip(sls, chunk, run(sls, pisa)):
+                    # the box's correction, weighted by the blend weights of the tiles it stands for
+                    wbox = np.zeros(dlt.shape[:2] + (1,), np.float32)
+                    for y, x in members:
+                        wbox[(y - ty0) * t:(y - ty0) * t + size, (x - tx0) * t:(x - tx0) * t + size] += wt
+                    acc[sl] += dlt * wbox
     delta = (acc / np.maximum(wsum, 1.0))[halo:halo + h, halo:halo + w]
-    delta *= band[..., None]
-    fixed = srgb_to_linear(np.clip(r_srgb[halo:halo + h, halo:halo + w] + delta, 0.0, 1.0))
     out = classical.astype(np.float32, copy=True)
     touched = (wsum[halo:halo + h, halo:halo + w, 0] > 0) & (band > 0)  # elsewhere: the classical bits
-    out[..., :3][touched] = (classical[..., :3] + (fixed - base))[touched]
-    stats.seconds = time.perf_counter() - t0
+    b_t = base[touched]
+    fixed = srgb_to_linear(np.clip(linear_to_srgb(b_t) + delta[touched] * band[touched][:, None], 0.0, 1.0))
+    out[..., :3][touched] = classical[..., :3][touched] + (fixed - b_t)
+    stats.neural_seconds = time.perf_counter() - t1
+    stats.seconds = time.perf_counter() - t0 - (t_re if first else 0.0)
     return np.maximum(out, 0.0) if classical.min() >= 0 else out, stats

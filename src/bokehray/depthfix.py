@@ -36,8 +36,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["DepthFixOptions", "colour_edge_offsets", "correct_disparity", "depth_edges", "edge_pairs", "smeared",
-           "untrusted", "weighted_median"]
+__all__ = ["DepthFixOptions", "colour_edge_offsets", "correct_disparity", "depth_edges", "edge_pairs", "global_shift",
+           "pass_reach", "shift_map", "smeared", "step_flips", "untrusted", "weighted_median"]
 
 
 @dataclass(frozen=True)
@@ -59,13 +59,24 @@ class DepthFixOptions:
         iterations: passes (each recomputes the edges from the corrected map).
         min_step: colour steps (sRGB, Euclidean) below this are no colour edge.
         min_score: how much more (colour distance) the stretch must look like the other side than like beyond.
-        max_edge_share: a map with depth edges at more than this share of its pixels is left alone: that is
-            noise in the disparity (an edge on nearly every pixel; the dev set has at most 17 %, a dense wire
-            mesh), not edges a few pixels off their colour edge, and the vote would cost 10-40x the preview
-            for nothing (it moved no pixel on such maps; found by an adversarial test).
+        max_edge_share: a map with depth edges at more than this share of its pixels whose consecutive steps flip
+            sign (:func:`step_flips` > 1/2) is left alone: that is noise in the disparity (an edge on nearly every
+            pixel), not edges a few pixels off their colour edge, and the vote would cost 10-40x the preview for
+            nothing (it moved no pixel on such maps; found by an adversarial test). A blurred or estimated map can
+            have steps on more than this share too (the dev set's wire mesh at K = 32: 42-47 %), but its steps
+            agree along each ramp (flips <= 4 %; noise 72-89 %), and it is corrected.
         ramp_px: half-width of the window of the smeared-edge hypothesis (0: off).
         thin_dilated: under the dilation hypothesis a pixel may move without its own layer among the
             voters (a dilated thin structure, whose every pixel is suspect).
+        incremental: passes after the first recompute only the neighbourhood (:func:`pass_reach`) of the pixels
+            the pass before moved: the same result as a pass over the whole map (tested), at a fraction of its cost.
+        max_shift_px: a misregistered map (the whole map shifted against the photo, as a depth sensor or an
+            estimator's resampling can leave it) is searched for up to this many pixels per axis and shifted back
+            first (:func:`global_shift`; 0: off).
+        shift_gain: a shift along an axis is taken only where it makes the colour step across the depth edges at
+            least this much stronger on *both* sides of the objects (depth edges whose near side lies before and
+            after along that axis): an eroded or dilated map also gains on one side from a shift, never on both.
+        min_shift_pairs: each side needs at least this many depth-edge pairs along the axis.
         max_ratio: a colour edge counts as off the depth edge where (step on the edge) / (strongest step) is below.
         sigma_edge_px: smoothing along the edge of the ratio, the score and the offset.
     """
@@ -87,6 +98,10 @@ class DepthFixOptions:
     max_edge_share: float = 0.4
     ramp_px: int = 3
     thin_dilated: bool = True
+    incremental: bool = True
+    max_shift_px: int = 3
+    shift_gain: float = 1.25
+    min_shift_pairs: int = 64
     max_ratio: float = 0.5
     sigma_edge_px: float = 3.0
 
@@ -226,21 +241,31 @@ def untrusted(focus_srgb: np.ndarray, disparity: np.ndarray, k_px: float,
         return masks
     iy = np.clip(np.floor(my).astype(np.int64), 0, h - 1)
     ix = np.clip(np.floor(mx).astype(np.int64), 0, w - 1)
+    flat = iy * w + ix
+    # the Gaussian is computed on the pairs' bounding box plus its truncation radius: outside it every input is 0,
+    # so the values read at the pairs are the whole frame's bit for bit (only their box costs)
+    r = int(4.0 * float(options.sigma_edge_px) + 0.5)  # scipy's truncate = 4
+    y0, y1 = max(0, int(iy.min()) - r), min(h, int(iy.max()) + r + 1)
+    x0, x1 = max(0, int(ix.min()) - r), min(w, int(ix.max()) + r + 1)
 
-    def smooth(v, wt):  # normalised convolution over the edge pairs
-        num, den = np.zeros((h, w), np.float64), np.zeros((h, w), np.float64)
-        np.add.at(num, (iy, ix), v * wt)
-        np.add.at(den, (iy, ix), wt)
-        num = ndimage.gaussian_filter(num, options.sigma_edge_px)
-        den = ndimage.gaussian_filter(den, options.sigma_edge_px)
-        return num[iy, ix] / np.maximum(den[iy, ix], 1e-12)
+    def blurred(v):  # the splatted values, smoothed, read back at the pairs
+        grid = np.bincount(flat, weights=v, minlength=h * w).reshape(h, w)  # adds in order, like np.add.at
+        return ndimage.gaussian_filter(grid[y0:y1, x0:x1], options.sigma_edge_px)[iy - y0, ix - x0]
+
+    ones = np.ones(my.size)
+    den1 = np.maximum(blurred(ones), 1e-12)  # the weights of an unweighted smoothing: shared
+
+    def smooth(v, wt=None):  # normalised convolution over the edge pairs
+        if wt is None:
+            return blurred(v * ones) / den1
+        return blurred(v * wt) / np.maximum(blurred(wt), 1e-12)
 
     ss = np.arange(0.5, options.band_px + 1.0, 0.5)
-    scores = (sides[3].astype(np.float64), sides[7].astype(np.float64))
+    scores = [smooth(sides[3].astype(np.float64)), smooth(sides[7].astype(np.float64))]
     for k, (mask, (t, ratio, strength, _)) in enumerate(zip(masks, (sides[0:4], sides[4:8]))):
         strong = strength >= options.min_step
-        r_s = smooth(np.where(strong, ratio, 1.0).astype(np.float64), np.ones(my.size))
-        mine, other = smooth(scores[k], np.ones(my.size)), smooth(scores[1 - k], np.ones(my.size))
+        r_s = smooth(np.where(strong, ratio, 1.0).astype(np.float64))
+        mine, other = scores[k], scores[1 - k]
         act = strong & (r_s < options.max_ratio) & (mine > options.min_score) & (mine > other)
         if not act.any():
             continue
@@ -270,25 +295,38 @@ def smeared(disparity: np.ndarray, k_px: float, options: DepthFixOptions = Depth
     return (hi - d > snap) & (d - lo > snap)
 
 
-def _vote(img, cur, sus, offs, space, snap, options, new, keep=None, one_sided=False):
+def _vote(img, cur, sus, offs, space, snap, options, new, keep=None, one_sided=False, targets=None):
     """Colour-weighted vote of the trusted pixels (not ``sus``, not ``keep``) for every pixel of ``sus``
-    (not ``keep``); writes ``new``."""
+    (not ``keep``; only those of ``targets`` when given); writes ``new``."""
     h, w = cur.shape
     trusted = ~sus if keep is None else ~(sus | keep)
-    ys, xs = np.nonzero(sus if keep is None else sus & ~keep)
+    voters = sus if keep is None else sus & ~keep
+    ys, xs = np.nonzero(voters if targets is None else voters & targets)
+    if ys.size == 0:
+        return
+    # flat gathers from arrays padded by the window's radius: the padding is never trusted (weight 0), so it
+    # counts for nothing, as the pixels outside the image did before
+    r = int(np.abs(offs).max()) if offs.size else 0
+    wp_ = w + 2 * r
+    img_f = np.pad(img, ((r, r), (r, r), (0, 0))).reshape(-1, 3)
+    cur_f = np.pad(cur, r).ravel()
+    tru_f = np.pad(trusted, r).ravel()
+    off_f = offs[:, 0] * wp_ + offs[:, 1]
+    space32 = space.astype(np.float32)
+    snap = np.float32(snap)
     for i in range(0, ys.size, 4096):  # chunks bound the memory: 4096 x len(offs) per array
         py, px = ys[i:i + 4096], xs[i:i + 4096]
-        qy, qx = py[:, None] + offs[None, :, 0], px[:, None] + offs[None, :, 1]
-        inside = (qy >= 0) & (qy < h) & (qx >= 0) & (qx < w)
-        qy, qx = np.clip(qy, 0, h - 1), np.clip(qx, 0, w - 1)
-        dc2 = ((img[qy, qx].astype(np.float64) - img[py, px][:, None, :]) ** 2).sum(-1)
-        sp = np.where(inside & trusted[qy, qx], space[None, :], 0.0)
-        wt = sp * np.exp(-dc2 / (2.0 * options.sigma_colour ** 2))
-        vals = cur[qy, qx]
-        rel = vals.astype(np.float64) - cur[py, px][:, None]
+        p_f = (py + r) * wp_ + (px + r)
+        q = p_f[:, None] + off_f[None, :]
+        diff = img_f[q] - img[py, px][:, None, :]  # float32 colour distances: the vote's weights need no more
+        dc2 = np.einsum("ijk,ijk->ij", diff, diff)
+        sp = np.where(tru_f[q], space32[None, :], np.float32(0.0))
+        wt = sp * np.exp(dc2 * np.float32(-1.0 / (2.0 * options.sigma_colour ** 2)))
+        vals = cur_f[q]
+        rel = vals - cur[py, px][:, None]
         cls = [rel < -snap, np.abs(rel) <= snap, rel > snap]  # the far side, the pixel's own layer, the near side
         seen = np.stack([(sp * c).sum(1) for c in cls], 1)  # how much of each class the window holds
-        aff = np.stack([(wt * c).sum(1) for c in cls], 1) / np.maximum(seen, 1e-300)  # its mean similarity
+        aff = np.stack([(wt * c).sum(1) for c in cls], 1) / np.maximum(seen, np.float32(1e-30))  # mean similarity
         known = seen >= options.min_class
         aff = np.where(known, aff, 0.0)
         best = np.where(aff[:, 0] >= aff[:, 2], 0, 2)
@@ -307,6 +345,112 @@ def _vote(img, cur, sus, offs, space, snap, options, new, keep=None, one_sided=F
         new[py[sel][fin], px[sel][fin]] = med[fin]
 
 
+def step_flips(coc: np.ndarray, jump_px: float) -> float:
+    """Of the pairs of consecutive CoC steps (along either axis) that both exceed ``jump_px``, the share whose signs
+    differ. Noise flips (two consecutive differences of independent noise have opposite signs two times in three),
+    a smooth ramp does not (a blurred or estimated map's steps agree along the ramp): 0 without such pairs."""
+    num = den = 0
+    for ax in (0, 1):
+        dd = np.diff(coc, axis=ax)
+        a = np.take(dd, range(dd.shape[ax] - 1), axis=ax)
+        b = np.take(dd, range(1, dd.shape[ax]), axis=ax)
+        both = (np.abs(a) > jump_px) & (np.abs(b) > jump_px)
+        num += int((both & (np.sign(a) != np.sign(b))).sum())
+        den += int(both.sum())
+    return num / den if den else 0.0
+
+
+def global_shift(focus_srgb: np.ndarray, disparity: np.ndarray, k_px: float,
+                 options: DepthFixOptions = DepthFixOptions()) -> tuple[int, int]:
+    """The integer shift ``(sy, sx)`` that moves the map's depth edges onto the photo's colour edges, or (0, 0).
+
+    Per axis, the depth-edge pairs across it (CoC jump > ``jump_px``; farther than ``max_shift_px`` from the
+    border) are split by the side their near pixel lies on (before / after along the axis: the two sides of an
+    object). For each shift ``s`` in ``[-max_shift_px, max_shift_px]`` the mean colour step (sRGB, Euclidean)
+    across the pair moved by ``s`` is measured on each side. The best shift is taken only where *both* sides'
+    steps gain at least ``shift_gain`` over no shift: a map misregistered by ``s`` has every edge ``s`` off, an
+    eroded or dilated one has its two sides off in opposite directions, so no single shift helps both.
+    Moving the map by ``(sy, sx)`` (``out[y, x] = d[y - sy, x - sx]``) puts the depth edges on the colour edges.
+    """
+    m = int(options.max_shift_px)
+    h, w = disparity.shape
+    if m <= 0 or h <= 2 * m + 1 or w <= 2 * m + 1:
+        return 0, 0
+    img = np.asarray(focus_srgb[..., :3], np.float32)
+    coc = np.float32(k_px) * np.asarray(disparity, np.float32)
+    groups = []  # per axis and side: the pairs' first pixels
+    for ax in (0, 1):
+        a = np.take(coc, range(coc.shape[ax] - 1), axis=ax)
+        b = np.take(coc, range(1, coc.shape[ax]), axis=ax)
+        ys, xs = np.nonzero(np.abs(a - b) > options.jump_px)
+        ok = (ys >= m) & (ys < h - 1 - m) & (xs >= m) & (xs < w - 1 - m)
+        ys, xs = ys[ok], xs[ok]
+        after = b[ys, xs] > a[ys, xs]  # the near pixel lies after the edge along the axis
+        for side in (after, ~after):
+            gy, gx = ys[side], xs[side]
+            if gy.size > 20000:  # a regular subsample bounds the cost on large frames
+                k = -(-gy.size // 20000)
+                gy, gx = gy[::k], gx[::k]
+            groups.append((gy, gx, ax))
+    if min(g[0].size for g in groups) < options.min_shift_pairs:
+        return 0, 0
+    n = 2 * m + 1
+    prof = np.zeros((4, n, n))  # per group, per shift (sy, sx): the mean colour step across the moved pairs
+    for gi, (gy, gx, ax) in enumerate(groups):
+        for iy in range(n):
+            for ix in range(n):
+                y0, x0 = gy + (iy - m), gx + (ix - m)
+                d = img[y0 + (ax == 0), x0 + (ax == 1)].astype(np.float64) - img[y0, x0]
+                prof[gi, iy, ix] = np.sqrt((d ** 2).sum(-1)).mean()
+    score = np.exp(np.log(np.maximum(prof, 1e-12)).mean(0))  # all four groups must gain: their geometric mean
+    by, bx = np.unravel_index(int(np.argmax(score)), score.shape)
+    if (by, bx) == (m, m):
+        return 0, 0
+    gain = prof[:, by, bx] / np.maximum(prof[:, m, m], 1e-12)
+    # the axes the shift moves along must gain on both sides of the objects; none may lose
+    need = [gi for gi, (_, _, ax) in enumerate(groups) if (by - m, bx - m)[ax] != 0]
+    if (gain[need] < options.shift_gain).any() or (gain < 1.0).any():
+        return 0, 0
+    for gi in need:  # and each side's own best shift along its axis must be this one (within a pixel): an eroded
+        ax = groups[gi][2]  # or dilated map's two sides peak at opposite shifts
+        peak = np.unravel_index(int(np.argmax(prof[gi])), (n, n))[ax]
+        if abs(int(peak) - int((by, bx)[ax])) > 1:
+            return 0, 0
+    return int(by - m), int(bx - m)
+
+
+
+def shift_map(disparity: np.ndarray, sy: int, sx: int) -> np.ndarray:
+    """``out[y, x] = d[y - sy, x - sx]``, the border continued (edge values)."""
+    if sy == 0 and sx == 0:
+        return np.asarray(disparity, np.float32).copy()
+    p = max(abs(sy), abs(sx))
+    h, w = disparity.shape
+    return np.pad(np.asarray(disparity, np.float32), p, mode="edge")[p - sy:p - sy + h, p - sx:p - sx + w].copy()
+
+
+def pass_reach(options: DepthFixOptions) -> int:
+    """How far (Chebyshev px) one pass's result at a pixel depends on the map: the vote's window, the suspect
+    stretch along an edge's normal, the smoothing along the edge (scipy truncates its Gaussian at 4 sigma), the
+    edge normal (Gaussian of 1 px truncated at 4, then Sobel) and the pair itself, the smeared-edge window, plus
+    a margin of 4 px."""
+    return (int(np.ceil(options.radius_px)) + int(np.ceil(options.band_px)) + 2
+            + int(4.0 * float(options.sigma_edge_px) + 0.5) + 6 + int(options.ramp_px) + 4)
+
+
+def _pass(img, cur, k_px, options, offs, space, snap, active, keep, new, targets):
+    """One pass of the correction on ``cur``, written into ``new``; only pixels of ``targets`` (None: all) vote."""
+    hyps = list(untrusted(img, cur, k_px, options))
+    if options.ramp_px > 0:
+        hyps.append(smeared(cur, k_px, options))
+    for h_i, sus in enumerate(hyps):  # each hypothesis with its own trusted pixels
+        if active is not None:
+            sus &= active
+        if sus.any():
+            _vote(img, cur, sus, offs, space, snap, options, new, keep,
+                  one_sided=options.thin_dilated and h_i == 1, targets=targets)
+
+
 def correct_disparity(focus_srgb: np.ndarray, disparity: np.ndarray, k_px: float,
                       options: DepthFixOptions = DepthFixOptions(),
                       active: np.ndarray | None = None,
@@ -317,7 +461,7 @@ def correct_disparity(focus_srgb: np.ndarray, disparity: np.ndarray, k_px: float
         focus_srgb: ``H x W x 3`` all-in-focus image, sRGB in [0, 1].
         disparity: ``H x W`` in [0, 1].
         k_px: the blur's ``K`` (CoC radius per unit disparity): edges and thresholds are in CoC pixels.
-        active: optional ``H x W`` bool, where corrections are allowed.
+        active: optional ``H x W`` bool, where corrections are allowed (with it, no global shift is searched).
         keep: optional ``H x W`` bool, pixels that neither change nor vote (clipped lights: their sRGB colour
             says nothing about them, and a light moved to another depth moves its whole bokeh ball).
 
@@ -329,29 +473,46 @@ def correct_disparity(focus_srgb: np.ndarray, disparity: np.ndarray, k_px: float
     changed = np.zeros(d.shape, bool)
     if not options.enabled or k_px <= 0:
         return out, changed
+    from scipy import ndimage
+
     img = np.ascontiguousarray(focus_srgb[..., :3], np.float32)
     offs = _offsets(options)
     space = np.exp(-(offs ** 2).sum(1) / (2.0 * options.sigma_space_px ** 2))
     h, w = d.shape
-    if depth_edges(d * np.float32(k_px), options.jump_px).mean() > options.max_edge_share:
-        return out, changed
+    coc = d * np.float32(k_px)
+    if depth_edges(coc, options.jump_px).mean() > options.max_edge_share and step_flips(coc, options.jump_px) > 0.5:
+        return out, changed  # noise in the map, not misplaced edges
     snap = options.snap_px / float(k_px)
+    sy, sx = global_shift(img, d, k_px, options) if active is None else (0, 0)  # a shift moves every pixel
+    if sy or sx:  # a misregistered map: shifted back first, all of it (lights too: the whole map was off)
+        out = shift_map(d, sy, sx)
+    everything = np.ones(d.shape, bool)
+    todo = everything  # the first pass looks at the whole map, later ones only where the last one moved pixels
+    reach = pass_reach(options)
     for _ in range(max(1, options.iterations)):
         cur = out
         new = cur.copy()
-        hyps = list(untrusted(img, cur, k_px, options))
-        if options.ramp_px > 0:
-            hyps.append(smeared(cur, k_px, options))
-        for h_i, sus in enumerate(hyps):  # each hypothesis with its own trusted pixels
-            if active is not None:
-                sus &= active
-            if sus.any():
-                _vote(img, cur, sus, offs, space, snap, options, new, keep,
-                      one_sided=options.thin_dilated and h_i == 1)
+        if todo is everything:
+            _pass(img, cur, k_px, options, offs, space, snap, active, keep, new, None)
+        else:
+            # a pixel farther than ``reach`` from every pixel the last pass moved sees the same inputs as in that
+            # pass and so gives the same (unmoved) value: each cluster of moved pixels is recomputed on its window,
+            # cut ``reach`` wider so that the window's border cannot change what the cluster's pixels see
+            lab, _n = ndimage.label(todo, structure=np.ones((3, 3), bool))
+            for n_c, (sy, sx) in enumerate(ndimage.find_objects(lab), start=1):
+                wy = slice(max(0, sy.start - reach), min(h, sy.stop + reach))
+                wx = slice(max(0, sx.start - reach), min(w, sx.stop + reach))
+                mine = lab[wy, wx] == n_c
+                part = cur[wy, wx].copy()
+                _pass(img[wy, wx], cur[wy, wx], k_px, options, offs, space, snap,
+                      None if active is None else active[wy, wx], None if keep is None else keep[wy, wx], part, mine)
+                new[wy, wx][mine] = part[mine]
         moved = new != cur
         if not moved.any():
             break
         changed |= moved
         out = new
-    changed &= out != d
+        if options.incremental:
+            todo = ndimage.maximum_filter(moved, size=2 * reach + 1, mode="constant")
+    changed = out != d  # moved by the passes or by the shift, and not back
     return out, changed

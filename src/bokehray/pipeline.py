@@ -165,22 +165,26 @@ def render_with_stats(
     ctx = RenderContext(np.ascontiguousarray(work[..., :3]), d, scene.cap_coc(s), blur, aperture, layers, memory,
                         options, device, progress)
 
-    out_rgb, stats = level.render(ctx)
-    stats.max_coc_px = raw_max
     if refining:
-        corrected = {}
+        # the refiner's depth correction runs first, so the level renders once, on the corrected map
+        rendered = {}
 
-        def rerender(dd: np.ndarray) -> np.ndarray:  # the same level on the refiner's corrected disparity
-            corrected["ctx"] = replace(ctx, disparity=dd, signed_coc=scene.cap_coc(blur.signed_coc(dd)))
-            return level.render(replace(corrected["ctx"], progress=None))[0]
+        def render_level(dd: np.ndarray) -> np.ndarray:
+            c = ctx if dd is d else replace(ctx, disparity=dd, signed_coc=scene.cap_coc(blur.signed_coc(dd)))
+            rgb, rendered["stats"] = level.render(c)
+            rendered["ctx"] = c
+            return rgb
 
-        out_rgb, rstats = refine_render(work[..., :3], d, blur, out_rgb, refine, device, rerender)
-        if rstats.disparity is not None:  # alpha blurs with the corrected depth too
-            ctx = corrected["ctx"]
+        out_rgb, rstats = refine_render(work[..., :3], d, blur, None, refine, device, render_level)
+        ctx, stats = rendered["ctx"], rendered["stats"]  # alpha blurs with the corrected depth too
+        stats.max_coc_px = raw_max
         stats.refine = rstats.as_dict()
         stats.stage_seconds["refine"] = rstats.seconds
         if "total" in stats.stage_seconds:
             stats.stage_seconds["total"] += rstats.seconds
+    else:
+        out_rgb, stats = level.render(ctx)
+        stats.max_coc_px = raw_max
     if channels == 4:
         # alpha is rendered like a grey channel: it blurs with the colour it belongs to
         out_a, _ = level.render(ctx.with_image(np.ascontiguousarray(np.repeat(work[..., 3:4], 3, axis=2))))

@@ -190,6 +190,58 @@ def vote_ref(img, cur, sus, snap, options, new, keep=None, one_sided=False):
                 new[y, x] = med
 
 
+def global_shift_ref(focus, disparity, k_px, options=DEFAULT):
+    """Pair by pair, shift by shift: the four groups (axis x side of the near pixel), their mean colour step across
+    each shifted pair, the geometric mean's best shift and its three checks."""
+    m = int(options.max_shift_px)
+    h, w = disparity.shape
+    if m <= 0 or h <= 2 * m + 1 or w <= 2 * m + 1:
+        return 0, 0
+    coc = np.float32(k_px) * np.asarray(disparity, np.float32)
+    groups = {(ax, side): [] for ax in (0, 1) for side in (True, False)}
+    for ax in (0, 1):
+        for y in range(m, h - 1 - m):
+            for x in range(m, w - 1 - m):
+                ny, nx = y + (ax == 0), x + (ax == 1)
+                a, b = float(coc[y, x]), float(coc[ny, nx])
+                if abs(a - b) > options.jump_px:
+                    groups[(ax, b > a)].append((y, x))
+    keys = [(0, True), (0, False), (1, True), (1, False)]
+    for k in keys:
+        if len(groups[k]) > 20000:
+            step = -(-len(groups[k]) // 20000)
+            groups[k] = groups[k][::step]
+    if min(len(groups[k]) for k in keys) < options.min_shift_pairs:
+        return 0, 0
+    n = 2 * m + 1
+    prof = {}
+    for k in keys:
+        ax = k[0]
+        for sy in range(-m, m + 1):
+            for sx in range(-m, m + 1):
+                tot = 0.0
+                for y, x in groups[k]:
+                    y0, x0 = y + sy, x + sx
+                    y1, x1 = y0 + (ax == 0), x0 + (ax == 1)
+                    tot += math.sqrt(sum((float(focus[y1, x1, c]) - float(focus[y0, x0, c])) ** 2 for c in range(3)))
+                prof[(k, sy, sx)] = tot / len(groups[k])
+    score = {(sy, sx): math.exp(sum(math.log(max(prof[(k, sy, sx)], 1e-12)) for k in keys) / 4)
+             for sy in range(-m, m + 1) for sx in range(-m, m + 1)}
+    best = max(score, key=lambda s: (score[s], -((s[0] + m) * n + s[1] + m)))  # the first maximum, row-major
+    if best == (0, 0):
+        return 0, 0
+    for k in keys:
+        gain = prof[(k, *best)] / max(prof[(k, 0, 0)], 1e-12)
+        if gain < 1.0 or (best[k[0]] != 0 and gain < options.shift_gain):
+            return 0, 0
+        if best[k[0]] != 0:
+            own = {s: prof[(k, *s)] for s in score}
+            peak = max(own, key=lambda s: (own[s], -((s[0] + m) * n + s[1] + m)))
+            if abs(peak[k[0]] - best[k[0]]) > 1:
+                return 0, 0
+    return best
+
+
 def correct_disparity_ref(focus, disparity, k_px, options=DEFAULT, active=None, keep=None):
     d = np.asarray(disparity, np.float32)
     out = d.copy()
@@ -197,6 +249,10 @@ def correct_disparity_ref(focus, disparity, k_px, options=DEFAULT, active=None, 
         return out
     img = np.asarray(focus[..., :3], np.float32)
     snap = options.snap_px / float(k_px)
+    sy, sx = global_shift_ref(img, d, k_px, options) if active is None else (0, 0)
+    if sy or sx:  # the map moved by (sy, sx), its border continued
+        out = np.array([[d[min(max(y - sy, 0), d.shape[0] - 1), min(max(x - sx, 0), d.shape[1] - 1)]
+                         for x in range(d.shape[1])] for y in range(d.shape[0])], np.float32)
     for _ in range(max(1, options.iterations)):
         cur = out
         new = cur.copy()

@@ -373,3 +373,66 @@ def test_render_api_runs_the_depth_fix_and_blurs_alpha_with_the_corrected_map(we
     assert st.refine["depth_fixed_px"] > 0 and st.refine["rerender_seconds"] > 0
     plain = br.render(rgba, dc, blur)
     assert not np.array_equal(out[..., 3], plain[..., 3])  # alpha went through the level on the fixed map too
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**16), p=st.floats(0.05, 0.9))
+def test_refine_boxes_cover_every_tile_once_inside_its_box(seed, p):
+    from bokehray_refiner.refine import refine_boxes
+
+    need = np.random.default_rng(seed).uniform(size=(7, 9)) < p
+    boxes = refine_boxes(need, 64, 32)
+    members = [m for _, ms in boxes for m in ms]
+    assert sorted(members) == sorted((int(y), int(x)) for y, x in zip(*np.nonzero(need)))  # each tile once
+    for (ty0, ty1, tx0, tx1), ms in boxes:
+        assert ms and all(ty0 <= y < ty1 and tx0 <= x < tx1 for y, x in ms)
+
+
+def test_merged_boxes_and_single_tiles_blend_the_same_way():
+    """Tiles refined as merged boxes (the default) place a correction with the same per-tile blend weights as one
+    pass per tile: equal for a model whose correction does not depend on its context."""
+    rng = np.random.default_rng(2)
+    img = rng.uniform(0, 1, (192, 320, 3)).astype(np.float32)
+    d = np.full((192, 320), 0.2, np.float32)
+    d[20:70, 30:150] = 0.8  # two separate near blocks: groups of tiles, an uncovered rest
+    d[120:170, 250:300] = 0.8
+    blur = br.BlurParams(8.0, 0.8)
+    model = BokehRefiner()
+    with torch.no_grad():
+        model.head.bias.fill_(0.03)
+    classical = br.render(img, d, blur)
+    opts = RefineOptions(full_frame_px=0, gate=UNGATED)
+    merged, s1 = refine(img, d, blur, classical, model=model, options=opts)
+    single, s2 = refine(img, d, blur, classical, model=model, options=replace(opts, merge_tiles=False))
+    assert 0 < s1.tiles_refined == s2.tiles_refined < s1.tiles_total
+    np.testing.assert_allclose(merged, single, rtol=0, atol=1e-5)
+    assert np.abs(merged - classical).mean() > 1e-3
+
+
+def test_render_refine_renders_the_level_once_and_equals_fixing_an_existing_render(weights):
+    """``render --refine`` corrects the map first and renders the level once, on the corrected map: the same image
+    as rendering, correcting, then rendering again."""
+    img, d = _edge_scene(2)
+    blur = br.BlurParams(12.0, 0.9)
+    dc = corrupt_disparity(d, "erode", 3)
+    model = load_refiner(weights)
+    calls = []
+
+    def rerender(dd):
+        calls.append(dd)
+        return br.render(img, dd, blur)
+
+    once, st1 = refine(img, dc, blur, None, model=model, rerender=rerender)
+    assert len(calls) == 1 and st1.depth_fixed_px > 0 and np.array_equal(calls[0], st1.disparity)
+    twice, st2 = refine(img, dc, blur, br.render(img, dc, blur), model=model, rerender=rerender)
+    np.testing.assert_array_equal(once, twice)
+    api, st = br.render_with_stats(img, dc, blur, refine=str(weights))
+    np.testing.assert_allclose(api, once, rtol=0, atol=1e-6)
+    assert st.refine["depth_fixed_px"] == st1.depth_fixed_px
+    flat = np.full_like(d, 0.9)  # nothing to correct: the level renders once on the given map
+    calls.clear()
+    out, st3 = refine(img, flat, blur, None, model=model, rerender=rerender)
+    assert len(calls) == 1 and calls[0] is flat and st3.depth_fixed_px == 0
+    np.testing.assert_array_equal(out, br.render(img, flat, blur))
+    with pytest.raises(InputError):
+        refine(img, dc, blur, None, model=model)

@@ -19,11 +19,12 @@ REFINABLE = ("preview",)
 """Levels whose renders the refiner corrects (it was trained on preview renders)."""
 
 
-def refine_render(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, classical: np.ndarray,
+def refine_render(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, classical: np.ndarray | None,
                   weights: bool | str | os.PathLike, device: str, rerender=None):
     """Run the refiner on ``classical`` (the level's RGB render); returns (refined RGB, the refiner's stats).
 
-    ``rerender(disparity)`` renders the level again on a corrected disparity (the refiner's depth correction).
+    ``rerender(disparity)`` renders the level (again) on a corrected disparity (the refiner's depth correction);
+    with ``classical=None`` the level has not rendered yet and renders once, after the correction.
     """
     try:
         from bokehray_refiner.refine import load_refiner, refine
