@@ -290,9 +290,7 @@ def _scatter_coarse(
     """The cheap span rule: one sharp-ended span per row (its mid-height chord).
 
     For the pyramid levels, whose outline the bilinear upsampling blurs anyway (about one coarse
-    pixel), and for the extended lights' gathered sources (``scatter_clusters_kernel``), which stand
-    for members up to a block's half-width away: the sub-row ramps of ``_scatter_one`` would buy
-    nothing there. Same normalisation: density
+    pixel): the sub-row ramps of ``_scatter_one`` would buy nothing there. Same normalisation: density
     ``v / (area rho^2)``, the remainder on the centre row's chord, so the source deposits exactly v.
     """
     span = _signed_extent(extent, rho, sgn)
@@ -715,8 +713,8 @@ def scatter_clusters_kernel(
     buf0: wp.array2d(dtype=wp.vec4),
 ):
     """Scatter the level-``lev`` cluster sources (``route_cells_kernel``; one thread per block) at level 0:
-    light, no coverage, with the sharp-span rule (``_scatter_coarse``: a block's members spread its outline
-    by up to half the block, more than the sub-row ramps would correct)."""
+    light, no coverage, with the exact area-integrated spans (a block is 2 px wide up to level 3: the pyramid
+    levels' sharp spans cost small lamps 2-3 dB)."""
     by, bx = wp.tid()
     shape = cluster_shape[lev - 1, by, bx]
     if shape[3] == 0.0:
@@ -725,7 +723,7 @@ def scatter_clusters_kernel(
     sgn = float(1.0)
     if shape[2] > 0.0:
         sgn = -1.0
-    _scatter_coarse(buf0, shape[0], shape[1], wp.abs(shape[2]), wp.vec4(light[0], light[1], light[2], 0.0), blades,
+    _scatter_one(buf0, shape[0], shape[1], wp.abs(shape[2]), wp.vec4(light[0], light[1], light[2], 0.0), blades,
                  n_blades, extent, area, sgn)
 
 

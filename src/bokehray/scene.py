@@ -203,7 +203,8 @@ class LayerRecord:
     not filled. ``support``: the tiles (of ``tile_px``, on the scene's grid) within that pad of the layer's
     own tiles, the only ones its sources and light reach (a layer cut at a depth jump is often a thin
     population spread over a frame-sized box); None: everywhere (also when ``tile_px`` is not a power of two,
-    as the kernels find tiles by shifts). ``origin``: where the coordinates ``bbox``
+    as the kernels find tiles by shifts, or below ``SUPPORT_MIN_TILE_PX``, where a mask per layer costs more
+    than it saves). ``origin``: where the coordinates ``bbox``
     is given in start in the scene's (a tile's window; (0, 0) for the whole scene). ``pixels``: how many of
     the scene's pixels are the layer's own.
     """
@@ -315,7 +316,7 @@ def build_scene(signed_coc: np.ndarray, active: np.ndarray, options: LayerOption
         pad = light_pad(float(max_r_slice[i]), reach, level_radius_px)
         bbox = (max(0, ty.min() * t - pad), min(h, (ty.max() + 1) * t + pad),
                 max(0, tx.min() * t - pad), min(w, (tx.max() + 1) * t + pad))
-        support = dilate_tiles(own, -(-pad // t)) if t & (t - 1) == 0 else None
+        support = dilate_tiles(own, -(-pad // t)) if t >= SUPPORT_MIN_TILE_PX and t & (t - 1) == 0 else None
         layers.append(LayerRecord(int(i), float(edges[i]), float(edges[i + 1]), bbox, float(max_r_slice[i]), reach,
                                   support, t, pixels=int(counts[i])))
     return LayeredScene(sid, edges, max_coc, tuple(layers), level_radius_px)
@@ -328,6 +329,11 @@ def _float32_edges(edges: np.ndarray) -> np.ndarray:
     low = e32.astype(np.float64) < edges
     e32[low] = np.nextafter(e32[low], np.float32(np.inf))
     return e32
+
+
+SUPPORT_MIN_TILE_PX = 8
+"""The finest tile grid layers get a support on: on a grid of 1 px a layer's mask is as large as the frame (5x
+the planning time, 1 B/px a layer)."""
 
 
 def light_pad(max_radius: float, fill_reach: float, level_radius_px: float | None) -> int:

@@ -88,13 +88,14 @@ def test_skipping_outside_the_support_leaves_the_render(monkeypatch, seed):
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
 
 
-def test_a_tile_grid_not_a_power_of_two_has_no_support():
+@pytest.mark.parametrize("tile_px", [12, 4])
+def test_a_tile_grid_not_a_power_of_two_or_too_fine_has_no_support(tile_px):
     from bokehray.scene import build_scene
 
     _, s = _scene(0)
-    scene = build_scene(s, np.ones(s.shape, bool), LayerOptions(tile_px=12), 8.0)
+    scene = build_scene(s, np.ones(s.shape, bool), LayerOptions(tile_px=tile_px), 8.0)
     assert all(layer.support is None for layer in scene.layers)
-    got, _ = pv.render_signed_coc(*_scene(0), Aperture(), layers=LayerOptions(tile_px=12))
+    got, _ = pv.render_signed_coc(*_scene(0), Aperture(), layers=LayerOptions(tile_px=tile_px))
     assert np.isfinite(got).all()
 
 
