@@ -40,7 +40,7 @@ from bokehray.io import linear_to_srgb, srgb_to_linear
 from bokehray.lens import BlurParams
 from bokehray.pisa import PisaMaskOptions
 
-from .gate import GateOptions, refine_gate
+from .gate import GateOptions, channel_max, refine_gate
 from .masks import PisaMaskProvider
 from .model import BokehRefiner, RefinerConfig
 from .tiles import raised_cosine_ramp
@@ -288,7 +288,7 @@ def refine(
 
         t1 = time.perf_counter()
         focus_srgb = linear_to_srgb(np.clip(image[..., :3], 0.0, 1.0))
-        lights = image[..., :3].max(-1) >= 1.0  # clipped lights (dilated by 2 px) never move and never vote
+        lights = channel_max(image) >= 1.0  # clipped lights (dilated by 2 px) never move and never vote
         if lights.any():
             lights = ndimage.binary_dilation(lights, iterations=2)
         d_new, changed = correct_disparity(focus_srgb, disparity, blur.k_px, options.depthfix, keep=lights)
