@@ -2,6 +2,7 @@
 reference/ and the tolerances in tolerances.py are imported from this folder."""
 
 import os
+import signal
 import sys
 from pathlib import Path
 
@@ -11,6 +12,11 @@ import warp as wp
 from hypothesis import settings
 
 sys.path.insert(0, str(Path(__file__).parent))  # reference/, tolerances.py, conftest.DEVICES
+
+# A test run started in the background by a non-interactive shell (`make test &`) inherits SIGINT ignored, and so
+# would every CLI the tests start: the Ctrl-C tests would wait for an interrupt that never comes. Python's own
+# handler again, here and (being a handler, not "ignored") reset to the default in every child process.
+signal.signal(signal.SIGINT, signal.default_int_handler)
 
 wp.config.log_level = wp.LOG_WARNING
 wp.init()
