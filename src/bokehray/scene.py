@@ -204,9 +204,8 @@ class LayerRecord:
     own tiles, the only ones its sources and light reach (a layer cut at a depth jump is often a thin
     population spread over a frame-sized box); None: everywhere (also when ``tile_px`` is not a power of two,
     as the kernels find tiles by shifts, or below ``SUPPORT_MIN_TILE_PX``, where a mask per layer costs more
-    than it saves). ``origin``: where the coordinates ``bbox``
-    is given in start in the scene's (a tile's window; (0, 0) for the whole scene). ``pixels``: how many of
-    the scene's pixels are the layer's own.
+    than it saves). ``origin``: the scene position of the frame ``bbox`` is given in (a tile's window; (0, 0)
+    for the whole scene). ``pixels``: how many of the scene's pixels are the layer's own.
     """
 
     index: int
