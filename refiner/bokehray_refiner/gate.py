@@ -30,6 +30,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bokehray.depthfix import edge_pairs
+
 __all__ = ["GateOptions", "edge_agreement", "highlight_guard", "refine_gate"]
 
 
@@ -195,13 +197,7 @@ def refine_gate(image: np.ndarray, focus_srgb: np.ndarray, disparity: np.ndarray
     h, w = coc.shape
     if not options.enabled:
         return np.ones((h, w), np.float32)
-    edges = []
-    for ax in (0, 1):
-        a = np.take(coc, range(coc.shape[ax] - 1), axis=ax)
-        b = np.take(coc, range(1, coc.shape[ax]), axis=ax)
-        ys, xs = np.nonzero(np.abs(a - b) > min_jump_px)
-        edges.append((ys, xs, ax))
-    ys, xs, ratio = edge_agreement(focus_srgb, disparity, edges, options)
+    ys, xs, ratio = edge_agreement(focus_srgb, disparity, edge_pairs(coc, min_jump_px), options)
     if ys.size == 0:
         return np.zeros((h, w), np.float32)
     open_ = np.zeros((h, w), np.float32)

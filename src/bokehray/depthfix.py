@@ -379,13 +379,10 @@ def global_shift(focus_srgb: np.ndarray, disparity: np.ndarray, k_px: float,
     img = np.asarray(focus_srgb[..., :3], np.float32)
     coc = np.float32(k_px) * np.asarray(disparity, np.float32)
     groups = []  # per axis and side: the pairs' first pixels
-    for ax in (0, 1):
-        a = np.take(coc, range(coc.shape[ax] - 1), axis=ax)
-        b = np.take(coc, range(1, coc.shape[ax]), axis=ax)
-        ys, xs = np.nonzero(np.abs(a - b) > options.jump_px)
+    for ys, xs, ax in edge_pairs(coc, options.jump_px):
         ok = (ys >= m) & (ys < h - 1 - m) & (xs >= m) & (xs < w - 1 - m)
         ys, xs = ys[ok], xs[ok]
-        after = b[ys, xs] > a[ys, xs]  # the near pixel lies after the edge along the axis
+        after = coc[ys + (ax == 0), xs + (ax == 1)] > coc[ys, xs]  # the near pixel lies after the edge along the axis
         for side in (after, ~after):
             gy, gx = ys[side], xs[side]
             if gy.size > 20000:  # a regular subsample bounds the cost on large frames
@@ -470,9 +467,8 @@ def correct_disparity(focus_srgb: np.ndarray, disparity: np.ndarray, k_px: float
     """
     d = np.asarray(disparity, np.float32)
     out = d.copy()
-    changed = np.zeros(d.shape, bool)
     if not options.enabled or k_px <= 0:
-        return out, changed
+        return out, np.zeros(d.shape, bool)
     from scipy import ndimage
 
     img = np.ascontiguousarray(focus_srgb[..., :3], np.float32)
@@ -481,27 +477,26 @@ def correct_disparity(focus_srgb: np.ndarray, disparity: np.ndarray, k_px: float
     h, w = d.shape
     coc = d * np.float32(k_px)
     if depth_edges(coc, options.jump_px).mean() > options.max_edge_share and step_flips(coc, options.jump_px) > 0.5:
-        return out, changed  # noise in the map, not misplaced edges
+        return out, np.zeros(d.shape, bool)  # noise in the map, not misplaced edges
     snap = options.snap_px / float(k_px)
     sy, sx = global_shift(img, d, k_px, options) if active is None else (0, 0)  # a shift moves every pixel
     if sy or sx:  # a misregistered map: shifted back first, all of it (lights too: the whole map was off)
         out = shift_map(d, sy, sx)
-    everything = np.ones(d.shape, bool)
-    todo = everything  # the first pass looks at the whole map, later ones only where the last one moved pixels
+    todo = None  # the first pass looks at the whole map, later ones only where the last one moved pixels
     reach = pass_reach(options)
     for _ in range(max(1, options.iterations)):
         cur = out
         new = cur.copy()
-        if todo is everything:
+        if todo is None:
             _pass(img, cur, k_px, options, offs, space, snap, active, keep, new, None)
         else:
             # a pixel farther than ``reach`` from every pixel the last pass moved sees the same inputs as in that
             # pass and so gives the same (unmoved) value: each cluster of moved pixels is recomputed on its window,
             # cut ``reach`` wider so that the window's border cannot change what the cluster's pixels see
             lab, _n = ndimage.label(todo, structure=np.ones((3, 3), bool))
-            for n_c, (sy, sx) in enumerate(ndimage.find_objects(lab), start=1):
-                wy = slice(max(0, sy.start - reach), min(h, sy.stop + reach))
-                wx = slice(max(0, sx.start - reach), min(w, sx.stop + reach))
+            for n_c, (cy, cx) in enumerate(ndimage.find_objects(lab), start=1):
+                wy = slice(max(0, cy.start - reach), min(h, cy.stop + reach))
+                wx = slice(max(0, cx.start - reach), min(w, cx.stop + reach))
                 mine = lab[wy, wx] == n_c
                 part = cur[wy, wx].copy()
                 _pass(img[wy, wx], cur[wy, wx], k_px, options, offs, space, snap,
@@ -510,9 +505,7 @@ def correct_disparity(focus_srgb: np.ndarray, disparity: np.ndarray, k_px: float
         moved = new != cur
         if not moved.any():
             break
-        changed |= moved
         out = new
         if options.incremental:
             todo = ndimage.maximum_filter(moved, size=2 * reach + 1, mode="constant")
-    changed = out != d  # moved by the passes or by the shift, and not back
-    return out, changed
+    return out, out != d  # moved by the passes or by the shift, and not back
