@@ -177,14 +177,13 @@ def render_with_stats(
 
         out_rgb, rstats = refine_render(work[..., :3], d, blur, None, refine, device, render_level)
         ctx, stats = rendered["ctx"], rendered["stats"]  # alpha blurs with the corrected depth too
-        stats.max_coc_px = raw_max
         stats.refine = rstats.as_dict()
         stats.stage_seconds["refine"] = rstats.seconds
         if "total" in stats.stage_seconds:
             stats.stage_seconds["total"] += rstats.seconds
     else:
         out_rgb, stats = level.render(ctx)
-        stats.max_coc_px = raw_max
+    stats.max_coc_px = raw_max
     if channels == 4:
         # alpha is rendered like a grey channel: it blurs with the colour it belongs to
         out_a, _ = level.render(ctx.with_image(np.ascontiguousarray(np.repeat(work[..., 3:4], 3, axis=2))))

@@ -57,15 +57,19 @@ def test_the_steps_match_the_reference(kind):
     np.testing.assert_array_equal(smeared(d, k, opts), smeared_ref(d, k, opts))
 
 
+def _corrupted(d, kind, px):
+    """The map eroded or dilated by ``px``, blurred (sigma px / 2), or shifted by (px, -px)."""
+    if kind == "blur":
+        return ndimage.gaussian_filter(d, px / 2).astype(np.float32)
+    if kind == "shift":
+        return np.roll(d, (px, -px), (0, 1))
+    return perturb_disparity(d, -px if kind == "erode" else px)
+
+
 @pytest.mark.parametrize("kind, px", [("erode", 3), ("dilate", 3), ("blur", 3), ("shift", 2)])
 def test_correction_matches_the_reference(kind, px):
     img, d = _scene(2, size=40, box=(10, 30, 8, 28))
-    if kind == "blur":
-        dc = ndimage.gaussian_filter(d, px / 2).astype(np.float32)
-    elif kind == "shift":
-        dc = np.roll(d, (px, -px), (0, 1))
-    else:
-        dc = perturb_disparity(d, -px if kind == "erode" else px)
+    dc = _corrupted(d, kind, px)
     got, changed = correct_disparity(img, dc, 12.0)
     ref = correct_disparity_ref(img, dc, 12.0)
     assert changed.any()  # the comparison is about a correction that happened
@@ -175,12 +179,7 @@ def test_later_passes_near_the_moved_pixels_only_give_the_whole_maps_result(kind
         img[y0:y1, x0:x1] = np.array(c) + tex[y0:y1, x0:x1]
         d[y0:y1, x0:x1] = v
     img = np.clip(img, 0, 1).astype(np.float32)
-    if kind == "blur":
-        dc = ndimage.gaussian_filter(d, px / 2).astype(np.float32)
-    elif kind == "shift":
-        dc = np.roll(d, (px, -px), (0, 1))
-    else:
-        dc = perturb_disparity(d, -px if kind == "erode" else px)
+    dc = _corrupted(d, kind, px)
     opts = DepthFixOptions(iterations=3)
     fast, ch_fast = correct_disparity(img, dc, 16.0, opts)
     slow, ch_slow = correct_disparity(img, dc, 16.0, replace(opts, incremental=False))
