@@ -264,10 +264,9 @@ def test_disk_full_while_writing_is_one_line_naming_the_output(inputs, full_disk
 def _slow_writer(marker: str) -> str:
     """A prelude whose PNG encoder writes part of the file, says so on stdout, then hangs (until a signal)."""
     return f"""
-import signal, time
+import time
 from pathlib import Path
 import bokehray.io as bio
-signal.signal(signal.SIGINT, signal.default_int_handler)  # a background test runner may start us with SIGINT ignored
 def _slow(tmp, codes, fmt, **k):
     Path(tmp).write_bytes(b"partial" * 4096)
     print("{marker}", flush=True)
