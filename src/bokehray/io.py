@@ -589,8 +589,19 @@ def _pid_alive(pid: int) -> bool:
     except ProcessLookupError:
         return False
     except OSError:  # e.g. EPERM: it exists, owned by someone else
-        return True
-    return True
+        pass
+    return not _zombie(pid)
+
+
+def _zombie(pid: int) -> bool:
+    # a killed process that its parent has not reaped yet (a pool or a Dask nanny restarting a worker) still
+    # answers kill(pid, 0), but it writes nothing more: Linux's /proc says so (state Z); elsewhere, not known
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            stat = f.read()
+    except OSError:
+        return False
+    return stat[stat.rfind(b")") + 2:][:1] == b"Z"
 
 
 def remove_stale_temporaries(path: str | os.PathLike[str]) -> list[Path]:

@@ -523,6 +523,33 @@ def test_stale_temporaries_of_a_killed_write_are_removed_by_the_next_write(tmp_p
     assert not bio.remove_stale_temporaries(tmp_path / "o.png")
 
 
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="zombies are seen through Linux's /proc")
+def test_a_killed_writer_not_yet_reaped_counts_as_dead(tmp_path):
+    """A pool or a Dask nanny may not have reaped its killed worker when the retry writes: that zombie still answers
+    kill(pid, 0), and its temporary stayed (seen once in CI)."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    p = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        assert bio._pid_alive(p.pid)
+        os.kill(p.pid, signal.SIGKILL)
+        for _ in range(200):  # the kernel marks it a zombie at once; it stays one until we wait for it
+            if bio._zombie(p.pid):
+                break
+            time.sleep(0.01)
+        host_part = bio._tmp_prefix(tmp_path / "o.png").rsplit("-", 2)[0]
+        stale = tmp_path / f"{host_part}-{p.pid}-abc123.png"
+        stale.write_bytes(b"partial")
+        assert not bio._pid_alive(p.pid)
+        assert bio.remove_stale_temporaries(tmp_path / "o.png") == [stale] and not stale.exists()
+    finally:
+        p.kill()
+        p.wait()
+
+
 def test_temporary_names_carry_host_and_pid(tmp_path, monkeypatch):
     seen = []
     monkeypatch.setattr(bio, "_write_pil", lambda tmp, codes, fmt, **k: (seen.append(tmp), Path(tmp).write_bytes(b"x")))
