@@ -22,6 +22,7 @@ test: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check src kernels refiner benchmarks tests
 	$(BIN)/lint-imports
+	@! git grep -nE '^(<<<<<<<|>>>>>>>)( |$$)' -- . || { echo "lint: unresolved merge-conflict markers (above)"; exit 1; }
 
 bench-quick: $(STAMP)
 	$(BIN)/python benchmarks/bench_preview.py --quick

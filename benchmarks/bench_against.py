@@ -28,7 +28,7 @@ CHILD = r"""
 import json, statistics, sys, time
 import numpy as np, scipy.signal
 import bokehray
-from bokehray.demo import build_demo_scene
+from bokehray.app.demo import build_demo_scene
 radius, renders = float(sys.argv[1]), int(sys.argv[2])
 scene = build_demo_scene(1536, 1024)
 f = scene.focus_near

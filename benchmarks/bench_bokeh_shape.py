@@ -43,7 +43,7 @@ import scipy.signal  # noqa: E402
 import bokehray  # noqa: E402
 from bokehray.levels.preview import render_signed_coc  # noqa: E402
 from bokehray.options import PreviewOptions  # noqa: E402
-from bokehray.demo import build_demo_scene  # noqa: E402
+from bokehray.app.demo import build_demo_scene  # noqa: E402
 from benchmarks import common  # noqa: E402
 from reference import scatter_ref  # noqa: E402
 
@@ -239,7 +239,7 @@ def demo_lights(path: Path | None, device: str = "cpu", radius: float = 64.0) ->
     alone, default, exact) written to ``path``."""
     import imageio.v3 as iio
 
-    from bokehray.io import linear_to_srgb
+    from bokehray.colour import linear_to_srgb
 
     scene = build_demo_scene(1536, 1024)
     f = scene.focus_near

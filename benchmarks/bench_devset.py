@@ -89,7 +89,7 @@ def crops_figure(data: Path, path: Path, cases=(("d3_lamps_ring_writing", "bokeh
                  br.read_image(data / scene / f"{name}.exr"))
         for col, img in enumerate(shots):
             ax = axes[row, col]
-            ax.imshow(br.io.linear_to_srgb(np.clip(img[y:y + size, x:x + size], 0, 1)))
+            ax.imshow(br.colour.linear_to_srgb(np.clip(img[y:y + size, x:x + size], 0, 1)))
             ax.set_xticks([]), ax.set_yticks([])
             if row == 0:
                 ax.set_title(cols[col])

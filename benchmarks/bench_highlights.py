@@ -11,7 +11,7 @@ whole image and the depth-edge band), per scene group:
 
 Variants: no reconstruction (bokehray's behaviour before issue 15), ``--highlight-boost 4`` (the old opt-in
 boost), the reconstruction that is now the default for display-referred inputs
-(``bokehray.photo.reconstruct_highlights``), and the HDR input itself (the ceiling: what the 8-bit file lost).
+(``bokehray.photo.highlights.reconstruct_highlights``), and the HDR input itself (the ceiling: what the 8-bit file lost).
 
 Usage (from the repository root)::
 
@@ -35,13 +35,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 import numpy as np  # noqa: E402
 
 import bokehray as br  # noqa: E402
-from bokehray import photo  # noqa: E402
+from bokehray.photo import highlights  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 VARIANTS = {
     "8-bit, no reconstruction (before)": lambda img: img,
     "8-bit, --highlight-boost 4": lambda img: br.boost_highlights(img, 4.0),
-    "8-bit, reconstruction (new default)": lambda img: photo.reconstruct_highlights(img)[0],
+    "8-bit, reconstruction (new default)": lambda img: highlights.reconstruct_highlights(img)[0],
     "HDR input (ceiling)": None,
 }
 
@@ -90,7 +90,7 @@ def figure(data: Path, path: Path, scene="d3_lamps_ring_writing", name="bokeh_f0
         img8 = clipped_8bit(data, scene, Path(tmp))
     shots = {"8-bit, before": br.render(img8, disparity, blur),
              "8-bit, --highlight-boost 4": br.render(br.boost_highlights(img8, 4.0), disparity, blur),
-             "8-bit, reconstructed (default)": br.render(photo.reconstruct_highlights(img8)[0], disparity, blur),
+             "8-bit, reconstructed (default)": br.render(highlights.reconstruct_highlights(img8)[0], disparity, blur),
              "path-traced HDR truth": br.read_image(data / scene / f"{name}.exr")}
     y, x, size = box
     fig, axes = plt.subplots(1, len(shots), figsize=(3.2 * len(shots), 3.4))

@@ -74,7 +74,7 @@ def child(npz: str, quality: str, radius: str, tile: str, limit: str, spp: str) 
 
 
 def run(plan: list, tmp: str) -> list[dict]:
-    from bokehray.demo import build_demo_scene
+    from bokehray.app.demo import build_demo_scene
 
     rows, built = [], {}
     for mp, quality, radius, tile, limit, spp in plan:

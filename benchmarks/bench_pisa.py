@@ -25,7 +25,7 @@ def _inputs(n: int):
     import numpy as np
     import torch
 
-    from bokehray.pisa import pisa_masks
+    from bokehray_refiner.pisa import pisa_masks
 
     rng = np.random.default_rng(0)
     d = rng.uniform(0.0, 1.0, (n, n)).astype(np.float32)

@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 import numpy as np  # noqa: E402
 
 import bokehray  # noqa: E402
-from bokehray.demo import build_demo_scene  # noqa: E402
+from bokehray.app.demo import build_demo_scene  # noqa: E402
 from benchmarks import common  # noqa: E402
 
 BASE = (1536, 1024)

@@ -74,7 +74,7 @@ def sixteen_x(opts: br.RaytraceOptions) -> br.RaytraceOptions:
 
 
 def _pinhole(layers: list[br.Layer]) -> tuple[np.ndarray, np.ndarray]:
-    from bokehray.synth import _pinhole as pin
+    from bokehray.data.synth import _pinhole as pin
 
     return pin(layers)
 
@@ -149,7 +149,7 @@ def study_light(device: str, radii: tuple[int, ...]) -> list[dict]:
 
 
 def study_synth(device: str, scenes: int) -> list[dict]:
-    from bokehray.synth import SynthConfig, _mean_disparity, make_scene
+    from bokehray.data.synth import SynthConfig, _mean_disparity, make_scene
 
     cfg = SynthConfig()
     opts = br.RaytraceOptions(max_spp=cfg.max_spp)

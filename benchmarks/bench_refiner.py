@@ -3,7 +3,7 @@
 The disparity handed to every method is the true one, or it eroded / dilated by 1-5 px (paper
 fig. 7), blurred, shifted, or a depth estimator's kind of map (``bokehray_refiner.data.corrupt_disparity``);
 the target is the exact render of the true scene. Scores are PSNR/SSIM in sRGB after clipping
-(``bokehray.metrics``), over the whole image and within 8 px of a depth discontinuity of the
+(``bokehray.data.metrics``), over the whole image and within 8 px of a depth discontinuity of the
 *true* disparity. Every case is scored with the refiner gated (the default) and ungated
 (``GateOptions(enabled=False)``), so the gate's effect is measured on the same inputs.
 
@@ -96,8 +96,8 @@ def main() -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
     import bokehray as br
-    from bokehray.datasets import BLBDataset
-    from bokehray.metrics import discontinuity_band, score
+    from bokehray.data.datasets import BLBDataset
+    from bokehray.data.metrics import discontinuity_band, score
     from bokehray_refiner.data import corrupt_disparity
     from bokehray_refiner.refine import RefineOptions, load_refiner, refine
 

@@ -35,9 +35,9 @@ import numpy as np  # noqa: E402
 
 import bokehray as br  # noqa: E402
 from benchmarks import common  # noqa: E402
-from bokehray.batch import RenderSettings, RenderTask, render_file  # noqa: E402
+from bokehray.app.batch import RenderSettings, RenderTask, render_file  # noqa: E402
 from bokehray.executor import make_executor  # noqa: E402
-from bokehray.synth import SynthConfig, _generate_one  # noqa: E402
+from bokehray.data.synth import SynthConfig, _generate_one  # noqa: E402
 
 
 def _cpu_seconds() -> float:
@@ -76,7 +76,7 @@ def _bytes(folder: Path) -> dict:
 
 
 def photos(folder: Path, n: int, width: int, height: int) -> tuple[list[tuple[Path, Path]], float, float]:
-    from bokehray.demo import build_demo_scene
+    from bokehray.app.demo import build_demo_scene
 
     scene = build_demo_scene(width=width, height=height)
     pairs = []
@@ -117,7 +117,7 @@ def main() -> int:
                     "load_average_before": os.getloadavg()}
     try:
         pairs, k, d_f = photos(tmp / "photos", photo_n, pw, ph)
-        from bokehray.cli import build_parser
+        from bokehray.app.cli import build_parser
 
         settings = RenderSettings.from_args(build_parser().parse_args(
             ["render", "IMAGE", "--disparity", "MAP", "-o", "OUT.png", "--blur", str(k), "--focus", str(d_f),

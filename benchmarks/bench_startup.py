@@ -28,7 +28,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 TARGETS_S = {"help": 0.5, "render_help": 0.5, "usage_error": 0.5, "flag_conflict": 0.5, "preview_1mp": 1.5,
              "preview_1mp_explicit": 1.5}
-CLI = "import sys; from bokehray.cli import main; sys.exit(main())"
+CLI = "import sys; from bokehray.app.cli import main; sys.exit(main())"
 
 
 def _env(repo: Path) -> dict[str, str]:
@@ -82,7 +82,7 @@ def main() -> int:
     checkouts = {"this": REPO} | ({"baseline": args.baseline.resolve()} if args.baseline else {})
     envs = {k: _env(v) for k, v in checkouts.items()}
     with tempfile.TemporaryDirectory() as tmp:
-        setup = (f"import bokehray as br; from bokehray.demo import build_demo_scene; s = build_demo_scene(width=1224, "
+        setup = (f"import bokehray as br; from bokehray.app.demo import build_demo_scene; s = build_demo_scene(width=1224, "
                  f"height=816); br.write_image({tmp!r} + '/in.png', s.image); "
                  f"br.write_disparity({tmp!r} + '/d.png', s.disparity)")
         subprocess.run([sys.executable, "-c", setup], env=envs["this"], check=True, cwd=REPO)

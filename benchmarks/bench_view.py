@@ -90,9 +90,9 @@ def main() -> int:
     import warp
 
     warp.config.log_level = warp.LOG_WARNING
-    from bokehray.demo import build_demo_scene
-    from bokehray.view.server import ViewServer
-    from bokehray.view.session import ProxyLadder, ViewSession
+    from bokehray.app.demo import build_demo_scene
+    from bokehray.app.view.server import ViewServer
+    from bokehray.app.view.session import ProxyLadder, ViewSession
 
     w, h = (2000, 1500) if args.quick else (4000, 3000)
     n, warmup = (6, 2) if args.quick else (14, 2)

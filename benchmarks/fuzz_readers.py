@@ -47,7 +47,7 @@ def write_seeds(fmt: str, folder: Path) -> list[Path]:
     """Small valid files of ``fmt`` in every variant the writers produce."""
     import numpy as np
 
-    import bokehray.io as bio
+    import bokehray as br
 
     rng = np.random.default_rng(0)
     img = rng.random((5, 7, 4)).astype(np.float32)
@@ -55,18 +55,18 @@ def write_seeds(fmt: str, folder: Path) -> list[Path]:
     folder.mkdir(parents=True, exist_ok=True)
     out = []
     if fmt == "png":
-        out += [bio.write_image(folder / "rgb8.png", img[..., :3]), bio.write_image(folder / "rgba16.png", img, bit_depth=16),
-                bio.write_image(folder / "grey8.png", img[..., :1]), bio.write_disparity(folder / "disp16.png", d)]
+        out += [br.write_image(folder / "rgb8.png", img[..., :3]), br.write_image(folder / "rgba16.png", img, bit_depth=16),
+                br.write_image(folder / "grey8.png", img[..., :1]), br.write_disparity(folder / "disp16.png", d)]
     elif fmt == "jpeg":
-        out += [bio.write_image(folder / "rgb.jpg", img[..., :3], quality=50), bio.write_image(folder / "grey.jpg", img[..., :1])]
+        out += [br.write_image(folder / "rgb.jpg", img[..., :3], quality=50), br.write_image(folder / "grey.jpg", img[..., :1])]
     elif fmt == "tiff":
-        out += [bio.write_image(folder / "rgb16.tif", img[..., :3]), bio.write_image(folder / "rgba8.tif", img, bit_depth=8),
-                bio.write_image(folder / "float.tif", img[..., :3], bit_depth=32), bio.write_disparity(folder / "disp.tif", d)]
+        out += [br.write_image(folder / "rgb16.tif", img[..., :3]), br.write_image(folder / "rgba8.tif", img, bit_depth=8),
+                br.write_image(folder / "float.tif", img[..., :3], bit_depth=32), br.write_disparity(folder / "disp.tif", d)]
     elif fmt == "exr":
-        out += [bio.write_image(folder / "rgba.exr", img), bio.write_image(folder / "half.exr", img[..., :3], half=True),
-                bio.write_disparity(folder / "disp.exr", d)]
+        out += [br.write_image(folder / "rgba.exr", img), br.write_image(folder / "half.exr", img[..., :3], half=True),
+                br.write_disparity(folder / "disp.exr", d)]
     else:
-        out += [bio.write_disparity(folder / "disp.npy", d)]
+        out += [br.write_disparity(folder / "disp.npy", d)]
     out += _issue18_seeds(fmt, folder, img, d)
     return out
 
@@ -109,18 +109,19 @@ def fuzz_one(fmt: str, seconds: int, corpus: Path, artifacts: Path) -> int:
     with atheris.instrument_imports(include=["bokehray", "PIL", "tifffile"]):
         import numpy as np
 
-        import bokehray.io as bio
+        import bokehray as br
         from bokehray.errors import InputError, ResourceError
+        from bokehray.photo import read as rd
 
-    bio.MAX_PIXELS = FUZZ_MAX_PIXELS
+    rd.MAX_PIXELS = FUZZ_MAX_PIXELS
     ext, names = FORMATS[fmt]
-    readers = [getattr(bio, n) for n in names]
+    readers = [getattr(br, n) for n in names]
     path = Path(tempfile.mkdtemp(prefix=f"bokehray-fuzz-{fmt}-")) / f"input{ext}"
 
     def one_input(data: bytes) -> None:
         path.write_bytes(data)
         try:  # the header-only size (issue 18): must agree with every reader that decodes the file
-            size = bio.read_size(path)
+            size = rd.read_size(path)
         except (InputError, ResourceError) as e:
             if str(path) not in str(e):
                 raise AssertionError(f"read_size: error does not name the file: {e}") from None

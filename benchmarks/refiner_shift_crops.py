@@ -31,7 +31,7 @@ def main() -> None:
     from PIL import Image
 
     import bokehray as br
-    from bokehray.io import linear_to_srgb
+    from bokehray.colour import linear_to_srgb
     from bokehray_refiner.data import corrupt_disparity
     from bokehray_refiner.refine import load_refiner, refine
 

@@ -102,26 +102,26 @@ def run_case(c: dict) -> str | None:
 _ROOT = Path(__file__).resolve().parent.parent
 _ENV = {**os.environ, "PYTHONPATH": os.pathsep.join([str(_ROOT / "src"), str(_ROOT / "kernels"), str(_ROOT / "refiner"),
                                                      os.environ.get("PYTHONPATH", "")])}
-_CLI = [sys.executable, "-c", "import sys; from bokehray.cli import main; sys.exit(main())"]
+_CLI = [sys.executable, "-c", "import sys; from bokehray.app.cli import main; sys.exit(main())"]
 _KNOWN = {"renderer produced NaN/Inf": "issue 18.3 (radiance near float32's maximum; tests/test_reliability.py)"}
 
 
 def _inputs(folder: Path) -> dict:
     """The files every --io case draws from (written once)."""
-    import bokehray.io as bio
+    pass
 
     rng = np.random.default_rng(0)
     f = {}
     big = rng.random((1000, 1500, 3)).astype(np.float32)
-    f["big"] = bio.write_image(folder / "big.png", big)
-    f["big_d"] = bio.write_disparity(folder / "big_d.png", np.tile(np.linspace(0, 1, 1500, dtype=np.float32), (1000, 1)))
+    f["big"] = br.write_image(folder / "big.png", big)
+    f["big_d"] = br.write_disparity(folder / "big_d.png", np.tile(np.linspace(0, 1, 1500, dtype=np.float32), (1000, 1)))
     small = rng.random((96, 128, 3)).astype(np.float32)
-    f["small"] = bio.write_image(folder / "small.png", small)
-    f["small_d"] = bio.write_disparity(folder / "small_d.png", np.tile(np.linspace(0, 1, 128, dtype=np.float32), (96, 1)))
+    f["small"] = br.write_image(folder / "small.png", small)
+    f["small_d"] = br.write_disparity(folder / "small_d.png", np.tile(np.linspace(0, 1, 128, dtype=np.float32), (96, 1)))
     for scale in (1e30, 3e38, 3.4e38):
         img = small.copy()
         img[40:50, 60:70] = scale
-        f[f"bright{scale:g}"] = bio.write_image(folder / f"bright{scale:g}.exr", img)
+        f[f"bright{scale:g}"] = br.write_image(folder / f"bright{scale:g}.exr", img)
     for v in (0.5, 1e300, -1e300, 1e-300):
         d = np.full((96, 128), 0.5)
         d[7, 9] = v
@@ -151,10 +151,9 @@ def _check(rc: int, err: str, out: Path, allowed: set[int], signalled: bool) -> 
     if _hidden(out.parent):
         return f"temporary files left: {_hidden(out.parent)}"
     if out.exists():
-        import bokehray.io as bio
 
         try:
-            bio.read_image(out)
+            br.read_image(out)
         except Exception as e:  # noqa: BLE001
             return f"output exists but is not a complete image: {e}"
         if rc != 0 and not signalled:

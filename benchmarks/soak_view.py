@@ -50,9 +50,9 @@ def main() -> int:
     import warp
 
     warp.config.log_level = warp.LOG_WARNING
-    from bokehray.demo import build_demo_scene
-    from bokehray.view.server import ViewServer
-    from bokehray.view.session import ProxyLadder, ViewSession
+    from bokehray.app.demo import build_demo_scene
+    from bokehray.app.view.server import ViewServer
+    from bokehray.app.view.session import ProxyLadder, ViewSession
 
     sc = build_demo_scene(width=480, height=320)
     session = ViewSession(sc.image, sc.disparity, proxy_long_side=160, display_long_side=240)

@@ -33,7 +33,7 @@ def random_disparity(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
 
 
 def masks_case(rng: np.random.Generator) -> dict:
-    from bokehray.pisa import PisaMaskOptions, pisa_masks
+    from bokehray_refiner.pisa import PisaMaskOptions, pisa_masks
     from reference import pisa_ref as ref
 
     h, w = int(rng.integers(1, 8)), int(rng.integers(1, 8))

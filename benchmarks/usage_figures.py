@@ -24,9 +24,9 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "src"))
 
 import bokehray as br  # noqa: E402
-from bokehray.demo import build_demo_scene  # noqa: E402
+from bokehray.app.demo import build_demo_scene  # noqa: E402
 
-CLI = [sys.executable, "-c", "import sys; from bokehray.cli import main; sys.exit(main())"]
+CLI = [sys.executable, "-c", "import sys; from bokehray.app.cli import main; sys.exit(main())"]
 
 
 def _env() -> dict[str, str]:
@@ -42,7 +42,7 @@ def main() -> int:
     scene = build_demo_scene(width=960, height=640)
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
-        codes = np.round(br.io.linear_to_srgb(np.clip(scene.image, 0, 1)) * 255).astype(np.uint8)
+        codes = np.round(br.colour.linear_to_srgb(np.clip(scene.image, 0, 1)) * 255).astype(np.uint8)
         stored = np.ascontiguousarray(np.rot90(codes, 1))  # stored sideways: Orientation 6 turns it upright
         exif = Image.Exif()
         exif[0x0112] = 6
@@ -73,9 +73,9 @@ def main() -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    panels = [("photo.jpg (upright from its EXIF orientation)", br.io.linear_to_srgb(np.clip(photo, 0, 1))),
+    panels = [("photo.jpg (upright from its EXIF orientation)", br.colour.linear_to_srgb(np.clip(photo, 0, 1))),
               ("depth.npy: relative, 0.39..6.87", depth)]
-    panels += [(f"render: {k}", br.io.linear_to_srgb(np.clip(v, 0, 1))) for k, v in outs.items()]
+    panels += [(f"render: {k}", br.colour.linear_to_srgb(np.clip(v, 0, 1))) for k, v in outs.items()]
     fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.3))
     for ax, (title, img) in zip(axes, panels):
         ax.imshow(img, cmap="gray" if img.ndim == 2 else None)

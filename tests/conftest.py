@@ -26,7 +26,8 @@ settings.register_profile("dev", max_examples=15, deadline=None)
 settings.register_profile("soak", max_examples=2000, deadline=None)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
-DEVICES = ["cpu"] + (["cuda"] if wp.is_cuda_available() else [])
+DEVICES = ["cpu", pytest.param("cuda", marks=[pytest.mark.gpu, pytest.mark.skipif(
+    not wp.is_cuda_available(), reason="no CUDA device")])]
 
 
 @pytest.fixture(params=DEVICES)

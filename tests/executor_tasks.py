@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from bokehray.errors import InputError
-from bokehray.io import atomic_write
+from bokehray.output.atomic import atomic_write
 
 
 def digest(task: tuple[int, int]) -> str:

@@ -11,7 +11,7 @@ occluders block (eq. 8)::
 
 ``C`` is 0 outside the largest CoC, so only queries within the window radius
 ``w`` of a key matter: :func:`pisa_attention` works on the key-centric window of
-``bokehray.pisa`` (memory ``O(N (2w+1)^2)`` per head, not ``O(N^2)``), one
+``bokehray_refiner.pisa`` (memory ``O(N (2w+1)^2)`` per head, not ``O(N^2)``), one
 window row at a time, in place when no gradient is needed. Logits and weights
 are computed in float32 for half-precision inputs (float64 stays float64); a
 key whose mask is empty contributes 0, never NaN.
@@ -42,7 +42,7 @@ def _logits(q: torch.Tensor, k: torch.Tensor, window: int) -> torch.Tensor:
 
 
 def window_offsets(window: int) -> list[tuple[int, int]]:
-    """(dy, dx) of each window entry, row-major, as in ``bokehray.pisa.window_offsets``."""
+    """(dy, dx) of each window entry, row-major, as in ``bokehray_refiner.pisa.window_offsets``."""
     r = range(-window, window + 1)
     return [(dy, dx) for dy in r for dx in r]
 
@@ -128,7 +128,7 @@ def pisa_attention(
 
     Args:
         q, k: ``(B, heads, H, W, d)``; v: ``(B, heads, H, W, dv)``.
-        coc, visibility: ``(B, H, W, (2w+1)^2)`` masks from ``bokehray.pisa.pisa_masks``
+        coc, visibility: ``(B, H, W, (2w+1)^2)`` masks from ``bokehray_refiner.pisa.pisa_masks``
             (visibility None: no occlusion term).
         window: the window radius ``w`` of the masks.
 

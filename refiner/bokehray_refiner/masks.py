@@ -4,7 +4,7 @@ A U-Net's self-attention layers see token sequences at several resolutions (the
 latent, then /2, /4...). :class:`PisaMaskProvider` holds the full-resolution
 disparity of each image and computes the masks for a layer's grid on first
 request: the disparity is area-averaged to that grid, K is rescaled to it, and
-``bokehray.pisa.pisa_masks`` runs on the Warp device; the arrays reach torch
+``bokehray_refiner.pisa.pisa_masks`` runs on the Warp device; the arrays reach torch
 without a copy (``wp.to_torch``) and are cached per grid.
 """
 
@@ -20,7 +20,7 @@ import torch.nn.functional as F
 import warp as wp
 
 from bokehray.errors import InputError
-from bokehray.pisa import PisaMaskOptions, pisa_masks, window_radius
+from bokehray_refiner.pisa import PisaMaskOptions, pisa_masks, window_radius
 
 __all__ = ["LayerMasks", "PisaMaskProvider"]
 

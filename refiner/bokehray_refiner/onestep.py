@@ -31,9 +31,9 @@ import torch
 from safetensors.torch import load_file
 
 from bokehray.errors import InputError
-from bokehray.io import linear_to_srgb, srgb_to_linear
+from bokehray.colour import linear_to_srgb, srgb_to_linear
 from bokehray.lens import BlurParams
-from bokehray.pisa import PisaMaskOptions
+from bokehray_refiner.pisa import PisaMaskOptions
 
 from .masks import PisaMaskProvider
 from .processor import install_pisa

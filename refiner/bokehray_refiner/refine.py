@@ -36,9 +36,9 @@ from safetensors.torch import load_file
 
 from bokehray.depthfix import DepthFixOptions, correct_disparity
 from bokehray.errors import InputError
-from bokehray.io import linear_to_srgb, srgb_to_linear
+from bokehray.colour import linear_to_srgb, srgb_to_linear
 from bokehray.lens import BlurParams
-from bokehray.pisa import PisaMaskOptions
+from bokehray_refiner.pisa import PisaMaskOptions
 
 from .gate import GateOptions, channel_max, refine_gate
 from .masks import PisaMaskProvider
@@ -277,12 +277,57 @@ def refine(
         The refined render (scene-linear float32; untouched pixels are the classical values exactly) and stats.
     """
     t0 = time.perf_counter()
-    h, w = disparity.shape
-    fixed_px, t_fix, t_re, d_fixed = 0, 0.0, 0.0, None
-    focus_srgb = None
     first = classical is None  # the level's only render happens here: it is not part of the refine pass's time
     if first and rerender is None:
         raise InputError("refine: without a classical render it needs the rerender callback that renders the level")
+    fix = _correct_depth(image, disparity, blur, classical, options, rerender)
+    classical, disparity = fix.classical, fix.disparity
+    coc = blur.signed_coc(disparity).astype(np.float32)
+    reach = edge_reach(coc, options.min_jump_px)
+    need = _tiles_near(reach, options.tile)
+    if not options.neural:
+        need[:] = False
+    else:
+        model = model or load_refiner()
+    stats = RefineStats(tiles_total=int(need.size), tiles_near_edges=int(need.sum()), depth_fixed_px=fix.fixed_px,
+                        depthfix_seconds=fix.seconds, rerender_seconds=fix.render_seconds, disparity=fix.fixed)
+    render_time = fix.render_seconds if first else 0.0
+    t1 = time.perf_counter()
+    band, focus_srgb = None, fix.focus_srgb
+    if need.any():
+        if focus_srgb is None:
+            focus_srgb = linear_to_srgb(np.clip(image[..., :3], 0.0, 1.0))
+        band = _gated_band(image, focus_srgb, disparity, classical, coc, reach, need, options, stats)
+    stats.tiles_refined = int(need.sum())
+    stats.gate_seconds = time.perf_counter() - t1
+    if not need.any():
+        stats.seconds = time.perf_counter() - t0 - render_time
+        return classical.astype(np.float32, copy=True), stats
+    t1 = time.perf_counter()
+    out = _network_pass(model, focus_srgb, classical, disparity, coc, band, need, blur, options)
+    stats.neural_seconds = time.perf_counter() - t1
+    stats.seconds = time.perf_counter() - t0 - render_time
+    return np.maximum(out, 0.0) if classical.min() >= 0 else out, stats
+
+
+@dataclass
+class _DepthFix:
+    """What the first stage hands on: the level's render on the (maybe corrected) map, and what it did."""
+
+    classical: np.ndarray
+    disparity: np.ndarray
+    fixed: np.ndarray | None  # the corrected map where any pixel moved, else None
+    fixed_px: int
+    seconds: float  # the correction's own time
+    render_seconds: float  # the level's render on the corrected (or given) map, 0 when none was needed
+    focus_srgb: np.ndarray | None  # the photo in sRGB, when the correction computed it
+
+
+def _correct_depth(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, classical: np.ndarray | None,
+                   options: RefineOptions, rerender: Callable[[np.ndarray], np.ndarray] | None) -> _DepthFix:
+    """Stage 1: the colour-guided depth correction, then the level on the corrected map (or on the given map when
+    nothing was rendered yet)."""
+    fixed_px, t_fix, t_re, d_fixed, focus_srgb = 0, 0.0, 0.0, None, None
     if rerender is not None and options.depthfix.enabled:
         from scipy import ndimage
 
@@ -302,36 +347,36 @@ def refine(
         t1 = time.perf_counter()
         classical = np.asarray(rerender(disparity), np.float32)
         t_re = time.perf_counter() - t1
-    coc = blur.signed_coc(disparity).astype(np.float32)
-    reach = edge_reach(coc, options.min_jump_px)
-    need = _tiles_near(reach, options.tile)
-    if not options.neural:
-        need[:] = False
-    else:
-        model = model or load_refiner()
-    stats = RefineStats(tiles_total=int(need.size), tiles_near_edges=int(need.sum()), depth_fixed_px=fixed_px,
-                        depthfix_seconds=t_fix, rerender_seconds=t_re, disparity=d_fixed)
+    return _DepthFix(classical, disparity, d_fixed, fixed_px, t_fix, t_re, focus_srgb)
+
+
+def _gated_band(image: np.ndarray, focus_srgb: np.ndarray, disparity: np.ndarray, classical: np.ndarray,
+                coc: np.ndarray, reach: np.ndarray, need: np.ndarray, options: RefineOptions,
+                stats: RefineStats) -> np.ndarray:
+    """Stage 2: the blend weight of the correction, the band near depth edges times the confidence gate; tiles the
+    gate closes are dropped from ``need`` (in place)."""
+    h, w = disparity.shape
+    t = options.tile
+    nearest = nearest_edge(reach)  # the gate's edge pixels are the band's: one distance transform for both
+    full_band = edge_band(reach, options.band_margin_px, options.band_feather_px, nearest)
+    band = full_band * refine_gate(image, focus_srgb, disparity, classical, coc, options.min_jump_px,
+                                   options.gate, nearest=None if nearest is None else nearest[1])
+    stats.band_pixels = int((full_band > 0).sum())
+    stats.gate_open = float(band.sum() / full_band.sum()) if full_band.sum() > 0 else 0.0
+    ty, tx = need.shape
+    padded = np.zeros((ty * t, tx * t), np.float32)
+    padded[:h, :w] = band
+    need &= padded.reshape(ty, t, tx, t).max(axis=(1, 3)) > 0  # a tile the gate closes is not run
+    return band
+
+
+def _network_pass(model: BokehRefiner, focus_srgb: np.ndarray, classical: np.ndarray, disparity: np.ndarray,
+                  coc: np.ndarray, band: np.ndarray, need: np.ndarray, blur: BlurParams,
+                  options: RefineOptions) -> np.ndarray:
+    """Stage 3: the network's residual on the tiles in ``need`` (with their halos), feathered across the halos and
+    blended into the classical render by ``band``; every other pixel keeps the classical value bit for bit."""
+    h, w = disparity.shape
     t, halo = options.tile, options.halo
-    t1 = time.perf_counter()
-    if need.any():
-        nearest = nearest_edge(reach)  # the gate's edge pixels are the band's: one distance transform for both
-        full_band = edge_band(reach, options.band_margin_px, options.band_feather_px, nearest)
-        if focus_srgb is None:
-            focus_srgb = linear_to_srgb(np.clip(image[..., :3], 0.0, 1.0))
-        band = full_band * refine_gate(image, focus_srgb, disparity, classical, coc, options.min_jump_px,
-                                       options.gate, nearest=None if nearest is None else nearest[1])
-        stats.band_pixels = int((full_band > 0).sum())
-        stats.gate_open = float(band.sum() / full_band.sum()) if full_band.sum() > 0 else 0.0
-        ty, tx = need.shape
-        padded = np.zeros((ty * t, tx * t), np.float32)
-        padded[:h, :w] = band
-        need &= padded.reshape(ty, t, tx, t).max(axis=(1, 3)) > 0  # a tile the gate closes is not run
-    stats.tiles_refined = int(need.sum())
-    stats.gate_seconds = time.perf_counter() - t1
-    if not need.any():
-        stats.seconds = time.perf_counter() - t0 - (t_re if first else 0.0)
-        return classical.astype(np.float32, copy=True), stats
-    t1 = time.perf_counter()
     size = t + 2 * halo
     ph, pw = need.shape[0] * t - h + halo, need.shape[1] * t - w + halo  # pad to whole tiles plus the halo
     pad3 = ((halo, ph), (halo, pw), (0, 0))
@@ -399,6 +444,4 @@ def refine(
     b_t = base[touched]
     fixed = srgb_to_linear(np.clip(linear_to_srgb(b_t) + delta[touched] * band[touched][:, None], 0.0, 1.0))
     out[..., :3][touched] = classical[..., :3][touched] + (fixed - b_t)
-    stats.neural_seconds = time.perf_counter() - t1
-    stats.seconds = time.perf_counter() - t0 - (t_re if first else 0.0)
-    return np.maximum(out, 0.0) if classical.min() >= 0 else out, stats
+    return out

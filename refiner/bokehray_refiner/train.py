@@ -28,8 +28,8 @@ from safetensors.torch import save_file
 from tqdm import tqdm
 
 from bokehray.errors import InputError
-from bokehray.io import atomic_write
-from bokehray.pisa import K_MAX, PisaMaskOptions
+from bokehray.output.atomic import atomic_write
+from bokehray_refiner.pisa import K_MAX, PisaMaskOptions
 
 from .data import CORRUPTION_PROBS, PairBank
 from .masks import PisaMaskProvider

@@ -1,6 +1,6 @@
 """Keeping native libraries' and Python's side output off the CLI's stderr.
 
-- :func:`quiet_warp_on_import`: ``import bokehray`` does not import Warp (0.6 s): the first module that needs
+- :func:`quiet_warp_on_import`: ``import bokehray`` does not import Warp (slow to import): the first module that needs
   it does, when a render starts; this makes that import set ``warp.config.log_level`` to warnings (no banner
   or per-module load lines), whoever triggers it.
 - :func:`init_warp_quietly`: Warp initialisation without the native "no CUDA driver" line on

@@ -62,7 +62,7 @@ class DepthFixOptions:
         max_edge_share: a map with depth edges at more than this share of its pixels whose consecutive steps flip
             sign (:func:`step_flips` > 1/2) is left alone: that is noise in the disparity (an edge on nearly every
             pixel), not edges a few pixels off their colour edge, and the vote would cost 10-40x the preview for
-            nothing (it moved no pixel on such maps; found by an adversarial test). A blurred or estimated map can
+            nothing (it moved no pixel on such maps). A blurred or estimated map can
             have steps on more than this share too (the dev set's wire mesh at K = 32: 42-47 %), but its steps
             agree along each ramp (flips <= 4 %; noise 72-89 %), and it is corrected.
         ramp_px: half-width of the window of the smeared-edge hypothesis (0: off).

@@ -12,7 +12,7 @@ to :func:`make_executor` and never see which engine runs them:
 
 A task is ``fn(task)`` for a top-level function ``fn`` and a picklable ``task`` (seed and index, or input path and
 settings), so its result does not depend on the engine or the worker that ran it. Workers write their outputs
-themselves, atomically (:func:`bokehray.io.atomic_write`), and return a small summary. An exception raised by
+themselves, atomically (:func:`bokehray.output.atomic.atomic_write`), and return a small summary. An exception raised by
 ``fn`` is the task's failure (one line, never retried: the same input fails the same way); a worker process that
 dies mid-task (killed, out of memory, a crash in native code) leaves only a temporary file behind and the task is
 run again, up to ``retries`` times, on a fresh worker.
@@ -22,14 +22,13 @@ from __future__ import annotations
 
 import argparse
 import os
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 from .errors import BokehrayError, InputError
 
-__all__ = ["EXECUTORS", "Executor", "Outcome", "add_executor_args", "make_executor", "remove_stale_temporaries", "run_task"]
+__all__ = ["EXECUTORS", "Executor", "Outcome", "add_executor_args", "make_executor", "run_task"]
 
 EXECUTORS = ("local", "dask")
 DEFAULT_RETRIES = 3
@@ -267,35 +266,6 @@ def add_executor_args(p: argparse.ArgumentParser, *, workers_help: str = "worker
     g.add_argument("--scheduler", metavar="ADDRESS", help="dask: an existing scheduler, e.g. tcp://10.0.0.5:8786")
     if workers:
         g.add_argument("--workers", type=int, default=None, help=workers_help)
-
-
-def remove_stale_temporaries(folder: Path, names: Iterable[str]) -> int:
-    """Remove what a worker killed mid-write left next to the outputs ``names`` of ``folder``.
-
-    :func:`bokehray.io.atomic_write` writes ``.<name>.<random><ext>`` and the BLB writer ``.<name>.tmp-<pid>-...``
-    before renaming onto ``<name>``; a killed process leaves them. Call this when no task of the run is in flight.
-    Returns how many were removed.
-    """
-    import shutil
-
-    if not folder.is_dir():
-        return 0
-    wanted = set(names)
-    removed = 0
-    for entry in folder.iterdir():
-        if not entry.name.startswith("."):
-            continue
-        parts = entry.name[1:].split(".")  # ".<name>.<rest>": <name> may hold dots itself
-        name = next((n for n in (".".join(parts[:k]) for k in range(1, len(parts))) if n in wanted), None)
-        if name is not None:
-            if ".old-" in entry.name and not (folder / name).exists():
-                continue  # the previous version, moved aside by an overwrite that did not finish: keep it
-            if entry.is_dir() and not entry.is_symlink():
-                shutil.rmtree(entry, ignore_errors=True)
-            else:
-                entry.unlink(missing_ok=True)
-            removed += 1
-    return removed
 
 
 def make_executor(kind: str = "local", *, workers: int | None = None, scheduler: str | None = None,

@@ -215,20 +215,30 @@ class DepthNormalization:
             return np.where(inv > 0, 1.0 / np.maximum(inv, 1e-300), np.inf)
 
 
-def disparity_from_depth(depth_m: np.ndarray, norm: DepthNormalization | None = None) -> tuple[np.ndarray, DepthNormalization]:
-    """Convert a metric depth map to normalised disparity; returns ``(d, norm)``."""
-    z = np.asarray(depth_m)
+def disparity_from_depth(depth_m: np.ndarray, norm: DepthNormalization | None = None, *,
+                         source: str = "depth") -> tuple[np.ndarray, DepthNormalization]:
+    """Convert a metric depth map to normalised disparity; returns ``(d, norm)``.
+
+    The one converter of the API and the CLI. Missing depth, <= 0 (no measurement: depth cameras write 0) and
+    +/-inf (sky), is infinitely far: disparity 0. NaN is refused, and so is a map with no depth at all; messages
+    start with ``source``. Without ``norm`` the map's own nearest and farthest finite depths span [0, 1] (the far
+    end at infinity when any pixel is missing).
+    """
+    z = np.asarray(depth_m, np.float64)
     if z.ndim != 2:
-        raise InputError(f"depth: expected an H x W map, got shape {z.shape}")
-    if not np.isfinite(z).all() and not (np.isposinf(z) | np.isfinite(z)).all():
-        raise InputError("depth: expected finite values (or +inf for sky), found NaN or -inf")
-    if (z <= 0).any():
-        raise InputError(f"depth: expected values > 0 metres, got min {float(z.min()):g}")
+        raise InputError(f"{source}: expected an H x W map, got shape {z.shape}")
+    if np.isnan(z).any():
+        y, x = (int(i) for i in np.unravel_index(int(np.argmax(np.isnan(z))), z.shape))
+        raise InputError(f"{source}: expected depth in metres, got NaN at (y, x) = ({y}, {x})")
+    missing = ~np.isfinite(z) | (z <= 0)
+    if missing.all():
+        raise InputError(f"{source}: no pixel has a depth (every value is 0, negative or infinite)")
+    if norm is not None and not isinstance(norm, DepthNormalization):
+        raise InputError(f"{source}: expected a bokehray.DepthNormalization, got {type(norm).__name__}")
+    z = np.where(missing, np.inf, z)
     if norm is None:
-        finite = z[np.isfinite(z)]
-        if finite.size == 0:
-            raise InputError("depth: every value is infinite")
-        zf = float(finite.max()) if np.isfinite(z).all() else math.inf
+        finite = z[~missing]
+        zf = math.inf if missing.any() else float(finite.max())
         norm = DepthNormalization(float(finite.min()), zf if zf > float(finite.min()) else math.inf)
     return norm.disparity(z), norm
 

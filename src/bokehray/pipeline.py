@@ -20,7 +20,15 @@ from .levels import LEVELS, RenderContext, get_level
 from .levels.refine import REFINABLE, refine_render
 from .options import LayerOptions, MemoryOptions, PreviewOptions, RaytraceOptions
 from .stats import RenderStats
-from .validate import MAX_RADIANCE, check_disparity, check_image, check_number, check_radiance, check_type, first_bad_index
+from .validate import (
+    MAX_RADIANCE,
+    check_disparity,
+    check_image,
+    check_number,
+    check_radiance,
+    check_type,
+    first_bad_index,
+)
 
 __all__ = ["QUALITIES", "boost_highlights", "focus_at", "render", "render_with_stats"]
 
@@ -149,7 +157,7 @@ def render_with_stats(
         raise InputError(f"progress: expected a callable progress(done, total) or None, got {progress!r}")
     refining = _check_refine(refine, quality)
     device = _check_device(device)
-    _check_shape_fits(image, level.whole_image_bytes, memory)
+    _check_shape_fits(image, level.whole_image_bytes(), memory)
 
     img = check_image(image)
     check_radiance(img)

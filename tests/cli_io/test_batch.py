@@ -11,10 +11,10 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 import bokehray as br
-from bokehray.batch import find_pairs, parse_sweep
-from bokehray.cli import main
+from bokehray.app.batch import find_pairs, parse_sweep
+from bokehray.app.cli import main
 from bokehray.errors import InputError
-from bokehray.io import linear_to_srgb
+from bokehray.colour import linear_to_srgb
 
 H, W = 40, 56
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import bokehray as br
-from bokehray.cli import main
+from bokehray.app.cli import main
 
 
 @pytest.fixture
@@ -302,7 +302,7 @@ def test_warnings_are_one_line_on_success_and_dropped_on_error(monkeypatch, caps
     import sys
     import warnings
 
-    from bokehray import cli
+    from bokehray.app import cli
     from bokehray.errors import InputError
 
     def cmd(args):

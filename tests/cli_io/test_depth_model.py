@@ -10,8 +10,9 @@ torch = pytest.importorskip("torch")
 transformers = pytest.importorskip("transformers")
 
 import bokehray as br  # noqa: E402
-from bokehray import depth_model  # noqa: E402
-from bokehray.cli import main  # noqa: E402
+from bokehray.photo import depth_model  # noqa: E402
+from bokehray.photo.depth import normalize_relative  # noqa: E402
+from bokehray.app.cli import main  # noqa: E402
 
 PRE = {"size": {"height": 56, "width": 56}, "keep_aspect_ratio": True, "ensure_multiple_of": 14,
        "image_mean": [0.485, 0.456, 0.406], "image_std": [0.229, 0.224, 0.225]}
@@ -84,7 +85,7 @@ def test_relative_models_near_is_large(models, photo, name):
     raw = _raw(models[name], photo)
     inside = (d > 0) & (d < 1)  # outside the percentile clip, ties
     assert _rank_corr(raw[inside], d[inside]) > 0.999
-    np.testing.assert_allclose(d, br.photo.normalize_relative(raw), atol=1e-6)
+    np.testing.assert_allclose(d, normalize_relative(raw), atol=1e-6)
 
 
 def test_metric_model_near_is_small(models, photo):
@@ -145,7 +146,7 @@ def test_view_estimates_the_map_as_render_does_and_exports_the_same_image(models
     pytest.importorskip("starlette")
     import shlex
 
-    from bokehray.view.session import ViewSession, parse_params
+    from bokehray.app.view.session import ViewSession, parse_params
 
     img = br.write_image(tmp_path / "p.png", photo)
     session = ViewSession.from_files(str(img), depth_model=str(models["da"]), export_dir=tmp_path)

@@ -4,10 +4,12 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 import bokehray as br
 
 
+@pytest.mark.slow
 def test_import_and_render_without_torch():
     code = (
         "import sys; sys.modules['torch'] = None\n"

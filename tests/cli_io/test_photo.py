@@ -12,9 +12,11 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 import bokehray as br
-from bokehray import photo
-from bokehray.cli import main
-from bokehray.demo import build_demo_scene
+from bokehray.photo import depth
+from bokehray.photo import highlights
+from bokehray.photo import subject as subj
+from bokehray.app.cli import main
+from bokehray.app.demo import build_demo_scene
 
 DEVSET = Path("/work/shared/data/pathtraced-dev")
 if not DEVSET.exists():
@@ -38,24 +40,24 @@ def demo():
 
 @pytest.mark.parametrize(("h", "w"), [(256, 384), (816, 1224), (3000, 4000)])
 def test_amount_is_a_fraction_of_the_diagonal(h, w):
-    assert photo.k_from_amount(0, h, w) == 0.0
-    assert photo.k_from_amount(100, h, w) == pytest.approx(photo.AMOUNT_K_FRACTION * math.hypot(h, w))
-    k = photo.k_from_amount(50, h, w)
+    assert subj.k_from_amount(0, h, w) == 0.0
+    assert subj.k_from_amount(100, h, w) == pytest.approx(subj.AMOUNT_K_FRACTION * math.hypot(h, w))
+    k = subj.k_from_amount(50, h, w)
     assert k / math.hypot(h, w) == pytest.approx(0.03)  # the same look at every resolution
-    assert photo.amount_from_k(k, h, w) == pytest.approx(50)
+    assert subj.amount_from_k(k, h, w) == pytest.approx(50)
 
 
 @pytest.mark.parametrize("bad", [-1, 100.5, float("nan"), float("inf"), True, "50"])
 def test_amount_out_of_range_is_refused(bad):
     with pytest.raises(br.InputError, match="amount"):
-        photo.k_from_amount(bad, 10, 10)
+        subj.k_from_amount(bad, 10, 10)
 
 
 # --------------------------------------------------------------------------- default focus
 
 
 def test_default_focus_lands_on_the_demo_cat(demo):
-    subject = photo.subject_focus(demo.disparity)
+    subject = subj.subject_focus(demo.disparity)
     assert 0.86 <= subject.d_f <= 0.92  # the cat: 0.92 at the centre, 0.86 at the rim; grass (0.95+) is skipped
     h, w = demo.disparity.shape
     assert w / 2 < subject.x < w and 0 < subject.y < h  # the cat sits right of centre
@@ -71,7 +73,7 @@ def test_default_focus_lands_on_the_devset_subject(name):
     d = br.read_disparity(DEVSET / name / "disparity.exr")
     z = br.read_depth(DEVSET / name / "depth.exr")
     near = z <= 1.8  # every scene's front layer lies within 1.14 .. 1.71 scene units, the next beyond 2.5
-    subject = photo.subject_focus(d)
+    subject = subj.subject_focus(d)
     assert float(d[near].min()) - 1e-6 <= subject.d_f <= float(d[near].max()) + 1e-6
     assert abs(subject.d_f - info["focus_disparities"][0]) * 32 < 4.0  # < 4 px CoC from F0 at the largest K
     assert near[subject.y, subject.x] or subject.share < 0.2  # a sparse layer's centroid may fall in a gap
@@ -80,7 +82,7 @@ def test_default_focus_lands_on_the_devset_subject(name):
 @given(hnp.arrays(np.float32, st.tuples(st.integers(1, 40), st.integers(1, 40)),
                   elements=st.floats(0, 1, width=32)))
 def test_default_focus_is_a_disparity_of_the_map(d):
-    subject = photo.subject_focus(d)
+    subject = subj.subject_focus(d)
     assert float(d.min()) <= subject.d_f <= float(d.max())
     assert subject.d_f in d
     assert 0 <= subject.x < d.shape[1] + 1 and 0 <= subject.y < d.shape[0] + 1
@@ -96,9 +98,9 @@ def test_default_focus_is_a_disparity_of_the_map(d):
 def test_normalize_is_in_range_and_keeps_the_order(v, invert):
     if v.max() == v.min():
         with pytest.raises(br.InputError, match="constant"):
-            photo.normalize_relative(v)
+            depth.normalize_relative(v)
         return
-    d = photo.normalize_relative(v, invert=invert)
+    d = depth.normalize_relative(v, invert=invert)
     assert d.dtype == np.float32 and d.min() >= 0 and d.max() <= 1
     flat_v, flat_d = v.ravel(), d.ravel().astype(np.float64)
     order = np.argsort(flat_v, kind="stable")
@@ -110,14 +112,14 @@ def test_normalize_uses_robust_percentiles():
     rng = np.random.default_rng(0)
     v = rng.uniform(0.39, 6.87, (200, 200))  # a raw relative inverse-depth map
     v[0, 0] = 1e6  # one wild outlier does not squash the rest
-    d = photo.normalize_relative(v)
+    d = depth.normalize_relative(v)
     assert d[0, 0] == 1.0
     assert 0.45 < float(np.median(d)) < 0.55
 
 
 def test_reversed_map_is_flagged_and_the_right_one_is_not(demo):
-    assert photo.looks_reversed(demo.disparity) == (False, "")
-    flagged, why = photo.looks_reversed(1.0 - demo.disparity)
+    assert depth.looks_reversed(demo.disparity) == (False, "")
+    flagged, why = depth.looks_reversed(1.0 - demo.disparity)
     assert flagged and "border" in why
 
 
@@ -125,23 +127,23 @@ def test_reversed_map_is_flagged_and_the_right_one_is_not(demo):
 @pytest.mark.parametrize("name", DEV_SCENES)
 def test_reversed_heuristic_on_the_devset(name):
     d = br.read_disparity(DEVSET / name / "disparity.exr")
-    assert not photo.looks_reversed(d)[0]
-    assert photo.looks_reversed(1.0 - d)[0]
+    assert not depth.looks_reversed(d)[0]
+    assert depth.looks_reversed(1.0 - d)[0]
 
 
 def test_missing_depth_is_infinitely_far():
     z = np.full((8, 10), 2.0)
     z[:, :5] = 4.0
     z[0, 0], z[1, 1], z[2, 2] = 0.0, -3.0, np.inf
-    d, norm, missing = photo.depth_to_disparity(z, source="z.npy")
-    assert missing == pytest.approx(3 / 80)
+    d, norm = br.disparity_from_depth(z, source="z.npy")
+    assert depth.missing_depth_share(z) == pytest.approx(3 / 80)
     assert d[0, 0] == d[1, 1] == d[2, 2] == 0.0
     assert norm.z_near_m == 2.0 and math.isinf(norm.z_far_m)
     z[3, 3] = np.nan
     with pytest.raises(br.InputError, match=r"z\.npy: .*NaN at \(y, x\) = \(3, 3\)"):
-        photo.depth_to_disparity(z, source="z.npy")
+        br.disparity_from_depth(z, source="z.npy")
     with pytest.raises(br.InputError, match="no pixel has a depth"):
-        photo.depth_to_disparity(np.zeros((3, 3)), source="z.npy")
+        br.disparity_from_depth(np.zeros((3, 3)), source="z.npy")
 
 
 def test_integer_depth_needs_a_scale(tmp_path):
@@ -151,11 +153,11 @@ def test_integer_depth_needs_a_scale(tmp_path):
     mm[:, 4:] = 3000
     Image.fromarray(mm).save(tmp_path / "mm.png")
     with pytest.raises(br.InputError, match=r"mm\.png: holds integer codes .*--depth-scale"):
-        photo.read_depth_map(tmp_path / "mm.png")
-    z = photo.read_depth_map(tmp_path / "mm.png", scale=0.001)
+        depth.read_depth(tmp_path / "mm.png")
+    z = depth.read_depth(tmp_path / "mm.png", scale=0.001)
     np.testing.assert_allclose(z, mm * 0.001)
     with pytest.raises(br.InputError, match="--depth-scale"):
-        photo.read_depth_map(tmp_path / "mm.png", scale=0.0)
+        depth.read_depth(tmp_path / "mm.png", scale=0.0)
 
 
 # --------------------------------------------------------------------------- the command line
@@ -244,19 +246,19 @@ def _lamp_scene():
     yy, xx = np.mgrid[:h, :w]
     cover = np.clip(4.5 - np.hypot(yy - 20, xx - 20), 0, 1)[..., None]  # antialiased rim: partial coverage
     hdr = 0.02 + cover * np.array([6.0, 3.0, 1.5])
-    codes = np.round(br.io.linear_to_srgb(np.clip(hdr, 0, 1)) * 255)
-    return hdr.astype(np.float32), br.io.srgb_to_linear(codes / 255.0)
+    codes = np.round(br.colour.linear_to_srgb(np.clip(hdr, 0, 1)) * 255)
+    return hdr.astype(np.float32), br.colour.srgb_to_linear(codes / 255.0)
 
 
 def test_a_clipped_lamp_is_re_inflated_with_its_rim_colour():
     hdr, img8 = _lamp_scene()
-    out, found = photo.reconstruct_highlights(img8)
+    out, found = highlights.reconstruct_highlights(img8)
     assert found == 1
-    clipped = img8 >= photo.CLIP_LEVEL
+    clipped = img8 >= highlights.CLIP_LEVEL
     np.testing.assert_array_equal(out[~clipped], img8[~clipped])  # unclipped channels are exact: kept
     assert (out[clipped] >= 1.0).all()
     centre = out[20, 20]
-    assert centre.max() == pytest.approx(photo.HIGHLIGHT_GAIN)
+    assert centre.max() == pytest.approx(highlights.HIGHLIGHT_GAIN)
     assert centre[0] > centre[1] > centre[2] - 1e-6  # warm, as the rim shows
     # the light's energy comes back much closer to the truth than the clipped file has it
     assert abs(out.sum() - hdr.sum()) < 0.5 * abs(img8.sum() - hdr.sum())
@@ -265,10 +267,10 @@ def test_a_clipped_lamp_is_re_inflated_with_its_rim_colour():
 def test_reconstruction_leaves_unclipped_and_one_channel_clipped_images_alone():
     rng = np.random.default_rng(0)
     img = (rng.random((30, 30, 3)) * 0.9).astype(np.float32)
-    assert photo.reconstruct_highlights(img)[1] == 0
+    assert highlights.reconstruct_highlights(img)[1] == 0
     red = img.copy()
     red[5:12, 5:12, 0] = 1.0  # a saturated red clipped in one channel: no white core, not a light
-    out, found = photo.reconstruct_highlights(red)
+    out, found = highlights.reconstruct_highlights(red)
     assert found == 0 and np.array_equal(out, red)
 
 
@@ -318,7 +320,7 @@ def _masks(draw):
 def test_label8_is_scipys_8_connected_labelling(mask):
     from scipy import ndimage
 
-    labels, boxes = photo.label8(mask)
+    labels, boxes = highlights.label8(mask)
     want, n = ndimage.label(mask, structure=np.ones((3, 3), bool))
     np.testing.assert_array_equal(labels, want)
     assert boxes == [(s[0].start, s[0].stop, s[1].start, s[1].stop) for s in ndimage.find_objects(want)]
@@ -329,7 +331,7 @@ def test_label8_is_scipys_8_connected_labelling(mask):
 def test_dilate8_is_scipys_square_dilation(mask, steps):
     from scipy import ndimage
 
-    np.testing.assert_array_equal(photo.dilate8(mask, steps), ndimage.binary_dilation(mask, np.ones((3, 3)), steps))
+    np.testing.assert_array_equal(highlights.dilate8(mask, steps), ndimage.binary_dilation(mask, np.ones((3, 3)), steps))
 
 
 @given(mask=_masks(), cap=st.floats(0.5, 4.0))
@@ -337,16 +339,17 @@ def test_edge_distance_is_scipys_distance_transform_capped(mask, cap):
     from scipy import ndimage
 
     want = np.minimum(ndimage.distance_transform_edt(np.pad(mask, 1))[1:-1, 1:-1], cap)
-    np.testing.assert_allclose(photo.edge_distance(mask, cap), want, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(highlights.edge_distance(mask, cap), want, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_the_highlight_reconstruction_does_not_import_scipy_ndimage():
     """A render's start-up budget (issue 15): scipy.ndimage alone costs about 0.2 s to import."""
     import subprocess
     import sys
 
-    code = ("import sys, numpy as np; from bokehray import photo; img = np.full((20, 20, 3), 0.2, np.float32); "
-            "img[8:11, 8:11] = 1.0; assert photo.reconstruct_highlights(img)[1] == 1; "
+    code = ("import sys, numpy as np; from bokehray.photo import highlights; img = np.full((20, 20, 3), 0.2, np.float32); "
+            "img[8:11, 8:11] = 1.0; assert highlights.reconstruct_highlights(img)[1] == 1; "
             "print('scipy.ndimage' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "False"

@@ -9,9 +9,9 @@ import tifffile
 from PIL import Image, ImageCms, ImageOps
 
 import bokehray as br
-from bokehray import io as bio
-from bokehray import photo
-from bokehray.cli import main
+from bokehray import colour
+from bokehray.photo import embedded
+from bokehray.app.cli import main
 from reference.icc_ref import matrix_trc_profile, p3_codes_to_linear_srgb
 
 P3 = matrix_trc_profile("Display P3 (test)")
@@ -37,7 +37,7 @@ def test_png_orientation_is_applied_like_pillow(tmp_path, codes, orientation):
     with Image.open(path) as im:
         want = np.asarray(ImageOps.exif_transpose(im))  # Pillow's reading of the tag: the independent reference
     got = br.read_image(path)
-    np.testing.assert_array_equal(got, bio.srgb_to_linear(want / 255.0))
+    np.testing.assert_array_equal(got, colour.srgb_to_linear(want / 255.0))
 
 
 @pytest.mark.parametrize("orientation", [3, 6, 8])
@@ -58,9 +58,9 @@ def test_png_exif_after_the_image_data_is_found_without_decoding(tmp_path, codes
     with Image.open(path) as im:
         assert "exif" not in im.info  # not seen before the pixels are decoded
         want = np.asarray(ImageOps.exif_transpose(im))
-    meta = photo.embedded(path, "PNG")
+    meta = embedded.embedded(path, "PNG")
     assert meta.orientation == orientation and meta.exif is not None
-    np.testing.assert_array_equal(br.read_image(path), bio.srgb_to_linear(want / 255.0))
+    np.testing.assert_array_equal(br.read_image(path), colour.srgb_to_linear(want / 255.0))
 
 
 def test_jpeg_orientation_6_is_upright(tmp_path):
@@ -87,12 +87,12 @@ def test_display_p3_png_is_converted_to_linear_srgb(tmp_path):
     grid = np.stack(np.meshgrid(*[np.arange(8, 256, 40)] * 3, indexing="ij"), axis=-1)  # 7 x 7 x 7 colours
     codes = grid.astype(np.uint8).reshape(49, 7, 3)
     Image.fromarray(codes).save(tmp_path / "p3.png", icc_profile=P3)
-    assert not photo.embedded(tmp_path / "p3.png", "PNG").is_srgb
+    assert not embedded.embedded(tmp_path / "p3.png", "PNG").is_srgb
     got = br.read_image(tmp_path / "p3.png")
     want = p3_codes_to_linear_srgb(codes)
-    enc = lambda x: bio.linear_to_srgb(x).astype(np.float64) * 255  # noqa: E731
+    enc = lambda x: colour.linear_to_srgb(x).astype(np.float64) * 255  # noqa: E731
     assert np.abs(enc(got) - enc(want)).max() <= 1.0 + 1e-6  # one 8-bit code: littleCMS's rounding
-    naive = bio.srgb_to_linear(codes / 255.0)  # P3 read as sRGB: what the reader did before
+    naive = colour.srgb_to_linear(codes / 255.0)  # P3 read as sRGB: what the reader did before
     assert np.abs(enc(naive) - enc(want)).max() > 10
 
 
@@ -100,16 +100,16 @@ def test_display_p3_in_jpeg_and_tiff(tmp_path):
     codes = np.full((8, 8, 3), (200, 120, 80), np.uint8)
     Image.fromarray(codes).save(tmp_path / "p3.jpg", icc_profile=P3, quality=100)
     tifffile.imwrite(tmp_path / "p3.tif", codes, photometric="rgb", iccprofile=P3)
-    want = bio.linear_to_srgb(p3_codes_to_linear_srgb(codes[:1, :1]))[0, 0] * 255  # (213, 115, 70)
+    want = colour.linear_to_srgb(p3_codes_to_linear_srgb(codes[:1, :1]))[0, 0] * 255  # (213, 115, 70)
     for name in ("p3.jpg", "p3.tif"):
-        got = bio.linear_to_srgb(br.read_image(tmp_path / name)).mean(axis=(0, 1)) * 255
+        got = colour.linear_to_srgb(br.read_image(tmp_path / name)).mean(axis=(0, 1)) * 255
         assert np.abs(got - want).max() < 2.5, (name, got, want)
 
 
 def test_srgb_profile_is_left_alone(tmp_path, codes):
     srgb = ImageCms.ImageCmsProfile(ImageCms.createProfile("sRGB")).tobytes()
     Image.fromarray(codes).save(tmp_path / "s.png", icc_profile=srgb)
-    np.testing.assert_array_equal(br.read_image(tmp_path / "s.png"), bio.srgb_to_linear(codes / 255.0))
+    np.testing.assert_array_equal(br.read_image(tmp_path / "s.png"), colour.srgb_to_linear(codes / 255.0))
 
 
 def _icc_name(icc: bytes) -> str:
@@ -130,7 +130,7 @@ def test_outputs_are_tagged_srgb(tmp_path, name, bits):
             icc = im.info["icc_profile"]
     assert "sRGB" in _icc_name(icc)
     back = br.read_image(path)  # and still reads back as before (the profile is sRGB: no conversion)
-    assert np.abs(bio.linear_to_srgb(back) - bio.linear_to_srgb(img)).max() < (0.06 if name.endswith("jpg") else 0.003)
+    assert np.abs(colour.linear_to_srgb(back) - colour.linear_to_srgb(img)).max() < (0.06 if name.endswith("jpg") else 0.003)
 
 
 def test_exr_output_carries_srgb_chromaticities(tmp_path):
@@ -138,7 +138,7 @@ def test_exr_output_carries_srgb_chromaticities(tmp_path):
 
     path = br.write_image(tmp_path / "o.exr", np.ones((4, 4, 3), np.float32))
     with OpenEXR.File(str(path), header_only=True) as f:
-        np.testing.assert_allclose(f.header()["chromaticities"], photo.SRGB_CHROMATICITIES, atol=1e-6)
+        np.testing.assert_allclose(f.header()["chromaticities"], colour.SRGB_CHROMATICITIES, atol=1e-6)
 
 
 def test_jpeg_output_keeps_exif_upright_and_takes_quality(tmp_path, capsys):
@@ -178,7 +178,7 @@ def test_resizing_a_map_of_the_other_orientation_is_refused(tmp_path, capsys):
 def test_a_profile_of_another_colour_space_is_ignored(tmp_path, codes):
     lab = ImageCms.ImageCmsProfile(ImageCms.createProfile("LAB")).tobytes()  # not RGB: nothing to convert from
     Image.fromarray(codes).save(tmp_path / "lab.png", icc_profile=lab)
-    np.testing.assert_array_equal(br.read_image(tmp_path / "lab.png"), bio.srgb_to_linear(codes / 255.0))
+    np.testing.assert_array_equal(br.read_image(tmp_path / "lab.png"), colour.srgb_to_linear(codes / 255.0))
 
 
 def test_an_unreadable_profile_is_an_error_naming_the_file(tmp_path, codes):

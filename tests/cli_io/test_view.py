@@ -17,12 +17,12 @@ pytest.importorskip("starlette", reason="bokehray view needs the 'view' extra (s
 pytest.importorskip("uvicorn", reason="bokehray view needs the 'view' extra (starlette, uvicorn)")
 
 import bokehray as br  # noqa: E402
-from bokehray.cli import main  # noqa: E402
-from bokehray.demo import build_demo_scene  # noqa: E402
+from bokehray.app.cli import main  # noqa: E402
+from bokehray.app.demo import build_demo_scene  # noqa: E402
 from bokehray.errors import InputError  # noqa: E402
-from bokehray.view.server import ViewServer  # noqa: E402
-from bokehray.view.session import ProxyLadder, ViewSession, box_reduce, parse_params  # noqa: E402
-from bokehray.view.worker import RenderWorker, Superseded  # noqa: E402
+from bokehray.app.view.server import ViewServer  # noqa: E402
+from bokehray.app.view.session import ProxyLadder, ViewSession, box_reduce, parse_params  # noqa: E402
+from bokehray.app.view.worker import RenderWorker, Superseded  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -198,7 +198,7 @@ def test_worker_exports_are_not_abandoned():
             return "written"
 
         fut = w.submit_export(export)
-        from bokehray.view.worker import Busy
+        from bokehray.app.view.worker import Busy
 
         with pytest.raises(Busy):
             for _ in range(3):
@@ -314,7 +314,7 @@ def test_export_writes_what_the_shown_command_writes(server, session, tmp_path, 
 
 
 def rss_mb() -> float:
-    from bokehray.bench.machine import status_kb
+    from bokehray.app.bench.machine import status_kb
 
     return (status_kb("VmRSS") or 0) / 1024
 
@@ -411,6 +411,7 @@ def test_depth_map_session_and_its_command(scene_files, tmp_path):
     np.testing.assert_array_equal(br.read_image(path), br.read_image(again))
 
 
+@pytest.mark.slow
 def test_cli_serves_until_interrupted(scene_files, tmp_path):
     """`bokehray view` prints its 127.0.0.1 URL, serves the page, and stops cleanly on Ctrl-C (SIGINT)."""
     import os
@@ -419,7 +420,7 @@ def test_cli_serves_until_interrupted(scene_files, tmp_path):
     import sys
 
     _, img, disp, _ = scene_files
-    code = "import sys; from bokehray.cli import main; sys.exit(main())"
+    code = "import sys; from bokehray.app.cli import main; sys.exit(main())"
     proc = subprocess.Popen([sys.executable, "-c", code, "view", str(img), "--disparity", str(disp),
                              "--export-dir", str(tmp_path)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})

@@ -21,9 +21,9 @@ pytest.importorskip("uvicorn", reason="bokehray view needs the 'view' extra (sta
 pytest.importorskip("selenium", reason="the browser test needs selenium (the 'test-browser' extra)")
 
 import bokehray as br  # noqa: E402
-from bokehray.demo import build_demo_scene  # noqa: E402
-from bokehray.view.server import ViewServer  # noqa: E402
-from bokehray.view.session import ViewSession  # noqa: E402
+from bokehray.app.demo import build_demo_scene  # noqa: E402
+from bokehray.app.view.server import ViewServer  # noqa: E402
+from bokehray.app.view.session import ViewSession  # noqa: E402
 
 CHROMIUM = next((p for p in map(shutil.which, ("chromium", "chromium-browser")) if p), None)
 DRIVER = shutil.which("chromedriver")
@@ -37,6 +37,8 @@ from selenium.webdriver.chrome.service import Service  # noqa: E402
 from selenium.webdriver.common.action_chains import ActionChains  # noqa: E402
 from selenium.webdriver.common.by import By  # noqa: E402
 from selenium.webdriver.support.ui import WebDriverWait  # noqa: E402
+
+pytestmark = pytest.mark.slow  # processes, signals, a browser: seconds each
 
 
 @pytest.fixture(scope="module")
@@ -139,7 +141,7 @@ def test_click_drag_export_in_chromium(served, browser):
     assert argv[argv.index("--aperture") + 1] == "polygon"
     out = br.read_image(path)
     assert out.shape == (session.h, session.w, 3)
-    from bokehray.cli import main
+    from bokehray.app.cli import main
 
     again = path.with_name("again.png")
     argv[argv.index("-o") + 1] = str(again)

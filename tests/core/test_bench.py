@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from bokehray.bench import Method, SynthSplit, pareto_front, registry, run_bench, select
-from bokehray.bench.ebb import focus_from_mask, focus_from_sharpness, search_k
-from bokehray.bench.peers import NaiveScatter, coc_radius_map
-from bokehray.bench.run import Case, dominators, ebb_cases, perturb_disparity, robustness_subset, synth_cases
-from bokehray.datasets import write_blb_scene
+from bokehray.app.bench import Method, SynthSplit, pareto_front, registry, run_bench, select
+from bokehray.app.bench.ebb import focus_from_mask, focus_from_sharpness, search_k
+from bokehray.app.bench.peers import NaiveScatter, coc_radius_map
+from bokehray.app.bench.run import Case, dominators, ebb_cases, perturb_disparity, robustness_subset, synth_cases
+from bokehray.data.datasets import write_blb_scene
 from bokehray.errors import InputError
 
 # ----------------------------------------------------------------------------- Pareto
@@ -66,7 +66,7 @@ def test_focus_from_sharpness_and_mask():
 
 
 def _write_ebb(root: Path, gain: float = 1.5, k_true: float = 4.0) -> None:
-    from bokehray.io import write_disparity, write_image
+    from bokehray.output.write import write_disparity, write_image
 
     img = _texture(48, 48, 2)
     disp = np.full((48, 48), 0.25, np.float32)
@@ -190,7 +190,7 @@ def _blb(root: Path, n: int = 2, size: int = 40) -> None:
 
 
 def _bench(capsys, *args: str) -> tuple[int, str, str]:
-    from bokehray.cli import main
+    from bokehray.app.cli import main
 
     capsys.readouterr()
     try:

@@ -1,4 +1,4 @@
-"""Tests for bokehray.datasets: BLB write/read round trip, atomic writes, EBB pairing, error paths."""
+"""Tests for bokehray.data.datasets: BLB write/read round trip, atomic writes, EBB pairing, error paths."""
 
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bokehray import datasets as ds
-from bokehray.datasets import BLBDataset, EBBDataset, Sample, write_blb_scene
+from bokehray.data import datasets as ds
+from bokehray.data.datasets import BLBDataset, EBBDataset, Sample, write_blb_scene
 from bokehray.errors import InputError
-from bokehray.io import write_disparity, write_image
+from bokehray.output.write import write_disparity, write_image
 
 H, W = 16, 20
 KS = [4.0, 12.5]

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from bokehray.demo import _GAP, _LABEL_H, DemoScene, _stroke, build_demo_scene, contact_sheet
+from bokehray.app.demo import _GAP, _LABEL_H, DemoScene, _stroke, build_demo_scene, contact_sheet
 from bokehray.errors import InputError
 
 

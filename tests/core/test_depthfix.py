@@ -6,9 +6,18 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import ndimage
 
-from bokehray.datasets import perturb_disparity
-from bokehray.depthfix import (DepthFixOptions, colour_edge_offsets, correct_disparity, edge_pairs, global_shift,
-                               shift_map, smeared, untrusted, weighted_median)
+from bokehray.data.datasets import perturb_disparity
+from bokehray.depthfix import (
+    DepthFixOptions,
+    colour_edge_offsets,
+    correct_disparity,
+    edge_pairs,
+    global_shift,
+    shift_map,
+    smeared,
+    untrusted,
+    weighted_median,
+)
 from reference.depthfix_ref import (colour_edge_offsets_ref, correct_disparity_ref, edge_pairs_ref,
                                           global_shift_ref, smeared_ref, untrusted_ref, weighted_median_ref)
 

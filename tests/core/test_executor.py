@@ -11,7 +11,9 @@ import pytest
 from executor_tasks import always_die, digest, fail_on_odd, write_or_die
 
 from bokehray.errors import InputError
-from bokehray.executor import Outcome, make_executor, remove_stale_temporaries
+from bokehray.executor import Outcome, make_executor
+from bokehray.output.atomic import remove_stale_outputs
+from tolerances import HANG_S
 
 
 def _run(ex, fn, tasks) -> list[Outcome]:
@@ -63,17 +65,17 @@ def test_a_killed_worker_leaves_nothing_half_written_and_its_task_is_retried(kin
     tasks = [(str(tmp_path), i, i == 2) for i in range(5)]
     t0 = time.perf_counter()
     got = _run(ex, write_or_die, tasks)
-    assert time.perf_counter() - t0 < 120
+    assert time.perf_counter() - t0 < HANG_S
     assert all(o.ok for o in got), [o.error for o in got]
     if kind == "local":
         assert got[2].attempts == 2  # the dead worker's task ran again (and any task sharing its broken pool)
     for i in range(5):  # every output is whole: the killed attempt never reached the final name
         assert (tmp_path / f"out_{i}.bin").read_bytes() == bytes([i]) * 65536
     # the killed attempt's half-written temporary is gone: the retry's atomic write removed the temporaries of
-    # dead processes of this host beside its output (bokehray.io); remove_stale_temporaries covers what a worker
+    # dead processes of this host beside its output (bokehray.output.atomic); remove_stale_temporaries covers what a worker
     # on another host left, and finds nothing more here
     assert not [p.name for p in tmp_path.iterdir() if p.name.startswith(".out_2.bin.")]
-    assert remove_stale_temporaries(tmp_path, [f"out_{i}.bin" for i in range(5)]) == 0
+    assert remove_stale_outputs(tmp_path, [f"out_{i}.bin" for i in range(5)]) == 0
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
 
 
@@ -101,20 +103,20 @@ def test_bad_executor_arguments():
     assert make_executor("local", workers=8, tasks=3).workers == 3
 
 
-def test_remove_stale_temporaries_touches_only_the_named_outputs(tmp_path):
+def test_remove_stale_outputs_touches_only_the_named_outputs(tmp_path):
     names = ["a.png", "scene_00001"]
     for n in [".a.png.x1y2.png", ".scene_00001.tmp-12-abc", ".a.pngx", ".b.png.q.png", "a.png", ".scene_000010.tmp-1"]:
         (tmp_path / n).mkdir() if "scene" in n else (tmp_path / n).write_bytes(b"x")
     (tmp_path / ".scene_00001.tmp-12-abc" / "image.exr").write_bytes(b"x")
     (tmp_path / ".scene_00001.old-abc").mkdir()  # an overwrite interrupted mid-swap: the old scene, kept
-    assert remove_stale_temporaries(tmp_path, names) == 2
+    assert remove_stale_outputs(tmp_path, names) == 2
     left = sorted(p.name for p in tmp_path.iterdir())
     assert left == [".a.pngx", ".b.png.q.png", ".scene_00001.old-abc", ".scene_000010.tmp-1", "a.png"]
 
 
 def test_bench_split_and_synth_cli_go_through_the_seam(tmp_path, capsys):
-    from bokehray.bench.run import SynthSplit, synth_cases
-    from bokehray.cli import build_parser
+    from bokehray.app.bench.run import SynthSplit, synth_cases
+    from bokehray.app.cli import build_parser
 
     split = SynthSplit(scenes=2, size=40, blur_levels=(5.0,), max_spp=4, seed=11)
     cases, root = synth_cases(split, tmp_path, workers=2, executor="local", progress=False, log=lambda s: None)
@@ -131,8 +133,9 @@ def test_dask_missing_is_one_clear_line(monkeypatch):
         make_executor("dask", workers=1)
 
 
+@pytest.mark.slow
 def test_import_bokehray_imports_no_dask():
-    code = ("import sys, bokehray, bokehray.batch, bokehray.executor, bokehray.cli; bokehray.cli.build_parser(); "
+    code = ("import sys, bokehray, bokehray.app.batch, bokehray.executor, bokehray.app.cli; bokehray.app.cli.build_parser(); "
             "print(sorted(m for m in sys.modules if m.split('.')[0] in ('dask', 'distributed')))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"

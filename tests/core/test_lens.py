@@ -57,8 +57,10 @@ def test_disparity_from_depth_min_max_and_errors():
     d, norm = br.disparity_from_depth(z)
     assert norm.z_near_m == 1.0 and norm.z_far_m == 8.0
     assert d.max() == 1.0 and d.min() == 0.0
-    with pytest.raises(br.InputError, match="> 0"):
-        br.disparity_from_depth(np.array([[0.0, 1.0]]))
+    d, norm = br.disparity_from_depth(np.array([[0.0, 1.0]]))  # no measurement (0): infinitely far
+    assert d.tolist() == [[0.0, 1.0]] and math.isinf(norm.z_far_m)
+    with pytest.raises(br.InputError, match="no pixel has a depth"):
+        br.disparity_from_depth(np.array([[0.0, -1.0]]))
     with pytest.raises(br.InputError, match="NaN"):
         br.disparity_from_depth(np.array([[np.nan, 1.0]]))
     with pytest.raises(br.InputError, match="focal length"):

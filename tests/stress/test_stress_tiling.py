@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 import bokehray as br
 from bokehray import scene as sc
 from bokehray import tiling
-from bokehray.demo import build_demo_scene
+from bokehray.app.demo import build_demo_scene
 from bokehray.errors import ResourceError
 
 # Tiles and the untiled render do the same arithmetic except where a row's prefix sum starts

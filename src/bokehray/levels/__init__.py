@@ -6,25 +6,55 @@
   slightly below the preview (docs/raytracer.md).
 - the refine hook (:mod:`.refine`): the optional neural pass over a preview render.
 
-``LEVELS`` is the registry the API, the CLI and the benchmark read their choices from; a level's module is
-imported when it first renders (reading the registry imports no renderer and no Warp).
+``LEVELS`` is the registry the API, the CLI and the benchmark read their choices from. Each entry holds the
+level's renderer as a function that imports its module when it first renders (reading the registry imports no
+renderer and no Warp).
 """
 
 from __future__ import annotations
 
+import numpy as np
+
 from ..options import PreviewOptions, RaytraceOptions
+from ..stats import RenderStats
 from .base import Level, RenderContext
 
 __all__ = ["LEVELS", "Level", "RenderContext", "get_level"]
+
+
+
+def _render_preview(ctx: RenderContext) -> tuple[np.ndarray, RenderStats]:
+    from .preview import render_preview
+
+    return render_preview(ctx)
+
+
+def _preview_bytes() -> int:
+    from .preview import WHOLE_IMAGE_B
+
+    return WHOLE_IMAGE_B
+
+
+def _render_raytrace(ctx: RenderContext) -> tuple[np.ndarray, RenderStats]:
+    from .raytrace import render_raytrace
+
+    return render_raytrace(ctx)
+
+
+def _raytrace_bytes() -> int:
+    from .raytrace import WHOLE_IMAGE_B
+
+    return WHOLE_IMAGE_B
+
 
 LEVELS: dict[str, Level] = {
     level.name: level
     for level in (
         Level("preview", "layered occlusion-aware scatter, fast, and the more accurate level for photos",
-              PreviewOptions, f"{__name__}.preview", "render_preview"),
+              PreviewOptions, _render_preview, _preview_bytes),
         Level("raytrace", "the same layers ray traced through the aperture: much slower and, on photos, measured "
               "slightly below the preview (docs/raytracer.md); the exact renderer of true layer stacks (synth)",
-              RaytraceOptions, f"{__name__}.raytrace", "render_raytrace"),
+              RaytraceOptions, _render_raytrace, _raytrace_bytes),
     )
 }
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -48,26 +47,16 @@ class RenderContext:
 
 @dataclass(frozen=True, slots=True)
 class Level:
-    """A rung of the quality ladder: its name, what it is, its options type and where its renderer lives.
+    """A rung of the quality ladder: its name, what it is, its options type, its renderer and its memory.
 
-    ``render(ctx)`` returns (H x W x 3 float32, stats); ``whole_image_bytes`` is what it holds per pixel of the
-    whole image whatever the tiling (a render is refused from its shape when that alone exceeds the budget).
-    Both come from ``module`` (its ``renderer`` function and ``WHOLE_IMAGE_B``), imported on first use, so that
-    reading the registry (``bokehray --help``) imports no renderer and no Warp.
+    ``render(ctx)`` returns (H x W x 3 float32, stats); ``whole_image_bytes()`` is what it holds per pixel of the
+    whole image whatever the tiling (a render is refused from its shape when that alone exceeds the budget). Both
+    import the level's module on first use (``bokehray.levels``), so that reading the registry
+    (``bokehray --help``) imports no renderer and no Warp.
     """
 
     name: str
     summary: str
     options_type: type
-    module: str
-    renderer: str
-
-    def _impl(self):
-        return importlib.import_module(self.module)
-
-    def render(self, ctx: RenderContext) -> tuple[np.ndarray, RenderStats]:
-        return getattr(self._impl(), self.renderer)(ctx)
-
-    @property
-    def whole_image_bytes(self) -> int:
-        return int(self._impl().WHOLE_IMAGE_B)
+    render: Callable[[RenderContext], tuple[np.ndarray, RenderStats]]
+    whole_image_bytes: Callable[[], int]

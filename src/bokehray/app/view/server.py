@@ -24,7 +24,7 @@ from importlib import resources
 from typing import Self
 from urllib.parse import quote
 
-from ..errors import BokehrayError, InputError
+from ...errors import BokehrayError, InputError
 from .session import EXPORT_FORMATS, MAX_BODY_BYTES, ViewSession, parse_params
 from .worker import Busy, RenderWorker, Superseded
 
@@ -41,7 +41,7 @@ _SECURITY_HEADERS = {
 
 
 def _static(name: str) -> bytes:
-    return resources.files("bokehray.view").joinpath("static", name).read_bytes()
+    return resources.files("bokehray.app.view").joinpath("static", name).read_bytes()
 
 
 def create_app(session: ViewSession, worker: RenderWorker | None = None, allowed_hosts: tuple[str, ...] = ()):

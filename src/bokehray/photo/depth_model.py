@@ -8,9 +8,9 @@ extra).
 
 Polarity (docs/usage.md, tested): relative models (Depth Anything's ``depth_estimation_type = "relative"``,
 DPT) predict *relative inverse depth*, near = large, which is disparity up to scale and shift: it is normalised
-by its 0.5th..99.5th percentiles (``bokehray.photo.normalize_relative``). Metric models
+by its 0.5th..99.5th percentiles (``bokehray.photo.depth.normalize_relative``). Metric models
 (``depth_estimation_type = "metric"``) predict metres, near = small: they go through ``1/z`` with the min-max
-normalisation of metric depth (``bokehray.photo.depth_to_disparity``).
+normalisation of metric depth (``bokehray.lens.disparity_from_depth``).
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
+from ..errors import InputError
 
 __all__ = ["SUPPORTED", "estimate_disparity", "model_kind"]
 
@@ -98,7 +98,7 @@ def predict(model, image: np.ndarray, size: tuple[int, int], mean, std, device: 
     """The model's raw prediction for a linear ``H x W x 3`` photo, resized back to ``H x W`` (float64)."""
     import torch
 
-    from .io import linear_to_srgb
+    from ..colour import linear_to_srgb
 
     h, w = image.shape[:2]
     srgb = np.clip(linear_to_srgb(np.clip(image[..., :3], 0.0, 1.0)), 0.0, 1.0)
@@ -124,7 +124,8 @@ def estimate_disparity(
     checkpoint's image processor would, run once, and the prediction resized back bilinearly to ``H x W``
     before it is turned into disparity (see the module's docstring for the polarity).
     """
-    from .photo import depth_to_disparity, normalize_relative
+    from ..lens import disparity_from_depth
+    from .depth import normalize_relative
 
     folder = Path(folder)
     cfg = _config(folder)
@@ -156,7 +157,7 @@ def estimate_disparity(
         raise InputError(f"{folder}: the model predicted NaN or Inf for this photo")
     kind = model_kind(cfg)
     if kind == "metric":
-        disparity, norm, _ = depth_to_disparity(pred, source=str(folder))
+        disparity, norm = disparity_from_depth(pred, source=str(folder))
         what = f"metric depth {norm.z_near_m:.3g}..{norm.z_far_m:.3g} m -> 1/z"
     else:
         disparity = normalize_relative(pred, source=str(folder))

@@ -11,26 +11,25 @@ focus, so the benchmark chooses them the way the paper and BokehMe do:
   against the ground truth (:func:`search_k`; golden-section search, the usual "binary search"
   for the maximum of a unimodal function, to ``tol`` px);
 * **exposure alignment**: the input is scaled so its global mean equals the ground truth's
-  (:func:`bokehray.metrics.exposure_align`). Scores are reported for the original and for the
+  (:func:`bokehray.data.metrics.exposure_align`). Scores are reported for the original and for the
   aligned input; K is searched on the aligned input (the paper's main table) and reused for the
   original one.
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 import numpy as np
 
-from ..metrics import ssim_map, to_srgb
+from ...data.metrics import ssim_map, to_srgb
 
 __all__ = ["focus_from_mask", "focus_from_sharpness", "search_k", "sharpness_map"]
 
 
 def focus_from_mask(disparity: np.ndarray, mask: np.ndarray) -> float:
     """Median disparity where ``mask`` is set (salient region)."""
-    from ..errors import InputError
+    from ...errors import InputError
 
     m = np.asarray(mask)
     if m.ndim == 3:
@@ -66,7 +65,7 @@ def focus_from_sharpness(target_linear: np.ndarray, disparity: np.ndarray, top: 
 
 def search_k(render: Callable[[float], np.ndarray], target_linear: np.ndarray, k_lo: float = 0.0,
              k_hi: float = 64.0, tol: float = 0.25, max_evals: int = 24) -> tuple[float, float, int]:
-    """K in ``[k_lo, k_hi]`` maximising SSIM(render(K), target), by golden-section search.
+    """K in ``[k_lo, k_hi]`` maximising SSIM(render(K), target), by Brent's bounded search (scipy).
 
     Assumes SSIM is unimodal in K (one best blur); evaluations are cached and the best K ever
     evaluated is returned, so a non-unimodal curve still gives the best point seen.
@@ -83,19 +82,10 @@ def search_k(render: Callable[[float], np.ndarray], target_linear: np.ndarray, k
             seen[k] = float(ssim_map(t, to_srgb(render(k)[..., :3])).mean())
         return seen[k]
 
-    g = (math.sqrt(5.0) - 1.0) / 2.0
-    a, b = float(k_lo), float(k_hi)
-    c, d = b - g * (b - a), a + g * (b - a)
-    fc, fd = f(c), f(d)
-    while b - a > tol and len(seen) < max_evals:
-        if fc >= fd:
-            b, d, fd = d, c, fc
-            c = b - g * (b - a)
-            fc = f(c)
-        else:
-            a, c, fc = c, d, fd
-            d = a + g * (b - a)
-            fd = f(d)
-    f(0.5 * (a + b))
+    from scipy.optimize import minimize_scalar
+
+    res = minimize_scalar(lambda k: -f(k), bounds=(float(k_lo), float(k_hi)), method="bounded",
+                          options={"xatol": tol, "maxiter": max_evals})
+    f(float(res.x))
     k_best = max(seen, key=lambda k: (seen[k], -k))
     return k_best, seen[k_best], len(seen)

@@ -21,7 +21,7 @@ import numpy as np
 
 import bokehray as br
 
-from ..errors import InputError
+from ...errors import InputError
 
 __all__ = ["EXPORT_FORMATS", "MAX_BODY_BYTES", "ProxyLadder", "RenderParams", "ViewSession", "box_factor", "box_reduce",
            "encode_jpeg", "parse_params"]
@@ -53,7 +53,7 @@ def box_reduce(a: np.ndarray, f: int) -> np.ndarray:
     return np.ascontiguousarray(a.reshape(shape).mean(axis=(1, 3), dtype=np.float32), np.float32)
 
 
-# sRGB encoding through a 16-bit table: 12 MP in ~0.1 s instead of ~1 s for the power law
+# sRGB encoding through a 16-bit table: a lookup per pixel instead of a power law
 _LIN = np.linspace(0.0, 1.0, 65536, dtype=np.float64)
 _SRGB8 = np.round(255.0 * np.where(_LIN <= 0.0031308, 12.92 * _LIN, 1.055 * _LIN ** (1 / 2.4) - 0.055)).astype(np.uint8)
 
@@ -157,10 +157,10 @@ def parse_params(body: object, disparity: np.ndarray) -> RenderParams:
     unknown = sorted(set(body) - _PARAM_KEYS - {"stage"})
     if unknown:
         raise InputError(f"parameters: unknown {', '.join(map(repr, unknown))}")
-    from .. import photo
+    from ...photo.subject import AMOUNT_DEFAULT, k_from_amount, subject_focus
 
     if body.get("blur") is None:  # the CLI's default: --amount 50 of the image diagonal
-        k = photo.k_from_amount(photo.AMOUNT_DEFAULT, *disparity.shape)
+        k = k_from_amount(AMOUNT_DEFAULT, *disparity.shape)
     else:
         k = _number(body, "blur", "--blur", 0.0)
     if k < 0:
@@ -171,7 +171,7 @@ def parse_params(body: object, disparity: np.ndarray) -> RenderParams:
     focus: float | None = None
     xy: tuple[int, int] | None = None
     if focus_val is None and at is None:  # the CLI's default: focus on the subject
-        focus_val = photo.subject_focus(disparity).d_f
+        focus_val = subject_focus(disparity).d_f
         body = {**body, "focus": focus_val}
     if at is not None:
         if (not isinstance(at, list) or len(at) != 2
@@ -375,7 +375,7 @@ class ViewSession:
             raise InputError(f"argument --bit-depth: invalid int value: {bit_depth!r}")
         bits, half = bit_depth, False  # EXR at 16 bits is half float, as `--bit-depth 16` gives
         path = self.export_path(fmt)
-        from ..io import check_output_path  # the same check as `bokehray render -o`, before rendering
+        from ...output.write import check_output_path  # the same check as `bokehray render -o`, before rendering
 
         check_output_path(path, bit_depth=bits, half=half)
         out = self.render_full(p, check)
@@ -385,7 +385,7 @@ class ViewSession:
     def command(self, p: RenderParams, output: str | Path, *, bit_depth: int | None = None,
                 half: bool = False) -> str:
         """The ``bokehray render`` command line that writes the same image."""
-        from .. import photo
+        from ...photo.highlights import is_display_referred
 
         q = shlex.quote
         img = str(Path(self.image_path).resolve()) if self.image_path else "IMAGE"
@@ -405,7 +405,7 @@ class ViewSession:
                      "--curvature", _fmt(p.curvature)]
         if p.highlight_boost:
             args += ["--highlight-boost", _fmt(p.highlight_boost)]
-        elif self.image_path and photo.is_display_referred(self.image_path):
+        elif self.image_path and is_display_referred(self.image_path):
             # the page shows a display-referred photo's highlights as they are (its boost control instead)
             args.append("--no-highlight-reconstruction")
         if p.quality != "preview":

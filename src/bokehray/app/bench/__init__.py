@@ -23,7 +23,7 @@ __all__ = ["Case", "Method", "SynthSplit", "pareto_front", "registry", "run_benc
 
 def __getattr__(name: str) -> Any:
     if name not in _EXPORTS:
-        raise AttributeError(f"module 'bokehray.bench' has no attribute {name!r}")
+        raise AttributeError(f"module 'bokehray.app.bench' has no attribute {name!r}")
     value = getattr(importlib.import_module(f".{_EXPORTS[name]}", __name__), name)
     globals()[name] = value
     return value

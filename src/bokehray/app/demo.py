@@ -29,7 +29,7 @@ from scipy import ndimage
 from skimage import data as skdata
 from skimage.transform import resize
 
-from .errors import InputError
+from ..errors import InputError
 
 __all__ = ["DemoScene", "build_demo_scene", "contact_sheet"]
 
@@ -66,7 +66,7 @@ class DemoScene:
 
 def _linear(img: np.ndarray) -> np.ndarray:
     x = img.astype(np.float32) / 255.0
-    from .io import srgb_to_linear  # the same numbers as colour-science's sRGB decoding, without its import
+    from ..colour import srgb_to_linear  # the same numbers as colour-science's sRGB decoding, without its import
 
     return srgb_to_linear(x)
 
@@ -303,7 +303,7 @@ def contact_sheet(
         im = np.clip(np.nan_to_num(im, nan=0.0, posinf=1.0, neginf=0.0), 0.0, 1.0)
         th = max(round(tile_width * im.shape[0] / im.shape[1]), 1)
         im = np.clip(resize(im, (th, tile_width, 3), order=1, anti_aliasing=True), 0.0, 1.0)
-        from .io import linear_to_srgb
+        from ..colour import linear_to_srgb
 
         tiles.append(np.round(linear_to_srgb(im).astype(np.float64) * 255.0).astype(np.uint8))
     cols = min(columns, len(tiles))

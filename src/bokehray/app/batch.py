@@ -33,7 +33,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from .errors import InputError
+from ..errors import InputError
 
 __all__ = ["Pair", "RenderSettings", "RenderTask", "add_batch_args", "find_pairs", "is_batch", "parse_sweep",
            "render_file", "run_batch", "sweep_values"]
@@ -71,8 +71,8 @@ def parse_sweep(text: str) -> float | tuple[float, ...]:
 
 
 def add_batch_args(r: argparse.ArgumentParser) -> None:
-    """The batch options of ``bokehray render`` (called from :func:`bokehray.cli.build_parser`)."""
-    from .executor import add_executor_args
+    """The batch options of ``bokehray render`` (called from :func:`bokehray.app.cli.build_parser`)."""
+    from ..executor import add_executor_args
 
     g = r.add_argument_group(
         "many inputs (docs/scale.md)",
@@ -115,7 +115,7 @@ class Pair:
 
 
 def _natural_key(p: Path) -> list:
-    from .datasets import _natural_key as key
+    from ..data.datasets import _natural_key as key
 
     return key(str(p))
 
@@ -297,11 +297,13 @@ def _gif(frames: Sequence[Path], path: Path, width: int, fps: float) -> Path:
     import numpy as np
     from PIL import Image
 
-    from . import io
+    from ..colour import linear_to_srgb
+    from ..output.atomic import atomic_write
+    from ..photo.read import read_image
 
     images = []
     for f in frames:
-        rgb = np.clip(io.linear_to_srgb(np.clip(io.read_image(f)[..., :3], 0.0, 1.0)), 0.0, 1.0)
+        rgb = np.clip(linear_to_srgb(np.clip(read_image(f)[..., :3], 0.0, 1.0)), 0.0, 1.0)
         im = Image.fromarray(np.round(rgb * 255.0).astype(np.uint8))
         if im.width > width:
             im = im.resize((width, max(1, round(im.height * width / im.width))), Image.Resampling.LANCZOS)
@@ -311,12 +313,12 @@ def _gif(frames: Sequence[Path], path: Path, width: int, fps: float) -> Path:
     def encode(tmp: str) -> None:
         images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=duration, loop=0)
 
-    return io.atomic_write(path, encode)
+    return atomic_write(path, encode)
 
 
 def _state(out: Path, fingerprint: str, outputs: Sequence[str], overwrite: bool) -> None:
     """Refuse to skip outputs made with other settings (or not by a batch); then record this batch's settings."""
-    from . import io
+    from ..output.atomic import atomic_write
 
     state = out / STATE_FILE
     existing = [o for o in outputs if (out / o).exists()]
@@ -332,14 +334,15 @@ def _state(out: Path, fingerprint: str, outputs: Sequence[str], overwrite: bool)
             raise InputError(f"{out}: holds {len(existing)} renders made with other settings ({existing[0]}, ...); "
                              "pass --overwrite to render them again, or choose another output folder")
     text = json.dumps({"settings": fingerprint, "outputs": len(outputs)}, indent=2) + "\n"
-    io.atomic_write(state, lambda tmp: Path(tmp).write_text(text))
+    atomic_write(state, lambda tmp: Path(tmp).write_text(text))
 
 
 def run_batch(args: argparse.Namespace) -> int:
     """``bokehray render`` with many inputs or a sweep: plan, skip what is done, run, summarise."""
     from tqdm import tqdm
 
-    from .executor import make_executor, remove_stale_temporaries
+    from ..executor import make_executor
+    from ..output.atomic import remove_stale_outputs
 
     if args.map_suffix and "/" in args.map_suffix:
         raise InputError(f"--map-suffix: expected a file-name suffix, got {args.map_suffix!r}")
@@ -385,7 +388,7 @@ def run_batch(args: argparse.Namespace) -> int:
             frames.append(frame)
             tasks.append(RenderTask(str(pair.image), str(pair.map), str(frame), settings.with_values(**{name: v})))
         stacks[out / f"{stem}_{name}_sweep.gif"] = frames
-    from .io import check_output_path
+    from ..output.write import check_output_path
 
     for t in {Path(t.output).suffix: t for t in tasks}.values():  # one output of each format
         check_output_path(t.output, bit_depth=settings.get("bit_depth"), half=settings.get("half"))
@@ -422,7 +425,7 @@ def run_batch(args: argparse.Namespace) -> int:
               "run the same command again to render the rest", file=sys.stderr)
         return 130
     finally:
-        remove_stale_temporaries(out, names)
+        remove_stale_outputs(out, names)
     wall = time.perf_counter() - t0
     gifs = 0
     for gif, frames in stacks.items():

@@ -49,8 +49,8 @@ def _bokehray(**render_kwargs) -> Callable[[], Renderer]:
     """A bokehray renderer: ``bokehray.render`` with a disc aperture and these keyword arguments."""
 
     def make() -> Renderer:
-        from ..lens import Aperture, BlurParams
-        from ..pipeline import render
+        from ...lens import Aperture, BlurParams
+        from ...pipeline import render
 
         def run(image: np.ndarray, disparity: np.ndarray, k_px: float, focus_disparity: float) -> np.ndarray:
             return render(image, disparity, BlurParams(k_px, focus_disparity), Aperture(), **render_kwargs)
@@ -61,14 +61,14 @@ def _bokehray(**render_kwargs) -> Callable[[], Renderer]:
 
 
 def _preview(level_radius_px: float | None = None, **layers) -> Callable[[], Renderer]:
-    from ..options import LayerOptions, PreviewOptions
+    from ...options import LayerOptions, PreviewOptions
 
     preview = PreviewOptions() if level_radius_px is None else PreviewOptions(level_radius_px=level_radius_px)
     return _bokehray(options=preview, layers=LayerOptions(**layers))
 
 
 def _raytrace(spp: int) -> Callable[[], Renderer]:
-    from ..options import RaytraceOptions
+    from ...options import RaytraceOptions
 
     return _bokehray(quality="raytrace", options=RaytraceOptions(max_spp=spp))
 
@@ -126,7 +126,7 @@ def registry() -> list[Method]:
 
 def select(names: str | None, quick: bool) -> list[Method]:
     """Methods by comma-separated ``names`` (all by default, or the quick subset)."""
-    from ..errors import InputError
+    from ...errors import InputError
 
     methods = registry()
     if names:

@@ -1,4 +1,4 @@
-"""The ``bokehray bench`` subcommand (registered by :mod:`bokehray.cli`)."""
+"""The ``bokehray bench`` subcommand (registered by :mod:`bokehray.app.cli`)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import json
 import time
 from pathlib import Path
 
-from ..errors import InputError
+from ...errors import InputError
 
 
 def add_parser(sub) -> argparse.ArgumentParser:
@@ -35,7 +35,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     b.add_argument("--out", default="out/bench", help="folder for JSON/CSV/markdown results (default out/bench)")
     b.add_argument("--plots", help="folder for the PNG plots (default: --out)")
     b.add_argument("--cache", help="cache of the synthetic test split (default $BOKEHRAY_CACHE or ~/.cache/bokehray)")
-    from ..executor import add_executor_args
+    from ...executor import add_executor_args
 
     add_executor_args(b, workers_help="processes generating the synthetic split (the timing itself runs in this "
                       "process, one method at a time)")
@@ -45,11 +45,21 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from ..metrics import PerceptualMetric
+    from ...data.metrics import PerceptualMetric
     from .methods import registry, select
     from .machine import machine_info
-    from .run import (QUICK_SPLIT, SynthSplit, blb_cases, default_cache, ebb_cases, markdown_table,
-                      robustness_table, run_bench, synth_cases, write_reports)
+    from .run import (
+        QUICK_SPLIT,
+        SynthSplit,
+        blb_cases,
+        default_cache,
+        ebb_cases,
+        markdown_table,
+        robustness_table,
+        run_bench,
+        synth_cases,
+        write_reports,
+    )
 
     if args.list_methods:
         for m in registry():

@@ -19,10 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ._quiet import collect_warnings
-from .errors import BokehrayError, InputError
+from .._quiet import collect_warnings
+from ..errors import BokehrayError, InputError
 from .render_job import aperture_of, layer_options_of, render_one, start_warp
-from .photo import AMOUNT_DEFAULT, AMOUNT_K_FRACTION
+from ..photo.subject import AMOUNT_DEFAULT, AMOUNT_K_FRACTION
 
 EXIT_INPUT = 2
 EXIT_INTERRUPTED = 130  # 128 + SIGINT
@@ -95,7 +95,7 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from . import __version__
+    from .. import __version__
     from .batch import add_batch_args, parse_sweep
 
     parser = _Parser(
@@ -163,7 +163,7 @@ def build_parser() -> argparse.ArgumentParser:
     o.add_argument("--highlight-boost", type=float, default=0.0,
                    help="instead of the reconstruction: the older uniform boost of every pixel near 1.0 "
                    "(1 + S t^2; 0 = off)")
-    from .levels import LEVELS
+    from ..levels import LEVELS
 
     o.add_argument("--quality", choices=tuple(LEVELS), default="preview",
                    help="; ".join(f"{name}: {level.summary}" for name, level in LEVELS.items()))
@@ -172,7 +172,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="then run the neural refiner near depth edges (preview quality; needs the 'refiner' extra); "
                    "default: the shipped weights, or WEIGHTS from bokehray train-refiner")
     _add_device_args(r)
-    add_batch_args(r)  # folders, globs, manifests, sweeps: bokehray.batch
+    add_batch_args(r)  # folders, globs, manifests, sweeps: bokehray.app.batch
 
     sy = sub.add_parser(
         "synth",
@@ -188,7 +188,7 @@ def build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--size", type=int, default=512, help="image side in pixels (default 512)")
     sy.add_argument("--blur-levels", default="10,20,30", help="K values, comma separated (default 10,20,30)")
     sy.add_argument("--max-spp", type=int, default=64, help="most rays (aperture cells) per pixel (default 64)")
-    from .executor import add_executor_args
+    from ..executor import add_executor_args
 
     add_executor_args(sy)
     sy.add_argument("--overwrite", action="store_true", help="replace scenes that exist already")
@@ -251,10 +251,10 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from . import io
+    from ..output.write import write_disparity, write_image
     from .demo import build_demo_scene, contact_sheet
-    from .lens import BlurParams
-    from .pipeline import render_with_stats
+    from ..lens import BlurParams
+    from ..pipeline import render_with_stats
 
     start_warp(args)
     w, h = args.size
@@ -265,11 +265,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
     written: list[tuple[str, Path]] = []
 
     def save(name: str, img: np.ndarray, what: str) -> None:
-        written.append((what, io.write_image(out_dir / name, img)))
+        written.append((what, write_image(out_dir / name, img)))
 
     save("input.png", scene.image, "all-in-focus input (sRGB preview)")
-    written.append(("all-in-focus input (linear EXR)", io.write_image(out_dir / "input.exr", scene.image)))
-    written.append(("disparity (16-bit PNG, 1 = nearest)", io.write_disparity(out_dir / "disparity.png",
+    written.append(("all-in-focus input (linear EXR)", write_image(out_dir / "input.exr", scene.image)))
+    written.append(("disparity (16-bit PNG, 1 = nearest)", write_disparity(out_dir / "disparity.png",
                                                                             scene.disparity)))
     all_stats = []
     renders = {}
@@ -279,7 +279,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         renders[label] = out
         all_stats.append((label, stats))
         save(f"render_focus_{label}.png", out, f"focused {label} (d_f = {d_f:.3f}, K = {scene.k_px:.2f})")
-        written.append((f"focused {label} (linear EXR)", io.write_image(out_dir / f"render_focus_{label}.exr", out)))
+        written.append((f"focused {label} (linear EXR)", write_image(out_dir / f"render_focus_{label}.exr", out)))
 
     stack_d = np.linspace(scene.focus_far, scene.focus_near, 6)
     tiles, labels = [scene.image], ["all in focus"]
@@ -296,9 +296,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
         labels.append(f"focus d_f = {d_f:.2f}")
     sheet = contact_sheet(tiles, labels, columns=4)
     sheet_path = out_dir / "focal_stack.png"
-    from .io import srgb_to_linear
+    from ..colour import srgb_to_linear
 
-    written.append(("focal-stack contact sheet", io.write_image(sheet_path, srgb_to_linear(sheet / 255.0))))
+    written.append(("focal-stack contact sheet", write_image(sheet_path, srgb_to_linear(sheet / 255.0))))
     if not args.quiet:
         print(scene.description)
         for what, path in written:
@@ -312,7 +312,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
-    from .synth import SynthConfig, generate
+    from ..data.synth import SynthConfig, generate
 
     try:
         levels = tuple(float(v) for v in args.blur_levels.split(","))

@@ -20,8 +20,8 @@ import warp as wp
 
 import bokehray_kernels.pisa as kp
 
-from .errors import InputError
-from .validate import check_disparity
+from bokehray.errors import InputError
+from bokehray.validate import check_disparity
 
 __all__ = ["K_MAX", "PisaMaskOptions", "PisaMasks", "edge_slope", "pisa_masks", "window_offsets", "window_radius"]
 

@@ -1,11 +1,11 @@
-"""The ``bokehray view`` subcommand (registered by :mod:`bokehray.cli`)."""
+"""The ``bokehray view`` subcommand (registered by :mod:`bokehray.app.cli`)."""
 
 from __future__ import annotations
 
 import argparse
 import sys
 
-from ..errors import InputError
+from ...errors import InputError
 
 
 def add_parser(sub) -> argparse.ArgumentParser:

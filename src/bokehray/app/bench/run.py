@@ -28,10 +28,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..datasets import perturb_disparity
+from ...data.datasets import perturb_disparity
 from .machine import reset_peak_rss, status_kb
-from ..errors import InputError
-from ..metrics import BAND_PX, PerceptualMetric, discontinuity_band, exposure_align, score
+from ...errors import InputError
+from ...data.metrics import BAND_PX, PerceptualMetric, discontinuity_band, exposure_align, score
 from .methods import Method
 
 __all__ = ["Case", "SynthSplit", "ebb_cases", "blb_cases", "pareto_front", "perturb_disparity", "run_bench",
@@ -78,7 +78,7 @@ class SynthSplit:
     seed: int = 900_001
 
     def key(self) -> str:
-        from .. import __version__
+        from ... import __version__
 
         text = json.dumps([self.scenes, self.size, list(self.blur_levels), self.max_spp, self.seed, __version__])
         return hashlib.sha256(text.encode()).hexdigest()[:12]
@@ -98,8 +98,8 @@ def synth_cases(split: SynthSplit, cache: Path, *, workers: int | None = None, p
                 log: Callable[[str], None] = print, executor: str = "local",
                 scheduler: str | None = None) -> tuple[list[Case], Path]:
     """The synthetic test split, generated once into ``cache`` (BLB layout) and read back."""
-    from ..datasets import BLBDataset
-    from ..synth import SynthConfig, generate
+    from ...data.datasets import BLBDataset
+    from ...data.synth import SynthConfig, generate
 
     root = Path(cache) / f"bench-synth-{split.key()}"
     done = root / "COMPLETE"
@@ -117,7 +117,7 @@ def synth_cases(split: SynthSplit, cache: Path, *, workers: int | None = None, p
 
 def blb_cases(path: str | os.PathLike, level: int | None = 5, limit: int | None = None) -> list[Case]:
     """A BLB folder (or our synth layout) at blur ``level`` (the BokehMe and BokehDiff papers use 5)."""
-    from ..datasets import BLBDataset
+    from ...data.datasets import BLBDataset
 
     return _blb(BLBDataset(path, level=level), limit)
 
@@ -133,8 +133,8 @@ def _blb(ds, limit: int | None = None) -> list[Case]:
 
 def ebb_cases(path: str | os.PathLike, limit: int | None = None, mask_dir: str = "mask") -> list[Case]:
     """EBB Val294-style pairs; focus from ``<root>/<mask_dir>/<stem>.*`` when present, else sharpness."""
-    from ..datasets import EBBDataset
-    from ..io import read_image
+    from ...data.datasets import EBBDataset
+    from ...photo.read import read_image
     from .ebb import focus_from_mask, focus_from_sharpness
 
     ds = EBBDataset(path)

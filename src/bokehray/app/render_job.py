@@ -1,7 +1,7 @@
 """One photo rendered as ``bokehray render IMAGE ... -o OUTPUT`` does it: check the flags, read the photo and its map
 (orientation, colour profile, depth conventions, a local depth model), choose the blur and focus when not given,
 reconstruct clipped highlights, render, write. The CLI's single-file path and every batch task
-(``bokehray.batch``) run :func:`render_one`, so a batch output is the single-file output.
+(``bokehray.app.batch``) run :func:`render_one`, so a batch output is the single-file output.
 """
 
 from __future__ import annotations
@@ -15,21 +15,21 @@ from pathlib import Path
 
 import numpy as np
 
-from ._quiet import init_warp_quietly
-from .errors import InputError
-from .photo import AMOUNT_DEFAULT, AMOUNT_K_FRACTION
+from .._quiet import init_warp_quietly
+from ..errors import InputError
+from ..photo.subject import AMOUNT_DEFAULT, AMOUNT_K_FRACTION
 
 __all__ = ["aperture_of", "layer_options_of", "read_map", "render_one", "start_warp"]
 
 
 def start_warp(args: argparse.Namespace) -> None:
-    """Initialise Warp (0.6 s import, module cache) only once a command is about to compute, so that
+    """Initialise Warp (a slow import, then its module cache) only once a command is about to compute, so that
     ``--help`` and argument errors return at once."""
     init_warp_quietly(getattr(args, "debug", False))
 
 
 def aperture_of(args: argparse.Namespace):
-    from .lens import Aperture
+    from ..lens import Aperture
 
     if args.aperture == "disc":
         return Aperture()
@@ -37,7 +37,7 @@ def aperture_of(args: argparse.Namespace):
 
 
 def layer_options_of(args: argparse.Namespace):
-    from .options import LayerOptions
+    from ..options import LayerOptions
 
     kw = {}
     if args.max_layers is not None:
@@ -98,7 +98,7 @@ def _resize(a: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 
 
 def _check_output(path: str, args: argparse.Namespace) -> None:
-    from .io import check_output_path
+    from ..output.write import check_output_path
 
     check_output_path(path, bit_depth=getattr(args, "bit_depth", None), half=getattr(args, "half", False))
 
@@ -149,7 +149,7 @@ def _check_render_flags(args: argparse.Namespace) -> bool:
     if not 1 <= args.jpeg_quality <= 100:
         raise InputError(f"--jpeg-quality: expected 1..100, got {args.jpeg_quality}")
     if args.amount is not None:
-        from .photo import k_from_amount
+        from ..photo.subject import k_from_amount
 
         k_from_amount(args.amount, 1, 1)  # the range check
     return physical
@@ -162,12 +162,15 @@ def _disparity_path(output: str) -> Path:
 
 def _read_map(args: argparse.Namespace, h: int, w: int, image: np.ndarray | None = None, stage=None):
     """The disparity map by the conventions the flags state; ``(d, DepthNormalization or None)``."""
-    from . import io, photo
-    from .lens import DepthNormalization
+    from ..lens import DepthNormalization, disparity_from_depth
+    from ..output.write import write_disparity
+    from ..photo.depth import (NORMALIZE_PERCENTILES, looks_reversed, missing_depth_share, normalize_relative,
+                               read_depth)
+    from ..photo.read import read_disparity
 
     norm = None
     if args.depth_model is not None:
-        from .depth_model import estimate_disparity
+        from ..photo.depth_model import estimate_disparity
 
         t = time.perf_counter()
         disparity, info = estimate_disparity(image, args.depth_model, device=args.device,
@@ -175,28 +178,29 @@ def _read_map(args: argparse.Namespace, h: int, w: int, image: np.ndarray | None
         _say(args, f"depth: estimated by the {info['model']} model in {args.depth_model} at "
              f"{info['input_size'][1]}x{info['input_size'][0]} ({info['what']}) in {time.perf_counter() - t:.1f} s")
         if args.save_depth:
-            saved = io.write_disparity(_disparity_path(args.output), disparity)
+            saved = write_disparity(_disparity_path(args.output), disparity)
             _say(args, f"depth: saved to {saved} (reuse it with --disparity {saved})")
         return np.ascontiguousarray(disparity, np.float32), None
     if args.depth is not None:
-        depth = photo.read_depth_map(args.depth, scale=args.depth_scale)
+        depth = read_depth(args.depth, scale=args.depth_scale)
         if args.z_near is not None or args.z_far is not None:
             finite = depth[np.isfinite(depth) & (depth > 0)]
             zn = args.z_near if args.z_near is not None else float(finite.min()) if finite.size else 1.0
             zf = args.z_far if args.z_far is not None else float(finite.max()) if finite.size else np.inf
             norm = DepthNormalization(zn, zf)
         # resize after the conversion: disparity interpolates where depth cannot (inf for sky)
-        disparity, norm, missing = photo.depth_to_disparity(depth, norm, source=args.depth)
+        disparity, norm = disparity_from_depth(depth, norm, source=args.depth)
+        missing = missing_depth_share(depth)
         if missing > 0:
             _say(args, f"depth: {missing:.1%} of {args.depth} is 0, negative or infinite (no depth): taken as "
                  "infinitely far (sky)")
         source = args.depth
     else:
         source = args.disparity
-        raw = io.read_disparity(source)
+        raw = read_disparity(source)
         if args.normalize:
-            disparity = photo.normalize_relative(raw, invert=args.invert, source=source)
-            lo, hi = np.percentile(raw, photo.NORMALIZE_PERCENTILES)
+            disparity = normalize_relative(raw, invert=args.invert, source=source)
+            lo, hi = np.percentile(raw, NORMALIZE_PERCENTILES)
             _say(args, f"disparity: {source} normalised from [{lo:.4g}, {hi:.4g}] (0.5th..99.5th percentiles) "
                  f"to [0, 1]{', inverted' if args.invert else ''}")
         else:
@@ -205,7 +209,7 @@ def _read_map(args: argparse.Namespace, h: int, w: int, image: np.ndarray | None
                                  f"[{float(raw.min()):.4g}, {float(raw.max()):.4g}]: pass --normalize for a relative "
                                  "map of any range (add --invert if near is dark), or give metric depth with --depth")
             disparity = 1.0 - raw if args.invert else raw
-        reverse, why = photo.looks_reversed(disparity)
+        reverse, why = looks_reversed(disparity)
         if reverse:
             fix = "drop --invert" if args.invert else "pass --invert"
             _warn(args, f"{source}: the map looks reversed ({why}); if near is dark in it, {fix}")
@@ -235,13 +239,13 @@ def read_map(image: np.ndarray, *, disparity: str | None = None, depth: str | No
 
 def _say_embedded(args: argparse.Namespace, path: str):
     """What the reader did with the file's orientation and colour profile, said in one line."""
-    from . import photo
-    from .io import _FORMATS
+    from ..formats import FORMATS
+    from ..photo.embedded import embedded, orientation_words
 
-    meta = photo.embedded(Path(path), _FORMATS.get(Path(path).suffix.lower(), ""))
+    meta = embedded(Path(path), FORMATS.get(Path(path).suffix.lower(), ""))
     done = []
     if meta.orientation != 1:
-        done.append(f"EXIF orientation {meta.orientation} applied ({photo.orientation_words(meta.orientation)})")
+        done.append(f"EXIF orientation {meta.orientation} applied ({orientation_words(meta.orientation)})")
     if not meta.is_srgb:
         done.append(f"colour profile '{meta.icc_name}' converted to sRGB")
     if done:
@@ -252,7 +256,7 @@ def _say_embedded(args: argparse.Namespace, path: str):
 def _check_sizes_from_headers(args: argparse.Namespace) -> None:
     """Refuse an image and map of different sizes from their headers, before decoding either (a 64 MP PNG takes
     seconds to decode); the readers still check each file in full afterwards."""
-    from .io import read_size
+    from ..photo.read import read_size
 
     source = args.depth or args.disparity
     if args.resize_disparity or source is None:
@@ -276,13 +280,17 @@ def render_one(args: argparse.Namespace) -> dict:
 
 
 def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:
-    from . import io, photo
-    from .lens import BlurParams, ThinLens
-    from .validate import check_radiance
+    from ..lens import BlurParams, ThinLens
+    from ..output.write import write_image
+    from ..photo.embedded import exif_for_output
+    from ..photo.highlights import is_display_referred, reconstruct_highlights
+    from ..photo.read import read_image
+    from ..photo.subject import k_from_amount, subject_focus
+    from ..validate import check_radiance
 
     t0 = time.perf_counter()
     bar.stage("read")
-    image = io.read_image(args.image)
+    image = read_image(args.image)
     check_radiance(image, str(args.image))  # the limit every level has, with the file named
     h, w = image.shape[:2]
     meta = _say_embedded(args, args.image)
@@ -291,7 +299,7 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:
     if physical:
         focus_m = args.focus_distance
         if args.focus_at is not None:
-            from .pipeline import focus_at
+            from ..pipeline import focus_at
 
             x, y = args.focus_at
             focus_m = float(norm.depth(focus_at(disparity, x, y)))
@@ -307,31 +315,31 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:
             k = args.blur
         else:
             amount = AMOUNT_DEFAULT if args.amount is None else args.amount
-            k = photo.k_from_amount(amount, h, w)
+            k = k_from_amount(amount, h, w)
             _say(args, f"blur: --amount {amount:g} -> K = {k:.1f} px ({amount / 100 * AMOUNT_K_FRACTION:.1%} of the "
                  f"{math.hypot(h, w):.0f}-px diagonal){'' if args.amount is not None else ' (the default)'}")
         if args.focus is not None:
             d_f = args.focus
         elif args.focus_at is not None:
-            from .pipeline import focus_at
+            from ..pipeline import focus_at
 
             d_f = focus_at(disparity, *args.focus_at)
         else:
-            subject = photo.subject_focus(disparity)
+            subject = subject_focus(disparity)
             d_f = subject.d_f
             _say(args, f"focus: on the subject around pixel ({subject.x}, {subject.y}), d_f = {d_f:.3f} (the nearest "
                  f"region holding {subject.share:.0%} of the centre-weighted frame; --focus-at X,Y to choose)")
         blur = BlurParams(k, d_f)
-    if photo.is_display_referred(args.image) and not args.no_highlight_reconstruction and args.highlight_boost == 0:
-        image, found = photo.reconstruct_highlights(image)
+    if is_display_referred(args.image) and not args.no_highlight_reconstruction and args.highlight_boost == 0:
+        image, found = reconstruct_highlights(image)
         if found:
             _say(args, f"highlights: {found} clipped highlight{'s' * (found > 1)} reconstructed (display-referred "
                  "input; --no-highlight-reconstruction keeps them clipped)")
     t_read = time.perf_counter() - t0
 
     start_warp(args)
-    from .options import PreviewOptions, RaytraceOptions
-    from .pipeline import render_with_stats
+    from ..options import PreviewOptions, RaytraceOptions
+    from ..pipeline import render_with_stats
 
     rt_opts = RaytraceOptions(max_spp=args.max_spp)  # validated whatever the quality
     # a batch's worker processes share the machine's cores (``threads``; the output does not depend on it)
@@ -342,8 +350,8 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:
                                    progress=bar.layers(), refine=args.refine)
     t1 = time.perf_counter()
     bar.stage("write")
-    path = io.write_image(args.output, out, bit_depth=args.bit_depth, half=args.half, quality=args.jpeg_quality,
-                          exif=photo.exif_for_output(meta))  # JPEG keeps the photo's EXIF, orientation reset
+    path = write_image(args.output, out, bit_depth=args.bit_depth, half=args.half, quality=args.jpeg_quality,
+                       exif=exif_for_output(meta))  # JPEG keeps the photo's EXIF, orientation reset
     t_write = time.perf_counter() - t1
     if not args.quiet:
         max_coc = float(blur.coc_radius(disparity).max())

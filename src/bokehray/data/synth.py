@@ -8,7 +8,7 @@ background. The all-in-focus image is the same layers seen through a pinhole;
 the targets are exact thin-lens renders (``bokehray.raytrace_layers``) for
 every blur level ``K`` and for focus on the nearest foreground's and on the
 background's mean disparity (alpha-weighted). Scenes are written in the BLB layout
-(``bokehray.datasets.write_blb_scene``).
+(``bokehray.data.datasets.write_blb_scene``).
 
 Deterministic: scene ``i`` of seed ``s`` depends only on ``(s, i)``, not on the
 number of worker processes.
@@ -23,10 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
-from .lens import Aperture, BlurParams
-from .levels.raytrace import Layer, raytrace_layers
-from .options import RaytraceOptions
+from ..errors import InputError
+from ..lens import Aperture, BlurParams
+from ..levels.raytrace import Layer, raytrace_layers
+from ..options import RaytraceOptions
 
 __all__ = ["SynthConfig", "generate", "make_scene"]
 
@@ -67,7 +67,7 @@ def _scene_rng(seed: int, index: int) -> np.random.Generator:
 
 
 def _linear(rgb_u8: np.ndarray) -> np.ndarray:
-    from .io import srgb_to_linear
+    from ..colour import srgb_to_linear
 
     return srgb_to_linear(np.asarray(rgb_u8, np.float32) / 255.0)
 
@@ -168,7 +168,7 @@ def _cutout(photo: np.ndarray, size: int, rng: np.random.Generator) -> np.ndarra
 
 
 def _load_rgba(path: Path, size: int, rng: np.random.Generator) -> np.ndarray:
-    from .io import read_image
+    from ..photo.read import read_image
 
     img = read_image(path)
     if img.shape[2] != 4:
@@ -181,7 +181,7 @@ def make_scene(config: SynthConfig, seed: int, index: int) -> tuple[list[Layer],
     rng = _scene_rng(seed, index)
     n = config.size
     if config.bg_dir:
-        from .io import read_image
+        from ..photo.read import read_image
 
         bg_rgb = _fit(read_image(rng.choice(_files(config.bg_dir, "background")))[..., :3], n, rng)
         bg_name = "user"
@@ -292,7 +292,8 @@ def generate(config: SynthConfig, n: int, out: str | os.PathLike, *, seed: int =
     Existing scenes are an error unless ``overwrite`` (checked before any rendering). Each scene is written
     atomically by the worker that made it; the first scene that fails stops the run with its error.
     """
-    from .executor import make_executor, remove_stale_temporaries
+    from ..executor import make_executor
+    from ..output.atomic import remove_stale_outputs
 
     if n < 1:
         raise InputError(f"-n: expected at least 1 scene, got {n}")
@@ -320,5 +321,5 @@ def generate(config: SynthConfig, n: int, out: str | os.PathLike, *, seed: int =
                 done[o.index] = o.value
                 bar.update()
     finally:  # what workers killed mid-scene left behind (their scenes were rerun)
-        remove_stale_temporaries(Path(out), [f"scene_{i:05d}" for i in range(n)])
+        remove_stale_outputs(Path(out), [f"scene_{i:05d}" for i in range(n)])
     return [done[i] for i in range(n)]

@@ -28,9 +28,11 @@ from typing import Any
 
 import numpy as np
 
-from .errors import InputError
-from .validate import check_disparity, check_image
-from .io import read_depth, read_disparity, read_image, write_disparity, write_image
+from ..errors import InputError
+from ..validate import check_disparity, check_image
+from ..photo.depth import read_depth
+from ..photo.read import read_disparity, read_image
+from ..output.write import write_disparity, write_image
 
 __all__ = ["FAR_DEPTH", "BLBDataset", "EBBDataset", "Sample", "perturb_disparity", "write_blb_scene"]
 
@@ -262,7 +264,7 @@ class BLBDataset(Sequence[Sample]):
         scene, k, f, info, k_px, d_f = self._items[_index(i, len(self))]
         paths = {"image": scene / "image.exr", "depth": scene / "depth.exr", "target": scene / f"bokeh_{k}_{f}.exr"}
         image = _rgb(read_image(paths["image"]), paths["image"])
-        depth = read_depth(paths["depth"])
+        depth = read_depth(paths["depth"]).astype(np.float32)  # EXR floats: exact in float32
         if depth.shape != image.shape[:2]:
             raise InputError(f"{paths['depth']}: expected {image.shape[1]} x {image.shape[0]} pixels like image.exr, "
                              f"got {depth.shape[1]} x {depth.shape[0]}")  # fmt: skip
@@ -277,7 +279,7 @@ class BLBDataset(Sequence[Sample]):
 class EBBDataset(Sequence[Sample]):
     """EBB!/Val294-style real photo pairs: files paired by stem across three sub-folders.
 
-    Inputs and targets may be any image format :func:`~bokehray.io.read_image` reads; disparity
+    Inputs and targets may be any image format :func:`~bokehray.photo.read.read_image` reads; disparity
     maps PNG/TIFF/EXR/NPY (values must lie in [0, 1]). Stems are ordered naturally ("2" before
     "10"); stems present only in the target or disparity folder are ignored. ``k_px`` and
     ``focus_disparity`` are None (the benchmark searches them); ``meta`` holds the source paths.

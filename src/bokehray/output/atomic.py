@@ -1,0 +1,185 @@
+"""Atomic writes: a file appears whole or not at all, whatever stops the writer.
+
+The data goes to a hidden temporary sibling that replaces the target only once it is complete and synced; a write
+killed outright leaves its temporary behind, and the next write to the same name removes it once its writer is
+known to be dead.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import os
+import shutil
+import signal
+import socket
+import tempfile
+from collections.abc import Callable, Iterable
+from pathlib import Path
+
+import psutil
+
+from ..errors import BokehrayError, OutputError, ResourceError
+
+__all__ = ["atomic_write", "remove_stale_outputs", "remove_stale_temporaries"]
+
+_TMP_TAG = ".tmp-"
+"""Temporary siblings are named ``.<name>.tmp-<host>-<pid>-<random><suffix>``: hidden, never read by
+any reader here, and recognisable as a dead writer's leftovers by the next write to ``<name>``."""
+
+
+def _tmp_prefix(path: Path) -> str:
+    host = "".join(c if c.isalnum() else "_" for c in socket.gethostname())[:32] or "host"
+    return f".{path.name}{_TMP_TAG}{host}-{os.getpid()}-"
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # e.g. EPERM: it exists, owned by someone else
+        pass
+    return not _zombie(pid)
+
+
+def _zombie(pid: int) -> bool:
+    # a killed process that its parent has not reaped yet (a pool or a Dask nanny restarting a worker) still
+    # answers kill(pid, 0), but it writes nothing more
+    try:
+        return psutil.Process(pid).status() == psutil.STATUS_ZOMBIE
+    except psutil.Error:
+        return False
+
+
+def remove_stale_temporaries(path: str | os.PathLike[str]) -> list[Path]:
+    """Remove temporary files that an earlier, killed write to ``path`` left beside it.
+
+    A write that is killed outright (SIGKILL, power loss) cannot clean up after itself; its
+    hidden ``.<name>.tmp-<host>-<pid>-...`` file stays. Such a file is removed here when it was
+    made on this host by a process that no longer exists; files of a live writer (a concurrent
+    write to the same path) and of other hosts (a shared folder) are left alone. Returns the
+    files removed. Called by every write; never raises.
+    """
+    p = Path(path)
+    host_prefix = _tmp_prefix(p).rsplit("-", 2)[0] + "-"  # ".<name>.tmp-<host>-"
+    removed = []
+    try:
+        entries = list(os.scandir(p.parent))
+    except OSError:
+        return removed
+    for e in entries:
+        if not (e.name.startswith(host_prefix) and e.name.endswith(p.suffix)):
+            continue
+        pid_text = e.name[len(host_prefix):].split("-", 1)[0]
+        if not pid_text.isdigit() or int(pid_text) == os.getpid() or _pid_alive(int(pid_text)):
+            continue
+        with contextlib.suppress(OSError):
+            os.unlink(e.path)
+            removed.append(Path(e.path))
+    return removed
+
+
+_WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EACCES, errno.EPERM, errno.EIO,
+                 errno.ENOENT, errno.ENOTDIR)
+
+
+def _why(exc: BaseException, tmp: str | None) -> str:
+    """The reason a write failed, in the system's words, without the temporary file's name.
+
+    OpenEXR raises ``RuntimeError('Failed to write pixel data to image file "<tmp>". No space
+    left on device.')``: a system reason found in such a message is given alone.
+    """
+    if isinstance(exc, OSError) and exc.errno is not None and exc.strerror:
+        return exc.strerror
+    text = str(exc) or type(exc).__name__
+    for code in _WRITE_ERRNOS:
+        if os.strerror(code) in text:
+            return os.strerror(code)
+    if tmp:
+        text = text.replace(f'"{tmp}"', "the file").replace(tmp, "the file")
+    return text.strip().rstrip(".")
+
+
+def atomic_write(path: Path, encode: Callable[[str], None]) -> Path:
+    """Run ``encode(tmp_name)`` on a temporary sibling of ``path``, then move it onto ``path``.
+
+    Any failure of the encoder or of the file system (disk full, permissions, a folder that
+    cannot be made) raises :class:`OutputError` naming ``path``; the temporary file is removed
+    and an existing ``path`` is untouched. An interrupt (KeyboardInterrupt, or SIGTERM turned
+    into one by the CLI) removes the temporary file too and propagates. Stale temporaries of
+    killed earlier writes to ``path`` are removed first (:func:`remove_stale_temporaries`).
+    """
+    path = Path(path)
+    tmp = None
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        remove_stale_temporaries(path)
+        # a signal between creating the file and knowing its name would leak it: hold signals meanwhile
+        blocked = _block_signals()
+        try:
+            fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=_tmp_prefix(path), suffix=path.suffix)
+        finally:
+            _unblock_signals(blocked)
+        os.close(fd)
+        encode(tmp)
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        if path.exists():
+            mode = path.stat().st_mode & 0o7777
+        else:
+            umask = os.umask(0o022)
+            os.umask(umask)
+            mode = 0o666 & ~umask
+        os.chmod(tmp, mode)
+        os.replace(tmp, path)
+    except BaseException as exc:
+        if tmp is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+        if isinstance(exc, (BokehrayError, KeyboardInterrupt, SystemExit, GeneratorExit)):
+            raise
+        if isinstance(exc, MemoryError):
+            raise ResourceError(f"cannot write {path}: ran out of memory while encoding it") from None
+        if isinstance(exc, Exception):
+            raise OutputError(f"cannot write {path}: {_why(exc, tmp)}") from exc
+        raise
+    return path
+
+
+def _block_signals() -> set[int] | None:
+    if not hasattr(signal, "pthread_sigmask"):
+        return None
+    return signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+
+
+def _unblock_signals(previous: set[int] | None) -> None:
+    if previous is not None:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+
+
+def remove_stale_outputs(folder: Path, names: Iterable[str]) -> int:
+    """Remove what a worker killed mid-write left next to the outputs ``names`` of ``folder``.
+
+    :func:`atomic_write` writes ``.<name>.<random><ext>`` and the BLB writer ``.<name>.tmp-<pid>-...``
+    before renaming onto ``<name>``; a killed process leaves them. Call this when no task of the run is in flight.
+    Returns how many were removed.
+    """
+    if not folder.is_dir():
+        return 0
+    wanted = set(names)
+    removed = 0
+    for entry in folder.iterdir():
+        if not entry.name.startswith("."):
+            continue
+        parts = entry.name[1:].split(".")  # ".<name>.<rest>": <name> may hold dots itself
+        name = next((n for n in (".".join(parts[:k]) for k in range(1, len(parts))) if n in wanted), None)
+        if name is not None:
+            if ".old-" in entry.name and not (folder / name).exists():
+                continue  # the previous version, moved aside by an overwrite that did not finish: keep it
+            if entry.is_dir() and not entry.is_symlink():
+                shutil.rmtree(entry, ignore_errors=True)
+            else:
+                entry.unlink(missing_ok=True)
+            removed += 1
+    return removed

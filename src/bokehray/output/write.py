@@ -1,0 +1,220 @@
+"""Writing images and disparity maps, atomically, the format chosen by the extension.
+
+Display-referred formats (PNG, JPEG, integer TIFF) are encoded to sRGB and tagged with an sRGB ICC profile;
+OpenEXR and float TIFF stay linear (EXR colour is premultiplied, as the format requires).
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import struct
+from pathlib import Path
+
+import imagecodecs
+import numpy as np
+import numpy.typing as npt
+import OpenEXR
+import tifffile
+from PIL import Image
+
+from ..colour import SRGB_CHROMATICITIES, linear_to_srgb, srgb_icc
+from ..errors import InputError
+from ..formats import HALF_MAX, check_finite, first_index, format_of, to_float32
+from .atomic import atomic_write
+
+__all__ = ["PNG_COMPRESS_LEVEL", "check_output_path", "write_disparity", "write_image"]
+
+PNG_COMPRESS_LEVEL = 3
+"""zlib level of 8-bit PNG outputs: lossless at any level; a low one writes much faster for slightly larger files
+(docs/robustness.md, "Write speed")."""
+
+
+def _write_exr(tmp: str, img: np.ndarray, *, half: bool) -> None:
+    dtype = np.float16 if half else np.float32
+    names = "Y" if img.shape[2] == 1 else "RGBA"[: img.shape[2]]
+    chans = {n: np.ascontiguousarray(img[..., i], dtype=dtype) for i, n in enumerate(names)}
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
+              "chromaticities": SRGB_CHROMATICITIES}  # linear Rec. 709 / sRGB primaries, D65
+    with OpenEXR.File(header, chans) as f:
+        f.write(tmp)
+
+
+def _write_tiff(tmp: str, img: np.ndarray, icc: bytes | None = None) -> None:
+    photometric = "minisblack" if img.shape[2] == 1 else "rgb"
+    extra = {"iccprofile": icc} if icc is not None and img.shape[2] >= 3 else {}
+    tifffile.imwrite(tmp, img[..., 0] if img.shape[2] == 1 else img, photometric=photometric, compression="zlib",
+                     **extra)
+
+
+def _write_pil(tmp: str, codes: np.ndarray, fmt: str, **options: object) -> None:
+    # Encoded in memory, then written by Python: Pillow (13.0) saving a JPEG straight to a full disk stops at
+    # the first short write and reports success, leaving a truncated file.
+    options = {k: v for k, v in options.items() if v is not None}
+    buf = io.BytesIO()
+    Image.fromarray(codes[..., 0] if codes.shape[2] == 1 else codes).save(buf, format=fmt, **options)
+    _write_bytes(tmp, buf.getbuffer())
+
+
+def _png_with_icc(data: bytes, icc: bytes) -> bytes:
+    """``data`` (a PNG) with an iCCP chunk holding ``icc`` right after IHDR (the 16-bit encoder writes none)."""
+    import zlib
+
+    body = b"sRGB\x00\x00" + zlib.compress(icc)  # profile name, NUL, compression method 0, zlib stream
+    chunk = struct.pack(">I", len(body)) + b"iCCP" + body + struct.pack(">I", zlib.crc32(b"iCCP" + body))
+    end_ihdr = 8 + 8 + 13 + 4  # signature, IHDR length + type, IHDR data, CRC
+    return data[:end_ihdr] + chunk + data[end_ihdr:]
+
+
+def _write_bytes(tmp: str, data: bytes | memoryview) -> None:
+    with open(tmp, "wb") as fh:
+        fh.write(data)
+
+
+def _quantize(img: np.ndarray, bits: int) -> np.ndarray:
+    """sRGB-encode the colour channels (not alpha) and round to ``bits``-bit codes."""
+    enc = img.copy()
+    enc[..., : min(img.shape[2], 3)] = linear_to_srgb(img[..., :3])
+    return np.round(np.clip(enc, 0.0, 1.0) * (2**bits - 1)).astype(np.uint8 if bits == 8 else np.uint16)
+
+
+def check_output_path(path: str | os.PathLike[str], *, bit_depth: int | None = None, half: bool = False) -> Path:
+    """Validate an output path and its options before rendering (so a long render cannot fail at the end).
+
+    Checks the extension, the bit depth for that format, and that the target is
+    not a directory. Raises :class:`InputError`; returns the path.
+    """
+    p, fmt = format_of(path, ("PNG", "JPEG", "TIFF", "EXR"), "images", read=False)
+    _output_bits(p, fmt, bit_depth, half)
+    parent = p.resolve().parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir() or not os.access(parent, os.W_OK):
+        raise InputError(f"{p}: cannot write there ({parent} is not a writable folder)")
+    return p
+
+
+def _output_bits(p: Path, fmt: str, bit_depth: int | None, half: bool) -> int:
+    depths = {"PNG": (8, 16), "JPEG": (8,), "TIFF": (8, 16, 32), "EXR": (16, 32)}[fmt]
+    bits = bit_depth if bit_depth is not None else {"PNG": 8, "JPEG": 8, "TIFF": 16, "EXR": 16 if half else 32}[fmt]
+    if bits not in depths:
+        raise InputError(f"{p}: expected bit_depth in {depths} for {fmt}, got {bit_depth!r}")
+    if half and (fmt != "EXR" or bits != 16):
+        raise InputError(f"{p}: half=True needs an .exr path and bit_depth None or 16, got {fmt} with {bit_depth!r}")
+    return bits
+
+
+def write_image(
+    path: str | os.PathLike[str],
+    image: npt.ArrayLike,
+    *,
+    bit_depth: int | None = None,
+    half: bool = False,
+    quality: int = 95,
+    exif: bytes | None = None,
+) -> Path:
+    """Write a linear float image atomically, choosing the format from the extension.
+
+    ``.png``: 8 (default) or 16-bit sRGB. ``.jpg``/``.jpeg``: 8-bit sRGB at ``quality``,
+    no alpha. ``.tif``/``.tiff``: 16-bit (default) or 8-bit sRGB, or ``bit_depth=32``
+    for linear float32. ``.exr``: linear float32 (default) or HALF (``half=True`` or
+    ``bit_depth=16``), ZIP-compressed, channels ``R,G,B[,A]`` or ``Y``. Integer
+    formats clip to [0, 1]; alpha is written linearly and colour is taken as not
+    premultiplied (it is premultiplied for EXR, as that format requires).
+
+    Args:
+        path: Target file; missing parent directories are created.
+        image: ``H x W``, ``H x W x 1``, ``H x W x 3`` or ``H x W x 4`` linear floats.
+        bit_depth: Bits per sample, or None for the format's default.
+        half: Write OpenEXR HALF channels.
+        quality: JPEG quality, 1 to 100.
+        exif: an EXIF block to embed in a JPEG (``bokehray.photo.embedded.exif_for_output`` keeps the input's, with the
+            orientation reset), or None.
+
+    Display-referred outputs are tagged sRGB: an sRGB ICC profile in PNG, JPEG and integer TIFF; EXR files carry
+    the sRGB / Rec. 709 primaries as their ``chromaticities`` attribute.
+
+    Returns:
+        The path written.
+
+    Raises:
+        InputError: Bad extension, shape, dtype, bit depth, NaN/Inf or out-of-range values.
+    """
+    p, fmt = format_of(path, ("PNG", "JPEG", "TIFF", "EXR"), "images", read=False)
+    img = np.asarray(image)
+    img = img[..., None] if img.ndim == 2 else img
+    if img.ndim != 3 or img.shape[2] not in (1, 3, 4) or img.size == 0:
+        raise InputError(f"{p}: expected an H x W, H x W x 3 or H x W x 4 image, got shape {np.shape(image)}")
+    if img.dtype.kind != "f":
+        raise InputError(f"{p}: expected a floating-point linear image, got dtype {img.dtype}")
+    img = to_float32(img, f"refusing to write {p}: image contains",
+                      f"refusing to write {p}: image holds a value beyond float32's range (+-3.4e38):")
+    bits = _output_bits(p, fmt, bit_depth, half)
+    if fmt == "EXR":
+        if img.shape[2] == 4:
+            with np.errstate(over="ignore"):
+                img = np.concatenate([img[..., :3] * img[..., 3:], img[..., 3:]], axis=2)
+            check_finite(img, f"refusing to write {p}: colour x alpha (OpenEXR stores premultiplied colour) "
+                          "overflows float32:")
+        big = np.abs(img) > HALF_MAX
+        if bits == 16 and big.any():
+            y, x = first_index(big)[:2]
+            raise InputError(f"refusing to write {p}: value beyond the HALF range (+-65504) at (y, x) = ({y}, {x})")
+        return atomic_write(p, lambda tmp: _write_exr(tmp, img, half=bits == 16))
+    if fmt == "TIFF":
+        data = img if bits == 32 else _quantize(img, bits)
+        icc = None if bits == 32 else srgb_icc()
+        return atomic_write(p, lambda tmp: _write_tiff(tmp, data, icc))
+    if fmt == "JPEG" and img.shape[2] == 4:
+        raise InputError(f"{p}: expected an image without alpha for JPEG, got 4 channels")
+    if fmt == "JPEG" and not 1 <= quality <= 100:
+        raise InputError(f"{p}: expected JPEG quality in [1, 100], got {quality!r}")
+    codes = _quantize(img, bits)
+    icc = srgb_icc() if img.shape[2] >= 3 else None
+    if fmt == "JPEG":
+        return atomic_write(p, lambda tmp: _write_pil(tmp, codes, "JPEG", quality=quality, icc_profile=icc, exif=exif))
+    if bits == 16:
+        data = imagecodecs.png_encode(codes)
+        return atomic_write(p, lambda tmp: _write_bytes(tmp, _png_with_icc(data, icc) if icc else data))
+    return atomic_write(p, lambda tmp: _write_pil(tmp, codes, "PNG", icc_profile=icc, compress_level=PNG_COMPRESS_LEVEL))
+
+
+def write_disparity(path: str | os.PathLike[str], d: npt.ArrayLike) -> Path:
+    """Write a disparity map atomically.
+
+    ``.exr``: float32 channel ``Y``; ``.png``: 16-bit grey ``round(d * 65535)``, which
+    needs ``d`` within [0, 1]; ``.npy``: float32 array; ``.tif``/``.tiff``: float32.
+
+    Args:
+        path: Target file; missing parent directories are created.
+        d: ``H x W`` (or ``H x W x 1``) disparity values.
+
+    Returns:
+        The path written.
+
+    Raises:
+        InputError: Bad extension, shape, NaN/Inf, or values outside [0, 1] for PNG.
+    """
+    p, fmt = format_of(path, ("PNG", "TIFF", "EXR", "NPY"), "disparity", read=False)
+    a = np.asarray(d)
+    a = a[..., 0] if a.ndim == 3 and a.shape[2] == 1 else a
+    if a.ndim != 2 or a.size == 0 or a.dtype.kind not in "fiu":
+        raise InputError(f"{p}: expected a non-empty H x W real disparity array, got shape {a.shape} dtype {a.dtype}")
+    a = to_float32(a, f"refusing to write {p}: disparity contains",
+                    f"refusing to write {p}: disparity holds a value beyond float32's range (+-3.4e38):")
+    if fmt == "PNG":
+        lo, hi = float(a.min()), float(a.max())
+        if lo < 0.0 or hi > 1.0:
+            raise InputError(f"{p}: expected disparity within [0, 1] for 16-bit PNG, got [{lo:g}, {hi:g}]")
+        codes = np.round(a[..., None].astype(np.float64) * 65535).astype(np.uint16)
+        return atomic_write(p, lambda tmp: _write_bytes(tmp, imagecodecs.png_encode(codes)))
+    if fmt == "EXR":
+        return atomic_write(p, lambda tmp: _write_exr(tmp, a[..., None], half=False))
+    if fmt == "TIFF":
+        return atomic_write(p, lambda tmp: _write_tiff(tmp, a[..., None]))
+
+    def save_npy(tmp: str) -> None:
+        with open(tmp, "wb") as fh:
+            np.save(fh, a)
+
+    return atomic_write(p, save_npy)

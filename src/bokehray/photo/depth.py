@@ -1,0 +1,123 @@
+"""Depth maps as people have them: relative maps, reversed maps, integer codes, missing depth.
+
+* **Relative maps** (:func:`normalize_relative`): min-max between the 0.5th and 99.5th percentiles, clipped to
+  [0, 1]; ``invert`` flips a near-is-dark map.
+* **Reversed maps** (:func:`looks_reversed`): a map whose frame border (5 % bands) is nearer than its centre
+  (the middle ninth) by more than ``REVERSED_MARGIN`` is probably near-is-dark.
+* **Metric depth** (:func:`read_depth`): float files hold metres, integer files codes times ``scale``; depth
+  <= 0 (no measurement: depth cameras write 0) and +/-inf are infinitely far (``bokehray.lens.disparity_from_depth``).
+
+docs/conventions.md and docs/usage.md say the same for users.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..formats import check_finite, format_of
+
+__all__ = ["BORDER_NEAR", "NORMALIZE_PERCENTILES", "REVERSED_MARGIN", "looks_reversed", "missing_depth_share",
+           "normalize_relative", "read_depth", "subsample"]
+
+NORMALIZE_PERCENTILES = (0.5, 99.5)
+"""The robust min and max of ``--normalize``, in percent."""
+
+REVERSED_MARGIN = 0.2
+"""How much nearer (in normalised disparity) the frame border must be than the centre to call a map reversed."""
+
+BORDER_NEAR = 0.85
+"""A frame border whose median disparity is at least this sits on the nearest values."""
+
+def subsample(d: np.ndarray, most: int = 512) -> tuple[np.ndarray, int]:
+    """``d`` on a grid of at most ``most`` samples along its longer side, and the step taken."""
+    step = max(1, int(math.ceil(max(d.shape) / most)))
+    return d[::step, ::step], step
+
+
+def looks_reversed(disparity: np.ndarray) -> tuple[bool, str]:
+    """Does the map look near-is-dark? Returns ``(reversed, why)``.
+
+    Two cues, either of which flags the map (medians over the frame's 5 % border bands and its middle ninth):
+
+    * the border is nearer than the centre by more than ``REVERSED_MARGIN`` (a subject farther than all that
+      surrounds it), or
+    * the border sits on the nearest values (median >= ``BORDER_NEAR``) while at least 2 % of the frame is
+      farther by more than ``REVERSED_MARGIN`` (a background nearer than the things in front of it).
+
+    In a photo the border is usually background or ground, rarely nearer than everything else; shots through
+    a close frame (a window, foliage all round) can trip it, which is why this is a warning, not an error.
+    """
+    d = np.asarray(disparity, np.float32)
+    s, _ = subsample(d)
+    h, w = s.shape
+    by, bx = max(1, h // 20), max(1, w // 20)
+    border = np.concatenate([s[:by].ravel(), s[-by:].ravel(), s[by:-by, :bx].ravel(), s[by:-by, -bx:].ravel()])
+    centre = s[h // 3 : h - h // 3, w // 3 : w - w // 3]
+    b, c = float(np.median(border)), float(np.median(centre))
+    if b - c > REVERSED_MARGIN:
+        return True, f"the frame border is nearer than its centre (median disparity {b:.2f} vs {c:.2f})"
+    farther = float(np.mean(s < b - REVERSED_MARGIN))
+    if b >= BORDER_NEAR and farther >= 0.02:
+        return True, (f"the frame border sits on the nearest values (median disparity {b:.2f}) with "
+                      f"{farther:.0%} of the frame behind it")
+    return False, ""
+
+
+def normalize_relative(values: np.ndarray, *, invert: bool = False, source: str = "disparity") -> np.ndarray:
+    """A relative map of any range (e.g. a monocular model's inverse depth) to disparity in [0, 1].
+
+    Min-max between the 0.5th and 99.5th percentiles of the finite values, clipped to [0, 1], so a few outliers
+    do not squash the rest; ``invert`` flips it for near-is-dark maps. Non-finite values are refused.
+    """
+    v = np.asarray(values, np.float64)
+    if not np.isfinite(v).all():
+        raise InputError(f"{source}: --normalize needs finite values; NaN or Inf found")
+    lo, hi = np.percentile(v, NORMALIZE_PERCENTILES)
+    if not hi > lo:
+        lo, hi = float(v.min()), float(v.max())
+    if not hi > lo:
+        raise InputError(f"{source}: the map is constant ({lo:g}): nothing to normalise, every pixel is at one depth")
+    d = np.clip((v - lo) / (hi - lo), 0.0, 1.0)
+    return (1.0 - d if invert else d).astype(np.float32)
+
+
+
+def missing_depth_share(depth_m: np.ndarray) -> float:
+    """The share of pixels without a depth: <= 0 (no measurement) or infinite (sky), which render infinitely far."""
+    z = np.asarray(depth_m)
+    with np.errstate(invalid="ignore"):
+        return float((~np.isfinite(z) | (z <= 0)).mean())
+
+
+def read_depth(path: str | os.PathLike[str], *, scale: float | None = None) -> np.ndarray:
+    """Read a metric depth map in metres (float64 ``H x W``), the one depth reader of the CLI and the API.
+
+    Float EXR (channel ``Z``, ``Y`` or ``R``, else the only channel), float TIFF and float ``.npy`` hold metres
+    (times ``scale`` if given). Integer maps (16-bit PNG or TIFF from depth cameras and phones, integer NPY) hold
+    codes and need ``scale``: metres per code, e.g. 0.001 for millimetres. Missing depth (0, negative, +/-inf) is
+    kept (-inf as +inf): ``bokehray.lens.disparity_from_depth`` renders it infinitely far. NaN is refused, naming
+    the file. Float64, not float32 like the other readers: ``1200 * 0.001`` m must stay the 1.2 m a user types.
+    """
+    from .read import load_samples, single_channel  # the codecs: not imported by `bokehray --help`
+
+    p = Path(path)
+    if scale is not None and (isinstance(scale, bool) or not isinstance(scale, (int, float))
+                              or not (math.isfinite(scale) and scale > 0)):
+        raise InputError(f"--depth-scale: expected metres per code > 0 (0.001 for millimetres), got {scale!r}")
+    p, fmt = format_of(p, ("PNG", "TIFF", "EXR", "NPY"), "depth")
+    a = single_channel(p, load_samples(p, fmt, (("Z",), ("Y",), ("R",))), fmt, "depth")
+    if a.dtype.kind in "iu":
+        if scale is None:
+            raise InputError(f"{p}: holds integer codes ({a.dtype}), not metres: give --depth-scale, metres per "
+                             "code (0.001 for a millimetre map)")
+    elif a.dtype.kind != "f":
+        raise InputError(f"{p}: expected float depth in metres or integer codes, got {a.dtype}")
+    z = a.astype(np.float64) * (1.0 if scale is None else scale)
+    check_finite(np.where(np.isinf(z), 0.0, z), f"{p}: expected depth in metres or +/-Inf (no depth), got")
+    z[z == -np.inf] = np.inf  # no depth either way
+    return z

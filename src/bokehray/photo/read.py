@@ -1,0 +1,431 @@
+"""Reading images, disparity maps and depth maps.
+
+Conventions: images are ``float32`` arrays ``H x W x C`` in scene-linear light, row 0 at the top. Display-referred
+files (PNG, JPEG, integer TIFF) are decoded from sRGB; OpenEXR and float TIFF hold linear values and stay linear.
+Alpha is linear coverage and colour is never premultiplied (OpenEXR stores premultiplied colour by specification,
+so it is divided by alpha on read). Every bad input raises :class:`~bokehray.errors.InputError` naming the file.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import logging
+import os
+import struct
+import sys
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+import imagecodecs
+import numpy as np
+import OpenEXR
+import tifffile
+from PIL import Image
+
+from .._memory import available_bytes
+from ..colour import srgb_decode_lut
+from ..errors import InputError, ResourceError
+from ..formats import check_finite, first_index, format_of, range_prefix, to_float32
+
+__all__ = ["MAX_PIXELS", "load_samples", "read_disparity", "read_image", "read_size", "single_channel"]
+
+MAX_PIXELS = 200_000_000
+"""Largest image (height x width) any reader accepts."""
+
+_DECODE_BYTES_PER_PX = 40
+"""Peak bytes per pixel while decoding (4 channels of 16-bit codes or float32 samples, plus the float32
+result and a conversion temporary): a file whose header declares more than the memory available is
+refused before any pixel is decoded (a decompression bomb)."""
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def _check_dims(path: Path, h: int, w: int) -> None:
+    if h <= 0 or w <= 0:
+        raise InputError(f"{path}: expected a non-empty image, got {w} x {h} pixels")
+    if h * w > MAX_PIXELS:
+        raise InputError(f"{path}: expected at most {MAX_PIXELS:,} pixels, got {w} x {h} = {h * w:,}")
+    need, have = h * w * _DECODE_BYTES_PER_PX, available_bytes()
+    if need > have:
+        raise ResourceError(f"{path}: decoding {w} x {h} pixels needs about {need >> 20:,} MB, but only "
+                            f"{have >> 20:,} MB of memory is available")
+
+
+@contextlib.contextmanager
+def _decoding(path: Path, fmt: str) -> Iterator[None]:
+    """Turn a decoder library's exception into an InputError naming the file and format."""
+    try:
+        yield
+    except (InputError, ResourceError):
+        raise
+    except MemoryError:
+        raise ResourceError(f"{path}: ran out of memory while decoding it as {fmt}") from None
+    except Exception as exc:  # noqa: BLE001 - decoders raise anything from OSError to RuntimeError
+        raise InputError(f"cannot read {path} as {fmt}: {exc}") from None
+
+
+# --------------------------------------------------------------------------- decoders
+
+
+def _png_header(path: Path) -> tuple[int, int, int]:
+    """Width, height and bit depth from the IHDR chunk."""
+    with open(path, "rb") as fh:
+        head = fh.read(33)
+    if len(head) < 33 or head[:8] != _PNG_SIGNATURE or head[12:16] != b"IHDR":
+        raise InputError(f"cannot read {path} as PNG: not a PNG file (bad signature or header)")
+    w, h, depth = struct.unpack(">IIB", head[16:25])
+    return w, h, depth
+
+
+def _load_png(path: Path) -> np.ndarray:
+    w, h, depth = _png_header(path)
+    _check_dims(path, h, w)
+    if depth != 16:
+        return _load_pil(path, "PNG")
+    # Pillow truncates 16-bit colour PNGs to 8 bits; imagecodecs (libpng) keeps all 16.
+    try:
+        return np.asarray(imagecodecs.png_decode(path.read_bytes()))
+    except imagecodecs.PngError as exc:
+        raise ValueError(f"file is truncated or corrupt (libpng: {exc})") from None
+
+
+def _load_pil(path: Path, fmt: str) -> np.ndarray:
+    with Image.open(path, formats=[fmt]) as im:  # lazy: reads the header only
+        _check_dims(path, im.height, im.width)
+        if im.mode in ("CMYK", "YCbCr", "LAB", "HSV"):  # a JPEG in CMYK/YCCK: colours need its ICC profile
+            raise InputError(f"{path}: expected an RGB or greyscale {fmt}, got {im.mode} colour, which has no "
+                             "defined conversion to RGB without a colour-managed workflow; convert it to sRGB first "
+                             "(e.g. ImageMagick: magick in.jpg -colorspace sRGB out.jpg)")
+        im.load()
+        if "transparency" in im.info:
+            im = im.convert("RGBA")
+        elif im.mode not in ("L", "LA", "RGB", "RGBA"):
+            im = im.convert("RGB")
+        return np.asarray(im)
+
+
+@contextlib.contextmanager
+def _tifffile_log() -> Iterator[list[str]]:
+    """Collect tifffile's log messages (damaged tags) instead of letting them reach stderr."""
+    messages: list[str] = []
+
+    class Collect(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            messages.append(record.getMessage())
+
+    log = logging.getLogger("tifffile")
+    handler, propagate = Collect(), log.propagate
+    log.addHandler(handler)
+    log.propagate = False
+    try:
+        yield messages
+    finally:
+        log.removeHandler(handler)
+        log.propagate = propagate
+
+
+def _load_tiff(path: Path, *, size_only: bool = False):
+    with _tifffile_log() as said:
+        try:
+            return _load_tiff_quietly(path, size_only=size_only)
+        except (InputError, ResourceError):
+            raise
+        except Exception as exc:  # noqa: BLE001 - tifffile's log often says more than its exception
+            why = f"{exc}; {said[0]}" if said else str(exc)
+            raise ValueError(why) from None
+
+
+_TIFF_AUXILIARY = 0b101
+"""NewSubfileType bits of pages that are not separate images: reduced resolution (1), transparency mask (4)."""
+
+
+def _load_tiff_quietly(path: Path, *, size_only: bool = False) -> np.ndarray | tuple[int, int]:
+    with tifffile.TiffFile(path) as tf:
+        page = tf.pages[0]
+        axes = page.axes
+        dims = dict(zip(axes, page.shape))
+        if size_only:
+            return dims.get("Y", 0), dims.get("X", 0)
+        _check_dims(path, dims.get("Y", 0), dims.get("X", 0))
+        n_pages = len(tf.pages)
+        images = 1 + sum(1 for i in range(1, min(n_pages, 64)) if not tf.pages[i].subfiletype & _TIFF_AUXILIARY)
+        if images > 1:
+            more = "+" if n_pages > 64 else ""
+            raise InputError(f"{path}: expected one image, got a multi-page TIFF with {images}{more} full-size pages; "
+                             "save the page to use as its own file")
+        if set(axes) - set("SYX"):
+            raise InputError(f"{path}: expected a 2-D TIFF image (axes YX, YXS or SYX), got axes {axes}")
+        if page.photometric not in (tifffile.PHOTOMETRIC.MINISBLACK, tifffile.PHOTOMETRIC.RGB):
+            raise InputError(f"{path}: expected a greyscale or RGB TIFF, got photometric {page.photometric.name}")
+        if tifffile.EXTRASAMPLE.ASSOCALPHA in page.extrasamples:
+            raise InputError(f"{path}: expected unassociated alpha, got associated (premultiplied) alpha")
+        if page.dtype not in (np.uint8, np.uint16, np.float16, np.float32, np.float64):
+            raise InputError(f"{path}: expected uint8, uint16 or float samples, got {page.dtype}")
+        a = page.asarray()
+    return np.moveaxis(a, axes.index("S"), -1) if "S" in axes else a
+
+
+def _flush_c_streams() -> None:
+    with contextlib.suppress(Exception):
+        import ctypes
+
+        ctypes.CDLL(None).fflush(None)
+
+
+@contextlib.contextmanager
+def _library_output() -> Iterator[list[str]]:
+    """Capture what native code writes to file descriptors 1 and 2 (OpenEXR prints its errors there).
+
+    Yields a list that holds the captured lines once the block ends. The descriptors are
+    process-wide, so output of other threads during the block is captured too (a short read).
+    """
+    lines: list[str] = []
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
+    printed = io.StringIO()  # the Python binding prints its warnings with print()
+    with tempfile.TemporaryFile() as sink:
+        try:
+            os.dup2(sink.fileno(), 1)
+            os.dup2(sink.fileno(), 2)
+            with contextlib.redirect_stdout(printed), contextlib.redirect_stderr(printed):
+                yield lines
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            _flush_c_streams()  # C/C++ stdout is buffered: flush it into the sink, not onto the terminal later
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            for fd in saved:
+                os.close(fd)
+            sink.seek(0)
+            text = sink.read().decode("utf-8", "replace") + printed.getvalue()
+            lines.extend(ln.strip() for ln in text.splitlines() if ln.strip())
+
+
+def _exr_size(path: Path) -> tuple[int, int]:
+    if not OpenEXR.isOpenExrFile(str(path)):
+        raise InputError(f"cannot read {path} as EXR: not an OpenEXR file (bad magic number)")
+    failure = None
+    with _library_output() as said:
+        try:
+            with OpenEXR.File(str(path), header_only=True) as f:
+                (x0, y0), (x1, y1) = f.header()["dataWindow"]
+        except Exception as exc:  # noqa: BLE001 - as in _load_exr
+            failure = exc
+    if failure is not None or said:
+        why = (said[0] if said else str(failure)).removeprefix(f"{path}: ")
+        raise InputError(f"cannot read {path} as EXR: file is truncated or corrupt ({why})")
+    return int(y1 - y0 + 1), int(x1 - x0 + 1)
+
+
+def _load_exr(path: Path, choices: tuple[tuple[str, ...], ...]) -> np.ndarray:
+    if not OpenEXR.isOpenExrFile(str(path)):
+        raise InputError(f"cannot read {path} as EXR: not an OpenEXR file (bad magic number)")
+    chans: dict[str, np.ndarray] = {}
+    failure = None
+    with _library_output() as said:
+        try:
+            with OpenEXR.File(str(path), header_only=True) as f:
+                (x0, y0), (x1, y1) = f.header()["dataWindow"]
+            _check_dims(path, int(y1 - y0 + 1), int(x1 - x0 + 1))
+            with OpenEXR.File(str(path), separate_channels=True) as f:
+                for name, ch in f.parts[0].channels.items():
+                    px = ch.pixels
+                    if px.ndim == 3 and len(name) == px.shape[-1]:  # packed "RGB"/"RGBA" channel
+                        chans.update(zip(name, np.moveaxis(px, -1, 0)))
+                    else:
+                        chans[name] = px
+        except (InputError, ResourceError):
+            raise
+        except Exception as exc:  # noqa: BLE001 - the binding raises anything; the library's own words are better
+            failure = exc
+    # the binding reports damaged pixel data as a printed warning and carries on: never return what it made of it
+    if failure is not None or said:
+        why = (said[0] if said else str(failure)).removeprefix(f"{path}: ")
+        raise InputError(f"cannot read {path} as EXR: file is truncated or corrupt ({why})")
+    only = tuple(chans) if len(chans) == 1 else None
+    if only is not None and (only[0] == "A" or only[0].endswith(".A")):
+        # coverage, not values: reading it as grey would turn a matte into a disparity map or an image
+        raise InputError(f"{path}: holds only the alpha channel {only[0]!r} (coverage, not values); expected EXR "
+                         f"channels {' or '.join(','.join(c) for c in choices)}")
+    picked = next((c for c in choices if all(n in chans for n in c)), only)
+    if picked is None:
+        wanted = " or ".join(",".join(c) for c in choices)
+        raise InputError(f"{path}: expected EXR channels {wanted}, got {','.join(sorted(chans))}")
+    for n in picked:
+        if chans[n].dtype.kind != "f" or chans[n].shape != chans[picked[0]].shape:
+            raise InputError(f"{path}: expected full-resolution HALF or FLOAT channels, got {n!r} {chans[n].dtype}")
+    a = np.stack([chans[n] for n in picked], axis=-1).astype(np.float32)
+    return a[..., 0] if a.shape[-1] == 1 else a
+
+
+def _load_npy(path: Path, *, size_only: bool = False):
+    with open(path, "rb") as fh:
+        if fh.read(6) != b"\x93NUMPY":
+            raise InputError(f"cannot read {path} as NPY: not a NPY file (bad magic string)")
+        fh.seek(0)
+        version = np.lib.format.read_magic(fh)
+        if version == (1, 0):
+            shape, _, dtype = np.lib.format.read_array_header_1_0(fh)
+        elif version == (2, 0):
+            shape, _, dtype = np.lib.format.read_array_header_2_0(fh)
+        else:
+            raise InputError(f"cannot read {path} as NPY: unsupported format version {version[0]}.{version[1]}")
+        offset = fh.tell()
+    # the header alone decides: shape, dtype and whether the file holds that many bytes (no mmap, no allocation)
+    if len(shape) not in (2, 3):
+        raise InputError(f"{path}: expected a 2-D (H x W) array, got {len(shape)}-D shape {shape}")
+    if size_only:
+        return int(shape[0]), int(shape[1])
+    _check_dims(path, shape[0], shape[1])
+    if dtype.kind not in "fiu" or dtype.hasobject:
+        raise InputError(f"{path}: expected a float or integer array, got dtype {dtype}")
+    need = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+    have = path.stat().st_size - offset
+    if have < need:
+        raise InputError(f"{path}: file is truncated: its header declares {shape} {dtype} ({need:,} bytes of data), "
+                         f"but only {max(have, 0):,} bytes follow")
+    return np.array(np.load(path, mmap_mode="r", allow_pickle=False))
+
+
+def load_samples(path: Path, fmt: str, exr_channels: tuple[tuple[str, ...], ...]) -> np.ndarray:
+    """Decode ``path`` to its stored samples: H x W or H x W x C, integer codes or floats."""
+    with _decoding(path, fmt):
+        if fmt == "PNG":
+            a = _load_png(path)
+        elif fmt == "JPEG":
+            a = _load_pil(path, "JPEG")
+        elif fmt == "TIFF":
+            a = _load_tiff(path)
+        elif fmt == "EXR":
+            a = _load_exr(path, exr_channels)
+        else:
+            a = _load_npy(path)
+    if fmt in ("PNG", "JPEG", "TIFF") and a.ndim in (2, 3):
+        from .embedded import apply_orientation, embedded
+
+        a = apply_orientation(a, embedded(path, fmt).orientation)  # EXIF orientation: the pixels as displayed
+    if a.ndim not in (2, 3):
+        raise InputError(f"{path}: expected an H x W or H x W x C image, got shape {a.shape}")
+    _check_dims(path, a.shape[0], a.shape[1])
+    if a.ndim == 3 and not 1 <= a.shape[2] <= 4:
+        raise InputError(f"{path}: expected 1 to 4 channels, got {a.shape[2]}")
+    return a
+
+
+def single_channel(path: Path, a: np.ndarray, fmt: str, what: str) -> np.ndarray:
+    if a.ndim == 3 and a.shape[2] == 3 and fmt in ("PNG", "TIFF") and (a == a[..., :1]).all():
+        return a[..., 0]
+    if a.ndim == 3 and a.shape[2] == 1:
+        return a[..., 0]
+    if a.ndim == 3:
+        differ = " (the channels differ)" if a.shape[2] == 3 else ""
+        raise InputError(f"{path}: expected a single-channel {what} map, got {a.shape[2]} channels{differ}")
+    return a
+
+
+# --------------------------------------------------------------------------- public readers
+
+
+def read_size(path: str | os.PathLike[str]) -> tuple[int, int]:
+    """``(height, width)`` of an image, disparity or depth file, from its header alone (no pixel is decoded).
+
+    Lets a caller compare the sizes of two files before spending seconds decoding a large
+    one (the CLI does, for the image and its disparity map). Accepts every format a reader
+    takes; a file whose header cannot be read raises :class:`InputError` naming it.
+    """
+    p, fmt = format_of(path, ("PNG", "JPEG", "TIFF", "EXR", "NPY"), "images or maps")
+    with _decoding(p, fmt):
+        if fmt == "PNG":
+            w, h, _ = _png_header(p)
+            hw = int(h), int(w)
+        elif fmt == "JPEG":
+            with Image.open(p, formats=["JPEG"]) as im:
+                hw = int(im.height), int(im.width)
+        elif fmt == "TIFF":
+            hw = _load_tiff(p, size_only=True)
+        elif fmt == "EXR":
+            return _exr_size(p)
+        else:
+            return _load_npy(p, size_only=True)
+        from .embedded import embedded
+
+        # the size as read: EXIF orientations 5-8 turn the picture a quarter (read_image applies them)
+        return hw[::-1] if embedded(p, fmt).orientation in (5, 6, 7, 8) else hw
+
+
+def read_image(path: str | os.PathLike[str]) -> np.ndarray:
+    """Read a colour image as scene-linear float32.
+
+    PNG, JPEG and TIFF (8- or 16-bit integer) are scaled to [0, 1] and decoded
+    from sRGB; float TIFF and OpenEXR (HALF or FLOAT; channels ``R,G,B[,A]`` or
+    ``Y[,A]``) are linear already. Grey images are expanded to three channels.
+
+    Args:
+        path: A ``.png``, ``.jpg``/``.jpeg``, ``.tif``/``.tiff`` or ``.exr`` file.
+
+    Returns:
+        ``H x W x 3`` (RGB) or ``H x W x 4`` (RGBA) float32, row 0 at the top. Alpha
+        is linear coverage (never sRGB-decoded) and the colour is NOT premultiplied.
+
+    Raises:
+        InputError: The file is missing, unreadable, truncated, too large, empty, has
+            an unsupported extension or channel layout, or holds NaN/Inf.
+    """
+    p, fmt = format_of(path, ("PNG", "JPEG", "TIFF", "EXR"), "images")
+    a = load_samples(p, fmt, (("R", "G", "B", "A"), ("R", "G", "B"), ("Y", "A"), ("Y",)))
+    a = a[..., None] if a.ndim == 2 else a
+    n_colour = 1 if a.shape[2] <= 2 else 3
+    if a.dtype.kind == "f":
+        out = to_float32(a, f"{p}: expected finite values, got", range_prefix(p))
+        if fmt == "EXR" and a.shape[2] in (2, 4):  # OpenEXR colour is premultiplied
+            alpha = out[..., -1:]
+            with np.errstate(over="ignore", invalid="ignore"):
+                np.divide(out[..., :-1], alpha, out=out[..., :-1], where=alpha != 0)
+            # a tiny alpha (1e-22) under a large colour overflows float32 (tests/data/fuzz)
+            check_finite(out, f"{p}: colour / alpha (OpenEXR stores premultiplied colour) overflows float32:")
+    elif a.dtype in (np.uint8, np.uint16):
+        from .embedded import embedded, to_srgb_codes
+
+        a = to_srgb_codes(a, embedded(p, fmt), str(p))  # an embedded ICC profile (Display P3, Adobe RGB) -> sRGB
+        out = np.empty(a.shape, np.float32)
+        out[..., :n_colour] = srgb_decode_lut(a.dtype.itemsize * 8)[a[..., :n_colour]]
+        out[..., n_colour:] = a[..., n_colour:] / np.float32(np.iinfo(a.dtype).max)
+    else:
+        raise InputError(f"{p}: expected 8- or 16-bit integer or float samples, got {a.dtype}")
+    if n_colour == 1:
+        out = out[..., [0, 0, 0, 1]] if out.shape[2] == 2 else np.repeat(out, 3, axis=2)
+    return out
+
+
+def read_disparity(path: str | os.PathLike[str], *, check_range: bool = False) -> np.ndarray:
+    """Read a disparity map (1 = nearest, 0 = farthest) as float32 ``H x W``.
+
+    PNG and integer TIFF codes are divided by their largest code (255, 65535) with
+    no sRGB decoding; float TIFF and OpenEXR (channel ``Y``, else ``R``, else the only
+    channel) are taken as they are; ``.npy`` holds a 2-D (or ``H x W x 1``) float or
+    integer array of the values themselves. A three-channel PNG/TIFF is accepted
+    only if its channels are equal. Values are range-checked only with
+    ``check_range=True`` (the renderer checks them anyway; the reader's message
+    names the file).
+
+    Raises:
+        InputError: Unreadable file, wrong dimensionality or channel count, NaN/Inf,
+            and with ``check_range`` values outside [0, 1].
+    """
+    p, fmt = format_of(path, ("PNG", "TIFF", "EXR", "NPY"), "disparity")
+    a = single_channel(p, load_samples(p, fmt, (("Y",), ("R",))), fmt, "disparity")
+    if a.dtype.kind == "u" and fmt != "NPY":
+        return (a / np.float32(np.iinfo(a.dtype).max)).astype(np.float32)
+    if a.dtype.kind == "i" and fmt != "NPY":
+        raise InputError(f"{p}: expected unsigned integer or float samples, got {a.dtype}")
+    out = to_float32(a, f"{p}: expected finite values, got", range_prefix(p))
+    if check_range and out.size and (out.min() < 0.0 or out.max() > 1.0):
+        bad = (out < 0.0) | (out > 1.0)
+        y, x = first_index(bad)[:2]
+        raise InputError(f"{p}: expected disparity in [0, 1] (1 = nearest), got {float(out[y, x]):.4g} at (y, x) = "
+                         f"({y}, {x}) (range [{float(out.min()):.4g}, {float(out.max()):.4g}]); normalise it, or "
+                         "give metric depth with --depth")
+    return out
