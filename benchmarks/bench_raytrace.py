@@ -73,8 +73,8 @@ def sixteen_x(opts: br.RaytraceOptions) -> br.RaytraceOptions:
     return br.RaytraceOptions(samples_per_px2=16 * opts.samples_per_px2, max_spp=16 * opts.max_spp)
 
 
-def _pinhole(layers: list[br.Layer]) -> tuple[np.ndarray, np.ndarray]:
-    from bokehray.data.synth import _pinhole as pin
+def pinhole_layers(layers: list[br.Layer]) -> tuple[np.ndarray, np.ndarray]:
+    from bokehray.data.synth import pinhole_layers as pin
 
     return pin(layers)
 
@@ -95,7 +95,7 @@ def study_stack(device: str, runs: int, size: int) -> dict:
         out, st = br.raytrace_layers(layers, blur, options=opts, device=device)
         rows.append({"max_spp": cap, "rays_mean": round(st.spp_mean, 1),
                      "psnr_db": round(psnr(out[..., :3], truth[..., :3]), 2), **timing})
-    image, disparity = _pinhole(layers)
+    image, disparity = pinhole_layers(layers)
     photo = {}
     for name, kw in (("preview", {}), ("raytrace (photo mode)", {"quality": "raytrace"})):
         timing = common.time_warm(lambda kw=kw: br.render(image, disparity, blur, device=device, **kw), runs=runs,
@@ -149,14 +149,14 @@ def study_light(device: str, radii: tuple[int, ...]) -> list[dict]:
 
 
 def study_synth(device: str, scenes: int) -> list[dict]:
-    from bokehray.data.synth import SynthConfig, _mean_disparity, make_scene
+    from bokehray.data.synth import SynthConfig, mean_disparity, make_scene
 
     cfg = SynthConfig()
     opts = br.RaytraceOptions(max_spp=cfg.max_spp)
     rows = []
     for idx in range(scenes):
         layers, desc = make_scene(cfg, 0, idx)
-        for f_index, d_f in enumerate((_mean_disparity(layers[0]), _mean_disparity(layers[-1]))):
+        for f_index, d_f in enumerate((mean_disparity(layers[0]), mean_disparity(layers[-1]))):
             blur = br.BlurParams(max(cfg.blur_levels), d_f)
             t = time.perf_counter()
             out, st = br.raytrace_layers(layers, blur, cfg.aperture, options=opts, device=device)

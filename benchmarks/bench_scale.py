@@ -3,7 +3,7 @@
 Measures, on this machine (docs/scale.md):
 
 * the cost of the engine per task: ``R`` no-op tasks (``abs``) through each executor, wall time / ``R``;
-* ``bokehray synth`` throughput in scenes per minute (the ``_generate_one`` tasks that ``generate`` runs);
+* ``bokehray synth`` throughput in scenes per minute (the ``generate_one`` tasks that ``generate`` runs);
 * batch-render throughput in megapixels per second (the ``render_file`` tasks of ``bokehray render DIR``);
 * the start-up cost of each executor (pool or cluster up, every worker warm) and the bytes one scene takes.
 
@@ -37,7 +37,7 @@ import bokehray as br  # noqa: E402
 from benchmarks import common  # noqa: E402
 from bokehray.app.batch import RenderSettings, RenderTask, render_file  # noqa: E402
 from bokehray.executor import make_executor  # noqa: E402
-from bokehray.data.synth import SynthConfig, _generate_one  # noqa: E402
+from bokehray.data.synth import SynthConfig, generate_one  # noqa: E402
 
 
 def _cpu_seconds() -> float:
@@ -143,7 +143,7 @@ def main() -> int:
                 times[name]["noop"].append(_drain(ex, abs, list(range(noop_n)), cpu[name]["noop"]))
                 out = tmp / f"synth-{name}-{r}"
                 jobs = [(cfg, 0, i, str(out), True) for i in range(synth_n)]
-                times[name]["synth"].append(_drain(ex, _generate_one, jobs, cpu[name]["synth"]))
+                times[name]["synth"].append(_drain(ex, generate_one, jobs, cpu[name]["synth"]))
                 if r == 0 and name == "inline":
                     result["synth_bytes_per_scene"] = {synth_size: _bytes(out)["total"] / synth_n}
                 shutil.rmtree(out)
@@ -191,7 +191,7 @@ def main() -> int:
         secs, cpus = [], []
         for i in range(args.default_scenes):
             c, t = time.process_time(), time.perf_counter()
-            _generate_one((SynthConfig(), 0, i, str(out), True))
+            generate_one((SynthConfig(), 0, i, str(out), True))
             secs.append(time.perf_counter() - t)
             cpus.append(time.process_time() - c)
         result["default_scene_seconds_inline"] = secs

@@ -46,7 +46,7 @@ from .model import BokehRefiner, RefinerConfig
 from .tiles import raised_cosine_ramp
 
 __all__ = ["DEFAULT_WEIGHTS", "RefineOptions", "RefineStats", "load_refiner", "refine", "refine_boxes",
-           "tiles_to_refine"]
+           "tiles_near", "tiles_to_refine"]
 
 DEFAULT_WEIGHTS = Path(__file__).parent / "weights" / "refiner.safetensors"
 
@@ -187,10 +187,10 @@ def edge_band(reach: np.ndarray, margin_px: float, feather_px: float, nearest=No
 
 def tiles_to_refine(coc: np.ndarray, tile: int, min_jump_px: float) -> np.ndarray:
     """Boolean ``(ceil(h/tile), ceil(w/tile))`` map of tiles within reach of a depth edge that matters."""
-    return _tiles_near(edge_reach(coc, min_jump_px), tile)
+    return tiles_near(edge_reach(coc, min_jump_px), tile)
 
 
-def _tiles_near(reach: np.ndarray, tile: int) -> np.ndarray:
+def tiles_near(reach: np.ndarray, tile: int) -> np.ndarray:
     h, w = reach.shape
     ty, tx = -(-h // tile), -(-w // tile)
     padded = np.zeros((ty * tile, tx * tile), np.float32)
@@ -284,7 +284,7 @@ def refine(
     classical, disparity = fix.classical, fix.disparity
     coc = blur.signed_coc(disparity).astype(np.float32)
     reach = edge_reach(coc, options.min_jump_px)
-    need = _tiles_near(reach, options.tile)
+    need = tiles_near(reach, options.tile)
     if not options.neural:
         need[:] = False
     else:

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["DepthFixOptions", "colour_edge_offsets", "correct_disparity", "depth_edges", "edge_pairs", "global_shift",
-           "pass_reach", "shift_map", "smeared", "step_flips", "untrusted", "weighted_median"]
+           "pass_reach", "shift_map", "smeared", "step_flips", "untrusted", "vote", "weighted_median"]
 
 
 @dataclass(frozen=True)
@@ -295,7 +295,7 @@ def smeared(disparity: np.ndarray, k_px: float, options: DepthFixOptions = Depth
     return (hi - d > snap) & (d - lo > snap)
 
 
-def _vote(img, cur, sus, offs, space, snap, options, new, keep=None, one_sided=False, targets=None):
+def vote(img, cur, sus, offs, space, snap, options, new, keep=None, one_sided=False, targets=None):
     """Colour-weighted vote of the trusted pixels (not ``sus``, not ``keep``) for every pixel of ``sus``
     (not ``keep``; only those of ``targets`` when given); writes ``new``."""
     h, w = cur.shape
@@ -444,7 +444,7 @@ def _pass(img, cur, k_px, options, offs, space, snap, active, keep, new, targets
         if active is not None:
             sus &= active
         if sus.any():
-            _vote(img, cur, sus, offs, space, snap, options, new, keep,
+            vote(img, cur, sus, offs, space, snap, options, new, keep,
                   one_sided=options.thin_dilated and h_i == 1, targets=targets)
 
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from bokehray.app.demo import _GAP, _LABEL_H, DemoScene, _stroke, build_demo_scene, contact_sheet
+from bokehray.app.demo import SHEET_GAP, SHEET_LABEL_H, DemoScene, stroke, build_demo_scene, contact_sheet
 from bokehray.errors import InputError
 
 
@@ -87,7 +87,7 @@ def test_thin_structures(scene: DemoScene) -> None:
 @pytest.mark.parametrize("width", [0.4, 1.0, 2.5])
 def test_strokes_are_antialiased_and_area_preserving(width: float) -> None:
     pts = np.array([[-5.0, 10.3], [45.0, 14.7]])
-    sl, alpha = _stroke(pts, np.full(2, width), 40, 30)
+    sl, alpha = stroke(pts, np.full(2, width), 40, 30)
     cols = np.zeros((30, 40), np.float32)
     cols[sl] = alpha
     # each column's coverage integrates to about the stroke width (times the slope factor)
@@ -122,18 +122,18 @@ def test_contact_sheet_grid(scene: DemoScene, n: int) -> None:
     rows = math.ceil(n / c)
     th = round(tw * 512 / 768)
     assert sheet.dtype == np.uint8
-    assert sheet.shape == (rows * (th + _LABEL_H) + (rows + 1) * _GAP, c * tw + (c + 1) * _GAP, 3)
+    assert sheet.shape == (rows * (th + SHEET_LABEL_H) + (rows + 1) * SHEET_GAP, c * tw + (c + 1) * SHEET_GAP, 3)
     # first tile is the sRGB-encoded image, labels carry light text
-    tile = sheet[_GAP:_GAP + th, _GAP:_GAP + tw]
+    tile = sheet[SHEET_GAP:SHEET_GAP + th, SHEET_GAP:SHEET_GAP + tw]
     assert tile.std() > 10
-    label = sheet[_GAP + th:_GAP + th + _LABEL_H, _GAP:_GAP + tw]
+    label = sheet[SHEET_GAP + th:SHEET_GAP + th + SHEET_LABEL_H, SHEET_GAP:SHEET_GAP + tw]
     assert label.max() > 150
 
 
 def test_contact_sheet_mixed_sizes_and_errors(scene: DemoScene) -> None:
     imgs = [scene.image, np.full((50, 100, 3), 0.5, np.float32), np.full((100, 50, 3), np.nan, np.float32)]
     sheet = contact_sheet(imgs, ["a", "b", "c"], columns=2, tile_width=64)
-    assert sheet.shape == (2 * (128 + _LABEL_H) + 3 * _GAP, 2 * 64 + 3 * _GAP, 3)
+    assert sheet.shape == (2 * (128 + SHEET_LABEL_H) + 3 * SHEET_GAP, 2 * 64 + 3 * SHEET_GAP, 3)
     with pytest.raises(InputError):
         contact_sheet([scene.image], ["a", "b"])
     with pytest.raises(InputError):

@@ -160,7 +160,7 @@ def test_a_noisy_map_is_left_alone_at_once(monkeypatch):
     def no_vote(*args, **kwargs):
         raise AssertionError("voted on a noisy map")
 
-    monkeypatch.setattr(depthfix, "_vote", no_vote)
+    monkeypatch.setattr(depthfix, "vote", no_vote)
     rng = np.random.default_rng(0)
     h, w = 256, 384
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
@@ -259,8 +259,8 @@ def test_a_dense_blurred_map_is_corrected_not_taken_for_noise(monkeypatch):
     import bokehray.depthfix as depthfix
 
     calls = []
-    real = depthfix._vote
-    monkeypatch.setattr(depthfix, "_vote", lambda *a, **k: calls.append(1) or real(*a, **k))
+    real = depthfix.vote
+    monkeypatch.setattr(depthfix, "vote", lambda *a, **k: calls.append(1) or real(*a, **k))
     xx = np.arange(96)[None, :].repeat(96, 0)
     d = np.where((xx // 4) % 2 == 0, 0.8, 0.2).astype(np.float32)  # 4 px stripes
     img = np.where((xx // 4) % 2 == 0, 0.8, 0.2)[..., None].repeat(3, 2).astype(np.float32)

@@ -68,15 +68,15 @@ def test_cli_synth_and_bad_input(tmp_path, capsys):
 
 
 def test_focus_choices_are_the_foreground_and_background_planes():
-    from bokehray.data.synth import _mean_disparity
+    from bokehray.data.synth import mean_disparity
 
     layers, _ = make_scene(SMALL, seed=1, index=3)
     n = SMALL.size
     a, b, c = layers[0].plane
-    d_fg = _mean_disparity(layers[0])
+    d_fg = mean_disparity(layers[0])
     corners = [a * x + b * y + c for x in (0, n) for y in (0, n)]
     assert min(corners) - 1e-6 <= d_fg <= max(corners) + 1e-6  # within the nearest layer's own disparity range
-    assert _mean_disparity(layers[-1]) < d_fg
+    assert mean_disparity(layers[-1]) < d_fg
 
 
 def test_corrupt_foreground_is_a_clear_error_with_no_scene(tmp_path, capsys):
@@ -100,7 +100,7 @@ def test_existing_scenes_need_overwrite(tmp_path):
 def test_any_foreground_coverage_is_labelled_with_the_foregrounds_depth():
     """Mixed edge pixels and sub-pixel strands (alpha < 0.5) take the foreground's disparity, not the background's."""
     from bokehray.levels.raytrace import Layer
-    from bokehray.data.synth import _pinhole
+    from bokehray.data.synth import pinhole_layers
 
     n = 16
     fg = np.zeros((n, n, 4), np.float32)
@@ -112,6 +112,6 @@ def test_any_foreground_coverage_is_labelled_with_the_foregrounds_depth():
     bg = np.ones((n, n, 4), np.float32)
     bg[..., :3] = 0.2
     layers = [Layer(fg, plane=(0.0, 0.0, 0.9)), Layer(bg, plane=(0.0, 0.0, 0.1))]
-    _, d = _pinhole(layers)
+    _, d = pinhole_layers(layers)
     assert np.allclose(d[4:12, 4:9], 0.9) and np.allclose(d[2], 0.9)
     assert d[0, 0] == pytest.approx(0.1) and np.allclose(d[13:], 0.1) and np.allclose(d[4:12, 9:], 0.1)

@@ -238,13 +238,13 @@ def test_refine_needs_the_preview_quality(weights):
 def test_tile_search_is_bounded_by_the_grid_not_the_blur():
     """Issue 18: the tile search looped over a window growing with the uncapped CoC (K = 1e5: 125 s on 256 x 256).
     A reach far beyond the image marks every tile, exactly as a reach of the image's size does."""
-    from bokehray_refiner.refine import _tiles_near
+    from bokehray_refiner.refine import tiles_near
 
     reach = np.zeros((96, 80), np.float32)
     reach[40, 30] = 1e5
-    need = _tiles_near(reach, 16)
+    need = tiles_near(reach, 16)
     assert need.all()
-    np.testing.assert_array_equal(need, _tiles_near(np.minimum(reach, 200.0), 16))
+    np.testing.assert_array_equal(need, tiles_near(np.minimum(reach, 200.0), 16))
 
 
 def _edge_scene(seed: int = 0, size: int = 128):

@@ -114,8 +114,8 @@ class Pair:
     problem: str | None = None
 
 
-def _natural_key(p: Path) -> list:
-    from ..data.datasets import _natural_key as key
+def natural_key(p: Path) -> list:
+    from ..data.datasets import natural_key as key
 
     return key(str(p))
 
@@ -125,13 +125,13 @@ def _listing(spec: str, exts: tuple[str, ...], what: str) -> tuple[list[Path], P
     p = Path(spec)
     if p.is_dir():
         files = [f for f in p.iterdir() if f.is_file() and not f.name.startswith(".") and f.suffix.lower() in exts]
-        return sorted(files, key=_natural_key), p
+        return sorted(files, key=natural_key), p
     if p.is_file():
         return [p], p.parent
     if _is_glob(spec):
         files = [Path(f) for f in glob.glob(spec, recursive=True)]
         files = [f for f in files if f.is_file() and f.suffix.lower() in exts]
-        return sorted(files, key=_natural_key), None
+        return sorted(files, key=natural_key), None
     raise InputError(f"{spec}: no such {what} file or folder")
 
 

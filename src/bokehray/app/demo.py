@@ -31,7 +31,7 @@ from skimage.transform import resize
 
 from ..errors import InputError
 
-__all__ = ["DemoScene", "build_demo_scene", "contact_sheet"]
+__all__ = ["SHEET_GAP", "SHEET_LABEL_H", "DemoScene", "build_demo_scene", "contact_sheet", "stroke"]
 
 _REF_WIDTH = 768
 _MAX_COC_PX = 24.0
@@ -39,8 +39,8 @@ _BG_D = (0.16, 0.04)  # background disparity slope along y and x (0 at top left)
 _PANEL_D = (0.45, 0.55)
 _SUBJECT_D = (0.92, 0.86)  # centre, rim
 _FOCUS_FAR = 0.1
-_GAP = 8  # contact sheet: gap between tiles (px)
-_LABEL_H = 26  # contact sheet: label strip height under each tile (px)
+SHEET_GAP = 8  # contact sheet: gap between tiles (px)
+SHEET_LABEL_H = 26  # contact sheet: label strip height under each tile (px)
 
 
 @dataclass(frozen=True)
@@ -98,7 +98,7 @@ def _bbox(x0: float, y0: float, x1: float, y1: float, w: int, h: int):
     return (slice(ya, yb), slice(xa, xb)), gx, gy
 
 
-def _stroke(pts: np.ndarray, widths: np.ndarray, w: int, h: int):
+def stroke(pts: np.ndarray, widths: np.ndarray, w: int, h: int):
     """Coverage of a polyline of varying width (area-preserving, sub-pixel widths allowed)."""
     pad = float(widths.max()) + 2.0
     box = _bbox(pts[:, 0].min() - pad, pts[:, 1].min() - pad, pts[:, 0].max() + pad, pts[:, 1].max() + pad, w, h)
@@ -149,7 +149,7 @@ def build_demo_scene(width: int = 768, height: int = 512, seed: int = 0) -> Demo
     u = (np.arange(n) + rng.uniform(-0.3, 0.3, n)) / (n - 1)
     lx = W * (0.03 + 0.94 * u)
     ly = H * (0.08 + 0.07 * u + 0.16 * (1.0 - (2.0 * u - 1.0) ** 2))
-    cord = _stroke(np.stack([lx, ly + 1.5 * s], 1), np.full(n, 0.6 * s), W, H)
+    cord = stroke(np.stack([lx, ly + 1.5 * s], 1), np.full(n, 0.6 * s), W, H)
     if cord is not None:
         _over(img, disp, cord[0], 0.8 * cord[1], np.float32(0.01), disp[cord[0]])
     lx = np.concatenate([lx, W * rng.uniform(0.05, 0.95, 8)])
@@ -217,7 +217,7 @@ def build_demo_scene(width: int = 768, height: int = 512, seed: int = 0) -> Demo
 
     def paint(strand_list) -> None:
         for d, pts, widths, rgb in strand_list:
-            res = _stroke(pts, widths, W, H)
+            res = stroke(pts, widths, W, H)
             if res is not None:
                 _over(img, disp, res[0], res[1], np.asarray(rgb, np.float32), np.float32(d))
 
@@ -308,12 +308,12 @@ def contact_sheet(
         tiles.append(np.round(linear_to_srgb(im).astype(np.float64) * 255.0).astype(np.uint8))
     cols = min(columns, len(tiles))
     rows = math.ceil(len(tiles) / cols)
-    cell_h = max(t.shape[0] for t in tiles) + _LABEL_H
-    sheet = np.full((rows * cell_h + (rows + 1) * _GAP, cols * tile_width + (cols + 1) * _GAP, 3), 24, np.uint8)
+    cell_h = max(t.shape[0] for t in tiles) + SHEET_LABEL_H
+    sheet = np.full((rows * cell_h + (rows + 1) * SHEET_GAP, cols * tile_width + (cols + 1) * SHEET_GAP, 3), 24, np.uint8)
     for i, (tile, text) in enumerate(zip(tiles, labels)):
         r, c = divmod(i, cols)
-        y, x = _GAP + r * (cell_h + _GAP), _GAP + c * (tile_width + _GAP)
+        y, x = SHEET_GAP + r * (cell_h + SHEET_GAP), SHEET_GAP + c * (tile_width + SHEET_GAP)
         sheet[y:y + tile.shape[0], x:x + tile_width] = tile
-        ly = y + cell_h - _LABEL_H
-        sheet[ly:ly + _LABEL_H, x:x + tile_width] = _label(str(text), tile_width, _LABEL_H, "#e6e6e6", "#181818")
+        ly = y + cell_h - SHEET_LABEL_H
+        sheet[ly:ly + SHEET_LABEL_H, x:x + tile_width] = _label(str(text), tile_width, SHEET_LABEL_H, "#e6e6e6", "#181818")
     return sheet

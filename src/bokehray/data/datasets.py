@@ -34,7 +34,7 @@ from ..photo.depth import read_depth
 from ..photo.read import read_disparity, read_image
 from ..output.write import write_disparity, write_image
 
-__all__ = ["FAR_DEPTH", "BLBDataset", "EBBDataset", "Sample", "perturb_disparity", "write_blb_scene"]
+__all__ = ["FAR_DEPTH", "BLBDataset", "EBBDataset", "Sample", "natural_key", "perturb_disparity", "write_blb_scene"]
 
 FAR_DEPTH = 1e9
 """Finite depth / focus distance written for disparity 0 (OpenEXR and JSON hold no +Inf here)."""
@@ -57,7 +57,7 @@ class Sample:
     meta: dict  #: the scene's info.json (BLB) or {}, plus ``"paths"`` of the source files
 
 
-def _natural_key(name: str) -> list[Any]:
+def natural_key(name: str) -> list[Any]:
     """Sort key ordering embedded numbers numerically ("2" before "10")."""
     return [(0, int(t), "") if t.isdigit() else (1, 0, t) for t in re.split(r"(\d+)", name) if t]
 
@@ -235,7 +235,7 @@ class BLBDataset(Sequence[Sample]):
     def __init__(self, root: str | os.PathLike[str], *, level: int | None = None, focus: int | None = None):
         self.root = _folder(root, "BLB root")
         scenes = sorted((p for p in self.root.iterdir() if p.is_dir() and not p.name.startswith(".")
-                         and (p / "info.json").is_file()), key=lambda p: _natural_key(p.name))  # fmt: skip
+                         and (p / "info.json").is_file()), key=lambda p: natural_key(p.name))  # fmt: skip
         if not scenes:
             raise InputError(f"no BLB scenes under {self.root}: expected <root>/<scene>/info.json")
         self._items: list[tuple[Path, int, int, dict, float, float]] = []
@@ -299,12 +299,12 @@ class EBBDataset(Sequence[Sample]):
         targets = _by_stem(_folder(self.root / target_dir, "EBB target folder"), _IMAGE_EXTS)
         disps = _by_stem(_folder(self.root / disparity_dir, "EBB disparity folder"), _DISPARITY_EXTS)
         for what, found, sub in (("target", targets, target_dir), ("disparity", disps, disparity_dir)):
-            missing = sorted(set(inputs) - set(found), key=_natural_key)
+            missing = sorted(set(inputs) - set(found), key=natural_key)
             if missing:
                 more = f" and {len(missing) - 5} more" if len(missing) > 5 else ""
                 raise InputError(f"{self.root / sub}: expected a {what} for every input, missing stems "
                                  f"{', '.join(missing[:5])}{more}")  # fmt: skip
-        self._items = [(s, inputs[s], targets[s], disps[s]) for s in sorted(inputs, key=_natural_key)]
+        self._items = [(s, inputs[s], targets[s], disps[s]) for s in sorted(inputs, key=natural_key)]
 
     def __len__(self) -> int:
         return len(self._items)

@@ -28,7 +28,7 @@ from ..lens import Aperture, BlurParams
 from ..levels.raytrace import Layer, raytrace_layers
 from ..options import RaytraceOptions
 
-__all__ = ["SynthConfig", "generate", "make_scene"]
+__all__ = ["SynthConfig", "generate", "generate_one", "make_scene", "mean_disparity", "pinhole_layers"]
 
 BUILTIN_BACKGROUNDS = ("astronaut", "coffee", "chelsea", "rocket", "brick", "gravel", "page", "coins", "camera")
 FOREGROUND_KINDS = ("cutout", "strands", "foliage", "mesh", "lights")
@@ -221,7 +221,7 @@ FOREGROUND_COVERAGE = 1.0 / 255.0
 """A foreground layer labels a pixel's disparity wherever its alpha exceeds this (any visible coverage)."""
 
 
-def _pinhole(layers: list[Layer]) -> tuple[np.ndarray, np.ndarray]:
+def pinhole_layers(layers: list[Layer]) -> tuple[np.ndarray, np.ndarray]:
     """All-in-focus image and disparity: the front-most foreground with any coverage gives the depth.
 
     Mixed edge pixels and sub-pixel strands (alpha < 0.5) are labelled with the foreground's disparity, not
@@ -243,7 +243,7 @@ def _pinhole(layers: list[Layer]) -> tuple[np.ndarray, np.ndarray]:
     return img[..., :3], np.clip(disparity, 0.0, 1.0)
 
 
-def _mean_disparity(layer: Layer) -> float:
+def mean_disparity(layer: Layer) -> float:
     """Alpha-weighted mean disparity of a plane layer: where its content is, not where it is empty."""
     n = layer.rgba.shape[0]
     yy, xx = (np.mgrid[0:n, 0:n] + 0.5).astype(np.float64)
@@ -253,13 +253,13 @@ def _mean_disparity(layer: Layer) -> float:
     return float(np.clip((w * d).sum() / max(w.sum(), 1e-12), 0.0, 1.0))
 
 
-def _generate_one(args: tuple[SynthConfig, int, int, str, bool]) -> str:
+def generate_one(args: tuple[SynthConfig, int, int, str, bool]) -> str:
     from .datasets import write_blb_scene
 
     config, seed, index, out, overwrite = args
     layers, desc = make_scene(config, seed, index)
-    image, disparity = _pinhole(layers)
-    focus = [_mean_disparity(layers[0]), _mean_disparity(layers[-1])]
+    image, disparity = pinhole_layers(layers)
+    focus = [mean_disparity(layers[0]), mean_disparity(layers[-1])]
     renders, spp = [], []
     opts = RaytraceOptions(max_spp=config.max_spp)
     for k_index, k in enumerate(config.blur_levels):
@@ -315,7 +315,7 @@ def generate(config: SynthConfig, n: int, out: str | os.PathLike, *, seed: int =
     try:
         with make_executor(executor, workers=workers, scheduler=scheduler, tasks=n) as ex, \
                 tqdm(total=n, desc="scenes", unit="scene", disable=not progress) as bar:
-            for o in ex.map(_generate_one, jobs):
+            for o in ex.map(generate_one, jobs):
                 if not o.ok:
                     raise InputError(f"scene_{o.index:05d}: {o.error}")
                 done[o.index] = o.value
