@@ -82,7 +82,7 @@ def pisa_weights(
         queries, or are all 0 when its mask is empty.
     """
     _check(q, k, coc, window)
-    b, nh, h, w, d = q.shape
+    d = q.shape[-1]
     scale = 1.0 / math.sqrt(d) if scale is None else scale
     acc = _acc_dtype(q)
     with torch.no_grad():

@@ -17,9 +17,9 @@ import numpy as np
 from skimage.filters import gaussian
 from tqdm import tqdm
 
+from bokehray.colour import linear_to_srgb
 from bokehray.data.datasets import BLBDataset, perturb_disparity
 from bokehray.errors import InputError
-from bokehray.colour import linear_to_srgb
 from bokehray.lens import BlurParams
 from bokehray.pipeline import render
 

@@ -30,8 +30,8 @@ import numpy as np
 import torch
 from safetensors.torch import load_file
 
-from bokehray.errors import InputError
 from bokehray.colour import linear_to_srgb, srgb_to_linear
+from bokehray.errors import InputError
 from bokehray.lens import BlurParams
 from bokehray_refiner.pisa import PisaMaskOptions
 

@@ -15,10 +15,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import bokehray_kernels.pisa as kp
 import numpy as np
 import warp as wp
-
-import bokehray_kernels.pisa as kp
 
 from bokehray.errors import InputError
 from bokehray.validate import check_disparity

@@ -24,7 +24,7 @@ from bokehray.errors import InputError
 from .attention import pisa_attention
 from .masks import PisaMaskProvider
 
-__all__ = ["PassThroughAttnProcessor", "PISAAttnProcessor", "install_pisa", "pisa_layer_names"]
+__all__ = ["PISAAttnProcessor", "PassThroughAttnProcessor", "install_pisa", "pisa_layer_names"]
 
 
 class PassThroughAttnProcessor(AttnProcessor2_0):

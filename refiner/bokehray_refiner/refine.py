@@ -34,9 +34,9 @@ import torch
 from safetensors import SafetensorError, safe_open
 from safetensors.torch import load_file
 
+from bokehray.colour import linear_to_srgb, srgb_to_linear
 from bokehray.depthfix import DepthFixOptions, correct_disparity
 from bokehray.errors import InputError
-from bokehray.colour import linear_to_srgb, srgb_to_linear
 from bokehray.lens import BlurParams
 from bokehray_refiner.pisa import PisaMaskOptions
 

@@ -298,7 +298,7 @@ def smeared(disparity: np.ndarray, k_px: float, options: DepthFixOptions = Depth
 def vote(img, cur, sus, offs, space, snap, options, new, keep=None, one_sided=False, targets=None):
     """Colour-weighted vote of the trusted pixels (not ``sus``, not ``keep``) for every pixel of ``sus``
     (not ``keep``; only those of ``targets`` when given); writes ``new``."""
-    h, w = cur.shape
+    w = cur.shape[1]
     trusted = ~sus if keep is None else ~(sus | keep)
     voters = sus if keep is None else sus & ~keep
     ys, xs = np.nonzero(voters if targets is None else voters & targets)

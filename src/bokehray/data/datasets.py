@@ -29,10 +29,10 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
-from ..validate import check_disparity, check_image
+from ..output.write import write_disparity, write_image
 from ..photo.depth import read_depth
 from ..photo.read import read_disparity, read_image
-from ..output.write import write_disparity, write_image
+from ..validate import check_disparity, check_image
 
 __all__ = ["FAR_DEPTH", "BLBDataset", "EBBDataset", "Sample", "natural_key", "perturb_disparity", "write_blb_scene"]
 

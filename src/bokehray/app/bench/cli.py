@@ -46,8 +46,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 def cmd_bench(args: argparse.Namespace) -> int:
     from ...data.metrics import PerceptualMetric
-    from .methods import registry, select
     from .machine import machine_info
+    from .methods import registry, select
     from .run import (
         QUICK_SPLIT,
         SynthSplit,

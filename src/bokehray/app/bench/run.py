@@ -29,13 +29,22 @@ from pathlib import Path
 import numpy as np
 
 from ...data.datasets import perturb_disparity
-from .machine import reset_peak_rss, status_kb
-from ...errors import InputError
 from ...data.metrics import BAND_PX, PerceptualMetric, discontinuity_band, exposure_align, score
+from ...errors import InputError
+from .machine import reset_peak_rss, status_kb
 from .methods import Method
 
-__all__ = ["Case", "SynthSplit", "ebb_cases", "blb_cases", "pareto_front", "perturb_disparity", "run_bench",
-           "synth_cases", "write_reports"]
+__all__ = [
+    "Case",
+    "SynthSplit",
+    "blb_cases",
+    "ebb_cases",
+    "pareto_front",
+    "perturb_disparity",
+    "run_bench",
+    "synth_cases",
+    "write_reports",
+]
 
 ROBUSTNESS_RADII = (-5, -4, -3, -2, -1, 1, 2, 3, 4, 5)
 """Disparity perturbations in px: negative = erosion (near regions shrink), positive = dilation."""
