@@ -11,7 +11,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 import bokehray as br
-from bokehray.app.batch import find_pairs, parse_sweep
+from bokehray.app.batch import find_pairs, frame_labels, parse_sweep
 from bokehray.app.cli import main
 from bokehray.errors import InputError
 from bokehray.colour import linear_to_srgb
@@ -164,7 +164,52 @@ def test_focal_sweep_writes_a_stack_and_an_animated_gif(shoot, capsys):
     assert len(list((shoot / "kstack").glob("*_blur_sweep.gif"))) == 3
 
 
+def test_close_sweep_values_get_a_frame_each(shoot, capsys):
+    """Issue: %.3f made --focus 0.1,0.1004 one file, reported as 2 rendered, and a 1-frame GIF."""
+    from PIL import Image
+
+    img, d = shoot / "photos" / "p0.png", shoot / "maps" / "p0.png"
+    code, out, err = run(capsys, "render", img, "--disparity", d, "-o", shoot / "sweep", "--blur", 8,
+                         "--focus", "0.1,0.1004", "--workers", 1)
+    assert code == 0, err
+    assert _files(shoot / "sweep") == ["bokehray-batch.json", "p0_focus_0.1000.png", "p0_focus_0.1004.png",
+                                       "p0_focus_sweep.gif"]
+    assert "2 rendered" in out and Image.open(shoot / "sweep" / "p0_focus_sweep.gif").n_frames == 2
+    code, out, err = run(capsys, "render", img, "--disparity", d, "-o", shoot / "sweep", "--blur", 8,
+                         "--focus", "0.1,0.1004", "--workers", 1)
+    assert code == 0 and "0 rendered, 2 skipped" in out  # resume sees both frames
+
+
+@pytest.mark.parametrize(("name", "text", "shown"), [
+    ("focus", "0.1:0.9:1000", None),  # inside MAX_SWEEP: 801 names for 1000 frames with %.3f
+    ("blur", "24,24.0000001", ["24", "24.0000001"]),  # %g: both "24"
+    ("blur", "2.5,4", ["2.5", "4"]),
+    ("focus", "0.1:0.9:5", ["0.100", "0.300", "0.500", "0.700", "0.900"]),  # the usual names stay
+    ("blur", "2,4,16", ["2", "4", "16"]),
+])
+def test_every_sweep_value_names_its_own_frame(name, text, shown):
+    values = parse_sweep(text)
+    labels = frame_labels(name, values)
+    assert len(set(labels)) == len(values) == len(labels)
+    assert len({len(t) for t in labels}) == 1 or name == "blur"  # a focal stack's names sort in focus order
+    assert all(abs(float(t) - v) <= 0.5 * 10.0 ** -6 * max(1.0, v) for t, v in zip(labels, values))
+    if shown is not None:
+        assert labels == shown
+
+
+@given(st.lists(st.floats(0, 1), min_size=2, max_size=30, unique=True))
+def test_frame_labels_are_distinct_or_refused(values):
+    try:
+        labels = frame_labels("focus", values)
+    except InputError as e:
+        assert "too close to tell apart" in str(e)
+        return
+    assert len(set(labels)) == len(values)
+
+
 @pytest.mark.parametrize("args, message", [
+    (["--blur", 4, "--focus", "0:2:3"], "--focus: expected every value of the sweep in [0, 1]"),
+    (["--blur=-1,4", "--focus", 0.5], "--blur: expected every value of the sweep as K in [0, 100000], got -1"),
     (["--blur", "2,4", "--focus", "0.1,0.2"], "sweep one of --focus or --blur, not both"),
     (["--blur", 4, "--focus", "0.1,0.1"], "--focus: the values repeat"),
     (["--blur", 4, "--focus", "0.1:0.5:1"], "a range needs 2..1000 values"),

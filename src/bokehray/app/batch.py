@@ -35,8 +35,8 @@ from pathlib import Path
 
 from ..errors import InputError
 
-__all__ = ["Pair", "RenderSettings", "RenderTask", "add_batch_args", "find_pairs", "is_batch", "parse_sweep",
-           "render_file", "run_batch", "sweep_values"]
+__all__ = ["Pair", "RenderSettings", "RenderTask", "add_batch_args", "find_pairs", "frame_labels", "is_batch",
+           "parse_sweep", "render_file", "run_batch", "sweep_values"]
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr")
 MAP_EXTS = (".png", ".tif", ".tiff", ".exr", ".npy")
@@ -273,9 +273,19 @@ def sweep_values(args: argparse.Namespace) -> tuple[str | None, tuple[float, ...
     if not (f or b):
         return None, ()
     name = "focus" if f else "blur"
-    values = args.focus if f else args.blur
+    values = tuple(v + 0.0 for v in (args.focus if f else args.blur))  # -0.0 is 0.0 (one name, one render)
     if len(set(values)) != len(values):
         raise InputError(f"--{name}: the values repeat ({', '.join(f'{v:g}' for v in values)})")
+    # every value is checked as a single one is, before any frame is written (not frame by frame, half a stack later)
+    from ..lens import MAX_K_PX
+
+    for i, v in enumerate(values):
+        if name == "focus" and not 0.0 <= v <= 1.0:
+            raise InputError(f"--focus: expected every value of the sweep in [0, 1] (1 = nearest), got {v:g} "
+                             f"(value {i + 1} of {len(values)})")
+        if name == "blur" and not 0.0 <= v <= MAX_K_PX:
+            raise InputError(f"--blur: expected every value of the sweep as K in [0, {MAX_K_PX:g}], got {v:g} "
+                             f"(value {i + 1} of {len(values)})")
     return name, values
 
 
@@ -288,8 +298,38 @@ def _settings(args: argparse.Namespace) -> RenderSettings:
     return RenderSettings.from_args(args)
 
 
-def _frame_name(stem: str, name: str, value: float) -> str:
-    return f"{stem}_focus_{value:.3f}" if name == "focus" else f"{stem}_blur_{value:g}"
+FRAME_DECIMALS = {"focus": 3, "blur": 0}
+"""The fewest decimals in a sweep frame's name (``p_focus_0.100.png``, ``p_blur_4.png``)."""
+_MOST_DECIMALS = 20
+
+
+def _shown_decimals(v: float) -> int:
+    """The decimals ``%g`` shows of ``v`` (six significant digits, ``2.5`` -> 1, ``24`` -> 0, ``1e-05`` -> 5)."""
+    from decimal import Decimal
+
+    return max(0, -Decimal(f"{v:.6g}").normalize().as_tuple().exponent)
+
+
+def frame_labels(name: str, values: Sequence[float]) -> list[str]:
+    """The value part of each frame's name: one rule for every sweep, distinct for distinct values.
+
+    Every value of a sweep is written with the same number of decimals: the fewest that are at least
+    ``FRAME_DECIMALS[name]``, show each value as ``%g`` does (six significant digits) and give each value its own
+    name (``0.1,0.1004`` -> ``0.1000``, ``0.1004``); blur values then drop trailing zeros (``4``, ``2.5``,
+    ``24.0000001``). Values that ``_MOST_DECIMALS`` decimals cannot tell apart are refused: two frames never share
+    a file, whatever order the workers finish in.
+    """
+    first = max([FRAME_DECIMALS[name], *(_shown_decimals(v) for v in values)])
+    for decimals in range(min(first, _MOST_DECIMALS), _MOST_DECIMALS + 1):
+        labels = [f"{v:.{decimals}f}" for v in values]
+        if name == "blur" and decimals:
+            labels = [t.rstrip("0").rstrip(".") for t in labels]
+        if len(set(labels)) == len(labels):
+            return labels
+    i = next(i for i, t in enumerate(labels) if labels.count(t) > 1)
+    j = labels.index(labels[i], i + 1)
+    raise InputError(f"--{name}: the values {values[i]!r} and {values[j]!r} of the sweep are too close to tell "
+                     f"apart in the frames' file names (they differ after {_MOST_DECIMALS} decimals)")
 
 
 def _gif(frames: Sequence[Path], path: Path, width: int, fps: float) -> Path:
@@ -353,6 +393,7 @@ def run_batch(args: argparse.Namespace) -> int:
     if args.stats:
         raise InputError("--stats: single-file renders only (a batch prints its throughput at the end)")
     name, values = sweep_values(args)
+    labels = frame_labels(name, values) if name is not None else []
     settings = _settings(args)
     out = Path(args.output)
     if out.exists() and not out.is_dir():
@@ -383,8 +424,8 @@ def run_batch(args: argparse.Namespace) -> int:
             tasks.append(RenderTask(str(pair.image), str(pair.map), str(out / f"{stem}{suffix}"), settings))
             continue
         frames = []
-        for v in values:
-            frame = out / f"{_frame_name(stem, name, v)}{suffix}"
+        for v, label in zip(values, labels):
+            frame = out / f"{stem}_{name}_{label}{suffix}"
             frames.append(frame)
             tasks.append(RenderTask(str(pair.image), str(pair.map), str(frame), settings.with_values(**{name: v})))
         stacks[out / f"{stem}_{name}_sweep.gif"] = frames
