@@ -88,6 +88,22 @@ def test_manifest_csv_pairing(shoot, capsys):
     assert code == 2 and err.count("\n") == 1 and "needs the columns image and disparity" in err
 
 
+@pytest.mark.parametrize(("text", "message"), [
+    ("image,disparity\np0.png,maps/p0.png,extra\n", "line 2: expected at most 2 fields (the header's image,disparity), got 3"),
+    ("image,disparity\n\np0.png,maps/p0.png\np1.png,maps/p1.png,x,y\n", "line 4: expected at most 2 fields"),
+    ("image,disparity\np0.png\n", "line 2: expected an image and a disparity path"),
+    ("image,disparity\n", "the manifest CSV has no rows"),
+    ("", "the manifest CSV has no rows"),
+])
+def test_malformed_manifest_rows_are_one_line_errors(shoot, capsys, text, message):
+    """Issue: a row with more fields than the header gave a traceback (AttributeError on None.strip)."""
+    (shoot / "m.csv").write_text(text)
+    code, out, err = run(capsys, "render", shoot / "photos", "--disparity", shoot / "m.csv", "-o", shoot / "o",
+                         "--blur", 6, "--focus", 0.5, "--workers", 1)
+    assert code == 2 and err.count("\n") == 1 and message in err and str(shoot / "m.csv") in err, err
+    assert not (shoot / "o").exists()
+
+
 def test_pairing_problems_are_named(shoot, tmp_path):
     br.write_disparity(shoot / "maps" / "p1.exr", _photo(1)[1])  # two maps for p1
     pairs = {p.image.name: p for p in find_pairs(str(shoot / "photos"), str(shoot / "maps"))}

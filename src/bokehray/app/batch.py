@@ -136,10 +136,14 @@ def _listing(spec: str, exts: tuple[str, ...], what: str) -> tuple[list[Path], P
 
 
 def _manifest(path: Path, kind: str) -> dict[str, Path]:
+    rows: list[tuple[int, list[str]]] = []
     try:
         with open(path, newline="", encoding="utf-8-sig") as fh:
-            rows = list(csv.DictReader(fh))
-            header = [h.strip().lower() for h in (rows[0].keys() if rows else [])]
+            reader = csv.reader(fh)
+            header = [h.strip().lower() for h in next(reader, [])]
+            for fields in reader:
+                if any(f.strip() for f in fields):  # blank lines are no rows
+                    rows.append((reader.line_num, fields))
     except (OSError, UnicodeDecodeError, csv.Error) as e:
         raise InputError(f"{path}: cannot read the manifest CSV ({e})") from None
     if not rows:
@@ -149,8 +153,11 @@ def _manifest(path: Path, kind: str) -> dict[str, Path]:
         raise InputError(f"{path}: the manifest CSV needs the columns image and {kind} (or map), got "
                          f"{', '.join(header)}")
     out: dict[str, Path] = {}
-    for n, row in enumerate(rows, start=2):
-        row = {k.strip().lower(): (v or "").strip() for k, v in row.items() if k is not None}
+    for n, fields in rows:
+        if len(fields) > len(header):
+            raise InputError(f"{path}: line {n}: expected at most {len(header)} fields (the header's "
+                             f"{','.join(header)}), got {len(fields)}; quote a path that holds a comma")
+        row = dict(zip(header, (f.strip() for f in fields)))
         if not row.get("image") or not row.get(col):
             raise InputError(f"{path}: line {n}: expected an image and a {kind} path")
         m = Path(row[col])
