@@ -300,3 +300,52 @@ def test_every_photo_pairs_with_its_own_map(stems, suffix, same_folder):
         pairs = find_pairs(str(photos), str(maps), suffix=suffix)
         assert sorted(p.image.stem for p in pairs) == sorted(stems)
         assert all(p.map is not None and p.map.name == f"{p.image.stem}{suffix}.png" for p in pairs)
+
+
+class _StopsInFlight:
+    """An executor whose first task ends, then the signal comes while two more are in flight; they finish (write
+    their output) while it closes, as a local pool's workers do."""
+
+    workers = 3
+
+    def __init__(self, signal_exc):
+        self.signal_exc, self.tasks, self.fn = signal_exc, [], None
+
+    def describe(self):
+        return "stand-in"
+
+    def map(self, fn, tasks):
+        from bokehray.executor import Outcome
+
+        self.fn, self.tasks = fn, tasks
+        yield Outcome(0, fn(tasks[0]))
+        raise self.signal_exc
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        for t in self.tasks[1:3]:
+            self.fn(t)
+
+
+@pytest.mark.parametrize(("exc", "code", "words"), [
+    ("Terminated", 143, "terminated (SIGTERM)"), ("KeyboardInterrupt", 130, "interrupted")])
+def test_a_signal_stops_the_batch_with_its_code_and_counts_the_outputs_on_disk(shoot, capsys, monkeypatch, exc,
+                                                                               code, words):
+    """Issue: SIGTERM exited 130 "interrupted" (not 143), and the count missed the renders that were in flight."""
+    import bokehray.errors
+    import bokehray.executor
+
+    signal_exc = getattr(bokehray.errors, exc, None) or KeyboardInterrupt
+    monkeypatch.setattr(bokehray.executor, "make_executor", lambda *a, **k: _StopsInFlight(signal_exc()))
+    got, _, err = run(capsys, "render", shoot / "photos" / "p0.png", "--disparity", shoot / "maps" / "p0.png",
+                      "-o", shoot / "s", "--blur", 6, "--focus", "0.2,0.4,0.6,0.8", "--quiet")
+    assert got == code
+    assert err.strip() == (f"bokehray: {words} after 3 of 4 renders; they are complete in {shoot / 's'}, run the "
+                           "same command again to render the rest")
+    assert len(list((shoot / "s").glob("p0_focus_*.png"))) == 3
+    monkeypatch.undo()
+    got, out, err = run(capsys, "render", shoot / "photos" / "p0.png", "--disparity", shoot / "maps" / "p0.png",
+                        "-o", shoot / "s", "--blur", 6, "--focus", "0.2,0.4,0.6,0.8", "--workers", 1)
+    assert got == 0 and "1 rendered, 3 skipped" in out, err

@@ -33,7 +33,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from ..errors import InputError
+from ..errors import EXIT_INTERRUPTED, EXIT_TERMINATED, InputError, Terminated
 
 __all__ = ["Pair", "RenderSettings", "RenderTask", "add_batch_args", "find_pairs", "frame_labels", "is_batch",
            "parse_sweep", "render_file", "run_batch", "sweep_values"]
@@ -363,6 +363,15 @@ def _gif(frames: Sequence[Path], path: Path, width: int, fps: float) -> Path:
     return atomic_write(path, encode)
 
 
+def _stamp(path: str) -> tuple[int, int] | None:
+    """The file's identity now (inode, mtime in ns), or None: an atomic write replaces both."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_ino, st.st_mtime_ns
+
+
 def _state(out: Path, fingerprint: str, outputs: Sequence[str], overwrite: bool) -> None:
     """Refuse to skip outputs made with other settings (or not by a batch); then record this batch's settings."""
     from ..output.atomic import atomic_write
@@ -448,7 +457,7 @@ def run_batch(args: argparse.Namespace) -> int:
     quiet = args.quiet
     done_pixels, t0 = 0, time.perf_counter()
     failed_outputs: set[str] = set()
-    finished = 0
+    before = {t.output: _stamp(t.output) for t in todo}  # what is there now (with --overwrite: the old renders)
     try:
         if todo:
             with make_executor(args.executor, workers=args.workers, scheduler=args.scheduler,
@@ -463,15 +472,19 @@ def run_batch(args: argparse.Namespace) -> int:
                     for o in ex.map(render_file, todo):
                         if o.ok:
                             done_pixels += o.value["pixels"]
-                            finished += 1
                         else:
                             failures.append((todo[o.index].image, o.error))
                             failed_outputs.add(todo[o.index].output)
                         bar.update()
-    except KeyboardInterrupt:
-        print(f"bokehray: interrupted after {finished} of {len(todo)} renders; they are complete in {out}, "
+    except KeyboardInterrupt as e:
+        # counted on disk once the executor has closed: the renders in flight when the signal came finished
+        # (atomically) while it shut down, and they are done as much as those whose outcome was seen
+        complete = sum(1 for t in todo if _stamp(t.output) not in (None, before[t.output]))
+        terminated = isinstance(e, Terminated)
+        what, code = ("terminated (SIGTERM)", EXIT_TERMINATED) if terminated else ("interrupted", EXIT_INTERRUPTED)
+        print(f"bokehray: {what} after {complete} of {len(todo)} renders; they are complete in {out}, "
               "run the same command again to render the rest", file=sys.stderr)
-        return 130
+        return code
     finally:
         remove_stale_outputs(out, names)
     wall = time.perf_counter() - t0

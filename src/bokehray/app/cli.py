@@ -20,18 +20,11 @@ from pathlib import Path
 import numpy as np
 
 from .._quiet import collect_warnings
-from ..errors import BokehrayError, InputError
+from ..errors import EXIT_INTERRUPTED, EXIT_TERMINATED, BokehrayError, InputError, Terminated
 from .render_job import aperture_of, layer_options_of, render_one, start_warp
 from ..photo.subject import AMOUNT_DEFAULT, AMOUNT_K_FRACTION
 
 EXIT_INPUT = 2
-EXIT_INTERRUPTED = 130  # 128 + SIGINT
-EXIT_TERMINATED = 143  # 128 + SIGTERM
-
-
-class Terminated(KeyboardInterrupt):
-    """SIGTERM, raised in the main thread like Ctrl-C so that every cleanup path runs (atomic writes remove
-    their temporary file); the CLI then exits with 143."""
 
 
 def _on_sigterm(signum: int, frame) -> None:
