@@ -397,9 +397,10 @@ def run_batch(args: argparse.Namespace) -> int:
     """``bokehray render`` with many inputs or a sweep: plan, skip what is done, run, summarise."""
     from tqdm import tqdm
 
-    from ..executor import make_executor
+    from ..executor import check_executor_args, make_executor
     from ..output.atomic import remove_stale_outputs
 
+    check_executor_args(args.executor, workers=args.workers, scheduler=args.scheduler)  # before any file is made
     if args.map_suffix and "/" in args.map_suffix:
         raise InputError(f"--map-suffix: expected a file-name suffix, got {args.map_suffix!r}")
     if args.gif_width < 8:

@@ -306,7 +306,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def cmd_synth(args: argparse.Namespace) -> int:
     from ..data.synth import SynthConfig, generate
+    from ..executor import check_executor_args
 
+    check_executor_args(args.executor, workers=args.workers, scheduler=args.scheduler)  # before the folder is made
     try:
         levels = tuple(float(v) for v in args.blur_levels.split(","))
     except ValueError:
