@@ -27,6 +27,7 @@ from PIL import Image
 from .._memory import available_bytes
 from ..colour import srgb_decode_lut
 from ..errors import InputError, ResourceError
+from ..validate import check_path
 from ..formats import check_finite, first_index, format_of, range_prefix, to_float32
 
 __all__ = ["MAX_PIXELS", "load_samples", "read_disparity", "read_image", "read_size", "single_channel"]
@@ -336,6 +337,7 @@ def read_size(path: str | os.PathLike[str]) -> tuple[int, int]:
     one (the CLI does, for the image and its disparity map). Accepts every format a reader
     takes; a file whose header cannot be read raises :class:`InputError` naming it.
     """
+    check_path(path)
     p, fmt = format_of(path, ("PNG", "JPEG", "TIFF", "EXR", "NPY"), "images or maps")
     with _decoding(p, fmt):
         if fmt == "PNG":
@@ -374,6 +376,7 @@ def read_image(path: str | os.PathLike[str]) -> np.ndarray:
         InputError: The file is missing, unreadable, truncated, too large, empty, has
             an unsupported extension or channel layout, or holds NaN/Inf.
     """
+    check_path(path)
     p, fmt = format_of(path, ("PNG", "JPEG", "TIFF", "EXR"), "images")
     a = load_samples(p, fmt, (("R", "G", "B", "A"), ("R", "G", "B"), ("Y", "A"), ("Y",)))
     a = a[..., None] if a.ndim == 2 else a
@@ -415,6 +418,7 @@ def read_disparity(path: str | os.PathLike[str], *, check_range: bool = False) -
         InputError: Unreadable file, wrong dimensionality or channel count, NaN/Inf,
             and with ``check_range`` values outside [0, 1].
     """
+    check_path(path)
     p, fmt = format_of(path, ("PNG", "TIFF", "EXR", "NPY"), "disparity")
     a = single_channel(p, load_samples(p, fmt, (("Y",), ("R",))), fmt, "disparity")
     if a.dtype.kind == "u" and fmt != "NPY":
