@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._quiet import collect_warnings
+from .._quiet import collect_warnings, command_stderr
 from ..errors import EXIT_INTERRUPTED, EXIT_TERMINATED, BokehrayError, InputError, Terminated
 from .render_job import aperture_of, layer_options_of, render_one, start_warp
 from ..photo.subject import AMOUNT_DEFAULT, AMOUNT_K_FRACTION
@@ -400,7 +400,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return EXIT_TERMINATED if isinstance(e, Terminated) else EXIT_INTERRUPTED
         debug = getattr(args, "debug", False)
         code, message = None, None
-        with collect_warnings(debug) as warned:
+        # native libraries' lines (libpng, Warp, workers) go nowhere, bokehray's own reach the terminal
+        with command_stderr(debug), collect_warnings(debug) as warned:
             try:
                 code = _run(args)  # each command starts Warp when it computes (_start_warp): --help stays fast
             except BokehrayError as e:
