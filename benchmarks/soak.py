@@ -18,11 +18,22 @@ the exit status is one of those promised (0; 2 with exactly one ``bokehray: erro
 130/143 after a signal with one line), nothing else reaches stderr (no traceback, no warning,
 no native library line), no temporary file is left, and an output that exists is complete.
 
+Reliability round three adds three kinds of ``--io`` case (docs/robustness.md, "Reliability, round three"):
+**batch** (focal sweeps whose values %.3f or %g would not tell apart, sweeps with a value out of range,
+malformed manifest rows, SIGTERM or SIGINT in the middle of a ``--workers 2`` batch), **dask** (malformed
+``--scheduler`` addresses; with ``distributed`` installed, one real local cluster now and then) and
+**depth-model** (the tiny Depth Anything and DPT checkpoints of tests/cli_io/test_depth_model.py, intact or with
+weights of another ``model_type``, a broken ``preprocessor_config.json``, a 100 000 px input or 100 000 declared
+layers; skipped without torch and transformers). Checked: exit 0 with one frame per sweep value and a GIF of as
+many frames, or exit 2 with one ``bokehray: error:`` line and nothing written, or after a signal 143/130 with
+one line whose count is the frames on disk.
+
 Usage (from the repository root)::
 
     python benchmarks/soak.py --cases 5000          # long soak
     python benchmarks/soak.py --cases 200 --seed 1  # the short version CI runs
     python benchmarks/soak.py --io 60 --seed 1      # signals, full disks, extreme values via the CLI
+    python benchmarks/soak.py --io 60 --seed 1 --kinds batch,dask,depth-model  # round three's cases only
 """
 
 from __future__ import annotations
@@ -118,6 +129,8 @@ def _inputs(folder: Path) -> dict:
     small = rng.random((96, 128, 3)).astype(np.float32)
     f["small"] = br.write_image(folder / "small.png", small)
     f["small_d"] = br.write_disparity(folder / "small_d.png", np.tile(np.linspace(0, 1, 128, dtype=np.float32), (96, 1)))
+    (folder / "photos").mkdir()
+    f["photos_small"] = br.write_image(folder / "photos" / "small.png", small)
     for scale in (1e30, 3e38, 3.4e38):
         img = small.copy()
         img[40:50, 60:70] = scale
@@ -183,10 +196,177 @@ def _tmpfs(folder: Path, kb: int) -> bool:
                                                 capture_output=True, check=False).returncode == 0
 
 
-def run_io(n: int, seed: int) -> int:
+IO_KINDS = ("signal", "disk", "values", "batch", "dask", "depth-model")
+_BAD_SCHEDULERS = ("notaurl", "inproc://x", "tls://127.0.0.1:1", "ucx://127.0.0.1:1", "tcp://127.0.0.1:8786/../x", "",
+                   "tcp://127.0.0.1:0", "tcp://[::1:8786")
+_BAD_MANIFESTS = {"extra field": "image,disparity\nsmall.png,small_d.png,extra\n",
+                  "missing field": "image,disparity\nsmall.png\n",
+                  "header only": "image,disparity\n", "no columns": "photo,map\nsmall.png,small_d.png\n",
+                  "binary": "\x00\xff\xfe,\x00\n"}
+
+
+def _depth_models(folder: Path) -> dict | None:
+    """The tiny checkpoints of tests/cli_io/test_depth_model.py and their broken variants; None without the extra."""
+    try:
+        import torch
+        import transformers
+    except ImportError:
+        return None
+    transformers.logging.set_verbosity_error()
+    transformers.utils.logging.disable_progress_bar()
+    torch.manual_seed(0)
+    backbone = transformers.Dinov2Config(hidden_size=32, num_hidden_layers=4, num_attention_heads=2,
+                                         intermediate_size=64, patch_size=14, image_size=56,
+                                         out_features=["stage1", "stage2", "stage3", "stage4"],
+                                         reshape_hidden_states=False)
+    cfg = transformers.DepthAnythingConfig(backbone_config=backbone, reassemble_hidden_size=32,
+                                           neck_hidden_sizes=[8, 16, 32, 32], fusion_hidden_size=16,
+                                           head_hidden_size=8)
+    transformers.DepthAnythingForDepthEstimation(cfg).eval().save_pretrained(folder / "da")
+    dpt = transformers.DPTConfig(hidden_size=32, num_hidden_layers=4, num_attention_heads=2, intermediate_size=64,
+                                 image_size=64, patch_size=16, backbone_out_indices=[0, 1, 2, 3],
+                                 neck_hidden_sizes=[8, 16, 32, 32], fusion_hidden_size=16, use_auxiliary_head=False)
+    transformers.DPTForDepthEstimation(dpt).eval().save_pretrained(folder / "dpt")
+    variants = {"da": (None, None), "dpt": (None, None),
+                "da as dpt": (lambda c: c.update(model_type="dpt"), None),
+                "dpt as da": (lambda c: c.update(model_type="depth_anything"), None),
+                "processor a list": (None, [56, 56]), "size '56'": (None, {"size": "56"}),
+                "image_mean of 1": (None, {"image_mean": [0.5]}),
+                "size 100000": (None, {"size": {"height": 100000, "width": 100000}}),
+                "100000 layers": (lambda c: c["backbone_config"].update(num_hidden_layers=100000), None)}
+    out = {}
+    for name, (edit, pre) in variants.items():
+        src = folder / ("dpt" if name.startswith("dpt") else "da")
+        dst = folder / name.replace(" ", "_").replace("'", "")
+        if dst != src:
+            shutil.copytree(src, dst)
+        if edit is not None:
+            c = json.loads((dst / "config.json").read_text())
+            edit(c)
+            (dst / "config.json").write_text(json.dumps(c))
+        if pre is not None:
+            (dst / "preprocessor_config.json").write_text(json.dumps(pre))
+        out[name] = dst
+    return out
+
+
+def _check_batch(rc: int, err: str, out: Path, allowed: set[int], frames: int | None) -> str | None:
+    """A batch's promises: exit 0 with ``frames`` frames and a GIF of as many; 2 with one error line and nothing
+    written; 130/143 after a signal with one line whose count is the frames on disk."""
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    if rc not in allowed:
+        return f"exit status {rc} (expected one of {sorted(allowed)}); stderr: {err.strip()[:300]!r}"
+    if "Traceback" in err or "arning" in err:
+        return f"stderr is not clean: {err.strip()[:300]!r}"
+    pngs = sorted(out.glob("*.png")) if out.is_dir() else []
+    if _hidden(out) if out.is_dir() else False:
+        return f"temporary files left: {_hidden(out)}"
+    if rc == 0:
+        if lines:
+            return f"success printed to stderr: {err.strip()[:300]!r}"
+        if frames is not None:
+            from PIL import Image
+
+            gifs = sorted(out.glob("*.gif"))
+            if len(pngs) != frames or len(gifs) != 1:
+                return f"{len(pngs)} frames and GIFs {[g.name for g in gifs]} for {frames} sweep values"
+            # Pillow merges identical consecutive frames into one of their summed duration: count the time
+            with Image.open(gifs[0]) as gif:
+                shown = 0
+                for k in range(gif.n_frames):
+                    gif.seek(k)
+                    shown += gif.info["duration"]
+            if abs(shown - frames * round(1000 / 6)) > 10 * frames:  # GIF stores durations in 10 ms units
+                return f"the GIF shows {shown} ms for {frames} frames of {round(1000 / 6)} ms"
+    elif rc == 2:
+        if len(lines) != 1 or not lines[0].startswith("bokehray: error: "):
+            return f"not one error line: {err.strip()[:300]!r}"
+        if pngs:
+            return f"files written before the refusal: {[p.name for p in pngs]}"
+    elif rc in (130, 143):
+        words = "terminated (SIGTERM)" if rc == 143 else "interrupted"
+        head = f"bokehray: {words} after {len(pngs)} of "
+        if len(lines) != 1 or not lines[0].startswith(head):
+            return f"signal line {lines!r}; expected it to start {head!r} ({len(pngs)} frames on disk)"
+    return None
+
+
+def _round_three_case(kind: str, rng: np.random.Generator, f: dict, out: Path, models: dict | None,
+                      startup: float) -> tuple[dict, tuple[int, str], str | None] | None:
+    """One batch, dask or depth-model case: (case, (exit, stderr), problem), or None when it cannot run here."""
+    common = ["--workers", 1, "--quiet"]
+    if kind == "batch":
+        what = str(rng.choice(["close sweep", "close sweep", "out of range", "manifest", "signal"]))
+        case = {"kind": kind, "what": what}
+        if what == "close sweep":
+            flag, values = [("--focus", "0.1,0.1004"), ("--focus", f"0.1:0.9:{int(rng.integers(2, 40))}"),
+                            ("--blur", "24,24.0000001"), ("--focus", "0.25,0.2500001,0.25000001")][int(rng.integers(4))]
+            other = ["--blur", 4] if flag == "--focus" else ["--focus", 0.5]
+            case.update(sweep=f"{flag}={values}")
+            n = len(values.split(",")) if ":" not in values else int(values.split(":")[2])
+            rc, err = _run_cli(["render", f["small"], "--disparity", f["small_d"], "-o", out, f"{flag}={values}",
+                                *other, *common])
+            return case, (rc, err), _check_batch(rc, err, out, {0}, n)
+        if what == "out of range":
+            sweep = str(rng.choice(["--focus=0:2:3", "--focus=-0.5,0.5", "--blur=-1,4", "--blur=4,1e6"]))
+            other = ["--blur", 4] if sweep.startswith("--focus") else ["--focus", 0.5]
+            case.update(sweep=sweep)
+            rc, err = _run_cli(["render", f["small"], "--disparity", f["small_d"], "-o", out, sweep, *other, *common])
+            return case, (rc, err), _check_batch(rc, err, out, {2}, None)
+        if what == "manifest":
+            name = str(rng.choice(sorted(_BAD_MANIFESTS)))
+            manifest = out.parent / f"{out.name}.csv"
+            manifest.write_text(_BAD_MANIFESTS[name], errors="surrogateescape")
+            case.update(manifest=name)
+            rc, err = _run_cli(["render", f["small"].parent / "photos", "--disparity", manifest, "-o", out,
+                                "--blur", 4, "--focus", 0.5, *common])
+            return case, (rc, err), _check_batch(rc, err, out, {2}, None)
+        sig = int(rng.choice([signal.SIGTERM, signal.SIGINT]))
+        delay = float(1.5 * startup + rng.uniform(0.0, 6.0))
+        case.update(signal=signal.Signals(sig).name, delay=round(delay, 2))
+        rc, err = _run_cli(["render", f["big"], "--disparity", f["big_d"], "-o", out, "--blur", 8,
+                            "--focus", "0.1:0.9:6", "--workers", 2, "--quiet"], sig, delay)
+        code = 143 if sig == signal.SIGTERM else 130
+        if rc == -sig:  # before main() installed its handlers: Python's default, as the single-file cases count it
+            return case, (rc, ""), None
+        return case, (rc, err), _check_batch(rc, err, out, {0, code}, 6 if rc == 0 else None)
+    if kind == "dask":
+        try:
+            import distributed  # noqa: F401
+        except ImportError:
+            return None
+        if rng.random() < 0.15:
+            case = {"kind": kind, "what": "local cluster"}
+            rc, err = _run_cli(["render", f["small"], "--disparity", f["small_d"], "-o", out, "--blur", 4,
+                                "--focus", "0.3,0.6", "--executor", "dask", "--workers", 2, "--quiet"])
+            return case, (rc, err), _check_batch(rc, err, out, {0}, 2)
+        address = str(rng.choice(_BAD_SCHEDULERS))
+        case = {"kind": kind, "scheduler": address}
+        rc, err = _run_cli(["render", f["small"], "--disparity", f["small_d"], "-o", out, "--blur", 4,
+                            "--focus", "0.3,0.6", "--executor", "dask", f"--scheduler={address}", "--quiet"])
+        problem = _check_batch(rc, err, out, {2}, None) or (f"{out} was created" if out.exists() else None)
+        return case, (rc, err), problem
+    if models is None:
+        return None
+    name = str(rng.choice(sorted(models)))
+    case = {"kind": kind, "checkpoint": name}
+    target = out / "o.png"
+    out.mkdir()
+    rc, err = _run_cli(["render", f["small"], "--depth-model", models[name], "-o", target, "--blur", 4,
+                        "--focus", 0.5, "--quiet"])
+    good = name in ("da", "dpt")
+    problem = _check(rc, err, target, {0} if good else {2}, False)
+    if problem is None and not good and str(models[name]) not in err:
+        problem = f"the error does not name the checkpoint folder: {err.strip()!r}"
+    return case, (rc, err), problem
+
+
+def run_io(n: int, seed: int, kinds: tuple[str, ...] = IO_KINDS) -> int:
     rng = np.random.default_rng(seed)
     work = Path(tempfile.mkdtemp(prefix="bokehray-soak-io-"))
     f = _inputs(work)
+    models = _depth_models(work / "models") if "depth-model" in kinds else None
+    draw = [k for k in ("signal", "signal", "disk", "values", "batch", "batch", "dask", "depth-model") if k in kinds]
     t0 = time.perf_counter()
     starts = []
     for _ in range(3):
@@ -199,7 +379,19 @@ def run_io(n: int, seed: int) -> int:
     counts: dict[str, int] = {}
     failures = known = 0
     for i in range(n):
-        kind = str(rng.choice(["signal", "signal", "disk", "values"]))
+        kind = str(rng.choice(draw))
+        if kind in ("batch", "dask", "depth-model"):
+            ran = _round_three_case(kind, rng, f, work / f"case{i}", models, startup)
+            if ran is None:
+                counts[f"{kind} (skipped: needs its extra)"] = counts.get(f"{kind} (skipped: needs its extra)", 0) + 1
+                continue
+            case, (rc, err), problem = ran
+            outcome = f"{kind}: exit {rc}"
+            counts[outcome] = counts.get(outcome, 0) + 1
+            if problem:
+                failures += 1
+                print(f"FAIL case {i} (seed {seed}): {problem}\n  case: {json.dumps(case)}")
+            continue
         out_dir = work / f"case{i}"
         out_dir.mkdir()
         ext = str(rng.choice(["png", "png16", "tif", "exr", "jpg"]))
@@ -267,10 +459,16 @@ def main() -> int:
     ap.add_argument("--cases", type=int, default=1000)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--io", type=int, default=0, metavar="N",
-                    help="run N command-line cases (signals, full disks, extreme values) instead of render cases")
+                    help="run N command-line cases (signals, full disks, extreme values, batches, Dask, depth "
+                    "models) instead of render cases")
+    ap.add_argument("--kinds", default=",".join(IO_KINDS),
+                    help=f"--io: the kinds of case to draw from (default: all of {','.join(IO_KINDS)})")
     args = ap.parse_args()
     if args.io:
-        return run_io(args.io, args.seed)
+        kinds = tuple(k for k in args.kinds.split(",") if k)
+        if not kinds or set(kinds) - set(IO_KINDS):
+            ap.error(f"--kinds: expected some of {','.join(IO_KINDS)}, got {args.kinds!r}")
+        return run_io(args.io, args.seed, kinds)
     rng = np.random.default_rng(args.seed)
     t0, failures = time.perf_counter(), 0
     for i in range(args.cases):

@@ -11,8 +11,17 @@
 - :func:`collect_warnings`: the CLI's record of Python warnings during a command, so that an
   error stays one line (``--debug`` shows them as they happen).
 
-All of them step aside with ``debug=True`` (the CLI's ``--debug``), which :func:`init_warp_quietly`
-remembers for :func:`native_stderr_quiet`.
+- :func:`native_output`: captures what native code writes to file descriptors 1 and 2 inside a block, as lines
+  (OpenEXR prints its errors there, libpng its warnings), for the readers to judge.
+- :func:`library_log`: collects a Python library's log records (tifffile's damaged-tag lines) inside a block
+  instead of letting logging's last resort print them.
+- :func:`command_stderr`: the CLI's guard around a whole command: whatever native code writes to descriptor 2
+  (a C library's warning, Warp's CUDA lines, a worker process's output) goes nowhere, while Python's
+  ``sys.stderr`` (bokehray's own one-line errors, warnings and progress bars) keeps the terminal; and log
+  records no handler takes are dropped, not printed by logging's last resort.
+
+All of them except the two capturing ones step aside with ``debug=True`` (the CLI's ``--debug``), which
+:func:`init_warp_quietly` remembers for :func:`native_stderr_quiet`.
 """
 
 from __future__ import annotations
@@ -20,12 +29,16 @@ from __future__ import annotations
 import contextlib
 import importlib.abc
 import importlib.machinery
+import io
+import logging
 import os
 import sys
+import tempfile
 import warnings
 from collections.abc import Iterator
 
-__all__ = ["collect_warnings", "init_warp_quietly", "native_stderr_quiet", "quiet_warp_on_import"]
+__all__ = ["collect_warnings", "command_stderr", "init_warp_quietly", "library_log", "native_output",
+           "native_stderr_quiet", "quiet_warp_on_import"]
 
 _show_native = False
 
@@ -125,3 +138,103 @@ def collect_warnings(debug: bool = False) -> Iterator[list[warnings.WarningMessa
                 if key not in keys:
                     keys.add(key)
                     seen.append(w)
+
+
+def _flush_c_streams() -> None:
+    with contextlib.suppress(Exception):
+        import ctypes
+
+        ctypes.CDLL(None).fflush(None)
+
+
+@contextlib.contextmanager
+def native_output() -> Iterator[list[str]]:
+    """Capture what native code writes to file descriptors 1 and 2 inside the block.
+
+    Yields a list that holds the captured lines once the block ends. The descriptors are
+    process-wide, so output of other threads during the block is captured too (a short read).
+    """
+    lines: list[str] = []
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
+    printed = io.StringIO()  # Python bindings print their warnings with print()
+    with tempfile.TemporaryFile() as sink:
+        try:
+            os.dup2(sink.fileno(), 1)
+            os.dup2(sink.fileno(), 2)
+            with contextlib.redirect_stdout(printed), contextlib.redirect_stderr(printed):
+                yield lines
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            _flush_c_streams()  # C/C++ stdout is buffered: flush it into the sink, not onto the terminal later
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            for fd in saved:
+                os.close(fd)
+            sink.seek(0)
+            text = sink.read().decode("utf-8", "replace") + printed.getvalue()
+            lines.extend(ln.strip() for ln in text.splitlines() if ln.strip())
+
+
+@contextlib.contextmanager
+def library_log(name: str) -> Iterator[list[str]]:
+    """Collect the log messages of the library logger ``name`` (e.g. ``tifffile``) inside the block instead of
+    letting them reach stderr; yields their list."""
+    messages: list[str] = []
+
+    class Collect(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            messages.append(record.getMessage())
+
+    log = logging.getLogger(name)
+    handler, propagate = Collect(), log.propagate
+    log.addHandler(handler)
+    log.propagate = False
+    try:
+        yield messages
+    finally:
+        log.removeHandler(handler)
+        log.propagate = propagate
+
+
+@contextlib.contextmanager
+def command_stderr(debug: bool = False) -> Iterator[None]:
+    """One CLI command's stderr: bokehray's own lines only.
+
+    Descriptor 2 is pointed at /dev/null for the block and ``sys.stderr`` at a duplicate of the real one, so
+    what Python prints (errors, warnings, progress bars, a traceback with ``--debug``) still arrives and what
+    native libraries print straight to descriptor 2 does not (libpng's ``PNG warning: iCCP: ...`` on a file
+    that decodes fine; worker processes inherit the same descriptor). A root logging handler that drops
+    records keeps library loggers (tifffile) from logging's last resort, which prints to stderr. With
+    ``debug``, or when stderr is no file (a test runner capturing it), nothing changes.
+    """
+    try:
+        fd = sys.stderr.fileno()
+    except (AttributeError, OSError, ValueError):
+        fd = None
+    if debug or fd != 2:
+        yield
+        return
+    drop = logging.NullHandler()
+    root = logging.getLogger()
+    root.addHandler(drop)
+    previous = sys.stderr
+    previous.flush()
+    saved = os.dup(2)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    stream = io.TextIOWrapper(io.FileIO(saved, "w", closefd=False), encoding=previous.encoding,
+                              errors=previous.errors, line_buffering=True)
+    try:
+        os.dup2(devnull, 2)
+        sys.stderr = stream
+        yield
+    finally:
+        with contextlib.suppress(Exception):
+            stream.flush()
+        sys.stderr = previous
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
+        root.removeHandler(drop)

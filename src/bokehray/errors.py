@@ -6,7 +6,8 @@ message reads ``<what>: expected <what>, got <what>`` followed by how to fix it.
 
 from __future__ import annotations
 
-__all__ = ["BokehrayError", "InputError", "NumericalError", "OutputError", "ResourceError"]
+__all__ = ["BokehrayError", "InputError", "NumericalError", "OutputError", "ResourceError", "Terminated", "EXIT_INTERRUPTED",
+           "EXIT_TERMINATED"]
 
 
 class BokehrayError(Exception):
@@ -31,3 +32,12 @@ class OutputError(BokehrayError, OSError):
     Nothing partial is left behind: the writer's temporary file is removed and an existing
     file at that path is untouched.
     """
+
+
+EXIT_INTERRUPTED = 130  # 128 + SIGINT: the CLI's exit status after Ctrl-C
+EXIT_TERMINATED = 143  # 128 + SIGTERM
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread like Ctrl-C (``bokehray.app.cli`` installs the handler) so that every
+    cleanup path runs (atomic writes remove their temporary file); the CLI then exits with 143, not Ctrl-C's 130."""

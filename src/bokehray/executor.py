@@ -22,13 +22,14 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 from .errors import BokehrayError, InputError
 
-__all__ = ["EXECUTORS", "Executor", "Outcome", "add_executor_args", "make_executor", "run_task"]
+__all__ = ["EXECUTORS", "Executor", "Outcome", "add_executor_args", "check_executor_args", "check_scheduler", "make_executor", "run_task"]
 
 EXECUTORS = ("local", "dask")
 DEFAULT_RETRIES = 3
@@ -204,8 +205,9 @@ class DaskExecutor(Executor):
             if scheduler:
                 try:
                     self.client = Client(scheduler, timeout="20s")
-                except (OSError, TimeoutError) as e:
-                    raise InputError(f"--scheduler {scheduler}: cannot reach the Dask scheduler ({e})") from None
+                except (OSError, TimeoutError, ValueError) as e:  # ValueError: an address Dask cannot parse
+                    why = str(e).splitlines()[0] if str(e) else type(e).__name__
+                    raise InputError(f"--scheduler {scheduler}: cannot reach the Dask scheduler ({why})") from None
                 self.workers = max(1, len(self.client.scheduler_info().get("workers", {})))
                 self.address = scheduler
             else:
@@ -268,6 +270,36 @@ def add_executor_args(p: argparse.ArgumentParser, *, workers_help: str = "worker
         g.add_argument("--workers", type=int, default=None, help=workers_help)
 
 
+_SCHEDULER = re.compile(r"(?:tcp://)?(?P<host>[A-Za-z0-9_.-]+|\[[0-9A-Fa-f:.]+\]):(?P<port>[0-9]{1,5})")
+
+
+def check_scheduler(address: object) -> str:
+    """A Dask scheduler address as bokehray can reach it: ``tcp://HOST:PORT`` (or ``HOST:PORT``), nothing more.
+
+    Other protocols (``tls://`` needs certificates, ``ucx://`` and ``inproc://`` other transports) and anything
+    after the port are refused here, in one line, before Dask sees them; so is an empty address, which would
+    otherwise mean "no scheduler" and start a local cluster unasked.
+    """
+    text = address if isinstance(address, str) else None
+    m = _SCHEDULER.fullmatch(text) if text else None
+    if m is None or not 1 <= int(m["port"]) <= 65535:
+        raise InputError(f"--scheduler: expected a Dask scheduler address tcp://HOST:PORT (e.g. "
+                         f"tcp://10.0.0.5:8786), got {address!r}")
+    return text
+
+
+def check_executor_args(kind: str = "local", *, workers: int | None = None, scheduler: str | None = None) -> None:
+    """The checks of :func:`make_executor`'s flags, which a command runs before it writes anything."""
+    if kind not in EXECUTORS:
+        raise InputError(f"--executor: expected one of {', '.join(EXECUTORS)}, got {kind!r}")
+    if workers is not None and workers < 1:
+        raise InputError(f"--workers: expected at least 1, got {workers}")
+    if scheduler is not None:
+        check_scheduler(scheduler)
+        if kind != "dask":
+            raise InputError("--scheduler needs --executor dask")
+
+
 def make_executor(kind: str = "local", *, workers: int | None = None, scheduler: str | None = None,
                   retries: int = DEFAULT_RETRIES, tasks: int | None = None) -> Executor:
     """The executor ``kind`` (``local`` or ``dask``) with ``workers`` processes (default: all cores).
@@ -275,14 +307,9 @@ def make_executor(kind: str = "local", *, workers: int | None = None, scheduler:
     ``tasks``: how many tasks will run (a pool is never larger). ``scheduler``: the address of an existing Dask
     scheduler (``dask`` only). ``retries``: how often a task whose worker died is run again.
     """
-    if kind not in EXECUTORS:
-        raise InputError(f"--executor: expected one of {', '.join(EXECUTORS)}, got {kind!r}")
-    if workers is not None and workers < 1:
-        raise InputError(f"--workers: expected at least 1, got {workers}")
+    check_executor_args(kind, workers=workers, scheduler=scheduler)
     if retries < 0:
         raise InputError(f"retries: expected >= 0, got {retries}")
-    if scheduler and kind != "dask":
-        raise InputError("--scheduler needs --executor dask")
     n = workers or os.cpu_count() or 1
     if tasks is not None:
         n = max(1, min(n, tasks))

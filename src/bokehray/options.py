@@ -15,7 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from .errors import InputError
-from .validate import check_int, check_number
+from .validate import check_int, check_number, shown
 
 __all__ = ["LayerOptions", "MemoryOptions", "PreviewOptions", "RaytraceOptions"]
 
@@ -68,13 +68,13 @@ class MemoryOptions:
             try:
                 check_int(self.tile_size, "tile_size", lo=1)
             except InputError:
-                raise InputError(f"tile_size: expected None (automatic) or an integer >= 1, got {self.tile_size!r}") from None
+                raise InputError(f"tile_size: expected None (automatic) or an integer >= 1, got {shown(self.tile_size)}") from None
         if self.memory_limit_mb is not None:
             try:
                 check_number(self.memory_limit_mb, "memory_limit_mb", 0.0, lo_open=True)
             except InputError:
                 raise InputError(f"memory_limit_mb: expected None (automatic) or a finite number > 0, "
-                                 f"got {self.memory_limit_mb!r}") from None
+                                 f"got {shown(self.memory_limit_mb)}") from None
 
 
 @dataclass(frozen=True, slots=True)
@@ -105,7 +105,7 @@ class PreviewOptions:
             raise InputError(f"level_radius_px: expected >= 2 px (smaller coarsens every blur), got {self.level_radius_px}")
         if self.threads is not None and (isinstance(self.threads, bool) or not isinstance(self.threads, int)
                                          or self.threads < 1):
-            raise InputError(f"threads: expected None (all cores) or an integer >= 1, got {self.threads!r}")
+            raise InputError(f"threads: expected None (all cores) or an integer >= 1, got {shown(self.threads)}")
         for name in ("exact_highlights", "clamp_border"):
             if not isinstance(getattr(self, name), bool):
                 raise InputError(f"{name}: expected True or False, got {getattr(self, name)!r}")
@@ -138,4 +138,4 @@ class RaytraceOptions:
         check_int(self.min_spp, "min_spp")
         if not 1 <= self.min_spp <= self.max_spp <= 65536:
             raise InputError(f"rays per pixel: expected 1 <= min_spp <= max_spp <= 65536, "
-                             f"got {self.min_spp}, {self.max_spp}")
+                             f"got {shown(self.min_spp)}, {shown(self.max_spp)}")

@@ -8,15 +8,17 @@ the ray tracer, the refiner) report bad input the same way.
 from __future__ import annotations
 
 import math
+import os
 from numbers import Integral, Real
 
 import numpy as np
 
-from .errors import InputError
+from ._memory import available_bytes
+from .errors import InputError, ResourceError
 
 __all__ = [
-    "MAX_RADIANCE", "check_disparity", "check_finite", "check_image", "check_int", "check_number", "check_radiance",
-    "check_type", "first_bad_index",
+    "MAX_RADIANCE", "check_disparity", "check_finite", "check_image", "check_int", "check_number", "check_path",
+    "check_radiance", "check_type", "fits_in_memory", "first_bad_index", "real", "shown",
 ]  # fmt: skip
 
 MAX_RADIANCE = 1e36
@@ -42,6 +44,19 @@ def check_type(value: object, types: type | tuple[type, ...], name: str, what: s
         raise InputError(f"{name}: expected {what}, got {type(value).__name__}")
 
 
+def check_path(value: object, name: str = "path") -> None:
+    """A file path: ``str`` or an ``os.PathLike`` giving one (not None, a number or bytes, which pathlib refuses
+    with a TypeError)."""
+    try:
+        text = os.fspath(value)  # type: ignore[call-overload]
+    except TypeError:
+        text = None
+    if not isinstance(text, str):
+        got = (type(value).__name__ if text is None or isinstance(value, bytes)
+               else f"{type(value).__name__} giving {type(text).__name__}")
+        raise InputError(f"{name}: expected a file path (str or os.PathLike), got {got}")
+
+
 def check_int(value: object, name: str, lo: int | None = None, hi: int | None = None) -> int:
     """An integer (not a bool, not a float that happens to be whole) within [lo, hi]."""
     if isinstance(value, bool) or not isinstance(value, Integral):
@@ -49,17 +64,37 @@ def check_int(value: object, name: str, lo: int | None = None, hi: int | None = 
     v = int(value)
     if (lo is not None and v < lo) or (hi is not None and v > hi):
         raise InputError(f"{name}: expected an integer in [{lo if lo is not None else '-inf'}, "
-                         f"{hi if hi is not None else 'inf'}], got {v}")
+                         f"{hi if hi is not None else 'inf'}], got {shown(v)}")
+    return v
+
+
+def shown(value: object) -> str:
+    """``repr(value)``, or a short description of an integer too long to print (10**400 has 401 digits)."""
+    if isinstance(value, Integral) and not isinstance(value, bool):
+        digits = len(str(abs(int(value)))) if abs(int(value)) < 10 ** 4000 else "4000+"
+        if digits == "4000+" or digits > 40:
+            return f"an integer of {digits} digits"
+    return repr(value)
+
+
+def real(value: object, name: str, *, inf: bool = False) -> float:
+    """``value`` as a float: a real number (not a bool, not a string, not None), finite unless ``inf`` allows
+    +-inf; an integer beyond float's range (``10**400``) is refused like an infinity, not an OverflowError."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, Real):
+        raise InputError(f"{name}: expected a number, got {shown(value)}")
+    try:
+        v = float(value)
+    except (OverflowError, ValueError):
+        v = math.nan
+    if math.isnan(v) or (math.isinf(v) and not inf):
+        raise InputError(f"{name}: expected {'a number (inf allowed)' if inf else 'a finite number'}, "
+                         f"got {shown(value)}")
     return v
 
 
 def check_number(value: object, name: str, lo: float | None = None, *, lo_open: bool = False) -> float:
     """A finite real number (not a bool, not a string) >= ``lo`` (> ``lo`` with ``lo_open``)."""
-    if isinstance(value, bool) or not isinstance(value, Real):
-        raise InputError(f"{name}: expected a number, got {value!r}")
-    v = float(value)
-    if not math.isfinite(v):
-        raise InputError(f"{name}: expected a finite number, got {value!r}")
+    v = real(value, name)
     if lo is not None and (v <= lo if lo_open else v < lo):
         raise InputError(f"{name}: expected a finite value {'>' if lo_open else '>='} {lo:g}, got {value!r}")
     return v
@@ -118,3 +153,17 @@ def check_disparity(disparity: np.ndarray, shape_hw: tuple[int, int], name: str 
             "normalise it, or convert metric depth with bokehray.disparity_from_depth"
         )
     return np.ascontiguousarray(d)
+
+
+def fits_in_memory(shape: tuple[int, ...], bytes_per_px: float, what: str) -> None:
+    """Refuse work on an ``H x W (x C)`` array from its shape alone, before anything is copied, when its peak
+    (``bytes_per_px`` times the pixels) exceeds the memory available now: a broadcast view of 1e10 pixels takes
+    no memory until a function touches it, and then NumPy's raw ``MemoryError`` (or the machine's swap) would
+    answer instead. ``what`` starts the message (it names the argument or the file)."""
+    if len(shape) < 2 or not all(isinstance(v, (int, np.integer)) for v in shape[:2]):
+        return  # the caller's own shape check says what is wrong
+    h, w = int(shape[0]), int(shape[1])
+    need, have = h * w * bytes_per_px, available_bytes()
+    if need > have:
+        raise ResourceError(f"{what}: {w} x {h} px needs about {int(need) >> 20:,} MB, but only {have >> 20:,} MB "
+                            "of memory is available")

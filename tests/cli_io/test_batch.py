@@ -11,7 +11,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 import bokehray as br
-from bokehray.app.batch import find_pairs, parse_sweep
+from bokehray.app.batch import find_pairs, frame_labels, parse_sweep
 from bokehray.app.cli import main
 from bokehray.errors import InputError
 from bokehray.colour import linear_to_srgb
@@ -86,6 +86,22 @@ def test_manifest_csv_pairing(shoot, capsys):
     code, _, err = run(capsys, "render", shoot / "photos", "--disparity", shoot / "bad.csv", "-o", shoot / "o2",
                        "--blur", 6, "--focus", 0.5)
     assert code == 2 and err.count("\n") == 1 and "needs the columns image and disparity" in err
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    ("image,disparity\np0.png,maps/p0.png,extra\n", "line 2: expected at most 2 fields (the header's image,disparity), got 3"),
+    ("image,disparity\n\np0.png,maps/p0.png\np1.png,maps/p1.png,x,y\n", "line 4: expected at most 2 fields"),
+    ("image,disparity\np0.png\n", "line 2: expected an image and a disparity path"),
+    ("image,disparity\n", "the manifest CSV has no rows"),
+    ("", "the manifest CSV has no rows"),
+])
+def test_malformed_manifest_rows_are_one_line_errors(shoot, capsys, text, message):
+    """Issue: a row with more fields than the header gave a traceback (AttributeError on None.strip)."""
+    (shoot / "m.csv").write_text(text)
+    code, out, err = run(capsys, "render", shoot / "photos", "--disparity", shoot / "m.csv", "-o", shoot / "o",
+                         "--blur", 6, "--focus", 0.5, "--workers", 1)
+    assert code == 2 and err.count("\n") == 1 and message in err and str(shoot / "m.csv") in err, err
+    assert not (shoot / "o").exists()
 
 
 def test_pairing_problems_are_named(shoot, tmp_path):
@@ -164,7 +180,52 @@ def test_focal_sweep_writes_a_stack_and_an_animated_gif(shoot, capsys):
     assert len(list((shoot / "kstack").glob("*_blur_sweep.gif"))) == 3
 
 
+def test_close_sweep_values_get_a_frame_each(shoot, capsys):
+    """Issue: %.3f made --focus 0.1,0.1004 one file, reported as 2 rendered, and a 1-frame GIF."""
+    from PIL import Image
+
+    img, d = shoot / "photos" / "p0.png", shoot / "maps" / "p0.png"
+    code, out, err = run(capsys, "render", img, "--disparity", d, "-o", shoot / "sweep", "--blur", 8,
+                         "--focus", "0.1,0.1004", "--workers", 1)
+    assert code == 0, err
+    assert _files(shoot / "sweep") == ["bokehray-batch.json", "p0_focus_0.1000.png", "p0_focus_0.1004.png",
+                                       "p0_focus_sweep.gif"]
+    assert "2 rendered" in out and Image.open(shoot / "sweep" / "p0_focus_sweep.gif").n_frames == 2
+    code, out, err = run(capsys, "render", img, "--disparity", d, "-o", shoot / "sweep", "--blur", 8,
+                         "--focus", "0.1,0.1004", "--workers", 1)
+    assert code == 0 and "0 rendered, 2 skipped" in out  # resume sees both frames
+
+
+@pytest.mark.parametrize(("name", "text", "shown"), [
+    ("focus", "0.1:0.9:1000", None),  # inside MAX_SWEEP: 801 names for 1000 frames with %.3f
+    ("blur", "24,24.0000001", ["24", "24.0000001"]),  # %g: both "24"
+    ("blur", "2.5,4", ["2.5", "4"]),
+    ("focus", "0.1:0.9:5", ["0.100", "0.300", "0.500", "0.700", "0.900"]),  # the usual names stay
+    ("blur", "2,4,16", ["2", "4", "16"]),
+])
+def test_every_sweep_value_names_its_own_frame(name, text, shown):
+    values = parse_sweep(text)
+    labels = frame_labels(name, values)
+    assert len(set(labels)) == len(values) == len(labels)
+    assert len({len(t) for t in labels}) == 1 or name == "blur"  # a focal stack's names sort in focus order
+    assert all(abs(float(t) - v) <= 0.5 * 10.0 ** -6 * max(1.0, v) for t, v in zip(labels, values))
+    if shown is not None:
+        assert labels == shown
+
+
+@given(st.lists(st.floats(0, 1), min_size=2, max_size=30, unique=True))
+def test_frame_labels_are_distinct_or_refused(values):
+    try:
+        labels = frame_labels("focus", values)
+    except InputError as e:
+        assert "too close to tell apart" in str(e)
+        return
+    assert len(set(labels)) == len(values)
+
+
 @pytest.mark.parametrize("args, message", [
+    (["--blur", 4, "--focus", "0:2:3"], "--focus: expected every value of the sweep in [0, 1]"),
+    (["--blur=-1,4", "--focus", 0.5], "--blur: expected every value of the sweep as K in [0, 100000], got -1"),
     (["--blur", "2,4", "--focus", "0.1,0.2"], "sweep one of --focus or --blur, not both"),
     (["--blur", 4, "--focus", "0.1,0.1"], "--focus: the values repeat"),
     (["--blur", 4, "--focus", "0.1:0.5:1"], "a range needs 2..1000 values"),
@@ -239,3 +300,52 @@ def test_every_photo_pairs_with_its_own_map(stems, suffix, same_folder):
         pairs = find_pairs(str(photos), str(maps), suffix=suffix)
         assert sorted(p.image.stem for p in pairs) == sorted(stems)
         assert all(p.map is not None and p.map.name == f"{p.image.stem}{suffix}.png" for p in pairs)
+
+
+class _StopsInFlight:
+    """An executor whose first task ends, then the signal comes while two more are in flight; they finish (write
+    their output) while it closes, as a local pool's workers do."""
+
+    workers = 3
+
+    def __init__(self, signal_exc):
+        self.signal_exc, self.tasks, self.fn = signal_exc, [], None
+
+    def describe(self):
+        return "stand-in"
+
+    def map(self, fn, tasks):
+        from bokehray.executor import Outcome
+
+        self.fn, self.tasks = fn, tasks
+        yield Outcome(0, fn(tasks[0]))
+        raise self.signal_exc
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        for t in self.tasks[1:3]:
+            self.fn(t)
+
+
+@pytest.mark.parametrize(("exc", "code", "words"), [
+    ("Terminated", 143, "terminated (SIGTERM)"), ("KeyboardInterrupt", 130, "interrupted")])
+def test_a_signal_stops_the_batch_with_its_code_and_counts_the_outputs_on_disk(shoot, capsys, monkeypatch, exc,
+                                                                               code, words):
+    """Issue: SIGTERM exited 130 "interrupted" (not 143), and the count missed the renders that were in flight."""
+    import bokehray.errors
+    import bokehray.executor
+
+    signal_exc = getattr(bokehray.errors, exc, None) or KeyboardInterrupt
+    monkeypatch.setattr(bokehray.executor, "make_executor", lambda *a, **k: _StopsInFlight(signal_exc()))
+    got, _, err = run(capsys, "render", shoot / "photos" / "p0.png", "--disparity", shoot / "maps" / "p0.png",
+                      "-o", shoot / "s", "--blur", 6, "--focus", "0.2,0.4,0.6,0.8", "--quiet")
+    assert got == code
+    assert err.strip() == (f"bokehray: {words} after 3 of 4 renders; they are complete in {shoot / 's'}, run the "
+                           "same command again to render the rest")
+    assert len(list((shoot / "s").glob("p0_focus_*.png"))) == 3
+    monkeypatch.undo()
+    got, out, err = run(capsys, "render", shoot / "photos" / "p0.png", "--disparity", shoot / "maps" / "p0.png",
+                        "-o", shoot / "s", "--blur", 6, "--focus", "0.2,0.4,0.6,0.8", "--workers", 1)
+    assert got == 0 and "1 rendered, 3 skipped" in out, err

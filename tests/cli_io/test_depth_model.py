@@ -159,3 +159,66 @@ def test_view_estimates_the_map_as_render_does_and_exports_the_same_image(models
     argv[argv.index("-o") + 1] = str(tmp_path / "again.png")
     assert main(argv[1:]) == 0, capsys.readouterr().err
     assert (tmp_path / "again.png").read_bytes() == written.read_bytes()
+
+
+def _variant(models, tmp_path, name, edit=None, pre=None):
+    """A copy of the tiny checkpoint ``name`` with its config.json edited and/or a preprocessor_config.json."""
+    import shutil
+
+    folder = tmp_path / f"{name}-variant"
+    shutil.copytree(models[name], folder)
+    if edit is not None:
+        cfg = json.loads((folder / "config.json").read_text())
+        edit(cfg)
+        (folder / "config.json").write_text(json.dumps(cfg))
+    if pre is not None:
+        (folder / "preprocessor_config.json").write_text(json.dumps(pre))
+    return folder
+
+
+_BAD_CHECKPOINTS = {  # reliability round three, items 2, 9 and 10: (checkpoint, config edit, preprocessor, message)
+    "weights of another model_type": ("da", lambda c: c.update(model_type="dpt"), None,
+                                      "the weights do not fit the DPT model its config.json describes: 14 missing"),
+    "a processor config that is a list": ("da", None, [56, 56], "expected a JSON object"),
+    "size as a string": ("da", None, {"size": "56"}, "size: expected a positive integer, got '56'"),
+    "size of -1": ("da", None, {"size": {"height": -1, "width": 56}}, "size.height: expected a positive integer"),
+    "image_mean of length 1": ("da", None, {"image_mean": [0.5]}, "image_mean: expected three finite numbers"),
+    "image_std of 0": ("da", None, {"image_std": [0, 1, 1]}, "image_std: expected three finite numbers > 0"),
+    "ensure_multiple_of 0": ("da", None, {"ensure_multiple_of": 0}, "ensure_multiple_of: expected a positive"),
+    "a 100000 px input": ("da", None, {"size": {"height": 100000, "width": 100000}}, "size: expected at most 8192 px"),
+    "100000 backbone layers": ("da", lambda c: c["backbone_config"].update(num_hidden_layers=100000), None,
+                               "declares 100000 layers 32 wide (at least 409,600,000 parameters), but the weights"),
+    "100000 DPT layers": ("dpt", lambda c: c.update(num_hidden_layers=100000), None, "declares 100000 layers"),
+    "layers as a string": ("dpt", lambda c: c.update(num_hidden_layers="4"), None,
+                           "num_hidden_layers: expected a positive integer, got '4'"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(_BAD_CHECKPOINTS))
+def test_checkpoints_that_do_not_fit_are_refused_naming_the_file(models, photo, tmp_path, case):
+    """Each was a traceback, a silent render from random layers, torch's raw allocation error or minutes of
+    building a model that cannot be loaded."""
+    name, edit, pre, message = _BAD_CHECKPOINTS[case]
+    folder = _variant(models, tmp_path, name, edit, pre)
+    with pytest.raises(br.InputError) as e:
+        depth_model.estimate_disparity(photo, folder)
+    assert message in str(e.value) and str(folder) in str(e.value) and "\n" not in str(e.value)
+
+
+def test_an_input_beyond_memory_is_refused_from_the_declared_size(models, photo, tmp_path, monkeypatch):
+    import bokehray._memory
+
+    folder = _variant(models, tmp_path, "da", pre={"size": {"height": 4000, "width": 4000}})
+    monkeypatch.setattr(bokehray._memory, "available_bytes", lambda: 1 << 30)
+    with pytest.raises(br.ResourceError, match=r"the model at an input of \d+ x \d+ px needs about .* MB, but only "
+                       "1,024 MB"):
+        depth_model.estimate_disparity(photo, folder)
+
+
+def test_cli_refuses_mismatched_weights_in_one_line(models, photo, tmp_path, capsys):
+    folder = _variant(models, tmp_path, "da", lambda c: c.update(model_type="dpt"))
+    img = br.write_image(tmp_path / "p.png", photo)
+    code = main(["render", str(img), "--depth-model", str(folder), "-o", str(tmp_path / "o.png")])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and err.startswith(f"bokehray: error: {folder}: the weights do not fit")
+    assert not (tmp_path / "o.png").exists()

@@ -7,6 +7,7 @@ import subprocess
 import sys
 import time
 
+import numpy as np
 import pytest
 from executor_tasks import always_die, digest, fail_on_odd, write_or_die
 
@@ -101,6 +102,35 @@ def test_bad_executor_arguments():
     with pytest.raises(InputError, match="--workers: expected at least 1"):
         make_executor("local", workers=0)
     assert make_executor("local", workers=8, tasks=3).workers == 3
+
+
+BAD_SCHEDULERS = ["notaurl", "inproc://x", "tls://127.0.0.1:1", "ucx://127.0.0.1:1", "tcp://127.0.0.1:8786/../x",
+                  "", "tcp://127.0.0.1:0", "tcp://127.0.0.1:70000", "tcp://:8786"]
+
+
+@pytest.mark.parametrize("address", BAD_SCHEDULERS)
+def test_a_malformed_scheduler_address_is_refused_before_dask_sees_it(address):
+    """Issue: these gave tracebacks from inside Dask, and '' silently started a local cluster."""
+    with pytest.raises(InputError, match=r"--scheduler: expected a Dask scheduler address tcp://HOST:PORT"):
+        make_executor("dask", scheduler=address)
+    with pytest.raises(InputError, match=r"--scheduler: expected a Dask scheduler address"):
+        make_executor("local", scheduler=address)  # the address is wrong whatever the executor
+
+
+@pytest.mark.parametrize("command", ["render", "synth"])
+@pytest.mark.parametrize("address", ["notaurl", "", "tcp://127.0.0.1:8786/../x"])
+def test_cli_refuses_a_malformed_scheduler_before_writing(tmp_path, capsys, command, address):
+    import bokehray as br
+    from bokehray.app.cli import main
+
+    img = br.write_image(tmp_path / "p.png", np.full((8, 8, 3), 0.5, np.float32))
+    disp = br.write_disparity(tmp_path / "d.png", np.full((8, 8), 0.5, np.float32))
+    args = (["render", str(img), "--disparity", str(disp), "--blur", "2", "--focus", "0.2,0.4"] if command == "render"
+            else ["synth", "-n", "1", "--size", "16"])
+    code = main([*args, "-o", str(tmp_path / "out"), "--executor", "dask", f"--scheduler={address}"])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and f"got {address!r}" in err, err
+    assert not (tmp_path / "out").exists()
 
 
 def test_remove_stale_outputs_touches_only_the_named_outputs(tmp_path):

@@ -33,10 +33,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from ..errors import InputError
+from ..errors import EXIT_INTERRUPTED, EXIT_TERMINATED, InputError, Terminated
 
-__all__ = ["Pair", "RenderSettings", "RenderTask", "add_batch_args", "find_pairs", "is_batch", "parse_sweep",
-           "render_file", "run_batch", "sweep_values"]
+__all__ = ["Pair", "RenderSettings", "RenderTask", "add_batch_args", "find_pairs", "frame_labels", "is_batch",
+           "parse_sweep", "render_file", "run_batch", "sweep_values"]
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr")
 MAP_EXTS = (".png", ".tif", ".tiff", ".exr", ".npy")
@@ -136,10 +136,14 @@ def _listing(spec: str, exts: tuple[str, ...], what: str) -> tuple[list[Path], P
 
 
 def _manifest(path: Path, kind: str) -> dict[str, Path]:
+    rows: list[tuple[int, list[str]]] = []
     try:
         with open(path, newline="", encoding="utf-8-sig") as fh:
-            rows = list(csv.DictReader(fh))
-            header = [h.strip().lower() for h in (rows[0].keys() if rows else [])]
+            reader = csv.reader(fh)
+            header = [h.strip().lower() for h in next(reader, [])]
+            for fields in reader:
+                if any(f.strip() for f in fields):  # blank lines are no rows
+                    rows.append((reader.line_num, fields))
     except (OSError, UnicodeDecodeError, csv.Error) as e:
         raise InputError(f"{path}: cannot read the manifest CSV ({e})") from None
     if not rows:
@@ -149,8 +153,11 @@ def _manifest(path: Path, kind: str) -> dict[str, Path]:
         raise InputError(f"{path}: the manifest CSV needs the columns image and {kind} (or map), got "
                          f"{', '.join(header)}")
     out: dict[str, Path] = {}
-    for n, row in enumerate(rows, start=2):
-        row = {k.strip().lower(): (v or "").strip() for k, v in row.items() if k is not None}
+    for n, fields in rows:
+        if len(fields) > len(header):
+            raise InputError(f"{path}: line {n}: expected at most {len(header)} fields (the header's "
+                             f"{','.join(header)}), got {len(fields)}; quote a path that holds a comma")
+        row = dict(zip(header, (f.strip() for f in fields)))
         if not row.get("image") or not row.get(col):
             raise InputError(f"{path}: line {n}: expected an image and a {kind} path")
         m = Path(row[col])
@@ -273,9 +280,19 @@ def sweep_values(args: argparse.Namespace) -> tuple[str | None, tuple[float, ...
     if not (f or b):
         return None, ()
     name = "focus" if f else "blur"
-    values = args.focus if f else args.blur
+    values = tuple(v + 0.0 for v in (args.focus if f else args.blur))  # -0.0 is 0.0 (one name, one render)
     if len(set(values)) != len(values):
         raise InputError(f"--{name}: the values repeat ({', '.join(f'{v:g}' for v in values)})")
+    # every value is checked as a single one is, before any frame is written (not frame by frame, half a stack later)
+    from ..lens import MAX_K_PX
+
+    for i, v in enumerate(values):
+        if name == "focus" and not 0.0 <= v <= 1.0:
+            raise InputError(f"--focus: expected every value of the sweep in [0, 1] (1 = nearest), got {v:g} "
+                             f"(value {i + 1} of {len(values)})")
+        if name == "blur" and not 0.0 <= v <= MAX_K_PX:
+            raise InputError(f"--blur: expected every value of the sweep as K in [0, {MAX_K_PX:g}], got {v:g} "
+                             f"(value {i + 1} of {len(values)})")
     return name, values
 
 
@@ -288,8 +305,38 @@ def _settings(args: argparse.Namespace) -> RenderSettings:
     return RenderSettings.from_args(args)
 
 
-def _frame_name(stem: str, name: str, value: float) -> str:
-    return f"{stem}_focus_{value:.3f}" if name == "focus" else f"{stem}_blur_{value:g}"
+FRAME_DECIMALS = {"focus": 3, "blur": 0}
+"""The fewest decimals in a sweep frame's name (``p_focus_0.100.png``, ``p_blur_4.png``)."""
+_MOST_DECIMALS = 20
+
+
+def _shown_decimals(v: float) -> int:
+    """The decimals ``%g`` shows of ``v`` (six significant digits, ``2.5`` -> 1, ``24`` -> 0, ``1e-05`` -> 5)."""
+    from decimal import Decimal
+
+    return max(0, -Decimal(f"{v:.6g}").normalize().as_tuple().exponent)
+
+
+def frame_labels(name: str, values: Sequence[float]) -> list[str]:
+    """The value part of each frame's name: one rule for every sweep, distinct for distinct values.
+
+    Every value of a sweep is written with the same number of decimals: the fewest that are at least
+    ``FRAME_DECIMALS[name]``, show each value as ``%g`` does (six significant digits) and give each value its own
+    name (``0.1,0.1004`` -> ``0.1000``, ``0.1004``); blur values then drop trailing zeros (``4``, ``2.5``,
+    ``24.0000001``). Values that ``_MOST_DECIMALS`` decimals cannot tell apart are refused: two frames never share
+    a file, whatever order the workers finish in.
+    """
+    first = max([FRAME_DECIMALS[name], *(_shown_decimals(v) for v in values)])
+    for decimals in range(min(first, _MOST_DECIMALS), _MOST_DECIMALS + 1):
+        labels = [f"{v:.{decimals}f}" for v in values]
+        if name == "blur" and decimals:
+            labels = [t.rstrip("0").rstrip(".") for t in labels]
+        if len(set(labels)) == len(labels):
+            return labels
+    i = next(i for i, t in enumerate(labels) if labels.count(t) > 1)
+    j = labels.index(labels[i], i + 1)
+    raise InputError(f"--{name}: the values {values[i]!r} and {values[j]!r} of the sweep are too close to tell "
+                     f"apart in the frames' file names (they differ after {_MOST_DECIMALS} decimals)")
 
 
 def _gif(frames: Sequence[Path], path: Path, width: int, fps: float) -> Path:
@@ -314,6 +361,15 @@ def _gif(frames: Sequence[Path], path: Path, width: int, fps: float) -> Path:
         images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=duration, loop=0)
 
     return atomic_write(path, encode)
+
+
+def _stamp(path: str) -> tuple[int, int] | None:
+    """The file's identity now (inode, mtime in ns), or None: an atomic write replaces both."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_ino, st.st_mtime_ns
 
 
 def _state(out: Path, fingerprint: str, outputs: Sequence[str], overwrite: bool) -> None:
@@ -341,9 +397,10 @@ def run_batch(args: argparse.Namespace) -> int:
     """``bokehray render`` with many inputs or a sweep: plan, skip what is done, run, summarise."""
     from tqdm import tqdm
 
-    from ..executor import make_executor
+    from ..executor import check_executor_args, make_executor
     from ..output.atomic import remove_stale_outputs
 
+    check_executor_args(args.executor, workers=args.workers, scheduler=args.scheduler)  # before any file is made
     if args.map_suffix and "/" in args.map_suffix:
         raise InputError(f"--map-suffix: expected a file-name suffix, got {args.map_suffix!r}")
     if args.gif_width < 8:
@@ -353,6 +410,7 @@ def run_batch(args: argparse.Namespace) -> int:
     if args.stats:
         raise InputError("--stats: single-file renders only (a batch prints its throughput at the end)")
     name, values = sweep_values(args)
+    labels = frame_labels(name, values) if name is not None else []
     settings = _settings(args)
     out = Path(args.output)
     if out.exists() and not out.is_dir():
@@ -383,8 +441,8 @@ def run_batch(args: argparse.Namespace) -> int:
             tasks.append(RenderTask(str(pair.image), str(pair.map), str(out / f"{stem}{suffix}"), settings))
             continue
         frames = []
-        for v in values:
-            frame = out / f"{_frame_name(stem, name, v)}{suffix}"
+        for v, label in zip(values, labels):
+            frame = out / f"{stem}_{name}_{label}{suffix}"
             frames.append(frame)
             tasks.append(RenderTask(str(pair.image), str(pair.map), str(frame), settings.with_values(**{name: v})))
         stacks[out / f"{stem}_{name}_sweep.gif"] = frames
@@ -400,7 +458,7 @@ def run_batch(args: argparse.Namespace) -> int:
     quiet = args.quiet
     done_pixels, t0 = 0, time.perf_counter()
     failed_outputs: set[str] = set()
-    finished = 0
+    before = {t.output: _stamp(t.output) for t in todo}  # what is there now (with --overwrite: the old renders)
     try:
         if todo:
             with make_executor(args.executor, workers=args.workers, scheduler=args.scheduler,
@@ -415,15 +473,19 @@ def run_batch(args: argparse.Namespace) -> int:
                     for o in ex.map(render_file, todo):
                         if o.ok:
                             done_pixels += o.value["pixels"]
-                            finished += 1
                         else:
                             failures.append((todo[o.index].image, o.error))
                             failed_outputs.add(todo[o.index].output)
                         bar.update()
-    except KeyboardInterrupt:
-        print(f"bokehray: interrupted after {finished} of {len(todo)} renders; they are complete in {out}, "
+    except KeyboardInterrupt as e:
+        # counted on disk once the executor has closed: the renders in flight when the signal came finished
+        # (atomically) while it shut down, and they are done as much as those whose outcome was seen
+        complete = sum(1 for t in todo if _stamp(t.output) not in (None, before[t.output]))
+        terminated = isinstance(e, Terminated)
+        what, code = ("terminated (SIGTERM)", EXIT_TERMINATED) if terminated else ("interrupted", EXIT_INTERRUPTED)
+        print(f"bokehray: {what} after {complete} of {len(todo)} renders; they are complete in {out}, "
               "run the same command again to render the rest", file=sys.stderr)
-        return 130
+        return code
     finally:
         remove_stale_outputs(out, names)
     wall = time.perf_counter() - t0

@@ -19,19 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .._quiet import collect_warnings
-from ..errors import BokehrayError, InputError
+from .._quiet import collect_warnings, command_stderr
+from ..errors import EXIT_INTERRUPTED, EXIT_TERMINATED, BokehrayError, InputError, Terminated
 from .render_job import aperture_of, layer_options_of, render_one, start_warp
 from ..photo.subject import AMOUNT_DEFAULT, AMOUNT_K_FRACTION
 
 EXIT_INPUT = 2
-EXIT_INTERRUPTED = 130  # 128 + SIGINT
-EXIT_TERMINATED = 143  # 128 + SIGTERM
-
-
-class Terminated(KeyboardInterrupt):
-    """SIGTERM, raised in the main thread like Ctrl-C so that every cleanup path runs (atomic writes remove
-    their temporary file); the CLI then exits with 143."""
 
 
 def _on_sigterm(signum: int, frame) -> None:
@@ -313,7 +306,9 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 def cmd_synth(args: argparse.Namespace) -> int:
     from ..data.synth import SynthConfig, generate
+    from ..executor import check_executor_args
 
+    check_executor_args(args.executor, workers=args.workers, scheduler=args.scheduler)  # before the folder is made
     try:
         levels = tuple(float(v) for v in args.blur_levels.split(","))
     except ValueError:
@@ -405,7 +400,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return EXIT_TERMINATED if isinstance(e, Terminated) else EXIT_INTERRUPTED
         debug = getattr(args, "debug", False)
         code, message = None, None
-        with collect_warnings(debug) as warned:
+        # native libraries' lines (libpng, Warp, workers) go nowhere, bokehray's own reach the terminal
+        with command_stderr(debug), collect_warnings(debug) as warned:
             try:
                 code = _run(args)  # each command starts Warp when it computes (_start_warp): --help stays fast
             except BokehrayError as e:

@@ -20,6 +20,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..formats import check_finite, format_of
+from ..validate import check_path
 
 __all__ = ["BORDER_NEAR", "NORMALIZE_PERCENTILES", "REVERSED_MARGIN", "looks_reversed", "missing_depth_share",
            "normalize_relative", "read_depth", "subsample"]
@@ -105,6 +106,7 @@ def read_depth(path: str | os.PathLike[str], *, scale: float | None = None) -> n
     """
     from .read import load_samples, single_channel  # the codecs: not imported by `bokehray --help`
 
+    check_path(path)
     p = Path(path)
     if scale is not None and (isinstance(scale, bool) or not isinstance(scale, (int, float))
                               or not (math.isfinite(scale) and scale > 0)):

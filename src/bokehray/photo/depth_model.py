@@ -11,6 +11,12 @@ DPT) predict *relative inverse depth*, near = large, which is disparity up to sc
 by its 0.5th..99.5th percentiles (``bokehray.photo.depth.normalize_relative``). Metric models
 (``depth_estimation_type = "metric"``) predict metres, near = small: they go through ``1/z`` with the min-max
 normalisation of metric depth (``bokehray.lens.disparity_from_depth``).
+
+A folder is refused in one line naming its file, before anything large is built: a ``preprocessor_config.json``
+of the wrong types or an input side beyond ``MAX_INPUT_SIDE``; a config.json whose declared transformer is larger
+than the weights' headers say they hold (:func:`_check_declared_size`), or whose model at that input would not fit
+the memory available; and, once loaded, weights that do not fit the model the config describes (missing,
+unexpected or reshaped tensors: transformers would leave those layers random).
 """
 
 from __future__ import annotations
@@ -62,20 +68,66 @@ def _multiple(x: float, m: int) -> int:
     return max(m, int(round(x / m)) * m)
 
 
+MAX_INPUT_SIDE = 8192
+"""Largest network input side a checkpoint's ``preprocessor_config.json`` may declare: 16 times the models' own
+(518 for Depth Anything, 384 for DPT); beyond it only memory and hours are spent."""
+
+
+def _positive_int(value: object, where: Path, key: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise InputError(f"{where}: {key}: expected a positive integer, got {value!r}")
+    return value
+
+
+def _preprocessor(folder: Path) -> dict:
+    """``preprocessor_config.json`` (if any), each key this module reads checked for its type."""
+    path = folder / "preprocessor_config.json"
+    if not path.exists():
+        return {}
+    try:
+        pre = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise InputError(f"{path}: cannot read it as JSON ({e})") from None
+    if not isinstance(pre, dict):
+        raise InputError(f"{path}: expected a JSON object (the image processor's settings), got a "
+                         f"{type(pre).__name__}")
+    size = pre.get("size")
+    if isinstance(size, dict):
+        for key in ("height", "width"):
+            if key in size:
+                _positive_int(size[key], path, f"size.{key}")
+    elif size is not None:
+        _positive_int(size, path, "size")
+    if "keep_aspect_ratio" in pre and not isinstance(pre["keep_aspect_ratio"], bool):
+        raise InputError(f"{path}: keep_aspect_ratio: expected true or false, got {pre['keep_aspect_ratio']!r}")
+    if pre.get("ensure_multiple_of") is not None:
+        _positive_int(pre["ensure_multiple_of"], path, "ensure_multiple_of")
+    for key, positive in (("image_mean", False), ("image_std", True)):
+        v = pre.get(key)
+        if v is None:
+            continue
+        ok = (isinstance(v, list) and len(v) == 3
+              and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)
+              and (not positive or all(x > 0 for x in v)))
+        if not ok:
+            what = "three finite numbers > 0 (one per RGB channel)" if positive else "three finite numbers (RGB)"
+            raise InputError(f"{path}: {key}: expected {what}, got {v!r}")
+    return pre
+
+
 def _input_size(folder: Path, cfg: dict, h: int, w: int) -> tuple[int, int, tuple, tuple]:
     """The network input size, as transformers' image processors of these models compute it, and mean/std."""
-    pre: dict = {}
-    if (folder / "preprocessor_config.json").exists():
-        try:
-            pre = json.loads((folder / "preprocessor_config.json").read_text())
-        except (OSError, ValueError) as e:
-            raise InputError(f"{folder / 'preprocessor_config.json'}: cannot read it as JSON ({e})") from None
+    pre = _preprocessor(folder)
     if cfg["model_type"] == "depth_anything":
         default, keep, mult = 518, True, 14
     else:  # DPT: a square input of the configured image size
-        default, keep, mult = int(cfg.get("image_size", 384) or 384), False, 1
+        default, keep, mult = _positive_int(cfg.get("image_size", 384) or 384, folder / "config.json",
+                                            "image_size"), False, 1
     size = pre.get("size", default)
     th, tw = (size.get("height", default), size.get("width", default)) if isinstance(size, dict) else (size, size)
+    if max(th, tw) > MAX_INPUT_SIDE:
+        raise InputError(f"{folder / 'preprocessor_config.json'}: size: expected at most {MAX_INPUT_SIDE} px a side "
+                         f"(the models were trained at 518 and 384), got {tw} x {th}")
     keep = bool(pre.get("keep_aspect_ratio", keep))
     mult = int(pre.get("ensure_multiple_of", mult) or 1)
     if cfg["model_type"] == "dpt":
@@ -92,6 +144,88 @@ def _input_size(folder: Path, cfg: dict, h: int, w: int) -> tuple[int, int, tupl
     mean = tuple(pre.get("image_mean", _IMAGENET_MEAN))
     std = tuple(pre.get("image_std", _IMAGENET_STD))
     return int(th), int(tw), mean, std
+
+
+def _stored_parameters(folder: Path) -> int | None:
+    """How many parameters the folder's safetensors files hold, from their headers alone (nothing is loaded);
+    None without safetensors files (a ``pytorch_model.bin`` is counted only by loading it)."""
+    files = sorted(folder.glob("*.safetensors"))
+    if not files:
+        return None
+    total = 0
+    for f in files:
+        try:
+            with open(f, "rb") as fh:
+                n = int.from_bytes(fh.read(8), "little")
+                if not 2 <= n <= 100 << 20:
+                    raise ValueError(f"a header of {n} bytes")
+                header = json.loads(fh.read(n))
+            for name, t in header.items():
+                if name != "__metadata__":
+                    total += math.prod(int(v) for v in t["shape"])
+        except (OSError, ValueError, TypeError, KeyError, AttributeError) as e:
+            raise InputError(f"{f}: cannot read it as safetensors ({e})") from None
+    return total
+
+
+def _declared(cfg: dict, folder: Path) -> dict:
+    """The transformer's shape as config.json declares it (the backbone's for Depth Anything), each value checked."""
+    where = folder / "config.json"
+    shape = cfg.get("backbone_config") if cfg["model_type"] == "depth_anything" else cfg
+    if shape is None:
+        return {}
+    if not isinstance(shape, dict):
+        raise InputError(f"{where}: backbone_config: expected a JSON object, got {type(shape).__name__}")
+    out = {k: _positive_int(shape[k], where, k) for k in ("hidden_size", "num_hidden_layers", "num_attention_heads",
+                                                           "patch_size") if k in shape}
+    if "patch_size" not in out and "patch_size" in cfg:
+        out["patch_size"] = _positive_int(cfg["patch_size"], where, "patch_size")
+    for k in ("fusion_hidden_size", "head_hidden_size"):
+        if k in cfg:
+            out[k] = _positive_int(cfg[k], where, k)
+    return out
+
+
+def _check_declared_size(folder: Path, cfg: dict, th: int, tw: int) -> None:
+    """Refuse, from config.json and the weights' headers, a model that cannot be what the folder holds or cannot
+    fit in memory, before transformers builds it (100 000 declared layers take minutes to build, then fail)."""
+    from .._memory import available_bytes
+    from ..errors import ResourceError
+
+    shape = _declared(cfg, folder)
+    h, layers = shape.get("hidden_size"), shape.get("num_hidden_layers")
+    if h is None or layers is None:
+        return  # transformers' defaults: the published sizes
+    at_least = layers * 4 * h * h  # the attention's four h x h projections per layer: a lower bound of the model
+    stored = _stored_parameters(folder)
+    if stored is not None and at_least > 1.05 * stored:
+        raise InputError(f"{folder / 'config.json'}: declares {layers} layers {h} wide (at least {at_least:,} "
+                         f"parameters), but the weights in {folder} hold {stored:,}: the config does not fit them")
+    patch = shape.get("patch_size", 14)
+    tokens = (th // patch + 1) * (tw // patch + 1)
+    heads = shape.get("num_attention_heads", 1)
+    full_res = shape.get("fusion_hidden_size", 256) + 2 * shape.get("head_hidden_size", 32)
+    need = 4 * (at_least + 24 * tokens * h + tokens * tokens * heads + th * tw * full_res)  # float32 bytes
+    have = available_bytes()
+    if need > have:
+        raise ResourceError(f"{folder}: the model at an input of {tw} x {th} px needs about {need >> 20:,} MB, but "
+                            f"only {have >> 20:,} MB of memory is available (a smaller size in "
+                            "preprocessor_config.json needs less)")
+
+
+def _check_loading(folder: Path, cfg: dict, loading: dict) -> None:
+    """Refuse a checkpoint whose weights do not fit the model its config.json describes: transformers then
+    leaves the missing layers random (and says so only in a log line) and would render from noise."""
+    problems = []
+    for key, what in (("missing_keys", "missing"), ("unexpected_keys", "unexpected"),
+                      ("mismatched_keys", "of another shape")):
+        names = sorted(str(k if isinstance(k, str) else k[0]) for k in loading.get(key) or ())
+        if names:
+            problems.append(f"{len(names)} {what} ({', '.join(names[:2])}{', ...' if len(names) > 2 else ''})")
+    problems += [str(m).splitlines()[0] for m in loading.get("error_msgs") or ()]
+    if problems:
+        raise InputError(f"{folder}: the weights do not fit the {SUPPORTED[cfg['model_type']]} model its config.json "
+                         f"describes: {'; '.join(problems)} (is model_type right?)")
 
 
 def predict(model, image: np.ndarray, size: tuple[int, int], mean, std, device: str = "cpu") -> np.ndarray:
@@ -144,10 +278,13 @@ def estimate_disparity(
     th, tw, mean, std = _input_size(folder, cfg, h, w)
     cls = (transformers.DepthAnythingForDepthEstimation if cfg["model_type"] == "depth_anything"
            else transformers.DPTForDepthEstimation)
+    _check_declared_size(folder, cfg, th, tw)
     try:
-        model = cls.from_pretrained(str(folder), local_files_only=True).eval().to(device)
+        model, loading = cls.from_pretrained(str(folder), local_files_only=True, output_loading_info=True)
+        model = model.eval().to(device)
     except Exception as e:  # noqa: BLE001 - transformers raises OSError, ValueError, RuntimeError, safetensors errors
         raise InputError(f"{folder}: cannot load the {SUPPORTED[cfg['model_type']]} checkpoint ({e})") from None
+    _check_loading(folder, cfg, loading)
     if progress:
         progress(0.3)
     pred = predict(model, img, (th, tw), mean, std, device)

@@ -94,8 +94,10 @@ def embedded(path: Path, fmt: str) -> Embedded:
     if fmt == "TIFF":
         import tifffile
 
+        from .._quiet import library_log
+
         try:
-            with tifffile.TiffFile(path) as tf:
+            with library_log("tifffile"), tifffile.TiffFile(path) as tf:  # damaged tags: its log, not stderr
                 tags = tf.pages[0].tags
                 orientation = int(tags["Orientation"].value) if "Orientation" in tags else 1
                 icc = bytes(tags["InterColorProfile"].value) if "InterColorProfile" in tags else None

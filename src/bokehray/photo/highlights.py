@@ -30,8 +30,10 @@ def is_display_referred(path: str | os.PathLike[str]) -> bool:
     if suffix in (".tif", ".tiff"):
         import tifffile
 
+        from .._quiet import library_log
+
         try:
-            with tifffile.TiffFile(path) as tf:
+            with library_log("tifffile"), tifffile.TiffFile(path) as tf:  # damaged tags: its log, not stderr
                 return tf.pages[0].dtype.kind in "iu"
         except Exception:  # noqa: BLE001 - the reader has already reported an unreadable file
             return False

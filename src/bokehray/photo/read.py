@@ -9,12 +9,8 @@ so it is divided by alpha on read). Every bad input raises :class:`~bokehray.err
 from __future__ import annotations
 
 import contextlib
-import io
-import logging
 import os
 import struct
-import sys
-import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -25,8 +21,10 @@ import tifffile
 from PIL import Image
 
 from .._memory import available_bytes
+from .._quiet import library_log, native_output
 from ..colour import srgb_decode_lut
 from ..errors import InputError, ResourceError
+from ..validate import check_path
 from ..formats import check_finite, first_index, format_of, range_prefix, to_float32
 
 __all__ = ["MAX_PIXELS", "load_samples", "read_disparity", "read_image", "read_size", "single_channel"]
@@ -84,8 +82,10 @@ def _load_png(path: Path) -> np.ndarray:
     if depth != 16:
         return _load_pil(path, "PNG")
     # Pillow truncates 16-bit colour PNGs to 8 bits; imagecodecs (libpng) keeps all 16.
+    data = path.read_bytes()
     try:
-        return np.asarray(imagecodecs.png_decode(path.read_bytes()))
+        with library_log("imagecodecs"):  # libpng's warnings (an iCCP profile it rejects): the pixels decode fine
+            return np.asarray(imagecodecs.png_decode(data))
     except imagecodecs.PngError as exc:
         raise ValueError(f"file is truncated or corrupt (libpng: {exc})") from None
 
@@ -105,28 +105,8 @@ def _load_pil(path: Path, fmt: str) -> np.ndarray:
         return np.asarray(im)
 
 
-@contextlib.contextmanager
-def _tifffile_log() -> Iterator[list[str]]:
-    """Collect tifffile's log messages (damaged tags) instead of letting them reach stderr."""
-    messages: list[str] = []
-
-    class Collect(logging.Handler):
-        def emit(self, record: logging.LogRecord) -> None:
-            messages.append(record.getMessage())
-
-    log = logging.getLogger("tifffile")
-    handler, propagate = Collect(), log.propagate
-    log.addHandler(handler)
-    log.propagate = False
-    try:
-        yield messages
-    finally:
-        log.removeHandler(handler)
-        log.propagate = propagate
-
-
 def _load_tiff(path: Path, *, size_only: bool = False):
-    with _tifffile_log() as said:
+    with library_log("tifffile") as said:
         try:
             return _load_tiff_quietly(path, size_only=size_only)
         except (InputError, ResourceError):
@@ -166,49 +146,11 @@ def _load_tiff_quietly(path: Path, *, size_only: bool = False) -> np.ndarray | t
     return np.moveaxis(a, axes.index("S"), -1) if "S" in axes else a
 
 
-def _flush_c_streams() -> None:
-    with contextlib.suppress(Exception):
-        import ctypes
-
-        ctypes.CDLL(None).fflush(None)
-
-
-@contextlib.contextmanager
-def _library_output() -> Iterator[list[str]]:
-    """Capture what native code writes to file descriptors 1 and 2 (OpenEXR prints its errors there).
-
-    Yields a list that holds the captured lines once the block ends. The descriptors are
-    process-wide, so output of other threads during the block is captured too (a short read).
-    """
-    lines: list[str] = []
-    sys.stdout.flush()
-    sys.stderr.flush()
-    saved = [os.dup(1), os.dup(2)]
-    printed = io.StringIO()  # the Python binding prints its warnings with print()
-    with tempfile.TemporaryFile() as sink:
-        try:
-            os.dup2(sink.fileno(), 1)
-            os.dup2(sink.fileno(), 2)
-            with contextlib.redirect_stdout(printed), contextlib.redirect_stderr(printed):
-                yield lines
-        finally:
-            sys.stdout.flush()
-            sys.stderr.flush()
-            _flush_c_streams()  # C/C++ stdout is buffered: flush it into the sink, not onto the terminal later
-            os.dup2(saved[0], 1)
-            os.dup2(saved[1], 2)
-            for fd in saved:
-                os.close(fd)
-            sink.seek(0)
-            text = sink.read().decode("utf-8", "replace") + printed.getvalue()
-            lines.extend(ln.strip() for ln in text.splitlines() if ln.strip())
-
-
 def _exr_size(path: Path) -> tuple[int, int]:
     if not OpenEXR.isOpenExrFile(str(path)):
         raise InputError(f"cannot read {path} as EXR: not an OpenEXR file (bad magic number)")
     failure = None
-    with _library_output() as said:
+    with native_output() as said:
         try:
             with OpenEXR.File(str(path), header_only=True) as f:
                 (x0, y0), (x1, y1) = f.header()["dataWindow"]
@@ -225,7 +167,7 @@ def _load_exr(path: Path, choices: tuple[tuple[str, ...], ...]) -> np.ndarray:
         raise InputError(f"cannot read {path} as EXR: not an OpenEXR file (bad magic number)")
     chans: dict[str, np.ndarray] = {}
     failure = None
-    with _library_output() as said:
+    with native_output() as said:
         try:
             with OpenEXR.File(str(path), header_only=True) as f:
                 (x0, y0), (x1, y1) = f.header()["dataWindow"]
@@ -336,6 +278,7 @@ def read_size(path: str | os.PathLike[str]) -> tuple[int, int]:
     one (the CLI does, for the image and its disparity map). Accepts every format a reader
     takes; a file whose header cannot be read raises :class:`InputError` naming it.
     """
+    check_path(path)
     p, fmt = format_of(path, ("PNG", "JPEG", "TIFF", "EXR", "NPY"), "images or maps")
     with _decoding(p, fmt):
         if fmt == "PNG":
@@ -374,6 +317,7 @@ def read_image(path: str | os.PathLike[str]) -> np.ndarray:
         InputError: The file is missing, unreadable, truncated, too large, empty, has
             an unsupported extension or channel layout, or holds NaN/Inf.
     """
+    check_path(path)
     p, fmt = format_of(path, ("PNG", "JPEG", "TIFF", "EXR"), "images")
     a = load_samples(p, fmt, (("R", "G", "B", "A"), ("R", "G", "B"), ("Y", "A"), ("Y",)))
     a = a[..., None] if a.ndim == 2 else a
@@ -415,6 +359,7 @@ def read_disparity(path: str | os.PathLike[str], *, check_range: bool = False) -
         InputError: Unreadable file, wrong dimensionality or channel count, NaN/Inf,
             and with ``check_range`` values outside [0, 1].
     """
+    check_path(path)
     p, fmt = format_of(path, ("PNG", "TIFF", "EXR", "NPY"), "disparity")
     a = single_channel(p, load_samples(p, fmt, (("Y",), ("R",))), fmt, "disparity")
     if a.dtype.kind == "u" and fmt != "NPY":
