@@ -70,6 +70,7 @@ def cmd_view(args: argparse.Namespace) -> int:
                                      resize_disparity=args.resize_disparity, export_dir=export_dir,
                                      proxy_long_side=args.proxy_size, display_long_side=args.display_size,
                                      device=device)
+    session.warm_up()  # Warp's modules load before the URL is printed, so the page's first picture comes at once
     server = ViewServer(session, args.host, args.port)
     if args.host not in ("127.0.0.1", "localhost", "::1") and not args.quiet:
         print(f"bokehray view: listening on {args.host}, not only this machine: anyone who can reach it can "

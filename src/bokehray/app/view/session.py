@@ -430,6 +430,16 @@ class ViewSession:
         return encode_jpeg(to_srgb8(out), 88), {"factor": f, "layers": stats.layers, "level": level,
                                                 "render_s": seconds}
 
+    def warm_up(self) -> float:
+        """One preview of the coarsest proxy, thrown away: Warp loads its kernel modules now, not when the page asks
+        for its first picture. Returns the seconds it took; the ladder is left alone."""
+        t = time.perf_counter()
+        p = self.parse({})
+        f, image, disparity = self.proxies[-1]
+        br.render_with_stats(image, disparity, br.BlurParams(p.blur.k_px / f, p.blur.focus_disparity), p.lens,
+                             quality="preview", device=self.device)
+        return time.perf_counter() - t
+
     def screen_factor(self, long_side: int | None) -> int:
         """The reduction of the sharp version for a screen showing ``long_side`` pixels on the photo's long side
         (None: ``--display-size``; at least the photo's size: 1, every pixel)."""

@@ -293,7 +293,12 @@ async function start() {
   bind();
   syncOutputs();
   mark("state", "ready");
-  changed();  // the first preview, while the photo, the depth and the overlay's disparity load beside it
+  changed();  // the first preview; the photo, the depth and the overlay's disparity load once it is shown
+  await new Promise((resolve) => {
+    const poll = setInterval(() => {
+      if (shownVersion >= 0 || document.body.dataset.state === "error") { clearInterval(poll); resolve(); }
+    }, 20);
+  });
   photo = { bitmap: await loadBitmap("/api/photo.jpg"), factor: info.display.factor };
   if (!lastRender) draw();
   depth = { bitmap: await loadBitmap("/api/depth.png"), factor: info.display.factor };
