@@ -193,3 +193,29 @@ def test_click_drag_export_in_chromium(served, browser):
     shot = os.environ.get("BOKEHRAY_VIEW_SCREENSHOT")
     if shot:
         drv.save_screenshot(shot)
+
+
+def test_metric_depth_offers_the_lens_in_chromium(tmp_path, browser):
+    """With a metric --depth map the page offers f-number and focus distance; the command says them."""
+    drv = browser
+    sc = build_demo_scene(width=480, height=320)
+    br.write_image(tmp_path / "photo.exr", sc.image)
+    br.write_image(tmp_path / "depth.exr", (1.0 / (0.2 + sc.disparity)).astype(np.float32)[..., None])
+    session = ViewSession.from_files(str(tmp_path / "photo.exr"), depth=str(tmp_path / "depth.exr"),
+                                     export_dir=tmp_path, proxy_long_side=240)
+    with ViewServer(session) as server:
+        drv.get(server.url)
+        wait_sharp(drv)
+        assert drv.find_element(By.ID, "lens-controls").is_displayed()
+        assert " m" in drv.find_element(By.ID, "files").text  # the depth range in metres
+        n_prev = count(drv, "previews")
+        drv.execute_script("const m = document.getElementById('blur-mode'); m.value = 'lens'; "
+                           "m.dispatchEvent(new Event('change'));")
+        wait(drv, lambda d: count(d, "previews") > n_prev)
+        wait_sharp(drv)
+        argv = shlex.split(drv.find_element(By.ID, "command").text)
+        assert argv[argv.index("--f-number") + 1] == "1.8" and argv[argv.index("--focal-length") + 1] == "50.0"
+        z = float(argv[argv.index("--focus-distance") + 1])
+        assert z == pytest.approx(float(session.norm.depth(session.subject.d_f)))
+        assert "m away" in drv.find_element(By.ID, "focus-where").text
+        assert drv.find_element(By.ID, "error").text == ""

@@ -198,3 +198,55 @@ def test_a_jpeg_export_is_the_printed_commands_file_byte_for_byte(served, tmp_pa
     assert again.read_bytes() == open(out["path"], "rb").read()
     with Image.open(out["path"]) as im:
         assert im.getexif().get(0x010F) == "TestCam" and im.getexif().get(0x0112, 1) == 1
+
+
+# --- metric depth: the photographer's lens -----------------------------------------------------------
+@pytest.fixture(scope="module")
+def metric(tmp_path_factory):
+    d = tmp_path_factory.mktemp("view-metric")
+    sc = build_demo_scene(width=240, height=160)
+    br.write_image(d / "photo.exr", sc.image)
+    depth = (1.0 / (0.2 + sc.disparity)).astype(np.float32)  # 0.9 .. 5 m; nearer = larger disparity
+    br.write_image(d / "depth.exr", depth[..., None])
+    (d / "exports").mkdir()
+    s = ViewSession.from_files(str(d / "photo.exr"), depth=str(d / "depth.exr"), export_dir=d / "exports",
+                               proxy_long_side=80, display_long_side=200)
+    return s, depth
+
+
+@pytest.mark.parametrize("params", [
+    {"lens": {"focal_length": 50, "f_number": 1.8, "focus_distance": 1.1}},
+    {"lens": {"focal_length": 85, "f_number": 2.8, "sensor_width": 24}, "focus_at": [150, 70]},
+])
+def test_a_metric_session_offers_a_lens_and_exports_what_its_command_writes(metric, tmp_path, params):
+    s, depth = metric
+    info = s.info()
+    assert info["metric"]["nearest_m"] == pytest.approx(float(depth.min()), rel=1e-4)
+    assert info["metric"]["farthest_m"] == pytest.approx(float(depth.max()), rel=1e-4)
+    p = s.parse(params)
+    want_z = params["lens"].get("focus_distance") or float(s.norm.depth(br.focus_at(s.disparity, 150, 70)))
+    assert p.thin_lens.focus_distance_m == pytest.approx(want_z)
+    assert float(s.norm.depth(p.blur.focus_disparity)) == pytest.approx(want_z, rel=1e-5)
+    path, command = s.export(p, "exr", 32)
+    argv = shlex.split(command)
+    assert "--f-number" in argv and "--blur" not in argv and "--amount" not in argv
+    again = tmp_path / "again.exr"
+    argv[argv.index("-o") + 1] = str(again)
+    assert main(argv[1:] + ["--quiet"]) == 0
+    assert again.read_bytes() == path.read_bytes()
+
+
+def test_a_lens_without_metric_depth_is_refused_as_render_refuses_it(served, metric):
+    from bokehray.errors import InputError
+
+    _, s = served
+    with pytest.raises(InputError, match="needs metric depth"):
+        s.parse({"lens": {"focal_length": 50, "f_number": 2, "focus_distance": 2}})
+    m, _ = metric
+    for bad, message in (({"lens": {"focal_length": 50, "f_number": 2}}, "--focus-distance or --focus-at"),
+                         ({"lens": {"focal_length": 50, "f_number": 2, "focus_distance": 2}, "amount": 30},
+                          "not both"),
+                         ({"lens": {"f_number": 2, "focus_distance": 2}}, "both --focal-length and --f-number"),
+                         ({"lens": {"focal_length": 50, "f_number": 2, "focus_distance": 0.01}}, "closer than")):
+        with pytest.raises(InputError, match=message):
+            m.parse(bad)

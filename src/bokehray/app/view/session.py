@@ -36,7 +36,7 @@ EXPORT_FORMATS = {"png": (8, 16), "jpg": (8,), "tif": (8, 16, 32), "exr": (16, 3
 JPEG_QUALITY = 95
 """``render``'s default ``--jpeg-quality``: a JPEG export is the file the shown command writes."""
 
-_PARAM_KEYS = {"amount", "blur", "focus", "focus_at", "aperture", "blades", "rotation", "curvature", "highlight_boost",
+_PARAM_KEYS = {"lens", "amount", "blur", "focus", "focus_at", "aperture", "blades", "rotation", "curvature", "highlight_boost",
                "reconstruct", "quality", "max_spp"}
 
 
@@ -136,10 +136,15 @@ class RenderParams:
     lens: br.Aperture
     amount: float | None = None
     reconstruct: bool = False
+    thin_lens: br.ThinLens | None = None
 
     def key(self) -> tuple:
         return (self.blur.k_px, self.blur.focus_disparity, self.lens, self.highlight_boost, self.quality,
                 self.max_spp, self.reconstructs)
+
+    @property
+    def focus_default(self) -> bool:
+        return self.focus is None and self.focus_at is None and self.thin_lens is None
 
     @property
     def reconstructs(self) -> bool:
@@ -176,8 +181,41 @@ def _integer(body: dict, name: str, flag: str, default: int) -> int:
     return json_integer(body.get(name, default), flag)
 
 
+_LENS_KEYS = {"focal_length", "f_number", "focus_distance", "sensor_width"}
+
+
+def _physical(spec: object, at: tuple[int, int] | None, disparity: np.ndarray, norm) -> br.ThinLens:
+    """A physical lens from ``{"focal_length", "f_number", "focus_distance" | focus_at, "sensor_width"}``, focused as
+    ``render`` focuses one (``--focus-at`` through the metric map)."""
+    if norm is None:
+        raise InputError("a physical lens (--focal-length/--f-number/--focus-distance) needs metric depth, and "
+                         "a --disparity map has no scale: give a depth map in metres with --depth, or set the blur "
+                         "with --amount/--blur and the focus with --focus/--focus-at")
+    if not isinstance(spec, dict) or set(spec) - _LENS_KEYS:
+        raise InputError(f"lens: expected {{\"focal_length\", \"f_number\", \"focus_distance\", "
+                         f"\"sensor_width\"}}, got {spec!r}"[:200])
+    if spec.get("focal_length") is None or spec.get("f_number") is None:
+        raise InputError("a physical lens needs both --focal-length and --f-number")
+    focal = json_number(spec["focal_length"], "--focal-length")
+    n = json_number(spec["f_number"], "--f-number")
+    sensor = json_number(spec.get("sensor_width", 36.0), "--sensor-width")
+    z = spec.get("focus_distance")
+    if z is not None and at is not None:
+        raise InputError("--focus-at and --focus-distance contradict each other: give the focus one way")
+    if at is not None:
+        z = float(norm.depth(br.focus_at(disparity, *at)))
+        if not math.isfinite(z):
+            raise InputError(f"--focus-at {at[0]},{at[1]}: that point is at infinity (sky); a thin lens focused there "
+                             "needs --focus-distance, or click on a surface")
+    elif z is None:
+        raise InputError("a physical lens needs --focus-distance or --focus-at X,Y")
+    else:
+        z = json_number(z, "--focus-distance")
+    return br.ThinLens(focal, n, z, sensor)
+
+
 def parse_params(body: object, disparity: np.ndarray, *, subject_d_f: float | None = None,
-                 reconstruct_default: bool = False) -> RenderParams:
+                 reconstruct_default: bool = False, norm=None) -> RenderParams:
     """Validate a JSON parameter set against the full-resolution ``disparity``; raises :class:`InputError`.
 
     Errors read as the CLI's do, because the same constructors check the same things:
@@ -194,6 +232,8 @@ def parse_params(body: object, disparity: np.ndarray, *, subject_d_f: float | No
     from ...photo.subject import AMOUNT_DEFAULT, k_from_amount, subject_focus
 
     amount: float | None = None
+    if body.get("lens") is not None and any(body.get(k) is not None for k in ("amount", "blur", "focus")):
+        raise InputError("give the blur either as --amount/--blur with --focus, or as a physical lens, not both")
     if body.get("blur") is not None and body.get("amount") is not None:
         raise InputError("give the blur either as --amount or as --blur, not both")
     if body.get("blur") is None:  # the CLI's default: --amount 50 of the image diagonal
@@ -219,6 +259,11 @@ def parse_params(body: object, disparity: np.ndarray, *, subject_d_f: float | No
         d_f = focus
     else:  # the CLI's default: focus on the subject
         d_f = subject_focus(disparity).d_f if subject_d_f is None else subject_d_f
+    thin = None
+    if body.get("lens") is not None:  # render's physical branch: K and d_f from the lens and the metric map
+        thin = _physical(body["lens"], xy, disparity, norm)
+        pb = thin.blur_params(norm, disparity.shape[1])
+        k, d_f, amount = pb.k_px, pb.focus_disparity, None
     blur = br.BlurParams(k, d_f)
     shape = body.get("aperture", "disc")
     if not isinstance(shape, str) or shape not in ("disc", "polygon"):
@@ -240,7 +285,7 @@ def parse_params(body: object, disparity: np.ndarray, *, subject_d_f: float | No
     max_spp = _integer(body, "max_spp", "--max-spp", 128)
     br.RaytraceOptions(max_spp=max_spp)  # validated whatever the quality, as the CLI does
     return RenderParams(k, focus, xy, shape, blades, rotation, curvature, boost, quality, max_spp, blur, lens,
-                        amount, reconstruct)
+                        amount, reconstruct, thin)
 
 
 def _fmt(v: float) -> str:
@@ -339,7 +384,7 @@ class ViewSession:
     def parse(self, body: object) -> RenderParams:
         """:func:`parse_params` with this session's defaults (those of ``render`` on the same inputs)."""
         p = parse_params(body, self.disparity, subject_d_f=self.subject.d_f,
-                         reconstruct_default=self.reconstruct_default)
+                         reconstruct_default=self.reconstruct_default, norm=self.norm)
         if p.reconstruct and self.image_path and not self.display_referred:  # `render` never reconstructs a linear file
             p = dataclasses.replace(p, reconstruct=False)
         return p
@@ -542,7 +587,14 @@ class ViewSession:
         if self.resize_disparity:
             args.append("--resize-disparity")
         args += ["-o", q(str(output))]
-        if p.amount is None:
+        if p.thin_lens is not None:
+            lens = p.thin_lens
+            args += ["--focal-length", _fmt(lens.focal_length_mm), "--f-number", _fmt(lens.f_number)]
+            if p.focus_at is None:
+                args += ["--focus-distance", _fmt(lens.focus_distance_m)]
+            if lens.sensor_width_mm != 36.0:
+                args += ["--sensor-width", _fmt(lens.sensor_width_mm)]
+        elif p.amount is None:
             args += ["--blur", _fmt(p.k_px)]
         elif p.amount != AMOUNT_DEFAULT:
             args += ["--amount", _fmt(p.amount)]

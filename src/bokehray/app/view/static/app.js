@@ -9,11 +9,13 @@
 const $ = (id) => document.getElementById(id);
 const SLIDERS = ["amount", "blur", "focus", "blades", "rotation", "curvature", "highlight_boost"];
 const PROGRESS_POLL_MS = 250;
+const F_STOPS = [1.2, 1.4, 1.8, 2, 2.8, 4, 5.6, 8, 11, 16, 22];
 
 let info = null;
 // what `bokehray render` does with the same inputs: amount 50, the subject, reconstruction as the file needs
 const state = { amount: 50, blur: null, focus: null, focus_at: null, aperture: "disc", blades: 6, rotation: 0,
-                curvature: 0, highlight_boost: 0, reconstruct: false, quality: "preview", max_spp: 128 };
+                curvature: 0, highlight_boost: 0, reconstruct: false, quality: "preview", max_spp: 128,
+                lens: null };  // lens: {focal_length, f_number, focus_distance (null: the clicked point)}
 let version = 0;            // the state's number: every change increments it
 let shownVersion = -1;      // the state of the image on screen
 let previewInFlight = false, previewAgain = false, fullFor = -1, progressTimer = null;
@@ -26,6 +28,11 @@ function params() {
   const p = { aperture: state.aperture, blades: state.blades, rotation: state.rotation, curvature: state.curvature,
               highlight_boost: state.highlight_boost, reconstruct: state.reconstruct, quality: state.quality,
               max_spp: state.max_spp };
+  if (state.lens) {  // metric depth: render's physical lens (--focal-length, --f-number, --focus-distance)
+    p.lens = { focal_length: state.lens.focal_length, f_number: state.lens.f_number };
+    if (state.focus_at) p.focus_at = state.focus_at; else p.lens.focus_distance = state.lens.focus_distance;
+    return p;
+  }
   if (state.blur !== null) p.blur = state.blur; else p.amount = state.amount;
   if (state.focus_at) p.focus_at = state.focus_at; else if (state.focus !== null) p.focus = state.focus;
   return p;
@@ -89,7 +96,8 @@ function screenLongSide() {
 
 function describeFocus(d) {
   let where = state.focus_at ? `the point ${state.focus_at[0]}, ${state.focus_at[1]}` :
-              state.focus !== null ? "the disparity slider" : "the subject";
+              state.focus !== null ? "the disparity slider" :
+              state.lens && state.lens.focus_distance !== info.metric.subject_m ? "the focus distance" : "the subject";
   where += ` (disparity ${d.toFixed(3)}`;
   if (info.metric && lastRender && lastRender.focusM !== null) where += `, ${lastRender.focusM.toPrecision(3)} m away`;
   return where + ")";
@@ -137,6 +145,10 @@ async function requestRender(stage, v) {
   $("blur").value = lastRender.k;
   $("blur-out").textContent = lastRender.k.toFixed(1);
   $("focus-where").textContent = describeFocus(focusDisparity);
+  if (state.lens && lastRender.focusM !== null) {
+    $("focus_distance-out").textContent = lastRender.focusM.toPrecision(3);
+    $("focus_distance").value = metresToSlider(lastRender.focusM);
+  }
   $("command").textContent = decodeURIComponent(r.headers.get("X-Bokehray-Command") || "");
   const secs = Number(r.headers.get("X-Bokehray-Render-Seconds"));
   const w = Math.ceil(info.width / factor), h = Math.ceil(info.height / factor);
@@ -195,7 +207,26 @@ function changed() {
   preview();
 }
 
+function metresToSlider(z) {
+  const m = info.metric, near = m.nearest_m, far = Math.min(m.farthest_m, 1000);
+  return Math.round(1000 * Math.log(Math.max(near, Math.min(far, z)) / near) / Math.log(far / near));
+}
+
+function sliderToMetres(v) {
+  const m = info.metric, near = m.nearest_m, far = Math.min(m.farthest_m, 1000);
+  return near * Math.pow(far / near, v / 1000);
+}
+
+function setLens(on) {
+  state.lens = on ? { focal_length: Number($("focal_length").value), f_number: F_STOPS[Number($("f_stop").value)],
+                      focus_distance: state.focus_at ? null : info.metric.subject_m } : null;
+  for (const k of ["f_stop", "focal_length", "focus_distance"]) $(k).disabled = !on;
+  $("amount").disabled = on;
+  state.focus = null;
+}
+
 function syncOutputs() {
+  $("f_number-out").textContent = F_STOPS[Number($("f_stop").value)];
   for (const k of ["amount", "blades", "rotation", "curvature", "highlight_boost"]) $(k + "-out").textContent = $(k).value;
   const polygon = state.aperture === "polygon";
   for (const k of ["blades", "rotation", "curvature"]) $(k).disabled = !polygon;
@@ -221,7 +252,9 @@ function bind() {
   $("zoom").addEventListener("change", () => { sizeCanvas(); draw(); if (shownVersion === version) full(version); });
   $("format").addEventListener("change", fillBitDepths);
   $("subject").addEventListener("click", () => {
-    state.focus = null; state.focus_at = null; $("marker").hidden = true; changed();
+    state.focus = null; state.focus_at = null; $("marker").hidden = true;
+    if (state.lens) state.lens.focus_distance = info.metric.subject_m;
+    changed();
   });
   $("view").addEventListener("click", (e) => {
     const c = $("view");
@@ -229,6 +262,7 @@ function bind() {
     const y = Math.min(info.height - 1, Math.max(0, Math.floor(e.offsetY / c.clientHeight * info.height)));
     state.focus_at = [x, y];
     state.focus = null;
+    if (state.lens) state.lens.focus_distance = null;
     const m = $("marker");
     m.style.left = (100 * (x + 0.5) / info.width) + "%";
     m.style.top = (100 * (y + 0.5) / info.height) + "%";
@@ -237,6 +271,21 @@ function bind() {
     changed();
   });
   $("export").addEventListener("click", exportImage);
+  $("blur-mode").addEventListener("change", () => { setLens($("blur-mode").value === "lens"); syncOutputs(); changed(); });
+  $("f_stop").addEventListener("input", () => {
+    syncOutputs();
+    if (state.lens) { state.lens.f_number = F_STOPS[Number($("f_stop").value)]; changed(); }
+  });
+  $("focal_length").addEventListener("change", () => {
+    if (state.lens) { state.lens.focal_length = Number($("focal_length").value); changed(); }
+  });
+  $("focus_distance").addEventListener("input", () => {
+    if (!state.lens) return;
+    state.lens.focus_distance = sliderToMetres(Number($("focus_distance").value));
+    state.focus_at = null; $("marker").hidden = true;
+    $("focus_distance-out").textContent = state.lens.focus_distance.toPrecision(3);
+    changed();
+  });
 }
 
 function fillBitDepths() {
@@ -277,6 +326,8 @@ async function start() {
   $("amount").value = d.amount;
   $("reconstruct").checked = d.reconstruct;
   $("reconstruct-label").hidden = !info.display_referred;
+  $("lens-controls").hidden = !info.metric;
+  if (info.metric) setLens(false);
   $("files").textContent = `${info.files.image} · ${info.files.map} · ${info.width}×${info.height}` +
     (info.metric ? ` · depth ${info.metric.nearest_m.toPrecision(3)}–${info.metric.farthest_m.toPrecision(3)} m` : "");
   $("subject").title = "focus " + d.subject.why;
