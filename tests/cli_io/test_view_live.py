@@ -250,3 +250,63 @@ def test_a_lens_without_metric_depth_is_refused_as_render_refuses_it(served, met
                          ({"lens": {"focal_length": 50, "f_number": 2, "focus_distance": 0.01}}, "closer than")):
         with pytest.raises(InputError, match=message):
             m.parse(bad)
+
+
+def test_a_preview_run_inside_an_export_leaves_the_export_as_its_command_writes_it(metric, tmp_path):
+    """The preview renderer runs re-entrantly at an export's check; the export must come out byte for byte."""
+    s, _ = metric
+    w = RenderWorker()
+    try:
+        p = s.parse({"amount": 60, "focus_at": [150, 70], "quality": "raytrace", "max_spp": 16})
+        started, submitted = threading.Event(), threading.Event()
+
+        def export(check):
+            def chk(done=None, total=None):
+                check(done, total)
+                started.set()
+                if submitted.wait(HANG_S):
+                    check()  # the preview submitted meanwhile runs here, inside the ray tracer's progress call
+            return s.export(p, "exr", 32, chk)
+
+        fut = w.submit_export(export)
+        assert started.wait(HANG_S)
+        prev = w.submit(lambda check: s.render_preview(s.parse({"amount": 20}), check), "preview")
+        submitted.set()
+        data, meta = prev.result(HANG_S)
+        assert data[:2] == b"\xff\xd8"
+        path, command = fut.result(HANG_S)
+        assert w.counts["inline"] == 1
+    finally:
+        w.close()
+    argv = shlex.split(command)
+    again = tmp_path / "again.exr"
+    argv[argv.index("-o") + 1] = str(again)
+    assert main(argv[1:] + ["--quiet"]) == 0
+    assert again.read_bytes() == path.read_bytes()
+
+
+def test_the_sharp_render_reports_its_progress(served):
+    _, s = served
+    w = RenderWorker()
+    try:
+        seen, gate, first = [], threading.Event(), threading.Event()
+
+        def job(check):
+            def chk(done=None, total=None):
+                check(done, total)
+                if done is not None:
+                    seen.append((done, total))
+                    if len(seen) == 1:
+                        first.set()
+                        gate.wait(HANG_S)
+            return s.full_display(s.parse({"amount": 70}), chk, 120)
+
+        fut = w.submit(job, "full")
+        assert first.wait(HANG_S)  # the render reports after its first layer
+        running = w.progress()["running"]
+        assert running[0]["kind"] == "full" and running[0]["total"] > 0 and running[0]["done"] == seen[0][0]
+        gate.set()
+        fut.result(HANG_S)
+        assert seen[-1][0] == seen[-1][1] and len(seen) > 1  # every layer reported, to the last
+    finally:
+        w.close()
