@@ -221,7 +221,11 @@ def _read_map(args: argparse.Namespace, h: int, w: int, image: np.ndarray | None
                                  f"[{float(raw.min()):.4g}, {float(raw.max()):.4g}]: pass --normalize for a relative "
                                  "map of any range (add --invert if near is dark), or give metric depth with --depth")
             disparity = 1.0 - raw if args.invert else raw
-        if disparity.size:
+        # said beside the choices it explains (the blur from an amount, the subject); a render with --blur and
+        # --focus prints nothing before its output, as before
+        chooses = getattr(args, "blur", None) is None or (getattr(args, "focus", None) is None
+                                                          and getattr(args, "focus_at", None) is None)
+        if disparity.size and chooses:
             _say(args, f"depth: read disparity {source}: {float(disparity.min()):.3f} .. {float(disparity.max()):.3f} "
                  "(0 = far, 1 = near; relative, no metres)")
         reverse, why = looks_reversed(disparity)
@@ -340,13 +344,15 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:
                  f"{math.hypot(h, w):.0f}-px diagonal){'' if args.amount is not None else ' (the default)'}")
         if args.focus is not None:
             d_f, focus_how = args.focus, "--focus"
-            _say(args, f"focus: d_f = {d_f:.4g} (--focus){_metres(norm, d_f)}")
+            if norm is not None:  # where that is, in metres
+                _say(args, f"focus: d_f = {d_f:.4g} (--focus){_metres(norm, d_f)}")
         elif args.focus_at is not None:
             from ..pipeline import focus_at
 
             d_f, focus_how = focus_at(disparity, *args.focus_at), "--focus-at"
-            _say(args, f"focus: d_f = {d_f:.4g} at pixel ({args.focus_at[0]}, {args.focus_at[1]}) "
-                 f"(--focus-at){_metres(norm, d_f)}")
+            if norm is not None:
+                _say(args, f"focus: d_f = {d_f:.4g} at pixel ({args.focus_at[0]}, {args.focus_at[1]}) "
+                     f"(--focus-at){_metres(norm, d_f)}")
         else:
             subject = subject_focus(disparity)
             d_f, focus_how = subject.d_f, f"the subject around pixel ({subject.x}, {subject.y})"
