@@ -1,22 +1,27 @@
-"""Latency of ``bokehray view``'s live preview on a 12 MP photo, through its HTTP server (CPU).
+"""Latency of ``bokehray view`` on a 12 MP photo as the page sees it (CPU), quiet and beside two busy processes.
 
-Builds the demo scene at 4000 x 3000 (12 MP), opens a view session on it, starts
-the real server on 127.0.0.1 and replays drags as the page sends them (one
-request at a time, as the page does): a focus sweep of clicks, the blur slider,
-the blade rotation of a 6-blade aperture, the highlight boost. Each update is
-timed as the page sees it (request sent to JPEG received) and as the server
-reports it (render + encode). Warm runs only: the first updates of each drag
-are dropped. The same run times one full-resolution 12 MP render of the same
-scene, the fixed workload the ratios are against, and repeats the focus sweep
-at other proxy sizes, each alone (without the ladder of coarser proxies that
-takes over when updates are slow).
+**Page protocol** (the default): a 12 MP JPEG (the demo scene at 4000 x 3000, display-referred, so highlight
+reconstruction is on as ``render`` would do) and its 16-bit disparity PNG are written once. For each of
+``--reps`` repetitions, and each load (``quiet``: nothing added; ``busy``: two processes spinning on the CPU
+beside the server, started before it), a fresh ``bokehray view`` process is started; once it prints its URL the
+page is loaded as the browser does (``/``, ``app.js``, ``/api/info``, then the first preview at the page's
+defaults, then the photo, depth and disparity images) and the **time to first picture** is the
+time from the first request of the page to the first preview received. Then ``--changes`` changes are made one
+after the other as the page makes them (focus clicks across the frame and blur-amount changes, alternating):
+the **change to proxy** is the time from the change to the preview received, the **change to sharp** the time
+from the change to the sharp version received (asked for, as the page does, only once the preview is in;
+rendered at ``--screen`` px on the long side, a 1280-px canvas by default). Medians and p90 over every
+repetition. Fixed workload of the same run: one full-resolution (12 MP) preview-level render in this process,
+the time the page's "full" stage took before it followed the screen's size; ratios are against it.
+
+``--drags`` also replays the older drag protocol (five drags of the live preview through one server).
 
 Usage (from the repository root)::
 
-    python benchmarks/bench_view.py            # about two minutes on 2 cores
-    python benchmarks/bench_view.py --quick --out out/bench-view  # smoke test (3 MP, fewer updates)
+    python benchmarks/bench_view.py                     # about five minutes on 2 cores
+    python benchmarks/bench_view.py --quick --out out/bench-view  # smoke test (3 MP, 2 repetitions)
 
-Writes ``benchmarks/results/view--<machine>.json`` and ``docs/img/view_timing.png``.
+Writes ``benchmarks/results/view--<machine>.json`` (``view-page--<machine>.json`` for the page protocol).
 """
 
 from __future__ import annotations
@@ -78,6 +83,149 @@ def run_drag(url: str, seq: list[dict], warmup: int) -> dict:
             "proxy_factors": [r[3] for r in rows]}
 
 
+CLI = "import sys; from bokehray.app.cli import main; sys.exit(main())"
+BUSY = "while True: pass"
+
+
+def _get(url: str) -> bytes:
+    with urllib.request.urlopen(url, timeout=600) as r:
+        return r.read()
+
+
+def _post_page(url: str, body: dict) -> tuple[float, int]:
+    req = urllib.request.Request(url + "api/render", data=json.dumps(body).encode(),
+                                 headers={"Content-Type": "application/json"}, method="POST")
+    t = time.perf_counter()
+    with urllib.request.urlopen(req, timeout=600) as r:
+        r.read()
+        factor = int(r.headers["X-Bokehray-Factor"])
+    return time.perf_counter() - t, factor
+
+
+def page_session(image: Path, disp: Path, changes: int, screen: int) -> dict:
+    """One ``bokehray view`` process: the page's first picture, then ``changes`` changes (proxy, then sharp)."""
+    import subprocess
+    from concurrent.futures import ThreadPoolExecutor
+
+    t_start = time.perf_counter()
+    proc = subprocess.Popen([sys.executable, "-c", CLI, "view", str(image), "--disparity", str(disp), "--quiet",
+                             "--export-dir", str(image.parent)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    try:
+        line = proc.stdout.readline()
+        if not line.startswith("bokehray view: http"):
+            raise RuntimeError(line + proc.stderr.read())
+        url = line.split()[2]
+        startup_s = time.perf_counter() - t_start
+        t0 = time.perf_counter()
+        _get(url)
+        _get(url + "static/app.js")
+        info = json.loads(_get(url + "api/info"))
+        _, factor = _post_page(url, {"stage": "preview"})  # the page's defaults: render's
+        first_s = time.perf_counter() - t0
+        with ThreadPoolExecutor(3) as pool:  # then the page loads its three images, as it does once it shows one
+            for f in [pool.submit(_get, url + "api/" + n) for n in ("photo.jpg", "depth.png", "disparity16.png")]:
+                f.result()
+        w, h = info["width"], info["height"]
+        rows = []
+        for i in range(changes):
+            if i % 2 == 0:
+                x, y = int(w * (0.15 + 0.7 * i / max(1, changes))), int(h * (0.35 + 0.4 * ((i * 7) % 5) / 5))
+                p = {"focus_at": [x, y], "amount": 50}
+            else:
+                p = {"amount": float(20 + (i * 37) % 80)}
+            t = time.perf_counter()
+            _, pf = _post_page(url, {**p, "stage": "preview"})
+            proxy_s = time.perf_counter() - t
+            _, sf = _post_page(url, {**p, "stage": "full", "long_side": screen})
+            rows.append({"proxy_s": proxy_s, "sharp_s": time.perf_counter() - t, "proxy_factor": pf,
+                         "sharp_factor": sf})
+        return {"startup_s": startup_s, "first_picture_s": first_s, "first_factor": factor, "changes": rows}
+    finally:
+        proc.terminate()
+        proc.wait(60)
+
+
+def _stats(values: list[float]) -> dict:
+    return {"n": len(values), "median_s": round(statistics.median(values), 3),
+            "p90_s": round(float(np.percentile(values, 90)), 3), "max_s": round(max(values), 3)}
+
+
+def page_protocol(args) -> int:
+    import subprocess
+    import tempfile
+
+    from PIL import Image
+
+    import bokehray as br
+    from bokehray.app.demo import build_demo_scene
+
+    w, h = (2000, 1500) if args.quick else (4000, 3000)
+    reps = 2 if args.quick else args.reps
+    changes = 4 if args.quick else args.changes
+    tmp = Path(tempfile.mkdtemp(prefix="bench-view-"))
+    scene = build_demo_scene(width=w, height=h)
+    from bokehray.colour import linear_to_srgb
+
+    srgb = (np.clip(linear_to_srgb(np.clip(scene.image, 0, 1)), 0, 1) * 255 + 0.5).astype(np.uint8)
+    Image.fromarray(srgb).save(tmp / "photo.jpg", quality=92)
+    br.write_disparity(tmp / "disparity.png", scene.disparity)
+    result: dict = {"benchmark": "view-page", "quick": args.quick, "machine": common.machine_info(),
+                    "image": [w, h], "megapixels": round(w * h / 1e6, 2), "screen_long_side": args.screen,
+                    "reps": reps, "changes_per_rep": changes, "load_avg_at_start": list(os.getloadavg())}
+    # the fixed workload: the full-resolution render the page's sharp stage used to be, in this process
+    from bokehray.app.view.session import ViewSession
+
+    s = ViewSession.from_files(str(tmp / "photo.jpg"), disparity=str(tmp / "disparity.png"), export_dir=tmp)
+    s.warm_up()
+    t = time.perf_counter()
+    s.render_full(dataclasses_replace_quality(s.parse({})))
+    result["fixed_full_resolution_render_s"] = round(time.perf_counter() - t, 2)
+    print(f"fixed workload: {w}x{h} preview-level render {result['fixed_full_resolution_render_s']:.2f} s", flush=True)
+    del s
+    for load in ("quiet", "busy"):
+        busy = [subprocess.Popen([sys.executable, "-c", BUSY]) for _ in range(2 if load == "busy" else 0)]
+        try:
+            runs = []
+            for r in range(reps):
+                runs.append(page_session(tmp / "photo.jpg", tmp / "disparity.png", changes, args.screen))
+                print(f"{load} rep {r}: first picture {runs[-1]['first_picture_s']:.2f} s (startup "
+                      f"{runs[-1]['startup_s']:.1f} s), proxy {[round(c['proxy_s'], 2) for c in runs[-1]['changes']]}"
+                      f", sharp {[round(c['sharp_s'], 2) for c in runs[-1]['changes']]}", flush=True)
+        finally:
+            for b in busy:
+                b.kill()
+                b.wait()
+        first = [x["first_picture_s"] for x in runs]
+        proxy = [c["proxy_s"] for x in runs for c in x["changes"]]
+        sharp = [c["sharp_s"] for x in runs for c in x["changes"]]
+        result[load] = {"first_picture": _stats(first), "change_to_proxy": _stats(proxy),
+                        "change_to_sharp": _stats(sharp), "startup": _stats([x["startup_s"] for x in runs]),
+                        "proxy_factors": sorted({c["proxy_factor"] for x in runs for c in x["changes"]}),
+                        "sharp_factors": sorted({c["sharp_factor"] for x in runs for c in x["changes"]}),
+                        "load_avg_after": list(os.getloadavg()), "runs": runs}
+        full = result["fixed_full_resolution_render_s"]
+        result[load]["ratio_sharp_median_to_fixed_full"] = round(result[load]["change_to_sharp"]["median_s"] / full, 4)
+        print(f"{load}: first picture median {result[load]['first_picture']['median_s']} s p90 "
+              f"{result[load]['first_picture']['p90_s']} s; change->proxy median "
+              f"{result[load]['change_to_proxy']['median_s']} s p90 {result[load]['change_to_proxy']['p90_s']} s; "
+              f"change->sharp median {result[load]['change_to_sharp']['median_s']} s p90 "
+              f"{result[load]['change_to_sharp']['p90_s']} s (fixed full render {full} s)", flush=True)
+    tag = common.machine_tag(result["machine"]) + ("-quick" if args.quick else "")
+    path = common.write_json(Path(args.out) / f"view-page--{tag}.json", result)
+    print(f"wrote {path}")
+    import shutil
+
+    shutil.rmtree(tmp, ignore_errors=True)
+    return 0
+
+
+def dataclasses_replace_quality(p):
+    import dataclasses
+
+    return dataclasses.replace(p, quality="preview")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--proxy-size", type=int, default=640, help="the session's finest proxy (default 640)")
@@ -85,7 +233,13 @@ def main() -> int:
     ap.add_argument("--check", action="store_true", help="exit 1 when the median update misses the target")
     ap.add_argument("--out", default=str(common.REPO / "benchmarks" / "results"), help="folder of the JSON")
     ap.add_argument("--plot", default=str(common.REPO / "docs" / "img" / "view_timing.png"), help="PNG plot")
+    ap.add_argument("--reps", type=int, default=4, help="view processes per load (page protocol; default 4)")
+    ap.add_argument("--changes", type=int, default=8, help="changes per process (page protocol; default 8)")
+    ap.add_argument("--screen", type=int, default=1280, help="the canvas's long side in pixels (default 1280)")
+    ap.add_argument("--drags", action="store_true", help="the older drag protocol instead of the page protocol")
     args = ap.parse_args()
+    if not args.drags:
+        return page_protocol(args)
 
     import warp
 

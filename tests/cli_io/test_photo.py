@@ -79,6 +79,101 @@ def test_default_focus_lands_on_the_devset_subject(name):
     assert near[subject.y, subject.x] or subject.share < 0.2  # a sparse layer's centroid may fall in a gap
 
 
+def painted_scene(h: int = 480, w: int = 640, brush: float = 10.0):
+    """A hand-painted map: a person right of centre (near, a gentle dome of 0.82..0.86), props in the middle
+    distance (0.5, 0.55) and a backdrop far (0.12..0.2), softened with a brush of ``brush`` px (a Gaussian): the
+    brush's ramps fill every histogram bin between the surfaces. Returns the hard map, the soft one, the person."""
+    from scipy import ndimage
+
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    d = 0.12 + 0.08 * (yy / h)
+    d[int(0.55 * h):, int(0.05 * w):int(0.3 * w)] = 0.5
+    d[int(0.45 * h):int(0.8 * h), int(0.72 * w):int(0.95 * w)] = 0.55
+    person = ((((xx - 0.55 * w) / (0.07 * w)) ** 2 + ((yy - 0.28 * h) / (0.1 * h)) ** 2 <= 1)
+              | ((np.abs(xx - 0.55 * w) < 0.13 * w) & (yy > 0.36 * h)))
+    d = np.where(person, 0.86 - 0.04 * np.clip(np.abs(xx - 0.55 * w) / (0.13 * w), 0, 1), d).astype(np.float32)
+    return d, ndimage.gaussian_filter(d, brush).astype(np.float32), person
+
+
+def _write_png8(path, d: np.ndarray) -> None:
+    from PIL import Image
+
+    Image.fromarray(np.round(np.clip(d, 0, 1) * 255).astype(np.uint8), "L").save(path)
+
+
+def _encodings(soft: np.ndarray) -> dict[str, np.ndarray]:
+    """The same soft map as people hand it over: float, 8/16-bit, dithered, a model's (blurred, estimated at 1/8
+    of the size and upscaled, affine, noisy, then normalised) and a relative map of another range normalised."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(0)
+    h, w = soft.shape
+    small = ndimage.gaussian_filter(soft, 6)[::8, ::8]
+    model = ndimage.zoom(small, (h / small.shape[0], w / small.shape[1]), order=1)[:h, :w]
+    model = 0.3 + 0.5 * model + 0.02 * rng.standard_normal(model.shape)
+    return {
+        "float": soft,
+        "8-bit": np.round(soft * 255) / 255,
+        "16-bit": np.round(soft * 65535) / 65535,
+        "dithered": np.clip(np.round(soft * 255 + rng.uniform(-1, 1, soft.shape)) / 255, 0, 1),
+        "model": depth.normalize_relative(model),
+        "normalized": depth.normalize_relative(soft * 3.7 + 11.0),
+        "normalized 8-bit": depth.normalize_relative(np.round(soft * 255)),
+    }
+
+
+@pytest.mark.parametrize("encoding", ["hard", "float", "8-bit", "16-bit", "dithered", "model", "normalized",
+                                      "normalized 8-bit"])
+def test_default_focus_finds_the_painted_subject_in_every_encoding(encoding):
+    """The issue's case: a soft painted map has no empty histogram bin, and the old search grew its region over the
+    whole frame (focus on the backdrop). Every encoding of the same scene must focus on the person."""
+    from scipy import ndimage
+
+    hard, soft, person = painted_scene()
+    d = (hard if encoding == "hard" else _encodings(soft)[encoding]).astype(np.float32)
+    s = subj.subject_focus(d)
+    core = ndimage.binary_erosion(person, iterations=20)  # the person away from the brush's ramps
+    lo, hi = np.percentile(d[core], [1, 99])
+    assert lo - 0.01 <= s.d_f <= hi + 0.01, (s, lo, hi)
+    assert person[s.y, s.x]
+    assert s.regions >= 2 and 0.1 < s.share < 0.5
+    # the same subject: the focused pixels (within 2 % of the map's range of d_f) are mostly the person's
+    focused = np.abs(d - s.d_f) < 0.02 * float(np.ptp(d))
+    assert person[focused].mean() > 0.8
+
+
+def test_default_focus_is_the_same_through_every_reader(tmp_path):
+    """The painted map written as an 8-bit PNG, a 16-bit PNG, an EXR and an NPY and read as ``render`` reads it:
+    one subject, the focus within 1/255 of the float map's."""
+    from bokehray.app.render_job import read_map
+
+    _, soft, person = painted_scene(240, 320, brush=5.0)
+    image = np.zeros((240, 320, 3), np.float32)
+    want = subj.subject_focus(soft)
+    for name in ("d8.png", "d16.png", "d.exr", "d.npy"):
+        path = tmp_path / name
+        if name == "d8.png":
+            _write_png8(path, soft)
+        else:
+            br.write_disparity(path, soft)
+        d, _ = read_map(image, disparity=str(path))
+        s = subj.subject_focus(d)
+        assert abs(s.d_f - want.d_f) <= 1.5 / 255 and person[s.y, s.x], name
+
+
+def test_render_says_the_painted_subject_it_chose(tmp_path, capsys):
+    _, soft, person = painted_scene(120, 160, brush=3.0)
+    img, disp = tmp_path / "p.png", tmp_path / "d.png"
+    br.write_image(img, np.full((120, 160, 3), 0.4, np.float32))
+    _write_png8(disp, soft)
+    code, out, err = run(capsys, "render", img, "--disparity", disp, "-o", tmp_path / "o.png")
+    assert code == 0 and err == ""
+    line = next(x for x in out.splitlines() if x.startswith("focus: on the subject"))
+    d_f = float(line.split("d_f = ")[1].split(":")[0])
+    assert 0.79 <= d_f <= 0.87 and "the nearest depth region holding 3% or more" in line
+    assert "depth: read disparity" in out  # the range the map holds
+
+
 @given(hnp.arrays(np.float32, st.tuples(st.integers(1, 40), st.integers(1, 40)),
                   elements=st.floats(0, 1, width=32)))
 def test_default_focus_is_a_disparity_of_the_map(d):
@@ -177,7 +272,7 @@ def test_image_and_map_alone_render_with_defaults_said(files, tmp_path, capsys, 
     assert code == 0, err
     assert "blur: --amount 50 -> K = 13.8 px (3.0% of the 462-px diagonal) (the default)" in out
     assert "focus: on the subject" in out and err == ""
-    d_f = float(out.split("d_f = ")[1].split(" ")[0])
+    d_f = float(out.split("d_f = ")[1].split(" ")[0].rstrip(":"))
     assert 0.86 <= d_f <= 0.92
     assert br.read_image(tmp_path / "o.png").shape == demo.image.shape
 
@@ -235,6 +330,14 @@ def test_millimetre_png_with_depth_scale_and_a_lens(tmp_path, capsys, files):
     assert code == 0, err
     assert "7.8% of" in out and "infinitely far (sky)" in out
     assert "d_f = 1.0000" in out  # focused on the subject, the nearest depth
+    assert "depth: read " in out and ": 1.2 .. 4 m (nearest .. farthest" in out  # the range it read, in metres
+    assert "focus: at 1.2 m (--focus-distance)" in out
+    # the default focus on metric depth says where it lies in metres
+    code, out, err = run(capsys, "render", files["img"], "--depth", tmp_path / "mm.png", "-o", tmp_path / "o.png",
+                         "--depth-scale", 0.001)
+    assert code == 0, err
+    line = next(x for x in out.splitlines() if x.startswith("focus: on the subject"))
+    assert "(1.2 m away)" in line
 
 
 # --------------------------------------------------------------------------- clipped highlights

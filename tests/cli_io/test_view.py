@@ -142,6 +142,9 @@ def test_proxy_ladder_steps_coarser_when_slow_and_back_when_fast():
     lad = ProxyLadder(3, budget_s=0.2, step_up=0.45)
     assert [lad.report(t) for t in (0.1, 0.3, 0.3, 0.3, 0.15, 0.12, 0.05, 0.05, 0.05)] == [0, 1, 2, 2, 2, 2, 1, 0, 0]
     assert ProxyLadder(1).report(10.0) == 0
+    # the loaded machine: 0.79 s at the finest proxy against 0.19 s steps three levels at once
+    assert ProxyLadder(5, budget_s=0.19).report(0.79) == 3
+    assert ProxyLadder(5, budget_s=0.19).report(30.0) == 4
 
 
 def test_preview_renders_at_the_ladders_proxy(scene_files):

@@ -37,6 +37,7 @@ from selenium.webdriver.chrome.service import Service  # noqa: E402
 from selenium.webdriver.common.action_chains import ActionChains  # noqa: E402
 from selenium.webdriver.common.by import By  # noqa: E402
 from selenium.webdriver.support.ui import WebDriverWait  # noqa: E402
+from tolerances import HANG_S  # noqa: E402
 
 pytestmark = pytest.mark.slow  # processes, signals, a browser: seconds each
 
@@ -71,45 +72,70 @@ def body(drv, name: str) -> str | None:
     return drv.find_element(By.TAG_NAME, "body").get_attribute(f"data-{name}")
 
 
-def wait_images(drv, more_than: int, stage: str = "full", timeout: float = 60) -> None:
-    WebDriverWait(drv, timeout).until(
-        lambda d: int(body(d, "images") or 0) > more_than and body(d, "stage") == stage and body(d, "state") == "idle")
+def count(drv, name: str) -> int:
+    return int(body(drv, name) or 0)
+
+
+def wait(drv, cond) -> None:
+    WebDriverWait(drv, HANG_S).until(cond)  # a hang detector: a loaded machine may take long, never fails for it
+
+
+def wait_sharp(drv) -> None:
+    """Until the sharp version of the latest state is on screen."""
+    wait(drv, lambda d: body(d, "state") == "idle" and body(d, "stage") == "full"
+         and body(d, "shown-version") == body(d, "version"))
+
+
+def canvas_sum(drv) -> list[int]:
+    return drv.execute_script(
+        "const c = document.getElementById('view'); const a = c.getContext('2d').getImageData(0, 0, c.width, "
+        "c.height).data; const s = [0, 0, 0]; for (let i = 0; i < a.length; i += 4) { s[0] += a[i]; "
+        "s[1] += a[i + 1]; s[2] += a[i + 2]; } return s;")
 
 
 def test_click_drag_export_in_chromium(served, browser):
     server, session = served
     drv = browser
     drv.get(server.url)
-    wait_images(drv, 0)
+    wait(drv, lambda d: count(d, "previews") >= 1)  # a proxy first
+    wait_sharp(drv)
     assert drv.find_element(By.ID, "error").text == ""
-    d_before = float(body(drv, "focus-disparity"))  # the start: focused at the centre of the frame
+    # the start is what `bokehray render` does with the same inputs: amount 50, the subject, reconstruction
+    d_before = float(body(drv, "focus-disparity"))
+    assert d_before == session.subject.d_f
+    command = drv.find_element(By.ID, "command").text
+    assert "--blur" not in command and "--focus" not in command and "--no-highlight" not in command
 
-    # click on the cat (disparity 0.92 at its centre)
+    # click on the cat (disparity 0.92 at its centre): a proxy of the new state, then the sharp version
     ys, xs = np.nonzero(np.abs(session.disparity - 0.92) < 0.004)
     x, y = int(np.median(xs)), int(np.median(ys))
     canvas = drv.find_element(By.ID, "view")
     cw, ch = drv.execute_script("const c = arguments[0]; return [c.clientWidth, c.clientHeight];", canvas)
-    n = int(body(drv, "images"))
+    drv.execute_script("document.getElementById('show').value = 'render';")
+    before, n_prev = canvas_sum(drv), count(drv, "previews")
     ActionChains(drv).move_to_element_with_offset(canvas, int((x + 0.5) / session.w * cw - cw / 2),
                                                   int((y + 0.5) / session.h * ch - ch / 2)).click().perform()
-    wait_images(drv, n)
+    wait(drv, lambda d: count(d, "previews") > n_prev)
+    assert canvas_sum(drv) != before  # the picture changed with the proxy
+    wait_sharp(drv)
     cx, cy = (int(v) for v in body(drv, "focus-at").split(","))
     assert abs(cx - x) <= 2 and abs(cy - y) <= 2
     d_after = float(body(drv, "focus-disparity"))
     assert d_after == pytest.approx(br.focus_at(session.disparity, cx, cy), abs=1e-12)
-    assert abs(d_after - 0.92) < 0.01 and abs(d_after - d_before) > 0.1
+    assert abs(d_after - 0.92) < 0.01
     assert f"--focus-at {cx},{cy}" in drv.find_element(By.ID, "command").text
 
-    # drag the blur slider: previews while dragging, then the full resolution
-    slider = drv.find_element(By.ID, "blur")
-    k_before = float(slider.get_attribute("value"))
-    n = int(body(drv, "images"))
-    ActionChains(drv).click_and_hold(slider).move_by_offset(-40, 0).move_by_offset(-20, 0).release().perform()
-    wait_images(drv, n)
-    k_after = float(slider.get_attribute("value"))
-    assert k_after > k_before
-    assert f"--blur {float(k_after)!r}" in drv.find_element(By.ID, "command").text
-    assert int(body(drv, "images")) >= n + 1
+    # drag the blur amount: previews while dragging, then the sharp version
+    slider = drv.find_element(By.ID, "amount")
+    a_before = float(slider.get_attribute("value"))
+    n_prev = count(drv, "previews")
+    ActionChains(drv).click_and_hold(slider).move_by_offset(40, 0).move_by_offset(20, 0).release().perform()
+    wait(drv, lambda d: count(d, "previews") > n_prev)
+    wait_sharp(drv)
+    a_after = float(slider.get_attribute("value"))
+    assert a_after > a_before
+    assert f"--amount {float(a_after)!r}" in drv.find_element(By.ID, "command").text
+    k_after = float(body(drv, "k"))
 
     # the in-focus region: drawn where the CoC is below one pixel, i.e. on the cat
     drv.find_element(By.ID, "infocus").click()
@@ -119,37 +145,77 @@ def test_click_drag_export_in_chromium(served, browser):
     inside = np.mean(np.abs(session.disparity - d_after) * k_after < 1.0)
     assert covered == pytest.approx(inside, abs=0.02) and covered > 0.01
 
-    # a bladed aperture (a select, then the rotation slider): the page refines again
-    n = int(body(drv, "images"))
+    # a bladed aperture (a select, then the rotation slider): a proxy, then the sharp version again
+    n_prev = count(drv, "previews")
     drv.execute_script("const a = document.getElementById('aperture'); a.value = 'polygon'; "
                        "a.dispatchEvent(new Event('change'));")
     ActionChains(drv).click_and_hold(drv.find_element(By.ID, "rotation")).move_by_offset(12, 0).release().perform()
-    wait_images(drv, n)
+    wait(drv, lambda d: count(d, "previews") > n_prev)
+    wait_sharp(drv)
     assert "--aperture polygon --blades 6" in drv.find_element(By.ID, "command").text
     assert drv.find_element(By.ID, "error").text == ""
+
+    # every sharp version shown followed the preview of its own state (the full never came first)
+    shown = drv.execute_script("return window.bokehrayShown;")
+    previews = {v for stage, v in shown if stage == "preview"}
+    seen = set()
+    for stage, v in shown:
+        if stage == "full":
+            assert v in previews and v in seen, shown
+        seen.add(v)
+    # the sharp version was rendered at the size the canvas shows, not at the photo's
+    long_side = drv.execute_script("const c = document.getElementById('view'); return Math.round(Math.max("
+                                   f"{session.w}, {session.h}) * Math.min(1, c.clientWidth * devicePixelRatio / "
+                                   f"{session.w}));")
+    assert int(body(drv, "factor")) == session.screen_factor(max(16, long_side))
+
     # export a 16-bit PNG; the page shows the path and the command that writes the same file
     drv.execute_script("const f = document.getElementById('format'); f.value = 'png'; "
                        "f.dispatchEvent(new Event('change'));")
     drv.execute_script("document.getElementById('bit_depth').value = '16';")
     drv.find_element(By.ID, "export").click()
-    WebDriverWait(drv, 120).until(lambda d: body(d, "exported"))
+    wait(drv, lambda d: body(d, "exported"))
     path = Path(body(drv, "exported"))
     assert path.parent == session.export_dir and path.exists()
     command = drv.find_element(By.ID, "export-command").text
     argv = shlex.split(command)
     assert argv[argv.index("-o") + 1] == str(path) and "--bit-depth" in argv and "--focus-at" in argv
     assert argv[argv.index("--aperture") + 1] == "polygon"
-    out = br.read_image(path)
-    assert out.shape == (session.h, session.w, 3)
     from bokehray.app.cli import main
 
     again = path.with_name("again.png")
     argv[argv.index("-o") + 1] = str(again)
     assert main(argv[1:] + ["--quiet"]) == 0
-    np.testing.assert_array_equal(br.read_image(again), out)  # the shown command writes the same file
+    assert again.read_bytes() == path.read_bytes()  # the shown command writes the same file, byte for byte
     again.unlink()
     assert drv.find_element(By.ID, "error").text == ""
 
     shot = os.environ.get("BOKEHRAY_VIEW_SCREENSHOT")
     if shot:
         drv.save_screenshot(shot)
+
+
+def test_metric_depth_offers_the_lens_in_chromium(tmp_path, browser):
+    """With a metric --depth map the page offers f-number and focus distance; the command says them."""
+    drv = browser
+    sc = build_demo_scene(width=480, height=320)
+    br.write_image(tmp_path / "photo.exr", sc.image)
+    br.write_image(tmp_path / "depth.exr", (1.0 / (0.2 + sc.disparity)).astype(np.float32)[..., None])
+    session = ViewSession.from_files(str(tmp_path / "photo.exr"), depth=str(tmp_path / "depth.exr"),
+                                     export_dir=tmp_path, proxy_long_side=240)
+    with ViewServer(session) as server:
+        drv.get(server.url)
+        wait_sharp(drv)
+        assert drv.find_element(By.ID, "lens-controls").is_displayed()
+        assert " m" in drv.find_element(By.ID, "files").text  # the depth range in metres
+        n_prev = count(drv, "previews")
+        drv.execute_script("const m = document.getElementById('blur-mode'); m.value = 'lens'; "
+                           "m.dispatchEvent(new Event('change'));")
+        wait(drv, lambda d: count(d, "previews") > n_prev)
+        wait_sharp(drv)
+        argv = shlex.split(drv.find_element(By.ID, "command").text)
+        assert argv[argv.index("--f-number") + 1] == "1.8" and argv[argv.index("--focal-length") + 1] == "50.0"
+        z = float(argv[argv.index("--focus-distance") + 1])
+        assert z == pytest.approx(float(session.norm.depth(session.subject.d_f)))
+        assert "m away" in drv.find_element(By.ID, "focus-where").text
+        assert drv.find_element(By.ID, "error").text == ""

@@ -372,6 +372,15 @@ def _stamp(path: str) -> tuple[int, int] | None:
     return st.st_ino, st.st_mtime_ns
 
 
+def photo_line(image: str, done: dict) -> str:
+    """One batch line per photo: the file, the focus (disparity, how chosen, metres) and the blur (amount, K)."""
+    metres = "" if done.get("focus_m") is None else f", {done['focus_m']:.3g} m"
+    blur = (f"amount {done['amount']:g} (K = {done['k_px']:.1f} px)" if done.get("amount") is not None
+            else f"K = {done['k_px']:.1f} px")
+    return (f"{Path(image).name} -> {Path(done['output']).name}: focus d_f = {done['focus_disparity']:.3f} "
+            f"({done.get('focus', '?')}{metres}), {blur}")
+
+
 def _state(out: Path, fingerprint: str, outputs: Sequence[str], overwrite: bool) -> None:
     """Refuse to skip outputs made with other settings (or not by a batch); then record this batch's settings."""
     from ..output.atomic import atomic_write
@@ -473,6 +482,8 @@ def run_batch(args: argparse.Namespace) -> int:
                     for o in ex.map(render_file, todo):
                         if o.ok:
                             done_pixels += o.value["pixels"]
+                            if not quiet:  # what each photo got: its focus and blur, one line
+                                bar.write(photo_line(todo[o.index].image, o.value), file=sys.stdout)
                         else:
                             failures.append((todo[o.index].image, o.error))
                             failed_outputs.add(todo[o.index].output)

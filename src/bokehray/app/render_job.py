@@ -108,6 +108,14 @@ def _say(args: argparse.Namespace, text: str) -> None:
         print(text)
 
 
+def _metres(norm, d_f: float) -> str:
+    """`` (2.35 m away)`` for metric depth, else nothing."""
+    if norm is None:
+        return ""
+    z = float(norm.depth(d_f))
+    return f" ({z:.3g} m away)" if math.isfinite(z) else " (at infinity)"
+
+
 def _warn(args: argparse.Namespace, text: str) -> None:
     if not args.quiet:
         print(f"bokehray: warning: {text}", file=sys.stderr)
@@ -190,6 +198,10 @@ def _read_map(args: argparse.Namespace, h: int, w: int, image: np.ndarray | None
             norm = DepthNormalization(zn, zf)
         # resize after the conversion: disparity interpolates where depth cannot (inf for sky)
         disparity, norm = disparity_from_depth(depth, norm, source=args.depth)
+        finite = depth[np.isfinite(depth) & (depth > 0)]
+        if finite.size:
+            _say(args, f"depth: read {args.depth}: {float(finite.min()):.3g} .. {float(finite.max()):.3g} m (nearest .. "
+                 f"farthest; disparity 1 at {norm.z_near_m:.3g} m, 0 at {norm.z_far_m:.3g} m)")
         missing = missing_depth_share(depth)
         if missing > 0:
             _say(args, f"depth: {missing:.1%} of {args.depth} is 0, negative or infinite (no depth): taken as "
@@ -209,6 +221,13 @@ def _read_map(args: argparse.Namespace, h: int, w: int, image: np.ndarray | None
                                  f"[{float(raw.min()):.4g}, {float(raw.max()):.4g}]: pass --normalize for a relative "
                                  "map of any range (add --invert if near is dark), or give metric depth with --depth")
             disparity = 1.0 - raw if args.invert else raw
+        # said beside the choices it explains (the blur from an amount, the subject); a render with --blur and
+        # --focus prints nothing before its output, as before
+        chooses = getattr(args, "blur", None) is None or (getattr(args, "focus", None) is None
+                                                          and getattr(args, "focus_at", None) is None)
+        if disparity.size and chooses:
+            _say(args, f"depth: read disparity {source}: {float(disparity.min()):.3f} .. {float(disparity.max()):.3f} "
+                 "(0 = far, 1 = near; relative, no metres)")
         reverse, why = looks_reversed(disparity)
         if reverse:
             fix = "drop --invert" if args.invert else "pass --invert"
@@ -268,7 +287,8 @@ def _check_sizes_from_headers(args: argparse.Namespace) -> None:
 
 def render_one(args: argparse.Namespace) -> dict:
     """One photo, as ``bokehray render IMAGE ... -o OUTPUT`` does it; every batch task runs this too (with
-    ``quiet``), so a batch output is the single-file output. Returns what was done (output, pixels, K, d_f)."""
+    ``quiet``), so a batch output is the single-file output. Returns what was done (output, pixels, K, d_f, how
+    the focus was chosen, the amount when the blur came from one, the focus distance in metres for metric depth)."""
     physical = _check_render_flags(args)  # before any import that takes time
     _check_output(args.output, args)
     _check_sizes_from_headers(args)
@@ -296,7 +316,9 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:
     meta = _say_embedded(args, args.image)
     disparity, norm = _read_map(args, h, w, image, bar.stage("depth") if args.depth_model else None)
 
+    amount = None
     if physical:
+        focus_how = "--focus-at" if args.focus_at is not None else "--focus-distance"
         focus_m = args.focus_distance
         if args.focus_at is not None:
             from ..pipeline import focus_at
@@ -309,26 +331,32 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:
         if focus_m is None:
             raise InputError("a physical lens needs --focus-distance or --focus-at X,Y")
         lens = ThinLens(args.focal_length, args.f_number, focus_m, args.sensor_width)
+        _say(args, f"focus: at {focus_m:.3g} m ({'--focus-at' if args.focus_at is not None else '--focus-distance'}); "
+             f"{args.focal_length:g} mm f/{args.f_number:g}")
         blur = lens.blur_params(norm, w)
     else:
         if args.blur is not None:
             k = args.blur
-        else:
+        else:  # the amount
             amount = AMOUNT_DEFAULT if args.amount is None else args.amount
             k = k_from_amount(amount, h, w)
             _say(args, f"blur: --amount {amount:g} -> K = {k:.1f} px ({amount / 100 * AMOUNT_K_FRACTION:.1%} of the "
                  f"{math.hypot(h, w):.0f}-px diagonal){'' if args.amount is not None else ' (the default)'}")
         if args.focus is not None:
-            d_f = args.focus
+            d_f, focus_how = args.focus, "--focus"
+            if norm is not None:  # where that is, in metres
+                _say(args, f"focus: d_f = {d_f:.4g} (--focus){_metres(norm, d_f)}")
         elif args.focus_at is not None:
             from ..pipeline import focus_at
 
-            d_f = focus_at(disparity, *args.focus_at)
+            d_f, focus_how = focus_at(disparity, *args.focus_at), "--focus-at"
+            if norm is not None:
+                _say(args, f"focus: d_f = {d_f:.4g} at pixel ({args.focus_at[0]}, {args.focus_at[1]}) "
+                     f"(--focus-at){_metres(norm, d_f)}")
         else:
             subject = subject_focus(disparity)
-            d_f = subject.d_f
-            _say(args, f"focus: on the subject around pixel ({subject.x}, {subject.y}), d_f = {d_f:.3f} (the nearest "
-                 f"region holding {subject.share:.0%} of the centre-weighted frame; --focus-at X,Y to choose)")
+            d_f, focus_how = subject.d_f, f"the subject around pixel ({subject.x}, {subject.y})"
+            _say(args, f"focus: {subject.describe()}{_metres(norm, d_f)}; --focus-at X,Y to choose")
         blur = BlurParams(k, d_f)
     if is_display_referred(args.image) and not args.no_highlight_reconstruction and args.highlight_boost == 0:
         image, found = reconstruct_highlights(image)
@@ -365,4 +393,5 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:
         info["blur"] = {"K_px": blur.k_px, "focus_disparity": blur.focus_disparity}
         print(json.dumps(info, indent=2))
     return {"output": str(path), "pixels": h * w, "seconds": time.perf_counter() - t0, "k_px": blur.k_px,
-            "focus_disparity": blur.focus_disparity}
+            "focus_disparity": blur.focus_disparity, "focus": focus_how, "amount": amount,
+            "focus_m": None if norm is None else float(norm.depth(blur.focus_disparity))}

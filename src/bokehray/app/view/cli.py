@@ -13,7 +13,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
         "view",
         help="interactive refocus page in the browser: click to focus, drag the aperture, export (docs/view.md)",
         description="Starts a local server (127.0.0.1, a free port unless --port) and prints its URL. The page "
-        "renders a reduced-resolution preview live while you drag, then the full resolution when you stop, and "
+        "starts from what `bokehray render` would do with the same inputs, shows a reduced-resolution preview after every "
+        "change, then the sharp version at the size the screen shows, and "
         "exports what `bokehray render` writes, showing the command line that reproduces it. Needs the 'view' "
         "extra: pip install 'bokehray[view]'.",
     )
@@ -32,7 +33,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
     v.add_argument("--proxy-size", type=int, default=640,
                    help="long side in pixels of the live preview (default 640: <= 250 ms per update on 2 cores)")
     v.add_argument("--display-size", type=int, default=2048,
-                   help="long side of the refined image sent to the page (default 2048; exports are full size)")
+                   help="largest long side of the sharp version rendered for the screen (default 2048; the page asks for "
+                   "the size it shows; 100 %% zoom and exports are full size)")
     v.add_argument("--device", default="cpu", help="Warp device: cpu (default), cuda, cuda:N")
     v.add_argument("--debug", action="store_true", help="show tracebacks")
     v.add_argument("--quiet", action="store_true", help="print only the URL and errors")
@@ -47,8 +49,7 @@ def cmd_view(args: argparse.Namespace) -> int:
         raise InputError(f"bokehray view needs its extra: pip install 'bokehray[view]' ({e})") from None
     from pathlib import Path
 
-    import warp as wp
-
+    from ..._quiet import init_warp_quietly, native_stderr_quiet
     from .server import ViewServer
     from .session import ViewSession
 
@@ -57,20 +58,35 @@ def cmd_view(args: argparse.Namespace) -> int:
     export_dir = Path(args.export_dir)
     if not export_dir.is_dir():
         raise InputError(f"--export-dir {args.export_dir}: not a folder")
+    init_warp_quietly(args.debug)  # as `render` does: no native "CUDA driver not found" line on a CPU machine
+    import warp as wp
+
     try:
-        device = str(wp.get_device(args.device))
+        with native_stderr_quiet():
+            device = str(wp.get_device(args.device))
     except (RuntimeError, ValueError) as e:
         raise InputError(f"--device: {args.device!r} is not available here ({e})") from None
     session = ViewSession.from_files(args.image, disparity=args.disparity, depth=args.depth, depth_model=args.depth_model,
                                      resize_disparity=args.resize_disparity, export_dir=export_dir,
                                      proxy_long_side=args.proxy_size, display_long_side=args.display_size,
                                      device=device)
+    session.warm_up()  # Warp's modules load before the URL is printed, so the page's first picture comes at once
     server = ViewServer(session, args.host, args.port)
     if args.host not in ("127.0.0.1", "localhost", "::1") and not args.quiet:
         print(f"bokehray view: listening on {args.host}, not only this machine: anyone who can reach it can "
               "render and export", file=sys.stderr)
     print(f"bokehray view: {server.url}  ({session.w}x{session.h}, preview {session.proxy_image.shape[1]}x"
           f"{session.proxy_image.shape[0]}; exports to {session.export_dir}; Ctrl-C stops)", flush=True)
+    if not args.quiet:
+        s = session.subject
+        metres = ""
+        if session.norm is not None:
+            near, far = session.depth_range_m()
+            metres = (f"; depth read: {near:.3g} .. {far:.3g} m, the subject "
+                      f"{float(session.norm.depth(s.d_f)):.3g} m away")
+        print(f"bokehray view: starts as `bokehray render` would: --amount 50 (K = {session.default_k:.1f} px), focus "
+              f"{s.describe()}{', highlights reconstructed' if session.reconstruct_default else ''}{metres}",
+              flush=True)
     if args.open:
         import webbrowser
 

@@ -6,9 +6,11 @@ never names a path):
 - ``GET /`` and ``/static/*``: the page (package data, no external resources).
 - ``GET /api/info``: size, proxy and display factors, defaults and ranges.
 - ``GET /api/photo.jpg``, ``/api/depth.png``, ``/api/disparity16.png``: computed once.
-- ``POST /api/render`` with a JSON parameter set and ``"stage": "preview" | "full"``:
-  a JPEG, with the focus disparity, K, time and the command line in ``X-Bokehray-*`` headers.
-  409 when a newer request superseded it, 400 with ``{"error": ...}`` for a bad parameter.
+- ``POST /api/render`` with a JSON parameter set, ``"stage": "preview" | "full"`` and (full) ``"long_side"``,
+  the pixels the screen shows: a JPEG, with the focus disparity, K, amount, time and the command line in
+  ``X-Bokehray-*`` headers. 409 when a newer request superseded it, 400 with ``{"error": ...}`` for a bad
+  parameter, 503 when the server stops.
+- ``GET /api/progress``: what the render thread runs now and how far it is.
 - ``POST /api/export`` with ``{"params": {...}, "format": "png|jpg|tif|exr", "bit_depth": N}``:
   writes the full-resolution render into the export folder; answers the path and the command.
 """
@@ -25,8 +27,8 @@ from typing import Self
 from urllib.parse import quote
 
 from ...errors import BokehrayError, InputError
-from .session import EXPORT_FORMATS, MAX_BODY_BYTES, ViewSession, parse_params
-from .worker import Busy, RenderWorker, Superseded
+from .session import EXPORT_FORMATS, MAX_BODY_BYTES, ViewSession, json_integer
+from .worker import Busy, RenderWorker, Stopped, Superseded
 
 __all__ = ["ViewServer", "create_app"]
 
@@ -81,6 +83,8 @@ def create_app(session: ViewSession, worker: RenderWorker | None = None, allowed
             return json.loads(body)
         except (ValueError, UnicodeDecodeError) as e:
             raise InputError(f"request body: expected JSON ({e})") from None
+        except RecursionError:  # nested deeper than Python's parser goes (1000 levels fit in the 4096 bytes)
+            raise InputError("request body: JSON nested too deeply") from None
 
     async def page(request: Request) -> Response:
         return blob(_static("index.html"), _STATIC["index.html"])
@@ -107,10 +111,15 @@ def create_app(session: ViewSession, worker: RenderWorker | None = None, allowed
         stats["requests"] += 1
         try:
             body = await read_json(request)
-            p = parse_params(body, session.disparity)
+            p = session.parse(body)
             stage = body.get("stage", "preview")
-            if stage not in ("preview", "full"):
-                raise InputError(f"stage: expected 'preview' or 'full', got {stage!r}")
+            if not isinstance(stage, str) or stage not in ("preview", "full"):
+                raise InputError(f"stage: expected 'preview' or 'full', got {stage!r}"[:200])
+            long_side = body.get("long_side")
+            if long_side is not None:
+                long_side = json_integer(long_side, "long_side")
+                if long_side < 16:
+                    raise InputError(f"long_side: expected at least 16 pixels, got {long_side}")
         except _TooLarge:
             return error(413, f"request body: larger than {MAX_BODY_BYTES} bytes")
         except _Refused as e:
@@ -121,13 +130,18 @@ def create_app(session: ViewSession, worker: RenderWorker | None = None, allowed
 
         def job(check):
             t_start = time.perf_counter()
-            data, meta = (session.render_preview if stage == "preview" else session.full_display)(p, check)
+            if stage == "preview":
+                data, meta = session.render_preview(p, check)
+            else:
+                data, meta = session.full_display(p, check, long_side)
             return data, meta, time.perf_counter() - t_start
 
         try:
-            data, meta, seconds = await asyncio.wrap_future(worker.submit(job))
+            data, meta, seconds = await asyncio.wrap_future(worker.submit(job, stage))
         except Superseded:
             return JSONResponse({"superseded": True}, status_code=409, headers=_SECURITY_HEADERS)
+        except Stopped:
+            return error(503, "the server is stopping")
         except BokehrayError as e:
             return error(400, str(e))
         headers = {
@@ -137,6 +151,8 @@ def create_app(session: ViewSession, worker: RenderWorker | None = None, allowed
             "X-Bokehray-Render-Seconds": f"{seconds:.4f}",
             "X-Bokehray-Seconds": f"{time.perf_counter() - t0:.4f}",
             "X-Bokehray-Command": quote(session.command(p, "OUTPUT.png"), safe=""),
+            "X-Bokehray-Amount": "" if p.amount is None else repr(p.amount),
+            "X-Bokehray-Focus-M": "" if session.norm is None else repr(float(session.norm.depth(p.blur.focus_disparity))),
         }
         return blob(data, "image/jpeg", headers)
 
@@ -145,32 +161,40 @@ def create_app(session: ViewSession, worker: RenderWorker | None = None, allowed
             body = await read_json(request)
             if not isinstance(body, dict) or set(body) - {"params", "format", "bit_depth"}:
                 raise InputError("export: expected {\"params\": {...}, \"format\": ..., \"bit_depth\": ...}")
-            p = parse_params(body.get("params"), session.disparity)
+            p = session.parse(body.get("params", {}))
             fmt = body.get("format", "png")
-            if fmt not in EXPORT_FORMATS:
-                raise InputError(f"export format: expected one of {', '.join(EXPORT_FORMATS)}, got {fmt!r}")
+            if not isinstance(fmt, str) or fmt not in EXPORT_FORMATS:
+                raise InputError(f"export format: expected one of {', '.join(EXPORT_FORMATS)}, got {fmt!r}"[:200])
             bits = body.get("bit_depth")
-            if bits is not None and (isinstance(bits, bool) or bits not in EXPORT_FORMATS[fmt]):
+            if bits is not None and (isinstance(bits, bool) or not isinstance(bits, int)
+                                     or bits not in EXPORT_FORMATS[fmt]):
                 raise InputError(f"argument --bit-depth: {fmt} takes {', '.join(map(str, EXPORT_FORMATS[fmt]))}, "
-                                 f"got {bits!r}")
-            fut = worker.submit_export(lambda check: session.export(p, fmt, bits))
+                                 f"got {bits!r}"[:200])
+            fut = worker.submit_export(lambda check: session.export(p, fmt, bits, check))
         except _TooLarge:
             return error(413, f"request body: larger than {MAX_BODY_BYTES} bytes")
         except _Refused as e:
             return error(e.status, str(e))
         except Busy as e:
             return error(429, str(e))
+        except Stopped:
+            return error(503, "the server is stopping")
         except BokehrayError as e:
             return error(400, str(e))
         t0 = time.perf_counter()
         try:
             path, command = await asyncio.wrap_future(fut)
+        except Stopped:
+            return error(503, "export abandoned: the server is stopping")
         except BokehrayError as e:
             return error(400, str(e))
         except OSError as e:
             return error(500, f"export: {e}")
         return JSONResponse({"path": str(path), "command": command, "seconds": round(time.perf_counter() - t0, 3)},
                             headers=_SECURITY_HEADERS)
+
+    async def progress(request: Request) -> Response:
+        return JSONResponse(worker.progress(), headers=_SECURITY_HEADERS)
 
     async def status(request: Request) -> Response:
         return JSONResponse({"worker": dict(worker.counts), "queued": worker.queued(), **stats},
@@ -180,7 +204,7 @@ def create_app(session: ViewSession, worker: RenderWorker | None = None, allowed
         Route("/", page), Route("/static/{name}", static), Route("/api/info", info),
         Route("/api/photo.jpg", photo), Route("/api/depth.png", depth), Route("/api/disparity16.png", disparity16),
         Route("/api/render", render, methods=["POST"]), Route("/api/export", export, methods=["POST"]),
-        Route("/api/status", status),
+        Route("/api/status", status), Route("/api/progress", progress),
     ]
     middleware = []
     if allowed_hosts:
@@ -235,8 +259,18 @@ class ViewServer:
         self.worker = RenderWorker()
         self.app = create_app(session, self.worker, allowed_hosts=hosts)
         config = uvicorn.Config(self.app, log_level="warning", access_log=False, lifespan="off",
-                                limit_concurrency=64, timeout_keep_alive=5, h11_max_incomplete_event_size=16384)
-        self.server = uvicorn.Server(config)
+                                limit_concurrency=64, timeout_keep_alive=5, h11_max_incomplete_event_size=16384,
+                                timeout_graceful_shutdown=10)
+        worker = self.worker
+
+        class _Server(uvicorn.Server):
+            def handle_exit(self, sig, frame) -> None:
+                # Ctrl-C / SIGTERM: the running render (an export too) stops at its next check and every waiting
+                # request is answered, so uvicorn's graceful shutdown has nothing left to wait for
+                worker.stop_soon()
+                super().handle_exit(sig, frame)
+
+        self.server = _Server(config)
         self._thread: threading.Thread | None = None
 
     @property

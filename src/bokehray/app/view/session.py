@@ -24,7 +24,8 @@ import bokehray as br
 from ...errors import InputError
 
 __all__ = ["EXPORT_FORMATS", "MAX_BODY_BYTES", "ProxyLadder", "RenderParams", "ViewSession", "box_factor", "box_reduce",
-           "encode_jpeg", "parse_params"]
+           "encode_jpeg", "json_integer", "json_number",
+           "parse_params"]
 
 MAX_BODY_BYTES = 4096
 """Largest request body the server reads (a parameter set is ~300 bytes)."""
@@ -32,8 +33,11 @@ MAX_BODY_BYTES = 4096
 EXPORT_FORMATS = {"png": (8, 16), "jpg": (8,), "tif": (8, 16, 32), "exr": (16, 32)}
 """Export formats (what ``bokehray render`` writes) and their bit depths; EXR 16 is half float."""
 
-_PARAM_KEYS = {"blur", "focus", "focus_at", "aperture", "blades", "rotation", "curvature", "highlight_boost",
-               "quality", "max_spp"}
+JPEG_QUALITY = 95
+"""``render``'s default ``--jpeg-quality``: a JPEG export is the file the shown command writes."""
+
+_PARAM_KEYS = {"lens", "amount", "blur", "focus", "focus_at", "aperture", "blades", "rotation", "curvature", "highlight_boost",
+               "reconstruct", "quality", "max_spp"}
 
 
 def box_factor(h: int, w: int, long_side: int) -> int:
@@ -86,11 +90,13 @@ class ProxyLadder:
     """Which proxy the next live update renders at: a feedback rule on the last update's render time.
 
     Level 0 is the finest proxy (``--proxy-size``); each next level has about 3/4 of the long side (just over
-    half the pixels). A render slower than ``budget_s`` steps one level coarser; one faster than
-    ``step_up * budget_s`` steps one level finer (a level costs ~1.8x the next, so the finer one is expected
-    inside the budget). During a drag the parameters change a little per update, so the last update predicts
-    the next: strong blur and bladed apertures, which cost more per pixel, settle on a coarser proxy instead
-    of slowing the page down.
+    half the pixels, ~1.8x cheaper). A render slower than ``budget_s`` steps coarser by as many levels as it
+    was over the budget (``ceil(log(t / budget) / log 1.8)``: 0.79 s against 0.19 s is three levels at once,
+    so a loaded machine is caught up with in one update); one faster than ``step_up * budget_s`` steps one level
+    finer. During a drag the parameters change a little per update, so the last update predicts the next:
+    strong blur, bladed apertures and a busy machine settle on a coarser proxy instead of slowing the page down.
+    A preview abandoned after it already took longer than the budget is reported too (a slow machine shows
+    itself even when every preview is replaced before it ends).
     """
 
     def __init__(self, levels: int, budget_s: float = 0.19, step_up: float = 0.45) -> None:
@@ -99,7 +105,9 @@ class ProxyLadder:
 
     def report(self, seconds: float) -> int:
         if seconds > self.budget_s and self.level < self.levels - 1:
-            self.level += 1
+            ratio = seconds / self.budget_s if self.budget_s > 0 else 1.8
+            steps = max(1, math.ceil(math.log(ratio) / math.log(1.8) - 1e-9))
+            self.level = min(self.levels - 1, self.level + steps)
         elif seconds < self.step_up * self.budget_s and self.level > 0:
             self.level -= 1
         return self.level
@@ -107,7 +115,12 @@ class ProxyLadder:
 
 @dataclass(frozen=True)
 class RenderParams:
-    """A validated parameter set from the page (the same objects, ranges and errors as ``bokehray render``)."""
+    """A validated parameter set from the page (the same objects, ranges and errors as ``bokehray render``).
+
+    ``amount`` is set when the blur came as an amount (0..100, ``--amount``), else ``k_px`` was given as ``blur``
+    (``--blur``); ``focus`` and ``focus_at`` are both None for the default focus (the subject, as ``render``
+    chooses it); ``reconstruct`` is highlight reconstruction (``render``'s default for a display-referred photo,
+    ``--no-highlight-reconstruction`` off; a ``highlight_boost`` replaces it, as in ``render``)."""
 
     k_px: float
     focus: float | None
@@ -121,46 +134,111 @@ class RenderParams:
     max_spp: int
     blur: br.BlurParams
     lens: br.Aperture
+    amount: float | None = None
+    reconstruct: bool = False
+    thin_lens: br.ThinLens | None = None
 
     def key(self) -> tuple:
         return (self.blur.k_px, self.blur.focus_disparity, self.lens, self.highlight_boost, self.quality,
-                self.max_spp)
+                self.max_spp, self.reconstructs)
+
+    @property
+    def focus_default(self) -> bool:
+        return self.focus is None and self.focus_at is None and self.thin_lens is None
+
+    @property
+    def reconstructs(self) -> bool:
+        """Whether the render reconstructs highlights (as ``render`` decides: not with a boost)."""
+        return self.reconstruct and self.highlight_boost == 0
+
+
+def json_number(v: object, flag: str) -> float:
+    """The one check of a JSON number: a finite float (an int too large for a float, a bool, a string: refused)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise InputError(f"{flag}: expected a number, got {v!r}"[:200])
+    try:
+        f = float(v)
+    except OverflowError:
+        raise InputError(f"{flag}: expected a number in range, got an integer of {len(str(v))} digits") from None
+    if not math.isfinite(f):
+        raise InputError(f"{flag}: expected a finite number, got {v!r}")
+    return f
+
+
+def json_integer(v: object, flag: str) -> int:
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise InputError(f"argument {flag}: invalid int value: {v!r}"[:200])
+    if abs(v) > 2**31:
+        raise InputError(f"argument {flag}: {len(str(v))}-digit integer out of range")
+    return v
 
 
 def _number(body: dict, name: str, flag: str, default: float) -> float:
-    v = body.get(name, default)
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise InputError(f"{flag}: expected a number, got {v!r}")
-    v = float(v)
-    if not math.isfinite(v):
-        raise InputError(f"{flag}: expected a finite number, got {v!r}")
-    return v
+    return json_number(body.get(name, default), flag)
 
 
 def _integer(body: dict, name: str, flag: str, default: int) -> int:
-    v = body.get(name, default)
-    if isinstance(v, bool) or not isinstance(v, int):
-        raise InputError(f"argument {flag}: invalid int value: {v!r}")
-    return v
+    return json_integer(body.get(name, default), flag)
 
 
-def parse_params(body: object, disparity: np.ndarray) -> RenderParams:
+_LENS_KEYS = {"focal_length", "f_number", "focus_distance", "sensor_width"}
+
+
+def _physical(spec: object, at: tuple[int, int] | None, disparity: np.ndarray, norm) -> br.ThinLens:
+    """A physical lens from ``{"focal_length", "f_number", "focus_distance" | focus_at, "sensor_width"}``, focused as
+    ``render`` focuses one (``--focus-at`` through the metric map)."""
+    if norm is None:
+        raise InputError("a physical lens (--focal-length/--f-number/--focus-distance) needs metric depth, and "
+                         "a --disparity map has no scale: give a depth map in metres with --depth, or set the blur "
+                         "with --amount/--blur and the focus with --focus/--focus-at")
+    if not isinstance(spec, dict) or set(spec) - _LENS_KEYS:
+        raise InputError(f"lens: expected {{\"focal_length\", \"f_number\", \"focus_distance\", "
+                         f"\"sensor_width\"}}, got {spec!r}"[:200])
+    if spec.get("focal_length") is None or spec.get("f_number") is None:
+        raise InputError("a physical lens needs both --focal-length and --f-number")
+    focal = json_number(spec["focal_length"], "--focal-length")
+    n = json_number(spec["f_number"], "--f-number")
+    sensor = json_number(spec.get("sensor_width", 36.0), "--sensor-width")
+    z = spec.get("focus_distance")
+    if z is not None and at is not None:
+        raise InputError("--focus-at and --focus-distance contradict each other: give the focus one way")
+    if at is not None:
+        z = float(norm.depth(br.focus_at(disparity, *at)))
+        if not math.isfinite(z):
+            raise InputError(f"--focus-at {at[0]},{at[1]}: that point is at infinity (sky); a thin lens focused there "
+                             "needs --focus-distance, or click on a surface")
+    elif z is None:
+        raise InputError("a physical lens needs --focus-distance or --focus-at X,Y")
+    else:
+        z = json_number(z, "--focus-distance")
+    return br.ThinLens(focal, n, z, sensor)
+
+
+def parse_params(body: object, disparity: np.ndarray, *, subject_d_f: float | None = None,
+                 reconstruct_default: bool = False, norm=None) -> RenderParams:
     """Validate a JSON parameter set against the full-resolution ``disparity``; raises :class:`InputError`.
 
     Errors read as the CLI's do, because the same constructors check the same things:
     ``BlurParams`` (K, focus), ``Aperture`` (blades 3..32, curvature 0..1), ``focus_at`` (pixel in the
-    image), ``RaytraceOptions`` (rays per pixel); ``--blur`` < 0 and ``--highlight-boost`` as in
-    ``cmd_render``.
+    image), ``RaytraceOptions`` (rays per pixel); ``--blur`` < 0, ``--amount`` 0..100 and ``--highlight-boost``
+    as in ``cmd_render``. What is not given is what ``render`` does: ``--amount 50``, the focus on the subject
+    (``subject_d_f`` when the caller has it cached), highlight reconstruction as ``reconstruct_default``.
     """
     if not isinstance(body, dict):
         raise InputError(f"parameters: expected a JSON object, got {type(body).__name__}")
-    unknown = sorted(set(body) - _PARAM_KEYS - {"stage"})
+    unknown = sorted(set(body) - _PARAM_KEYS - {"stage", "long_side"})
     if unknown:
-        raise InputError(f"parameters: unknown {', '.join(map(repr, unknown))}")
+        raise InputError(f"parameters: unknown {', '.join(map(repr, unknown))}"[:300])
     from ...photo.subject import AMOUNT_DEFAULT, k_from_amount, subject_focus
 
+    amount: float | None = None
+    if body.get("lens") is not None and any(body.get(k) is not None for k in ("amount", "blur", "focus")):
+        raise InputError("give the blur either as --amount/--blur with --focus, or as a physical lens, not both")
+    if body.get("blur") is not None and body.get("amount") is not None:
+        raise InputError("give the blur either as --amount or as --blur, not both")
     if body.get("blur") is None:  # the CLI's default: --amount 50 of the image diagonal
-        k = k_from_amount(AMOUNT_DEFAULT, *disparity.shape)
+        amount = AMOUNT_DEFAULT if body.get("amount") is None else json_number(body["amount"], "--amount")
+        k = k_from_amount(amount, *disparity.shape)
     else:
         k = _number(body, "blur", "--blur", 0.0)
     if k < 0:
@@ -170,22 +248,26 @@ def parse_params(body: object, disparity: np.ndarray) -> RenderParams:
         raise InputError("--focus and --focus-at contradict each other: give the focus one way")
     focus: float | None = None
     xy: tuple[int, int] | None = None
-    if focus_val is None and at is None:  # the CLI's default: focus on the subject
-        focus_val = subject_focus(disparity).d_f
-        body = {**body, "focus": focus_val}
     if at is not None:
         if (not isinstance(at, list) or len(at) != 2
                 or any(isinstance(v, bool) or not isinstance(v, int) for v in at)):
-            raise InputError(f"argument --focus-at: expected X,Y in pixels (e.g. 640,410), got {at!r}")
-        xy = (at[0], at[1])
+            raise InputError(f"argument --focus-at: expected X,Y in pixels (e.g. 640,410), got {at!r}"[:200])
+        xy = (json_integer(at[0], "--focus-at"), json_integer(at[1], "--focus-at"))
         d_f = br.focus_at(disparity, *xy)
-    else:
+    elif focus_val is not None:
         focus = _number(body, "focus", "--focus", 0.0)
         d_f = focus
+    else:  # the CLI's default: focus on the subject
+        d_f = subject_focus(disparity).d_f if subject_d_f is None else subject_d_f
+    thin = None
+    if body.get("lens") is not None:  # render's physical branch: K and d_f from the lens and the metric map
+        thin = _physical(body["lens"], xy, disparity, norm)
+        pb = thin.blur_params(norm, disparity.shape[1])
+        k, d_f, amount = pb.k_px, pb.focus_disparity, None
     blur = br.BlurParams(k, d_f)
     shape = body.get("aperture", "disc")
-    if shape not in ("disc", "polygon"):
-        raise InputError(f"argument --aperture: invalid choice: {shape!r} (choose from 'disc', 'polygon')")
+    if not isinstance(shape, str) or shape not in ("disc", "polygon"):
+        raise InputError(f"argument --aperture: invalid choice: {shape!r} (choose from 'disc', 'polygon')"[:200])
     blades = _integer(body, "blades", "--blades", 6)
     rotation = _number(body, "rotation", "--rotation", 0.0)
     curvature = _number(body, "curvature", "--curvature", 0.0)
@@ -193,13 +275,17 @@ def parse_params(body: object, disparity: np.ndarray) -> RenderParams:
     boost = _number(body, "highlight_boost", "--highlight-boost", 0.0)
     if boost < 0:
         raise InputError(f"highlight_boost: expected a finite value >= 0, got {boost!r}")
+    reconstruct = body.get("reconstruct", reconstruct_default)
+    if not isinstance(reconstruct, bool):
+        raise InputError(f"reconstruct: expected true or false, got {reconstruct!r}"[:200])
     quality = body.get("quality", "preview")
-    if quality not in br.QUALITIES:
+    if not isinstance(quality, str) or quality not in br.QUALITIES:
         raise InputError(f"argument --quality: invalid choice: {quality!r} (choose from "
-                         f"{', '.join(map(repr, br.QUALITIES))})")
+                         f"{', '.join(map(repr, br.QUALITIES))})"[:300])
     max_spp = _integer(body, "max_spp", "--max-spp", 128)
     br.RaytraceOptions(max_spp=max_spp)  # validated whatever the quality, as the CLI does
-    return RenderParams(k, focus, xy, shape, blades, rotation, curvature, boost, quality, max_spp, blur, lens)
+    return RenderParams(k, focus, xy, shape, blades, rotation, curvature, boost, quality, max_spp, blur, lens,
+                        amount, reconstruct, thin)
 
 
 def _fmt(v: float) -> str:
@@ -211,14 +297,17 @@ class ViewSession:
     """One photo and its disparity, loaded once, with everything the page needs that does not change.
 
     Args:
-        image: scene-linear H x W x C float32 (C = 1, 3, 4).
+        image: scene-linear H x W x C float32 (C = 1, 3, 4), as read (before highlight reconstruction).
         disparity: H x W in [0, 1] (already resized, if it had to be).
         proxy_long_side: the live preview renders at most this many pixels on the long side (the finest
             proxy; coarser ones take over while updates are slow, see :class:`ProxyLadder`).
-        display_long_side: the refined full-resolution render is sent to the page reduced to this size
-            (the export writes every pixel).
+        display_long_side: the largest size the sharp version for the screen is rendered at (the page asks
+            for the size its canvas shows, at most this; 100 % zoom asks for every pixel). Exports are full size.
         image_path, disparity_arg, depth_path, resize_disparity: what the command line was given, for
             the command shown on the page.
+        reconstruct: highlight reconstruction by default (``render``'s default: on for a display-referred file);
+            None decides it from ``image_path`` as ``render`` does.
+        norm: the depth normalisation of a metric ``--depth`` map (metres on the page).
         export_dir: the only folder exports are written to.
         device: Warp device of every render.
     """
@@ -227,16 +316,16 @@ class ViewSession:
                  display_long_side: int = 2048, image_path: str | None = None, disparity_path: str | None = None,
                  depth_model_path: str | None = None,
                  depth_path: str | None = None, resize_disparity: bool = False, export_dir: str | Path = ".",
-                 device: str = "cpu") -> None:
+                 device: str = "cpu", reconstruct: bool | None = None, norm=None) -> None:
         if proxy_long_side < 16:
             raise InputError(f"--proxy-size: expected at least 16 pixels, got {proxy_long_side}")
         if display_long_side < 16:
             raise InputError(f"--display-size: expected at least 16 pixels, got {display_long_side}")
-        self.image = np.ascontiguousarray(image, np.float32)
-        if self.image.ndim == 2:
-            self.image = self.image[..., None]
+        self.raw_image = np.ascontiguousarray(image, np.float32)
+        if self.raw_image.ndim == 2:
+            self.raw_image = self.raw_image[..., None]
         self.disparity = np.ascontiguousarray(disparity, np.float32)
-        self.h, self.w = self.image.shape[:2]
+        self.h, self.w = self.raw_image.shape[:2]
         if self.disparity.shape != (self.h, self.w):
             raise InputError(f"disparity: expected shape {(self.h, self.w)} (the image's H x W), got "
                              f"{self.disparity.shape}")
@@ -244,17 +333,40 @@ class ViewSession:
         self.image_path, self.disparity_path, self.depth_path = image_path, disparity_path, depth_path
         self.depth_model_path = depth_model_path
         self.resize_disparity = resize_disparity
+        self.norm = norm
         self.export_dir = Path(export_dir).resolve()
-        # the proxies: f x f box means in linear light (K scales by 1/f), finest first; see ProxyLadder
-        f0 = box_factor(self.h, self.w, proxy_long_side)
-        factors = sorted({f0, *(math.ceil(f0 * (4 / 3) ** i) for i in (1, 2, 3, 4))})
-        self.proxies = [(f, box_reduce(self.image, f), np.clip(box_reduce(self.disparity, f), 0.0, 1.0))
-                        for f in factors]
+        from ...photo.highlights import is_display_referred
+        from ...photo.subject import AMOUNT_DEFAULT, k_from_amount, subject_focus
+
+        self.display_referred = bool(image_path) and is_display_referred(image_path)
+        self.reconstruct_default = self.display_referred if reconstruct is None else bool(reconstruct)
+        self.subject = subject_focus(self.disparity)  # the default focus, as `render` chooses it
+        self.default_k = k_from_amount(AMOUNT_DEFAULT, self.h, self.w)
+        self.proxy_long_side = proxy_long_side
+        self.display_factor = box_factor(self.h, self.w, display_long_side)
+        self._variants: dict[bool, tuple[np.ndarray, list]] = {}
+        self.image, self.proxies = self._variant(self.reconstruct_default)
         self.proxy_factor, self.proxy_image, self.proxy_disparity = self.proxies[0]
         self.ladder = ProxyLadder(len(self.proxies))
-        self.display_factor = box_factor(self.h, self.w, display_long_side)
         self._cache: dict[str, bytes] = {}
         self._full: tuple[tuple, np.ndarray] | None = None  # the last full-resolution render and its key
+        self._screen: tuple[tuple, np.ndarray, np.ndarray] | None = None  # (factor, reconstructs), image, disparity
+
+    def _variant(self, reconstructs: bool) -> tuple[np.ndarray, list]:
+        """The image (highlights reconstructed or not) and its proxies: ``f x f`` box means in linear light
+        (K scales by 1/f), finest first; see :class:`ProxyLadder`. Built once each, when first needed."""
+        if reconstructs not in self._variants:
+            image = self.raw_image
+            if reconstructs:
+                from ...photo.highlights import reconstruct_highlights
+
+                image, _ = reconstruct_highlights(self.raw_image)
+                image = np.ascontiguousarray(image, np.float32)
+            f0 = box_factor(self.h, self.w, self.proxy_long_side)
+            factors = sorted({f0, *(math.ceil(f0 * (4 / 3) ** i) for i in (1, 2, 3, 4))})
+            proxies = [(f, box_reduce(image, f), np.clip(box_reduce(self.disparity, f), 0.0, 1.0)) for f in factors]
+            self._variants[reconstructs] = (image, proxies)
+        return self._variants[reconstructs]
 
     @classmethod
     def from_files(cls, image_path: str, *, disparity: str | None = None, depth: str | None = None,
@@ -264,10 +376,18 @@ class ViewSession:
         from ..render_job import read_map
 
         image = br.read_image(image_path)
-        d, _ = read_map(image, disparity=disparity, depth=depth, depth_model=depth_model,
-                        resize_disparity=resize_disparity, device=kw.get("device", "cpu"))
+        d, norm = read_map(image, disparity=disparity, depth=depth, depth_model=depth_model,
+                           resize_disparity=resize_disparity, device=kw.get("device", "cpu"))
         return cls(image, d, image_path=image_path, disparity_path=disparity, depth_path=depth,
-                   depth_model_path=depth_model, resize_disparity=resize_disparity, **kw)
+                   depth_model_path=depth_model, resize_disparity=resize_disparity, norm=norm, **kw)
+
+    def parse(self, body: object) -> RenderParams:
+        """:func:`parse_params` with this session's defaults (those of ``render`` on the same inputs)."""
+        p = parse_params(body, self.disparity, subject_d_f=self.subject.d_f,
+                         reconstruct_default=self.reconstruct_default, norm=self.norm)
+        if p.reconstruct and self.image_path and not self.display_referred:  # `render` never reconstructs a linear file
+            p = dataclasses.replace(p, reconstruct=False)
+        return p
 
     # --- what does not change -------------------------------------------------------------------------
     def _cached(self, name: str, make) -> bytes:
@@ -276,7 +396,7 @@ class ViewSession:
         return self._cache[name]
 
     def photo_jpeg(self) -> bytes:
-        return self._cached("photo", lambda: encode_jpeg(to_srgb8(box_reduce(self.image, self.display_factor))))
+        return self._cached("photo", lambda: encode_jpeg(to_srgb8(box_reduce(self.raw_image, self.display_factor))))
 
     def depth_png(self) -> bytes:
         """The disparity as grey (white = near), at display size."""
@@ -296,17 +416,34 @@ class ViewSession:
             return encode_png(rgb, "RGB")
         return self._cached("disp16", make)
 
+    def depth_range_m(self) -> tuple[float, float] | None:
+        if self.norm is None:
+            return None
+        return float(self.norm.depth(float(self.disparity.max()))), float(self.norm.depth(float(self.disparity.min())))
+
     def info(self) -> dict:
+        from ...photo.subject import AMOUNT_DEFAULT
+
         names = {"image": Path(self.image_path).name if self.image_path else "(array)",
                  "map": Path(self.depth_model_path or self.depth_path or self.disparity_path or "(array)").name,
                  "map_kind": "depth model" if self.depth_model_path else "depth" if self.depth_path else "disparity"}
+        s = self.subject
+        metric = None
+        if self.norm is not None:
+            near, far = self.depth_range_m()
+            metric = {"z_near_m": self.norm.z_near_m, "z_far_m": self.norm.z_far_m, "nearest_m": near,
+                      "farthest_m": far, "subject_m": float(self.norm.depth(s.d_f))}
         return {
             "width": self.w, "height": self.h, "files": names,
             "proxy": {"factor": self.proxy_factor, "width": self.proxy_image.shape[1],
                       "height": self.proxy_image.shape[0], "factors": [f for f, _, _ in self.proxies]},
             "display": {"factor": self.display_factor, "width": -(-self.w // self.display_factor),
                         "height": -(-self.h // self.display_factor)},
-            "default_blur": float(max(1, round(self.w / 50))), "max_blur": float(max(8, round(self.w / 8))),
+            "defaults": {"amount": AMOUNT_DEFAULT, "k_px": self.default_k, "focus": s.d_f,
+                         "subject": {"x": s.x, "y": s.y, "why": s.describe()},
+                         "reconstruct": self.reconstruct_default},
+            "display_referred": self.display_referred, "metric": metric,
+            "max_blur": float(max(8, round(self.w / 8))),
             "qualities": list(br.QUALITIES), "export_formats": {k: list(v) for k, v in EXPORT_FORMATS.items()},
             "export_dir": str(self.export_dir), "max_body_bytes": MAX_BODY_BYTES,
         }
@@ -315,29 +452,56 @@ class ViewSession:
     def render_preview(self, p: RenderParams, check=None) -> tuple[bytes, dict]:
         """The live preview: preview level on a proxy with ``K / f``; ``check()`` may raise to abandon it.
 
-        The proxy is the ladder's choice (:class:`ProxyLadder`); an abandoned render does not move the ladder.
+        The proxy is the ladder's choice (:class:`ProxyLadder`); an abandoned render moves the ladder only when
+        it had already taken longer than the budget.
         """
-        level = self.ladder.level
-        f, image, disparity = self.proxies[level]
+        level = min(self.ladder.level, len(self.proxies) - 1)
+        f, image, disparity = self._variant(p.reconstructs)[1][level]
         blur = br.BlurParams(p.blur.k_px / f, p.blur.focus_disparity)
-        progress = (lambda done, total: check()) if check is not None else None
+        progress = (lambda done, total: check(done, total)) if check is not None else None
         t = time.perf_counter()
-        out, stats = br.render_with_stats(image, disparity, blur, p.lens, quality="preview",
-                                          device=self.device, highlight_boost=p.highlight_boost, progress=progress)
-        self.ladder.report(time.perf_counter() - t)
+        try:
+            out, stats = br.render_with_stats(image, disparity, blur, p.lens, quality="preview",
+                                              device=self.device, highlight_boost=p.highlight_boost,
+                                              progress=progress)
+        except BaseException:
+            if time.perf_counter() - t > self.ladder.budget_s:
+                self.ladder.report(time.perf_counter() - t)
+            raise
+        seconds = time.perf_counter() - t
+        self.ladder.report(seconds)
         if check is not None:
             check()
-        return encode_jpeg(to_srgb8(out), 88), {"factor": f, "layers": stats.layers, "level": level}
+        return encode_jpeg(to_srgb8(out), 88), {"factor": f, "layers": stats.layers, "level": level,
+                                                "render_s": seconds}
+
+    def warm_up(self) -> float:
+        """One preview of the coarsest proxy, thrown away: Warp loads its kernel modules now, not when the page asks
+        for its first picture. Returns the seconds it took; the ladder is left alone."""
+        t = time.perf_counter()
+        p = self.parse({})
+        f, image, disparity = self.proxies[-1]
+        br.render_with_stats(image, disparity, br.BlurParams(p.blur.k_px / f, p.blur.focus_disparity), p.lens,
+                             quality="preview", device=self.device)
+        return time.perf_counter() - t
+
+    def screen_factor(self, long_side: int | None) -> int:
+        """The reduction of the sharp version for a screen showing ``long_side`` pixels on the photo's long side
+        (None: ``--display-size``; at least the photo's size: 1, every pixel)."""
+        if long_side is None:
+            return self.display_factor
+        return max(1, min(box_factor(self.h, self.w, long_side), max(self.h, self.w)))
 
     def render_full(self, p: RenderParams, check=None) -> np.ndarray:
         """Every pixel at the chosen quality (cached for the export of the same parameters)."""
         key = p.key()
         if self._full is not None and self._full[0] == key:
             return self._full[1]
-        progress = (lambda done, total: check()) if check is not None else None
+        progress = (lambda done, total: check(done, total)) if check is not None else None
         if check is not None:
             check()
-        out, _ = br.render_with_stats(self.image, self.disparity, p.blur, p.lens, quality=p.quality,
+        image = self._variant(p.reconstructs)[0]
+        out, _ = br.render_with_stats(image, self.disparity, p.blur, p.lens, quality=p.quality,
                                       device=self.device, highlight_boost=p.highlight_boost, progress=progress,
                                       options=br.RaytraceOptions(max_spp=p.max_spp) if p.quality == "raytrace"
                                       else None)
@@ -345,19 +509,33 @@ class ViewSession:
         self._full = (key, out)
         return out
 
-    def full_display(self, p: RenderParams, check=None) -> tuple[bytes, dict]:
-        """The refinement the page shows when the input rests: every pixel at the preview level, reduced for display.
+    def full_display(self, p: RenderParams, check=None, long_side: int | None = None) -> tuple[bytes, dict]:
+        """The sharp version the page shows once the preview of the same state is on screen: every pixel the
+        screen shows, at the preview level, rendered at that size (``K / f``: the CoC scaled with it).
 
-        Always the preview level, whatever ``p.quality``: the ray tracer has no progress hook in the public
-        API, so a ray-traced refinement could not be abandoned when the user drags again (it would hold every
-        preview back for its whole run). The chosen level is what the export renders.
+        ``long_side`` is what the page's canvas shows (device pixels); at the photo's size or more (100 % zoom)
+        this is the full-resolution render, which an export of the same parameters reuses. Always the preview
+        level, whatever ``p.quality``: the chosen level is what the export renders.
         """
         p = dataclasses.replace(p, quality="preview")
-        out = self.render_full(p, check)
+        f = self.screen_factor(long_side)
+        t = time.perf_counter()
+        if f == 1:
+            out = self.render_full(p, check)
+        else:
+            key = (f, p.reconstructs)
+            if self._screen is None or self._screen[0] != key:
+                self._screen = None
+                image = self._variant(p.reconstructs)[0]
+                self._screen = (key, box_reduce(image, f), np.clip(box_reduce(self.disparity, f), 0.0, 1.0))
+            _, image, disparity = self._screen
+            progress = (lambda done, total: check(done, total)) if check is not None else None
+            out, _ = br.render_with_stats(image, disparity, br.BlurParams(p.blur.k_px / f, p.blur.focus_disparity),
+                                          p.lens, quality="preview", device=self.device,
+                                          highlight_boost=p.highlight_boost, progress=progress)
         if check is not None:
             check()
-        f = self.display_factor
-        return encode_jpeg(to_srgb8(box_reduce(out, f)), 90), {"factor": f}
+        return encode_jpeg(to_srgb8(out), 90), {"factor": f, "render_s": time.perf_counter() - t}
 
     # --- export ---------------------------------------------------------------------------------------
     def export_path(self, fmt: str) -> Path:
@@ -368,24 +546,34 @@ class ViewSession:
                 return p
         raise InputError(f"{self.export_dir}: no free export name left")
 
+    def _exif(self) -> bytes | None:
+        """The photo's EXIF for a JPEG export, exactly as ``render`` keeps it (orientation reset)."""
+        if not self.image_path:
+            return None
+        from ...formats import FORMATS
+        from ...photo.embedded import embedded, exif_for_output
+
+        return exif_for_output(embedded(Path(self.image_path), FORMATS.get(Path(self.image_path).suffix.lower(), "")))
+
     def export(self, p: RenderParams, fmt: str, bit_depth: int | None, check=None) -> tuple[Path, str]:
-        if fmt not in EXPORT_FORMATS:
-            raise InputError(f"export format: expected one of {', '.join(EXPORT_FORMATS)}, got {fmt!r}")
+        if not isinstance(fmt, str) or fmt not in EXPORT_FORMATS:
+            raise InputError(f"export format: expected one of {', '.join(EXPORT_FORMATS)}, got {fmt!r}"[:200])
         if bit_depth is not None and (isinstance(bit_depth, bool) or not isinstance(bit_depth, int)):
-            raise InputError(f"argument --bit-depth: invalid int value: {bit_depth!r}")
+            raise InputError(f"argument --bit-depth: invalid int value: {bit_depth!r}"[:200])
         bits, half = bit_depth, False  # EXR at 16 bits is half float, as `--bit-depth 16` gives
         path = self.export_path(fmt)
         from ...output.write import check_output_path  # the same check as `bokehray render -o`, before rendering
 
         check_output_path(path, bit_depth=bits, half=half)
         out = self.render_full(p, check)
-        written = br.write_image(path, out, bit_depth=bits, half=half)
+        written = br.write_image(path, out, bit_depth=bits, half=half, quality=JPEG_QUALITY, exif=self._exif())
         return written, self.command(p, written, bit_depth=bits, half=half)
 
     def command(self, p: RenderParams, output: str | Path, *, bit_depth: int | None = None,
                 half: bool = False) -> str:
-        """The ``bokehray render`` command line that writes the same image."""
-        from ...photo.highlights import is_display_referred
+        """The ``bokehray render`` command line that writes the same image (what is at ``render``'s default is
+        left out: the amount 50, the subject focus, highlight reconstruction)."""
+        from ...photo.subject import AMOUNT_DEFAULT
 
         q = shlex.quote
         img = str(Path(self.image_path).resolve()) if self.image_path else "IMAGE"
@@ -398,15 +586,28 @@ class ViewSession:
             args += ["--disparity", q(str(Path(self.disparity_path).resolve()) if self.disparity_path else "D")]
         if self.resize_disparity:
             args.append("--resize-disparity")
-        args += ["-o", q(str(output)), "--blur", _fmt(p.k_px)]
-        args += ["--focus-at", f"{p.focus_at[0]},{p.focus_at[1]}"] if p.focus_at else ["--focus", _fmt(p.focus)]
+        args += ["-o", q(str(output))]
+        if p.thin_lens is not None:
+            lens = p.thin_lens
+            args += ["--focal-length", _fmt(lens.focal_length_mm), "--f-number", _fmt(lens.f_number)]
+            if p.focus_at is None:
+                args += ["--focus-distance", _fmt(lens.focus_distance_m)]
+            if lens.sensor_width_mm != 36.0:
+                args += ["--sensor-width", _fmt(lens.sensor_width_mm)]
+        elif p.amount is None:
+            args += ["--blur", _fmt(p.k_px)]
+        elif p.amount != AMOUNT_DEFAULT:
+            args += ["--amount", _fmt(p.amount)]
+        if p.focus_at:
+            args += ["--focus-at", f"{p.focus_at[0]},{p.focus_at[1]}"]
+        elif p.focus is not None:
+            args += ["--focus", _fmt(p.focus)]
         if p.aperture == "polygon":
             args += ["--aperture", "polygon", "--blades", str(p.blades), "--rotation", _fmt(p.rotation),
                      "--curvature", _fmt(p.curvature)]
         if p.highlight_boost:
             args += ["--highlight-boost", _fmt(p.highlight_boost)]
-        elif self.image_path and is_display_referred(self.image_path):
-            # the page shows a display-referred photo's highlights as they are (its boost control instead)
+        elif self.display_referred and not p.reconstruct:
             args.append("--no-highlight-reconstruction")
         if p.quality != "preview":
             args += ["--quality", p.quality, "--max-spp", str(p.max_spp)]

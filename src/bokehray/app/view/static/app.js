@@ -1,32 +1,61 @@
 // bokehray view: the page. No external resources; talks only to the server that served it.
+//
+// After every change the page asks for a preview (the proxy) first; only once the preview of the latest state is
+// on screen does it ask for the sharp version, at the size the screen shows (every pixel at 100 %). A change
+// while the sharp version renders asks for a new preview, which the server runs first (the sharp one is dropped),
+// so a proxy always follows a change, whatever the load of the machine.
 "use strict";
 
 const $ = (id) => document.getElementById(id);
-const SLIDERS = ["blur", "focus", "blades", "rotation", "curvature", "highlight_boost"];
-const REFINE_AFTER_MS = 350;  // the full-resolution render starts when the input rests this long
+const SLIDERS = ["amount", "blur", "focus", "blades", "rotation", "curvature", "highlight_boost"];
+const PROGRESS_POLL_MS = 250;
+const F_STOPS = [1.2, 1.4, 1.8, 2, 2.8, 4, 5.6, 8, 11, 16, 22];
 
 let info = null;
-const state = { blur: 20, focus: 0.5, focus_at: null, aperture: "disc", blades: 6, rotation: 0, curvature: 0,
-                highlight_boost: 0, quality: "preview", max_spp: 128 };
-let seq = 0, shownSeq = 0, previewInFlight = false, previewAgain = false, refineTimer = null;
+// what `bokehray render` does with the same inputs: amount 50, the subject, reconstruction as the file needs
+const state = { amount: 50, blur: null, focus: null, focus_at: null, aperture: "disc", blades: 6, rotation: 0,
+                curvature: 0, highlight_boost: 0, reconstruct: false, quality: "preview", max_spp: 128,
+                lens: null };  // lens: {focal_length, f_number, focus_distance (null: the clicked point)}
+let version = 0;            // the state's number: every change increments it
+let shownVersion = -1;      // the state of the image on screen
+let previewInFlight = false, previewAgain = false, fullFor = -1, progressTimer = null;
 let lastRender = null, photo = null, depth = null, disparity = null, focusDisparity = null;
-let images = 0;
+let images = 0, previews = 0, fulls = 0;
+const shownLog = [];  // [stage, state number] of every image shown, in order (the browser test reads it)
+window.bokehrayShown = shownLog;
 
 function params() {
-  const p = { blur: state.blur, aperture: state.aperture, blades: state.blades, rotation: state.rotation,
-              curvature: state.curvature, highlight_boost: state.highlight_boost, quality: state.quality,
+  const p = { aperture: state.aperture, blades: state.blades, rotation: state.rotation, curvature: state.curvature,
+              highlight_boost: state.highlight_boost, reconstruct: state.reconstruct, quality: state.quality,
               max_spp: state.max_spp };
-  if (state.focus_at) p.focus_at = state.focus_at; else p.focus = state.focus;
+  if (state.lens) {  // metric depth: render's physical lens (--focal-length, --f-number, --focus-distance)
+    p.lens = { focal_length: state.lens.focal_length, f_number: state.lens.f_number };
+    if (state.focus_at) p.focus_at = state.focus_at; else p.lens.focus_distance = state.lens.focus_distance;
+    return p;
+  }
+  if (state.blur !== null) p.blur = state.blur; else p.amount = state.amount;
+  if (state.focus_at) p.focus_at = state.focus_at; else if (state.focus !== null) p.focus = state.focus;
   return p;
 }
 
 function setStatus(text) { $("status").textContent = text; }
 function setError(text) { $("error").textContent = text || ""; }
+function mark(name, value) { document.body.dataset[name] = String(value); }
 
 async function loadBitmap(url, options) {
   const r = await fetch(url);
   if (!r.ok) throw new Error(url + ": HTTP " + r.status);
   return createImageBitmap(await r.blob(), options);
+}
+
+function zoomed() { return $("zoom").checked; }
+
+function sizeCanvas() {
+  const c = $("view");
+  const w = zoomed() ? info.width : info.display.width, h = zoomed() ? info.height : info.display.height;
+  if (c.width !== w || c.height !== h) { c.width = w; c.height = h; }
+  c.style.width = zoomed() ? (info.width / devicePixelRatio) + "px" : "";
+  $("frame").classList.toggle("zoom", zoomed());
 }
 
 function draw() {
@@ -46,9 +75,10 @@ function draw() {
 function drawOverlay() {
   const o = $("overlay"), ctx = o.getContext("2d");
   ctx.clearRect(0, 0, o.width, o.height);
+  const k = lastRender ? lastRender.k : 0;
   if (!$("infocus").checked || !disparity || focusDisparity === null) return;
   // in focus: CoC radius K * |d - d_f| below 1 pixel of the full-resolution image
-  const tol = state.blur > 0 ? 1.0 / state.blur : 1.0;
+  const tol = k > 0 ? 1.0 / k : 1.0;
   const img = ctx.createImageData(o.width, o.height), src = disparity.data, dst = img.data;
   for (let i = 0; i < src.length; i += 4) {
     const d = (src[i] * 256 + src[i + 1]) / 65535;
@@ -57,66 +87,147 @@ function drawOverlay() {
   ctx.putImageData(img, 0, 0);
 }
 
-function showCommand(cmd) { $("command").textContent = cmd; }
+function screenLongSide() {
+  // the photo's long side in device pixels as the canvas shows it (every pixel at 100 %)
+  if (zoomed()) return Math.max(info.width, info.height);
+  const c = $("view"), scale = c.clientWidth * devicePixelRatio / info.width;
+  return Math.max(16, Math.round(Math.max(info.width, info.height) * Math.min(1, scale)));
+}
 
-async function requestRender(stage) {
-  const my = ++seq;
-  document.body.dataset.state = "rendering";
+function describeFocus(d) {
+  let where = state.focus_at ? `the point ${state.focus_at[0]}, ${state.focus_at[1]}` :
+              state.focus !== null ? "the disparity slider" :
+              state.lens && state.lens.focus_distance !== info.metric.subject_m ? "the focus distance" : "the subject";
+  where += ` (disparity ${d.toFixed(3)}`;
+  if (info.metric && lastRender && lastRender.focusM !== null) where += `, ${lastRender.focusM.toPrecision(3)} m away`;
+  return where + ")";
+}
+
+// one render request; answers whether it was shown
+async function requestRender(stage, v) {
   const t0 = performance.now();
+  const body = { ...params(), stage };
+  if (stage === "full") body.long_side = screenLongSide();
   let r;
   try {
     r = await fetch("/api/render", { method: "POST", headers: { "Content-Type": "application/json" },
-                                     body: JSON.stringify({ ...params(), stage }) });
-  } catch (e) { setError("server unreachable: " + e); return; }
-  if (r.status === 409) return;  // a newer request replaced this one
+                                     body: JSON.stringify(body) });
+  } catch (e) { setError("server unreachable: " + e); return false; }
+  if (r.status === 409) return false;  // a newer request replaced this one
   if (!r.ok) {
     let msg = "HTTP " + r.status;
     try { msg = (await r.json()).error || msg; } catch (e) { /* not JSON */ }
     setError(msg);
-    document.body.dataset.state = "error";
-    return;
+    mark("state", "error");
+    return false;
   }
   const bitmap = await createImageBitmap(await r.blob());
-  if (my < shownSeq) return;  // an answer to an older request arrived late
-  shownSeq = my;
+  if (v < shownVersion || (v === shownVersion && stage === "preview" && lastRender && lastRender.stage === "full")) {
+    return false;  // an answer to an older state arrived late
+  }
+  shownVersion = v;
   setError("");
   const factor = Number(r.headers.get("X-Bokehray-Factor"));
-  lastRender = { bitmap, factor, stage };
+  const focusM = r.headers.get("X-Bokehray-Focus-M");
+  lastRender = { bitmap, factor, stage, k: Number(r.headers.get("X-Bokehray-K")),
+                 focusM: focusM ? Number(focusM) : null };
   focusDisparity = Number(r.headers.get("X-Bokehray-Focus-Disparity"));
-  document.body.dataset.focusDisparity = String(focusDisparity);
-  document.body.dataset.stage = stage;
-  document.body.dataset.images = String(++images);
+  mark("focusDisparity", focusDisparity);
+  mark("stage", stage);
+  mark("images", ++images);
+  mark(stage === "preview" ? "previews" : "fulls", stage === "preview" ? ++previews : ++fulls);
+  mark("shownVersion", v);
+  mark("factor", factor);
+  mark("k", lastRender.k);
+  shownLog.push([stage, v]);
   $("focus").value = focusDisparity;
   $("focus-out").textContent = focusDisparity.toFixed(4);
-  showCommand(decodeURIComponent(r.headers.get("X-Bokehray-Command") || ""));
+  $("blur").value = lastRender.k;
+  $("blur-out").textContent = lastRender.k.toFixed(1);
+  $("focus-where").textContent = describeFocus(focusDisparity);
+  if (state.lens && lastRender.focusM !== null) {
+    $("focus_distance-out").textContent = lastRender.focusM.toPrecision(3);
+    $("focus_distance").value = metresToSlider(lastRender.focusM);
+  }
+  $("command").textContent = decodeURIComponent(r.headers.get("X-Bokehray-Command") || "");
   const secs = Number(r.headers.get("X-Bokehray-Render-Seconds"));
   const w = Math.ceil(info.width / factor), h = Math.ceil(info.height / factor);
-  setStatus(`${stage === "preview" ? "preview" : "full resolution"} ${w}×${h}` +
-            (stage === "full" ? ` (of ${info.width}×${info.height})` : "") +
+  setStatus(`${stage === "preview" ? "preview" : "sharp"} ${w}×${h}` +
+            (factor > 1 ? ` (of ${info.width}×${info.height})` : "") +
             `: render ${(secs * 1000).toFixed(0)} ms, round trip ${(performance.now() - t0).toFixed(0)} ms` +
-            (stage === "preview" ? " — refining…" : ""));
-  if (stage === "full" || refineTimer === null) document.body.dataset.state = stage === "full" ? "idle" : "refining";
+            (stage === "preview" ? " — sharpening…" : ""));
   draw();
+  return true;
+}
+
+async function pollProgress() {
+  try {
+    const p = await (await fetch("/api/progress")).json();
+    const job = p.running.find((j) => j.kind === "full");
+    if (job && job.total > 0) {
+      $("progress").value = job.done / job.total;
+      mark("progress", (job.done / job.total).toFixed(3));
+    }
+  } catch (e) { /* the next poll tries again */ }
+}
+
+async function full(v) {
+  fullFor = v;
+  mark("state", "refining");
+  $("progress").value = 0;
+  $("progress").hidden = false;
+  clearInterval(progressTimer);
+  progressTimer = setInterval(pollProgress, PROGRESS_POLL_MS);
+  try {
+    await requestRender("full", v);
+  } finally {
+    if (fullFor === v) {
+      clearInterval(progressTimer);
+      $("progress").hidden = true;
+      if (v === version) mark("state", shownVersion === v && lastRender.stage === "full" ? "idle" : "ready");
+    }
+  }
 }
 
 async function preview() {
-  if (previewInFlight) { previewAgain = true; return; }  // one preview at a time; the latest values go next
+  if (previewInFlight) { previewAgain = true; return; }  // one preview at a time; the latest state goes next
   previewInFlight = true;
-  try { await requestRender("preview"); } finally { previewInFlight = false; }
-  if (previewAgain) { previewAgain = false; preview(); }
+  const v = version;
+  mark("state", "rendering");
+  let shown = false;
+  try { shown = await requestRender("preview", v); } finally { previewInFlight = false; }
+  if (previewAgain || v !== version) { previewAgain = false; preview(); return; }
+  // the preview of the latest state is on screen: now, and only now, the sharp version
+  if (shown) full(v);
 }
 
 function changed() {
+  version++;
+  mark("version", version);
   preview();
-  clearTimeout(refineTimer);
-  refineTimer = setTimeout(() => { refineTimer = null; requestRender("full"); }, REFINE_AFTER_MS);
+}
+
+function metresToSlider(z) {
+  const m = info.metric, near = m.nearest_m, far = Math.min(m.farthest_m, 1000);
+  return Math.round(1000 * Math.log(Math.max(near, Math.min(far, z)) / near) / Math.log(far / near));
+}
+
+function sliderToMetres(v) {
+  const m = info.metric, near = m.nearest_m, far = Math.min(m.farthest_m, 1000);
+  return near * Math.pow(far / near, v / 1000);
+}
+
+function setLens(on) {
+  state.lens = on ? { focal_length: Number($("focal_length").value), f_number: F_STOPS[Number($("f_stop").value)],
+                      focus_distance: state.focus_at ? null : info.metric.subject_m } : null;
+  for (const k of ["f_stop", "focal_length", "focus_distance"]) $(k).disabled = !on;
+  $("amount").disabled = on;
+  state.focus = null;
 }
 
 function syncOutputs() {
-  for (const k of SLIDERS) {
-    const out = $(k + "-out");
-    if (out && k !== "focus") out.textContent = $(k).value;
-  }
+  $("f_number-out").textContent = F_STOPS[Number($("f_stop").value)];
+  for (const k of ["amount", "blades", "rotation", "curvature", "highlight_boost"]) $(k + "-out").textContent = $(k).value;
   const polygon = state.aperture === "polygon";
   for (const k of ["blades", "rotation", "curvature"]) $(k).disabled = !polygon;
 }
@@ -126,30 +237,55 @@ function bind() {
     $(k).addEventListener("input", () => {
       const v = Number($(k).value);
       state[k] = k === "blades" ? Math.round(v) : v;
-      if (k === "focus") { state.focus_at = null; $("marker").hidden = true; $("focus-out").textContent = v.toFixed(4); }
+      if (k === "focus") { state.focus_at = null; $("marker").hidden = true; }
+      if (k === "amount") state.blur = null;
       syncOutputs();
       changed();
     });
   }
   $("aperture").addEventListener("change", () => { state.aperture = $("aperture").value; syncOutputs(); changed(); });
+  $("reconstruct").addEventListener("change", () => { state.reconstruct = $("reconstruct").checked; changed(); });
   $("quality").addEventListener("change", () => { state.quality = $("quality").value; changed(); });
   $("max_spp").addEventListener("change", () => { state.max_spp = Math.round(Number($("max_spp").value)); changed(); });
   $("show").addEventListener("change", draw);
   $("infocus").addEventListener("change", drawOverlay);
+  $("zoom").addEventListener("change", () => { sizeCanvas(); draw(); if (shownVersion === version) full(version); });
   $("format").addEventListener("change", fillBitDepths);
+  $("subject").addEventListener("click", () => {
+    state.focus = null; state.focus_at = null; $("marker").hidden = true;
+    if (state.lens) state.lens.focus_distance = info.metric.subject_m;
+    changed();
+  });
   $("view").addEventListener("click", (e) => {
     const c = $("view");
     const x = Math.min(info.width - 1, Math.max(0, Math.floor(e.offsetX / c.clientWidth * info.width)));
     const y = Math.min(info.height - 1, Math.max(0, Math.floor(e.offsetY / c.clientHeight * info.height)));
     state.focus_at = [x, y];
+    state.focus = null;
+    if (state.lens) state.lens.focus_distance = null;
     const m = $("marker");
     m.style.left = (100 * (x + 0.5) / info.width) + "%";
     m.style.top = (100 * (y + 0.5) / info.height) + "%";
-    m.hidden = false;
-    document.body.dataset.focusAt = x + "," + y;
+    m.hidden = zoomed();
+    mark("focusAt", x + "," + y);
     changed();
   });
   $("export").addEventListener("click", exportImage);
+  $("blur-mode").addEventListener("change", () => { setLens($("blur-mode").value === "lens"); syncOutputs(); changed(); });
+  $("f_stop").addEventListener("input", () => {
+    syncOutputs();
+    if (state.lens) { state.lens.f_number = F_STOPS[Number($("f_stop").value)]; changed(); }
+  });
+  $("focal_length").addEventListener("change", () => {
+    if (state.lens) { state.lens.focal_length = Number($("focal_length").value); changed(); }
+  });
+  $("focus_distance").addEventListener("input", () => {
+    if (!state.lens) return;
+    state.lens.focus_distance = sliderToMetres(Number($("focus_distance").value));
+    state.focus_at = null; $("marker").hidden = true;
+    $("focus_distance-out").textContent = state.lens.focus_distance.toPrecision(3);
+    changed();
+  });
 }
 
 function fillBitDepths() {
@@ -166,7 +302,7 @@ function fillBitDepths() {
 async function exportImage() {
   const btn = $("export");
   btn.disabled = true;
-  document.body.dataset.exported = "";
+  mark("exported", "");
   $("export-out").textContent = "rendering every pixel and writing…";
   $("export-command").textContent = "";
   try {
@@ -176,7 +312,7 @@ async function exportImage() {
     if (!r.ok) { $("export-out").textContent = ""; setError(j.error || ("HTTP " + r.status)); return; }
     $("export-out").textContent = "wrote " + j.path + ` (${j.seconds.toFixed(1)} s); the same file from the command line:`;
     $("export-command").textContent = j.command;
-    document.body.dataset.exported = j.path;
+    mark("exported", j.path);
   } catch (e) {
     setError("export failed: " + e);
   } finally { btn.disabled = false; }
@@ -184,10 +320,20 @@ async function exportImage() {
 
 async function start() {
   info = await (await fetch("/api/info")).json();
-  $("files").textContent = `${info.files.image} · ${info.files.map} · ${info.width}×${info.height}`;
-  for (const c of [$("view"), $("overlay")]) { c.width = info.display.width; c.height = info.display.height; }
+  const d = info.defaults;
+  state.amount = d.amount;
+  state.reconstruct = d.reconstruct;
+  $("amount").value = d.amount;
+  $("reconstruct").checked = d.reconstruct;
+  $("reconstruct-label").hidden = !info.display_referred;
+  $("lens-controls").hidden = !info.metric;
+  if (info.metric) setLens(false);
+  $("files").textContent = `${info.files.image} · ${info.files.map} · ${info.width}×${info.height}` +
+    (info.metric ? ` · depth ${info.metric.nearest_m.toPrecision(3)}–${info.metric.farthest_m.toPrecision(3)} m` : "");
+  $("subject").title = "focus " + d.subject.why;
+  $("overlay").width = info.display.width; $("overlay").height = info.display.height;
+  sizeCanvas();
   $("blur").max = info.max_blur;
-  $("blur").value = state.blur = info.default_blur;
   for (const q of info.qualities) {
     const o = document.createElement("option"); o.value = q; o.textContent = q; $("quality").appendChild(o);
   }
@@ -195,7 +341,17 @@ async function start() {
     const o = document.createElement("option"); o.value = f; o.textContent = f; $("format").appendChild(o);
   }
   fillBitDepths();
+  bind();
+  syncOutputs();
+  mark("state", "ready");
+  changed();  // the first preview; the photo, the depth and the overlay's disparity load once it is shown
+  await new Promise((resolve) => {
+    const poll = setInterval(() => {
+      if (shownVersion >= 0 || document.body.dataset.state === "error") { clearInterval(poll); resolve(); }
+    }, 20);
+  });
   photo = { bitmap: await loadBitmap("/api/photo.jpg"), factor: info.display.factor };
+  if (!lastRender) draw();
   depth = { bitmap: await loadBitmap("/api/depth.png"), factor: info.display.factor };
   const packed = await loadBitmap("/api/disparity16.png", { colorSpaceConversion: "none", premultiplyAlpha: "none" });
   const tmp = document.createElement("canvas");
@@ -203,14 +359,7 @@ async function start() {
   const tctx = tmp.getContext("2d", { colorSpace: "srgb", willReadFrequently: true });
   tctx.drawImage(packed, 0, 0);
   disparity = tctx.getImageData(0, 0, tmp.width, tmp.height);
-  // start focused at the centre of the frame
-  state.focus_at = [Math.floor(info.width / 2), Math.floor(info.height / 2)];
-  bind();
-  syncOutputs();
-  $("blur-out").textContent = state.blur;
-  draw();
-  document.body.dataset.state = "ready";
-  changed();
+  mark("loaded", "1");
 }
 
-start().catch((e) => { setError("could not start: " + e); document.body.dataset.state = "error"; });
+start().catch((e) => { setError("could not start: " + e); mark("state", "error"); });

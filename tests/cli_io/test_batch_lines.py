@@ -1,0 +1,37 @@
+"""A batch says, per photo, which focus and blur it chose (the issue: a batch did not say it)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+import bokehray as br
+from bokehray.app.batch import photo_line
+from bokehray.app.cli import main
+
+
+def test_batch_prints_one_line_per_photo_with_its_focus_and_amount(tmp_path, capsys):
+    rng = np.random.default_rng(7)
+    for i in range(2):
+        d = np.full((40, 56), 0.2, np.float32)
+        d[10:30, 15 + 10 * i:40 + 10 * i] = 0.8 - 0.1 * i  # a near subject, a different one per photo
+        br.write_image(tmp_path / "photos" / f"p{i}.png", (rng.random((40, 56, 3)) * 0.8).astype(np.float32))
+        br.write_disparity(tmp_path / "maps" / f"p{i}.png", d)
+    code = main(["render", str(tmp_path / "photos"), "--disparity", str(tmp_path / "maps"), "-o",
+                 str(tmp_path / "out"), "--workers", "1"])
+    out = capsys.readouterr().out
+    assert code == 0
+    lines = sorted(x for x in out.splitlines() if " -> " in x and "focus d_f" in x)
+    assert len(lines) == 2, out
+    for i, line in enumerate(lines):
+        assert line.startswith(f"p{i}.png -> p{i}.png: focus d_f = {0.8 - 0.1 * i:.3f} (the subject around pixel")
+        assert line.endswith("amount 50 (K = 2.1 px)")
+    # --quiet prints none of them
+    code = main(["render", str(tmp_path / "photos"), "--disparity", str(tmp_path / "maps"), "-o",
+                 str(tmp_path / "out2"), "--workers", "1", "--quiet"])
+    assert code == 0 and "focus d_f" not in capsys.readouterr().out
+
+
+def test_photo_line_of_a_given_blur_and_metric_focus():
+    line = photo_line("/a/b/x.jpg", {"output": "/o/x.jpg", "focus_disparity": 0.5, "focus": "--focus-at",
+                                     "focus_m": 2.5, "amount": None, "k_px": 12.25})
+    assert line == "x.jpg -> x.jpg: focus d_f = 0.500 (--focus-at, 2.5 m), K = 12.2 px"

@@ -1,0 +1,152 @@
+"""bokehray view under abuse: malformed values answer 400 (not 500), an export stops with the server (Ctrl-C,
+SIGTERM) and does not hold previews back while it runs, and no native Warp line reaches stderr."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+import urllib.error
+import urllib.request
+
+import pytest
+
+pytest.importorskip("starlette", reason="bokehray view needs the 'view' extra (starlette, uvicorn)")
+pytest.importorskip("uvicorn", reason="bokehray view needs the 'view' extra (starlette, uvicorn)")
+
+import bokehray as br  # noqa: E402
+from bokehray.app.demo import build_demo_scene  # noqa: E402
+from bokehray.app.view.server import ViewServer  # noqa: E402
+from bokehray.app.view.session import ViewSession  # noqa: E402
+from tolerances import HANG_S  # noqa: E402
+
+CLI = "import sys; from bokehray.app.cli import main; sys.exit(main())"
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("view-rel")
+    sc = build_demo_scene(width=240, height=160)
+    br.write_image(d / "img.png", sc.image)
+    br.write_disparity(d / "d.png", sc.disparity)
+    return d
+
+
+def post(url: str, data: bytes, timeout: float = HANG_S):
+    req = urllib.request.Request(url, data=data, headers={"Content-Type": "application/json"}, method="POST")
+    try:
+        with urllib.request.urlopen(req, timeout=timeout) as r:
+            return r.status, r.read()
+    except urllib.error.HTTPError as e:
+        return e.code, e.read()
+
+
+MALFORMED = [
+    ("api/render", b'{"blur": ' + str(10**30).encode() + b"}"),
+    ("api/render", b'{"blur": ' + str(10**400).encode() + b"}"),
+    ("api/render", b'{"amount": ' + str(10**400).encode() + b"}"),
+    ("api/render", b'{"focus_at": [' + str(10**400).encode() + b", 3]}"),
+    ("api/render", b'{"blades": ' + str(10**400).encode() + b', "aperture": "polygon"}'),
+    ("api/render", b"[" * 1000 + b"]" * 1000),
+    ("api/render", b'{"blur": 5, "stage": ["full"]}'),
+    ("api/render", b'{"blur": 5, "stage": "full", "long_side": 1e400}'),
+    ("api/render", b'{"blur": 5, "quality": {}}'),
+    ("api/render", b'{"blur": 5, "aperture": []}'),
+    ("api/export", b'{"params": {"blur": 5}, "format": ["png"]}'),
+    ("api/export", b'{"params": {"blur": 5}, "format": {}}'),
+    ("api/export", b'{"params": {"blur": 5}, "format": "png", "bit_depth": {}}'),
+    ("api/export", b'{"params": {"blur": ' + str(10**400).encode() + b"}}"),
+    ("api/export", b'{"params": ' + b"[" * 1000 + b"]" * 1000 + b"}"),
+]
+
+
+@pytest.fixture(scope="module")
+def server(files):
+    s = ViewSession.from_files(str(files / "img.png"), disparity=str(files / "d.png"), export_dir=files,
+                               proxy_long_side=64, display_long_side=120)
+    with ViewServer(s) as srv:
+        yield srv
+
+
+@pytest.mark.parametrize(("path", "body"), MALFORMED, ids=[f"{p}-{i}" for i, (p, _) in enumerate(MALFORMED)])
+def test_malformed_values_are_400_with_one_line(server, path, body):
+    assert len(body) <= 4096
+    status, answer = post(server.url + path, body)
+    assert status == 400, answer
+    message = json.loads(answer)["error"]
+    assert "\n" not in message and len(message) < 400
+
+
+def _start_view(files, *extra):
+    proc = subprocess.Popen([sys.executable, "-c", CLI, "view", str(files / "img.png"), "--disparity",
+                             str(files / "d.png"), "--export-dir", str(files), *extra], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    line = proc.stdout.readline()
+    assert line.startswith("bokehray view: http://127.0.0.1:"), line + proc.stderr.read()
+    return proc, line.split()[2]
+
+
+def _progress(url: str) -> dict:
+    return json.loads(urllib.request.urlopen(url + "api/progress", timeout=HANG_S).read())
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_long_export_stops_with_the_server_and_previews_pass_it(files, sig):
+    """The issue: a ray-traced export of 4096 rays per pixel held the server past Ctrl-C (a second Ctrl-C exited
+    after a CancelledError traceback, the request got a 500) and previews queued behind it."""
+    proc, url = _start_view(files)
+    answers: dict[str, tuple] = {}
+    try:
+        body = json.dumps({"params": {"quality": "raytrace", "max_spp": 65536, "amount": 100}, "format": "exr"})
+
+        def export():
+            answers["export"] = post(url + "api/export", body.encode())
+
+        t = threading.Thread(target=export, daemon=True)
+        t.start()
+        deadline = time.monotonic() + HANG_S  # a hang detector, not a time bound
+        while not any(j["kind"] == "export" for j in _progress(url)["running"]):
+            assert time.monotonic() < deadline and t.is_alive(), answers
+            time.sleep(0.05)
+        # a preview while the export runs: answered, and the export is still running after it
+        status, data = post(url + "api/render", json.dumps({"stage": "preview"}).encode())
+        assert status == 200 and data[:2] == b"\xff\xd8"
+        running = _progress(url)["running"]
+        assert running and running[0]["kind"] == "export" and t.is_alive()
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=HANG_S)
+        t.join(HANG_S)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, err
+    assert "Traceback" not in err and "CancelledError" not in err and "stopped" in err
+    status, data = answers["export"]
+    assert status == 503 and "stopping" in json.loads(data)["error"]
+    assert not list(files.glob("img-bokeh-*.exr"))  # nothing half-written
+
+
+@pytest.mark.slow
+def test_view_errors_are_one_line_and_start_has_no_native_warp_line(files):
+    """The issue: `view` printed Warp's native "CUDA driver not found" line on every start, so every error was two
+    lines; `render` already hides it."""
+    r = subprocess.run([sys.executable, "-c", CLI, "view", str(files / "missing.png"), "--disparity",
+                        str(files / "d.png")], capture_output=True, text=True, timeout=HANG_S)
+    assert r.returncode == 2
+    assert len(r.stderr.strip().splitlines()) == 1 and "missing.png" in r.stderr, r.stderr
+    proc, url = _start_view(files)
+    try:
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=HANG_S)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0 and "CUDA" not in err and "Warp" not in err, err
+    assert err.strip() == "bokehray view: stopped"
