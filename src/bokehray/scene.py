@@ -30,7 +30,7 @@ import bokehray_kernels as bk
 from .options import LayerOptions
 
 __all__ = [
-    "FILL_MIN_REACH_PX", "LayerRecord", "LayerSources", "LayeredScene", "build_layer_sources", "build_scene",
+    "FILL_MIN_REACH_PX", "LayerRecord", "LayerSources", "LayeredScene", "SoftEdges", "build_layer_sources", "build_scene",
     "cap_coc", "copy_tiles", "dilate", "fill_halo", "layer_edges", "pyramid_levels", "scatter_halo", "tile_max",
 ]  # fmt: skip
 
@@ -52,6 +52,34 @@ CUT_CELLS = 2
 halo keeps this many further cells of the coarsest level between them and the tile's core."""
 
 _HISTOGRAM_BIN_PX = 0.25
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class SoftEdges:
+    """Mixed pixels at depth edges split into a near part (foreground colour F with coverage alpha, at near_coc)
+    and a far part (background colour B, coverage 1, at far_coc). Sparse: only the split pixels (flat indices).
+
+    The far part replaces the pixel in the scene (colour B, coverage 1, CoC ``far_coc``); the near part is an
+    extra source (premultiplied ``alpha F``, coverage ``alpha``, CoC ``near_coc``). In focus,
+    ``alpha F + (1 - alpha) B`` is the photo's pixel.
+    """
+
+    index: np.ndarray  # (n,) int64 flat pixel indices (row-major, y * W + x), sorted, unique
+    alpha: np.ndarray  # (n,) float32 in (0, 1): foreground coverage
+    foreground: np.ndarray  # (n, 3) float32 linear RGB, F (decontaminated)
+    background: np.ndarray  # (n, 3) float32 linear RGB, B
+    near_coc: np.ndarray  # (n,) float32 signed CoC (px) of the near part (> far_coc)
+    far_coc: np.ndarray  # (n,) float32 signed CoC of the far part
+
+    @classmethod
+    def empty(cls) -> SoftEdges:
+        """No split pixel: the scene is the photo's, one depth a pixel."""
+        f = np.zeros(0, np.float32)
+        return cls(np.zeros(0, np.int64), f, np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), f.copy(),
+                   f.copy())
+
+    def __len__(self) -> int:
+        return int(self.index.shape[0])
 
 
 def cap_coc(signed_coc: np.ndarray) -> np.ndarray:
