@@ -168,6 +168,26 @@ def check_soft_edges(soft: SoftEdges, shape: tuple[int, int]) -> None:
         raise InputError("soft edges: expected alpha in (0, 1) at every split pixel")
 
 
+def _within_range(alpha: np.ndarray, fg: np.ndarray, bg: np.ndarray, photo: np.ndarray, lo: np.ndarray,
+                  hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """F and B of split pixels kept inside the photo's per-channel range ``[lo, hi]`` (every render is a
+    convex combination of the photo's radiances): where either lies outside it, F is clamped into it and B
+    solved from the photo's pixel ``alpha F + (1 - alpha) B``; if that B lies outside, B is clamped and F solved
+    (then inside, as the pixel is). Pixels whose F and B are inside are untouched."""
+    out = ((fg < lo) | (fg > hi) | (bg < lo) | (bg > hi)).any(axis=1)
+    if not out.any():
+        return fg, bg
+    fg, bg = fg.astype(np.float32), bg.astype(np.float32)
+    a, p = alpha[out, None].astype(np.float64), photo[out].astype(np.float64)
+    f = np.clip(fg[out].astype(np.float64), lo, hi)
+    b = (p - a * f) / (1.0 - a)
+    bad = (b < lo) | (b > hi)
+    b = np.clip(b, lo, hi)
+    f = np.where(bad, (p - (1.0 - a) * b) / a, f)
+    fg[out], bg[out] = np.clip(f, lo, hi), b
+    return fg, bg
+
+
 def split_scene(image: np.ndarray, signed_coc: np.ndarray, soft: SoftEdges | None, active: np.ndarray,
                 options: LayerOptions, level_radius_px: float | None = None
                 ) -> tuple[np.ndarray, np.ndarray, LayeredScene]:
@@ -178,7 +198,8 @@ def split_scene(image: np.ndarray, signed_coc: np.ndarray, soft: SoftEdges | Non
     (``LayeredScene.near``). The layer edges see both parts' CoCs. A split whose parts fall in one layer stays
     the photo's pixel (inside a layer nothing is occluded: the split would change nothing but the ray tracer's
     one depth a pixel), and so does one on a pixel that is not ``active`` (a copied tile: its parts are both
-    in focus, the photo's pixel is their sum). Without split pixels this is ``build_scene`` on the inputs.
+    in focus, the photo's pixel is their sum). F and B are kept inside the photo's colour range
+    (:func:`_within_range`). Without split pixels this is ``build_scene`` on the inputs.
     """
     if soft is None or len(soft) == 0:
         return image, signed_coc, build_scene(signed_coc, active, options, level_radius_px)
@@ -205,11 +226,13 @@ def split_scene(image: np.ndarray, signed_coc: np.ndarray, soft: SoftEdges | Non
         lo, hi = min(lo, float(orig.min())), max(hi, float(orig.max()))
     idx, keep_i = idx[split], np.flatnonzero(keep)[split]
     a = soft.alpha[keep_i].astype(np.float32)
-    value = np.concatenate([soft.foreground[keep_i] * a[:, None], a[:, None]], axis=1).astype(np.float32)
+    img = np.array(image[..., :3], np.float32)
+    fg, bg = _within_range(a, soft.foreground[keep_i], soft.background[keep_i], img.reshape(-1, 3)[idx],
+                           img.min(axis=(0, 1)), img.max(axis=(0, 1)))
+    value = np.concatenate([fg * a[:, None], a[:, None]], axis=1).astype(np.float32)
     parts = NearParts((idx // w).astype(np.int32), (idx % w).astype(np.int32), value, near[split],
                       near_id[split].astype(np.int32))
-    img = np.array(image[..., :3], np.float32)
-    img.reshape(-1, 3)[idx] = soft.background[keep_i]
+    img.reshape(-1, 3)[idx] = bg
     scene = build_scene(s, active, options, level_radius_px, edges=edges, near=parts,
                         max_coc=max(hi, -lo))
     return img, s, scene

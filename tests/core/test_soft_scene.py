@@ -122,7 +122,12 @@ def test_a_split_pixels_sources_sum_to_the_photo_and_its_layers_hold_them(seed, 
     layer_of = {lyr.index: lyr for lyr in scene.layers}
     far_ids = scene.ids.reshape(-1)[soft.index]
     assert kept.all() and (near.layer > far_ids).all()
-    np.testing.assert_array_equal(img.reshape(-1, 3)[soft.index], soft.background)
+    lo, hi = image.min(axis=(0, 1)), image.max(axis=(0, 1))
+    inside = ((soft.foreground >= lo) & (soft.foreground <= hi) & (soft.background >= lo)
+              & (soft.background <= hi)).all(axis=1)  # F and B are kept inside the photo's range
+    np.testing.assert_array_equal(img.reshape(-1, 3)[soft.index][inside], soft.background[inside])
+    assert (img >= lo).all() and (img <= hi).all() and (near.value[:, :3] >= lo * near.value[:, 3:] - 1e-6).all()
+    assert (near.value[:, :3] <= hi * near.value[:, 3:] + 1e-6).all()
     np.testing.assert_array_equal(s2.reshape(-1)[soft.index], soft.far_coc)
     counts = np.bincount(scene.ids[scene.ids >= 0], minlength=scene.n_slots) + np.bincount(near.layer,
                                                                                             minlength=scene.n_slots)
@@ -179,6 +184,37 @@ def test_a_split_in_one_layer_or_a_copied_tile_stays_the_photos_pixel():
     np.testing.assert_array_equal(s2, s)
 
 
+@given(seed=st.integers(0, 2**16), n=st.integers(1, 30))
+def test_split_colours_are_kept_inside_the_photos_range_and_sum_to_its_pixel(seed, n):
+    rng = np.random.default_rng(seed)
+    lo, hi = np.sort(rng.uniform(0.0, 2.0, (2, 3)), axis=0).astype(np.float32)
+    a = rng.uniform(0.01, 0.99, n).astype(np.float32)
+    photo = rng.uniform(lo, hi, (n, 3)).astype(np.float32)
+    fg = (photo + rng.normal(0, 0.5, (n, 3)) * (rng.random((n, 1)) < 0.5)).astype(np.float32)  # some outside
+    bg = ((photo - a[:, None] * fg) / (1 - a[:, None])).astype(np.float32)  # the identity holds
+    f2, b2 = sc._within_range(a, fg, bg, photo, lo, hi)
+    assert (f2 >= lo).all() and (f2 <= hi).all() and (b2 >= lo).all() and (b2 <= hi).all()
+    np.testing.assert_allclose(a[:, None] * f2 + (1 - a[:, None]) * b2, photo, atol=1e-5 * (1 + float(hi.max())))
+    inside = ((fg >= lo) & (fg <= hi) & (bg >= lo) & (bg <= hi)).all(axis=1)
+    np.testing.assert_array_equal(f2[inside], fg[inside])
+    np.testing.assert_array_equal(b2[inside], bg[inside])
+
+
+def test_a_render_with_split_pixels_stays_inside_the_input_range():
+    """Found by test_render_api's range test: a split whose F overshoots the photo's largest value by 1e-3."""
+    image = np.ones((2, 7, 3), np.float32)
+    image[0, 0, 0] = 0.0
+    disparity = np.ones((2, 7), np.float32)
+    disparity[0, ::2] = disparity[1, 1::2] = 0.0
+    a = np.full(2, 0.55, np.float32)
+    soft = sc.SoftEdges(np.array([1, 8], np.int64), a, np.array([[1.002, 1, 1]] * 2, np.float32),
+                        np.array([[(1 - 0.55 * 1.002) / 0.45, 1, 1]] * 2, np.float32), np.full(2, 2.0, np.float32),
+                        np.zeros(2, np.float32))
+    for quality in ("preview", "raytrace"):
+        out, _ = _render(quality, image, disparity, br.BlurParams(2.0, 0.0), soft)
+        assert out.max() <= 1.0 + 1e-6 and out.min() >= 0.0
+
+
 @given(seed=st.integers(0, 2**16), quality=st.sampled_from(["preview", "raytrace"]))
 def test_a_split_pixel_with_no_coverage_renders_like_its_far_part(seed, quality):
     rng = np.random.default_rng(seed)
@@ -189,6 +225,7 @@ def test_a_split_pixel_with_no_coverage_renders_like_its_far_part(seed, quality)
     disparity = (s / blur.k_px + blur.focus_disparity).astype(np.float32)
     soft = dataclasses.replace(soft, alpha=np.full(len(soft), 1e-7, np.float32))
     image = rng.random((h, w, 3)).astype(np.float32)
+    image[0, 0], image[0, 1] = 0.0, 1.0  # the photo's range holds every F and B (none is moved into it)
     far_image = image.copy()
     far_image.reshape(-1, 3)[soft.index] = soft.background
     far_disp = disparity.copy()
