@@ -9,7 +9,7 @@ from scipy import ndimage
 
 from bokehray.depthfix import depth_edges
 from bokehray.errors import InputError
-from bokehray.matting import ramp_width, split_mixed_pixels, window_offsets
+from bokehray.matting import isolated_share, ramp_width, split_mixed_pixels, window_offsets
 from bokehray.scene import SoftEdges
 
 K = 30.0
@@ -72,6 +72,15 @@ def check_contract(se: SoftEdges, image: np.ndarray, coc: np.ndarray, min_alpha:
     assert (se.foreground <= np.maximum(photo / a, 0) * (1 + 1e-5) + 1e-7).all()
 
 
+def test_thin_strands_are_not_noise():
+    """Dense one-pixel strands (diagonal ones too) have neighbours of their own depth along them."""
+    coc = np.full((40, 40), -10.0, np.float32)
+    for k in range(-40, 40, 3):
+        coc[np.eye(40, k=k, dtype=bool)] = 10.0  # diagonal lines one pixel wide, two pixels apart
+    assert isolated_share(coc, 1.0) == 0.0
+    assert isolated_share(np.float32([[1.0]]), 1.0) == 0.0
+
+
 def test_a_flat_map_or_a_smooth_slope_splits_nothing():
     photo, _, _, _, _ = two_plane()
     for coc in (np.zeros(photo.shape[:2], np.float32),
@@ -124,9 +133,12 @@ def test_noise_maps_split_nothing_and_all_edge_maps_stay_finite():
     img = rng.uniform(0, 1, (48, 40, 3)).astype(np.float32)
     noise = rng.uniform(-20, 20, (48, 40)).astype(np.float32)
     assert len(split_mixed_pixels(img, noise)) == 0
-    # a checkerboard of two depths is all edge but not noise (steps alternate): bounded work, a valid result
+    assert isolated_share(noise, 1.0) > 0.5
+    assert len(split_mixed_pixels(img, noise, max_isolated_share=1.0)) > 0  # the guard is what stopped it
+    # a checkerboard of two depths is all edge (and diagonal strands, not noise): bounded work, a valid result
     checker = np.where((np.indices((48, 40)).sum(0) % 2) == 0, 10.0, -10.0).astype(np.float32)
-    se = split_mixed_pixels(img, checker, max_edge_share=1.0)
+    assert isolated_share(checker, 1.0) == 0.0
+    se = split_mixed_pixels(img, checker)
     check_contract(se, img, checker)
 
 
