@@ -266,6 +266,20 @@ def test_the_pipeline_renders_the_matting_split(monkeypatch):
     assert seen == [(64, 96)] and off.tobytes() != got.tobytes()
 
 
+def test_an_rgba_photo_splits_its_colour_and_renders_its_alpha_with_one_depth_a_pixel(monkeypatch):
+    matting = pytest.importorskip("bokehray.matting")
+    t = R.two_plane_scene(64, 96)
+    blur = br.BlurParams(K, D_FAR)
+    disparity = np.where(t["alpha"] >= 0.5, D_NEAR, D_FAR).astype(np.float32)
+    soft = sc.SoftEdges(**R.exact_split(t, R_NEAR, 0.0))
+    monkeypatch.setattr(matting, "split_mixed_pixels", lambda image, s, **kw: soft)
+    alpha = np.linspace(0.0, 1.0, 64 * 96, dtype=np.float32).reshape(64, 96, 1)
+    out = br.render(np.concatenate([t["photo"], alpha], axis=2), disparity, blur)
+    colour, _ = _render("preview", t["photo"], disparity, blur, soft)
+    grey, _ = _render("preview", np.repeat(alpha, 3, axis=2), disparity, blur, None)
+    assert out[..., :3].tobytes() == colour.tobytes() and out[..., 3].tobytes() == grey[..., 0].tobytes()
+
+
 @pytest.mark.parametrize("field,value,match", [
     ("index", np.array([3, 1], np.int64), "sorted unique"),
     ("index", np.array([0, 99], np.int64), "sorted unique"),
