@@ -152,6 +152,25 @@ def test_a_split_pixels_sources_sum_to_the_photo_and_its_layers_hold_them(seed, 
         np.testing.assert_allclose(over, image[y, x], atol=2e-6)
 
 
+@given(seed=st.integers(0, 2**16), h=st.integers(1, 9), w=st.integers(1, 9), pads=st.tuples(*[st.integers(0, 4)] * 4))
+def test_split_pixels_are_padded_like_the_image(seed, h, w, pads):
+    rng = np.random.default_rng(seed)
+    idx = np.flatnonzero(rng.random(h * w) < 0.5).astype(np.int64)
+    n = len(idx)
+    soft = sc.SoftEdges(idx, rng.uniform(0.1, 0.9, n).astype(np.float32), rng.random((n, 3)).astype(np.float32),
+                        rng.random((n, 3)).astype(np.float32), rng.random(n).astype(np.float32) + 2,
+                        rng.random(n).astype(np.float32))
+    got = sc.pad_soft_edges(soft, (h, w), pads)
+    pt, pb, pl, pr = pads
+    dense = np.full(h * w, -1, np.int64)
+    dense[idx] = np.arange(n)
+    want = np.pad(dense.reshape(h, w), ((pt, pb), (pl, pr)), mode="edge").ravel()  # which split pixel each is
+    np.testing.assert_array_equal(got.index, np.flatnonzero(want >= 0))
+    k = want[want >= 0]
+    for field in ("alpha", "foreground", "background", "near_coc", "far_coc"):
+        np.testing.assert_array_equal(getattr(got, field), getattr(soft, field)[k])
+
+
 def test_a_near_part_alone_makes_its_layer_present_and_its_tile_not_copied():
     h, w = 64, 64
     s = np.zeros((h, w), np.float32)  # all in focus: every tile copied today
