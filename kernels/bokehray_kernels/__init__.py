@@ -20,6 +20,7 @@ from .scatter import (
     MAX_LEVELS as MAX_LEVELS,
 )
 from .raytrace import raytrace_kernel as raytrace_kernel
+from .matting import matting_band_kernel as matting_band_kernel
 from .soft import near_sources_kernel as near_sources_kernel
 from .fill import (
     FILL_GATE_SLOPE as FILL_GATE_SLOPE,

@@ -3,12 +3,15 @@
 A pixel on the edge of a near object holds both colours, ``I = alpha F + (1 - alpha) B``, but a disparity map
 gives it one depth. :func:`split_mixed_pixels` finds those pixels and estimates ``alpha``, the decontaminated
 foreground ``F`` and the background ``B`` behind it, so the layered scene (``bokehray.scene.SoftEdges``) can
-blur the two parts with their own CoC. NumPy over the edge bands only:
+blur the two parts with their own CoC. NumPy for the edges and the band, one Warp kernel a band pixel
+(``bokehray_kernels.matting``) for the matting:
 
 1. **Depth edges.** Pairs of 4-neighbours whose signed CoC differs by more than ``jump_px``
    (``depthfix.depth_edges``). A map whose edges are noise (most pixels differ from all their neighbours:
    :func:`isolated_share`) is left alone.
-2. **Trimap.** The unknown band is every pixel within ``band_px`` (Chebyshev) of a depth-edge pixel. A soft map
+2. **Trimap.** The unknown band is every pixel within ``band_px`` (Chebyshev) of a depth-edge pixel (0: the
+   depth-edge pixels themselves, where the alpha >= 0.5 rule of a sensor or an estimator leaves the mixed
+   pixels of a sharp edge). A soft map
    (an estimator's, a blurred one) has ramps: runs of consecutive same-sign steps across the edge; the band and
    the window widen with the measured ramp width (:func:`ramp_width`, capped by ``max_ramp_px``), so the colour
    edge, wherever it lies inside the ramp, decides. Around each band pixel the window's CoC range is split at
@@ -22,7 +25,8 @@ blur the two parts with their own CoC. NumPy over the edge bands only:
 4. **F and B: the model's purest samples.** The same model gives every window pixel an alpha; F is the mean of
    the near side's colours weighted by ``alpha^purity`` and B of the far side's by ``(1 - alpha)^purity``
    (times the Gaussian), so the purest nearby samples dominate: a strand's own core, not the body it grows
-   from. The parts' CoC are the map's values at each side's heaviest sample, not the pixel's own mixed value.
+   from. The parts' CoC are the window's largest and smallest CoC (the plateaus either side of the edge), not
+   the pixel's own value, which a soft map's ramp leaves in between.
 5. **Compositing identity.** Per channel, the change of (F, B) that makes ``alpha F + (1 - alpha) B`` the
    photo's colour while moving each part the least relative to the spread of its side's colours (a light
    behind a strand stays in B instead of lighting up the strand), then kept between 0 and the photo's colour
@@ -36,7 +40,12 @@ pixel is untouched. Results and the choice of method: docs/soft-scene.md.
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
+
+import bokehray_kernels.matting as bk_matting
 
 from .depthfix import depth_edges
 from .errors import InputError
@@ -44,8 +53,8 @@ from .scene import SoftEdges
 
 __all__ = ["isolated_share", "ramp_width", "split_mixed_pixels", "window_offsets"]
 
-_CHUNK = 8192
-"""Band pixels processed together: bounds the memory to a few times ``_CHUNK x window pixels``."""
+_PIXELS_PER_THREAD = 4096
+"""Fewest band pixels a CPU thread of the kernel gets (fewer are not worth a thread)."""
 
 
 def ramp_width(signed_coc: np.ndarray, jump_px: float, cap: int) -> int:
@@ -57,21 +66,24 @@ def ramp_width(signed_coc: np.ndarray, jump_px: float, cap: int) -> int:
         dd = np.diff(signed_coc, axis=ax)
         if dd.size == 0:
             continue
-        sgn = np.where(dd > jump_px, 1, np.where(dd < -jump_px, -1, 0)).astype(np.int8)
-        sgn = np.moveaxis(sgn, ax, -1).reshape(-1, sgn.shape[ax])
-        flat = np.concatenate([sgn, np.zeros((sgn.shape[0], 1), np.int8)], axis=1).ravel()
-        # run boundaries: where the sign changes (zeros end every row)
-        change = np.flatnonzero(np.diff(np.concatenate([[0], flat])) != 0)
-        starts = change
-        ends = np.concatenate([change[1:], [flat.size]])
-        vals = flat[starts]
-        run = ends - starts
-        keep = vals != 0
-        lengths.append(np.repeat(run[keep], run[keep]))
-    if not lengths or sum(v.size for v in lengths) == 0:
+        pos = np.flatnonzero(np.abs(dd) > jump_px)  # row-major positions of the steps (the edge pairs only)
+        if pos.size == 0:
+            continue
+        sign = np.sign(dd.ravel()[pos]).astype(np.int8)
+        rows, cols = np.divmod(pos, dd.shape[1])
+        if ax == 0:  # runs go down the columns: order the steps column by column
+            order = np.lexsort((rows, cols))
+            line, along, sign = cols[order], rows[order], sign[order]
+        else:
+            line, along = rows, cols
+        # a run continues where the next step is the next pixel of the same line with the same sign
+        cont = (line[1:] == line[:-1]) & (along[1:] == along[:-1] + 1) & (sign[1:] == sign[:-1])
+        starts = np.flatnonzero(np.concatenate([[True], ~cont]))
+        run = np.diff(np.concatenate([starts, [pos.size]]))
+        lengths.append(np.repeat(run, run))
+    if not lengths:
         return 0
-    allr = np.concatenate(lengths)
-    return int(min(cap, max(0, int(np.percentile(allr, 90)) - 1)))
+    return int(min(cap, max(0, int(np.percentile(np.concatenate(lengths), 90)) - 1)))
 
 
 def isolated_share(signed_coc: np.ndarray, jump_px: float) -> float:
@@ -139,7 +151,7 @@ def split_mixed_pixels(
     signed_coc: np.ndarray,
     *,
     jump_px: float = 1.0,
-    band_px: int = 1,
+    band_px: int = 0,
     max_ramp_px: int = 6,
     unknown_weight: float = 0.3,
     ridge: float = 0.03,
@@ -147,6 +159,8 @@ def split_mixed_pixels(
     min_contrast: float = 0.02,
     min_alpha: float = 0.1,
     max_isolated_share: float = 0.25,
+    device: str = "cpu",
+    threads: int | None = None,
 ) -> SoftEdges:
     """Split the mixed pixels at the depth edges of ``signed_coc`` into a near and a far part.
 
@@ -154,7 +168,7 @@ def split_mixed_pixels(
         image: ``H x W x 3`` float32, scene-linear (1 or 4 channels are taken as grey / RGB).
         signed_coc: ``H x W`` signed CoC ``K (d - d_f)`` in px (> 0 in front of the focus).
         jump_px: a depth edge is a pair of 4-neighbours whose CoC differs by more than this.
-        band_px: half-width (Chebyshev px) of the unknown band around the depth-edge pixels of a hard edge.
+        band_px: how far (Chebyshev px) the unknown band reaches beyond the depth-edge pixels of a hard edge.
         max_ramp_px: the widest CoC ramp (px) the band and the window widen for (a soft map's edges).
         unknown_weight: weight of the unknown (band) pixels, at their side's value, in the alpha model's fit.
         ridge: regularisation of the alpha model, relative to the window's mean colour.
@@ -167,11 +181,13 @@ def split_mixed_pixels(
         max_isolated_share: a map where more than this share of the pixels differ by more than ``jump_px`` from
             all their neighbours is noise, not edges: nothing is split (a strand one pixel wide, even diagonal,
             has neighbours of its own depth along it).
+        device: the Warp device of the band's kernel.
+        threads: CPU threads of the kernel (None: all cores); the result does not depend on it.
 
     Returns:
         The split pixels (:class:`~bokehray.scene.SoftEdges`); ``SoftEdges.empty()`` when the map has no edge.
         For every split pixel ``alpha F + (1 - alpha) B`` is the photo's colour (up to float32 rounding),
-        ``near_coc > far_coc`` (both values of the map), and F, B lie between 0 and the colour over the part's
+        ``near_coc > far_coc`` (the largest and smallest CoC of the pixel's window), and F, B lie between 0 and the colour over the part's
         share.
 
     Raises:
@@ -185,7 +201,8 @@ def split_mixed_pixels(
     edges = depth_edges(s, float(jump_px))
     if not edges.any():
         return SoftEdges.empty()
-    if isolated_share(s, float(jump_px)) > max_isolated_share:
+    # isolated pixels are edge pixels: only a map with more edge pixels than the share allows can be noise
+    if edges.mean() > max_isolated_share and isolated_share(s, float(jump_px)) > max_isolated_share:
         return SoftEdges.empty()  # noise in the map, not edges
 
     scale = float(np.abs(img).max()) or 1.0
@@ -199,52 +216,12 @@ def split_mixed_pixels(
     y0, y1 = max(0, int(ey.min()) - pad), min(h, int(ey.max()) + pad + 1)
     x0, x1 = max(0, int(ex.min()) - pad), min(w, int(ex.max()) + pad + 1)
     band = _dilate(edges[y0:y1, x0:x1], b)
-    ch, cw = band.shape
-    r = radius
-    wp_ = cw + 2 * r
-    img_p = np.pad(img[y0:y1, x0:x1], ((r, r), (r, r), (0, 0))).reshape(-1, 3)
-    s_p = np.pad(s[y0:y1, x0:x1], r).ravel()
-    valid_p = np.pad(np.ones((ch, cw), bool), r).ravel()
-    unknown_p = np.pad(band, r).ravel()
-    offs, dist = window_offsets(r)
-    off_f = offs[:, 0] * wp_ + offs[:, 1]
-
     by, bx = np.nonzero(band)
-    n = by.size
-    p_f = (by + r) * wp_ + (bx + r)
-    I = img[y0:y1, x0:x1][by, bx]
-    alpha = np.zeros(n, np.float32)
-    F = np.zeros((n, 3), np.float32)
-    B = np.zeros((n, 3), np.float32)
-    vF = np.zeros((n, 3), np.float32)
-    vB = np.zeros((n, 3), np.float32)
-    near = np.zeros(n, np.float32)
-    far = np.zeros(n, np.float32)
-    own_near = np.zeros(n, bool)
-    ok = np.zeros(n, bool)
-    for c0 in range(0, n, _CHUNK):
-        c = slice(c0, min(n, c0 + _CHUNK))
-        q = p_f[c, None] + off_f[None, :]
-        sq, vq, uq = s_p[q], valid_p[q], unknown_p[q]
-        hi = np.where(vq, sq, -np.inf).max(1)
-        lo = np.where(vq, sq, np.inf).min(1)
-        mid = 0.5 * (hi + lo)
-        nearside = vq & (sq > mid[:, None])
-        farside = vq & (sq <= mid[:, None])
-        cq = img_p[q]
-        alpha[c], aq = _linear_alpha(cq, I[c], _window_weights(dist, radius, vq, uq, unknown_weight),
-                                     nearside.astype(np.float32), ridge)
-        g = _window_weights(dist, radius, vq, uq, 1.0)
-        wf = g * nearside * aq ** np.float32(purity)
-        wb = g * farside * (1.0 - aq) ** np.float32(purity)
-        F[c], vF[c] = _side_stats(cq, wf)
-        B[c], vB[c] = _side_stats(cq, wb)
-        # the parts' CoC: the map's value at each side's heaviest sample (not the pixel's own, mixed value)
-        rows = np.arange(q.shape[0])
-        near[c] = sq[rows, np.argmax(wf, axis=1)]
-        far[c] = sq[rows, np.argmax(wb, axis=1)]
-        own_near[c] = s_p[p_f[c]] > mid
-        ok[c] = ((hi - lo) > jump_px) & (wf.max(1) > 0) & (wb.max(1) > 0)
+    out = _band_kernel(img[y0:y1, x0:x1], s[y0:y1, x0:x1], band, by, bx, radius, jump_px, unknown_weight, ridge,
+                       purity, device, threads)
+    alpha, F, B, vF, vB, near, far, flags = out
+    ok = (flags & bk_matting.BAND_OK) != 0
+    own_near = (flags & bk_matting.BAND_OWN_NEAR) != 0
 
     d = F - B
     den = (d * d).sum(1)
@@ -264,42 +241,47 @@ def split_mixed_pixels(
     return SoftEdges(index, a, Fs, Bs, near[split], far[split])
 
 
-def _window_weights(dist: np.ndarray, radius: int, vq: np.ndarray, unknown: np.ndarray,
-                    unknown_weight: float) -> np.ndarray:
-    """The window's weights: a Gaussian of half the window's radius, 0 outside the image, times
-    ``unknown_weight`` for unknown (band) pixels."""
-    g = np.exp(-(dist * dist) / np.float32(2.0 * (0.5 * radius) ** 2)).astype(np.float32)
-    return g[None, :] * vq * np.where(unknown, np.float32(unknown_weight), np.float32(1.0))
+def _band_kernel(img, s, band, by, bx, radius, jump_px, unknown_weight, ridge, purity, device, threads):
+    """Launch ``bokehray_kernels.matting.matting_band_kernel`` over the band pixels (in ``threads`` row bands on
+    the CPU: Warp CPU launches release the GIL). Returns NumPy arrays: alpha, F, B, their variances, the near and
+    far CoC and the flags."""
+    import warp as wp
 
+    n = by.size
+    offs, dist = window_offsets(radius)
+    dev = wp.get_device(device)
+    image = wp.array(np.ascontiguousarray(img, np.float32), dtype=wp.vec3, device=dev)
+    coc = wp.array(np.ascontiguousarray(s, np.float32), dtype=float, device=dev)
+    unknown = wp.array(band.astype(np.uint8), dtype=wp.uint8, device=dev)
+    oy = wp.array(offs[:, 0].astype(np.int32), dtype=wp.int32, device=dev)
+    ox = wp.array(offs[:, 1].astype(np.int32), dtype=wp.int32, device=dev)
+    sigma = 0.5 * radius
+    og = wp.array(np.exp(-(dist.astype(np.float64) ** 2) / (2.0 * sigma * sigma)).astype(np.float32), dtype=float,
+                  device=dev)
+    parts = 1 if dev.is_cuda else max(1, min(int(threads or os.cpu_count() or 1), -(-n // _PIXELS_PER_THREAD)))
+    cuts = np.linspace(0, n, parts + 1).astype(np.int64)
+    outs = [None] * parts
 
-def _linear_alpha(cq: np.ndarray, I: np.ndarray, wt: np.ndarray, y: np.ndarray, ridge: float) -> np.ndarray:
-    """Alpha of each pixel from ``alpha = w . I + c`` fitted on its window by weighted ridge regression.
+    def launch(j: int) -> None:
+        a, b = int(cuts[j]), int(cuts[j + 1])
+        m = b - a
+        res = [wp.empty(m, dtype=float, device=dev)] + [wp.empty(m, dtype=wp.vec3, device=dev) for _ in range(4)] \
+            + [wp.empty(m, dtype=float, device=dev), wp.empty(m, dtype=float, device=dev),
+               wp.empty(m, dtype=wp.int32, device=dev)]
+        if m:
+            wp.launch(bk_matting.matting_band_kernel, dim=m,
+                      inputs=[image, coc, unknown, wp.array(by[a:b].astype(np.int32), dtype=wp.int32, device=dev),
+                              wp.array(bx[a:b].astype(np.int32), dtype=wp.int32, device=dev), oy, ox, og, float(jump_px), float(unknown_weight), float(ridge),
+                              float(purity)],
+                      outputs=res, device=dev)
+        outs[j] = [r.numpy() for r in res]
 
-    ``cq``: the window's colours (m, M, 3); ``I``: the pixels' colours (m, 3); ``wt``: the window's weights
-    (m, M); ``y``: the targets (1 near, 0 far). The ridge is ``ridge^2`` times the window's mean squared colour
-    (scale-free).
-    """
-    sw = np.maximum(wt.sum(1), np.float32(1e-30))
-    wn = (wt / sw[:, None]).astype(np.float32)  # normalised weights
-    mu = np.matmul(wn[:, None, :], cq)[:, 0, :]  # (m, 3)
-    my = (wn * y).sum(1)
-    dc = cq - mu[:, None, :]
-    cov = np.matmul((dc * wn[..., None]).transpose(0, 2, 1), dc)  # (m, 3, 3), positive semi-definite
-    eps = np.float32(ridge) ** 2 * ((mu * mu).mean(1) + np.float32(1e-8))
-    cov = cov + eps[:, None, None] * np.eye(3, dtype=np.float32)[None]
-    cy = np.matmul((wn * (y - my[:, None]))[:, None, :], dc)[:, 0, :]
-    wv = np.linalg.solve(cov.astype(np.float64), cy[..., None].astype(np.float64))[..., 0]
-    alpha = np.clip(my + ((I - mu) * wv).sum(1), 0.0, 1.0).astype(np.float32)
-    window = np.clip(my[:, None] + np.matmul(dc, wv[..., None].astype(np.float32))[..., 0], 0.0, 1.0)
-    return alpha, window.astype(np.float32)
-
-
-def _side_stats(cq: np.ndarray, ws: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Weighted mean and variance (per channel) of the window's colours ``cq`` (m, M, 3) under weights ``ws``."""
-    sw = np.maximum(ws.sum(1), np.float32(1e-30))[:, None]
-    mean = np.matmul(ws[:, None, :], cq)[:, 0, :] / sw
-    var = np.matmul(ws[:, None, :], cq * cq)[:, 0, :] / sw - mean * mean
-    return mean.astype(np.float32), np.maximum(var, 0.0).astype(np.float32)
+    if parts == 1:
+        launch(0)
+    else:
+        with ThreadPoolExecutor(max_workers=parts) as pool:
+            list(pool.map(launch, range(parts)))
+    return tuple(np.concatenate([o[k] for o in outs]) for k in range(8))
 
 
 def _composite_exact(I: np.ndarray, a: np.ndarray, F: np.ndarray, B: np.ndarray, var_f: np.ndarray,

@@ -11,6 +11,7 @@ from bokehray.depthfix import depth_edges
 from bokehray.errors import InputError
 from bokehray.matting import isolated_share, ramp_width, split_mixed_pixels, window_offsets
 from bokehray.scene import SoftEdges
+from reference.matting_ref import ramp_width_ref
 
 K = 30.0
 
@@ -59,7 +60,7 @@ def check_contract(se: SoftEdges, image: np.ndarray, coc: np.ndarray, min_alpha:
     assert n == 0 or (se.index.min() >= 0 and se.index.max() < h * w)
     assert ((se.alpha >= min_alpha) & (se.alpha <= 1.0 - min_alpha)).all()
     assert (se.near_coc > se.far_coc).all()
-    # the split pixels' CoC are values of the map (the chosen samples'), not invented ones
+    # the split pixels' CoC are values of the map (the window's plateaus), not invented ones
     assert np.isin(se.near_coc, coc).all() and np.isin(se.far_coc, coc).all()
     photo = image.reshape(-1, image.shape[-1])[se.index][:, :3].astype(np.float64)
     a = se.alpha.astype(np.float64)[:, None]
@@ -103,18 +104,21 @@ def test_two_plane_contract_and_only_pixels_at_the_edges_split():
     se = split_mixed_pixels(photo, coc)
     assert len(se) > 0
     check_contract(se, photo, coc)
-    # hard edges: the band is band_px (1) around the depth-edge pixels; nothing else is touched
-    band = ndimage.binary_dilation(depth_edges(coc, 1.0), np.ones((3, 3), bool))
-    assert band.ravel()[se.index].all()
+    # hard edges: the band is the depth-edge pixels (band_px 0); nothing else is touched
+    assert depth_edges(coc, 1.0).ravel()[se.index].all()
+    se1 = split_mixed_pixels(photo, coc, band_px=1)
+    assert ndimage.binary_dilation(depth_edges(coc, 1.0), np.ones((3, 3), bool)).ravel()[se1.index].all()
+    assert len(se1) >= len(se)
     # the near and far parts carry the two planes' CoC, not a mixed value
     assert set(np.unique(se.near_coc)) == {np.float32(K * 0.4)}
     assert set(np.unique(se.far_coc)) == {np.float32(-K * 0.3)}
 
 
-@pytest.mark.parametrize("kind, bound", [("disc", 0.06), ("strands", 0.12)])
+@pytest.mark.parametrize("kind, bound", [("disc", 0.05), ("strands", 0.09)])
 def test_alpha_accuracy_on_two_planes(kind, bound):
-    """Alpha RMSE over the mixed pixels and their neighbours: well below one depth a pixel (the alpha >= 0.5 rule,
-    about 0.2 here) and below the bound (measured: disc 0.03-0.04, strands 0.06-0.08 over seeds 0-2)."""
+    """Alpha RMSE over the mixed pixels and their neighbours: well below one depth a pixel (the alpha >= 0.5 rule:
+    0.14 disc, 0.19 strands) and below the bound (measured over seeds 0-2: disc 0.026-0.031, strands 0.057-0.059);
+    F of the pixels mostly foreground within 0.05 (measured 0.013-0.033)."""
     for seed in range(3):
         photo, coc, alpha, fg, bg = two_plane(seed=seed, kind=kind)
         se = split_mixed_pixels(photo, coc)
@@ -125,7 +129,7 @@ def test_alpha_accuracy_on_two_planes(kind, bound):
         # decontaminated colours: F of the pixels that hold most of the foreground is near the true F
         idx = se.index[alpha.ravel()[se.index] > 0.3]
         fg_err = np.abs(se.foreground[np.isin(se.index, idx)] - fg.reshape(-1, 3)[idx]).mean()
-        assert fg_err < 0.1, fg_err
+        assert fg_err < 0.05, fg_err
 
 
 def test_noise_maps_split_nothing_and_all_edge_maps_stay_finite():
@@ -218,3 +222,56 @@ def test_invariants_on_random_layered_input(h, w, seed, jump):
     coc = np.pad(coc, ((0, h - coc.shape[0]), (0, w - coc.shape[1])), mode="edge")
     se = split_mixed_pixels(img, coc)
     check_contract(se, img, coc)
+
+
+def test_ramp_width_matches_the_reference():
+    rng = np.random.default_rng(5)
+    for k in range(6):
+        coc = rng.choice([-8.0, 0.0, 9.0], (5, 7)).repeat(3, 0).repeat(3, 1).astype(np.float32)
+        if k % 2:
+            coc = ndimage.gaussian_filter(coc, 0.5 + k * 0.3)
+        for cap in (2, 6):
+            assert ramp_width(coc, 1.0, cap) == ramp_width_ref(coc, 1.0, cap)
+    assert ramp_width(np.zeros((1, 1), np.float32), 1.0, 6) == 0
+
+
+@pytest.mark.parametrize("soft", [False, True])
+def test_band_kernel_matches_the_reference(device, soft):
+    """The Warp kernel against the float64 loop of tests/reference/matting_ref.py, pixel by pixel."""
+    from bokehray.matting import _band_kernel
+    from reference.matting_ref import band_pixel_ref, gaussian_weights
+
+    photo, coc, _, _, _ = two_plane(n=28, seed=4, kind="strands" if soft else "disc")
+    if soft:
+        coc = ndimage.gaussian_filter(coc, 1.0)
+    img = photo / np.float32(photo.max())
+    edges = depth_edges(coc, 1.0)
+    band = ndimage.binary_dilation(edges, np.ones((3, 3), bool))
+    by, bx = np.nonzero(band)
+    radius, params = 5, (1.0, 0.3, 0.03, 8.0)
+    got = _band_kernel(img, coc, band, by, bx, radius, *params, device, 2)
+    offs, dist = window_offsets(radius)
+    g = gaussian_weights(dist, radius)
+    flags = got[7]
+    for i in range(by.size):
+        a, F, B, vF, vB, near, far, ok, own = band_pixel_ref(img, coc, band, by[i], bx[i], offs, g, *params)
+        assert bool(flags[i] & 1) == ok and bool(flags[i] & 2) == own
+        if not ok:
+            continue
+        assert abs(got[0][i] - a) < 2e-4
+        np.testing.assert_allclose(got[1][i], F, atol=2e-5)
+        np.testing.assert_allclose(got[2][i], B, atol=2e-5)
+        np.testing.assert_allclose(got[3][i], vF, atol=2e-5)
+        np.testing.assert_allclose(got[4][i], vB, atol=2e-5)
+        assert got[5][i] == np.float32(near) and got[6][i] == np.float32(far)
+
+
+def test_threads_do_not_change_the_result(monkeypatch):
+    import bokehray.matting as matting
+
+    monkeypatch.setattr(matting, "_PIXELS_PER_THREAD", 16)  # a small scene in several launches
+    photo, coc, _, _, _ = two_plane(n=96, seed=2, kind="strands")
+    one = split_mixed_pixels(photo, coc, threads=1)
+    two = split_mixed_pixels(photo, coc, threads=3)
+    for f in ("index", "alpha", "foreground", "background", "near_coc", "far_coc"):
+        np.testing.assert_array_equal(getattr(one, f), getattr(two, f))
