@@ -275,3 +275,17 @@ def test_threads_do_not_change_the_result(monkeypatch):
     two = split_mixed_pixels(photo, coc, threads=3)
     for f in ("index", "alpha", "foreground", "background", "near_coc", "far_coc"):
         np.testing.assert_array_equal(getattr(one, f), getattr(two, f))
+
+
+def test_a_pure_corner_over_noise_stays_whole():
+    """The corners of a flat square over per-pixel noise: the model's window is mostly noise, but the pixel's
+    colour is the square's: nothing inside the square is split (found by test_render_api's no-halo test)."""
+    rng = np.random.default_rng(0)
+    image = rng.random((80, 80, 3)).astype(np.float32)
+    coc = np.full((80, 80), -12.0, np.float32)
+    coc[20:60, 20:60] = 0.0
+    image[20:60, 20:60] = [0.2, 0.9, 0.1]
+    se = split_mixed_pixels(image, coc)
+    check_contract(se, image, coc)
+    y, x = np.divmod(se.index, 80)
+    assert not ((y >= 20) & (y < 60) & (x >= 20) & (x < 60)).any()
