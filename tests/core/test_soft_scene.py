@@ -15,7 +15,6 @@ import dataclasses
 
 import numpy as np
 import pytest
-import warp as wp
 from hypothesis import given
 from hypothesis import strategies as st
 
