@@ -51,6 +51,7 @@ import bokehray_kernels.matting as bk_matting
 from .depthfix import depth_edges
 from .errors import InputError
 from .scene import SoftEdges
+from .validate import check_finite
 
 __all__ = ["isolated_share", "ramp_width", "split_mixed_pixels", "window_offsets"]
 
@@ -132,10 +133,8 @@ def _check(image: np.ndarray, signed_coc: np.ndarray) -> tuple[np.ndarray, np.nd
         raise InputError(f"image, signed_coc: expected numeric arrays, got {img.dtype} and {s.dtype}")
     img = np.asarray(img[..., :3] if img.shape[2] >= 3 else np.repeat(img, 3, axis=2), np.float32)
     s = np.asarray(s, np.float32)
-    for a, name in ((img, "image"), (s, "signed_coc")):
-        bad = ~np.isfinite(a)
-        if bad.any():
-            raise InputError(f"{name}: expected finite values, got NaN/Inf at {np.unravel_index(int(np.argmax(bad)), bad.shape)}")
+    check_finite(img, "image", "(y, x, c)")
+    check_finite(s, "signed_coc")
     return np.ascontiguousarray(img), np.ascontiguousarray(s)
 
 
@@ -189,8 +188,8 @@ def split_mixed_pixels(
     Returns:
         The split pixels (:class:`~bokehray.scene.SoftEdges`); ``SoftEdges.empty()`` when the map has no edge.
         For every split pixel ``alpha F + (1 - alpha) B`` is the photo's colour (up to float32 rounding),
-        ``near_coc > far_coc`` (the largest and smallest CoC of the pixel's window), and F, B lie between 0 and the colour over the part's
-        share.
+        ``near_coc > far_coc`` (the largest and smallest CoC of the pixel's window), and F, B lie between 0 and
+        the colour over the part's share.
 
     Raises:
         InputError: mismatched shapes, non-numeric or non-finite input.
@@ -276,8 +275,8 @@ def _band_kernel(img, s, band, by, bx, radius, jump_px, unknown_weight, ridge, p
         if m:
             wp.launch(bk_matting.matting_band_kernel, dim=m,
                       inputs=[image, coc, unknown, wp.array(by[a:b].astype(np.int32), dtype=wp.int32, device=dev),
-                              wp.array(bx[a:b].astype(np.int32), dtype=wp.int32, device=dev), oy, ox, og, float(jump_px), float(unknown_weight), float(ridge),
-                              float(purity)],
+                              wp.array(bx[a:b].astype(np.int32), dtype=wp.int32, device=dev), oy, ox, og,
+                              float(jump_px), float(unknown_weight), float(ridge), float(purity)],
                       outputs=res, device=dev)
         outs[j] = [r.numpy() for r in res]
 
