@@ -20,6 +20,8 @@ from .scatter import (
     MAX_LEVELS as MAX_LEVELS,
 )
 from .raytrace import raytrace_kernel as raytrace_kernel
+from .matting import matting_band_kernel as matting_band_kernel
+from .soft import near_sources_kernel as near_sources_kernel
 from .fill import (
     FILL_GATE_SLOPE as FILL_GATE_SLOPE,
     fill_sources_kernel as fill_sources_kernel,
@@ -41,6 +43,7 @@ __all__ = [
     "finalize_kernel",
     "halve_mean_kernel",
     "layer_sources_kernel",
+    "near_sources_kernel",
     "prefix_rows_kernel",
     "pull_kernel",
     "raytrace_kernel",

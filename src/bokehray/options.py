@@ -30,6 +30,10 @@ class LayerOptions:
         min_layer_px: a CoC range narrower than this is one layer.
         fill: extend layers behind nearer ones by pull-push (see bokehray_kernels.fill).
         tile_px: side of the grid on which in-focus tiles are skipped and layers' boxes are planned.
+        soft_edges: split the mixed pixels at depth edges into a near part (foreground colour with its coverage,
+            at the near depth) and a far part (background colour, at the far depth) by matting
+            (``bokehray.matting.split_mixed_pixels``), so that neither share takes the other's blur; False gives
+            every pixel one depth and one colour.
     """
 
     max_layers: int = 8
@@ -37,14 +41,16 @@ class LayerOptions:
     min_layer_px: float = 1.0
     fill: bool = True
     tile_px: int = 16
+    soft_edges: bool = True
 
     def __post_init__(self) -> None:
         check_int(self.max_layers, "max_layers", lo=1)
         check_int(self.tile_px, "tile_px", lo=1)
         check_number(self.max_layer_px, "max_layer_px", 0.0, lo_open=True)
         check_number(self.min_layer_px, "min_layer_px", 0.0, lo_open=True)
-        if not isinstance(self.fill, bool):
-            raise InputError(f"fill: expected True or False, got {self.fill!r}")
+        for name in ("fill", "soft_edges"):
+            if not isinstance(getattr(self, name), bool):
+                raise InputError(f"{name}: expected True or False, got {getattr(self, name)!r}")
 
 
 @dataclass(frozen=True, slots=True)

@@ -6,6 +6,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import os
 from dataclasses import replace
 from collections.abc import Callable
@@ -99,6 +100,18 @@ def _check_device(device: str) -> str:
     return str(dev)
 
 
+def _soft_edges(image: np.ndarray, signed_coc: np.ndarray, layers: LayerOptions):
+    """The mixed pixels at depth edges split by matting (``LayerOptions.soft_edges``), a ``scene.SoftEdges``
+    checked against the image; None when off or where this build has no matting module."""
+    if not layers.soft_edges or importlib.util.find_spec("bokehray.matting") is None:
+        return None
+    from .matting import split_mixed_pixels
+
+    soft = split_mixed_pixels(image, signed_coc)
+    scene.check_soft_edges(soft, signed_coc.shape)
+    return soft
+
+
 def _check_shape_fits(image: object, level_whole_image_b: int, memory: MemoryOptions) -> None:
     """Refuse a render from the input's shape alone, before anything is copied (a broadcast view of 1e10
     pixels must not be turned into a 112 GiB array first)."""
@@ -170,15 +183,20 @@ def render_with_stats(
         work[..., :3] = boost_highlights(work[..., :3], highlight_boost)  # colour only, never alpha
     s = blur.signed_coc(d)
     raw_max = max(float(s.max()), -float(s.min())) if s.size else 0.0
-    ctx = RenderContext(np.ascontiguousarray(work[..., :3]), d, scene.cap_coc(s), blur, aperture, layers, memory,
-                        options, device, progress)
+    rgb, capped = np.ascontiguousarray(work[..., :3]), scene.cap_coc(s)
+    ctx = RenderContext(rgb, d, capped, blur, aperture, layers, memory, options, device, progress,
+                        _soft_edges(rgb, capped, layers))
 
     if refining:
         # the refiner's depth correction runs first, so the level renders once, on the corrected map
         rendered = {}
 
         def render_level(dd: np.ndarray) -> np.ndarray:
-            c = ctx if dd is d else replace(ctx, disparity=dd, signed_coc=scene.cap_coc(blur.signed_coc(dd)))
+            if dd is d:
+                c = ctx
+            else:  # a corrected depth moves the depth edges: split its mixed pixels anew
+                sc = scene.cap_coc(blur.signed_coc(dd))
+                c = replace(ctx, disparity=dd, signed_coc=sc, soft=_soft_edges(ctx.image, sc, layers))
             rgb, rendered["stats"] = level.render(c)
             rendered["ctx"] = c
             return rgb

@@ -6,8 +6,10 @@ From one image and its signed CoC map ``s = K (d - d_f)`` (px, > 0 in front of t
 2. tiles that nothing blurred can reach are marked to copy (:func:`copy_tiles`, preview only);
 3. the remaining pixels are cut into depth layers by ``s`` (:func:`layer_edges`): a :class:`LayeredScene`
    holds the per-pixel layer ids, the edges, the largest CoC and one :class:`LayerRecord` per layer (its CoC
-   range, bounding box, radius bound and fill reach);
-4. each layer's sources, its own pixels plus the pull-push fill of the region nearer layers hide
+   range, bounding box, radius bound and fill reach); with soft edges (:class:`SoftEdges`, from matting) the
+   mixed pixels at depth edges are split first (:func:`split_scene`): the far part is the pixel, the near part
+   a source of the layer its CoC falls in (:class:`NearParts`);
+4. each layer's sources, its own pixels, its near parts, plus the pull-push fill of the region nearer layers hide
    (:func:`build_layer_sources`);
 5. how far a layer's light and fill reach (:func:`scatter_halo`, :func:`fill_halo`), so tiles can be cut
    with exact halos (``bokehray.tiling``).
@@ -30,8 +32,9 @@ import bokehray_kernels as bk
 from .options import LayerOptions
 
 __all__ = [
-    "FILL_MIN_REACH_PX", "LayerRecord", "LayerSources", "LayeredScene", "build_layer_sources", "build_scene",
-    "cap_coc", "copy_tiles", "dilate", "fill_halo", "layer_edges", "pyramid_levels", "scatter_halo", "tile_max",
+    "FILL_MIN_REACH_PX", "LayerRecord", "LayerSources", "LayeredScene", "NearParts", "SoftEdges", "build_layer_sources",
+    "build_scene", "cap_coc", "check_soft_edges", "copy_tiles", "dilate", "fill_halo", "layer_edges", "pad_soft_edges",
+    "pyramid_levels", "scatter_halo", "soft_radius", "split_scene", "tile_max",
 ]  # fmt: skip
 
 FILL_MIN_REACH_PX = 0.5
@@ -52,6 +55,190 @@ CUT_CELLS = 2
 halo keeps this many further cells of the coarsest level between them and the tile's core."""
 
 _HISTOGRAM_BIN_PX = 0.25
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class SoftEdges:
+    """Mixed pixels at depth edges split into a near part (foreground colour F with coverage alpha, at near_coc)
+    and a far part (background colour B, coverage 1, at far_coc). Sparse: only the split pixels (flat indices).
+
+    The far part replaces the pixel in the scene (colour B, coverage 1, CoC ``far_coc``); the near part is an
+    extra source (premultiplied ``alpha F``, coverage ``alpha``, CoC ``near_coc``). In focus,
+    ``alpha F + (1 - alpha) B`` is the photo's pixel.
+    """
+
+    index: np.ndarray  # (n,) int64 flat pixel indices (row-major, y * W + x), sorted, unique
+    alpha: np.ndarray  # (n,) float32 in (0, 1): foreground coverage
+    foreground: np.ndarray  # (n, 3) float32 linear RGB, F (decontaminated)
+    background: np.ndarray  # (n, 3) float32 linear RGB, B
+    near_coc: np.ndarray  # (n,) float32 signed CoC (px) of the near part (> far_coc)
+    far_coc: np.ndarray  # (n,) float32 signed CoC of the far part
+
+    @classmethod
+    def empty(cls) -> SoftEdges:
+        """No split pixel: the scene is the photo's, one depth a pixel."""
+        f = np.zeros(0, np.float32)
+        return cls(np.zeros(0, np.int64), f, np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), f.copy(),
+                   f.copy())
+
+    def __len__(self) -> int:
+        return int(self.index.shape[0])
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class NearParts:
+    """The near parts of the split pixels as a scene holds them: position (y, x) in the scene's frame (or a
+    window's, :meth:`window`), the premultiplied source ``(alpha F, alpha)``, its signed CoC and its layer."""
+
+    y: np.ndarray  # (n,) int32
+    x: np.ndarray  # (n,) int32
+    value: np.ndarray  # (n, 4) float32
+    coc: np.ndarray  # (n,) float32
+    layer: np.ndarray  # (n,) int32
+
+    @classmethod
+    def empty(cls) -> NearParts:
+        i = np.zeros(0, np.int32)
+        return cls(i, i.copy(), np.zeros((0, 4), np.float32), np.zeros(0, np.float32), i.copy())
+
+    def __len__(self) -> int:
+        return int(self.y.shape[0])
+
+    def window(self, box: tuple[int, int, int, int]) -> NearParts:
+        """The parts inside ``box`` (y0, y1, x0, x1), in the box's coordinates."""
+        y0, y1, x0, x1 = box
+        k = (self.y >= y0) & (self.y < y1) & (self.x >= x0) & (self.x < x1)
+        return NearParts((self.y[k] - y0).astype(np.int32), (self.x[k] - x0).astype(np.int32), self.value[k],
+                         self.coc[k], self.layer[k])
+
+
+def pad_soft_edges(soft: SoftEdges, shape: tuple[int, int], pads: tuple[int, int, int, int]) -> SoftEdges:
+    """``soft`` on the frame of ``shape`` edge-replicated by ``pads`` (top, bottom, left, right), as
+    ``np.pad(mode="edge")`` replicates the image: a split pixel on the border is split alike in its replicas."""
+    h0, w0 = shape
+    pt, pb, pl, pr = pads
+    w = w0 + pl + pr
+    if len(soft) == 0:
+        return soft
+    y, x = soft.index // w0, soft.index % w0
+    rows, cols, src = [y + pt], [x + pl], [np.arange(len(soft))]
+    for i in np.flatnonzero((y == 0) | (y == h0 - 1) | (x == 0) | (x == w0 - 1)):  # the border's: few
+        ys = [y[i] + pt] + (list(range(pt)) if y[i] == 0 else []) + (list(range(h0 + pt, h0 + pt + pb))
+                                                                      if y[i] == h0 - 1 else [])
+        xs = [x[i] + pl] + (list(range(pl)) if x[i] == 0 else []) + (list(range(w0 + pl, w0 + pl + pr))
+                                                                      if x[i] == w0 - 1 else [])
+        yy, xx = np.meshgrid(ys, xs, indexing="ij")
+        keep = (yy != y[i] + pt) | (xx != x[i] + pl)  # its replicas (itself is in already)
+        rows.append(yy[keep])
+        cols.append(xx[keep])
+        src.append(np.full(int(keep.sum()), i))
+    index = np.concatenate(rows).astype(np.int64) * w + np.concatenate(cols).astype(np.int64)
+    order = np.argsort(index, kind="stable")
+    k = np.concatenate(src).astype(np.int64)[order]
+    return SoftEdges(index[order], soft.alpha[k], soft.foreground[k], soft.background[k], soft.near_coc[k],
+                     soft.far_coc[k])
+
+
+def soft_radius(signed_coc: np.ndarray, soft: SoftEdges | None) -> np.ndarray:
+    """The CoC radius a pixel's light can have: ``|s|``, and at split pixels the larger of its two parts' (what
+    :func:`copy_tiles` must see)."""
+    r = np.abs(signed_coc)
+    if soft is not None and len(soft):
+        flat = r.reshape(-1)
+        flat[soft.index] = np.maximum(np.abs(soft.near_coc), np.abs(soft.far_coc))
+    return r
+
+
+def check_soft_edges(soft: SoftEdges, shape: tuple[int, int]) -> None:
+    """Refuse split pixels that are not what :class:`SoftEdges` promises (one clear line)."""
+    from .errors import InputError
+
+    n = len(soft)
+    idx = np.asarray(soft.index)
+    if idx.ndim != 1 or any(np.shape(a)[:1] != (n,) for a in (soft.alpha, soft.foreground, soft.background,
+                                                                   soft.near_coc, soft.far_coc)):
+        raise InputError(f"soft edges: expected n entries in every field, got index {idx.shape}, alpha "
+                         f"{np.shape(soft.alpha)}, foreground {np.shape(soft.foreground)}")
+    if n == 0:
+        return
+    if idx.min() < 0 or idx.max() >= shape[0] * shape[1] or (np.diff(idx) <= 0).any():
+        raise InputError(f"soft edges: expected sorted unique pixel indices in [0, {shape[0] * shape[1]}), got "
+                         f"{int(idx.min())} .. {int(idx.max())}")
+    fields = (soft.alpha, soft.foreground, soft.background, soft.near_coc, soft.far_coc)
+    if not all(np.isfinite(a).all() for a in fields):
+        raise InputError("soft edges: expected finite alpha, colours and CoCs")
+    if (soft.alpha <= 0).any() or (soft.alpha >= 1).any():
+        raise InputError("soft edges: expected alpha in (0, 1) at every split pixel")
+
+
+def _within_range(alpha: np.ndarray, fg: np.ndarray, bg: np.ndarray, photo: np.ndarray, lo: np.ndarray,
+                  hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """F and B of split pixels kept inside the photo's per-channel range ``[lo, hi]`` (every render is a
+    convex combination of the photo's radiances): where either lies outside it, F is clamped into it and B
+    solved from the photo's pixel ``alpha F + (1 - alpha) B``; if that B lies outside, B is clamped and F solved
+    (then inside, as the pixel is). Pixels whose F and B are inside are untouched."""
+    out = ((fg < lo) | (fg > hi) | (bg < lo) | (bg > hi)).any(axis=1)
+    if not out.any():
+        return fg, bg
+    fg, bg = fg.astype(np.float32), bg.astype(np.float32)
+    a, p = alpha[out, None].astype(np.float64), photo[out].astype(np.float64)
+    f = np.clip(fg[out].astype(np.float64), lo, hi)
+    b = (p - a * f) / (1.0 - a)
+    bad = (b < lo) | (b > hi)
+    b = np.clip(b, lo, hi)
+    f = np.where(bad, (p - (1.0 - a) * b) / a, f)
+    fg[out], bg[out] = np.clip(f, lo, hi), b
+    return fg, bg
+
+
+def split_scene(image: np.ndarray, signed_coc: np.ndarray, soft: SoftEdges | None, active: np.ndarray,
+                options: LayerOptions, level_radius_px: float | None = None
+                ) -> tuple[np.ndarray, np.ndarray, LayeredScene]:
+    """The layered scene with the mixed pixels of ``soft`` split: (colour, signed CoC, scene) to build sources on.
+
+    A split pixel's far part replaces it (colour B, signed CoC ``far_coc``: it is a pixel of the far part's
+    layer); its near part (``alpha F``, ``alpha``) is a source of the layer ``near_coc`` falls in
+    (``LayeredScene.near``). The layer edges see both parts' CoCs. A split whose parts fall in one layer stays
+    the photo's pixel (inside a layer nothing is occluded: the split would change nothing but the ray tracer's
+    one depth a pixel), and so does one on a pixel that is not ``active`` (a copied tile: its parts are both
+    in focus, the photo's pixel is their sum). F and B are kept inside the photo's colour range
+    (:func:`_within_range`). Without split pixels this is ``build_scene`` on the inputs.
+    """
+    if soft is None or len(soft) == 0:
+        return image, signed_coc, build_scene(signed_coc, active, options, level_radius_px)
+    h, w = signed_coc.shape
+    keep = active.reshape(-1)[soft.index]
+    idx = soft.index[keep]
+    far = soft.far_coc[keep].astype(np.float32)
+    near = soft.near_coc[keep].astype(np.float32)
+    s = signed_coc.copy()
+    s.reshape(-1)[idx] = far
+    values = np.concatenate([s[active], near])
+    edges = layer_edges(values, options)
+    e32 = _float32_edges(edges)
+    far_id = np.clip(np.searchsorted(e32, far, side="right") - 1, 0, len(edges) - 2)
+    near_id = np.clip(np.searchsorted(e32, near, side="right") - 1, 0, len(edges) - 2)
+    split = near_id > far_id
+    back = idx[~split]  # one layer (or near behind far): the photo's pixel
+    s.reshape(-1)[back] = signed_coc.reshape(-1)[back]
+    lo, hi = float(values.min()), float(values.max())
+    if len(back):  # keep the photo's CoC of those pixels inside the layers' range
+        orig = signed_coc.reshape(-1)[back]
+        edges[0] = min(edges[0], float(orig.min()) - 0.5)
+        edges[-1] = max(edges[-1], float(orig.max()) + 0.5)
+        lo, hi = min(lo, float(orig.min())), max(hi, float(orig.max()))
+    idx, keep_i = idx[split], np.flatnonzero(keep)[split]
+    a = soft.alpha[keep_i].astype(np.float32)
+    img = np.array(image[..., :3], np.float32)
+    fg, bg = _within_range(a, soft.foreground[keep_i], soft.background[keep_i], img.reshape(-1, 3)[idx],
+                           img.min(axis=0).min(axis=0), img.max(axis=0).max(axis=0))  # (25x faster than axis=(0, 1))
+    value = np.concatenate([fg * a[:, None], a[:, None]], axis=1).astype(np.float32)
+    parts = NearParts((idx // w).astype(np.int32), (idx % w).astype(np.int32), value, near[split],
+                      near_id[split].astype(np.int32))
+    img.reshape(-1, 3)[idx] = bg
+    scene = build_scene(s, active, options, level_radius_px, edges=edges, near=parts,
+                        max_coc=max(hi, -lo))
+    return img, s, scene
 
 
 def cap_coc(signed_coc: np.ndarray) -> np.ndarray:
@@ -258,13 +445,15 @@ class LayerSupport:
 class LayeredScene:
     """The photo cut into depth layers: per-pixel layer ids (-1 = copied, in no layer), the layer edges in CoC
     px, the largest CoC radius of the layered pixels, and the present layers far to near (ids grow towards the
-    camera). ``level_radius_px`` is the radius-pyramid step the boxes were padded for (None: no pyramid)."""
+    camera). ``level_radius_px`` is the radius-pyramid step the boxes were padded for (None: no pyramid). ``near``:
+the near parts of split pixels (:func:`split_scene`), sources of the layers they fall in."""
 
     ids: np.ndarray
     edges: np.ndarray
     max_coc: float
     layers: tuple[LayerRecord, ...]
     level_radius_px: float | None
+    near: NearParts = dataclasses.field(default_factory=NearParts.empty)
 
     @property
     def n_slots(self) -> int:
@@ -273,17 +462,20 @@ class LayeredScene:
 
 
 def build_scene(signed_coc: np.ndarray, active: np.ndarray, options: LayerOptions,
-                level_radius_px: float | None = None) -> LayeredScene:
+                level_radius_px: float | None = None, *, edges: np.ndarray | None = None,
+                near: NearParts | None = None, max_coc: float | None = None) -> LayeredScene:
     """Cut the active pixels into depth layers.
 
     Each record holds the layer's CoC range, its bounding box (its tiles, padded by its largest CoC, by the
     pyramid's spread when scattered with ``level_radius_px``, and by the fill's reach when filled) and the reach
-    of everything nearer.
+    of everything nearer. ``edges``, ``near`` and ``max_coc`` come from :func:`split_scene` (the near parts of
+    split pixels: they count among their layers' pixels and tiles); by default the active pixels' own.
     """
     h, w = signed_coc.shape
-    values = signed_coc[active]
-    max_coc = max(float(values.max()), -float(values.min()))
-    edges = layer_edges(values, options)
+    if edges is None:
+        values = signed_coc[active]
+        max_coc = max(float(values.max()), -float(values.min()))
+        edges = layer_edges(values, options)
     sid = (np.searchsorted(_float32_edges(edges), signed_coc, side="right") - 1).astype(np.int32)
     np.clip(sid, 0, len(edges) - 2, out=sid)
     sid[~active] = -1
@@ -298,6 +490,10 @@ def build_scene(signed_coc: np.ndarray, active: np.ndarray, options: LayerOption
     tile_lo = np.minimum(sid_t.view(np.uint32).min(axis=(1, 3)), n_slices)  # -1 (no layer) as the largest
     tile_hi = sid_t.max(axis=(1, 3))
     counts = np.bincount(sid[active], minlength=n_slices)
+    near_tiles = None
+    if near is not None and len(near):
+        counts = counts + np.bincount(near.layer, minlength=n_slices)
+        near_tiles = (near.layer, near.y // t, near.x // t)
     present = counts > 0
     # CoC reach of everything nearer than each layer: suffix maximum of the layers' radius bounds
     max_r_slice = np.minimum(np.maximum(np.abs(edges[:-1]), np.abs(edges[1:])), max_coc)
@@ -310,6 +506,9 @@ def build_scene(signed_coc: np.ndarray, active: np.ndarray, options: LayerOption
     layers = []
     for i in np.flatnonzero(present):
         own = (tile_lo <= i) & (tile_hi >= i)  # the tiles that may hold its pixels (a superset of those that do)
+        if near_tiles is not None:
+            mine = near_tiles[0] == i
+            own[near_tiles[1][mine], near_tiles[2][mine]] = True  # and its near parts of split pixels
         ty, tx = np.nonzero(own)
         reach = float(nearer_reach[i]) if options.fill else 0.0
         pad = light_pad(float(max_r_slice[i]), reach, level_radius_px)
@@ -318,7 +517,8 @@ def build_scene(signed_coc: np.ndarray, active: np.ndarray, options: LayerOption
         support = dilate_tiles(own, -(-pad // t)) if t >= SUPPORT_MIN_TILE_PX and t & (t - 1) == 0 else None
         layers.append(LayerRecord(int(i), float(edges[i]), float(edges[i + 1]), bbox, float(max_r_slice[i]), reach,
                                   support, t, pixels=int(counts[i])))
-    return LayeredScene(sid, edges, max_coc, tuple(layers), level_radius_px)
+    return LayeredScene(sid, edges, max_coc, tuple(layers), level_radius_px,
+                        near if near is not None else NearParts.empty())
 
 
 def _float32_edges(edges: np.ndarray) -> np.ndarray:
@@ -401,16 +601,25 @@ class LayerSources:
     ids: wp.array
     filled: wp.array
     device: str
+    near: tuple[wp.array, ...] | None = None  # the near parts in the window (y, x, value, CoC, layer); None: none
 
     @classmethod
     def upload(cls, image: np.ndarray, signed_coc: np.ndarray, ids: np.ndarray, n_slots: int,
-               device: str) -> LayerSources:
+               device: str, near: NearParts | None = None) -> LayerSources:
+        """``near``: the near parts of split pixels in the window's coordinates (:meth:`NearParts.window`)."""
+        parts = None
+        if near is not None and len(near):
+            parts = (wp.array(near.y, dtype=wp.int32, device=device), wp.array(near.x, dtype=wp.int32, device=device),
+                     wp.array(np.ascontiguousarray(near.value, np.float32), dtype=wp.vec4, device=device),
+                     wp.array(np.ascontiguousarray(near.coc, np.float32), dtype=float, device=device),
+                     wp.array(near.layer, dtype=wp.int32, device=device))
         return cls(
             wp.array(np.ascontiguousarray(image[..., :3], np.float32), dtype=wp.vec3, device=device),
             wp.array(np.ascontiguousarray(signed_coc, np.float32), dtype=float, device=device),
             wp.array(np.ascontiguousarray(ids), dtype=wp.int32, device=device),
             wp.zeros(n_slots, dtype=wp.int32, device=device),
             device,
+            parts,
         )
 
     def filled_count(self) -> int:
@@ -420,8 +629,9 @@ class LayerSources:
 def build_layer_sources(layer: LayerRecord, arrays: LayerSources) -> tuple[wp.array, wp.array]:
     """One layer's sources on its bounding box: (premultiplied RGB, coverage) and signed CoC.
 
-    The layer's own pixels, plus (when the layer is filled) the pull-push fill of the region nearer layers
-    hide, at the layer's density; the number of filled sources is added to ``arrays.filled[layer.index]``.
+    The layer's own pixels, the near parts of split pixels that fall in it (``arrays.near``), plus (when the
+    layer is filled) the pull-push fill of the region nearer layers hide, at the layer's density; the number of
+    filled sources is added to ``arrays.filled[layer.index]``.
     """
     device = arrays.device
     y0, y1, x0, x1 = layer.bbox
@@ -440,6 +650,9 @@ def build_layer_sources(layer: LayerRecord, arrays: LayerSources) -> tuple[wp.ar
         outputs=[src, coc, totals[0], weights[0], knowns[0]],
         device=device,
     )
+    if arrays.near is not None:  # the near parts of split pixels that fall in this layer
+        wp.launch(bk.near_sources_kernel, dim=arrays.near[0].shape[0], inputs=[*arrays.near, layer.index, x0, y0],
+                  outputs=[src, coc], device=device)
     if fill:
         for _ in range(pull_levels(layer.fill_reach)):
             ph, pw = totals[-1].shape

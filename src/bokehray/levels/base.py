@@ -4,12 +4,16 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..lens import Aperture, BlurParams
 from ..options import LayerOptions, MemoryOptions
 from ..stats import RenderStats
+
+if TYPE_CHECKING:
+    from ..scene import SoftEdges  # bokehray.scene imports Warp: reading the registry must not
 
 __all__ = ["Level", "RenderContext"]
 
@@ -21,7 +25,9 @@ class RenderContext:
     """One render's inputs, validated by ``bokehray.pipeline``: what travels together through a level.
 
     ``image`` is H x W x 3 float32 scene-linear, ``disparity`` H x W in [0, 1], ``signed_coc`` the capped
-    ``K (d - d_f)`` (``bokehray.scene.cap_coc``); ``options`` is the level's own options type.
+    ``K (d - d_f)`` (``bokehray.scene.cap_coc``); ``options`` is the level's own options type. ``soft``: the
+    mixed pixels at depth edges split into near and far parts (``bokehray.scene.SoftEdges``, on ``signed_coc``);
+    None: one depth a pixel.
     """
 
     image: np.ndarray
@@ -34,13 +40,16 @@ class RenderContext:
     options: object
     device: str
     progress: Progress | None = None
+    soft: SoftEdges | None = None
+
 
     @property
     def shape(self) -> tuple[int, int]:
         return self.signed_coc.shape
 
     def with_image(self, image: np.ndarray) -> RenderContext:
-        """The same render of other colour (an RGBA render's alpha goes through the level as grey)."""
+        """The same render of other colour (an RGBA render's alpha goes through the level as grey), one depth a
+        pixel (the split pixels' colours are the photo's)."""
         return RenderContext(image, self.disparity, self.signed_coc, self.blur, self.aperture, self.layers,
                              self.memory, self.options, self.device, None)
 

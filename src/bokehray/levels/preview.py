@@ -6,8 +6,9 @@ Pipeline (all heavy work in ``bokehray_kernels``):
    (:func:`border_pad`: the clamped border), rendered, and cropped.
 1. Tiles whose pixels, and every pixel within CoC reach of them, have ``|s| < 0.5`` are *copied*: never
    scattered, never composited (``bokehray.scene.copy_tiles``).
-2. The rest is the layered scene (``bokehray.scene.build_scene``): layers by ``s``, ids growing towards the
-   camera, each with its box, radius bound and fill reach.
+2. The rest is the layered scene (``bokehray.scene.split_scene``): layers by ``s``, ids growing towards the
+   camera, each with its box, radius bound and fill reach; mixed pixels at depth edges split into a near part
+   (a source of the near layer) and a far part (the pixel) when the render was given soft edges.
 3. Each layer, independently (one worker thread per CPU core): its sources (its own pixels and the fill of what
    nearer layers hide, ``bokehray.scene.build_layer_sources``) are scattered with their own exact radius on
    the radius pyramid, the excess light of the salient ones (:func:`route_salient`) at full resolution.
@@ -195,7 +196,10 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
     stats.max_coc_px = max(float(s.max()), -float(s.min())) if s.size else 0.0
 
     grid = ctx.layers.tile_px
-    pt, pb, pl, pr = border_pad(s, grid) if options.clamp_border else (0, 0, 0, 0)
+    soft = ctx.soft if ctx.soft is not None and len(ctx.soft) else None
+    # the border's reach: a split pixel's near part reaches as far as its CoC
+    pt, pb, pl, pr = border_pad(s if soft is None else sc.soft_radius(s, soft), grid) if options.clamp_border \
+        else (0, 0, 0, 0)
     h, w = h0 + pt + pb, w0 + pl + pr
     if (h, w) != (h0, w0) and WHOLE_IMAGE_B * h * w > tiling.budget_bytes(ctx.memory):
         (pt, pb, pl, pr), h, w = (0, 0, 0, 0), h0, w0  # the clamped border does not fit: the frame alone
@@ -203,8 +207,10 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
         image = np.pad(image, ((pt, pb), (pl, pr), (0, 0)), mode="edge")
         s = np.pad(s, ((pt, pb), (pl, pr)), mode="edge")
     frame = (pt, pt + h0, pl, pl + w0)
+    if soft is not None and (h, w) != (h0, w0):  # the split pixels in the padded frame
+        soft = sc.pad_soft_edges(soft, (h0, w0), (pt, pb, pl, pr))
 
-    copy = sc.copy_tiles(np.abs(s), grid)
+    copy = sc.copy_tiles(sc.soft_radius(s, soft), grid)
     frame_tiles = copy[pt // grid : pt // grid + -(-h0 // grid), pl // grid : pl // grid + -(-w0 // grid)]
     stats.tiles_total, stats.tiles_copied = int(frame_tiles.size), int(frame_tiles.sum())  # the frame's tiles
     active = ~sc.grid_to_pixels(copy, grid, (h, w))
@@ -213,10 +219,11 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
         stats.stage_seconds["total"] = stats.stage_seconds["plan"]
         return ctx.image.copy(), stats
 
-    scene = sc.build_scene(s, active, ctx.layers, options.level_radius_px)
+    photo = image
+    image, s, scene = sc.split_scene(image, s, soft, active, ctx.layers, options.level_radius_px)
     del active
     stats.layers = len(scene.layers)
-    stats.sources_scattered = int((scene.ids >= 0).sum())
+    stats.sources_scattered = int((scene.ids >= 0).sum()) + len(scene.near)
     stats.pyramid_levels = max(sc.pyramid_levels(lyr.max_radius, options.level_radius_px) for lyr in scene.layers)
     threads = 1 if wp.get_device(ctx.device).is_cuda else max(1, options.threads or os.cpu_count() or 1)
     stats.threads = threads
@@ -240,9 +247,10 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
     stats.stage_seconds["plan"] = t_plan - t_start
 
     if tile is None:
-        out, n_filled = _render_window(image, s, scene.ids, scene.layers, scene.n_slots, scatter, ctx.progress)
+        out, n_filled = _render_window(image, s, scene.ids, scene.layers, scene.n_slots, scatter, ctx.progress,
+                                       scene.near)
     else:
-        out, n_filled, stats.image_tiles = _render_tiled(image, s, scene, scatter, tile, frame, ctx.progress)
+        out, n_filled, stats.image_tiles = _render_tiled(photo, image, s, scene, scatter, tile, frame, ctx.progress)
     stats.sources_filled = n_filled
     stats.sources_scattered += n_filled
     stats.stage_seconds["layers"] = time.perf_counter() - t_plan
@@ -270,11 +278,12 @@ def _tile_layers(scene: sc.LayeredScene, core: tiling.Box) -> tuple[tiling.Box, 
     return (wy0, wy1, wx0, wx1), local
 
 
-def _render_tiled(image: np.ndarray, s: np.ndarray, scene: sc.LayeredScene, scatter: _Scatter, tile: int,
-                  frame: tiling.Box, progress: Progress | None) -> tuple[np.ndarray, int, int]:
+def _render_tiled(photo: np.ndarray, image: np.ndarray, s: np.ndarray, scene: sc.LayeredScene, scatter: _Scatter,
+                  tile: int, frame: tiling.Box, progress: Progress | None) -> tuple[np.ndarray, int, int]:
     """Render tile by tile, each tile on its window (halo included), its core copied out; the tiles cover the
-    ``frame`` (the rest is the clamped border around it)."""
-    out = image.copy()  # pixels no layer reaches (copied tiles) keep the input, as finalize does
+    ``frame`` (the rest is the clamped border around it). ``image`` is the scene's colour (split pixels hold
+    their far part), ``photo`` the input."""
+    out = photo.copy()  # pixels no layer reaches (copied tiles) keep the input, as finalize does
     fy0, fy1, fx0, fx1 = frame
     plans = {(a + fy0, b + fy0, c + fx0, d + fx0): None
              for a, b, c, d in tiling.cores(fy1 - fy0, fx1 - fx0, tile)}
@@ -292,7 +301,7 @@ def _render_tiled(image: np.ndarray, s: np.ndarray, scene: sc.LayeredScene, scat
         if not local:
             return None
         part, filled = _render_window(image[wy0:wy1, wx0:wx1], s[wy0:wy1, wx0:wx1], scene.ids[wy0:wy1, wx0:wx1],
-                                      local, scene.n_slots, scatter, report)
+                                      local, scene.n_slots, scatter, report, scene.near.window((wy0, wy1, wx0, wx1)))
         done += len(local)
         n_filled += filled
         cy0, cy1, cx0, cx1 = core
@@ -343,14 +352,15 @@ def _render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scat
 
 
 def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_slots: int, scatter: _Scatter,
-                   progress: Progress | None) -> tuple[np.ndarray, int]:
-    """Scatter and composite ``layers`` (boxes in the window's coordinates), then finalise.
+                   progress: Progress | None, near: sc.NearParts | None = None) -> tuple[np.ndarray, int]:
+    """Scatter and composite ``layers`` (boxes in the window's coordinates), then finalise. ``near``: the near
+    parts of split pixels, in the window's coordinates.
 
     Returns the rendered RGB and the number of filled sources.
     """
     device = scatter.device
     h, w = s.shape
-    arrays = sc.LayerSources.upload(image, s, ids, n_slots, device)
+    arrays = sc.LayerSources.upload(image, s, ids, n_slots, device, near)
     acc = wp.zeros((h, w), dtype=wp.vec4, device=device)
 
     # Layers render independently (Warp CPU launches release the GIL) on ``threads`` workers and are composited

@@ -40,6 +40,10 @@ REGION_B = 150
 it is built, ray counts, result and normalised result."""
 
 
+CONTENT_ALPHA = 1e-4
+"""A texel of a map layer with less coverage is outside the layer's content (``bk.raytrace_kernel``'s march)."""
+
+
 @dataclass(frozen=True)
 class Layer:
     """One layer of a scene: an RGBA texture and its disparity.
@@ -208,18 +212,20 @@ def _trace(stack: _Stack, blur: BlurParams, aperture: Aperture, options: Raytrac
 
 
 def _photo_stack(scene: sc.LayeredScene, image: np.ndarray, s: np.ndarray, ids: np.ndarray, blur: BlurParams,
-                 device: str) -> _Stack:
-    """The map layers of photo mode on the given arrays (the whole image, or a tile's window), nearest first."""
+                 device: str, near: sc.NearParts | None = None) -> _Stack:
+    """The map layers of photo mode on the given arrays (the whole image, or a tile's window; ``near``: the near
+    parts of split pixels in its coordinates), nearest first."""
     h, w = s.shape
-    arrays = sc.LayerSources.upload(image, s, ids, scene.n_slots, device)
+    arrays = sc.LayerSources.upload(image, s, ids, scene.n_slots, device, near)
     n = len(scene.layers)
     rgba = np.empty((n, h, w, 4), np.float32)
     disp = np.empty((n, h, w), np.float32)
     for i, layer in enumerate(reversed(scene.layers)):  # nearest first
         src, coc = sc.build_layer_sources(layer.moved((0, h, 0, w)), arrays)
         rgba[i] = src.numpy()  # premultiplied RGB and coverage already: what the kernel takes
-        # the layer's own CoC where it has content, its mid-range elsewhere (transparent: never hit)
-        coc_np = np.where(rgba[i, ..., 3] > 0, np.clip(coc.numpy(), layer.s_lo, layer.s_hi),
+        # the layer's own CoC where it has content (coverage of at least the march's 1e-4: a split pixel's near
+        # part may hold less), its mid-range elsewhere (transparent: never hit)
+        coc_np = np.where(rgba[i, ..., 3] >= CONTENT_ALPHA, np.clip(coc.numpy(), layer.s_lo, layer.s_hi),
                           0.5 * (layer.s_lo + layer.s_hi))
         disp[i] = np.clip(coc_np / blur.k_px + blur.focus_disparity, 0.0, 1.0)
     np.clip(rgba[..., 3], 0.0, 1.0, out=rgba[..., 3])
@@ -254,7 +260,8 @@ def render_raytrace(ctx: RenderContext) -> tuple[np.ndarray, RaytraceStats]:
                                                     stage_seconds={"total": 0.0})
     tiling.check_whole_image(h, w, WHOLE_IMAGE_B, ctx.memory)
     # the layers' disparity is s / K + d_f: s is capped (bokehray.scene.cap_coc), the disparity alike
-    scene = sc.build_scene(s, np.ones((h, w), bool), ctx.layers)
+    # the scene's colour and CoC hold the far parts of split pixels (ctx.soft), the scene their near parts
+    split_image, split_s, scene = sc.split_scene(image, s, ctx.soft, np.ones((h, w), bool), ctx.layers)
     grid = ctx.layers.tile_px
     n = len(scene.layers)
     halo, align = _halo(scene, grid)
@@ -265,7 +272,7 @@ def render_raytrace(ctx: RenderContext) -> tuple[np.ndarray, RaytraceStats]:
         what=f"ray traced render with {n} layers")
     t0 = time.perf_counter()
     if tile is None:
-        stack = _photo_stack(scene, image, s, scene.ids, blur, ctx.device)
+        stack = _photo_stack(scene, split_image, split_s, scene.ids, blur, ctx.device, scene.near)
         t_layers = time.perf_counter()
         part = _whole_part(stack, blur, grid)
         out, stats = _trace(stack, blur, ctx.aperture, options, ctx.device, t_layers, part, grid, ctx.progress)
@@ -273,7 +280,7 @@ def render_raytrace(ctx: RenderContext) -> tuple[np.ndarray, RaytraceStats]:
                                "total": stats.stage_seconds["total"] + t_layers - t0}
         del stack
     else:
-        out, stats = _trace_tiles(ctx, scene, -(-tile // grid) * grid, halo, align, t0)
+        out, stats = _trace_tiles(ctx, scene, split_image, split_s, -(-tile // grid) * grid, halo, align, t0)
     stats.shape, stats.device = (h, w), ctx.device
     stats.memory_estimate_mb = need / tiling.MB
     cov = out[..., 3:4]
@@ -281,15 +288,15 @@ def render_raytrace(ctx: RenderContext) -> tuple[np.ndarray, RaytraceStats]:
     return rgb.astype(np.float32), stats
 
 
-def _trace_tiles(ctx: RenderContext, scene: sc.LayeredScene, tile: int, halo: int, align: int,
-                 t0: float) -> tuple[np.ndarray, RaytraceStats]:
+def _trace_tiles(ctx: RenderContext, scene: sc.LayeredScene, image: np.ndarray, s: np.ndarray, tile: int, halo: int,
+                 align: int, t0: float) -> tuple[np.ndarray, RaytraceStats]:
     """Photo mode tile by tile, equal to the untiled trace.
 
     Pass 1 builds each tile's layers on its window and gathers what the untiled trace takes from whole layers:
     their disparity ranges (the march bounds), their largest CoC and their content tiles (the ray counts).
     Pass 2 builds them again and traces each tile's core.
     """
-    image, s, blur = ctx.image, ctx.signed_coc, ctx.blur
+    blur = ctx.blur
     h, w = s.shape
     n, grid = len(scene.layers), ctx.layers.tile_px
     ranges = np.tile(np.array([[np.inf, -np.inf]], np.float32), (n, 1))
@@ -299,7 +306,7 @@ def _trace_tiles(ctx: RenderContext, scene: sc.LayeredScene, tile: int, halo: in
     def window_stack(core: tiling.Box) -> tuple[tiling.Box, tiling.Box, _Stack]:
         wy0, wy1, wx0, wx1 = tiling.window((0, h, 0, w), core, halo, align)
         stack = _photo_stack(scene, image[wy0:wy1, wx0:wx1], s[wy0:wy1, wx0:wx1], scene.ids[wy0:wy1, wx0:wx1],
-                             blur, ctx.device)
+                             blur, ctx.device, scene.near.window((wy0, wy1, wx0, wx1)))
         cy0, cy1, cx0, cx1 = core
         return (wy0, wy1, wx0, wx1), (cy0 - wy0, cy1 - wy0, cx0 - wx0, cx1 - wx0), stack
 

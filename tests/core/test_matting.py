@@ -1,0 +1,291 @@
+"""Soft edges at depth edges (``bokehray.matting.split_mixed_pixels``): the contract, accuracy on scenes whose
+true layers are known, and invariants on arbitrary input."""
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+from scipy import ndimage
+
+from bokehray.depthfix import depth_edges
+from bokehray.errors import InputError
+from bokehray.matting import isolated_share, ramp_width, split_mixed_pixels, window_offsets
+from bokehray.scene import SoftEdges
+from reference.matting_ref import ramp_width_ref
+
+K = 30.0
+
+
+def _textures(n, seed):
+    rng = np.random.default_rng(seed)
+    fg = np.array([0.7, 0.35, 0.15]) + ndimage.gaussian_filter(rng.normal(0, 0.08, (n, n, 3)), (1.5, 1.5, 0))
+    bg = np.array([0.1, 0.25, 0.45]) + ndimage.gaussian_filter(rng.normal(0, 0.08, (n, n, 3)), (1.5, 1.5, 0))
+    return np.clip(fg, 0.0, None).astype(np.float32), np.clip(bg, 0.0, None).astype(np.float32)
+
+
+def two_plane(n=64, seed=0, kind="disc"):
+    """A textured near layer (a disc with an antialiased rim, or 1-2 px strands) over a textured far plane.
+    Returns (photo, signed CoC by the alpha >= 0.5 rule, true alpha, F, B)."""
+    fg, bg = _textures(n, seed)
+    yy, xx = np.mgrid[0:n, 0:n] + 0.5
+    if kind == "disc":
+        alpha = np.clip(0.3 * n + 0.5 - np.hypot(yy - n / 2, xx - n / 2), 0.0, 1.0)
+    else:  # strands of width 1.2 and 2.0 px at slants
+        alpha = np.zeros((n, n))
+        for x0, slope, width in ((0.3 * n, 0.21, 1.2), (0.65 * n, -0.13, 2.0)):
+            dist = np.abs(xx - (x0 + slope * yy)) / np.hypot(1.0, slope)
+            alpha = np.maximum(alpha, np.clip(width / 2 + 0.5 - dist, 0.0, min(width, 1.0)))
+    alpha = alpha.astype(np.float32)
+    photo = (alpha[..., None] * fg + (1.0 - alpha[..., None]) * bg).astype(np.float32)
+    coc = np.where(alpha >= 0.5, K * 0.4, -K * 0.3).astype(np.float32)
+    return photo, coc, alpha, fg, bg
+
+
+def estimated_alpha(se: SoftEdges, coc: np.ndarray) -> np.ndarray:
+    """The alpha the scene then holds: split pixels their estimate, the others 1 on the near side, else 0."""
+    est = (coc > 0).astype(np.float32).ravel()
+    est[se.index] = se.alpha
+    return est.reshape(coc.shape)
+
+
+def check_contract(se: SoftEdges, image: np.ndarray, coc: np.ndarray, min_alpha: float = 0.02) -> None:
+    h, w = coc.shape
+    n = len(se)
+    assert se.index.dtype == np.int64 and se.index.shape == (n,)
+    for a, shape in ((se.alpha, (n,)), (se.foreground, (n, 3)), (se.background, (n, 3)), (se.near_coc, (n,)),
+                     (se.far_coc, (n,))):
+        assert a.dtype == np.float32 and a.shape == shape
+        assert np.isfinite(a).all()
+    assert (np.diff(se.index) > 0).all()
+    assert n == 0 or (se.index.min() >= 0 and se.index.max() < h * w)
+    assert ((se.alpha >= min_alpha) & (se.alpha <= 1.0 - min_alpha)).all()
+    assert (se.near_coc > se.far_coc).all()
+    # the split pixels' CoC are values of the map (the window's plateaus), not invented ones
+    assert np.isin(se.near_coc, coc).all() and np.isin(se.far_coc, coc).all()
+    photo = image.reshape(-1, image.shape[-1])[se.index][:, :3].astype(np.float64)
+    a = se.alpha.astype(np.float64)[:, None]
+    comp = a * se.foreground + (1.0 - a) * se.background
+    scale = np.maximum(np.abs(photo), 1.0)
+    np.testing.assert_allclose(comp / scale, photo / scale, rtol=0, atol=2e-6)
+    # no negative light where the photo has none, and neither part brighter than its share of the pixel allows
+    pos = photo >= 0
+    assert (se.foreground[pos] >= 0).all() and (se.background[pos] >= 0).all()
+    assert (se.foreground <= np.maximum(photo / a, 0) * (1 + 1e-5) + 1e-7).all()
+
+
+def test_thin_strands_are_not_noise():
+    """Dense one-pixel strands (diagonal ones too) have neighbours of their own depth along them."""
+    coc = np.full((40, 40), -10.0, np.float32)
+    for k in range(-40, 40, 3):
+        coc[np.eye(40, k=k, dtype=bool)] = 10.0  # diagonal lines one pixel wide, two pixels apart
+    assert isolated_share(coc, 1.0) == 0.0
+    assert isolated_share(np.float32([[1.0]]), 1.0) == 0.0
+
+
+def test_a_flat_map_or_a_smooth_slope_splits_nothing():
+    photo, _, _, _, _ = two_plane()
+    for coc in (np.zeros(photo.shape[:2], np.float32),
+                np.linspace(-5, 5, photo.shape[0] * photo.shape[1], dtype=np.float32).reshape(photo.shape[:2])):
+        se = split_mixed_pixels(photo, coc)
+        assert len(se) == 0 and se.index.dtype == np.int64
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (1, 7), (7, 1), (2, 2)])
+def test_tiny_images(shape):
+    rng = np.random.default_rng(0)
+    img = rng.uniform(0, 1, shape + (3,)).astype(np.float32)
+    coc = rng.choice([-10.0, 10.0], shape).astype(np.float32)
+    se = split_mixed_pixels(img, coc)
+    check_contract(se, img, coc)
+
+
+def test_two_plane_contract_and_only_pixels_at_the_edges_split():
+    photo, coc, alpha, _, _ = two_plane()
+    se = split_mixed_pixels(photo, coc)
+    assert len(se) > 0
+    check_contract(se, photo, coc)
+    # hard edges: the band is the depth-edge pixels (band_px 0); nothing else is touched
+    assert depth_edges(coc, 1.0).ravel()[se.index].all()
+    se1 = split_mixed_pixels(photo, coc, band_px=1)
+    assert ndimage.binary_dilation(depth_edges(coc, 1.0), np.ones((3, 3), bool)).ravel()[se1.index].all()
+    assert len(se1) >= len(se)
+    # the near and far parts carry the two planes' CoC, not a mixed value
+    assert set(np.unique(se.near_coc)) == {np.float32(K * 0.4)}
+    assert set(np.unique(se.far_coc)) == {np.float32(-K * 0.3)}
+
+
+@pytest.mark.parametrize("kind, bound", [("disc", 0.05), ("strands", 0.09)])
+def test_alpha_accuracy_on_two_planes(kind, bound):
+    """Alpha RMSE over the mixed pixels and their neighbours: well below one depth a pixel (the alpha >= 0.5 rule:
+    0.14 disc, 0.19 strands) and below the bound (measured over seeds 0-2: disc 0.026-0.031, strands 0.057-0.059);
+    F of the pixels mostly foreground within 0.05 (measured 0.013-0.033)."""
+    for seed in range(3):
+        photo, coc, alpha, fg, bg = two_plane(seed=seed, kind=kind)
+        se = split_mixed_pixels(photo, coc)
+        ring = ndimage.binary_dilation((alpha > 0) & (alpha < 1), np.ones((3, 3), bool))
+        before = np.sqrt((((coc > 0) - alpha)[ring] ** 2).mean())
+        after = np.sqrt(((estimated_alpha(se, coc) - alpha)[ring] ** 2).mean())
+        assert after < bound and after < 0.5 * before, (seed, before, after)
+        # decontaminated colours: F of the pixels that hold most of the foreground is near the true F
+        idx = se.index[alpha.ravel()[se.index] > 0.3]
+        fg_err = np.abs(se.foreground[np.isin(se.index, idx)] - fg.reshape(-1, 3)[idx]).mean()
+        assert fg_err < 0.05, fg_err
+
+
+def test_noise_maps_split_nothing_and_all_edge_maps_stay_finite():
+    rng = np.random.default_rng(3)
+    img = rng.uniform(0, 1, (48, 40, 3)).astype(np.float32)
+    noise = rng.uniform(-20, 20, (48, 40)).astype(np.float32)
+    assert len(split_mixed_pixels(img, noise)) == 0
+    assert isolated_share(noise, 1.0) > 0.5
+    assert len(split_mixed_pixels(img, noise, max_isolated_share=1.0)) > 0  # the guard is what stopped it
+    # a checkerboard of two depths is all edge (and diagonal strands, not noise): bounded work, a valid result
+    checker = np.where((np.indices((48, 40)).sum(0) % 2) == 0, 10.0, -10.0).astype(np.float32)
+    assert isolated_share(checker, 1.0) == 0.0
+    se = split_mixed_pixels(img, checker)
+    check_contract(se, img, checker)
+
+
+def test_pixels_without_colour_contrast_are_left_alone():
+    """A depth step with the same colour on both sides (e.g. an alpha channel rendered as grey over grey of the
+    same value) says nothing about coverage: nothing is split."""
+    img = np.full((32, 32, 3), 0.4, np.float32)
+    coc = np.zeros((32, 32), np.float32)
+    coc[:, 16:] = 12.0
+    assert len(split_mixed_pixels(img, coc)) == 0
+
+
+def test_grey_and_rgba_inputs_are_taken_as_rgb():
+    photo, coc, _, _, _ = two_plane(n=40)
+    grey = photo.mean(2)
+    se_g = split_mixed_pixels(grey, coc)
+    check_contract(se_g, np.repeat(grey[..., None], 3, 2), coc)
+    rgba = np.concatenate([photo, np.ones(photo.shape[:2] + (1,), np.float32)], 2)
+    se_a = split_mixed_pixels(rgba, coc)
+    se = split_mixed_pixels(photo, coc)
+    np.testing.assert_array_equal(se_a.index, se.index)
+    np.testing.assert_array_equal(se_a.alpha, se.alpha)
+
+
+def test_hdr_radiance_stays_finite_and_exact():
+    photo, coc, _, _, _ = two_plane(n=40)
+    for scale in (1e-6, 1e3, 1e30):
+        img = photo * np.float32(scale)
+        se = split_mixed_pixels(img, coc)
+        assert len(se) > 0
+        check_contract(se, img, coc)
+
+
+def test_bad_input_is_refused():
+    img = np.zeros((8, 8, 3), np.float32)
+    with pytest.raises(InputError):
+        split_mixed_pixels(img, np.zeros((8, 7), np.float32))
+    with pytest.raises(InputError):
+        split_mixed_pixels(np.zeros((8, 8, 2), np.float32), np.zeros((8, 8), np.float32))
+    bad = np.zeros((8, 8), np.float32)
+    bad[3, 4] = np.nan
+    with pytest.raises(InputError):
+        split_mixed_pixels(img, bad)
+
+
+def test_a_soft_map_widens_the_band():
+    photo, coc, alpha, _, _ = two_plane(seed=1)
+    soft = ndimage.gaussian_filter(coc, 1.5)
+    assert ramp_width(coc, 1.0, 6) == 0
+    assert ramp_width(soft, 1.0, 6) >= 2
+    se = split_mixed_pixels(photo, soft)
+    check_contract(se, photo, soft)
+    ring = ndimage.binary_dilation((alpha > 0) & (alpha < 1), np.ones((3, 3), bool))
+    est = soft.ravel() > 0
+    est = est.astype(np.float32)
+    est[se.index] = se.alpha
+    before = np.sqrt((((soft > 0) - alpha)[ring] ** 2).mean())
+    after = np.sqrt(((est.reshape(alpha.shape) - alpha)[ring] ** 2).mean())
+    assert after < before
+
+
+def test_window_offsets_are_nearest_first_and_symmetric():
+    offs, dist = window_offsets(7)
+    assert (np.diff(dist) >= 0).all() and dist[0] == 0
+    assert {tuple(o) for o in offs} == {tuple(-o) for o in offs}
+    assert (dist <= 7.5).all()
+
+
+@given(st.integers(2, 20), st.integers(2, 20), st.integers(0, 2 ** 31 - 1), st.sampled_from([0.5, 3.0, 40.0]))
+def test_invariants_on_random_layered_input(h, w, seed, jump):
+    """Random blocky depth maps (a few depths) and random colours: every split pixel satisfies the contract."""
+    rng = np.random.default_rng(seed)
+    img = rng.uniform(0, 2, (h, w, 3)).astype(np.float32)
+    img[rng.uniform(size=(h, w)) < 0.1] = 0.0
+    depths = rng.uniform(-jump, jump, 3).astype(np.float32)
+    coc = depths[rng.integers(0, 3, (max(1, h // 3), max(1, w // 3)))].repeat(3, 0).repeat(3, 1)[:h, :w]
+    coc = np.pad(coc, ((0, h - coc.shape[0]), (0, w - coc.shape[1])), mode="edge")
+    se = split_mixed_pixels(img, coc)
+    check_contract(se, img, coc)
+
+
+def test_ramp_width_matches_the_reference():
+    rng = np.random.default_rng(5)
+    for k in range(6):
+        coc = rng.choice([-8.0, 0.0, 9.0], (5, 7)).repeat(3, 0).repeat(3, 1).astype(np.float32)
+        if k % 2:
+            coc = ndimage.gaussian_filter(coc, 0.5 + k * 0.3)
+        for cap in (2, 6):
+            assert ramp_width(coc, 1.0, cap) == ramp_width_ref(coc, 1.0, cap)
+    assert ramp_width(np.zeros((1, 1), np.float32), 1.0, 6) == 0
+
+
+@pytest.mark.parametrize("soft", [False, True])
+def test_band_kernel_matches_the_reference(device, soft):
+    """The Warp kernel against the float64 loop of tests/reference/matting_ref.py, pixel by pixel."""
+    from bokehray.matting import _band_kernel
+    from reference.matting_ref import band_pixel_ref, gaussian_weights
+
+    photo, coc, _, _, _ = two_plane(n=28, seed=4, kind="strands" if soft else "disc")
+    if soft:
+        coc = ndimage.gaussian_filter(coc, 1.0)
+    img = photo / np.float32(photo.max())
+    edges = depth_edges(coc, 1.0)
+    band = ndimage.binary_dilation(edges, np.ones((3, 3), bool))
+    by, bx = np.nonzero(band)
+    radius, params = 5, (1.0, 0.3, 0.03, 8.0)
+    got = _band_kernel(img, coc, band, by, bx, radius, *params, device, 2)
+    offs, dist = window_offsets(radius)
+    g = gaussian_weights(dist, radius)
+    flags = got[7]
+    for i in range(by.size):
+        a, F, B, vF, vB, near, far, ok, own = band_pixel_ref(img, coc, band, by[i], bx[i], offs, g, *params)
+        assert bool(flags[i] & 1) == ok and bool(flags[i] & 2) == own
+        if not ok:
+            continue
+        assert abs(got[0][i] - a) < 2e-4
+        np.testing.assert_allclose(got[1][i], F, atol=2e-5)
+        np.testing.assert_allclose(got[2][i], B, atol=2e-5)
+        np.testing.assert_allclose(got[3][i], vF, atol=2e-5)
+        np.testing.assert_allclose(got[4][i], vB, atol=2e-5)
+        assert got[5][i] == np.float32(near) and got[6][i] == np.float32(far)
+
+
+def test_threads_do_not_change_the_result(monkeypatch):
+    import bokehray.matting as matting
+
+    monkeypatch.setattr(matting, "_PIXELS_PER_THREAD", 16)  # a small scene in several launches
+    photo, coc, _, _, _ = two_plane(n=96, seed=2, kind="strands")
+    one = split_mixed_pixels(photo, coc, threads=1)
+    two = split_mixed_pixels(photo, coc, threads=3)
+    for f in ("index", "alpha", "foreground", "background", "near_coc", "far_coc"):
+        np.testing.assert_array_equal(getattr(one, f), getattr(two, f))
+
+
+def test_a_pure_corner_over_noise_stays_whole():
+    """The corners of a flat square over per-pixel noise: the model's window is mostly noise, but the pixel's
+    colour is the square's: nothing inside the square is split (found by test_render_api's no-halo test)."""
+    rng = np.random.default_rng(0)
+    image = rng.random((80, 80, 3)).astype(np.float32)
+    coc = np.full((80, 80), -12.0, np.float32)
+    coc[20:60, 20:60] = 0.0
+    image[20:60, 20:60] = [0.2, 0.9, 0.1]
+    se = split_mixed_pixels(image, coc)
+    check_contract(se, image, coc)
+    y, x = np.divmod(se.index, 80)
+    assert not ((y >= 20) & (y < 60) & (x >= 20) & (x < 60)).any()

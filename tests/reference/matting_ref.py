@@ -1,0 +1,77 @@
+"""Slow, obvious float64 references for ``bokehray.matting`` and ``bokehray_kernels.matting``: one pixel at a
+time, plain loops."""
+
+import math
+
+import numpy as np
+
+
+def ramp_width_ref(coc: np.ndarray, jump_px: float, cap: int) -> int:
+    """Walk every row and column; every step above ``jump_px`` gets the length of its run of consecutive
+    same-sign steps; the 90th percentile minus one, at most ``cap``."""
+    lengths = []
+    h, w = coc.shape
+    lines = [coc[y, :] for y in range(h)] + [coc[:, x] for x in range(w)]
+    for line in lines:
+        steps = [float(line[i + 1]) - float(line[i]) for i in range(len(line) - 1)]
+        sgn = [1 if v > jump_px else (-1 if v < -jump_px else 0) for v in steps]
+        i = 0
+        while i < len(sgn):
+            if sgn[i] == 0:
+                i += 1
+                continue
+            j = i
+            while j + 1 < len(sgn) and sgn[j + 1] == sgn[i]:
+                j += 1
+            lengths += [j - i + 1] * (j - i + 1)
+            i = j + 1
+    if not lengths:
+        return 0
+    return int(min(cap, max(0, int(np.percentile(np.array(lengths), 90)) - 1)))
+
+
+def band_pixel_ref(image, coc, unknown, y, x, offsets, weights, jump_px, unknown_weight, ridge, purity):
+    """The matting of one band pixel, as the kernel's docstring states it: returns (alpha, F, B, var F, var B,
+    near CoC, far CoC, ok, own_near)."""
+    h, w = coc.shape
+    win = []
+    for (dy, dx), g in zip(offsets, weights):
+        yy, xx = y + int(dy), x + int(dx)
+        if 0 <= yy < h and 0 <= xx < w:
+            win.append((float(g), image[yy, xx].astype(np.float64), float(coc[yy, xx]), bool(unknown[yy, xx])))
+    hi = max(v for _, _, v, _ in win)
+    lo = min(v for _, _, v, _ in win)
+    mid = 0.5 * (hi + lo)
+    wts = np.array([g * (unknown_weight if u else 1.0) for g, _, _, u in win])
+    cols = np.array([c for _, c, _, _ in win])
+    ys = np.array([1.0 if v > mid else 0.0 for _, _, v, _ in win])
+    wn = wts / max(wts.sum(), 1e-30)
+    mu = (wn[:, None] * cols).sum(0)
+    my = (wn * ys).sum()
+    cov = sum(wn[k] * np.outer(cols[k] - mu, cols[k] - mu) for k in range(len(win)))
+    cy = sum(wn[k] * (ys[k] - my) * (cols[k] - mu) for k in range(len(win)))
+    eps = ridge * ridge * (float(mu @ mu) / 3.0 + 1e-8)
+    wv = np.linalg.solve(cov + eps * np.eye(3), cy)
+    alpha = min(1.0, max(0.0, my + float((image[y, x] - mu) @ wv)))
+    sums = {"f": [0.0, np.zeros(3), np.zeros(3)], "b": [0.0, np.zeros(3), np.zeros(3)]}
+    best = {"f": 0.0, "b": 0.0}
+    for g, c, v, _ in win:
+        aq = min(1.0, max(0.0, my + float((c - mu) @ wv)))
+        side, wt = ("f", g * aq ** purity) if v > mid else ("b", g * (1.0 - aq) ** purity)
+        sums[side][0] += wt
+        sums[side][1] = sums[side][1] + wt * c
+        sums[side][2] = sums[side][2] + wt * c * c
+        best[side] = max(best[side], wt)
+    out = []
+    for side in ("f", "b"):
+        sw = max(sums[side][0], 1e-30)
+        mean = sums[side][1] / sw
+        out.append((mean, np.maximum(sums[side][2] / sw - mean * mean, 0.0)))
+    ok = (hi - lo) > jump_px and best["f"] > 0.0 and best["b"] > 0.0
+    own_near = float(coc[y, x]) > mid
+    return alpha, out[0][0], out[1][0], out[0][1], out[1][1], hi, lo, ok, own_near
+
+
+def gaussian_weights(dist: np.ndarray, radius: int) -> np.ndarray:
+    sigma = 0.5 * radius
+    return np.array([math.exp(-(d * d) / (2.0 * sigma * sigma)) for d in dist])
