@@ -20,7 +20,7 @@ from hypothesis import strategies as st
 
 import bokehray as br
 from bokehray import scene as sc
-from bokehray.demo import build_demo_scene
+from bokehray.app.demo import build_demo_scene
 from bokehray.errors import InputError
 from bokehray.levels import RenderContext, get_level
 from reference import soft_ref as R
