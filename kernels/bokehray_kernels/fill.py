@@ -11,6 +11,7 @@ so that a bright light next to an occluder does not flood the hidden area; the
 
 import warp as wp
 
+from .reduce import sum_2x2_float, sum_2x2_vec4
 from .sampling import bilinear_taps
 
 wp.set_module_options({"enable_backward": False})
@@ -19,6 +20,16 @@ FILL_GATE_SLOPE = 1.4142135
 """sqrt(2): a layer is filled where its visible pixels lie within ``FILL_GATE_SLOPE * r + 1`` px (L1) of a hidden
 pixel whose hider has CoC radius ``r`` (the L1 bound of a Euclidean disc). The host pads layer boxes by it."""
 _GATE = wp.constant(FILL_GATE_SLOPE)
+
+
+@wp.struct
+class PullPushLevel:
+    """One level of a layer's pull-push pyramid: sums of (tone-mapped RGB, signed CoC) ``total``, of the layer's
+    pixels ``weight`` and of the visible pixels ``known``; pushed in place to (mean value, density, has)."""
+
+    total: wp.array2d(dtype=wp.vec4)
+    weight: wp.array2d(dtype=float)
+    known: wp.array2d(dtype=float)
 
 
 @wp.func
@@ -43,16 +54,14 @@ def layer_sources_kernel(
     with_fill: int,
     src: wp.array2d(dtype=wp.vec4),
     coc: wp.array2d(dtype=float),
-    fill_total: wp.array2d(dtype=wp.vec4),
-    fill_weight: wp.array2d(dtype=float),
-    fill_known: wp.array2d(dtype=float),
+    fill: PullPushLevel,
 ):
     """Sources of one layer in local coordinates: (RGB, 1) on its pixels; every array must come zeroed.
 
     ``coc`` receives the *signed* CoC (the scatter takes its magnitude; the
     ray tracer turns it back into disparity).
 
-    With ``with_fill != 0`` also level 0 of the pull-push pyramid: (tone-mapped
+    With ``with_fill != 0`` also ``fill``, level 0 of the pull-push pyramid: (tone-mapped
     RGB, signed CoC) with weight 1 on the layer, and ``known = 1`` wherever the
     photo shows this layer or something behind it (not hidden by a nearer layer).
     """
@@ -63,42 +72,24 @@ def layer_sources_kernel(
     if sid < 0 or sid > layer:
         return  # copied, or hidden by a nearer layer: the arrays' zeros stand
     if with_fill != 0:
-        fill_known[y, x] = 1.0
+        fill.known[y, x] = 1.0
     if sid == layer:
         c = image[gy, gx]
         s = signed_coc[gy, gx]
         src[y, x] = wp.vec4(c[0], c[1], c[2], 1.0)
         coc[y, x] = s
         if with_fill != 0:
-            fill_total[y, x] = wp.vec4(_tonemap(c[0]), _tonemap(c[1]), _tonemap(c[2]), s)
-            fill_weight[y, x] = 1.0
+            fill.total[y, x] = wp.vec4(_tonemap(c[0]), _tonemap(c[1]), _tonemap(c[2]), s)
+            fill.weight[y, x] = 1.0
 
 
 @wp.kernel
-def pull_kernel(
-    fine_total: wp.array2d(dtype=wp.vec4),
-    fine_weight: wp.array2d(dtype=float),
-    fine_known: wp.array2d(dtype=float),
-    coarse_total: wp.array2d(dtype=wp.vec4),
-    coarse_weight: wp.array2d(dtype=float),
-    coarse_known: wp.array2d(dtype=float),
-):
+def pull_kernel(fine: PullPushLevel, coarse: PullPushLevel):
     """Coarse pixel = sum of its (up to) 2 x 2 children: values, weights and known counts."""
     y, x = wp.tid()
-    t = wp.vec4()
-    w = float(0.0)
-    k = float(0.0)
-    for dy in range(2):
-        for dx in range(2):
-            fy = 2 * y + dy
-            fx = 2 * x + dx
-            if fy < fine_total.shape[0] and fx < fine_total.shape[1]:
-                t = t + fine_total[fy, fx]
-                w = w + fine_weight[fy, fx]
-                k = k + fine_known[fy, fx]
-    coarse_total[y, x] = t
-    coarse_weight[y, x] = w
-    coarse_known[y, x] = k
+    coarse.total[y, x] = sum_2x2_vec4(fine.total, y, x)
+    coarse.weight[y, x] = sum_2x2_float(fine.weight, y, x)
+    coarse.known[y, x] = sum_2x2_float(fine.known, y, x)
 
 
 @wp.struct
@@ -111,10 +102,9 @@ class Pushed:
 
 
 @wp.func
-def push_texel(coarse_value: wp.array2d(dtype=wp.vec4), coarse_density: wp.array2d(dtype=float),
-               coarse_has: wp.array2d(dtype=float), top: int, x: int, y: int, total: wp.vec4, w: float,
-               k: float) -> Pushed:
-    """Texel ``(y, x)`` of a level with sums (``total``, weight ``w``, known ``k``), pushed from the coarser level.
+def push_texel(coarse: PullPushLevel, top: int, x: int, y: int, total: wp.vec4, w: float, k: float) -> Pushed:
+    """Texel ``(y, x)`` of a level with sums (``total``, weight ``w``, known ``k``), pushed from the ``coarse`` level
+    (already pushed: its ``total``, ``weight`` and ``known`` hold value, density and has).
 
     ``value``: mean (tone-mapped RGB, signed CoC) of the layer's own pixels.
     ``density``: the share of the visible (not hidden) pixels that belong to the
@@ -133,6 +123,9 @@ def push_texel(coarse_value: wp.array2d(dtype=wp.vec4), coarse_density: wp.array
         density = w / k
         has = 1.0
     if (k <= 0.0 or w <= 0.0) and top == 0:
+        coarse_value = coarse.total
+        coarse_density = coarse.weight
+        coarse_has = coarse.known
         t = bilinear_taps((float(x) + 0.5) * 0.5 - 0.5, (float(y) + 0.5) * 0.5 - 0.5, coarse_value.shape[0],
                           coarse_value.shape[1])
         b00 = (1.0 - t.tx) * (1.0 - t.ty)
@@ -167,24 +160,16 @@ def push_texel(coarse_value: wp.array2d(dtype=wp.vec4), coarse_density: wp.array
 
 
 @wp.kernel
-def push_kernel(
-    coarse_value: wp.array2d(dtype=wp.vec4),
-    coarse_density: wp.array2d(dtype=float),
-    coarse_has: wp.array2d(dtype=float),
-    top: int,
-    total: wp.array2d(dtype=wp.vec4),
-    weight: wp.array2d(dtype=float),
-    known: wp.array2d(dtype=float),
-):
+def push_kernel(coarse: PullPushLevel, top: int, level: PullPushLevel):
     """Turn one level's sums into (value, density, has) in place, interpolating what it lacks (:func:`push_texel`).
 
     The preview pushes levels down to 1 only: :func:`fill_sources_kernel` pushes the level-0 texels it fills.
     """
     y, x = wp.tid()
-    p = push_texel(coarse_value, coarse_density, coarse_has, top, x, y, total[y, x], weight[y, x], known[y, x])
-    total[y, x] = p.value
-    weight[y, x] = p.density
-    known[y, x] = p.has
+    p = push_texel(coarse, top, x, y, level.total[y, x], level.weight[y, x], level.known[y, x])
+    level.total[y, x] = p.value
+    level.weight[y, x] = p.density
+    level.known[y, x] = p.has
 
 
 @wp.kernel
@@ -193,12 +178,8 @@ def fill_sources_kernel(
     layer: int,
     x0: int,
     y0: int,
-    fill_total: wp.array2d(dtype=wp.vec4),
-    fill_weight: wp.array2d(dtype=float),
-    fill_known: wp.array2d(dtype=float),
-    coarse_value: wp.array2d(dtype=wp.vec4),
-    coarse_density: wp.array2d(dtype=float),
-    coarse_has: wp.array2d(dtype=float),
+    fill: PullPushLevel,
+    coarse: PullPushLevel,
     dist_l1: wp.array2d(dtype=float),
     signed_coc: wp.array2d(dtype=float),
     s_lo: float,
@@ -209,7 +190,7 @@ def fill_sources_kernel(
 ):
     """Add the filled colour as sources where a nearer layer hides this one.
 
-    ``fill_*`` are level 0's sums (not pushed), ``coarse_*`` level 1 pushed: each hidden
+    ``fill`` holds level 0's sums (not pushed), ``coarse`` level 1 pushed: each hidden
     pixel pushes its own level-0 texel (:func:`push_texel`, exactly what ``push_kernel``
     would have stored there), so level 0 is never pushed as a whole.
 
@@ -226,8 +207,7 @@ def fill_sources_kernel(
     gx = x + x0
     if slice_id[gy, gx] <= layer or dist_l1[y, x] > _GATE * wp.abs(signed_coc[gy, gx]) + 1.0:
         return  # not hidden, or behind a hider too sharp to reveal it
-    p = push_texel(coarse_value, coarse_density, coarse_has, 0, x, y, fill_total[y, x], fill_weight[y, x],
-                   fill_known[y, x])
+    p = push_texel(coarse, 0, x, y, fill.total[y, x], fill.weight[y, x], fill.known[y, x])
     density = p.density
     if density >= 0.02:
         v = p.value

@@ -2,9 +2,8 @@
 
 A depth layer cut at a jump of the depth map is often a thin population (the mixed pixels along
 silhouettes) spread over a box as large as the frame; its sources and light fill only the tiles
-within its reach of its own pixels. The host marks those tiles (``bokehray.scene.LayerSupport``: a
-``uint8`` mask on a grid of ``2^shift`` px in the scene's coordinates, ``(oy, ox)`` the layer box's
-origin there), and the kernels whose work per pixel or cell is more than a read skip the rest, where
+within its reach of its own pixels. The host marks those tiles (``bokehray.scene.LayerSupport`` builds a
+:class:`Support`), and the kernels whose work per pixel or cell is more than a read skip the rest, where
 every value is zero. A 1 x 1 mask of 1 with ``shift`` 30 is "everywhere".
 """
 
@@ -13,18 +12,31 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})
 
 
+@wp.struct
+class Support:
+    """A layer's support: a ``uint8`` tile mask on a grid of ``2^shift`` px in the scene's coordinates, and the
+    layer box's origin ``(oy, ox)`` there."""
+
+    mask: wp.array2d(dtype=wp.uint8)
+    shift: int
+    oy: int
+    ox: int
+
+
 @wp.func
-def in_support(support: wp.array2d(dtype=wp.uint8), shift: int, oy: int, ox: int, y: int, x: int) -> bool:
+def in_support(support: Support, y: int, x: int) -> bool:
     """Whether box pixel ``(y, x)`` lies in a support tile."""
-    return support[(y + oy) >> shift, (x + ox) >> shift] != wp.uint8(0)
+    return support.mask[(y + support.oy) >> support.shift, (x + support.ox) >> support.shift] != wp.uint8(0)
 
 
 @wp.func
-def span_in_support(support: wp.array2d(dtype=wp.uint8), shift: int, oy: int, ox: int, y0: int, y1: int, x0: int,
-                    x1: int) -> bool:
+def span_in_support(support: Support, y0: int, y1: int, x0: int, x1: int) -> bool:
     """Whether any box pixel of ``[y0, y1) x [x0, x1)`` lies in a support tile."""
+    shift = support.shift
+    oy = support.oy
+    ox = support.ox
     for ty in range((y0 + oy) >> shift, ((y1 - 1 + oy) >> shift) + 1):
         for tx in range((x0 + ox) >> shift, ((x1 - 1 + ox) >> shift) + 1):
-            if support[ty, tx] != wp.uint8(0):
+            if support.mask[ty, tx] != wp.uint8(0):
                 return True
     return False

@@ -437,8 +437,11 @@ class LayerSupport:
         return cls(wp.array(layer.support.astype(np.uint8), dtype=wp.uint8, device=device),
                    layer.tile_px.bit_length() - 1, layer.origin[0] + y0, layer.origin[1] + x0)
 
-    def args(self) -> list:
-        return [self.mask, self.shift, self.oy, self.ox]
+    def struct(self) -> bk.Support:
+        """The support as the kernels take it."""
+        s = bk.Support()
+        s.mask, s.shift, s.oy, s.ox = self.mask, self.shift, self.oy, self.ox
+        return s
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -647,7 +650,7 @@ def build_layer_sources(layer: LayerRecord, arrays: LayerSources) -> tuple[wp.ar
         bk.layer_sources_kernel,
         dim=(h, w),
         inputs=[arrays.image, arrays.signed_coc, arrays.ids, layer.index, x0, y0, int(fill)],
-        outputs=[src, coc, totals[0], weights[0], knowns[0]],
+        outputs=[src, coc, _pull_push(totals, weights, knowns, 0)],
         device=device,
     )
     if arrays.near is not None:  # the near parts of split pixels that fall in this layer
@@ -660,14 +663,14 @@ def build_layer_sources(layer: LayerRecord, arrays: LayerSources) -> tuple[wp.ar
             totals.append(wp.empty((ch, cw), dtype=wp.vec4, device=device))
             weights.append(wp.empty((ch, cw), dtype=float, device=device))
             knowns.append(wp.empty((ch, cw), dtype=float, device=device))
-            wp.launch(bk.pull_kernel, dim=(ch, cw), inputs=[totals[-2], weights[-2], knowns[-2]],
-                      outputs=[totals[-1], weights[-1], knowns[-1]], device=device)
+            wp.launch(bk.pull_kernel, dim=(ch, cw), inputs=[_pull_push(totals, weights, knowns, -2)],
+                      outputs=[_pull_push(totals, weights, knowns, -1)], device=device)
         top = len(totals) - 1
         for lv in range(top, 0, -1):  # down to level 1: the fill pushes the level-0 texels it needs
             c = min(lv + 1, top)  # the top level has no coarser level (flag 1): it passes itself
             wp.launch(bk.push_kernel, dim=totals[lv].shape,
-                      inputs=[totals[c], weights[c], knowns[c], int(lv == top)],
-                      outputs=[totals[lv], weights[lv], knowns[lv]], device=device)
+                      inputs=[_pull_push(totals, weights, knowns, c), int(lv == top)],
+                      outputs=[_pull_push(totals, weights, knowns, lv)], device=device)
         dist = wp.empty((h, w), dtype=float, device=device)
         wp.launch(bk.row_distance_kernel, dim=h, inputs=[arrays.ids, layer.index, x0, y0, w], outputs=[dist],
                   device=device)
@@ -676,9 +679,16 @@ def build_layer_sources(layer: LayerRecord, arrays: LayerSources) -> tuple[wp.ar
         wp.launch(
             bk.fill_sources_kernel,
             dim=(h, w),
-            inputs=[arrays.ids, layer.index, x0, y0, totals[0], weights[0], knowns[0], totals[1], weights[1],
-                    knowns[1], dist, arrays.signed_coc, layer.s_lo, layer.s_hi],
+            inputs=[arrays.ids, layer.index, x0, y0, _pull_push(totals, weights, knowns, 0),
+                    _pull_push(totals, weights, knowns, 1), dist, arrays.signed_coc, layer.s_lo, layer.s_hi],
             outputs=[src, coc, arrays.filled],
             device=device,
         )
     return src, coc
+
+
+def _pull_push(totals: list, weights: list, knowns: list, level: int) -> bk.PullPushLevel:
+    """Level ``level`` of a pull-push pyramid as the kernels take it."""
+    lv = bk.PullPushLevel()
+    lv.total, lv.weight, lv.known = totals[level], weights[level], knowns[level]
+    return lv

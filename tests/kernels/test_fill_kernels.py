@@ -24,6 +24,13 @@ ATOL = KERNEL_VS_REFERENCE_ATOL
 BIG = 1e8  # a kernel distance at least this large means "no pixel of the layer in the window" (about 1e9)
 
 
+
+def _pp(total, weight, known) -> bk.PullPushLevel:
+    """A pull-push level as the fill kernels take it."""
+    lv = bk.PullPushLevel()
+    lv.total, lv.weight, lv.known = total, weight, known
+    return lv
+
 def _colour_tol(c) -> np.ndarray:
     """KERNEL_VS_REFERENCE_ATOL in tone-mapped units, carried through c = t / (1 - t) (dc/dt = (1 + c)^2)."""
     return ATOL * (1.0 + np.abs(np.asarray(c, np.float64))) ** 2
@@ -104,7 +111,7 @@ def _run_fill(scene, pull_levels, band: int = 64) -> dict:
     weights = [wp.zeros(pp, dtype=float, device=DEVICE)]
     knowns = [wp.zeros(pp, dtype=float, device=DEVICE)]
     wp.launch(bk.layer_sources_kernel, dim=(h, w), inputs=[image, scoc, sid, layer, x0, y0, int(fill)],
-              outputs=[src, coc, totals[0], weights[0], knowns[0]], device=DEVICE)
+              outputs=[src, coc, _pp(totals[0], weights[0], knowns[0])], device=DEVICE)
     out = {}
     if fill:
         for _ in range(pull_levels):
@@ -113,23 +120,23 @@ def _run_fill(scene, pull_levels, band: int = 64) -> dict:
             totals.append(wp.empty(shape, dtype=wp.vec4, device=DEVICE))
             weights.append(wp.empty(shape, dtype=float, device=DEVICE))
             knowns.append(wp.empty(shape, dtype=float, device=DEVICE))
-            wp.launch(bk.pull_kernel, dim=shape, inputs=[totals[-2], weights[-2], knowns[-2]],
-                      outputs=[totals[-1], weights[-1], knowns[-1]], device=DEVICE)
+            wp.launch(bk.pull_kernel, dim=shape, inputs=[_pp(totals[-2], weights[-2], knowns[-2])],
+                      outputs=[_pp(totals[-1], weights[-1], knowns[-1])], device=DEVICE)
         top = len(totals) - 1
         for lv in range(top, 0, -1):  # as the preview: down to level 1
             c = min(lv + 1, top)
-            wp.launch(bk.push_kernel, dim=totals[lv].shape, inputs=[totals[c], weights[c], knowns[c], int(lv == top)],
-                      outputs=[totals[lv], weights[lv], knowns[lv]], device=DEVICE)
+            wp.launch(bk.push_kernel, dim=totals[lv].shape, inputs=[_pp(totals[c], weights[c], knowns[c]), int(lv == top)],
+                      outputs=[_pp(totals[lv], weights[lv], knowns[lv])], device=DEVICE)
         dist = wp.empty((h, w), dtype=float, device=DEVICE)
         wp.launch(bk.row_distance_kernel, dim=h, inputs=[sid, layer, x0, y0, w], outputs=[dist], device=DEVICE)
         wp.launch(bk.column_distance_kernel, dim=(w + band - 1) // band, inputs=[dist, h, band], device=DEVICE)
         wp.launch(bk.fill_sources_kernel, dim=(h, w),
-                  inputs=[sid, layer, x0, y0, totals[0], weights[0], knowns[0], totals[1], weights[1], knowns[1],
+                  inputs=[sid, layer, x0, y0, _pp(totals[0], weights[0], knowns[0]), _pp(totals[1], weights[1], knowns[1]),
                           dist, scoc, scene["s_lo"], scene["s_hi"]],
                   outputs=[src, coc, filled], device=DEVICE)
         # level 0 pushed as a whole (what the fill pushed texel by texel), for the comparison with the oracle
-        wp.launch(bk.push_kernel, dim=totals[0].shape, inputs=[totals[1], weights[1], knowns[1], 0],
-                  outputs=[totals[0], weights[0], knowns[0]], device=DEVICE)
+        wp.launch(bk.push_kernel, dim=totals[0].shape, inputs=[_pp(totals[1], weights[1], knowns[1]), 0],
+                  outputs=[_pp(totals[0], weights[0], knowns[0])], device=DEVICE)
         out.update(value=totals[0].numpy(), density=weights[0].numpy(), has=knowns[0].numpy(), distance=dist.numpy())
     out.update(src=src.numpy(), coc=coc.numpy(), n_filled=filled.numpy())
     return out
@@ -164,7 +171,7 @@ def test_layer_sources_kernel_matches_reference(scene, with_fill):
     wp.launch(bk.layer_sources_kernel, dim=(h, w),
               inputs=[_wp(scene["image"], wp.vec3), _wp(scene["scoc"], float), _wp(scene["sid"], wp.int32), layer,
                       x0, y0, int(with_fill)],
-              outputs=[src, coc, total, weight, known], device=DEVICE)
+              outputs=[src, coc, _pp(total, weight, known)], device=DEVICE)
     want = fill_ref.layer_sources(scene["image"], scene["scoc"], scene["sid"], layer, x0, y0, h, w, with_fill)
     np.testing.assert_array_equal(src.numpy(), want[0].astype(np.float32))  # a copy, no arithmetic
     np.testing.assert_array_equal(coc.numpy(), want[1].astype(np.float32))
@@ -191,8 +198,8 @@ def test_pull_kernel_matches_reference(h, w, depth, seed):
     ch, cw = (h + 1) // 2, (w + 1) // 2
     out = [wp.empty((ch, cw), dtype=wp.vec4, device=DEVICE), wp.empty((ch, cw), dtype=float, device=DEVICE),
            wp.empty((ch, cw), dtype=float, device=DEVICE)]
-    wp.launch(bk.pull_kernel, dim=(ch, cw), inputs=[_wp(total, wp.vec4), _wp(weight, float), _wp(known, float)],
-              outputs=out, device=DEVICE)
+    wp.launch(bk.pull_kernel, dim=(ch, cw), inputs=[_pp(_wp(total, wp.vec4), _wp(weight, float), _wp(known, float))],
+              outputs=[_pp(*out)], device=DEVICE)
     want = fill_ref.pull(total, weight, known)
     for got, ref in zip(out, want):
         np.testing.assert_allclose(got.numpy(), ref, rtol=1e-6, atol=ATOL)
@@ -212,8 +219,8 @@ def test_push_kernel_matches_reference(h, w, depth, top, seed):
     c_density = np.where(rng.random((ch, cw)) < 0.3, 0.0, rng.uniform(0.01, 1.0, (ch, cw)))
     c_has = (rng.random((ch, cw)) < 0.7).astype(np.float64)
     arrays = [_wp(total, wp.vec4), _wp(weight, float), _wp(known, float)]
-    wp.launch(bk.push_kernel, dim=(h, w), inputs=[_wp(c_value, wp.vec4), _wp(c_density, float), _wp(c_has, float),
-                                                  int(top)], outputs=arrays, device=DEVICE)
+    wp.launch(bk.push_kernel, dim=(h, w), inputs=[_pp(_wp(c_value, wp.vec4), _wp(c_density, float), _wp(c_has, float)),
+                                                  int(top)], outputs=[_pp(*arrays)], device=DEVICE)
     value, density, has = fill_ref.push(c_value, c_density, c_has, top, total, weight, known)
     np.testing.assert_allclose(arrays[0].numpy(), value, rtol=1e-6, atol=ATOL)
     np.testing.assert_allclose(arrays[1].numpy(), density, rtol=1e-6, atol=ATOL)
@@ -282,8 +289,8 @@ def test_fill_sources_kernel_matches_reference(scene, seed):
     assume(not np.any(np.abs(density - fill_ref.MIN_FILL_DENSITY) <= 1e-5))
     src, coc, filled = _wp(src0, wp.vec4), _wp(coc0, float), wp.array(n0.astype(np.int32), device=DEVICE)
     wp.launch(bk.fill_sources_kernel, dim=(h, w),
-              inputs=[_wp(scene["sid"], wp.int32), layer, x0, y0, _wp(total, wp.vec4), _wp(weight, float),
-                      _wp(known, float), _wp(c_value, wp.vec4), _wp(c_density, float), _wp(c_has, float),
+              inputs=[_wp(scene["sid"], wp.int32), layer, x0, y0, _pp(_wp(total, wp.vec4), _wp(weight, float),
+                      _wp(known, float)), _pp(_wp(c_value, wp.vec4), _wp(c_density, float), _wp(c_has, float)),
                       _wp(dist, float), _wp(scene["scoc"], float), scene["s_lo"], scene["s_hi"]],
               outputs=[src, coc, filled], device=DEVICE)
     w_src, w_coc, w_n = fill_ref.fill_sources(scene["sid"], layer, x0, y0, value, density, dist, scene["scoc"],

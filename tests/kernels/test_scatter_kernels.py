@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 import bokehray_kernels as bk
 from bokehray import Aperture
 from bokehray import LayerOptions, PreviewOptions
-from bokehray.levels.preview import no_routing, render_signed_coc
+from bokehray.levels.preview import aperture_shape, no_routing, pyramid_buffers, render_signed_coc
 from bokehray.scene import LayerSupport, layer_edges
 from bokehray.lens import aperture_area
 from reference import scatter_ref
@@ -69,16 +69,16 @@ def _point_response(ap: Aperture, radius: float, size: int, device: str, offset=
     bufs = [wp.zeros(((size + (1 << lv) - 1) >> lv, ((size + (1 << lv) - 1) >> lv) + 2), dtype=wp.vec4,
                      device=device) for lv in range(levels)]
     bufs += [bufs[0]] * (bk.MAX_LEVELS - levels)
-    blades, n = _blades_wp(ap, device)
+    shape = aperture_shape(ap, ap.blade_discs(), device)
     wp.launch(bk.scatter_kernel, dim=(size, size),
               inputs=[wp.array(src, dtype=wp.vec4, device=device), wp.array(radius_map, device=device),
-                      *no_routing(device), blades, n,
-                      wp.vec2(*ap.vertical_extent()), aperture_area(ap), r0, levels, *bufs], device=device)
+                      no_routing(device).struct(), shape, r0, levels, pyramid_buffers(bufs)], device=device)
     for lv in range(levels):
         wp.launch(bk.prefix_rows_kernel, dim=bufs[lv].shape[0], inputs=[bufs[lv]], device=device)
     out = wp.empty((size, size), dtype=wp.vec4, device=device)
-    wp.launch(bk.resolve_levels_kernel, dim=(size, size), inputs=[levels, 0, *bufs, *LayerSupport.everywhere(device).args()],
-              outputs=[out], device=device)
+    wp.launch(bk.resolve_levels_kernel, dim=(size, size),
+              inputs=[levels, 0, pyramid_buffers(bufs), LayerSupport.everywhere(device).struct()], outputs=[out],
+              device=device)
     return out.numpy()[..., 0]
 
 
@@ -123,11 +123,10 @@ def test_scatter_matches_reference(ap, device, rng):
     radius[rng.random((h, w)) < 0.2] = 0.3  # sub-pixel sources take the copy path
     bufs = [wp.zeros((h, w + 2), dtype=wp.vec4, device=device)]
     bufs += [bufs[0]] * (bk.MAX_LEVELS - 1)
-    blades, n = _blades_wp(ap, device)
     wp.launch(bk.scatter_kernel, dim=(h, w),
               inputs=[wp.array(src, dtype=wp.vec4, device=device), wp.array(radius, device=device),
-                      *no_routing(device), blades, n,
-                      wp.vec2(*ap.vertical_extent()), aperture_area(ap), 1e6, 1, *bufs], device=device)
+                      no_routing(device).struct(), aperture_shape(ap, ap.blade_discs(), device), 1e6, 1,
+                      pyramid_buffers(bufs)], device=device)
     wp.launch(bk.prefix_rows_kernel, dim=h, inputs=[bufs[0]], device=device)
     got = bufs[0].numpy()[:, :w]
     want = scatter_ref.scatter(src.astype(np.float64), radius, ap.blade_discs(), ap.vertical_extent())

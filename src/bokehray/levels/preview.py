@@ -33,12 +33,13 @@ import bokehray_kernels as bk
 
 from .. import scene as sc
 from .. import tiling
-from ..lens import aperture_area
+from ..lens import Aperture, aperture_area
 from ..options import PreviewOptions
 from ..stats import PreviewStats
 from .base import Progress, RenderContext
 
-__all__ = ["border_pad", "no_routing", "render_preview", "render_signed_coc", "route_salient"]
+__all__ = ["aperture_shape", "border_pad", "no_routing", "pyramid_buffers", "render_preview", "render_signed_coc",
+           "route_salient"]
 
 # Bytes per pixel, from the arrays each stage allocates (float32 = 4 bytes); checked against measured peaks by
 # benchmarks/bench_memory.py (docs/robustness.md).
@@ -65,16 +66,33 @@ def _layer_bytes(n_levels: int) -> int:
 
 @dataclass(frozen=True, slots=True)
 class _Scatter:
-    """What every layer's scatter reads: the aperture on the device and the pyramid step."""
+    """What every layer's scatter reads: the aperture on the device (its blades, vertical extent and area at unit
+    circumradius, the spans' normalisation) and the pyramid step."""
 
-    blades: wp.array
-    n_blades: int
-    extent: wp.vec2
-    area: float  # the aperture's area at unit circumradius: the spans' normalisation
+    shape: bk.Shape
     level_radius_px: float
     exact_highlights: bool
     threads: int
     device: str
+
+
+def aperture_shape(aperture: Aperture, blade_rows: np.ndarray, device: str) -> bk.Shape:
+    """The aperture as the kernels take it: its blades (``blade_rows``: ``Aperture.blade_discs()``), their count,
+    its vertical extent and its area at unit circumradius."""
+    shape = bk.Shape()
+    shape.blades = wp.array(blade_rows if len(blade_rows) else np.zeros((1, 4), np.float32), dtype=wp.vec4,
+                            device=device)
+    shape.n_blades = len(blade_rows)
+    shape.extent = wp.vec2(*aperture.vertical_extent())
+    shape.area = aperture_area(aperture)
+    return shape
+
+
+def pyramid_buffers(bufs: list[wp.array]) -> bk.Levels:
+    """The radius pyramid's difference buffers (levels 0 .. MAX_LEVELS - 1) as the kernels take them."""
+    levels = bk.Levels()
+    levels.l0, levels.l1, levels.l2, levels.l3, levels.l4, levels.l5 = bufs
+    return levels
 
 
 def _region_bytes(window_px: int, layer_areas: list[int], threads: int, n_levels: int = 1) -> int:
@@ -100,12 +118,19 @@ class Routing:
     cluster_light: wp.array  # per level and 2 x 2 block: the cluster's excess light there (RGB, summed excess)
     cluster_shape: wp.array  # per level and 2 x 2 block: (x, y, signed CoC, 1 if it holds cluster members)
 
+    def struct(self) -> bk.Routing:
+        """The routing as the kernels take it."""
+        r = bk.Routing()
+        r.exact, r.cell_total, r.cell_pixels = self.exact, self.cell_total, self.cell_pixels
+        r.cluster_light, r.cluster_shape = self.cluster_light, self.cluster_shape
+        return r
 
-def no_routing(device: str) -> tuple[wp.array, wp.array, wp.array]:
-    """``bk.scatter_kernel``'s routing inputs (flags, neighbourhood sums and pixels) when nothing is routed:
-    1-element placeholders it does not read."""
-    return (wp.zeros((1, 1), dtype=wp.uint8, device=device), wp.zeros((1, 1, 1), dtype=wp.vec4, device=device),
-            wp.zeros((1, 1, 1), dtype=float, device=device))
+
+def no_routing(device: str) -> Routing:
+    """``bk.scatter_kernel``'s routing when nothing is routed: 1-element placeholders it does not read."""
+    cells = wp.zeros((1, 1, 1), dtype=wp.vec4, device=device)
+    return Routing(wp.zeros((1, 1), dtype=wp.uint8, device=device), cells, wp.zeros((1, 1, 1), dtype=float, device=device),
+                   cells, cells)
 
 
 def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device: str,
@@ -125,7 +150,7 @@ def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device
     and so are the levels below ``first``, which hold no source (``bokehray.scene.lowest_level``).
     """
     h, w = src.shape
-    where = (support or sc.LayerSupport.everywhere(device)).args()
+    where = (support or sc.LayerSupport.everywhere(device)).struct()
     exact = wp.zeros((h, w), dtype=wp.uint8, device=device)
     n_means = n_levels - 1  # radiance pyramid levels 1 .. n_levels - 1
     h1, w1 = (h + 1) // 2, (w + 1) // 2
@@ -141,12 +166,15 @@ def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device
     cell_pixels = wp.zeros((n_means, h1, w1), dtype=float, device=device)
     light = wp.zeros((n_means, h1, w1), dtype=wp.vec4, device=device)
     shape = wp.zeros((n_means, h1, w1), dtype=wp.vec4, device=device)
+    routing = Routing(exact, cell_total, cell_pixels, light, shape)
     for lev in range(max(1, first), n_levels):
         side = 1 << lev
+        salience = bk.Salience()
+        salience.per_cell, salience.visible, salience.floor = max(1, side // 2), SALIENT_VISIBLE, SALIENT_FLOOR
         wp.launch(bk.route_cells_kernel, dim=((h + side - 1) // side, (w + side - 1) // side),
-                  inputs=[src, coc, means, counts, float(r0), n_levels, lev, max(1, side // 2), SALIENT_VISIBLE,
-                          SALIENT_FLOOR, *where], outputs=[exact, cell_total, cell_pixels, light, shape], device=device)
-    return Routing(exact, cell_total, cell_pixels, light, shape)
+                  inputs=[src, coc, means, counts, float(r0), n_levels, lev, salience, where],
+                  outputs=[routing.struct()], device=device)
+    return routing
 
 
 def border_pad(signed_coc: np.ndarray, tile_px: int) -> tuple[int, int, int, int]:
@@ -239,10 +267,8 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
     )
     stats.memory_estimate_mb = need / tiling.MB
     blade_rows = ctx.aperture.blade_discs()
-    scatter = _Scatter(
-        wp.array(blade_rows if len(blade_rows) else np.zeros((1, 4), np.float32), dtype=wp.vec4, device=ctx.device),
-        len(blade_rows), wp.vec2(*ctx.aperture.vertical_extent()), aperture_area(ctx.aperture),
-        float(options.level_radius_px), bool(options.exact_highlights), threads, ctx.device)
+    scatter = _Scatter(aperture_shape(ctx.aperture, blade_rows, ctx.device), float(options.level_radius_px),
+                       bool(options.exact_highlights), threads, ctx.device)
     t_plan = time.perf_counter()
     stats.stage_seconds["plan"] = t_plan - t_start
 
@@ -328,25 +354,22 @@ def _render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scat
             bufs.append(wp.zeros(shape, dtype=wp.vec4, device=device))
         else:
             bufs.append(bufs[0] if lv > 0 else None)
-    routing = None
-    if scatter.exact_highlights and n_levels > 1:
-        routing = route_salient(src, coc, n_levels, scatter.level_radius_px, device, support, first)
-        exact, totals, pixels = routing.exact, routing.cell_total, routing.cell_pixels
-    else:
-        exact, totals, pixels = no_routing(device)
+    routed = scatter.exact_highlights and n_levels > 1
+    routing = (route_salient(src, coc, n_levels, scatter.level_radius_px, device, support, first) if routed
+               else no_routing(device))
+    levels = pyramid_buffers(bufs)
     wp.launch(bk.scatter_kernel, dim=(h, w),
-              inputs=[src, coc, exact, totals, pixels, scatter.blades, scatter.n_blades, scatter.extent, scatter.area,
-                      scatter.level_radius_px, n_levels, *bufs], device=device)
-    if routing is not None:
+              inputs=[src, coc, routing.struct(), scatter.shape, scatter.level_radius_px, n_levels, levels],
+              device=device)
+    if routed:
         for lev in range(max(1, first), n_levels):
             wp.launch(bk.scatter_clusters_kernel, dim=routing.cluster_shape.shape[1:],
-                      inputs=[routing.cluster_light, routing.cluster_shape, lev, scatter.blades, scatter.n_blades,
-                              scatter.extent, scatter.area], outputs=[bufs[0]], device=device)
+                      inputs=[routing.struct(), lev, scatter.shape], outputs=[bufs[0]], device=device)
     for lv in range(n_levels):
         if lv == 0 or lv >= first:
             wp.launch(bk.prefix_rows_kernel, dim=bufs[lv].shape[0], inputs=[bufs[lv]], device=device)
     out = src  # the sources are scattered: reuse their memory for the result
-    wp.launch(bk.resolve_levels_kernel, dim=(h, w), inputs=[n_levels, first, *bufs, *support.args()], outputs=[out],
+    wp.launch(bk.resolve_levels_kernel, dim=(h, w), inputs=[n_levels, first, levels, support.struct()], outputs=[out],
               device=device)
     return out
 

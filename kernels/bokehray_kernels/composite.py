@@ -1,0 +1,47 @@
+"""Compositing the scattered layers back to front ("over"), and the final division by the accumulated opacity."""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.kernel
+def composite_kernel(layer: wp.array2d(dtype=wp.vec4), x0: int, y0: int, acc: wp.array2d(dtype=wp.vec4)):
+    """Composite one scattered layer OVER the accumulator (back-to-front "over").
+
+    ``layer`` holds (sum of premultiplied RGB, sum of coverage) in local
+    coordinates offset by ``(x0, y0)``. Its opacity is ``min(coverage, 1)`` and
+    its colour is normalised by its coverage (so overlapping sources of one
+    layer average instead of adding up). ``acc`` holds (RGB, opacity).
+    """
+    y, x = wp.tid()
+    l = layer[y, x]
+    cov = l[3]
+    if cov <= 1.0e-6:
+        return
+    alpha = wp.min(cov, 1.0)
+    k = alpha / cov
+    gy = y + y0
+    gx = x + x0
+    a = acc[gy, gx]
+    t = 1.0 - alpha
+    acc[gy, gx] = wp.vec4(l[0] * k + t * a[0], l[1] * k + t * a[1], l[2] * k + t * a[2], alpha + t * a[3])
+
+
+@wp.kernel
+def finalize_kernel(
+    acc: wp.array2d(dtype=wp.vec4),
+    image: wp.array2d(dtype=wp.vec3),
+    slice_id: wp.array2d(dtype=wp.int32),
+    out: wp.array2d(dtype=wp.vec3),
+):
+    """Divide by the accumulated opacity (renormalises holes and borders).
+
+    Copied pixels (``slice_id < 0``) and pixels no source reached keep the input.
+    """
+    y, x = wp.tid()
+    a = acc[y, x]
+    if slice_id[y, x] >= 0 and a[3] > 1.0e-4:
+        out[y, x] = wp.vec3(a[0], a[1], a[2]) / a[3]
+    else:
+        out[y, x] = image[y, x]

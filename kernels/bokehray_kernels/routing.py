@@ -1,0 +1,340 @@
+"""Routing of salient lights: which pyramid-level sources send their excess light to level 0 (alone, or gathered as
+their cell's cluster), from a radiance pyramid of the layer's sources (docs/renderer.md, "exact highlights")."""
+
+import warp as wp
+
+from .reduce import children_2x2, sum_2x2_vec4
+from .spans import Shape, scatter_exact
+from .support import Support, span_in_support
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.struct
+class Routing:
+    """What :func:`route_cells_kernel` decides for one layer's sources, and what the scatter reads of it.
+
+    ``exact``: per source, 1 routed alone to level 0, 2 in its cell's cluster, 0 on the pyramid (a 1 x 1 array:
+    nothing routed, and then nothing else is read); ``cell_total``, ``cell_pixels``: per level-``l`` cell, its
+    3 x 3 cells' sum of sources and their pixels (the routed sources' local colour); ``cluster_light``,
+    ``cluster_shape``: per level and block, a cluster's excess light (RGB, summed excess) and its source
+    (x, y, signed CoC, 1 where it holds members)."""
+
+    exact: wp.array2d(dtype=wp.uint8)
+    cell_total: wp.array3d(dtype=wp.vec4)
+    cell_pixels: wp.array3d(dtype=float)
+    cluster_light: wp.array3d(dtype=wp.vec4)
+    cluster_shape: wp.array3d(dtype=wp.vec4)
+
+
+@wp.struct
+class Salience:
+    """When a source is salient (:func:`route_cells_kernel`): at most ``per_cell`` a cell, its excess beyond
+    ``visible`` times its disc's share of the local radiance (at least ``floor``)."""
+
+    per_cell: int
+    visible: float
+    floor: float
+
+
+@wp.kernel
+def radiance_mean_kernel(src: wp.array2d(dtype=wp.vec4), means: wp.array3d(dtype=wp.vec4),
+                         counts: wp.array3d(dtype=float)):
+    """Level 1 of the radiance pyramid: mean over each 2 x 2 cell of the sources (premultiplied RGB, coverage).
+
+    Sources of zero coverage count as black; cells cut by the array's edge average the pixels they hold
+    (``counts``). Level ``k`` lives in ``means[k - 1]``.
+    """
+    cy, cx = wp.tid()
+    n = children_2x2(src.shape[0], src.shape[1], cy, cx)
+    means[0, cy, cx] = sum_2x2_vec4(src, cy, cx) / n
+    counts[0, cy, cx] = n
+
+
+@wp.kernel
+def halve_mean_kernel(means: wp.array3d(dtype=wp.vec4), counts: wp.array3d(dtype=float), k: int, fine_h: int,
+                      fine_w: int):
+    """Radiance pyramid level ``k + 1`` (in ``means[k]``) from level ``k``: pixel-count-weighted 2 x 2 means."""
+    cy, cx = wp.tid()
+    acc = wp.vec4()
+    n = float(0.0)
+    for dy in range(2):
+        for dx in range(2):
+            y = 2 * cy + dy
+            x = 2 * cx + dx
+            if y < fine_h and x < fine_w:
+                c = counts[k - 1, y, x]
+                acc += means[k - 1, y, x] * c
+                n += c
+    means[k, cy, cx] = acc / n
+    counts[k, cy, cx] = n
+
+
+@wp.struct
+class Neighbourhood:
+    """Sum of the sources (premultiplied RGB, coverage) over some cells, and how many pixels they hold."""
+
+    total: wp.vec4
+    pixels: float
+
+
+@wp.func
+def neighbourhood(means: wp.array3d(dtype=wp.vec4), counts: wp.array3d(dtype=float), lev: int, cy: int, cx: int,
+                  hl: int, wl: int) -> Neighbourhood:
+    """The sources of the 3 x 3 level-``lev`` cells around cell ``(cy, cx)`` (cells beyond the ``hl x wl`` level
+    left out): the layer's local colour there is ``total.rgb / total.a``."""
+    acc = wp.vec4()
+    nc = float(0.0)
+    for dy in range(-1, 2):
+        for dx in range(-1, 2):
+            yy = cy + dy
+            xx = cx + dx
+            if yy >= 0 and yy < hl and xx >= 0 and xx < wl:
+                c = counts[lev - 1, yy, xx]
+                acc += means[lev - 1, yy, xx] * c
+                nc += c
+    nb = Neighbourhood()
+    nb.total = acc
+    nb.pixels = nc
+    return nb
+
+
+@wp.func
+def stored_neighbourhood(cell_total: wp.array3d(dtype=wp.vec4), cell_pixels: wp.array3d(dtype=float), lev: int,
+                         cy: int, cx: int) -> Neighbourhood:
+    """The neighbourhood of level-``lev`` cell ``(cy, cx)`` as ``route_cells_kernel`` stored it."""
+    nb = Neighbourhood()
+    nb.total = cell_total[lev - 1, cy, cx]
+    nb.pixels = cell_pixels[lev - 1, cy, cx]
+    return nb
+
+
+@wp.func
+def routed_base(v: wp.vec4, nb: Neighbourhood) -> wp.vec4:
+    """What of a routed source stays on the pyramid: its coverage, carrying the local colour of the other sources
+    in its neighbourhood ``nb`` (itself left out; none there: black). The rest of its light goes to level 0."""
+    rest = nb.total - v
+    if rest[3] > 1.0e-6 * nb.pixels:
+        k = v[3] / rest[3]
+        return wp.vec4(wp.max(rest[0], 0.0) * k, wp.max(rest[1], 0.0) * k, wp.max(rest[2], 0.0) * k, v[3])
+    return wp.vec4(0.0, 0.0, 0.0, v[3])
+
+
+@wp.func
+def _local_mean(nb: Neighbourhood) -> wp.vec2:
+    # (mean premultiplied radiance m, mean coverage a_m) of a neighbourhood: its local colour is m / a_m
+    return wp.vec2((nb.total[0] + nb.total[1] + nb.total[2]) / (3.0 * nb.pixels), nb.total[3] / nb.pixels)
+
+
+@wp.func
+def _raw_excess(v: wp.vec4, mean: wp.vec2) -> float:
+    # the light a source (premultiplied radiance, coverage v) carries beyond its coverage of the local colour
+    return (v[0] + v[1] + v[2]) / 3.0 - v[3] * mean[0] / mean[1]  # mean[1] > 0: the source itself has coverage
+
+
+@wp.func
+def _excess(v: wp.vec4, r: float, mean: wp.vec2, visible: float, floor: float) -> float:
+    # how far a source of radius r stands out of the local colour: its excess beyond the visibility threshold
+    return _raw_excess(v, mean) - visible * wp.max(mean[0], floor) * 3.14159265 * r * r
+
+
+@wp.func
+def _cluster_excess(v: wp.vec4, r: float, flag: wp.uint8, mean: wp.vec2, r0: float, n_levels: int,
+                    lev: int) -> float:
+    # a cluster member's excess (> 0): a source of level lev, not routed alone, brighter than the local colour
+    if flag == wp.uint8(0) and _on_level(v, r, r0, n_levels, lev):
+        return wp.max(_raw_excess(v, mean), 0.0)
+    return 0.0
+
+
+@wp.func
+def _on_level(v: wp.vec4, r: float, r0: float, n_levels: int, lev: int) -> bool:
+    # the source has coverage and scatters on pyramid level ``lev`` >= 1 (level_of(r) == lev, without its loop:
+    # r * 2^-l is exact in binary floating point, as in level_of)
+    if v[3] == 0.0 or r < 0.5:
+        return False
+    scale = 1.0 / float(1 << lev)
+    if r * (2.0 * scale) <= r0:
+        return False  # a lower level
+    return r * scale <= r0 or lev == n_levels - 1
+
+
+@wp.kernel
+def route_cells_kernel(
+    src: wp.array2d(dtype=wp.vec4),
+    coc: wp.array2d(dtype=float),
+    means: wp.array3d(dtype=wp.vec4),
+    counts: wp.array3d(dtype=float),
+    r0: float,
+    n_levels: int,
+    lev: int,
+    salience: Salience,
+    support: Support,
+    routing: Routing,
+):
+    """Route the level-``lev`` sources of each level cell: at most ``per_cell`` salient ones alone to level 0, and
+    the rest of the cell's excess light, when together it is visible, as its cluster.
+
+    One thread per cell of ``2^lev x 2^lev`` px. Salience: how far a source's own disc stands
+    out of its layer's neighbourhood, the 3 x 3 level-``lev`` cells around its own (cells beyond
+    the array left out): mean premultiplied radiance ``m`` and coverage ``a_m``, so the layer's
+    local colour is ``m / a_m``. A source of radiance ``q`` and coverage ``a`` carries
+    ``e = q - a m / a_m`` more light than its coverage of the local colour (0 on a constant
+    image, whatever the layer's shape); its disc then lights ``e / (pi r^2)`` above the blurred
+    surroundings (about ``m``), and its outline is visible when that exceeds
+    ``visible * max(m, floor)``: the score is the excess beyond that, salient where > 0. The
+    cell keeps its sources of that level with the largest scores (ties: the first in row order),
+    marked 1 in ``exact``. A level-0 source costs ``2^lev`` times the rows of its pyramid scatter, so
+    the routed work is at most ``per_cell / 2^lev`` times what the cell's pyramid sources cost.
+
+    *Extended lights.* A lamp or a window is many sources, each too faint alone to show its outline,
+    whose outlines coincide: together they draw a sharp-edged ball. The cell's sources of that level not
+    routed alone and with positive excess are its *cluster*; when their summed excess ``E`` beats the
+    visibility threshold at the excess-weighted mean radius, their excess light (what ``routed_base`` does
+    not keep on the pyramid) goes to level 0 gathered per block of ``2^b`` px, ``b = max(1, lev - 2)``, one
+    source at each block's excess-weighted centroid: ``cluster_light[lev - 1, by, bx] = (RGB, summed
+    excess)``, ``cluster_shape[...] = (x, y, signed CoC, 1)``, and the members are marked 2 in ``exact``. At
+    most 16 level-0 sources per cell, whose rows are at most twice those of the cell's pyramid sources
+    (level 3), whatever the radius. ``E`` is the excess of all the cell's sources with a positive one less
+    that of the routed ones, summed in float64 in the pass that counts the salient ones.
+
+    ``means[k]``, ``counts[k]``: radiance pyramid level ``k + 1`` (padded to level 1). Each cell's
+    neighbourhood sums are stored in ``cell_total``, ``cell_pixels`` for the scatter. Cells outside the
+    layer's ``support`` (``bokehray_kernels.support``) hold no source: skipped, nothing stored.
+    """
+    cy, cx = wp.tid()
+    side = 1 << lev
+    y0 = cy * side
+    x0 = cx * side
+    y1 = wp.min(y0 + side, src.shape[0])
+    x1 = wp.min(x0 + side, src.shape[1])
+    if not span_in_support(support, y0, y1, x0, x1):
+        return
+    per_cell = salience.per_cell
+    visible = salience.visible
+    floor = salience.floor
+    exact = routing.exact
+    cell_total = routing.cell_total
+    cell_pixels = routing.cell_pixels
+    cluster_light = routing.cluster_light
+    cluster_shape = routing.cluster_shape
+    hl = (src.shape[0] + side - 1) >> lev
+    wl = (src.shape[1] + side - 1) >> lev
+    nb = neighbourhood(means, counts, lev, cy, cx, hl, wl)
+    cell_total[lev - 1, cy, cx] = nb.total
+    cell_pixels[lev - 1, cy, cx] = nb.pixels
+    mean = _local_mean(nb)
+    n = int(0)  # salient sources of this level in the cell; only a few cells have any
+    e_all = wp.float64(0.0)  # excess (> 0) of the level's sources, and its CoC moment: all of them ...
+    ps_all = wp.float64(0.0)
+    e_sal = wp.float64(0.0)  # ... and the salient ones
+    ps_sal = wp.float64(0.0)
+    for y in range(y0, y1):
+        for x in range(x0, x1):
+            v = src[y, x]
+            r = wp.abs(coc[y, x])
+            if _on_level(v, r, r0, n_levels, lev):
+                e = _raw_excess(v, mean)
+                if e > 0.0:
+                    e_all += wp.float64(e)
+                    ps_all += wp.float64(e * coc[y, x])
+                    if _excess(v, r, mean, visible, floor) > 0.0:
+                        n += 1
+                        e_sal += wp.float64(e)
+                        ps_sal += wp.float64(e * coc[y, x])
+    if e_all == wp.float64(0.0):
+        return
+    if n <= per_cell:
+        if n > 0:
+            for y in range(y0, y1):
+                for x in range(x0, x1):
+                    v = src[y, x]
+                    r = wp.abs(coc[y, x])
+                    if _on_level(v, r, r0, n_levels, lev):
+                        if _excess(v, r, mean, visible, floor) > 0.0:
+                            exact[y, x] = wp.uint8(1)
+    else:
+        e_sal = wp.float64(0.0)
+        ps_sal = wp.float64(0.0)
+        bound = float(1.0e38)  # scores above it (or equal, earlier in row order) are already taken
+        by = int(-1)
+        bx = int(-1)
+        for _ in range(per_cell):
+            best = float(0.0)
+            iy = int(-1)
+            ix = int(-1)
+            for y in range(y0, y1):
+                for x in range(x0, x1):
+                    v = src[y, x]
+                    r = wp.abs(coc[y, x])
+                    if _on_level(v, r, r0, n_levels, lev):
+                        s = _excess(v, r, mean, visible, floor)
+                        if s > best:
+                            after = s < bound or (s == bound and (y > by or (y == by and x > bx)))
+                            if after:
+                                best = s
+                                iy = y
+                                ix = x
+            if iy < 0:
+                break
+            exact[iy, ix] = wp.uint8(1)
+            e = _raw_excess(src[iy, ix], mean)
+            e_sal += wp.float64(e)
+            ps_sal += wp.float64(e * coc[iy, ix])
+            bound = best
+            by = iy
+            bx = ix
+    e_sum = float(e_all - e_sal)  # the cluster's
+    if e_sum <= 0.0:
+        return
+    s_mean = float((ps_all - ps_sal) / (e_all - e_sal))
+    if e_sum - visible * wp.max(mean[0], floor) * 3.14159265 * s_mean * s_mean <= 0.0:
+        return
+    # visible together: its members' excess goes to level 0, gathered per block of 2^b px, b = max(1, lev - 2)
+    # (a block's members lie within 2^(b-1) px of their centroid, at most 1/32 of the radius, so the gathered
+    # sources keep the cluster's own soft outline; at most 16 blocks a cell, so the cost stays flat in R)
+    b = wp.max(1, lev - 2)
+    bs = 1 << b
+    for by in range(y0 >> b, (y1 + bs - 1) >> b):
+        for bx in range(x0 >> b, (x1 + bs - 1) >> b):
+            b_e = float(0.0)
+            b_light = wp.vec3()
+            b_x = float(0.0)
+            b_y = float(0.0)
+            b_s = float(0.0)
+            for y in range(by * bs, wp.min(by * bs + bs, y1)):
+                for x in range(bx * bs, wp.min(bx * bs + bs, x1)):
+                    v = src[y, x]
+                    e = _cluster_excess(v, wp.abs(coc[y, x]), exact[y, x], mean, r0, n_levels, lev)
+                    if e > 0.0:
+                        base = routed_base(v, nb)
+                        b_light += wp.vec3(v[0] - base[0], v[1] - base[1], v[2] - base[2])
+                        b_e += e
+                        b_x += e * (float(x - bx * bs) + 0.5)  # relative to the block: the same sums
+                        b_y += e * (float(y - by * bs) + 0.5)  # in a tile's window as in the whole box
+                        b_s += e * coc[y, x]
+                        exact[y, x] = wp.uint8(2)
+            if b_e > 0.0:
+                # the centroid on a 1/256 px grid: exact in float32 in a window's coordinates and in the box's,
+                # so the scatter cuts the same sub-rows in both (tiled renders equal the untiled one)
+                cx_rel = wp.floor(b_x / b_e * 256.0 + 0.5) / 256.0
+                cy_rel = wp.floor(b_y / b_e * 256.0 + 0.5) / 256.0
+                cluster_light[lev - 1, by, bx] = wp.vec4(b_light[0], b_light[1], b_light[2], b_e)
+                cluster_shape[lev - 1, by, bx] = wp.vec4(float(bx * bs) + cx_rel, float(by * bs) + cy_rel,
+                                                         b_s / b_e, 1.0)
+
+
+@wp.kernel
+def scatter_clusters_kernel(routing: Routing, lev: int, shape: Shape, buf0: wp.array2d(dtype=wp.vec4)):
+    """Scatter the level-``lev`` cluster sources (``route_cells_kernel``; one thread per block) at level 0:
+    light, no coverage, with the exact area-integrated spans (a block is 2 px wide up to level 3: the pyramid
+    levels' sharp spans cost small lamps 2-3 dB)."""
+    by, bx = wp.tid()
+    where = routing.cluster_shape[lev - 1, by, bx]
+    if where[3] == 0.0:
+        return
+    light = routing.cluster_light[lev - 1, by, bx]
+    sgn = float(1.0)
+    if where[2] > 0.0:
+        sgn = -1.0
+    scatter_exact(buf0, where[0], where[1], wp.abs(where[2]), wp.vec4(light[0], light[1], light[2], 0.0), shape, sgn)
