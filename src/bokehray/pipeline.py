@@ -147,15 +147,36 @@ def render_with_stats(
     refine: bool | str | os.PathLike = False,
 ) -> tuple[np.ndarray, RenderStats]:
     """Like :func:`render`, and also return what the renderer did (a :class:`~bokehray.RenderStats`:
-    :class:`~bokehray.PreviewStats` or :class:`~bokehray.RaytraceStats`)."""
+    :class:`~bokehray.PreviewStats` or :class:`~bokehray.RaytraceStats`).
+
+    Stages: :func:`_checked_arguments` -> :func:`_context` (validated pixels, grey / alpha, boost, the capped CoC,
+    the soft edges) -> the level, or :func:`_render_refined` -> :func:`_output` (alpha through the level, the
+    output checks)."""
     level = get_level(quality)
+    layers, memory, options, aperture, device = _checked_arguments(
+        level, blur, aperture, device, options, layers, memory, highlight_boost, progress)
+    refining = _check_refine(refine, quality)
+    _check_shape_fits(image, level.whole_image_bytes(), memory)
+    ctx, work, raw_max, channels, lowest = _context(image, disparity, blur, aperture, layers, memory, options, device,
+                                                    progress, highlight_boost)
+    if refining:
+        out_rgb, stats, ctx = _render_refined(level, ctx, work, refine)
+    else:
+        out_rgb, stats = level.render(ctx)
+    stats.max_coc_px = raw_max
+    return _output(level, ctx, work, out_rgb, quality, channels, lowest), stats
+
+
+def _checked_arguments(level, blur: object, aperture: object, device: object, options: object, layers: object,
+                       memory: object, highlight_boost: object, progress: object):
+    """The arguments other than the pixels, checked and defaulted: (layers, memory, options, aperture, device)."""
     layers = LayerOptions() if layers is None else layers
     memory = MemoryOptions() if memory is None else memory
     options = level.options_type() if options is None else options
     check_type(layers, LayerOptions, "layers", "a bokehray.LayerOptions")
     check_type(memory, MemoryOptions, "memory", "a bokehray.MemoryOptions")
     if not isinstance(options, level.options_type):
-        raise InputError(f"options: quality {quality!r} takes a bokehray.{level.options_type.__name__}, "
+        raise InputError(f"options: quality {level.name!r} takes a bokehray.{level.options_type.__name__}, "
                          f"got {type(options).__name__}")
     if memory.tile_size is not None and memory.tile_size < layers.tile_px:
         raise InputError(f"tile_size: expected None (automatic) or an integer >= tile_px ({layers.tile_px}), "
@@ -168,16 +189,18 @@ def render_with_stats(
     check_number(highlight_boost, "highlight_boost", 0.0)
     if progress is not None and not callable(progress):
         raise InputError(f"progress: expected a callable progress(done, total) or None, got {progress!r}")
-    refining = _check_refine(refine, quality)
-    device = _check_device(device)
-    _check_shape_fits(image, level.whole_image_bytes(), memory)
+    return layers, memory, options, aperture, _check_device(device)
 
+
+def _context(image: object, disparity: object, blur: BlurParams, aperture: Aperture, layers: LayerOptions,
+             memory: MemoryOptions, options: object, device: str, progress: Progress | None,
+             highlight_boost: float) -> tuple[RenderContext, np.ndarray, float, int, float]:
+    """The validated pixels as one render's context, the working image (RGB or RGBA, boosted), the largest CoC
+    before the cap, the input's channels and its smallest value."""
     img = check_image(image)
     check_radiance(img)
     d = check_disparity(disparity, img.shape[:2])
-    channels = img.shape[2]
-    lowest = float(img.min())
-    work = img if channels >= 3 else np.repeat(img, 3, axis=2)
+    work = img if img.shape[2] >= 3 else np.repeat(img, 3, axis=2)
     if highlight_boost > 0:
         work = work.copy()
         work[..., :3] = boost_highlights(work[..., :3], highlight_boost)  # colour only, never alpha
@@ -186,30 +209,38 @@ def render_with_stats(
     rgb, capped = np.ascontiguousarray(work[..., :3]), scene.cap_coc(s)
     ctx = RenderContext(rgb, d, capped, blur, aperture, layers, memory, options, device, progress,
                         _soft_edges(rgb, capped, layers))
+    return ctx, work, raw_max, img.shape[2], float(img.min())
 
-    if refining:
-        # the refiner's depth correction runs first, so the level renders once, on the corrected map
-        rendered = {}
 
-        def render_level(dd: np.ndarray) -> np.ndarray:
-            if dd is d:
-                c = ctx
-            else:  # a corrected depth moves the depth edges: split its mixed pixels anew
-                sc = scene.cap_coc(blur.signed_coc(dd))
-                c = replace(ctx, disparity=dd, signed_coc=sc, soft=_soft_edges(ctx.image, sc, layers))
-            rgb, rendered["stats"] = level.render(c)
-            rendered["ctx"] = c
-            return rgb
+def _render_refined(level, ctx: RenderContext, work: np.ndarray, refine: bool | str | os.PathLike):
+    """The refiner's depth correction first, so the level renders once, on the corrected map; then the refiner.
+    Returns the refined RGB, the level's stats (with the refiner's) and the context the level rendered."""
+    rendered = {}
+    d, blur, layers = ctx.disparity, ctx.blur, ctx.layers
 
-        out_rgb, rstats = refine_render(work[..., :3], d, blur, None, refine, device, render_level)
-        ctx, stats = rendered["ctx"], rendered["stats"]  # alpha blurs with the corrected depth too
-        stats.refine = rstats.as_dict()
-        stats.stage_seconds["refine"] = rstats.seconds
-        if "total" in stats.stage_seconds:
-            stats.stage_seconds["total"] += rstats.seconds
-    else:
-        out_rgb, stats = level.render(ctx)
-    stats.max_coc_px = raw_max
+    def render_level(dd: np.ndarray) -> np.ndarray:
+        if dd is d:
+            c = ctx
+        else:  # a corrected depth moves the depth edges: split its mixed pixels anew
+            sc = scene.cap_coc(blur.signed_coc(dd))
+            c = replace(ctx, disparity=dd, signed_coc=sc, soft=_soft_edges(ctx.image, sc, layers))
+        rgb, rendered["stats"] = level.render(c)
+        rendered["ctx"] = c
+        return rgb
+
+    out_rgb, rstats = refine_render(work[..., :3], d, blur, None, refine, ctx.device, render_level)
+    stats = rendered["stats"]
+    stats.refine = rstats.as_dict()
+    stats.stage_seconds["refine"] = rstats.seconds
+    if "total" in stats.stage_seconds:
+        stats.stage_seconds["total"] += rstats.seconds
+    return out_rgb, stats, rendered["ctx"]  # alpha blurs with the corrected depth too
+
+
+def _output(level, ctx: RenderContext, work: np.ndarray, out_rgb: np.ndarray, quality: str, channels: int,
+            lowest: float) -> np.ndarray:
+    """The output in the input's ``channels`` (alpha rendered like a grey channel, through the same level), checked:
+    finite, and non-negative for an input whose smallest value ``lowest`` is."""
     if channels == 4:
         # alpha is rendered like a grey channel: it blurs with the colour it belongs to
         out_a, _ = level.render(ctx.with_image(np.ascontiguousarray(np.repeat(work[..., 3:4], 3, axis=2))))
@@ -219,13 +250,13 @@ def render_with_stats(
     else:
         out = out_rgb
     if lowest >= 0.0:
-        # Every output pixel is a weighted mean of input radiances, so it cannot be negative; float32
-        # prefix sums next to very bright sources can leave -1e-7 of their value (found by the soak).
+        # Every output pixel is a weighted mean of input radiances, so it cannot be negative; float32 prefix sums
+        # next to very bright sources can leave -1e-7 of their value (docs/robustness.md).
         np.maximum(out, 0.0, out=out)
     bad = ~np.isfinite(out)
     if bad.any():
         raise NumericalError(f"{quality} renderer produced NaN/Inf at (y, x, c) = {first_bad_index(bad)}")
-    return out.astype(np.float32, copy=False), stats
+    return out.astype(np.float32, copy=False)
 
 
 def render(
