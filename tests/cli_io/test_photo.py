@@ -397,10 +397,9 @@ def test_progress_bar_covers_every_stage_on_a_terminal(files, tmp_path, capsys, 
     import sys
 
     monkeypatch.setattr(sys.stderr, "isatty", lambda: True, raising=False)
-    for quality in ("preview", "raytrace"):
+    for quality in ("preview",):
         code = main([str(a) for a in ("render", files["img"], "--disparity", files["disp"], "-o",
-                                      tmp_path / "o.png", "--blur", 6, "--focus", 0.5, "--quality", quality,
-                                      "--max-spp", 4)])
+                                      tmp_path / "o.png", "--blur", 6, "--focus", 0.5, "--quality", quality)])
         err = capsys.readouterr().err
         assert code == 0
         for stage in ("read", "render", "write"):

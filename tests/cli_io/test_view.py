@@ -66,7 +66,7 @@ BAD = [
      ["--blur", "10", "--focus", "0.5", "--aperture", "polygon", "--blades", "2"]),
     ({"blur": 10.0, "focus": 0.5, "aperture": "polygon", "curvature": 1.5},
      ["--blur", "10", "--focus", "0.5", "--aperture", "polygon", "--curvature", "1.5"]),
-    ({"blur": 10.0, "focus": 0.5, "max_spp": 0}, ["--blur", "10", "--focus", "0.5", "--max-spp", "0"]),
+    ({"blur": 10.0, "focus": 0.5, "quality": "raytrace"}, ["--blur", "10", "--focus", "0.5", "--quality", "raytrace"]),
     ({"blur": 10.0, "focus": 0.5, "highlight_boost": -1.0},
      ["--blur", "10", "--focus", "0.5", "--highlight-boost", "-1"]),
 ]
@@ -373,24 +373,14 @@ def test_cli_port_in_use_is_one_line(scene_files, server, capsys):
     assert err.startswith(f"bokehray: error: --port {server.port}: cannot listen") and err.count("\n") == 1
 
 
-def test_raytrace_export_and_preview_level_refinement(server, session, tmp_path):
-    """The page's refinement is the preview level whatever the export level; a ray-traced export is what its
-    command writes."""
-    params = {"blur": 8.0, "focus": 0.5, "quality": "raytrace", "max_spp": 4}
-    st, h, _ = post(server.url + "api/render", {**params, "stage": "full"})
-    assert st == 200 and "--quality%20raytrace%20--max-spp%204" in h["x-bokehray-command"]
-    st, _, body = post(server.url + "api/export", {"params": params, "format": "exr", "bit_depth": 32})
-    assert st == 200, body
-    out = json.loads(body)
-    argv = shlex.split(out["command"])
-    assert argv[argv.index("--quality") + 1] == "raytrace"
-    again = tmp_path / "rt.exr"
-    argv[argv.index("-o") + 1] = str(again)
-    assert main(argv[1:] + ["--quiet"]) == 0
-    rt = br.read_image(out["path"])
-    np.testing.assert_array_equal(rt, br.read_image(again))
-    pv = br.render(session.image, session.disparity, br.BlurParams(8.0, 0.5))
-    assert np.abs(rt - pv).max() > 0  # the export really is the other level
+def test_the_page_offers_no_ray_tracer_for_photos(server):
+    """On photos the ray tracer is slower than the preview and not more accurate (docs/raytracer.md): the page
+    offers the preview alone, and a ray-traced export is refused with the pointer the command line gives."""
+    info = json.loads(urllib.request.urlopen(server.url + "api/info", timeout=10).read())
+    assert info["qualities"] == ["preview"]
+    st, _, body = post(server.url + "api/export", {"params": {"blur": 8.0, "focus": 0.5, "quality": "raytrace"},
+                                                   "format": "exr"})
+    assert st == 400 and "--quality raytrace: on photos the ray tracer is slower" in json.loads(body)["error"]
 
 
 def test_depth_map_session_and_its_command(scene_files, tmp_path):

@@ -257,7 +257,7 @@ def test_a_preview_run_inside_an_export_leaves_the_export_as_its_command_writes_
     s, _ = metric
     w = RenderWorker()
     try:
-        p = s.parse({"amount": 60, "focus_at": [150, 70], "quality": "raytrace", "max_spp": 16})
+        p = s.parse({"amount": 60, "focus_at": [150, 70]})
         started, submitted = threading.Event(), threading.Event()
 
         def export(check):
@@ -265,7 +265,7 @@ def test_a_preview_run_inside_an_export_leaves_the_export_as_its_command_writes_
                 check(done, total)
                 started.set()
                 if submitted.wait(HANG_S):
-                    check()  # the preview submitted meanwhile runs here, inside the ray tracer's progress call
+                    check()  # the preview submitted meanwhile runs here, inside the export's progress call
             return s.export(p, "exr", 32, chk)
 
         fut = w.submit_export(export)

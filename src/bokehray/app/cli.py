@@ -157,11 +157,11 @@ def build_parser() -> argparse.ArgumentParser:
     o.add_argument("--highlight-boost", type=float, default=0.0,
                    help="instead of the reconstruction: the older uniform boost of every pixel near 1.0 "
                    "(1 + S t^2; 0 = off)")
-    from ..levels import LEVELS
+    from ..levels import LEVELS, PHOTO_QUALITIES
 
-    o.add_argument("--quality", choices=tuple(LEVELS), default="preview",
-                   help="; ".join(f"{name}: {level.summary}" for name, level in LEVELS.items()))
-    o.add_argument("--max-spp", type=int, default=128, help="raytrace: most rays (aperture cells) per pixel (default 128)")
+    o.add_argument("--quality", default="preview", metavar="{" + ",".join(PHOTO_QUALITIES) + "}",
+                   help="; ".join(f"{name}: {LEVELS[name].summary}" for name in PHOTO_QUALITIES)
+                   + " (the ray tracer renders layer stacks: bokehray synth)")
     o.add_argument("--refine", nargs="?", const=True, default=False, metavar="WEIGHTS",
                    help="then run the neural refiner near depth edges (preview quality; needs the 'refiner' extra); "
                    "default: the shipped weights, or WEIGHTS from bokehray train-refiner")

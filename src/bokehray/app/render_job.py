@@ -124,6 +124,9 @@ def _warn(args: argparse.Namespace, text: str) -> None:
 def _check_render_flags(args: argparse.Namespace) -> bool:
     """Contradictions between flags, found before any file is read (and before Warp starts). Returns whether
     the blur is a physical lens."""
+    from ..levels import check_photo_quality
+
+    check_photo_quality(args.quality)
     physical = any(v is not None for v in (args.focal_length, args.f_number, args.focus_distance))
     given_focus = [name for name, v in (("--focus", args.focus), ("--focus-at", args.focus_at),
                                         ("--focus-distance", args.focus_distance)) if v is not None]
@@ -366,12 +369,11 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:
     t_read = time.perf_counter() - t0
 
     start_warp(args)
-    from ..options import PreviewOptions, RaytraceOptions
+    from ..options import PreviewOptions
     from ..pipeline import render_with_stats
 
-    rt_opts = RaytraceOptions(max_spp=args.max_spp)  # validated whatever the quality
     # a batch's worker processes share the machine's cores (``threads``; the output does not depend on it)
-    level_options = rt_opts if args.quality == "raytrace" else PreviewOptions(threads=getattr(args, "threads", None))
+    level_options = PreviewOptions(threads=getattr(args, "threads", None))
     out, stats = render_with_stats(image, disparity, blur, aperture_of(args), quality=args.quality,
                                    device=args.device, options=level_options,
                                    layers=layer_options_of(args), highlight_boost=args.highlight_boost,

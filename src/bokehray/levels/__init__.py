@@ -19,7 +19,7 @@ from ..options import PreviewOptions, RaytraceOptions
 from ..stats import RenderStats
 from .base import Level, RenderContext
 
-__all__ = ["LEVELS", "Level", "RenderContext", "get_level"]
+__all__ = ["LEVELS", "PHOTO_QUALITIES", "Level", "RenderContext", "check_photo_quality", "get_level"]
 
 
 
@@ -52,11 +52,30 @@ LEVELS: dict[str, Level] = {
     for level in (
         Level("preview", "layered occlusion-aware scatter, fast, and the more accurate level for photos",
               PreviewOptions, _render_preview, _preview_bytes),
-        Level("raytrace", "the same layers ray traced through the aperture: much slower and, on photos, measured "
-              "slightly below the preview (docs/raytracer.md); the exact renderer of true layer stacks (synth)",
+        Level("raytrace", "the same layers ray traced through the aperture: the exact renderer of true layer stacks "
+              "(raytrace_layers, bokehray synth); on photos 30x slower than the preview and measured below it "
+              "(docs/raytracer.md), so the command line and the page do not offer it for photos",
               RaytraceOptions, _render_raytrace, _raytrace_bytes),
     )
 }
+
+PHOTO_QUALITIES = ("preview",)
+"""The levels the command line and the page offer for photos: a level is offered only where it beats the one below
+on exact references. The ray tracer renders the same soft scene as the preview and scores below it on the
+path-traced dev set at about 30 times its time (docs/raytracer.md), so for photos it is not offered."""
+
+
+def check_photo_quality(name: object, flag: str = "--quality") -> str:
+    """``name`` if it is a level offered for photos; else one line pointing to the preview."""
+    from ..errors import InputError
+
+    if name == "raytrace":
+        raise InputError(f"{flag} raytrace: on photos the ray tracer is slower than the preview and not more accurate "
+                         "(docs/raytracer.md); the preview (the default) is the exact level for photos, and the ray "
+                         "tracer renders layer stacks (bokehray synth, bokehray.raytrace_layers)")
+    if not isinstance(name, str) or name not in PHOTO_QUALITIES:
+        raise InputError(f"{flag}: expected one of {', '.join(PHOTO_QUALITIES)}, got {str(name)[:40]!r}")
+    return name
 
 
 def get_level(name: str) -> Level:

@@ -22,6 +22,7 @@ import json
 import socket
 import threading
 import time
+import warnings
 from importlib import resources
 from typing import Self
 from urllib.parse import quote
@@ -279,10 +280,20 @@ class ViewServer:
         return f"http://{host}:{self.port}/"
 
     def run(self) -> None:
+        interrupted = False
         try:
-            self.server.run(sockets=[self.sock])
+            with warnings.catch_warnings():
+                # a Ctrl-C before uvicorn's loop has started leaves its serve() coroutine unawaited; it is collected
+                # when the interrupt is handled here, and its RuntimeWarning would be a second line on stderr
+                warnings.filterwarnings("ignore", r"coroutine .* was never awaited", RuntimeWarning)
+                try:
+                    self.server.run(sockets=[self.sock])
+                except KeyboardInterrupt:
+                    interrupted = True
         finally:
             self.close()
+        if interrupted:
+            raise KeyboardInterrupt
 
     def start(self) -> Self:
         self._thread = threading.Thread(target=self.server.run, kwargs={"sockets": [self.sock]}, daemon=True)

@@ -22,6 +22,7 @@ import numpy as np
 import bokehray as br
 
 from ...errors import InputError
+from ...levels import PHOTO_QUALITIES, check_photo_quality
 
 __all__ = ["EXPORT_FORMATS", "MAX_BODY_BYTES", "ProxyLadder", "RenderParams", "ViewSession", "box_factor", "box_reduce",
            "encode_jpeg", "json_integer", "json_number",
@@ -37,7 +38,7 @@ JPEG_QUALITY = 95
 """``render``'s default ``--jpeg-quality``: a JPEG export is the file the shown command writes."""
 
 _PARAM_KEYS = {"lens", "amount", "blur", "focus", "focus_at", "aperture", "blades", "rotation", "curvature", "highlight_boost",
-               "reconstruct", "quality", "max_spp"}
+               "reconstruct", "quality"}
 
 
 def box_factor(h: int, w: int, long_side: int) -> int:
@@ -131,7 +132,6 @@ class RenderParams:
     curvature: float
     highlight_boost: float
     quality: str
-    max_spp: int
     blur: br.BlurParams
     lens: br.Aperture
     amount: float | None = None
@@ -140,7 +140,7 @@ class RenderParams:
 
     def key(self) -> tuple:
         return (self.blur.k_px, self.blur.focus_disparity, self.lens, self.highlight_boost, self.quality,
-                self.max_spp, self.reconstructs)
+                self.reconstructs)
 
     @property
     def focus_default(self) -> bool:
@@ -278,13 +278,8 @@ def parse_params(body: object, disparity: np.ndarray, *, subject_d_f: float | No
     reconstruct = body.get("reconstruct", reconstruct_default)
     if not isinstance(reconstruct, bool):
         raise InputError(f"reconstruct: expected true or false, got {reconstruct!r}"[:200])
-    quality = body.get("quality", "preview")
-    if not isinstance(quality, str) or quality not in br.QUALITIES:
-        raise InputError(f"argument --quality: invalid choice: {quality!r} (choose from "
-                         f"{', '.join(map(repr, br.QUALITIES))})"[:300])
-    max_spp = _integer(body, "max_spp", "--max-spp", 128)
-    br.RaytraceOptions(max_spp=max_spp)  # validated whatever the quality, as the CLI does
-    return RenderParams(k, focus, xy, shape, blades, rotation, curvature, boost, quality, max_spp, blur, lens,
+    quality = check_photo_quality(body.get("quality", "preview"))
+    return RenderParams(k, focus, xy, shape, blades, rotation, curvature, boost, quality, blur, lens,
                         amount, reconstruct, thin)
 
 
@@ -444,7 +439,7 @@ class ViewSession:
                          "reconstruct": self.reconstruct_default},
             "display_referred": self.display_referred, "metric": metric,
             "max_blur": float(max(8, round(self.w / 8))),
-            "qualities": list(br.QUALITIES), "export_formats": {k: list(v) for k, v in EXPORT_FORMATS.items()},
+            "qualities": list(PHOTO_QUALITIES), "export_formats": {k: list(v) for k, v in EXPORT_FORMATS.items()},
             "export_dir": str(self.export_dir), "max_body_bytes": MAX_BODY_BYTES,
         }
 
@@ -502,9 +497,7 @@ class ViewSession:
             check()
         image = self._variant(p.reconstructs)[0]
         out, _ = br.render_with_stats(image, self.disparity, p.blur, p.lens, quality=p.quality,
-                                      device=self.device, highlight_boost=p.highlight_boost, progress=progress,
-                                      options=br.RaytraceOptions(max_spp=p.max_spp) if p.quality == "raytrace"
-                                      else None)
+                                      device=self.device, highlight_boost=p.highlight_boost, progress=progress)
         self._full = None  # drop the old one before keeping the new one: one full-size image at a time
         self._full = (key, out)
         return out
@@ -609,8 +602,6 @@ class ViewSession:
             args += ["--highlight-boost", _fmt(p.highlight_boost)]
         elif self.display_referred and not p.reconstruct:
             args.append("--no-highlight-reconstruction")
-        if p.quality != "preview":
-            args += ["--quality", p.quality, "--max-spp", str(p.max_spp)]
         if bit_depth is not None:
             args += ["--bit-depth", str(bit_depth)]
         if half:

@@ -14,7 +14,7 @@ const F_STOPS = [1.2, 1.4, 1.8, 2, 2.8, 4, 5.6, 8, 11, 16, 22];
 let info = null;
 // what `bokehray render` does with the same inputs: amount 50, the subject, reconstruction as the file needs
 const state = { amount: 50, blur: null, focus: null, focus_at: null, aperture: "disc", blades: 6, rotation: 0,
-                curvature: 0, highlight_boost: 0, reconstruct: false, quality: "preview", max_spp: 128,
+                curvature: 0, highlight_boost: 0, reconstruct: false, quality: "preview",
                 lens: null };  // lens: {focal_length, f_number, focus_distance (null: the clicked point)}
 let version = 0;            // the state's number: every change increments it
 let shownVersion = -1;      // the state of the image on screen
@@ -26,8 +26,7 @@ window.bokehrayShown = shownLog;
 
 function params() {
   const p = { aperture: state.aperture, blades: state.blades, rotation: state.rotation, curvature: state.curvature,
-              highlight_boost: state.highlight_boost, reconstruct: state.reconstruct, quality: state.quality,
-              max_spp: state.max_spp };
+              highlight_boost: state.highlight_boost, reconstruct: state.reconstruct, quality: state.quality };
   if (state.lens) {  // metric depth: render's physical lens (--focal-length, --f-number, --focus-distance)
     p.lens = { focal_length: state.lens.focal_length, f_number: state.lens.f_number };
     if (state.focus_at) p.focus_at = state.focus_at; else p.lens.focus_distance = state.lens.focus_distance;
@@ -246,7 +245,6 @@ function bind() {
   $("aperture").addEventListener("change", () => { state.aperture = $("aperture").value; syncOutputs(); changed(); });
   $("reconstruct").addEventListener("change", () => { state.reconstruct = $("reconstruct").checked; changed(); });
   $("quality").addEventListener("change", () => { state.quality = $("quality").value; changed(); });
-  $("max_spp").addEventListener("change", () => { state.max_spp = Math.round(Number($("max_spp").value)); changed(); });
   $("show").addEventListener("change", draw);
   $("infocus").addEventListener("change", drawOverlay);
   $("zoom").addEventListener("change", () => { sizeCanvas(); draw(); if (shownVersion === version) full(version); });
@@ -337,6 +335,7 @@ async function start() {
   for (const q of info.qualities) {
     const o = document.createElement("option"); o.value = q; o.textContent = q; $("quality").appendChild(o);
   }
+  $("quality").parentElement.hidden = info.qualities.length < 2;  // one level for photos (the preview): no choice
   for (const f of Object.keys(info.export_formats)) {
     const o = document.createElement("option"); o.value = f; o.textContent = f; $("format").appendChild(o);
   }
