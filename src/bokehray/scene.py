@@ -275,8 +275,8 @@ def tile_max(values: np.ndarray, tile: int) -> np.ndarray:
 
 
 def dilate(mask: np.ndarray, k: int) -> np.ndarray:
-    """Binary dilation of a small 2-D mask by a (2k+1)^2 square, via 2-D prefix sums."""
-    if k <= 0:
+    """Binary dilation of a 2-D mask (a tile grid, a small image) by a (2k+1)^2 square, via 2-D prefix sums."""
+    if k <= 0 or not mask.any():
         return mask.copy()
     h, w = mask.shape
     c = np.zeros((h + 1, w + 1), np.int32)
@@ -517,7 +517,7 @@ def build_scene(signed_coc: np.ndarray, active: np.ndarray, options: LayerOption
         pad = light_pad(float(max_r_slice[i]), reach, level_radius_px)
         bbox = (max(0, ty.min() * t - pad), min(h, (ty.max() + 1) * t + pad),
                 max(0, tx.min() * t - pad), min(w, (tx.max() + 1) * t + pad))
-        support = dilate_tiles(own, -(-pad // t)) if t >= SUPPORT_MIN_TILE_PX and t & (t - 1) == 0 else None
+        support = dilate(own, -(-pad // t)) if t >= SUPPORT_MIN_TILE_PX and t & (t - 1) == 0 else None
         layers.append(LayerRecord(int(i), float(edges[i]), float(edges[i + 1]), bbox, float(max_r_slice[i]), reach,
                                   support, t, pixels=int(counts[i])))
     return LayeredScene(sid, edges, max_coc, tuple(layers), level_radius_px,
@@ -545,21 +545,6 @@ def light_pad(max_radius: float, fill_reach: float, level_radius_px: float | Non
     if level_radius_px is not None:
         coarse = COARSE_SCATTER_CELLS << (pyramid_levels(max_radius, level_radius_px) - 1)
     return _fill_pad(fill_reach) + int(math.ceil(max_radius)) + 2 + coarse
-
-
-def dilate_tiles(mask: np.ndarray, k: int) -> np.ndarray:
-    """``mask`` (bool, a tile grid) grown by ``k`` tiles in every direction (a (2k + 1)^2 square)."""
-    if k <= 0 or not mask.any():
-        return mask.copy()
-    th, tw = mask.shape
-    sat = np.zeros((th + 1, tw + 1), np.int64)  # summed-area table: a square's count in four reads
-    sat[1:, 1:] = mask.cumsum(0).cumsum(1)
-    y = np.arange(th)
-    x = np.arange(tw)
-    ya, yb = np.clip(y - k, 0, th), np.clip(y + k + 1, 0, th)
-    xa, xb = np.clip(x - k, 0, tw), np.clip(x + k + 1, 0, tw)
-    count = sat[yb][:, xb] - sat[ya][:, xb] - sat[yb][:, xa] + sat[ya][:, xa]
-    return count > 0
 
 
 def _fill_pad(reach: float) -> int:

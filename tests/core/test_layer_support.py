@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from bokehray import Aperture, LayerOptions, MemoryOptions
 from bokehray.levels import preview as pv
-from bokehray.scene import dilate_tiles
+from bokehray.scene import dilate
 
 
 def _dilate_loops(mask: np.ndarray, k: int) -> np.ndarray:
@@ -21,9 +21,9 @@ def _dilate_loops(mask: np.ndarray, k: int) -> np.ndarray:
 
 @settings(max_examples=60, deadline=None)
 @given(st.integers(1, 9), st.integers(1, 9), st.integers(0, 6), st.integers(0, 2**31 - 1))
-def test_dilate_tiles_matches_plain_loops(h, w, k, seed):
+def test_dilate_matches_plain_loops(h, w, k, seed):
     mask = np.random.default_rng(seed).random((h, w)) < 0.15
-    np.testing.assert_array_equal(dilate_tiles(mask, k), _dilate_loops(mask, k))
+    np.testing.assert_array_equal(dilate(mask, k), _dilate_loops(mask, k))
 
 
 def _scene(seed: int, size: int = 240) -> tuple[np.ndarray, np.ndarray]:
