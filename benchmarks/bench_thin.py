@@ -171,7 +171,10 @@ def photo_stack(scene: Scene, disparity: np.ndarray, soft: SoftEdges | None, blu
         f_rgba[i, :3], f_s[i] = soft.background, soft.far_coc
         hidden[i] = False
     f_rgba[:, :3] = fill_hidden(f_rgba[:, :3].reshape(h, w, 3), ~hidden.reshape(h, w)).reshape(-1, 3)
-    to_d = lambda v: np.clip(v / blur.k_px + blur.focus_disparity, 0.0, 1.0).reshape(h, w).astype(np.float32)  # noqa: E731
+
+    def to_d(v: np.ndarray) -> np.ndarray:  # signed CoC back to disparity
+        return np.clip(v / blur.k_px + blur.focus_disparity, 0.0, 1.0).reshape(h, w).astype(np.float32)
+
     return [Layer(n_rgba.reshape(h, w, 4), disparity=to_d(n_s)), Layer(f_rgba.reshape(h, w, 4), disparity=to_d(f_s))]
 
 
@@ -358,7 +361,8 @@ def main(argv: list[str] | None = None) -> None:
                       f"{row['alpha_rmse']['soft']:.3f}  " + "  ".join(
                           f"{v}: {sc[v]['whole']:.1f}/{sc[v]['band']:.1f}/{sc[v]['ring']:.1f}" for v in sc),
                       flush=True)
-    result = {"machine": machine_info(), "seed": args.seed, "size": size, "K": K, "d_fg": D_FG, "d_bg": D_BG, "spp": args.spp,
+    result = {"machine": machine_info(), "seed": args.seed, "size": size, "K": K, "d_fg": D_FG, "d_bg": D_BG,
+              "spp": args.spp,
               "estimated_sigma_px": ESTIMATED_SIGMA_PX, "ring_px": RING_PX, "rows": rows}
     summary = {}
     for v in rows[0]["scores"]:
@@ -371,8 +375,8 @@ def main(argv: list[str] | None = None) -> None:
     if not args.quick and args.runs > 0:
         result["timing_demo_1536x1024"] = timing(args.runs)
         t = result["timing_demo_1536x1024"]
-        print(f"split_mixed_pixels {t['split_mixed_pixels']['median']:.3f} s, preview {t['preview_soft_off']['median']:.3f}"
-              f" s, ratio {t['ratio_split_to_preview']:.2f}")
+        print(f"split_mixed_pixels {t['split_mixed_pixels']['median']:.3f} s, "
+              f"preview {t['preview_soft_off']['median']:.3f} s, ratio {t['ratio_split_to_preview']:.2f}")
     if not args.quick:
         args.img.mkdir(parents=True, exist_ok=True)
         plot(rows, args.img / "thin_psnr.png")
