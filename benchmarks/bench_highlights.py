@@ -95,7 +95,7 @@ def figure(data: Path, path: Path, scene="d3_lamps_ring_writing", name="bokeh_f0
     y, x, size = box
     fig, axes = plt.subplots(1, len(shots), figsize=(3.2 * len(shots), 3.4))
     for ax, (title, img) in zip(axes, shots.items()):
-        ax.imshow(br.io.linear_to_srgb(np.clip(img[y:y + size, x:x + size], 0, 1)))
+        ax.imshow(br.colour.linear_to_srgb(np.clip(img[y:y + size, x:x + size], 0, 1)))
         ax.set_title(title, fontsize=9)
         ax.set_xticks([]), ax.set_yticks([])
     fig.suptitle(f"{scene} {name} (K = {r['K']:g}): bokeh of lamps of radiance 3-8 stored clipped at 1", fontsize=9)

@@ -46,7 +46,7 @@ APERTURES = {"disc": br.Aperture(), "hexagon": br.Aperture(blades=6, rotation_de
 def scene(size: int = 512) -> list[br.Layer]:
     """Nearest first: strands (d 0.9), a card with a round hole (d 0.45-0.55), a photo background (d 0-0.1)."""
     yy, xx = np.mgrid[0:size, 0:size] + 0.5
-    bg = br.io.srgb_to_linear(resize(data.astronaut(), (size, size), anti_aliasing=True)).astype(np.float32)
+    bg = br.colour.srgb_to_linear(resize(data.astronaut(), (size, size), anti_aliasing=True)).astype(np.float32)
     bg = np.concatenate([bg, np.ones((size, size, 1), np.float32)], axis=2)
     bg[200:206, 300:306, :3] = 12.0  # a small bright light
     card = np.zeros((size, size, 4), np.float32)
@@ -63,7 +63,7 @@ def scene(size: int = 512) -> list[br.Layer]:
 
 
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
-    f = lambda x: br.io.linear_to_srgb(np.clip(x, 0, 1))  # noqa: E731
+    f = lambda x: br.colour.linear_to_srgb(np.clip(x, 0, 1))  # noqa: E731
     mse = float(np.mean((f(a) - f(b)) ** 2))
     return float("inf") if mse == 0 else float(10 * np.log10(1.0 / mse))
 

@@ -1,6 +1,6 @@
 """Thin structures against exact renders: one depth a pixel versus soft edges (``bokehray.matting``).
 
-Each scene is a two-layer stack in the style of ``bokehray.synth``: an RGBA foreground (hair-like strands 0.5-3 px,
+Each scene is a two-layer stack in the style of ``bokehray.data.synth``: an RGBA foreground (hair-like strands 0.5-3 px,
 fur around a cut-out, foliage, a fence mesh, a photo cut-out with an antialiased rim) on a plane in front of a
 photo background with small bright lights. The stack is flattened to a photo plus one disparity a pixel, either by
 the alpha >= 0.5 rule ("exact" map) or blurred like an estimator's ("estimated": Gaussian, sigma 1.5 px). The target
@@ -14,7 +14,7 @@ the background. Each input is scored:
 * **renderers**: ``bokehray.render`` at the preview (and, with ``--raytrace``, the ray-tracer) level with
   ``LayerOptions(soft_edges=False)`` and ``True``, when this build's LayerOptions has that option.
 
-Scores are PSNR (sRGB, clipped, ``bokehray.metrics``) over the whole image, the 8 px band around depth edges and
+Scores are PSNR (sRGB, clipped, ``bokehray.data.metrics``) over the whole image, the 8 px band around depth edges and
 the 1.5 px silhouette ring. It also times ``split_mixed_pixels`` on the 1536 x 1024 demo scene (median of warm
 runs) against the preview render of the same scene with soft edges off, in the same run.
 
@@ -41,9 +41,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import REPO, machine_info, time_warm  # noqa: E402
 
 import bokehray as br  # noqa: E402
-from bokehray import metrics, synth  # noqa: E402
+from bokehray.data import metrics, synth  # noqa: E402
 from bokehray.levels.raytrace import Layer, raytrace_layers  # noqa: E402
-from bokehray.demo import build_demo_scene  # noqa: E402
+from bokehray.app.demo import build_demo_scene  # noqa: E402
 from bokehray.matting import split_mixed_pixels  # noqa: E402
 from bokehray.scene import SoftEdges, cap_coc  # noqa: E402
 

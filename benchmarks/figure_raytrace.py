@@ -38,7 +38,7 @@ def main() -> int:
         img, st = br.raytrace_layers(layers, blur, options=br.RaytraceOptions(max_spp=cap))
         crops.append((img[150:330, 200:380, :3], f"3-layer stack, max_spp {cap} ({st.spp_mean:.0f} rays/px)"))
     fig, axes = plt.subplots(1, 3, figsize=(12, 4.2))
-    srgb = lambda x: br.io.linear_to_srgb(np.clip(x, 0, 1))  # noqa: E731
+    srgb = lambda x: br.colour.linear_to_srgb(np.clip(x, 0, 1))  # noqa: E731
     axes[0].imshow(srgb(light[..., :3]))
     axes[0].set_title("point light, R = 64 px, curved pentagon", fontsize=9)
     for ax, (img, title) in zip(axes[1:], crops):

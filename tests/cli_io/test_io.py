@@ -515,7 +515,7 @@ def _dead_pid() -> int:
 
 
 def test_stale_temporaries_of_a_killed_write_are_removed_by_the_next_write(tmp_path):
-    prefix = at._tmp_prefix(tmp_path / "o.png")
+    prefix = at.temporary_prefix(tmp_path / "o.png")
     host_part = prefix.rsplit("-", 2)[0]
     dead = tmp_path / f"{host_part}-{_dead_pid()}-abc123.png"
     live = tmp_path / f"{host_part}-{os.getppid()}-def456.png"  # our parent is alive: a concurrent writer
@@ -541,16 +541,16 @@ def test_a_killed_writer_not_yet_reaped_counts_as_dead(tmp_path):
 
     p = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
     try:
-        assert at._pid_alive(p.pid)
+        assert at.writer_alive(p.pid)
         os.kill(p.pid, signal.SIGKILL)
         for _ in range(200):  # the kernel marks it a zombie at once; it stays one until we wait for it
-            if at._zombie(p.pid):
+            if at.is_zombie(p.pid):
                 break
             time.sleep(0.01)
-        host_part = at._tmp_prefix(tmp_path / "o.png").rsplit("-", 2)[0]
+        host_part = at.temporary_prefix(tmp_path / "o.png").rsplit("-", 2)[0]
         stale = tmp_path / f"{host_part}-{p.pid}-abc123.png"
         stale.write_bytes(b"partial")
-        assert not at._pid_alive(p.pid)
+        assert not at.writer_alive(p.pid)
         assert at.remove_stale_temporaries(tmp_path / "o.png") == [stale] and not stale.exists()
     finally:
         p.kill()

@@ -21,31 +21,33 @@ import psutil
 
 from ..errors import BokehrayError, OutputError, ResourceError
 
-__all__ = ["atomic_write", "remove_stale_outputs", "remove_stale_temporaries"]
+__all__ = ["atomic_write", "is_zombie", "remove_stale_outputs", "remove_stale_temporaries", "temporary_prefix", "writer_alive"]
 
 _TMP_TAG = ".tmp-"
 """Temporary siblings are named ``.<name>.tmp-<host>-<pid>-<random><suffix>``: hidden, never read by
 any reader here, and recognisable as a dead writer's leftovers by the next write to ``<name>``."""
 
 
-def _tmp_prefix(path: Path) -> str:
+def temporary_prefix(path: Path) -> str:
+    """The name a write to ``path`` by this process gives its temporary sibling, up to its random part."""
     host = "".join(c if c.isalnum() else "_" for c in socket.gethostname())[:32] or "host"
     return f".{path.name}{_TMP_TAG}{host}-{os.getpid()}-"
 
 
-def _pid_alive(pid: int) -> bool:
+def writer_alive(pid: int) -> bool:
+    """Whether process ``pid`` of this host can still write (it exists and is not a zombie)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
     except OSError:  # e.g. EPERM: it exists, owned by someone else
         pass
-    return not _zombie(pid)
+    return not is_zombie(pid)
 
 
-def _zombie(pid: int) -> bool:
-    # a killed process that its parent has not reaped yet (a pool or a Dask nanny restarting a worker) still
-    # answers kill(pid, 0), but it writes nothing more
+def is_zombie(pid: int) -> bool:
+    """A killed process that its parent has not reaped yet (a pool or a Dask nanny restarting a worker): it still
+    answers kill(pid, 0), but it writes nothing more."""
     try:
         return psutil.Process(pid).status() == psutil.STATUS_ZOMBIE
     except psutil.Error:
@@ -62,7 +64,7 @@ def remove_stale_temporaries(path: str | os.PathLike[str]) -> list[Path]:
     files removed. Called by every write; never raises.
     """
     p = Path(path)
-    host_prefix = _tmp_prefix(p).rsplit("-", 2)[0] + "-"  # ".<name>.tmp-<host>-"
+    host_prefix = temporary_prefix(p).rsplit("-", 2)[0] + "-"  # ".<name>.tmp-<host>-"
     removed = []
     try:
         entries = list(os.scandir(p.parent))
@@ -72,7 +74,7 @@ def remove_stale_temporaries(path: str | os.PathLike[str]) -> list[Path]:
         if not (e.name.startswith(host_prefix) and e.name.endswith(p.suffix)):
             continue
         pid_text = e.name[len(host_prefix):].split("-", 1)[0]
-        if not pid_text.isdigit() or int(pid_text) == os.getpid() or _pid_alive(int(pid_text)):
+        if not pid_text.isdigit() or int(pid_text) == os.getpid() or writer_alive(int(pid_text)):
             continue
         with contextlib.suppress(OSError):
             os.unlink(e.path)
@@ -118,7 +120,7 @@ def atomic_write(path: Path, encode: Callable[[str], None]) -> Path:
         # a signal between creating the file and knowing its name would leak it: hold signals meanwhile
         blocked = _block_signals()
         try:
-            fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=_tmp_prefix(path), suffix=path.suffix)
+            fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=temporary_prefix(path), suffix=path.suffix)
         finally:
             _unblock_signals(blocked)
         os.close(fd)
