@@ -39,13 +39,13 @@ sys.path.insert(0, str(REPO / "tests"))
 
 import numpy as np  # noqa: E402
 import scipy.signal  # noqa: E402
+from reference import scatter_ref  # noqa: E402
 
 import bokehray  # noqa: E402
+from benchmarks import common  # noqa: E402
+from bokehray.app.demo import build_demo_scene  # noqa: E402
 from bokehray.levels.preview import render_signed_coc  # noqa: E402
 from bokehray.options import PreviewOptions  # noqa: E402
-from bokehray.app.demo import build_demo_scene  # noqa: E402
-from benchmarks import common  # noqa: E402
-from reference import scatter_ref  # noqa: E402
 
 APERTURES = {"disc": bokehray.Aperture(), "6 blades": bokehray.Aperture(blades=6, rotation_deg=15.0)}
 RADII = (16, 64, 128, 256)
@@ -268,7 +268,7 @@ def replot(js: Path, png: Path) -> None:
     plot(json.loads(js.read_text()), png)
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None) -> int:  # noqa: C901
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="smoke test: R <= 64, small HDR plane, one timing")
     ap.add_argument("--device", default="cpu")

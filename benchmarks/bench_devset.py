@@ -24,7 +24,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-import bokehray as br  # noqa: E402
+import bokehray as br
 
 ROOT = Path(__file__).resolve().parent.parent
 VARIANTS = {

@@ -32,10 +32,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-import bokehray as br  # noqa: E402
-from bokehray.photo import highlights  # noqa: E402
+import bokehray as br
+from bokehray.photo import highlights
 
 ROOT = Path(__file__).resolve().parent.parent
 VARIANTS = {

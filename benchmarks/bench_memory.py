@@ -23,9 +23,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from benchmarks import common  # noqa: E402
+from benchmarks import common
 
 SIZES = {1.5: (1500, 1000), 6: (3000, 2000), 12: (4242, 2828), 24: (6000, 4000)}
 # (megapixels, quality, R, tile_size, memory_limit_mb, max_spp)

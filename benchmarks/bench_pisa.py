@@ -16,7 +16,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import REPO, machine_info, peak_rss_mb_of, report_rss, reset_peak_rss, time_warm, write_json  # noqa: E402
+from common import REPO, machine_info, peak_rss_mb_of, report_rss, reset_peak_rss, time_warm, write_json
 
 HEADS, HEAD_DIM, MAX_COC = 4, 16, 8.0
 
@@ -24,7 +24,6 @@ HEADS, HEAD_DIM, MAX_COC = 4, 16, 8.0
 def _inputs(n: int):
     import numpy as np
     import torch
-
     from bokehray_refiner.pisa import pisa_masks
 
     rng = np.random.default_rng(0)
@@ -39,7 +38,6 @@ def _inputs(n: int):
 
 def _call(form: str, n: int):
     import torch
-
     from bokehray_refiner.attention import pisa_attention, pisa_attention_dense
 
     q, k, v, coc, vis, w = _inputs(n)
@@ -83,12 +81,12 @@ def pipeline_times() -> dict:
 
     import numpy as np
     import torch
-
-    from bokehray.lens import BlurParams
     from bokehray_refiner.masks import PisaMaskProvider
     from bokehray_refiner.model import BokehRefiner
     from bokehray_refiner.onestep import OneStepOptions, load_one_step
     from bokehray_refiner.testing import write_tiny_sdxl
+
+    from bokehray.lens import BlurParams
 
     rng = np.random.default_rng(0)
     img = rng.uniform(0, 1, (512, 512, 3)).astype(np.float32)

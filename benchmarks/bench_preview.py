@@ -23,11 +23,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-import bokehray  # noqa: E402
-from bokehray.app.demo import build_demo_scene  # noqa: E402
-from benchmarks import common  # noqa: E402
+import bokehray
+from benchmarks import common
+from bokehray.app.demo import build_demo_scene
 
 BASE = (1536, 1024)
 RADII = (2, 4, 8, 16, 32, 64)
@@ -75,7 +75,7 @@ def measure(scene, sweep: str, focus_name: str, radius: float, runs: int, npz: s
         st = stats[-1].as_dict()
         row.update({k: st[k] for k in ("layers", "tiles_copied", "tiles_total", "pyramid_levels", "threads")})
         row["stage_seconds"] = st["stage_seconds"]
-    except Exception as e:  # report, don't hide: e.g. MemoryError at large sizes
+    except Exception as e:  # noqa: BLE001 - report, do not hide: e.g. MemoryError at large sizes
         row["error"] = f"{type(e).__name__}: {e}"
     if npz is not None:
         row["memory"] = common.peak_rss_mb_of([__file__, "--child", npz, repr(blur.k_px), repr(focus)])

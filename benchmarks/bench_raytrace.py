@@ -31,12 +31,12 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
-import numpy as np  # noqa: E402
-from skimage import data  # noqa: E402
-from skimage.transform import resize  # noqa: E402
+import numpy as np
+from skimage import data
+from skimage.transform import resize
 
-import bokehray as br  # noqa: E402
-from benchmarks import common  # noqa: E402
+import bokehray as br
+from benchmarks import common
 
 CAPS = (1, 8, 16, 32, 64, 128, 256)
 APERTURES = {"disc": br.Aperture(), "hexagon": br.Aperture(blades=6, rotation_deg=10.0),
@@ -149,7 +149,7 @@ def study_light(device: str, radii: tuple[int, ...]) -> list[dict]:
 
 
 def study_synth(device: str, scenes: int) -> list[dict]:
-    from bokehray.data.synth import SynthConfig, mean_disparity, make_scene
+    from bokehray.data.synth import SynthConfig, make_scene, mean_disparity
 
     cfg = SynthConfig()
     opts = br.RaytraceOptions(max_spp=cfg.max_spp)
@@ -168,7 +168,7 @@ def study_synth(device: str, scenes: int) -> list[dict]:
     return rows
 
 
-def main() -> int:
+def main() -> int:  # noqa: C901
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, help="folder for raytrace--quadrature[-DEVICE].json")
     ap.add_argument("--plot", type=Path, help="PNG of error against time (stack study)")

@@ -33,8 +33,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import REPO, machine_info, write_json  # noqa: E402
-from dataclasses import replace  # noqa: E402
+from dataclasses import replace
+
+from common import REPO, machine_info, write_json
 
 CONDITIONS = [("none", 0), ("erode", 1), ("erode", 3), ("erode", 5), ("dilate", 1), ("dilate", 3), ("dilate", 5)]
 DEV_CONDITIONS = CONDITIONS + [("blur", 3), ("shift", 2), ("estimator", 4)]
@@ -63,7 +64,7 @@ def devset_samples(root: Path):
             yield f"{scene.name}/{r['file']}", image, disparity, blur, target, band
 
 
-def main() -> None:
+def main() -> None:  # noqa: C901
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     src = ap.add_mutually_exclusive_group(required=True)
     src.add_argument("--data", help="held-out BLB-layout folder (never used for training)")
@@ -95,11 +96,12 @@ def main() -> None:
 
     if args.threads:
         torch.set_num_threads(args.threads)
+    from bokehray_refiner.data import corrupt_disparity
+    from bokehray_refiner.refine import RefineOptions, load_refiner, refine
+
     import bokehray as br
     from bokehray.data.datasets import BLBDataset
     from bokehray.data.metrics import discontinuity_band, score
-    from bokehray_refiner.data import corrupt_disparity
-    from bokehray_refiner.refine import RefineOptions, load_refiner, refine
 
     ropts = RefineOptions() if args.band_margin is None else RefineOptions(band_margin_px=args.band_margin)
 
@@ -169,11 +171,11 @@ def main() -> None:
 
 def timing(args, model, ropts) -> None:
     """Preview vs preview + refine at 1536 x 1024, medians of warm runs, with the tiles refined."""
-    import bokehray as br
-    from scipy import ndimage
-
     from bokehray_refiner.data import corrupt_disparity
     from bokehray_refiner.refine import refine
+    from scipy import ndimage
+
+    import bokehray as br
 
     root = Path(args.devset or "../shared/data/pathtraced-dev")
     scene = root / "d2_leafy_twig"  # a twig and a card over a receding ground: a typical edge share

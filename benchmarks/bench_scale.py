@@ -31,13 +31,13 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-import bokehray as br  # noqa: E402
-from benchmarks import common  # noqa: E402
-from bokehray.app.batch import RenderSettings, RenderTask, render_file  # noqa: E402
-from bokehray.executor import make_executor  # noqa: E402
-from bokehray.data.synth import SynthConfig, generate_one  # noqa: E402
+import bokehray as br
+from benchmarks import common
+from bokehray.app.batch import RenderSettings, RenderTask, render_file
+from bokehray.data.synth import SynthConfig, generate_one
+from bokehray.executor import make_executor
 
 
 def _cpu_seconds() -> float:
@@ -87,7 +87,7 @@ def photos(folder: Path, n: int, width: int, height: int) -> tuple[list[tuple[Pa
     return pairs, scene.k_px, scene.focus_near
 
 
-def main() -> int:
+def main() -> int:  # noqa: C901
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="small sizes, one round")
     ap.add_argument("--workers", type=int, default=2)

@@ -38,14 +38,14 @@ from scipy import ndimage
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import REPO, machine_info, time_warm  # noqa: E402
+from common import REPO, machine_info, time_warm
 
-import bokehray as br  # noqa: E402
-from bokehray.data import metrics, synth  # noqa: E402
-from bokehray.levels.raytrace import Layer, raytrace_layers  # noqa: E402
-from bokehray.app.demo import build_demo_scene  # noqa: E402
-from bokehray.matting import split_mixed_pixels  # noqa: E402
-from bokehray.scene import SoftEdges, cap_coc  # noqa: E402
+import bokehray as br
+from bokehray.app.demo import build_demo_scene
+from bokehray.data import metrics, synth
+from bokehray.levels.raytrace import Layer, raytrace_layers
+from bokehray.matting import split_mixed_pixels
+from bokehray.scene import SoftEdges, cap_coc
 
 CLASSES = ("strands", "fur", "foliage", "mesh", "cutout")
 D_FG, D_BG = 0.85, 0.15

@@ -12,10 +12,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-import bokehray as br  # noqa: E402
-from benchmarks.bench_raytrace import scene  # noqa: E402
+import bokehray as br
+from benchmarks.bench_raytrace import scene
 
 
 def main() -> int:

@@ -13,8 +13,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_refiner import devset_samples  # noqa: E402
-from common import REPO  # noqa: E402
+from bench_refiner import devset_samples
+from common import REPO
 
 CASES = {"d2_leafy_twig/bokeh_f1_k1": ("erode", 3, (60, 100, 128)),
          "d3_lamps_ring_writing/bokeh_f0_k1": ("none", 0, (100, 100, 128))}
@@ -25,13 +25,13 @@ def main() -> None:
     ap.add_argument("--devset", default=str(REPO.parent / "shared/data/pathtraced-dev"))
     ap.add_argument("--out", default=str(REPO / "docs/img/refiner_gate_crops.png"))
     args = ap.parse_args()
+    from bokehray_refiner.data import corrupt_disparity
+    from bokehray_refiner.gate import GateOptions
+    from bokehray_refiner.refine import RefineOptions, refine
     from PIL import Image
 
     import bokehray as br
     from bokehray.colour import linear_to_srgb
-    from bokehray_refiner.data import corrupt_disparity
-    from bokehray_refiner.gate import GateOptions
-    from bokehray_refiner.refine import RefineOptions, refine
 
     rows = []
     for name, image, disp, blur, target, _ in devset_samples(Path(args.devset)):

@@ -17,8 +17,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_refiner import devset_samples  # noqa: E402
-from common import REPO  # noqa: E402
+from bench_refiner import devset_samples
+from common import REPO
 
 RENDERS = ("d2_leafy_twig/bokeh_f1_k2", "d3_lamps_ring_writing/bokeh_f1_k1")
 
@@ -28,12 +28,12 @@ def main() -> None:
     ap.add_argument("--devset", default=str(REPO.parent / "shared/data/pathtraced-dev"))
     ap.add_argument("--out", default=str(REPO / "docs/img/refiner_shift_crops.png"))
     args = ap.parse_args()
+    from bokehray_refiner.data import corrupt_disparity
+    from bokehray_refiner.refine import load_refiner, refine
     from PIL import Image
 
     import bokehray as br
     from bokehray.colour import linear_to_srgb
-    from bokehray_refiner.data import corrupt_disparity
-    from bokehray_refiner.refine import load_refiner, refine
 
     model = load_refiner(None)
     strips = []

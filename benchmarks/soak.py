@@ -51,9 +51,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-import bokehray as br  # noqa: E402
+import bokehray as br
 
 
 def draw_case(rng: np.random.Generator) -> dict:
@@ -147,7 +147,7 @@ def _hidden(folder: Path) -> list[str]:
     return sorted(n for n in os.listdir(folder) if n.startswith("."))
 
 
-def _check(rc: int, err: str, out: Path, allowed: set[int], signalled: bool) -> str | None:
+def _check(rc: int, err: str, out: Path, allowed: set[int], signalled: bool) -> str | None:  # noqa: C901
     lines = [ln for ln in err.splitlines() if ln.strip()]
     if rc not in allowed:
         return f"exit status {rc} (expected one of {sorted(allowed)}); stderr: {err.strip()[:300]!r}"
@@ -250,7 +250,7 @@ def _depth_models(folder: Path) -> dict | None:
     return out
 
 
-def _check_batch(rc: int, err: str, out: Path, allowed: set[int], frames: int | None) -> str | None:
+def _check_batch(rc: int, err: str, out: Path, allowed: set[int], frames: int | None) -> str | None:  # noqa: C901
     """A batch's promises: exit 0 with ``frames`` frames and a GIF of as many; 2 with one error line and nothing
     written; 130/143 after a signal with one line whose count is the frames on disk."""
     lines = [ln for ln in err.splitlines() if ln.strip()]
@@ -291,7 +291,7 @@ def _check_batch(rc: int, err: str, out: Path, allowed: set[int], frames: int | 
     return None
 
 
-def _round_three_case(kind: str, rng: np.random.Generator, f: dict, out: Path, models: dict | None,
+def _round_three_case(kind: str, rng: np.random.Generator, f: dict, out: Path, models: dict | None,  # noqa: C901
                       startup: float) -> tuple[dict, tuple[int, str], str | None] | None:
     """One batch, dask or depth-model case: (case, (exit, stderr), problem), or None when it cannot run here."""
     common = ["--workers", 1, "--quiet"]
@@ -361,7 +361,7 @@ def _round_three_case(kind: str, rng: np.random.Generator, f: dict, out: Path, m
     return case, (rc, err), problem
 
 
-def run_io(n: int, seed: int, kinds: tuple[str, ...] = IO_KINDS) -> int:
+def run_io(n: int, seed: int, kinds: tuple[str, ...] = IO_KINDS) -> int:  # noqa: C901
     rng = np.random.default_rng(seed)
     work = Path(tempfile.mkdtemp(prefix="bokehray-soak-io-"))
     f = _inputs(work)

@@ -16,7 +16,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 
-from common import REPO, machine_info, write_json  # noqa: E402
+from common import REPO, machine_info, write_json
 
 
 def random_disparity(rng: np.random.Generator, h: int, w: int) -> np.ndarray:
@@ -56,7 +56,6 @@ def masks_case(rng: np.random.Generator) -> dict:
 
 def attention_case(rng: np.random.Generator) -> dict:
     import torch
-
     from bokehray_refiner.attention import pisa_attention
 
     n, w = int(rng.integers(2, 9)), int(rng.integers(0, 4))

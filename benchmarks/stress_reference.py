@@ -24,9 +24,9 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
 import warp as wp  # noqa: E402
+from reference import stress_cases  # noqa: E402
 
 from benchmarks import common  # noqa: E402
-from reference import stress_cases  # noqa: E402
 
 
 def main() -> int:

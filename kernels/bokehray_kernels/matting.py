@@ -23,7 +23,7 @@ BAND_OWN_NEAR = 2
 
 
 @wp.kernel
-def matting_band_kernel(
+def matting_band_kernel(  # noqa: C901
     image: wp.array2d(dtype=wp.vec3),
     coc: wp.array2d(dtype=float),
     unknown: wp.array2d(dtype=wp.uint8),

@@ -39,7 +39,7 @@ def level_of(r: float, r0: float, n_levels: int) -> int:
 
 
 @wp.kernel
-def scatter_kernel(
+def scatter_kernel(  # noqa: C901
     src: wp.array2d(dtype=wp.vec4),
     coc: wp.array2d(dtype=float),
     routing: Routing,

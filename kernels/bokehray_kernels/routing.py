@@ -160,7 +160,7 @@ def _on_level(v: wp.vec4, r: float, r0: float, n_levels: int, lev: int) -> bool:
 
 
 @wp.kernel
-def route_cells_kernel(
+def route_cells_kernel(  # noqa: C901
     src: wp.array2d(dtype=wp.vec4),
     coc: wp.array2d(dtype=float),
     means: wp.array3d(dtype=wp.vec4),

@@ -38,7 +38,7 @@ class PassThroughAttnProcessor(AttnProcessor2_0):
 class PISAAttnProcessor(PassThroughAttnProcessor):
     """Self-attention with PISA weights (eq. 8) on the layer's token grid."""
 
-    def __call__(self, attn: Attention, hidden_states: torch.Tensor, encoder_hidden_states=None,
+    def __call__(self, attn: Attention, hidden_states: torch.Tensor, encoder_hidden_states=None,  # noqa: C901
                  attention_mask=None, temb=None, pisa: PisaMaskProvider | None = None) -> torch.Tensor:
         if pisa is None or encoder_hidden_states is not None:
             return super().__call__(attn, hidden_states, encoder_hidden_states, attention_mask, temb)

@@ -180,7 +180,7 @@ def export_weights(model: BokehRefiner, path: Path, meta: dict) -> None:
     atomic_write(path.with_suffix(".json"), lambda tmp: Path(tmp).write_text(json.dumps(meta, indent=2)))
 
 
-def train(cfg: TrainConfig, resume: bool = True, progress: bool = True, bank: PairBank | None = None,
+def train(cfg: TrainConfig, resume: bool = True, progress: bool = True, bank: PairBank | None = None,  # noqa: C901
           stop_at: int | None = None) -> Path | None:
     """Run (or resume) a training run; returns the path of the exported weights.
 

@@ -48,6 +48,7 @@ _EXPORTS: dict[str, str] = {
 """Public name -> the submodule that defines it (or the submodule itself, named by its last part)."""
 
 __all__ = [
+    "QUALITIES",
     "Aperture",
     "BlurParams",
     "BokehrayError",
@@ -60,7 +61,6 @@ __all__ = [
     "OutputError",
     "PreviewOptions",
     "PreviewStats",
-    "QUALITIES",
     "RaytraceOptions",
     "RaytraceStats",
     "RenderStats",
@@ -104,11 +104,11 @@ if TYPE_CHECKING:  # what type checkers and IDEs see: the eager imports
     # (__all__ above must list exactly the names of _EXPORTS; tests/cli_io/test_startup.py checks it)
     from .data import datasets
     from .errors import BokehrayError, InputError, NumericalError, OutputError, ResourceError
-    from .photo.depth import read_depth
-    from .photo.read import read_disparity, read_image
-    from .output.write import write_disparity, write_image
     from .lens import Aperture, BlurParams, DepthNormalization, ThinLens, depth_from_disparity, disparity_from_depth
     from .levels.raytrace import Layer, raytrace_layers
     from .options import LayerOptions, MemoryOptions, PreviewOptions, RaytraceOptions
+    from .output.write import write_disparity, write_image
+    from .photo.depth import read_depth
+    from .photo.read import read_disparity, read_image
     from .pipeline import QUALITIES, boost_highlights, focus_at, render, render_with_stats
     from .stats import PreviewStats, RaytraceStats, RenderStats

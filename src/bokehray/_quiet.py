@@ -76,10 +76,10 @@ class _QuietLoader(importlib.abc.Loader):
     def __init__(self, inner: importlib.abc.Loader) -> None:
         self._inner = inner
 
-    def create_module(self, spec):  # noqa: ANN001 - the importlib protocol
+    def create_module(self, spec):
         return self._inner.create_module(spec)
 
-    def exec_module(self, module) -> None:  # noqa: ANN001
+    def exec_module(self, module) -> None:
         self._inner.exec_module(module)
         _quiet(module)
 
@@ -87,7 +87,7 @@ class _QuietLoader(importlib.abc.Loader):
 class _QuietFinder(importlib.abc.MetaPathFinder):
     """Finds ``warp`` as the other finders do, and wraps its loader so the module is quietened once loaded."""
 
-    def find_spec(self, name, path=None, target=None):  # noqa: ANN001
+    def find_spec(self, name, path=None, target=None):
         if name != "warp":
             return None
         spec = importlib.machinery.PathFinder.find_spec(name, path)

@@ -360,7 +360,7 @@ def step_flips(coc: np.ndarray, jump_px: float) -> float:
     return num / den if den else 0.0
 
 
-def global_shift(focus_srgb: np.ndarray, disparity: np.ndarray, k_px: float,
+def global_shift(focus_srgb: np.ndarray, disparity: np.ndarray, k_px: float,  # noqa: C901
                  options: DepthFixOptions = DepthFixOptions()) -> tuple[int, int]:
     """The integer shift ``(sy, sx)`` that moves the map's depth edges onto the photo's colour edges, or (0, 0).
 

@@ -6,8 +6,16 @@ message reads ``<what>: expected <what>, got <what>`` followed by how to fix it.
 
 from __future__ import annotations
 
-__all__ = ["BokehrayError", "InputError", "NumericalError", "OutputError", "ResourceError", "Terminated", "EXIT_INTERRUPTED",
-           "EXIT_TERMINATED"]
+__all__ = [
+    "EXIT_INTERRUPTED",
+    "EXIT_TERMINATED",
+    "BokehrayError",
+    "InputError",
+    "NumericalError",
+    "OutputError",
+    "ResourceError",
+    "Terminated",
+]
 
 
 class BokehrayError(Exception):

@@ -132,7 +132,7 @@ class LocalExecutor(Executor):
         return ProcessPoolExecutor(max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"),
                                    initializer=init_warp_quietly)
 
-    def map(self, fn, tasks):
+    def map(self, fn, tasks):  # noqa: C901
         from concurrent.futures import FIRST_COMPLETED, wait
         from concurrent.futures.process import BrokenProcessPool
 

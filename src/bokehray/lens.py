@@ -32,7 +32,7 @@ DEPTH_BYTES_PER_PX = 56
 """Peak bytes per pixel of :func:`disparity_from_depth` beyond its input (47 measured with tracemalloc on a float64
 map: the float64 copy, the masks, the normalisation's temporaries), with a margin."""
 
-__all__ = ["MAX_K_PX", "Aperture", "BlurParams", "aperture_area", "DepthNormalization", "ThinLens", "disparity_from_depth", "depth_from_disparity"]
+__all__ = ["MAX_K_PX", "Aperture", "BlurParams", "DepthNormalization", "ThinLens", "aperture_area", "depth_from_disparity", "disparity_from_depth"]
 
 
 def _finite(name: str, value: float, *, lo: float | None = None, lo_open: bool = False) -> float:

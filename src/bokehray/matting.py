@@ -44,9 +44,8 @@ from __future__ import annotations
 import os
 from concurrent.futures import ThreadPoolExecutor
 
-import numpy as np
-
 import bokehray_kernels.matting as bk_matting
+import numpy as np
 
 from .depthfix import depth_edges
 from .errors import InputError

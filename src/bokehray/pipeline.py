@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import importlib.util
 import os
-from dataclasses import replace
 from collections.abc import Callable
+from dataclasses import replace
 from numbers import Integral, Real
 
 import numpy as np

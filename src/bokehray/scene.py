@@ -24,10 +24,9 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
+import bokehray_kernels as bk
 import numpy as np
 import warp as wp
-
-import bokehray_kernels as bk
 
 from .options import LayerOptions
 
@@ -206,7 +205,7 @@ def split_scene(image: np.ndarray, signed_coc: np.ndarray, soft: SoftEdges | Non
     """
     if soft is None or len(soft) == 0:
         return image, signed_coc, build_scene(signed_coc, active, options, level_radius_px)
-    h, w = signed_coc.shape
+    _h, w = signed_coc.shape
     keep = active.reshape(-1)[soft.index]
     idx = soft.index[keep]
     far = soft.far_coc[keep].astype(np.float32)

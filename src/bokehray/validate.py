@@ -17,8 +17,19 @@ from ._memory import available_bytes
 from .errors import InputError, ResourceError
 
 __all__ = [
-    "MAX_RADIANCE", "check_disparity", "check_finite", "check_image", "check_int", "check_number", "check_path",
-    "check_radiance", "check_type", "fits_in_memory", "first_bad_index", "real", "shown",
+    "MAX_RADIANCE",
+    "check_disparity",
+    "check_finite",
+    "check_image",
+    "check_int",
+    "check_number",
+    "check_path",
+    "check_radiance",
+    "check_type",
+    "first_bad_index",
+    "fits_in_memory",
+    "real",
+    "shown",
 ]  # fmt: skip
 
 MAX_RADIANCE = 1e36

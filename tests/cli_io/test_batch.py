@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 
 import numpy as np
@@ -13,8 +14,8 @@ from hypothesis import strategies as st
 import bokehray as br
 from bokehray.app.batch import find_pairs, frame_labels, parse_sweep
 from bokehray.app.cli import main
-from bokehray.errors import InputError
 from bokehray.colour import linear_to_srgb
+from bokehray.errors import InputError
 
 H, W = 40, 56
 
@@ -98,7 +99,7 @@ def test_manifest_csv_pairing(shoot, capsys):
 def test_malformed_manifest_rows_are_one_line_errors(shoot, capsys, text, message):
     """Issue: a row with more fields than the header gave a traceback (AttributeError on None.strip)."""
     (shoot / "m.csv").write_text(text)
-    code, out, err = run(capsys, "render", shoot / "photos", "--disparity", shoot / "m.csv", "-o", shoot / "o",
+    code, _out, err = run(capsys, "render", shoot / "photos", "--disparity", shoot / "m.csv", "-o", shoot / "o",
                          "--blur", 6, "--focus", 0.5, "--workers", 1)
     assert code == 2 and err.count("\n") == 1 and message in err and str(shoot / "m.csv") in err, err
     assert not (shoot / "o").exists()
@@ -168,7 +169,7 @@ def test_focal_sweep_writes_a_stack_and_an_animated_gif(shoot, capsys):
         run(capsys, "render", img, "--disparity", d, "-o", shoot / "one.png", "--blur", 8, "--focus", v, "--quiet")
         assert f.read_bytes() == (shoot / "one.png").read_bytes()
     stack = [br.read_image(f) for f in frames]
-    assert all(np.abs(a - b).max() > 0.01 for a, b in zip(stack[:-1], stack[1:]))  # the focus moves
+    assert all(np.abs(a - b).max() > 0.01 for a, b in itertools.pairwise(stack))  # the focus moves
     gif = Image.open(shoot / "sweep" / "p0_focus_sweep.gif")
     assert gif.n_frames == 5 and gif.size == (W, H) and gif.info["loop"] == 0
     gif.seek(2)
@@ -266,7 +267,7 @@ def test_batch_and_synth_are_byte_identical_on_local_pool_and_dask(shoot, capsys
     pytest.importorskip("distributed")
     outs = {}
     for ex in ("local", "dask"):
-        code, out, err = run(capsys, "render", shoot / "photos", "--disparity", shoot / "maps", "-o",
+        code, _out, err = run(capsys, "render", shoot / "photos", "--disparity", shoot / "maps", "-o",
                              shoot / f"r_{ex}", "--blur", 6, "--focus", "0.2,0.8", "--executor", ex, "--workers", 2)
         assert code == 0, err
         code, _, err = run(capsys, "synth", "-n", 2, "-o", shoot / f"s_{ex}", "--size", 40, "--blur-levels", 5,

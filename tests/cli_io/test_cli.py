@@ -44,7 +44,7 @@ def test_render_writes_every_output_format(scene, tmp_path, capsys, out_name):
 
 
 def test_render_matches_the_python_api(scene, tmp_path, capsys):
-    p, img, d = scene
+    p, _img, d = scene
     code, _, err = run(capsys, "render", p["exr"], "--disparity", p["disp_npy"], "-o", tmp_path / "o.exr",
                        "--blur", 8, "--focus", 0.3, "--aperture", "polygon", "--blades", 5, "--rotation", 10,
                        "--curvature", 0.3)
@@ -65,7 +65,7 @@ def test_focus_at_and_stats(scene, tmp_path, capsys):
 
 
 def test_physical_lens_with_metric_depth(scene, tmp_path, capsys):
-    p, img, _ = scene
+    p, _img, _ = scene
     code, out, err = run(capsys, "render", p["png"], "--depth", p["depth"], "-o", tmp_path / "o.exr",
                          "--focal-length", 50, "--f-number", 2.0, "--focus-distance", 2.0, "--sensor-width", 36)
     assert code == 0, err
@@ -120,7 +120,7 @@ def test_bad_input_exits_2_with_one_line_and_no_output(scene, tmp_path, capsys, 
     fmt = {k: str(v) for k, v in p.items()} | {"bad_disp": tmp_path / "bad.npy", "nan_disp": tmp_path / "nan.npy"}
     args = [str(a).format(**fmt) for a in args]
     target = tmp_path / "out.png"
-    code, out, err = run(capsys, "render", p["png"], *args, "-o", target)
+    code, _out, err = run(capsys, "render", p["png"], *args, "-o", target)
     assert code == 2
     assert err.startswith("bokehray: error:") and err.count("\n") == 1, err
     assert pytest.importorskip("re").search(message, err), err
@@ -179,7 +179,7 @@ def test_physical_lens_focus_at_a_pixel(scene, tmp_path, capsys):
                          "--focal-length", 35, "--f-number", 1.8, "--focus-at", "40,20", "--stats")
     assert code == 0, err
     z = np.load(p["depth"])
-    d, norm = br.disparity_from_depth(z)
+    d, _norm = br.disparity_from_depth(z)
     stats = json.loads(out[out.index("{"):])
     assert stats["blur"]["focus_disparity"] == pytest.approx(br.focus_at(d, 40, 20), abs=1e-4)
 
@@ -188,7 +188,7 @@ def test_render_does_not_offer_the_ray_tracer_for_photos(scene, tmp_path, capsys
     """On photos the ray tracer is slower than the preview and not more accurate (docs/raytracer.md): one line
     points to the preview, before anything is read; --help lists the preview alone."""
     p, _, _ = scene
-    code, out, err = run(capsys, "render", p["png"], "--disparity", p["disp_png"], "-o", tmp_path / "o.exr",
+    code, _out, err = run(capsys, "render", p["png"], "--disparity", p["disp_png"], "-o", tmp_path / "o.exr",
                          "--blur", 6, "--focus", 0.5, "--quality", "raytrace")
     assert code == 2 and err.count("\n") == 1 and not (tmp_path / "o.exr").exists()
     assert err.startswith("bokehray: error: --quality raytrace: on photos the ray tracer is slower than the preview")

@@ -10,9 +10,9 @@ torch = pytest.importorskip("torch")
 transformers = pytest.importorskip("transformers")
 
 import bokehray as br  # noqa: E402
+from bokehray.app.cli import main  # noqa: E402
 from bokehray.photo import depth_model  # noqa: E402
 from bokehray.photo.depth import normalize_relative  # noqa: E402
-from bokehray.app.cli import main  # noqa: E402
 
 PRE = {"size": {"height": 56, "width": 56}, "keep_aspect_ratio": True, "ensure_multiple_of": 14,
        "image_mean": [0.485, 0.456, 0.406], "image_std": [0.229, 0.224, 0.225]}

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 import bokehray as br
-from bokehray.photo import read as rd
 from bokehray.errors import InputError, ResourceError
+from bokehray.photo import read as rd
 
 DATA = Path(__file__).parents[1] / "data" / "fuzz"
 READERS = {".png": ("read_image", "read_disparity"), ".jpg": ("read_image",),

@@ -14,12 +14,12 @@ import pytest
 import tifffile
 from PIL import Image
 
-from bokehray.output import atomic as at
 import bokehray as br
 from bokehray import colour
-from bokehray.photo import read as rd
-from bokehray.output import write as wr
 from bokehray.errors import InputError
+from bokehray.output import atomic as at
+from bokehray.output import write as wr
+from bokehray.photo import read as rd
 
 RNG = np.random.default_rng(1234)
 

@@ -12,11 +12,10 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 import bokehray as br
-from bokehray.photo import depth
-from bokehray.photo import highlights
-from bokehray.photo import subject as subj
 from bokehray.app.cli import main
 from bokehray.app.demo import build_demo_scene
+from bokehray.photo import depth, highlights
+from bokehray.photo import subject as subj
 
 DEVSET = Path("/work/shared/data/pathtraced-dev")
 if not DEVSET.exists():
@@ -162,7 +161,7 @@ def test_default_focus_is_the_same_through_every_reader(tmp_path):
 
 
 def test_render_says_the_painted_subject_it_chose(tmp_path, capsys):
-    _, soft, person = painted_scene(120, 160, brush=3.0)
+    _, soft, _person = painted_scene(120, 160, brush=3.0)
     img, disp = tmp_path / "p.png", tmp_path / "d.png"
     br.write_image(img, np.full((120, 160, 3), 0.4, np.float32))
     _write_png8(disp, soft)
@@ -291,7 +290,7 @@ def test_amount_is_the_same_look_at_two_resolutions(tmp_path, capsys):
 
 
 def test_reversed_map_warns_and_invert_renders_the_same(files, tmp_path, capsys):
-    code, out, err = run(capsys, "render", files["img"], "--disparity", files["rev"], "-o", tmp_path / "r.png",
+    code, _out, err = run(capsys, "render", files["img"], "--disparity", files["rev"], "-o", tmp_path / "r.png",
                          "--blur", 8, "--focus", 0.5)
     assert code == 0
     assert err.startswith("bokehray: warning:") and "rev.png" in err and "--invert" in err and err.count("\n") == 1
@@ -378,7 +377,7 @@ def test_reconstruction_leaves_unclipped_and_one_channel_clipped_images_alone():
 
 
 def test_render_reconstructs_for_8_bit_but_never_for_exr(tmp_path, capsys):
-    hdr, img8 = _lamp_scene()
+    _hdr, img8 = _lamp_scene()
     d = np.full(img8.shape[:2], 0.5, np.float32)
     br.write_disparity(tmp_path / "d.png", d)
     png, exr = br.write_image(tmp_path / "l.png", img8), br.write_image(tmp_path / "l.exr", img8)

@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 import tifffile
 from PIL import Image, ImageCms, ImageOps
+from reference.icc_ref import matrix_trc_profile, p3_codes_to_linear_srgb
 
 import bokehray as br
 from bokehray import colour
-from bokehray.photo import embedded
 from bokehray.app.cli import main
-from reference.icc_ref import matrix_trc_profile, p3_codes_to_linear_srgb
+from bokehray.photo import embedded
 
 P3 = matrix_trc_profile("Display P3 (test)")
 

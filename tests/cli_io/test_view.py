@@ -16,13 +16,13 @@ import pytest
 pytest.importorskip("starlette", reason="bokehray view needs the 'view' extra (starlette, uvicorn)")
 pytest.importorskip("uvicorn", reason="bokehray view needs the 'view' extra (starlette, uvicorn)")
 
-import bokehray as br  # noqa: E402
-from bokehray.app.cli import main  # noqa: E402
-from bokehray.app.demo import build_demo_scene  # noqa: E402
-from bokehray.errors import InputError  # noqa: E402
-from bokehray.app.view.server import ViewServer  # noqa: E402
-from bokehray.app.view.session import ProxyLadder, ViewSession, box_reduce, parse_params  # noqa: E402
-from bokehray.app.view.worker import RenderWorker, Superseded  # noqa: E402
+import bokehray as br
+from bokehray.app.cli import main
+from bokehray.app.demo import build_demo_scene
+from bokehray.app.view.server import ViewServer
+from bokehray.app.view.session import ProxyLadder, ViewSession, box_reduce, parse_params
+from bokehray.app.view.worker import RenderWorker, Superseded
+from bokehray.errors import InputError
 
 
 @pytest.fixture(scope="module")

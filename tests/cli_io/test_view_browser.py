@@ -20,10 +20,10 @@ pytest.importorskip("starlette", reason="bokehray view needs the 'view' extra (s
 pytest.importorskip("uvicorn", reason="bokehray view needs the 'view' extra (starlette, uvicorn)")
 pytest.importorskip("selenium", reason="the browser test needs selenium (the 'test-browser' extra)")
 
-import bokehray as br  # noqa: E402
-from bokehray.app.demo import build_demo_scene  # noqa: E402
-from bokehray.app.view.server import ViewServer  # noqa: E402
-from bokehray.app.view.session import ViewSession  # noqa: E402
+import bokehray as br
+from bokehray.app.demo import build_demo_scene
+from bokehray.app.view.server import ViewServer
+from bokehray.app.view.session import ViewSession
 
 CHROMIUM = next((p for p in map(shutil.which, ("chromium", "chromium-browser")) if p), None)
 DRIVER = shutil.which("chromedriver")

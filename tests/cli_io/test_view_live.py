@@ -17,13 +17,14 @@ import pytest
 pytest.importorskip("starlette", reason="bokehray view needs the 'view' extra (starlette, uvicorn)")
 pytest.importorskip("uvicorn", reason="bokehray view needs the 'view' extra (starlette, uvicorn)")
 
-import bokehray as br  # noqa: E402
-from bokehray.app.cli import main  # noqa: E402
-from bokehray.app.demo import build_demo_scene  # noqa: E402
-from bokehray.app.view.server import ViewServer  # noqa: E402
-from bokehray.app.view.session import ProxyLadder, ViewSession  # noqa: E402
-from bokehray.app.view.worker import RenderWorker, Superseded  # noqa: E402
-from tolerances import HANG_S  # noqa: E402
+from tolerances import HANG_S
+
+import bokehray as br
+from bokehray.app.cli import main
+from bokehray.app.demo import build_demo_scene
+from bokehray.app.view.server import ViewServer
+from bokehray.app.view.session import ProxyLadder, ViewSession
+from bokehray.app.view.worker import RenderWorker, Superseded
 
 
 # --- the worker's order --------------------------------------------------------------------------------
@@ -158,7 +159,7 @@ def test_the_sharp_version_is_rendered_at_the_size_the_screen_shows(served):
     full = s.render_full(p)
     from bokehray.app.view.session import box_reduce, encode_jpeg, to_srgb8  # noqa: F401
 
-    data, meta = s.full_display(p, None, 120)
+    data, _meta = s.full_display(p, None, 120)
     got = np.asarray(Image.open(io.BytesIO(data)), np.float32) / 255
     want = to_srgb8(box_reduce(full, 2)).astype(np.float32) / 255
     psnr = -10 * np.log10(np.mean((got - want) ** 2))
@@ -185,7 +186,7 @@ def test_a_jpeg_export_is_the_printed_commands_file_byte_for_byte(served, tmp_pa
     """EXIF included: the issue's page dropped the camera EXIF that `render` keeps."""
     from PIL import Image
 
-    server, s = served
+    server, _s = served
     st, _, body = post(server.url + "api/export", {"params": params, "format": "jpg"})
     assert st == 200, body
     out = json.loads(body)
@@ -272,7 +273,7 @@ def test_a_preview_run_inside_an_export_leaves_the_export_as_its_command_writes_
         assert started.wait(HANG_S)
         prev = w.submit(lambda check: s.render_preview(s.parse({"amount": 20}), check), "preview")
         submitted.set()
-        data, meta = prev.result(HANG_S)
+        data, _meta = prev.result(HANG_S)
         assert data[:2] == b"\xff\xd8"
         path, command = fut.result(HANG_S)
         assert w.counts["inline"] == 1

@@ -18,11 +18,12 @@ import pytest
 pytest.importorskip("starlette", reason="bokehray view needs the 'view' extra (starlette, uvicorn)")
 pytest.importorskip("uvicorn", reason="bokehray view needs the 'view' extra (starlette, uvicorn)")
 
-import bokehray as br  # noqa: E402
-from bokehray.app.demo import build_demo_scene  # noqa: E402
-from bokehray.app.view.server import ViewServer  # noqa: E402
-from bokehray.app.view.session import ViewSession  # noqa: E402
-from tolerances import HANG_S  # noqa: E402
+from tolerances import HANG_S
+
+import bokehray as br
+from bokehray.app.demo import build_demo_scene
+from bokehray.app.view.server import ViewServer
+from bokehray.app.view.session import ViewSession
 
 CLI = "import sys; from bokehray.app.cli import main; sys.exit(main())"
 
@@ -156,10 +157,10 @@ def test_view_errors_are_one_line_and_start_has_no_native_warp_line(files):
                         str(files / "d.png")], capture_output=True, text=True, timeout=HANG_S)
     assert r.returncode == 2
     assert len(r.stderr.strip().splitlines()) == 1 and "missing.png" in r.stderr, r.stderr
-    proc, url = _start_view(files)
+    proc, _url = _start_view(files)
     try:
         proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=HANG_S)
+        _out, err = proc.communicate(timeout=HANG_S)
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -180,5 +181,5 @@ def _interrupted_run(self, sockets=None):
 uvicorn.Server.run = _interrupted_run
 """
     proc, _ = _start_view(files, prelude=prelude)
-    out, err = proc.communicate(timeout=HANG_S)
+    _out, err = proc.communicate(timeout=HANG_S)
     assert proc.returncode == 0 and err.strip() == "bokehray view: stopped", err

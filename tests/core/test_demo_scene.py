@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from bokehray.app.demo import SHEET_GAP, SHEET_LABEL_H, DemoScene, stroke, build_demo_scene, contact_sheet
+from bokehray.app.demo import SHEET_GAP, SHEET_LABEL_H, DemoScene, build_demo_scene, contact_sheet, stroke
 from bokehray.errors import InputError
 
 

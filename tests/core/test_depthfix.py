@@ -4,6 +4,15 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from reference.depthfix_ref import (
+    colour_edge_offsets_ref,
+    correct_disparity_ref,
+    edge_pairs_ref,
+    global_shift_ref,
+    smeared_ref,
+    untrusted_ref,
+    weighted_median_ref,
+)
 from scipy import ndimage
 
 from bokehray.data.datasets import perturb_disparity
@@ -18,8 +27,6 @@ from bokehray.depthfix import (
     untrusted,
     weighted_median,
 )
-from reference.depthfix_ref import (colour_edge_offsets_ref, correct_disparity_ref, edge_pairs_ref,
-                                          global_shift_ref, smeared_ref, untrusted_ref, weighted_median_ref)
 
 
 def _scene(seed=0, size=48, box=(12, 36, 10, 30), near_rgb=(0.8, 0.3, 0.2), far_rgb=(0.2, 0.5, 0.7)):

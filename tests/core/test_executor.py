@@ -10,11 +10,11 @@ import time
 import numpy as np
 import pytest
 from executor_tasks import always_die, digest, fail_on_odd, write_or_die
+from tolerances import HANG_S
 
 from bokehray.errors import InputError
 from bokehray.executor import Outcome, make_executor
 from bokehray.output.atomic import remove_stale_outputs
-from tolerances import HANG_S
 
 
 def _run(ex, fn, tasks) -> list[Outcome]:

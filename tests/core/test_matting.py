@@ -5,13 +5,13 @@ import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
+from reference.matting_ref import ramp_width_ref
 from scipy import ndimage
 
 from bokehray.depthfix import depth_edges
 from bokehray.errors import InputError
 from bokehray.matting import isolated_share, ramp_width, split_mixed_pixels, window_offsets
 from bokehray.scene import SoftEdges
-from reference.matting_ref import ramp_width_ref
 
 K = 30.0
 
@@ -100,7 +100,7 @@ def test_tiny_images(shape):
 
 
 def test_two_plane_contract_and_only_pixels_at_the_edges_split():
-    photo, coc, alpha, _, _ = two_plane()
+    photo, coc, _alpha, _, _ = two_plane()
     se = split_mixed_pixels(photo, coc)
     assert len(se) > 0
     check_contract(se, photo, coc)
@@ -120,7 +120,7 @@ def test_alpha_accuracy_on_two_planes(kind, bound):
     0.14 disc, 0.19 strands) and below the bound (measured over seeds 0-2: disc 0.026-0.031, strands 0.057-0.059);
     F of the pixels mostly foreground within 0.05 (measured 0.013-0.033)."""
     for seed in range(3):
-        photo, coc, alpha, fg, bg = two_plane(seed=seed, kind=kind)
+        photo, coc, alpha, fg, _bg = two_plane(seed=seed, kind=kind)
         se = split_mixed_pixels(photo, coc)
         ring = ndimage.binary_dilation((alpha > 0) & (alpha < 1), np.ones((3, 3), bool))
         before = np.sqrt((((coc > 0) - alpha)[ring] ** 2).mean())
@@ -238,8 +238,9 @@ def test_ramp_width_matches_the_reference():
 @pytest.mark.parametrize("soft", [False, True])
 def test_band_kernel_matches_the_reference(device, soft):
     """The Warp kernel against the float64 loop of tests/reference/matting_ref.py, pixel by pixel."""
-    from bokehray.matting import _band_kernel
     from reference.matting_ref import band_pixel_ref, gaussian_weights
+
+    from bokehray.matting import _band_kernel
 
     photo, coc, _, _, _ = two_plane(n=28, seed=4, kind="strands" if soft else "disc")
     if soft:

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from bokehray.errors import InputError
 from bokehray.data.metrics import PerceptualMetric, discontinuity_band, exposure_align, psnr, score, ssim_map, to_srgb
+from bokehray.errors import InputError
 
 SCORE_PY = Path(__file__).resolve().parents[3] / "shared" / "data" / "pathtraced-dev" / "score.py"
 

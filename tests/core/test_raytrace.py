@@ -1,5 +1,6 @@
 """The layered ray tracer against a NumPy ray tracer, exact convolutions and apertures, and photo mode."""
 
+import itertools
 import os
 import signal
 import threading
@@ -8,16 +9,16 @@ import time
 import numpy as np
 import pytest
 from hypothesis import given
-from scipy.ndimage import binary_erosion
 from hypothesis import strategies as st
+from reference import raytrace_ref
+from scipy.ndimage import binary_erosion
+from tolerances import HANG_S
 
 import bokehray as br
 from bokehray.levels.quadrature import cells
 from bokehray.levels.raytrace import Layer, raytrace_layers
 from bokehray.levels.raytrace_launch import strip_cap
 from bokehray.options import RaytraceOptions
-from reference import raytrace_ref
-from tolerances import HANG_S
 
 APERTURES = [br.Aperture(), br.Aperture(blades=6, rotation_deg=10.0), br.Aperture(blades=5, curvature=0.3)]
 
@@ -187,7 +188,7 @@ def test_progress_is_reported_and_an_interrupt_stops_the_trace():
     calls = []
     raytrace_layers([Layer(tex, plane=(0, 0, 0.0))], br.BlurParams(30.0, 1.0),
                     progress=lambda done, total: calls.append((done, total)))
-    assert len(calls) > 2 and calls[-1][0] == calls[-1][1] and all(a[0] < b[0] for a, b in zip(calls, calls[1:]))
+    assert len(calls) > 2 and calls[-1][0] == calls[-1][1] and all(a[0] < b[0] for a, b in itertools.pairwise(calls))
 
     seen = []
 

@@ -5,10 +5,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
+from tolerances import IDENTITY_ATOL, IMAGE_ENERGY_RTOL
 
 import bokehray as br
 from bokehray import LayerOptions, PreviewOptions
-from tolerances import IDENTITY_ATOL, IMAGE_ENERGY_RTOL
 
 finite_radiance = st.floats(0.0, 50.0, allow_nan=False, width=32)
 

@@ -17,13 +17,13 @@ import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
+from reference import soft_ref as R
 
 import bokehray as br
 from bokehray import scene as sc
 from bokehray.app.demo import build_demo_scene
 from bokehray.errors import InputError
 from bokehray.levels import RenderContext, get_level
-from reference import soft_ref as R
 
 K, D_FAR, R_NEAR = 40.0, 0.2, 24.0
 D_NEAR = D_FAR + R_NEAR / K

@@ -1,5 +1,6 @@
 """The synthetic pair generator: structure, determinism, BLB output, bad input."""
 
+import itertools
 import json
 
 import numpy as np
@@ -25,7 +26,7 @@ def test_layers_are_ordered_and_do_not_interpenetrate(index):
         d = corners @ np.array([a, b]) + c
         spans.append((d.min(), d.max()))
         assert 0.0 <= d.min() and d.max() <= 1.0
-    for (near_lo, _), (_, far_hi) in zip(spans[:-1], spans[1:]):
+    for (near_lo, _), (_, far_hi) in itertools.pairwise(spans):
         assert near_lo > far_hi  # nearest first, no crossing: composite order is valid for every ray
     np.testing.assert_array_equal(layers[-1].rgba[..., 3], 1.0)  # an opaque background ends every ray
 
@@ -99,8 +100,8 @@ def test_existing_scenes_need_overwrite(tmp_path):
 
 def test_any_foreground_coverage_is_labelled_with_the_foregrounds_depth():
     """Mixed edge pixels and sub-pixel strands (alpha < 0.5) take the foreground's disparity, not the background's."""
-    from bokehray.levels.raytrace import Layer
     from bokehray.data.synth import pinhole_layers
+    from bokehray.levels.raytrace import Layer
 
     n = 16
     fg = np.zeros((n, n, 4), np.float32)

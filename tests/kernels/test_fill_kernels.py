@@ -9,13 +9,12 @@ All launches on the CPU device.
 
 import math
 
+import bokehray_kernels as bk
 import numpy as np
 import pytest
 import warp as wp
 from hypothesis import assume, given
 from hypothesis import strategies as st
-
-import bokehray_kernels as bk
 from reference import fill_ref
 from tolerances import KERNEL_VS_REFERENCE_ATOL
 

@@ -4,13 +4,13 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
-
-from bokehray.errors import InputError
 from bokehray_refiner.pisa import K_MAX, PisaMaskOptions, edge_slope, pisa_masks, window_offsets, window_radius
 from conftest import DEVICES
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from reference import pisa_ref as ref
+
+from bokehray.errors import InputError
 
 
 def _scene(h=9, w=10, seed=0):

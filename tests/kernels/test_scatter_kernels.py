@@ -1,17 +1,11 @@
 """Warp kernels of the preview renderer against the float64 NumPy reference (tests/reference)."""
 
+import bokehray_kernels as bk
 import numpy as np
 import pytest
 import warp as wp
 from hypothesis import given
 from hypothesis import strategies as st
-
-import bokehray_kernels as bk
-from bokehray import Aperture
-from bokehray import LayerOptions, PreviewOptions
-from bokehray.levels.preview import aperture_shape, no_routing, pyramid_buffers, render_signed_coc
-from bokehray.scene import LayerSupport, layer_edges
-from bokehray.lens import aperture_area
 from reference import scatter_ref
 from tolerances import (
     ENERGY_RTOL,
@@ -21,6 +15,11 @@ from tolerances import (
     SCATTER_VS_REFERENCE_ATOL,
     SHAPE_L1_LEVEL0,
 )
+
+from bokehray import Aperture, LayerOptions, PreviewOptions
+from bokehray.lens import aperture_area
+from bokehray.levels.preview import aperture_shape, no_routing, pyramid_buffers, render_signed_coc
+from bokehray.scene import LayerSupport, layer_edges
 
 APERTURES = [
     Aperture(),

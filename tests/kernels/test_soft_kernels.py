@@ -1,12 +1,11 @@
 """``bokehray_kernels.soft.near_sources_kernel`` against its NumPy oracle (``reference.soft_ref.near_sources``):
 random near parts (layers, positions inside and outside the box, window offsets), sources that come zeroed."""
 
+import bokehray_kernels as bk
 import numpy as np
 import warp as wp
 from hypothesis import given
 from hypothesis import strategies as st
-
-import bokehray_kernels as bk
 from reference import soft_ref
 
 DEVICE = "cpu"

@@ -190,7 +190,7 @@ def vote_ref(img, cur, sus, snap, options, new, keep=None, one_sided=False):
                 new[y, x] = med
 
 
-def global_shift_ref(focus, disparity, k_px, options=DEFAULT):
+def global_shift_ref(focus, disparity, k_px, options=DEFAULT):  # noqa: C901
     """Pair by pair, shift by shift: the four groups (axis x side of the near pixel), their mean colour step across
     each shifted pair, the geometric mean's best shift and its three checks."""
     m = int(options.max_shift_px)

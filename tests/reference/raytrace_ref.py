@@ -43,7 +43,7 @@ def box_mean(tex: np.ndarray, cx: float, cy: float, hx: float, hy: float) -> np.
     return acc / ((x1 - x0) * (y1 - y0))
 
 
-def trace(layers: list[tuple[np.ndarray, tuple[float, float, float]]], k: float, d_f: float,
+def trace(layers: list[tuple[np.ndarray, tuple[float, float, float]]], k: float, d_f: float,  # noqa: C901
           spp, aperture=None) -> np.ndarray:
     """Plane layers only, nearest first: ``(rgba straight-alpha H x W x 4, (a, b, c))``; images of
     at most 16 x 16 px (one tile of the kernel's content grid: every layer with content reaches

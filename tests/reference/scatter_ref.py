@@ -7,6 +7,7 @@ overlap of the row interval with the pixel, no difference buffers, no pyramid.
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -122,7 +123,7 @@ def _sub_edges(t0: float, t1: float, n: int, at_top: bool, at_bot: bool) -> list
     return [t0 + (t1 - t0) * x for x in u]
 
 
-def footprint(xc: float, yc: float, rho: float, blades: np.ndarray, h: int, w: int,
+def footprint(xc: float, yc: float, rho: float, blades: np.ndarray, h: int, w: int,  # noqa: C901
               extent: tuple[float, float] = (-1.0, 1.0), area: float | None = None) -> np.ndarray:
     """Weights a source at (xc, yc) (continuous pixel coords) spreads over an h x w grid (level 0).
 
@@ -182,7 +183,7 @@ def footprint(xc: float, yc: float, rho: float, blades: np.ndarray, h: int, w: i
         sag = max(abs(am - 0.5 * (a0 + a1)), abs(bm - 0.5 * (b0 + b1)))
         n = 1 if sag <= SAG_PX else min(MAX_SUB, math.ceil(math.sqrt(sag / SAG_PX)))
         edges = _sub_edges(t0, t1, n, k == k_top, k == k_bot)
-        for s0, s1 in zip(edges[:-1], edges[1:]):
+        for s0, s1 in itertools.pairwise(edges):
             (a0, b0), (am, bm), (a1, b1) = ch(s0), ch(0.5 * (s0 + s1)), ch(s1)
             # Simpson: each end is the straight ramp between its positions at the sub-row's
             # edges, shifted so its mean position is (a0 + 4 a_mid + a1) / 6
@@ -336,7 +337,7 @@ def salient(src: np.ndarray, coc: np.ndarray, r0: float, n_levels: int, visible:
     return score, routed
 
 
-def clusters(src: np.ndarray, coc: np.ndarray, routed: np.ndarray, r0: float, n_levels: int, visible: float,
+def clusters(src: np.ndarray, coc: np.ndarray, routed: np.ndarray, r0: float, n_levels: int, visible: float,  # noqa: C901
              floor: float) -> tuple[np.ndarray, list[tuple[float, float, float, np.ndarray]]]:
     """(member mask, cluster sources) of the extended-light gathering (docs/renderer.md), by plain loops.
 

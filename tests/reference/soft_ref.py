@@ -67,7 +67,7 @@ def two_plane_scene(h: int = 160, w: int = 224, background: str = "smooth") -> d
         slope = 0.08 + 0.03 * k
 
         def line(y, x, x_top=x_top, slope=slope, width=width):
-            d = np.abs((x - (x_top + slope * y))) / math.sqrt(1.0 + slope * slope)
+            d = np.abs(x - (x_top + slope * y)) / math.sqrt(1.0 + slope * slope)
             return (d <= width / 2) & (y > h * 0.1) & (y < h * 0.9)
 
         strands = np.maximum(strands, _coverage(line, h, w))

@@ -13,16 +13,16 @@ benchmarks/stress_reference.py (many cases, worst error recorded).
 
 from __future__ import annotations
 
+import bokehray_kernels as bk
 import numpy as np
 import warp as wp
 
 import bokehray as br
-import bokehray_kernels as bk
+from bokehray.lens import aperture_area
 from bokehray.levels.preview import no_routing, render_signed_coc
 from bokehray.levels.raytrace import Layer, raytrace_layers
 from bokehray.options import LayerOptions, PreviewOptions, RaytraceOptions
 from bokehray.scene import cap_coc, copy_tiles, grid_to_pixels, layer_edges
-from bokehray.lens import aperture_area
 
 from . import raytrace_ref, scatter_ref
 

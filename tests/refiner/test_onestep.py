@@ -6,13 +6,14 @@ import pytest
 torch = pytest.importorskip("torch")
 pytest.importorskip("diffusers")
 
-from bokehray.errors import InputError  # noqa: E402
-from bokehray.lens import BlurParams  # noqa: E402
 from bokehray_refiner.masks import PisaMaskProvider  # noqa: E402
 from bokehray_refiner.onestep import OneStepOptions, load_one_step  # noqa: E402
-from bokehray_refiner.processor import PISAAttnProcessor, PassThroughAttnProcessor  # noqa: E402
+from bokehray_refiner.processor import PassThroughAttnProcessor, PISAAttnProcessor  # noqa: E402
 from bokehray_refiner.testing import write_tiny_sdxl  # noqa: E402
 from bokehray_refiner.tiles import blend_tiles, tile_grid  # noqa: E402
+
+from bokehray.errors import InputError  # noqa: E402
+from bokehray.lens import BlurParams  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -136,10 +137,9 @@ def test_prediction_types(tiny):
 
 
 def test_processor_matches_pisa_attention_on_a_non_square_grid():
-    from diffusers.models.attention_processor import Attention
-
-    from bokehray_refiner.pisa import pisa_masks
     from bokehray_refiner.attention import pisa_attention
+    from bokehray_refiner.pisa import pisa_masks
+    from diffusers.models.attention_processor import Attention
 
     torch.manual_seed(0)
     attn = Attention(query_dim=16, heads=2, dim_head=8)

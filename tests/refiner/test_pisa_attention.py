@@ -5,11 +5,10 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
+from bokehray_refiner.attention import pisa_attention, pisa_attention_dense, pisa_weights  # noqa: E402
+from bokehray_refiner.pisa import pisa_masks  # noqa: E402
 from hypothesis import given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
-
-from bokehray_refiner.pisa import pisa_masks  # noqa: E402
-from bokehray_refiner.attention import pisa_attention, pisa_attention_dense, pisa_weights  # noqa: E402
 from reference import pisa_ref as ref  # noqa: E402
 
 H, W = 7, 9

@@ -10,15 +10,16 @@ from hypothesis import strategies as st
 
 torch = pytest.importorskip("torch")
 
-import bokehray as br  # noqa: E402
-from bokehray.errors import InputError  # noqa: E402
-from bokehray.data.synth import SynthConfig, generate  # noqa: E402
 from bokehray_refiner.data import PairBank, corrupt_disparity  # noqa: E402
 from bokehray_refiner.gate import GateOptions  # noqa: E402
 from bokehray_refiner.masks import PisaMaskProvider  # noqa: E402
 from bokehray_refiner.model import BokehRefiner, fingerprint  # noqa: E402
 from bokehray_refiner.refine import DEFAULT_WEIGHTS, RefineOptions, load_refiner, refine, tiles_to_refine  # noqa
 from bokehray_refiner.train import TrainConfig, edge_loss, hardness_at, train  # noqa: E402
+
+import bokehray as br  # noqa: E402
+from bokehray.data.synth import SynthConfig, generate  # noqa: E402
+from bokehray.errors import InputError  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -261,8 +262,9 @@ def _edge_scene(seed: int = 0, size: int = 128):
 
 
 def test_gate_trusts_depth_edges_on_colour_edges_and_opens_where_the_map_is_eroded():
-    from bokehray.colour import linear_to_srgb
     from bokehray_refiner.gate import refine_gate
+
+    from bokehray.colour import linear_to_srgb
 
     img, d = _edge_scene()
     blur = br.BlurParams(12.0, 0.9)
@@ -307,8 +309,9 @@ def test_a_defocused_light_near_a_depth_edge_keeps_its_energy_and_gains_no_core(
 @settings(max_examples=25, deadline=None)
 @given(seed=st.integers(0, 2**16), k=st.floats(0.0, 40.0), df=st.floats(0.0, 1.0), edges=st.integers(0, 6))
 def test_gate_is_a_weight_and_stays_shut_without_depth_edges(seed, k, df, edges):
-    from bokehray.colour import linear_to_srgb
     from bokehray_refiner.gate import refine_gate
+
+    from bokehray.colour import linear_to_srgb
 
     rng = np.random.default_rng(seed)
     img = rng.uniform(0, 1.5, (40, 48, 3)).astype(np.float32)  # includes clipped values
@@ -424,7 +427,7 @@ def test_render_refine_renders_the_level_once_and_equals_fixing_an_existing_rend
 
     once, st1 = refine(img, dc, blur, None, model=model, rerender=rerender)
     assert len(calls) == 1 and st1.depth_fixed_px > 0 and np.array_equal(calls[0], st1.disparity)
-    twice, st2 = refine(img, dc, blur, br.render(img, dc, blur), model=model, rerender=rerender)
+    twice, _st2 = refine(img, dc, blur, br.render(img, dc, blur), model=model, rerender=rerender)
     np.testing.assert_array_equal(once, twice)
     api, st = br.render_with_stats(img, dc, blur, refine=str(weights))
     np.testing.assert_allclose(api, once, rtol=0, atol=1e-6)

@@ -17,10 +17,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from tolerances import HANG_S
 
 import bokehray as br
 from bokehray.errors import BokehrayError, InputError, ResourceError
-from tolerances import HANG_S
 
 pytestmark = pytest.mark.slow  # processes, signals, a browser: seconds each
 

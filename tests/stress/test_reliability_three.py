@@ -19,10 +19,10 @@ import imagecodecs
 import numpy as np
 import pytest
 import tifffile
+from tolerances import HANG_S
 
 import bokehray as br
 from bokehray.colour import srgb_icc
-from tolerances import HANG_S
 
 _PATHS = os.pathsep.join(dict.fromkeys(str(Path(m.__file__).resolve().parents[1])
                                        for m in (br, __import__("bokehray_kernels"))))

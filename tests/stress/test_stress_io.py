@@ -19,9 +19,9 @@ import pytest
 
 import bokehray
 import bokehray as br
-from bokehray.photo import read as rd
 from bokehray.app import cli
 from bokehray.errors import InputError, ResourceError
+from bokehray.photo import read as rd
 
 
 def _peak_rss_mb() -> float:

@@ -14,12 +14,12 @@ import numpy as np
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
+from reference import raytrace_ref, stress_cases
 
 import bokehray as br
 from bokehray.lens import MAX_K_PX
 from bokehray.levels.raytrace import Layer, raytrace_layers
 from bokehray.options import RaytraceOptions
-from reference import raytrace_ref, stress_cases
 
 SCALES = (0.0, 1e-40, 1e-8, 1.0, 1e4)
 # float32 kernels vs float64 references, relative to the largest reference value (normal radiance):

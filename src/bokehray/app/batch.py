@@ -165,7 +165,7 @@ def _manifest(path: Path, kind: str) -> dict[str, Path]:
     return out
 
 
-def find_pairs(images: str, maps: str, *, kind: str = "disparity", suffix: str = "") -> list[Pair]:
+def find_pairs(images: str, maps: str, *, kind: str = "disparity", suffix: str = "") -> list[Pair]:  # noqa: C901
     """The photos named by ``images`` and their maps from ``maps`` (module docstring: the pairing rule)."""
     mp = Path(maps)
     if mp.suffix.lower() == ".csv" and mp.is_file():
@@ -402,7 +402,7 @@ def _state(out: Path, fingerprint: str, outputs: Sequence[str], overwrite: bool)
     atomic_write(state, lambda tmp: Path(tmp).write_text(text))
 
 
-def run_batch(args: argparse.Namespace) -> int:
+def run_batch(args: argparse.Namespace) -> int:  # noqa: C901
     """``bokehray render`` with many inputs or a sweep: plan, skip what is done, run, summarise."""
     from tqdm import tqdm
 

@@ -21,8 +21,8 @@ import numpy as np
 
 from .._quiet import collect_warnings, command_stderr
 from ..errors import EXIT_INTERRUPTED, EXIT_TERMINATED, BokehrayError, InputError, Terminated
-from .render_job import aperture_of, layer_options_of, render_one, start_warp
 from ..photo.subject import AMOUNT_DEFAULT, AMOUNT_K_FRACTION
+from .render_job import aperture_of, layer_options_of, render_one, start_warp
 
 EXIT_INPUT = 2
 
@@ -245,10 +245,10 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from ..output.write import write_disparity, write_image
-    from .demo import build_demo_scene, contact_sheet
     from ..lens import BlurParams
+    from ..output.write import write_disparity, write_image
     from ..pipeline import render_with_stats
+    from .demo import build_demo_scene, contact_sheet
 
     start_warp(args)
     w, h = args.size
@@ -392,7 +392,7 @@ def _exit_now(code: int) -> None:
     os._exit(code)
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def main(argv: Sequence[str] | None = None) -> int:  # noqa: C901
     with _sigterm_raises():
         try:
             parser = build_parser()

@@ -115,7 +115,7 @@ def stroke(pts: np.ndarray, widths: np.ndarray, w: int, h: int):
     return sl, alpha
 
 
-def build_demo_scene(width: int = 768, height: int = 512, seed: int = 0) -> DemoScene:
+def build_demo_scene(width: int = 768, height: int = 512, seed: int = 0) -> DemoScene:  # noqa: C901
     """Build the deterministic layered demo scene.
 
     Args:

@@ -121,7 +121,7 @@ def _warn(args: argparse.Namespace, text: str) -> None:
         print(f"bokehray: warning: {text}", file=sys.stderr)
 
 
-def _check_render_flags(args: argparse.Namespace) -> bool:
+def _check_render_flags(args: argparse.Namespace) -> bool:  # noqa: C901
     """Contradictions between flags, found before any file is read (and before Warp starts). Returns whether
     the blur is a physical lens."""
     from ..levels import check_photo_quality
@@ -171,12 +171,11 @@ def _disparity_path(output: str) -> Path:
     return out.with_name(f"{out.stem}-disparity.png")
 
 
-def _read_map(args: argparse.Namespace, h: int, w: int, image: np.ndarray | None = None, stage=None):
+def _read_map(args: argparse.Namespace, h: int, w: int, image: np.ndarray | None = None, stage=None):  # noqa: C901
     """The disparity map by the conventions the flags state; ``(d, DepthNormalization or None)``."""
     from ..lens import DepthNormalization, disparity_from_depth
     from ..output.write import write_disparity
-    from ..photo.depth import (NORMALIZE_PERCENTILES, looks_reversed, missing_depth_share, normalize_relative,
-                               read_depth)
+    from ..photo.depth import NORMALIZE_PERCENTILES, looks_reversed, missing_depth_share, normalize_relative, read_depth
     from ..photo.read import read_disparity
 
     norm = None
@@ -302,7 +301,7 @@ def render_one(args: argparse.Namespace) -> dict:
         bar.close()
 
 
-def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:
+def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:  # noqa: C901
     from ..lens import BlurParams, ThinLens
     from ..output.write import write_image
     from ..photo.embedded import exif_for_output

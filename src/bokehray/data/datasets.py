@@ -89,7 +89,7 @@ def _json_default(o: Any) -> Any:
 # --------------------------------------------------------------------------- writer
 
 
-def write_blb_scene(
+def write_blb_scene(  # noqa: C901
     folder: str | os.PathLike[str],
     image: np.ndarray,
     disparity: np.ndarray,

@@ -26,10 +26,9 @@ import time
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass
 
+import bokehray_kernels as bk
 import numpy as np
 import warp as wp
-
-import bokehray_kernels as bk
 
 from .. import scene as sc
 from .. import tiling

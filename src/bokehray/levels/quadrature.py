@@ -37,7 +37,7 @@ from ..lens import Aperture
 OUTLINE = 0.02
 """Default outline tolerance of the cell partitions (unit-circumradius units)."""
 
-__all__ = ["OUTLINE", "CellTable", "cells", "cell_table", "strips_for_radius"]
+__all__ = ["OUTLINE", "CellTable", "cell_table", "cells", "strips_for_radius"]
 
 
 def _merge_ends(ends: np.ndarray, tol: float) -> list[tuple[int, int, float]]:
@@ -57,7 +57,7 @@ def _merge_ends(ends: np.ndarray, tol: float) -> list[tuple[int, int, float]]:
     return runs
 
 
-def cells(aperture: Aperture, strips: int, *, sub_rows: int = 32, tol: float | None = None) -> np.ndarray:
+def cells(aperture: Aperture, strips: int, *, sub_rows: int = 32, tol: float | None = None) -> np.ndarray:  # noqa: C901
     """The partition of the aperture into boxes for ``strips`` strips: ``(n, 5)`` float64 rows
     ``(ux, uy, hx, hy, weight)``, weights summing to 1.
 

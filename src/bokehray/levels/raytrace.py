@@ -86,7 +86,7 @@ class _Part:
     core: tiling.Box
 
 
-def _validate_layers(layers: list[Layer]) -> tuple[int, int]:
+def _validate_layers(layers: list[Layer]) -> tuple[int, int]:  # noqa: C901
     if isinstance(layers, Layer) or not isinstance(layers, (list, tuple)):
         raise InputError(f"layers: expected a list of bokehray.Layer, got {type(layers).__name__}")
     if not layers:

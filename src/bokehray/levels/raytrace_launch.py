@@ -14,10 +14,9 @@ import os
 from collections.abc import Callable
 from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 
+import bokehray_kernels as bk
 import numpy as np
 import warp as wp
-
-import bokehray_kernels as bk
 
 from ..lens import Aperture
 from .quadrature import OUTLINE, CellTable, cell_table, strips_for_radius
@@ -123,7 +122,7 @@ def strip_range(options) -> tuple[int, int]:
     return g_min, g_max
 
 
-def trace_bands(
+def trace_bands(  # noqa: C901
     sat: np.ndarray,
     disp: np.ndarray,
     planes: np.ndarray,

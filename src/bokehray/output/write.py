@@ -20,8 +20,8 @@ from PIL import Image
 
 from ..colour import SRGB_CHROMATICITIES, linear_to_srgb, srgb_icc
 from ..errors import InputError
-from ..validate import check_path, fits_in_memory
 from ..formats import HALF_MAX, check_finite, first_index, format_of, to_float32
+from ..validate import check_path, fits_in_memory
 from .atomic import atomic_write
 
 __all__ = ["PNG_COMPRESS_LEVEL", "WRITE_BYTES_PER_SAMPLE", "check_output_path", "write_disparity", "write_image"]
@@ -112,7 +112,7 @@ def _output_bits(p: Path, fmt: str, bit_depth: int | None, half: bool) -> int:
     return bits
 
 
-def write_image(
+def write_image(  # noqa: C901
     path: str | os.PathLike[str],
     image: npt.ArrayLike,
     *,

@@ -79,7 +79,7 @@ def _positive_int(value: object, where: Path, key: str) -> int:
     return value
 
 
-def _preprocessor(folder: Path) -> dict:
+def _preprocessor(folder: Path) -> dict:  # noqa: C901
     """``preprocessor_config.json`` (if any), each key this module reads checked for its type."""
     path = folder / "preprocessor_config.json"
     if not path.exists():

@@ -24,8 +24,8 @@ from .._memory import available_bytes
 from .._quiet import library_log, native_output
 from ..colour import srgb_decode_lut
 from ..errors import InputError, ResourceError
-from ..validate import check_path
 from ..formats import check_finite, first_index, format_of, range_prefix, to_float32
+from ..validate import check_path
 
 __all__ = ["MAX_PIXELS", "load_samples", "read_disparity", "read_image", "read_size", "single_channel"]
 
@@ -162,7 +162,7 @@ def _exr_size(path: Path) -> tuple[int, int]:
     return int(y1 - y0 + 1), int(x1 - x0 + 1)
 
 
-def _load_exr(path: Path, choices: tuple[tuple[str, ...], ...]) -> np.ndarray:
+def _load_exr(path: Path, choices: tuple[tuple[str, ...], ...]) -> np.ndarray:  # noqa: C901
     if not OpenEXR.isOpenExrFile(str(path)):
         raise InputError(f"cannot read {path} as EXR: not an OpenEXR file (bad magic number)")
     chans: dict[str, np.ndarray] = {}

@@ -14,6 +14,7 @@ docs/usage.md says it for photographers.
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 
@@ -99,7 +100,7 @@ def depth_regions(hist: np.ndarray) -> list[tuple[int, int]]:
     n = s.size
     cuts = [i for i in range(1, n - 1) if s[i] < s[i - 1] and s[i] <= s[i + 1]]
     edges = [0, *cuts, n]  # region j is bins edges[j] .. edges[j+1] - 1; the valley between j and j+1 is edges[j+1]
-    peaks = [float(s[a:b].max()) for a, b in zip(edges[:-1], edges[1:], strict=True)]
+    peaks = [float(s[a:b].max()) for a, b in itertools.pairwise(edges)]
     while len(peaks) > 1:
         ratios = [s[edges[j + 1]] / max(min(peaks[j], peaks[j + 1]), 1e-300) for j in range(len(peaks) - 1)]
         j = int(np.argmax(ratios))
@@ -107,7 +108,7 @@ def depth_regions(hist: np.ndarray) -> list[tuple[int, int]]:
             break
         peaks[j : j + 2] = [max(peaks[j], peaks[j + 1])]
         del edges[j + 1]
-    return [(a, b - 1) for a, b in zip(edges[:-1], edges[1:], strict=True)]
+    return [(a, b - 1) for a, b in itertools.pairwise(edges)]
 
 
 def subject_focus(disparity: np.ndarray) -> Subject:

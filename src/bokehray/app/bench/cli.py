@@ -44,7 +44,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     return b
 
 
-def cmd_bench(args: argparse.Namespace) -> int:
+def cmd_bench(args: argparse.Namespace) -> int:  # noqa: C901
     from ...data.metrics import PerceptualMetric
     from .machine import machine_info
     from .methods import registry, select

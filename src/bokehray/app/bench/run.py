@@ -234,7 +234,7 @@ def _k_for(case: Case, method: Method, render: Callable, k_range, log) -> tuple[
     return k, evals
 
 
-def _measure_case(case: Case, active, runs: int, perceptual, k_range, skipped: dict, log) -> list[dict]:
+def _measure_case(case: Case, active, runs: int, perceptual, k_range, skipped: dict, log) -> list[dict]:  # noqa: C901
     live = [(m, r) for m, r in active if m.name not in skipped]
     rows: dict[str, dict] = {}
     for m, render in live:

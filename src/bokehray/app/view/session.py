@@ -214,7 +214,7 @@ def _physical(spec: object, at: tuple[int, int] | None, disparity: np.ndarray, n
     return br.ThinLens(focal, n, z, sensor)
 
 
-def parse_params(body: object, disparity: np.ndarray, *, subject_d_f: float | None = None,
+def parse_params(body: object, disparity: np.ndarray, *, subject_d_f: float | None = None,  # noqa: C901
                  reconstruct_default: bool = False, norm=None) -> RenderParams:
     """Validate a JSON parameter set against the full-resolution ``disparity``; raises :class:`InputError`.
 
@@ -562,7 +562,7 @@ class ViewSession:
         written = br.write_image(path, out, bit_depth=bits, half=half, quality=JPEG_QUALITY, exif=self._exif())
         return written, self.command(p, written, bit_depth=bits, half=half)
 
-    def command(self, p: RenderParams, output: str | Path, *, bit_depth: int | None = None,
+    def command(self, p: RenderParams, output: str | Path, *, bit_depth: int | None = None,  # noqa: C901
                 half: bool = False) -> str:
         """The ``bokehray render`` command line that writes the same image (what is at ``render``'s default is
         left out: the amount 50, the subject focus, highlight reconstruction)."""
