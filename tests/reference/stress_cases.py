@@ -18,8 +18,7 @@ import numpy as np
 import warp as wp
 
 import bokehray as br
-from bokehray.lens import aperture_area
-from bokehray.levels.preview import no_routing, render_signed_coc
+from bokehray.levels.preview import aperture_shape, no_routing, pyramid_buffers, render_signed_coc
 from bokehray.levels.raytrace import Layer, raytrace_layers
 from bokehray.options import LayerOptions, PreviewOptions, RaytraceOptions
 from bokehray.scene import cap_coc, copy_tiles, grid_to_pixels, layer_edges
@@ -72,11 +71,10 @@ def scatter_case(seed: int, device: str = "cpu") -> tuple[float, float, str]:
     bufs = [wp.zeros((h, w + 2), dtype=wp.vec4, device=device)]
     bufs += [bufs[0]] * (bk.MAX_LEVELS - 1)
     rows = ap.blade_discs()
-    blades = wp.array(rows if len(rows) else np.zeros((1, 4), np.float32), dtype=wp.vec4, device=device)
     wp.launch(bk.scatter_kernel, dim=(h, w),
               inputs=[wp.array(src, dtype=wp.vec4, device=device), wp.array(radius, device=device),
-                      *no_routing(device), blades, len(rows),
-                      wp.vec2(*ap.vertical_extent()), aperture_area(ap), 1e6, 1, *bufs], device=device)
+                      no_routing(device).struct(), aperture_shape(ap, rows, device), 1e6, 1, pyramid_buffers(bufs)],
+              device=device)
     wp.launch(bk.prefix_rows_kernel, dim=h, inputs=[bufs[0]], device=device)
     got = bufs[0].numpy()[:, :w]
     want = scatter_ref.scatter(src.astype(np.float64), radius.astype(np.float64), rows, ap.vertical_extent())
