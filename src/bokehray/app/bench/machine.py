@@ -1,6 +1,8 @@
 """Where a measurement was taken, and the peak memory of a stretch of work (Linux /proc).
 
-Shared by ``bokehray bench`` and the scripts under ``benchmarks/``.
+Shared by ``bokehray bench`` and the scripts under ``benchmarks/``. These probes read /proc themselves: psutil (which
+``bokehray`` uses for the memory available) has no peak resident size of a stretch of work (``VmHWM`` and its reset
+through ``/proc/self/clear_refs``) and no CPU model name.
 """
 
 from __future__ import annotations
