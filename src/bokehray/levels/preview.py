@@ -37,6 +37,7 @@ from ..lens import aperture_area
 from ..options import PreviewOptions
 from ..stats import PreviewStats
 from .base import Progress, RenderContext
+from .buffers import lazy_zeros, reuse_buffers
 
 __all__ = ["border_pad", "no_routing", "render_preview", "render_signed_coc", "route_salient"]
 
@@ -126,21 +127,22 @@ def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device
     """
     h, w = src.shape
     where = (support or sc.LayerSupport.everywhere(device)).args()
-    exact = wp.zeros((h, w), dtype=wp.uint8, device=device)
+    # the routing's arrays are mostly zero (level k writes 1 / 4^k of its plane): pages taken where written
+    exact = lazy_zeros((h, w), wp.uint8, device)
     n_means = n_levels - 1  # radiance pyramid levels 1 .. n_levels - 1
     h1, w1 = (h + 1) // 2, (w + 1) // 2
-    means = wp.zeros((n_means, h1, w1), dtype=wp.vec4, device=device)
-    counts = wp.zeros((n_means, h1, w1), dtype=float, device=device)
+    means = lazy_zeros((n_means, h1, w1), wp.vec4, device)
+    counts = lazy_zeros((n_means, h1, w1), float, device)
     wp.launch(bk.radiance_mean_kernel, dim=(h1, w1), inputs=[src], outputs=[means, counts], device=device)
     fh, fw = h1, w1
     for k in range(1, n_means):
         ch, cw = (fh + 1) // 2, (fw + 1) // 2
         wp.launch(bk.halve_mean_kernel, dim=(ch, cw), inputs=[means, counts, k, fh, fw], device=device)
         fh, fw = ch, cw
-    cell_total = wp.zeros((n_means, h1, w1), dtype=wp.vec4, device=device)
-    cell_pixels = wp.zeros((n_means, h1, w1), dtype=float, device=device)
-    light = wp.zeros((n_means, h1, w1), dtype=wp.vec4, device=device)
-    shape = wp.zeros((n_means, h1, w1), dtype=wp.vec4, device=device)
+    cell_total = lazy_zeros((n_means, h1, w1), wp.vec4, device)
+    cell_pixels = lazy_zeros((n_means, h1, w1), float, device)
+    light = lazy_zeros((n_means, h1, w1), wp.vec4, device)
+    shape = lazy_zeros((n_means, h1, w1), wp.vec4, device)
     for lev in range(max(1, first), n_levels):
         side = 1 << lev
         wp.launch(bk.route_cells_kernel, dim=((h + side - 1) // side, (w + side - 1) // side),
@@ -246,11 +248,13 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
     t_plan = time.perf_counter()
     stats.stage_seconds["plan"] = t_plan - t_start
 
-    if tile is None:
-        out, n_filled = _render_window(image, s, scene.ids, scene.layers, scene.n_slots, scatter, ctx.progress,
-                                       scene.near)
-    else:
-        out, n_filled, stats.image_tiles = _render_tiled(photo, image, s, scene, scatter, tile, frame, ctx.progress)
+    with reuse_buffers(ctx.device):  # the layers' buffers: allocated once, reused by the next layers (buffers.py)
+        if tile is None:
+            out, n_filled = _render_window(image, s, scene.ids, scene.layers, scene.n_slots, scatter, ctx.progress,
+                                           scene.near)
+        else:
+            out, n_filled, stats.image_tiles = _render_tiled(photo, image, s, scene, scatter, tile, frame,
+                                                             ctx.progress)
     stats.sources_filled = n_filled
     stats.sources_scattered += n_filled
     stats.stage_seconds["layers"] = time.perf_counter() - t_plan
