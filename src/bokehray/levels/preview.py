@@ -240,6 +240,8 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
         what=f"preview render at a largest CoC of {stats.max_coc_px:.0f} px",
     )
     stats.memory_estimate_mb = need / tiling.MB
+    if tile is None:
+        photo = None  # the padded input is read by tiled renders only
     blade_rows = ctx.aperture.blade_discs()
     scatter = _Scatter(
         wp.array(blade_rows if len(blade_rows) else np.zeros((1, 4), np.float32), dtype=wp.vec4, device=ctx.device),
