@@ -41,27 +41,33 @@ from .buffers import lazy_zeros, reuse_buffers
 
 __all__ = ["border_pad", "no_routing", "render_preview", "render_signed_coc", "route_salient"]
 
-# Bytes per pixel, from the arrays each stage allocates (float32 = 4 bytes); checked against measured peaks by
-# benchmarks/bench_memory.py (docs/robustness.md).
-WHOLE_IMAGE_B = 48
-"""Whole-image arrays, kept or transient: signed CoC and radius, tile masks, the plan's sort keys (int64 search
-result), layer ids, output."""
-REGION_B = 60
-"""Per pixel of the rendered region: image, CoC, layer ids on the device, accumulator, result."""
-LAYER_B = 80
-"""Per pixel of a layer's box in flight: sources (16 + 4), pull-push pyramid (24 x 4/3), distance map (4),
-radius-pyramid difference buffers (16 x 4/3 and 2 spare columns)."""
-RESULT_B = 16
-"""Per pixel of a rendered layer's box waiting to be composited: its premultiplied RGB and coverage."""
+# Bytes per pixel, from the arrays each stage allocates (float32 = 4 bytes), calibrated on measured peaks (the
+# growth of the process during renders of 1.5 to 24 MP, within 15 %: docs/renderer.md, "12 MP and 24 MP photos");
+# benchmarks/bench_memory.py prints the estimate beside the peak (docs/robustness.md).
+WHOLE_IMAGE_B = 32
+"""Whole-image arrays kept through the layers: the signed CoC and the scene's copy of it, the scene's colour (its
+split pixels hold their far part), layer ids, tile masks; the plan's transients (sort keys) are gone by then."""
+REGION_B = 16
+"""Per pixel of the rendered region: the accumulator (the image, CoC and layer ids are read in place on the CPU)."""
+LAYER_B = 44
+"""Per pixel of a layer's box in flight: sources (16 + 4) and the radius-pyramid difference buffers (16 x 4/3 and 2
+spare columns); the pull-push pyramid and distance map (24 x 4/3 + 4) come and go before them, in the same
+reused buffers (``bokehray.levels.buffers``)."""
+RESULT_B = 4
+"""Per pixel of every rendered layer's box, for the results waiting to be composited (16 bytes each: premultiplied RGB
+and coverage) counted at a quarter: the workers seldom run more than a layer ahead of the compositing (measured)."""
 ROUTING_B_PER_LEVEL = 18
-"""Per pixel of a layer's box in flight and per coarse level of its pyramid, for :func:`route_salient`: the radiance
-pyramid, the stored neighbourhoods and the cluster sources, each (vec4 16 + 16 + 16 and two floats) on the
-level-1 grid, a quarter of the pixels; plus 1 byte a pixel for the routing flags."""
+"""For :func:`route_salient`, per pixel of a layer's box in flight and per coarse level of its pyramid, weighted
+1, 1/4, 1/16, ... from the first (pages are taken only where written: ``buffers.lazy_zeros``): the radiance pyramid,
+the stored neighbourhoods and the cluster sources (vec4 16 + 16 + 16 and two floats) on the level-1 grid, a
+quarter of the pixels; plus 1 byte a pixel for the routing flags."""
 
 
 def _layer_bytes(n_levels: int) -> int:
     """Per pixel of a layer's box in flight, with ``n_levels`` pyramid levels (the routing's arrays included)."""
-    return LAYER_B + (1 + ROUTING_B_PER_LEVEL * (n_levels - 1) if n_levels > 1 else 0)
+    if n_levels <= 1:
+        return LAYER_B
+    return LAYER_B + 1 + math.ceil(ROUTING_B_PER_LEVEL * sum(0.25**k for k in range(n_levels - 1)))
 
 
 @dataclass(frozen=True, slots=True)
@@ -373,7 +379,7 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
     # strictly back to front as they complete. A free worker takes the next layer to composite if it has not
     # started, else the costliest one left (:func:`_cost`), so that a slow layer does not start last while the
     # other workers idle. A finished layer waiting to be composited holds only its result (16 B/px;
-    # :func:`_region_bytes` counts one working layer a thread and every result).
+    # :func:`_region_bytes` counts one working layer a thread and, at a quarter, every result).
     done = 0
     order = sorted(range(len(layers)), key=lambda k: -_cost(layers[k]) if scatter.threads > 1 else k)
     pool = ThreadPoolExecutor(max_workers=scatter.threads)
