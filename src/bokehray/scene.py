@@ -600,10 +600,11 @@ class LayerSources:
                      wp.array(np.ascontiguousarray(near.value, np.float32), dtype=wp.vec4, device=device),
                      wp.array(np.ascontiguousarray(near.coc, np.float32), dtype=float, device=device),
                      wp.array(near.layer, dtype=wp.int32, device=device))
+        copy = not wp.get_device(device).is_cpu  # on the CPU the kernels read the (contiguous) arrays in place
         return cls(
-            wp.array(np.ascontiguousarray(image[..., :3], np.float32), dtype=wp.vec3, device=device),
-            wp.array(np.ascontiguousarray(signed_coc, np.float32), dtype=float, device=device),
-            wp.array(np.ascontiguousarray(ids), dtype=wp.int32, device=device),
+            wp.array(np.ascontiguousarray(image[..., :3], np.float32), dtype=wp.vec3, device=device, copy=copy),
+            wp.array(np.ascontiguousarray(signed_coc, np.float32), dtype=float, device=device, copy=copy),
+            wp.array(np.ascontiguousarray(ids, np.int32), dtype=wp.int32, device=device, copy=copy),
             wp.zeros(n_slots, dtype=wp.int32, device=device),
             device,
             parts,

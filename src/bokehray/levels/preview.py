@@ -36,31 +36,38 @@ from ..lens import Aperture, aperture_area
 from ..options import PreviewOptions
 from ..stats import PreviewStats
 from .base import Progress, RenderContext
+from .buffers import lazy_zeros, reuse_buffers
 
 __all__ = ["aperture_shape", "border_pad", "no_routing", "pyramid_buffers", "render_preview", "render_signed_coc",
            "route_salient"]
 
-# Bytes per pixel, from the arrays each stage allocates (float32 = 4 bytes); checked against measured peaks by
-# benchmarks/bench_memory.py (docs/robustness.md).
-WHOLE_IMAGE_B = 48
-"""Whole-image arrays, kept or transient: signed CoC and radius, tile masks, the plan's sort keys (int64 search
-result), layer ids, output."""
-REGION_B = 60
-"""Per pixel of the rendered region: image, CoC, layer ids on the device, accumulator, result."""
-LAYER_B = 80
-"""Per pixel of a layer's box in flight: sources (16 + 4), pull-push pyramid (24 x 4/3), distance map (4),
-radius-pyramid difference buffers (16 x 4/3 and 2 spare columns)."""
-RESULT_B = 16
-"""Per pixel of a rendered layer's box waiting to be composited: its premultiplied RGB and coverage."""
+# Bytes per pixel, from the arrays each stage allocates (float32 = 4 bytes), calibrated on measured peaks (the
+# growth of the process during renders of 1.5 to 24 MP, within 15 %: docs/renderer.md, "12 MP and 24 MP photos");
+# benchmarks/bench_memory.py prints the estimate beside the peak (docs/robustness.md).
+WHOLE_IMAGE_B = 32
+"""Whole-image arrays kept through the layers: the signed CoC and the scene's copy of it, the scene's colour (its
+split pixels hold their far part), layer ids, tile masks; the plan's transients (sort keys) are gone by then."""
+REGION_B = 16
+"""Per pixel of the rendered region: the accumulator (the image, CoC and layer ids are read in place on the CPU)."""
+LAYER_B = 44
+"""Per pixel of a layer's box in flight: sources (16 + 4) and the radius-pyramid difference buffers (16 x 4/3 and 2
+spare columns); the pull-push pyramid and distance map (24 x 4/3 + 4) come and go before them, in the same
+reused buffers (``bokehray.levels.buffers``)."""
+RESULT_B = 4
+"""Per pixel of every rendered layer's box, for the results waiting to be composited (16 bytes each: premultiplied RGB
+and coverage) counted at a quarter: the workers seldom run more than a layer ahead of the compositing (measured)."""
 ROUTING_B_PER_LEVEL = 18
-"""Per pixel of a layer's box in flight and per coarse level of its pyramid, for :func:`route_salient`: the radiance
-pyramid, the stored neighbourhoods and the cluster sources, each (vec4 16 + 16 + 16 and two floats) on the
-level-1 grid, a quarter of the pixels; plus 1 byte a pixel for the routing flags."""
+"""For :func:`route_salient`, per pixel of a layer's box in flight and per coarse level of its pyramid, weighted
+1, 1/4, 1/16, ... from the first (pages are taken only where written: ``buffers.lazy_zeros``): the radiance pyramid,
+the stored neighbourhoods and the cluster sources (vec4 16 + 16 + 16 and two floats) on the level-1 grid, a
+quarter of the pixels; plus 1 byte a pixel for the routing flags."""
 
 
 def _layer_bytes(n_levels: int) -> int:
     """Per pixel of a layer's box in flight, with ``n_levels`` pyramid levels (the routing's arrays included)."""
-    return LAYER_B + (1 + ROUTING_B_PER_LEVEL * (n_levels - 1) if n_levels > 1 else 0)
+    if n_levels <= 1:
+        return LAYER_B
+    return LAYER_B + 1 + math.ceil(ROUTING_B_PER_LEVEL * sum(0.25**k for k in range(n_levels - 1)))
 
 
 @dataclass(frozen=True, slots=True)
@@ -150,21 +157,22 @@ def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device
     """
     h, w = src.shape
     where = (support or sc.LayerSupport.everywhere(device)).struct()
-    exact = wp.zeros((h, w), dtype=wp.uint8, device=device)
+    # the routing's arrays are mostly zero (level k writes 1 / 4^k of its plane): pages taken where written
+    exact = lazy_zeros((h, w), wp.uint8, device)
     n_means = n_levels - 1  # radiance pyramid levels 1 .. n_levels - 1
     h1, w1 = (h + 1) // 2, (w + 1) // 2
-    means = wp.zeros((n_means, h1, w1), dtype=wp.vec4, device=device)
-    counts = wp.zeros((n_means, h1, w1), dtype=float, device=device)
+    means = lazy_zeros((n_means, h1, w1), wp.vec4, device)
+    counts = lazy_zeros((n_means, h1, w1), float, device)
     wp.launch(bk.radiance_mean_kernel, dim=(h1, w1), inputs=[src], outputs=[means, counts], device=device)
     fh, fw = h1, w1
     for k in range(1, n_means):
         ch, cw = (fh + 1) // 2, (fw + 1) // 2
         wp.launch(bk.halve_mean_kernel, dim=(ch, cw), inputs=[means, counts, k, fh, fw], device=device)
         fh, fw = ch, cw
-    cell_total = wp.zeros((n_means, h1, w1), dtype=wp.vec4, device=device)
-    cell_pixels = wp.zeros((n_means, h1, w1), dtype=float, device=device)
-    light = wp.zeros((n_means, h1, w1), dtype=wp.vec4, device=device)
-    shape = wp.zeros((n_means, h1, w1), dtype=wp.vec4, device=device)
+    cell_total = lazy_zeros((n_means, h1, w1), wp.vec4, device)
+    cell_pixels = lazy_zeros((n_means, h1, w1), float, device)
+    light = lazy_zeros((n_means, h1, w1), wp.vec4, device)
+    shape = lazy_zeros((n_means, h1, w1), wp.vec4, device)
     routing = Routing(exact, cell_total, cell_pixels, light, shape)
     for lev in range(max(1, first), n_levels):
         side = 1 << lev
@@ -265,17 +273,21 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
         what=f"preview render at a largest CoC of {stats.max_coc_px:.0f} px",
     )
     stats.memory_estimate_mb = need / tiling.MB
+    if tile is None:
+        photo = None  # the padded input is read by tiled renders only
     blade_rows = ctx.aperture.blade_discs()
     scatter = _Scatter(aperture_shape(ctx.aperture, blade_rows, ctx.device), float(options.level_radius_px),
                        bool(options.exact_highlights), threads, ctx.device)
     t_plan = time.perf_counter()
     stats.stage_seconds["plan"] = t_plan - t_start
 
-    if tile is None:
-        out, n_filled = _render_window(image, s, scene.ids, scene.layers, scene.n_slots, scatter, ctx.progress,
-                                       scene.near)
-    else:
-        out, n_filled, stats.image_tiles = _render_tiled(photo, image, s, scene, scatter, tile, frame, ctx.progress)
+    with reuse_buffers(ctx.device):  # the layers' buffers: allocated once, reused by the next layers (buffers.py)
+        if tile is None:
+            out, n_filled = _render_window(image, s, scene.ids, scene.layers, scene.n_slots, scatter, ctx.progress,
+                                           scene.near)
+        else:
+            out, n_filled, stats.image_tiles = _render_tiled(photo, image, s, scene, scatter, tile, frame,
+                                                             ctx.progress)
     stats.sources_filled = n_filled
     stats.sources_scattered += n_filled
     stats.stage_seconds["layers"] = time.perf_counter() - t_plan
@@ -389,7 +401,7 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
     # strictly back to front as they complete. A free worker takes the next layer to composite if it has not
     # started, else the costliest one left (:func:`_cost`), so that a slow layer does not start last while the
     # other workers idle. A finished layer waiting to be composited holds only its result (16 B/px;
-    # :func:`_region_bytes` counts one working layer a thread and every result).
+    # :func:`_region_bytes` counts one working layer a thread and, at a quarter, every result).
     done = 0
     order = sorted(range(len(layers)), key=lambda k: -_cost(layers[k]) if scatter.threads > 1 else k)
     pool = ThreadPoolExecutor(max_workers=scatter.threads)

@@ -18,7 +18,7 @@ import OpenEXR
 import tifffile
 from PIL import Image
 
-from ..colour import SRGB_CHROMATICITIES, linear_to_srgb, srgb_icc
+from ..colour import SRGB_CHROMATICITIES, quantize, srgb_icc
 from ..errors import InputError
 from ..formats import HALF_MAX, check_finite, first_index, format_of, to_float32
 from ..validate import check_path, fits_in_memory
@@ -79,10 +79,9 @@ def _write_bytes(tmp: str, data: bytes | memoryview) -> None:
 
 
 def _quantize(img: np.ndarray, bits: int) -> np.ndarray:
-    """sRGB-encode the colour channels (not alpha) and round to ``bits``-bit codes."""
-    enc = img.copy()
-    enc[..., : min(img.shape[2], 3)] = linear_to_srgb(img[..., :3])
-    return np.round(np.clip(enc, 0.0, 1.0) * (2**bits - 1)).astype(np.uint8 if bits == 8 else np.uint16)
+    """sRGB-encode the colour channels (not alpha) and round to ``bits``-bit codes (``bokehray.colour.quantize``:
+    8-bit codes through an exact table, band by band)."""
+    return quantize(img, bits)
 
 
 def check_output_path(path: str | os.PathLike[str], *, bit_depth: int | None = None, half: bool = False) -> Path:
