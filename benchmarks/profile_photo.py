@@ -121,10 +121,10 @@ STAGES = [
     ("bokehray.levels.preview", "_render_window", "layers: upload, scatter, composite, finalize"),
     ("bokehray.scene", "build_layer_sources", "fill (layer sources)", True),
     ("bokehray.levels.preview", "route_salient", "routing", True),
-    ("bokehray.levels.preview", "_render_layer", "layer (fill + scatter + resolve)", True),
+    ("bokehray.levels.preview", "render_layer", "layer (fill + scatter + resolve)", True),
     ("bokehray.output.write", "write_image", "write"),
-    ("bokehray.output.write", "_quantize", "sRGB encode + quantize"),
-    ("bokehray.output.write", "_write_pil", "encode (Pillow) + write"),
+    ("bokehray.output.write", "srgb_codes", "sRGB encode + quantize"),
+    ("bokehray.output.write", "encode_pil", "encode (Pillow) + write"),
 ]
 
 

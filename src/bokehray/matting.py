@@ -54,7 +54,7 @@ from .validate import check_finite
 
 __all__ = ["isolated_share", "ramp_width", "split_mixed_pixels", "window_offsets"]
 
-_PIXELS_PER_THREAD = 4096
+PIXELS_PER_THREAD = 4096
 """Fewest band pixels a CPU thread of the kernel gets (fewer are not worth a thread)."""
 
 
@@ -217,7 +217,7 @@ def split_mixed_pixels(
     x0, x1 = max(0, int(ex.min()) - pad), min(w, int(ex.max()) + pad + 1)
     band = _dilate(edges[y0:y1, x0:x1], b)
     by, bx = np.nonzero(band)
-    out = _band_kernel(img[y0:y1, x0:x1], s[y0:y1, x0:x1], band, by, bx, radius, jump_px, unknown_weight, ridge,
+    out = launch_band_kernel(img[y0:y1, x0:x1], s[y0:y1, x0:x1], band, by, bx, radius, jump_px, unknown_weight, ridge,
                        purity, device, threads)
     alpha, F, B, vF, vB, near, far, flags = out
     ok = (flags & bk_matting.BAND_OK) != 0
@@ -247,7 +247,7 @@ def split_mixed_pixels(
     return SoftEdges(index, a, Fs, Bs, near[split], far[split])
 
 
-def _band_kernel(img, s, band, by, bx, radius, jump_px, unknown_weight, ridge, purity, device, threads):
+def launch_band_kernel(img, s, band, by, bx, radius, jump_px, unknown_weight, ridge, purity, device, threads):
     """Launch ``bokehray_kernels.matting.matting_band_kernel`` over the band pixels (in ``threads`` row bands on
     the CPU: Warp CPU launches release the GIL). Returns NumPy arrays: alpha, F, B, their variances, the near and
     far CoC and the flags."""
@@ -264,7 +264,7 @@ def _band_kernel(img, s, band, by, bx, radius, jump_px, unknown_weight, ridge, p
     sigma = 0.5 * radius
     og = wp.array(np.exp(-(dist.astype(np.float64) ** 2) / (2.0 * sigma * sigma)).astype(np.float32), dtype=float,
                   device=dev)
-    parts = 1 if dev.is_cuda else max(1, min(int(threads or os.cpu_count() or 1), -(-n // _PIXELS_PER_THREAD)))
+    parts = 1 if dev.is_cuda else max(1, min(int(threads or os.cpu_count() or 1), -(-n // PIXELS_PER_THREAD)))
     cuts = np.linspace(0, n, parts + 1).astype(np.int64)
     outs = [None] * parts
 

@@ -170,7 +170,7 @@ def check_soft_edges(soft: SoftEdges, shape: tuple[int, int]) -> None:
         raise InputError("soft edges: expected alpha in (0, 1) at every split pixel")
 
 
-def _within_range(alpha: np.ndarray, fg: np.ndarray, bg: np.ndarray, photo: np.ndarray, lo: np.ndarray,
+def within_range(alpha: np.ndarray, fg: np.ndarray, bg: np.ndarray, photo: np.ndarray, lo: np.ndarray,
                   hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """F and B of split pixels kept inside the photo's per-channel range ``[lo, hi]`` (every render is a
     convex combination of the photo's radiances): where either lies outside it, F is clamped into it and B
@@ -201,7 +201,7 @@ def split_scene(image: np.ndarray, signed_coc: np.ndarray, soft: SoftEdges | Non
     the photo's pixel (inside a layer nothing is occluded: the split would change nothing but the ray tracer's
     one depth a pixel), and so does one on a pixel that is not ``active`` (a copied tile: its parts are both
     in focus, the photo's pixel is their sum). F and B are kept inside the photo's colour range
-    (:func:`_within_range`). Without split pixels this is ``build_scene`` on the inputs.
+    (:func:`within_range`). Without split pixels this is ``build_scene`` on the inputs.
     """
     if soft is None or len(soft) == 0:
         return image, signed_coc, build_scene(signed_coc, active, options, level_radius_px)
@@ -214,7 +214,7 @@ def split_scene(image: np.ndarray, signed_coc: np.ndarray, soft: SoftEdges | Non
     s.reshape(-1)[idx] = far
     values = np.concatenate([s[active], near])
     edges = layer_edges(values, options)
-    e32 = _float32_edges(edges)
+    e32 = float32_edges(edges)
     far_id = np.clip(np.searchsorted(e32, far, side="right") - 1, 0, len(edges) - 2)
     near_id = np.clip(np.searchsorted(e32, near, side="right") - 1, 0, len(edges) - 2)
     split = near_id > far_id
@@ -229,7 +229,7 @@ def split_scene(image: np.ndarray, signed_coc: np.ndarray, soft: SoftEdges | Non
     idx, keep_i = idx[split], np.flatnonzero(keep)[split]
     a = soft.alpha[keep_i].astype(np.float32)
     img = np.array(image[..., :3], np.float32)
-    fg, bg = _within_range(a, soft.foreground[keep_i], soft.background[keep_i], img.reshape(-1, 3)[idx],
+    fg, bg = within_range(a, soft.foreground[keep_i], soft.background[keep_i], img.reshape(-1, 3)[idx],
                            img.min(axis=0).min(axis=0), img.max(axis=0).max(axis=0))  # (25x faster than axis=(0, 1))
     value = np.concatenate([fg * a[:, None], a[:, None]], axis=1).astype(np.float32)
     parts = NearParts((idx // w).astype(np.int32), (idx % w).astype(np.int32), value, near[split],
@@ -478,7 +478,7 @@ def build_scene(signed_coc: np.ndarray, active: np.ndarray, options: LayerOption
         values = signed_coc[active]
         max_coc = max(float(values.max()), -float(values.min()))
         edges = layer_edges(values, options)
-    sid = (np.searchsorted(_float32_edges(edges), signed_coc, side="right") - 1).astype(np.int32)
+    sid = (np.searchsorted(float32_edges(edges), signed_coc, side="right") - 1).astype(np.int32)
     np.clip(sid, 0, len(edges) - 2, out=sid)
     sid[~active] = -1
     n_slices = len(edges) - 1
@@ -523,7 +523,7 @@ def build_scene(signed_coc: np.ndarray, active: np.ndarray, options: LayerOption
                         near if near is not None else NearParts.empty())
 
 
-def _float32_edges(edges: np.ndarray) -> np.ndarray:
+def float32_edges(edges: np.ndarray) -> np.ndarray:
     """``edges`` (float64) as the smallest float32 values at or above them: a float32 CoC is at or above an edge
     exactly when it is at or above its float32 version, so searching those needs no float64 copy of the map."""
     e32 = edges.astype(np.float32)

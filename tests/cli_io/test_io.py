@@ -86,8 +86,8 @@ def test_png8_round_trip_is_exact_in_codes(tmp_path, channels):
     p = br.write_image(tmp_path / "a.png", img[..., 0] if channels == 1 else img)
     back = br.read_image(p)
     assert back.dtype == np.float32 and back.shape == (24, 32, 4 if channels == 4 else 3)
-    want = wr._quantize(img, 8)
-    got = wr._quantize(back if channels != 1 else back[..., :1], 8)
+    want = wr.srgb_codes(img, 8)
+    got = wr.srgb_codes(back if channels != 1 else back[..., :1], 8)
     np.testing.assert_array_equal(got, want)
 
 
@@ -440,7 +440,7 @@ def test_failed_write_leaves_good_file_untouched(tmp_path, monkeypatch, name, bi
     if name == "a.png" and bit_depth == 8:
         monkeypatch.setattr(Image.Image, "save", lambda self, fp, *a, **k: _partial_then_fail(fp))
     elif name == "a.png":
-        monkeypatch.setattr(wr, "_write_bytes", lambda tmp, data: _partial_then_fail(tmp))
+        monkeypatch.setattr(wr, "write_bytes", lambda tmp, data: _partial_then_fail(tmp))
     elif name == "a.exr":
         monkeypatch.setattr(OpenEXR.File, "write", lambda self, target: _partial_then_fail(target))
     else:
@@ -482,7 +482,7 @@ def test_every_writer_error_names_the_output_file(tmp_path, monkeypatch, name, p
     elif patch == "pil":
         monkeypatch.setattr(Image.Image, "save", lambda self, fp, *a, **k: enospc_os(fp))
     elif patch == "bytes":
-        monkeypatch.setattr(wr, "_write_bytes", lambda tmp, data: enospc_os(tmp))
+        monkeypatch.setattr(wr, "write_bytes", lambda tmp, data: enospc_os(tmp))
     elif patch == "tiff":
         monkeypatch.setattr(tifffile, "imwrite", enospc_os)
     else:
@@ -559,7 +559,7 @@ def test_a_killed_writer_not_yet_reaped_counts_as_dead(tmp_path):
 
 def test_temporary_names_carry_host_and_pid(tmp_path, monkeypatch):
     seen = []
-    monkeypatch.setattr(wr, "_write_pil", lambda tmp, codes, fmt, **k: (seen.append(tmp), Path(tmp).write_bytes(b"x")))
+    monkeypatch.setattr(wr, "encode_pil", lambda tmp, codes, fmt, **k: (seen.append(tmp), Path(tmp).write_bytes(b"x")))
     br.write_image(tmp_path / "o.png", _image())
     name = Path(seen[0]).name
     assert name.startswith(".o.png.tmp-") and f"-{os.getpid()}-" in name and name.endswith(".png")

@@ -87,13 +87,13 @@ def test_malformed_values_are_400_with_one_line(server, path, body):
 SLOW_LAYERS = """
 import time
 import bokehray.levels.preview as pv
-_render = pv._render_layer
+_render = pv.render_layer
 def _slow(layer, arrays, scatter):
     y0, y1, x0, x1 = layer.bbox
     if (y1 - y0) * (x1 - x0) > 200 * 140:
         time.sleep(1.0)
     return _render(layer, arrays, scatter)
-pv._render_layer = _slow
+pv.render_layer = _slow
 """
 
 

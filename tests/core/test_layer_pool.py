@@ -38,7 +38,7 @@ def test_a_free_worker_takes_the_next_layer_else_the_costliest(monkeypatch, thre
     image, s = _scene()
     _, stats = pv.render_signed_coc(image, s, Aperture(), options=PreviewOptions(threads=1))
     started, lock, all_started = [], threading.Lock(), threading.Event()
-    render_layer = pv._render_layer
+    render_layer = pv.render_layer
 
     def record(layer, arrays, scatter):
         with lock:
@@ -49,7 +49,7 @@ def test_a_free_worker_takes_the_next_layer_else_the_costliest(monkeypatch, thre
             assert all_started.wait(60)
         return render_layer(layer, arrays, scatter)
 
-    monkeypatch.setattr(pv, "_render_layer", record)
+    monkeypatch.setattr(pv, "render_layer", record)
     pv.render_signed_coc(image, s, Aperture(), options=PreviewOptions(threads=threads))
     index = [lyr.index for lyr in started]
     assert sorted(index) == sorted(set(index)) and len(index) == stats.layers  # each layer once
@@ -57,5 +57,5 @@ def test_a_free_worker_takes_the_next_layer_else_the_costliest(monkeypatch, thre
         assert index == sorted(index)  # one worker: back to front
     else:
         assert index[0] == min(index)  # the farthest first: it is composited first
-        costs = [pv._cost(lyr) for lyr in started[1:]]
+        costs = [pv.layer_cost(lyr) for lyr in started[1:]]
         assert costs == sorted(costs, reverse=True) and index[1:] != sorted(index[1:])

@@ -47,14 +47,14 @@ def _scene(seed: int, size: int = 240) -> tuple[np.ndarray, np.ndarray]:
 def _layer_outputs(monkeypatch, image, s, tile_size=None):
     """Every layer's scatter output rendered without its support, with the support it would have had."""
     seen = []
-    render_layer = pv._render_layer
+    render_layer = pv.render_layer
 
     def everywhere(layer, arrays, scatter):
         out = render_layer(dataclasses.replace(layer, support=None), arrays, scatter)
         seen.append((layer, out.numpy()))
         return out
 
-    monkeypatch.setattr(pv, "_render_layer", everywhere)
+    monkeypatch.setattr(pv, "render_layer", everywhere)
     memory = MemoryOptions(tile_size=tile_size)
     out, _ = pv.render_signed_coc(image, s, Aperture(), layers=LayerOptions(tile_px=16), memory=memory)
     return out, seen
@@ -103,12 +103,12 @@ def test_a_tile_grid_not_a_power_of_two_or_too_fine_has_no_support(tile_px):
 @given(st.lists(st.floats(-300, 300, allow_nan=False), min_size=2, max_size=9, unique=True), st.integers(0, 2**31 - 1))
 def test_float32_edges_assign_every_pixel_the_float64_layer(edges, seed):
     """The layer ids from float32 edges equal those from the float64 ones, also right at the edges."""
-    from bokehray.scene import _float32_edges
+    from bokehray.scene import float32_edges
 
     e = np.sort(np.array(edges, np.float64))
     rng = np.random.default_rng(seed)
     near = e.astype(np.float32)
     values = np.concatenate([rng.uniform(e[0] - 1, e[-1] + 1, 500).astype(np.float32), near,
                              np.nextafter(near, np.float32(-np.inf)), np.nextafter(near, np.float32(np.inf))])
-    np.testing.assert_array_equal(np.searchsorted(_float32_edges(e), values, side="right"),
+    np.testing.assert_array_equal(np.searchsorted(float32_edges(e), values, side="right"),
                                   np.searchsorted(e, values, side="right"))

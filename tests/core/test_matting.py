@@ -240,7 +240,7 @@ def test_band_kernel_matches_the_reference(device, soft):
     """The Warp kernel against the float64 loop of tests/reference/matting_ref.py, pixel by pixel."""
     from reference.matting_ref import band_pixel_ref, gaussian_weights
 
-    from bokehray.matting import _band_kernel
+    from bokehray.matting import launch_band_kernel
 
     photo, coc, _, _, _ = two_plane(n=28, seed=4, kind="strands" if soft else "disc")
     if soft:
@@ -250,7 +250,7 @@ def test_band_kernel_matches_the_reference(device, soft):
     band = ndimage.binary_dilation(edges, np.ones((3, 3), bool))
     by, bx = np.nonzero(band)
     radius, params = 5, (1.0, 0.3, 0.03, 8.0)
-    got = _band_kernel(img, coc, band, by, bx, radius, *params, device, 2)
+    got = launch_band_kernel(img, coc, band, by, bx, radius, *params, device, 2)
     offs, dist = window_offsets(radius)
     g = gaussian_weights(dist, radius)
     flags = got[7]
@@ -270,7 +270,7 @@ def test_band_kernel_matches_the_reference(device, soft):
 def test_threads_do_not_change_the_result(monkeypatch):
     import bokehray.matting as matting
 
-    monkeypatch.setattr(matting, "_PIXELS_PER_THREAD", 16)  # a small scene in several launches
+    monkeypatch.setattr(matting, "PIXELS_PER_THREAD", 16)  # a small scene in several launches
     photo, coc, _, _, _ = two_plane(n=96, seed=2, kind="strands")
     one = split_mixed_pixels(photo, coc, threads=1)
     two = split_mixed_pixels(photo, coc, threads=3)

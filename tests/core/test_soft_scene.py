@@ -210,7 +210,7 @@ def test_split_colours_are_kept_inside_the_photos_range_and_sum_to_its_pixel(see
     photo = rng.uniform(lo, hi, (n, 3)).astype(np.float32)
     fg = (photo + rng.normal(0, 0.5, (n, 3)) * (rng.random((n, 1)) < 0.5)).astype(np.float32)  # some outside
     bg = ((photo - a[:, None] * fg) / (1 - a[:, None])).astype(np.float32)  # the identity holds
-    f2, b2 = sc._within_range(a, fg, bg, photo, lo, hi)
+    f2, b2 = sc.within_range(a, fg, bg, photo, lo, hi)
     assert (f2 >= lo).all() and (f2 <= hi).all() and (b2 >= lo).all() and (b2 <= hi).all()
     np.testing.assert_allclose(a[:, None] * f2 + (1 - a[:, None]) * b2, photo, atol=1e-5 * (1 + float(hi.max())))
     inside = ((fg >= lo) & (fg <= hi) & (bg >= lo) & (bg <= hi)).all(axis=1)

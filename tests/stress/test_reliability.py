@@ -231,7 +231,7 @@ def test_ctrl_c_stops_the_preview_while_layers_are_in_flight(tmp_path):
         "    sys.stdout.write('LAYER\\n')\n"  # one write: two workers' lines never interleave
         "    sys.stdout.flush()\n"
         "    time.sleep(60)\n"
-        "pv._render_layer = slow\n"
+        "pv.render_layer = slow\n"
         "from bokehray.app.cli import main\n"
         "sys.exit(main())\n"
     )

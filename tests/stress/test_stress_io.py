@@ -118,7 +118,7 @@ def test_out_of_memory_inside_a_decoder_becomes_a_resource_error(tmp_path, monke
     def oom(*args, **kwargs):
         raise MemoryError
 
-    monkeypatch.setattr(rd, "_load_pil", oom)
+    monkeypatch.setattr(rd, "decode_pil", oom)
     with pytest.raises(ResourceError, match=rf"{p}: ran out of memory while decoding it as PNG"):
         br.read_image(p)
 
@@ -271,7 +271,7 @@ def _slow(tmp, codes, fmt, **k):
     Path(tmp).write_bytes(b"partial" * 4096)
     print("{marker}", flush=True)
     time.sleep(60)
-wr._write_pil = _slow
+wr.encode_pil = _slow
 """
 
 

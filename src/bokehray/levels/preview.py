@@ -214,7 +214,7 @@ def _area(box: tiling.Box) -> int:
     return (box[1] - box[0]) * (box[3] - box[2])
 
 
-def _cost(layer: sc.LayerRecord) -> int:
+def layer_cost(layer: sc.LayerRecord) -> int:
     """A layer's render time, roughly (measured on the demo: about 0.1 s per megapixel of its box, and 0.4 s more
     per megapixel of its own pixels): only the order the workers take layers in depends on it."""
     return _area(layer.bbox) + 4 * min(layer.pixels, _area(layer.bbox))
@@ -348,7 +348,7 @@ def _render_tiled(photo: np.ndarray, image: np.ndarray, s: np.ndarray, scene: sc
     return out, n_filled, n_tiles
 
 
-def _render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatter) -> wp.array:
+def render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatter) -> wp.array:
     """Scatter one layer's sources on the radius pyramid and resolve it: (premultiplied RGB, coverage) on its box
     (zero outside the layer's support)."""
     device = scatter.device
@@ -399,11 +399,11 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
 
     # Layers render independently (Warp CPU launches release the GIL) on ``threads`` workers and are composited
     # strictly back to front as they complete. A free worker takes the next layer to composite if it has not
-    # started, else the costliest one left (:func:`_cost`), so that a slow layer does not start last while the
+    # started, else the costliest one left (:func:`layer_cost`), so that a slow layer does not start last while the
     # other workers idle. A finished layer waiting to be composited holds only its result (16 B/px;
     # :func:`_region_bytes` counts one working layer a thread and, at a quarter, every result).
     done = 0
-    order = sorted(range(len(layers)), key=lambda k: -_cost(layers[k]) if scatter.threads > 1 else k)
+    order = sorted(range(len(layers)), key=lambda k: -layer_cost(layers[k]) if scatter.threads > 1 else k)
     pool = ThreadPoolExecutor(max_workers=scatter.threads)
     try:
         started: dict[int, Future] = {}  # started and not yet composited
@@ -413,7 +413,7 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
             if len(running) < scatter.threads:
                 pick = head if head not in started else next((k for k in order if k > head and k not in started), None)
                 if pick is not None:
-                    started[pick] = pool.submit(_render_layer, layers[pick], arrays, scatter)
+                    started[pick] = pool.submit(render_layer, layers[pick], arrays, scatter)
                     continue
             fut = started.get(head)  # None: every worker busy with layers further front
             if fut is None or not fut.done():

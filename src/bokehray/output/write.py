@@ -54,13 +54,13 @@ def _write_tiff(tmp: str, img: np.ndarray, icc: bytes | None = None) -> None:
                      **extra)
 
 
-def _write_pil(tmp: str, codes: np.ndarray, fmt: str, **options: object) -> None:
+def encode_pil(tmp: str, codes: np.ndarray, fmt: str, **options: object) -> None:
     # Encoded in memory, then written by Python: Pillow (13.0) saving a JPEG straight to a full disk stops at
     # the first short write and reports success, leaving a truncated file.
     options = {k: v for k, v in options.items() if v is not None}
     buf = io.BytesIO()
     Image.fromarray(codes[..., 0] if codes.shape[2] == 1 else codes).save(buf, format=fmt, **options)
-    _write_bytes(tmp, buf.getbuffer())
+    write_bytes(tmp, buf.getbuffer())
 
 
 def _png_with_icc(data: bytes, icc: bytes) -> bytes:
@@ -73,12 +73,12 @@ def _png_with_icc(data: bytes, icc: bytes) -> bytes:
     return data[:end_ihdr] + chunk + data[end_ihdr:]
 
 
-def _write_bytes(tmp: str, data: bytes | memoryview) -> None:
+def write_bytes(tmp: str, data: bytes | memoryview) -> None:
     with open(tmp, "wb") as fh:
         fh.write(data)
 
 
-def _quantize(img: np.ndarray, bits: int) -> np.ndarray:
+def srgb_codes(img: np.ndarray, bits: int) -> np.ndarray:
     """sRGB-encode the colour channels (not alpha) and round to ``bits``-bit codes (``bokehray.colour.quantize``:
     8-bit codes through an exact table, band by band)."""
     return quantize(img, bits)
@@ -173,21 +173,21 @@ def write_image(  # noqa: C901
             raise InputError(f"refusing to write {p}: value beyond the HALF range (+-65504) at (y, x) = ({y}, {x})")
         return atomic_write(p, lambda tmp: _write_exr(tmp, img, half=bits == 16))
     if fmt == "TIFF":
-        data = img if bits == 32 else _quantize(img, bits)
+        data = img if bits == 32 else srgb_codes(img, bits)
         icc = None if bits == 32 else srgb_icc()
         return atomic_write(p, lambda tmp: _write_tiff(tmp, data, icc))
     if fmt == "JPEG" and img.shape[2] == 4:
         raise InputError(f"{p}: expected an image without alpha for JPEG, got 4 channels")
     if fmt == "JPEG" and not 1 <= quality <= 100:
         raise InputError(f"{p}: expected JPEG quality in [1, 100], got {quality!r}")
-    codes = _quantize(img, bits)
+    codes = srgb_codes(img, bits)
     icc = srgb_icc() if img.shape[2] >= 3 else None
     if fmt == "JPEG":
-        return atomic_write(p, lambda tmp: _write_pil(tmp, codes, "JPEG", quality=quality, icc_profile=icc, exif=exif))
+        return atomic_write(p, lambda tmp: encode_pil(tmp, codes, "JPEG", quality=quality, icc_profile=icc, exif=exif))
     if bits == 16:
         data = imagecodecs.png_encode(codes)
-        return atomic_write(p, lambda tmp: _write_bytes(tmp, _png_with_icc(data, icc) if icc else data))
-    return atomic_write(p, lambda tmp: _write_pil(tmp, codes, "PNG", icc_profile=icc, compress_level=PNG_COMPRESS_LEVEL))
+        return atomic_write(p, lambda tmp: write_bytes(tmp, _png_with_icc(data, icc) if icc else data))
+    return atomic_write(p, lambda tmp: encode_pil(tmp, codes, "PNG", icc_profile=icc, compress_level=PNG_COMPRESS_LEVEL))
 
 
 def write_disparity(path: str | os.PathLike[str], d: npt.ArrayLike) -> Path:
@@ -220,7 +220,7 @@ def write_disparity(path: str | os.PathLike[str], d: npt.ArrayLike) -> Path:
         if lo < 0.0 or hi > 1.0:
             raise InputError(f"{p}: expected disparity within [0, 1] for 16-bit PNG, got [{lo:g}, {hi:g}]")
         codes = np.round(a[..., None].astype(np.float64) * 65535).astype(np.uint16)
-        return atomic_write(p, lambda tmp: _write_bytes(tmp, imagecodecs.png_encode(codes)))
+        return atomic_write(p, lambda tmp: write_bytes(tmp, imagecodecs.png_encode(codes)))
     if fmt == "EXR":
         return atomic_write(p, lambda tmp: _write_exr(tmp, a[..., None], half=False))
     if fmt == "TIFF":

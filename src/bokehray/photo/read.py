@@ -80,7 +80,7 @@ def _load_png(path: Path) -> np.ndarray:
     w, h, depth = _png_header(path)
     _check_dims(path, h, w)
     if depth != 16:
-        return _load_pil(path, "PNG")
+        return decode_pil(path, "PNG")
     # Pillow truncates 16-bit colour PNGs to 8 bits; imagecodecs (libpng) keeps all 16.
     data = path.read_bytes()
     try:
@@ -90,7 +90,7 @@ def _load_png(path: Path) -> np.ndarray:
         raise ValueError(f"file is truncated or corrupt (libpng: {exc})") from None
 
 
-def _load_pil(path: Path, fmt: str) -> np.ndarray:
+def decode_pil(path: Path, fmt: str) -> np.ndarray:
     with Image.open(path, formats=[fmt]) as im:  # lazy: reads the header only
         _check_dims(path, im.height, im.width)
         if im.mode in ("CMYK", "YCbCr", "LAB", "HSV"):  # a JPEG in CMYK/YCCK: colours need its ICC profile
@@ -238,7 +238,7 @@ def load_samples(path: Path, fmt: str, exr_channels: tuple[tuple[str, ...], ...]
         if fmt == "PNG":
             a = _load_png(path)
         elif fmt == "JPEG":
-            a = _load_pil(path, "JPEG")
+            a = decode_pil(path, "JPEG")
         elif fmt == "TIFF":
             a = _load_tiff(path)
         elif fmt == "EXR":
