@@ -6,7 +6,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import os
 from collections.abc import Callable
 from dataclasses import replace
@@ -102,8 +101,8 @@ def _check_device(device: str) -> str:
 
 def _soft_edges(image: np.ndarray, signed_coc: np.ndarray, layers: LayerOptions):
     """The mixed pixels at depth edges split by matting (``LayerOptions.soft_edges``), a ``scene.SoftEdges``
-    checked against the image; None when off or where this build has no matting module."""
-    if not layers.soft_edges or importlib.util.find_spec("bokehray.matting") is None:
+    checked against the image; None when off."""
+    if not layers.soft_edges:
         return None
     from .matting import split_mixed_pixels
 

@@ -55,24 +55,26 @@ LEVELS: dict[str, Level] = {
         Level("raytrace", "the same layers ray traced through the aperture: the exact renderer of true layer stacks "
               "(raytrace_layers, bokehray synth); on photos 30x slower than the preview and measured below it "
               "(docs/raytracer.md), so the command line and the page do not offer it for photos",
-              RaytraceOptions, _render_raytrace, _raytrace_bytes),
+              RaytraceOptions, _render_raytrace, _raytrace_bytes,
+              not_for_photos="on photos the ray tracer is slower than the preview and not more accurate "
+              "(docs/raytracer.md); the preview (the default) is the exact level for photos, and the ray tracer "
+              "renders layer stacks (bokehray synth, bokehray.raytrace_layers)"),
     )
 }
 
-PHOTO_QUALITIES = ("preview",)
+PHOTO_QUALITIES = tuple(name for name, level in LEVELS.items() if not level.not_for_photos)
 """The levels the command line and the page offer for photos: a level is offered only where it beats the one below
-on exact references. The ray tracer renders the same soft scene as the preview and scores below it on the
-path-traced dev set at about 30 times its time (docs/raytracer.md), so for photos it is not offered."""
+on exact references (the ray tracer renders the same soft scene as the preview and scores below it on the
+path-traced dev set at about 30 times its time)."""
 
 
 def check_photo_quality(name: object, flag: str = "--quality") -> str:
     """``name`` if it is a level offered for photos; else one line pointing to the preview."""
     from ..errors import InputError
 
-    if name == "raytrace":
-        raise InputError(f"{flag} raytrace: on photos the ray tracer is slower than the preview and not more accurate "
-                         "(docs/raytracer.md); the preview (the default) is the exact level for photos, and the ray "
-                         "tracer renders layer stacks (bokehray synth, bokehray.raytrace_layers)")
+    level = LEVELS.get(name) if isinstance(name, str) else None
+    if level is not None and level.not_for_photos:
+        raise InputError(f"{flag} {name}: {level.not_for_photos}")
     if not isinstance(name, str) or name not in PHOTO_QUALITIES:
         raise InputError(f"{flag}: expected one of {', '.join(PHOTO_QUALITIES)}, got {str(name)[:40]!r}")
     return name

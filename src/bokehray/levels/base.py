@@ -69,3 +69,4 @@ class Level:
     options_type: type
     render: Callable[[RenderContext], tuple[np.ndarray, RenderStats]]
     whole_image_bytes: Callable[[], int]
+    not_for_photos: str = ""  # why the command line and the page do not offer it for photos ("": they do)
