@@ -67,7 +67,7 @@ def _strands(n: int, rng: np.random.Generator, widths=(0.5, 3.0), count=(30, 50)
         ox, oy = rng.uniform(0.1, 0.9, 2) * n
         u = (xx - ox) * np.cos(a0) + (yy - oy) * np.sin(a0)
         v = -(xx - ox) * np.sin(a0) + (yy - oy) * np.cos(a0) - bend * u * u
-        cov = synth._coverage(np.abs(v), rng.uniform(*widths)) * (np.abs(u) < rng.uniform(0.15, 0.45) * n)
+        cov = synth.stroke_coverage(np.abs(v), rng.uniform(*widths)) * (np.abs(u) < rng.uniform(0.15, 0.45) * n)
         np.maximum(alpha, cov, out=alpha)
     colour = np.array(rng.choice([[0.35, 0.22, 0.12], [0.8, 0.65, 0.4], [0.08, 0.06, 0.05], [0.9, 0.9, 0.85]]))
     return np.concatenate([np.broadcast_to(colour, (n, n, 3)), alpha[..., None]], 2).astype(np.float32)
@@ -76,7 +76,7 @@ def _strands(n: int, rng: np.random.Generator, widths=(0.5, 3.0), count=(30, 50)
 def _fur(n: int, rng: np.random.Generator) -> np.ndarray:
     """A textured disc (the cat) with short fine hairs (0.5-1.2 px) standing out of its rim."""
     yy, xx = (np.mgrid[0:n, 0:n] + 0.5).astype(np.float32)
-    tex = synth._fit(synth._photo("chelsea"), n, rng)
+    tex = synth.fit_crop(synth.bundled_photo("chelsea"), n, rng)
     cx, cy, rad = 0.5 * n, 0.5 * n, 0.28 * n
     alpha = np.clip(rad + 0.5 - np.hypot(xx - cx, yy - cy), 0, 1).astype(np.float32)
     colour = np.zeros((n, n, 3), np.float32) + tex
@@ -88,7 +88,7 @@ def _fur(n: int, rng: np.random.Generator) -> np.ndarray:
         bx, by = cx + (rad - 2) * np.cos(th), cy + (rad - 2) * np.sin(th)
         u = (xx - bx) * np.cos(tilt) + (yy - by) * np.sin(tilt)
         v = -(xx - bx) * np.sin(tilt) + (yy - by) * np.cos(tilt)
-        cov = synth._coverage(np.abs(v), rng.uniform(0.5, 1.2)) * (u > 0) * (u < length)
+        cov = synth.stroke_coverage(np.abs(v), rng.uniform(0.5, 1.2)) * (u > 0) * (u < length)
         colour = np.where((cov > alpha)[..., None], hair * rng.uniform(0.7, 1.3), colour)
         np.maximum(alpha, cov, out=alpha)
     return np.concatenate([colour, alpha[..., None]], 2).astype(np.float32)
@@ -100,13 +100,13 @@ def foreground(kind: str, n: int, rng: np.random.Generator) -> np.ndarray:
     if kind == "fur":
         return _fur(n, rng)
     if kind == "cutout":
-        return synth._cutout(synth._photo("coffee"), n, rng)
-    return synth._procedural(kind, n, rng)
+        return synth.cutout_layer(synth.bundled_photo("coffee"), n, rng)
+    return synth.procedural_layer(kind, n, rng)
 
 
 def background(n: int, rng: np.random.Generator) -> np.ndarray:
     """A photo with small very bright lights (radiance 5-20, radius 1-3 px): bokeh balls behind the foreground."""
-    rgb = synth._fit(synth._photo("rocket"), n, rng)
+    rgb = synth.fit_crop(synth.bundled_photo("rocket"), n, rng)
     yy, xx = (np.mgrid[0:n, 0:n] + 0.5).astype(np.float32)
     for _ in range(14):
         cx, cy = rng.uniform(0.05, 0.95, 2) * n

@@ -214,18 +214,11 @@ def _depth_models(folder: Path) -> dict | None:
         return None
     transformers.logging.set_verbosity_error()
     transformers.utils.logging.disable_progress_bar()
+    from bokehray.photo.depth_model import tiny_configs
+
     torch.manual_seed(0)
-    backbone = transformers.Dinov2Config(hidden_size=32, num_hidden_layers=4, num_attention_heads=2,
-                                         intermediate_size=64, patch_size=14, image_size=56,
-                                         out_features=["stage1", "stage2", "stage3", "stage4"],
-                                         reshape_hidden_states=False)
-    cfg = transformers.DepthAnythingConfig(backbone_config=backbone, reassemble_hidden_size=32,
-                                           neck_hidden_sizes=[8, 16, 32, 32], fusion_hidden_size=16,
-                                           head_hidden_size=8)
+    cfg, dpt = tiny_configs()
     transformers.DepthAnythingForDepthEstimation(cfg).eval().save_pretrained(folder / "da")
-    dpt = transformers.DPTConfig(hidden_size=32, num_hidden_layers=4, num_attention_heads=2, intermediate_size=64,
-                                 image_size=64, patch_size=16, backbone_out_indices=[0, 1, 2, 3],
-                                 neck_hidden_sizes=[8, 16, 32, 32], fusion_hidden_size=16, use_auxiliary_head=False)
     transformers.DPTForDepthEstimation(dpt).eval().save_pretrained(folder / "dpt")
     variants = {"da": (None, None), "dpt": (None, None),
                 "da as dpt": (lambda c: c.update(model_type="dpt"), None),

@@ -30,13 +30,7 @@ def _save(model, folder, pre=None):
 def models(tmp_path_factory):
     root = tmp_path_factory.mktemp("depth-models")
     torch.manual_seed(0)
-    backbone = transformers.Dinov2Config(hidden_size=32, num_hidden_layers=4, num_attention_heads=2,
-                                         intermediate_size=64, patch_size=14, image_size=56,
-                                         out_features=["stage1", "stage2", "stage3", "stage4"],
-                                         reshape_hidden_states=False)
-    cfg = transformers.DepthAnythingConfig(backbone_config=backbone, reassemble_hidden_size=32,
-                                           neck_hidden_sizes=[8, 16, 32, 32], fusion_hidden_size=16,
-                                           head_hidden_size=8)
+    cfg, dpt_cfg = depth_model.tiny_configs()
     da = _save(transformers.DepthAnythingForDepthEstimation(cfg).eval(), root / "da", PRE)
     metric_cfg = transformers.DepthAnythingConfig(**{**cfg.to_dict(), "depth_estimation_type": "metric",
                                                      "max_depth": 20})
@@ -46,10 +40,6 @@ def models(tmp_path_factory):
         last.weight *= 300.0
         last.bias.zero_()
     metric = _save(metric_model, root / "da-metric", PRE)
-    dpt_cfg = transformers.DPTConfig(hidden_size=32, num_hidden_layers=4, num_attention_heads=2, intermediate_size=64,
-                                     image_size=64, patch_size=16, backbone_out_indices=[0, 1, 2, 3],
-                                     neck_hidden_sizes=[8, 16, 32, 32], fusion_hidden_size=16,
-                                     use_auxiliary_head=False)
     dpt = _save(transformers.DPTForDepthEstimation(dpt_cfg).eval(), root / "dpt")
     return {"da": da, "metric": metric, "dpt": dpt}
 
@@ -67,7 +57,7 @@ def _raw(folder, img):
     cfg = json.loads((folder / "config.json").read_text())
     cls = (transformers.DepthAnythingForDepthEstimation if cfg["model_type"] == "depth_anything"
            else transformers.DPTForDepthEstimation)
-    th, tw, mean, std = depth_model._input_size(folder, cfg, *img.shape[:2])
+    th, tw, mean, std = depth_model.input_size(folder, cfg, *img.shape[:2])
     return depth_model.predict(cls.from_pretrained(str(folder), local_files_only=True).eval(), img, (th, tw), mean, std)
 
 
@@ -102,8 +92,8 @@ def test_input_size_follows_the_processor():
     from pathlib import Path
 
     nowhere = Path("/nonexistent-folder")
-    assert depth_model._input_size(nowhere, cfg, 3000, 4000)[:2] == (518, 686)  # short side 518, multiple of 14
-    assert depth_model._input_size(nowhere, {"model_type": "dpt", "image_size": 384}, 3000, 4000)[:2] == (384, 384)
+    assert depth_model.input_size(nowhere, cfg, 3000, 4000)[:2] == (518, 686)  # short side 518, multiple of 14
+    assert depth_model.input_size(nowhere, {"model_type": "dpt", "image_size": 384}, 3000, 4000)[:2] == (384, 384)
 
 
 @pytest.mark.parametrize(("setup", "message"), [

@@ -28,7 +28,8 @@ from ..lens import Aperture, BlurParams
 from ..levels.raytrace import Layer, raytrace_layers
 from ..options import RaytraceOptions
 
-__all__ = ["SynthConfig", "generate", "generate_one", "make_scene", "mean_disparity", "pinhole_layers"]
+__all__ = ["SynthConfig", "bundled_photo", "cutout_layer", "fit_crop", "generate", "generate_one", "make_scene",
+           "mean_disparity", "pinhole_layers", "procedural_layer", "stroke_coverage"]
 
 BUILTIN_BACKGROUNDS = ("astronaut", "coffee", "chelsea", "rocket", "brick", "gravel", "page", "coins", "camera")
 FOREGROUND_KINDS = ("cutout", "strands", "foliage", "mesh", "lights")
@@ -72,7 +73,7 @@ def _linear(rgb_u8: np.ndarray) -> np.ndarray:
     return srgb_to_linear(np.asarray(rgb_u8, np.float32) / 255.0)
 
 
-def _photo(name: str) -> np.ndarray:
+def bundled_photo(name: str) -> np.ndarray:
     from skimage import data
 
     img = getattr(data, name)()
@@ -91,7 +92,7 @@ def _files(folder: str, what: str) -> list[Path]:
     return files
 
 
-def _fit(img: np.ndarray, size: int, rng: np.random.Generator) -> np.ndarray:
+def fit_crop(img: np.ndarray, size: int, rng: np.random.Generator) -> np.ndarray:
     """Random square crop (at least half the short side), resized to ``size``."""
     from skimage.transform import resize
 
@@ -102,12 +103,12 @@ def _fit(img: np.ndarray, size: int, rng: np.random.Generator) -> np.ndarray:
     return resize(crop, (size, size), order=1, anti_aliasing=True).astype(np.float32)
 
 
-def _coverage(dist: np.ndarray, width: float) -> np.ndarray:
+def stroke_coverage(dist: np.ndarray, width: float) -> np.ndarray:
     """Antialiased coverage of a stroke of ``width`` px given the distance to its centre line."""
     return np.clip(width / 2 + 0.5 - dist, 0.0, 1.0) * min(1.0, width)
 
 
-def _procedural(kind: str, size: int, rng: np.random.Generator) -> np.ndarray:
+def procedural_layer(kind: str, size: int, rng: np.random.Generator) -> np.ndarray:
     yy, xx = (np.mgrid[0:size, 0:size] + 0.5).astype(np.float32)
     rgba = np.zeros((size, size, 4), np.float32)
     if kind == "strands":  # hair / fur: many thin curved strands, partial alpha, one tint
@@ -119,7 +120,7 @@ def _procedural(kind: str, size: int, rng: np.random.Generator) -> np.ndarray:
             # distance to a gently bent line through (ox, oy) with direction a0
             u = (xx - ox) * np.cos(a0) + (yy - oy) * np.sin(a0)
             v = -(xx - ox) * np.sin(a0) + (yy - oy) * np.cos(a0) - bend * u * u
-            cov = _coverage(np.abs(v), rng.uniform(0.4, 2.0)) * (np.abs(u) < rng.uniform(0.2, 0.6) * size)
+            cov = stroke_coverage(np.abs(v), rng.uniform(0.4, 2.0)) * (np.abs(u) < rng.uniform(0.2, 0.6) * size)
             rgba[..., 3] = np.maximum(rgba[..., 3], cov)
         rgba[..., :3] = colour
     elif kind == "foliage":  # pointed leaves on thin stems
@@ -133,7 +134,7 @@ def _procedural(kind: str, size: int, rng: np.random.Generator) -> np.ndarray:
             green = np.array([rng.uniform(0.03, 0.15), rng.uniform(0.2, 0.5), rng.uniform(0.02, 0.1)])
             rgba[..., :3] = np.where(cov[..., None] > rgba[..., 3:], green, rgba[..., :3])
             rgba[..., 3] = np.maximum(rgba[..., 3], cov)
-            stem = _coverage(np.abs(v), 1.0) * (u < -length) * (u > -2.5 * length)
+            stem = stroke_coverage(np.abs(v), 1.0) * (u < -length) * (u > -2.5 * length)
             rgba[..., :3] = np.where(stem[..., None] > rgba[..., 3:], [0.15, 0.1, 0.05], rgba[..., :3])
             rgba[..., 3] = np.maximum(rgba[..., 3], stem)
     elif kind == "mesh":  # chain-link fence: two families of thin lines
@@ -141,7 +142,7 @@ def _procedural(kind: str, size: int, rng: np.random.Generator) -> np.ndarray:
         c = np.array([0.5, 0.5, 0.52]) * rng.uniform(0.6, 1.2)
         d1 = np.abs(((xx * np.cos(ang) + yy * np.sin(ang)) % pitch) - pitch / 2)
         d2 = np.abs(((xx * np.cos(-ang) + yy * np.sin(-ang)) % pitch) - pitch / 2)
-        rgba[..., 3] = np.maximum(_coverage(pitch / 2 - d1, width), _coverage(pitch / 2 - d2, width))
+        rgba[..., 3] = np.maximum(stroke_coverage(pitch / 2 - d1, width), stroke_coverage(pitch / 2 - d2, width))
         rgba[..., :3] = c
     elif kind == "lights":  # small, very bright lights (bokeh balls when defocused)
         for _ in range(int(rng.integers(6, 20))):
@@ -156,10 +157,10 @@ def _procedural(kind: str, size: int, rng: np.random.Generator) -> np.ndarray:
     return rgba
 
 
-def _cutout(photo: np.ndarray, size: int, rng: np.random.Generator) -> np.ndarray:
+def cutout_layer(photo: np.ndarray, size: int, rng: np.random.Generator) -> np.ndarray:
     """An elliptical cut-out of a photo at a random scale and place."""
     yy, xx = (np.mgrid[0:size, 0:size] + 0.5).astype(np.float32)
-    tex = _fit(photo, size, rng)
+    tex = fit_crop(photo, size, rng)
     cx, cy = rng.uniform(0.25, 0.75, 2) * size
     ax, ay = rng.uniform(0.12, 0.3, 2) * size
     dist = (np.hypot((xx - cx) / ax, (yy - cy) / ay) - 1.0) * min(ax, ay)
@@ -173,7 +174,7 @@ def _load_rgba(path: Path, size: int, rng: np.random.Generator) -> np.ndarray:
     img = read_image(path)
     if img.shape[2] != 4:
         raise InputError(f"{path}: a foreground needs an alpha channel (RGBA), got {img.shape[2]} channels")
-    return _fit(img, size, rng)
+    return fit_crop(img, size, rng)
 
 
 def make_scene(config: SynthConfig, seed: int, index: int) -> tuple[list[Layer], dict]:
@@ -183,11 +184,11 @@ def make_scene(config: SynthConfig, seed: int, index: int) -> tuple[list[Layer],
     if config.bg_dir:
         from ..photo.read import read_image
 
-        bg_rgb = _fit(read_image(rng.choice(_files(config.bg_dir, "background")))[..., :3], n, rng)
+        bg_rgb = fit_crop(read_image(rng.choice(_files(config.bg_dir, "background")))[..., :3], n, rng)
         bg_name = "user"
     else:
         bg_name = str(rng.choice(BUILTIN_BACKGROUNDS))
-        bg_rgb = _fit(_photo(bg_name), n, rng)
+        bg_rgb = fit_crop(bundled_photo(bg_name), n, rng)
     # background: a tilted plane in the far third of the disparity range
     c_bg = rng.uniform(0.0, 0.2)
     g_bg = rng.uniform(-1, 1, 2) * rng.uniform(0.0, 0.12) / n
@@ -202,8 +203,8 @@ def make_scene(config: SynthConfig, seed: int, index: int) -> tuple[list[Layer],
             tex, kind = _load_rgba(rng.choice(_files(config.fg_dir, "foreground")), n, rng), "user"
         else:
             kind = str(rng.choice(FOREGROUND_KINDS))
-            tex = _cutout(_photo(str(rng.choice(BUILTIN_BACKGROUNDS))), n, rng) if kind == "cutout" \
-                else _procedural(kind, n, rng)
+            tex = cutout_layer(bundled_photo(str(rng.choice(BUILTIN_BACKGROUNDS))), n, rng) if kind == "cutout" \
+                else procedural_layer(kind, n, rng)
         # facing angle: a tilt of up to 0.15 in disparity across the image, above everything behind it
         g = rng.uniform(-1, 1, 2) * rng.uniform(0.0, 0.15) / n
         span = np.abs(g).sum() * n

@@ -31,7 +31,7 @@ import numpy as np
 
 from ..errors import InputError
 
-__all__ = ["SUPPORTED", "estimate_disparity", "model_kind"]
+__all__ = ["SUPPORTED", "estimate_disparity", "input_size", "model_kind", "tiny_configs"]
 
 SUPPORTED = {"depth_anything": "Depth Anything (V1/V2)", "dpt": "DPT"}
 _IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -115,7 +115,7 @@ def _preprocessor(folder: Path) -> dict:  # noqa: C901
     return pre
 
 
-def _input_size(folder: Path, cfg: dict, h: int, w: int) -> tuple[int, int, tuple, tuple]:
+def input_size(folder: Path, cfg: dict, h: int, w: int) -> tuple[int, int, tuple, tuple]:
     """The network input size, as transformers' image processors of these models compute it, and mean/std."""
     pre = _preprocessor(folder)
     if cfg["model_type"] == "depth_anything":
@@ -275,7 +275,7 @@ def estimate_disparity(
     if img.ndim != 3 or img.shape[2] < 3:
         raise InputError(f"depth model: expected an H x W x 3 photo, got shape {img.shape}")
     h, w = img.shape[:2]
-    th, tw, mean, std = _input_size(folder, cfg, h, w)
+    th, tw, mean, std = input_size(folder, cfg, h, w)
     cls = (transformers.DepthAnythingForDepthEstimation if cfg["model_type"] == "depth_anything"
            else transformers.DPTForDepthEstimation)
     _check_declared_size(folder, cfg, th, tw)
@@ -304,3 +304,20 @@ def estimate_disparity(
     info = {"model": SUPPORTED[cfg["model_type"]], "kind": kind, "what": what, "input_size": (th, tw),
             "max_prediction": float(pred.max()) if math.isfinite(float(pred.max())) else None}
     return disparity, info
+
+
+def tiny_configs():
+    """``(DepthAnythingConfig, DPTConfig)`` of the tiny random checkpoints the tests and the soak build themselves
+    (a few hundred thousand parameters, a 56 / 64 px input): the architectures this module loads, never real weights."""
+    import transformers
+
+    backbone = transformers.Dinov2Config(hidden_size=32, num_hidden_layers=4, num_attention_heads=2,
+                                         intermediate_size=64, patch_size=14, image_size=56,
+                                         out_features=["stage1", "stage2", "stage3", "stage4"],
+                                         reshape_hidden_states=False)
+    da = transformers.DepthAnythingConfig(backbone_config=backbone, reassemble_hidden_size=32,
+                                          neck_hidden_sizes=[8, 16, 32, 32], fusion_hidden_size=16, head_hidden_size=8)
+    dpt = transformers.DPTConfig(hidden_size=32, num_hidden_layers=4, num_attention_heads=2, intermediate_size=64,
+                                 image_size=64, patch_size=16, backbone_out_indices=[0, 1, 2, 3],
+                                 neck_hidden_sizes=[8, 16, 32, 32], fusion_hidden_size=16, use_auxiliary_head=False)
+    return da, dpt
