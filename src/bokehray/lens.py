@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import InputError
+from .formats import first_index
 from .validate import fits_in_memory, real, shown
 
 MAX_K_PX = 1.0e5
@@ -229,8 +230,9 @@ def disparity_from_depth(depth_m: np.ndarray, norm: DepthNormalization | None = 
     z = np.asarray(depth_m, np.float64)
     if z.ndim != 2:
         raise InputError(f"{source}: expected an H x W map, got shape {z.shape}")
-    if np.isnan(z).any():
-        y, x = (int(i) for i in np.unravel_index(int(np.argmax(np.isnan(z))), z.shape))
+    nan = np.isnan(z)
+    if nan.any():
+        y, x = first_index(nan)
         raise InputError(f"{source}: expected depth in metres, got NaN at (y, x) = ({y}, {x})")
     missing = ~np.isfinite(z) | (z <= 0)
     if missing.all():

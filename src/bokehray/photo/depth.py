@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..formats import check_finite, format_of
+from ..formats import first_index, format_of
 from ..validate import check_path
 
 __all__ = ["BORDER_NEAR", "NORMALIZE_PERCENTILES", "REVERSED_MARGIN", "looks_reversed", "missing_depth_share",
@@ -120,6 +120,9 @@ def read_depth(path: str | os.PathLike[str], *, scale: float | None = None) -> n
     elif a.dtype.kind != "f":
         raise InputError(f"{p}: expected float depth in metres or integer codes, got {a.dtype}")
     z = a.astype(np.float64) * (1.0 if scale is None else scale)
-    check_finite(np.where(np.isinf(z), 0.0, z), f"{p}: expected depth in metres or +/-Inf (no depth), got")
+    nan = np.isnan(z)
+    if nan.any():
+        y, x = first_index(nan)
+        raise InputError(f"{p}: expected depth in metres or +/-Inf (no depth), got NaN at (y, x) = ({y}, {x})")
     z[z == -np.inf] = np.inf  # no depth either way
     return z
