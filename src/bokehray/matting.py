@@ -49,7 +49,7 @@ import numpy as np
 
 from .depthfix import depth_edges
 from .errors import InputError
-from .scene import SoftEdges
+from .scene import SoftEdges, dilate
 from .validate import check_finite
 
 __all__ = ["isolated_share", "ramp_width", "split_mixed_pixels", "window_offsets"]
@@ -137,14 +137,6 @@ def _check(image: np.ndarray, signed_coc: np.ndarray) -> tuple[np.ndarray, np.nd
     return np.ascontiguousarray(img), np.ascontiguousarray(s)
 
 
-def _dilate(mask: np.ndarray, k: int) -> np.ndarray:
-    if k <= 0:
-        return mask.copy()
-    from scipy import ndimage
-
-    return ndimage.binary_dilation(mask, np.ones((2 * k + 1, 2 * k + 1), bool))
-
-
 def split_mixed_pixels(
     image: np.ndarray,
     signed_coc: np.ndarray,
@@ -215,7 +207,7 @@ def split_mixed_pixels(
     pad = b + radius
     y0, y1 = max(0, int(ey.min()) - pad), min(h, int(ey.max()) + pad + 1)
     x0, x1 = max(0, int(ex.min()) - pad), min(w, int(ex.max()) + pad + 1)
-    band = _dilate(edges[y0:y1, x0:x1], b)
+    band = dilate(edges[y0:y1, x0:x1], b)
     by, bx = np.nonzero(band)
     out = launch_band_kernel(img[y0:y1, x0:x1], s[y0:y1, x0:x1], band, by, bx, radius, jump_px, unknown_weight, ridge,
                        purity, device, threads)
