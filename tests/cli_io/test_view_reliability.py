@@ -183,3 +183,18 @@ uvicorn.Server.run = _interrupted_run
     proc, _ = _start_view(files, prelude=prelude)
     _out, err = proc.communicate(timeout=HANG_S)
     assert proc.returncode == 0 and err.strip() == "bokehray view: stopped", err
+
+
+@pytest.mark.slow
+def test_a_ctrl_c_right_after_the_printed_url_is_a_clean_stop(files):
+    """The URL is printed, then a line on the defaults, then uvicorn starts: a Ctrl-C landing in between (under load
+    the suite saw it) was an "interrupted" exit 130 instead of the server's normal stop."""
+    prelude = """
+from bokehray.photo import subject
+def _interrupted(self):
+    raise KeyboardInterrupt  # as SIGINT landing while the defaults line is written
+subject.Subject.describe = _interrupted
+"""
+    proc, _ = _start_view(files, prelude=prelude)
+    _, err = proc.communicate(timeout=HANG_S)
+    assert proc.returncode == 0 and err.strip() == "bokehray view: stopped", err
