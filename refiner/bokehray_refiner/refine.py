@@ -45,8 +45,8 @@ from .masks import PisaMaskProvider
 from .model import BokehRefiner, RefinerConfig
 from .tiles import raised_cosine_ramp
 
-__all__ = ["DEFAULT_WEIGHTS", "RefineOptions", "RefineStats", "load_refiner", "refine", "refine_boxes",
-           "tiles_near", "tiles_to_refine"]
+__all__ = ["DEFAULT_WEIGHTS", "RefineOptions", "RefineStats", "correct_and_render", "edge_band", "edge_reach",
+           "load_refiner", "refine", "refine_boxes", "tiles_near", "tiles_to_refine"]
 
 DEFAULT_WEIGHTS = Path(__file__).parent / "weights" / "refiner.safetensors"
 
@@ -308,6 +308,15 @@ def refine(
     stats.neural_seconds = time.perf_counter() - t1
     stats.seconds = time.perf_counter() - t0 - render_time
     return np.maximum(out, 0.0) if classical.min() >= 0 else out, stats
+
+
+def correct_and_render(image: np.ndarray, disparity: np.ndarray, blur: BlurParams,
+                       rerender: Callable[[np.ndarray], np.ndarray],
+                       options: RefineOptions = RefineOptions()) -> tuple[np.ndarray, np.ndarray]:
+    """What the network of :func:`refine` is given: the level's render after the depth correction, and the map it
+    used (the corrected one, or the given one where nothing moved). The training pairs are made by this."""
+    fix = _correct_depth(image, disparity, blur, None, options, rerender)
+    return fix.classical, fix.disparity
 
 
 @dataclass

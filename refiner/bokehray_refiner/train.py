@@ -52,7 +52,7 @@ class TrainConfig:
     warmup: int = 100
     variants: int = 2
     corruption_probs: list[float] = field(default_factory=lambda: list(CORRUPTION_PROBS))
-    max_corruption_px: int = 5
+    edge_share: float = 0.8
     seed: int = 0
     mse_weight: float = 1.0
     edge_weight: float = 0.5
@@ -220,20 +220,23 @@ def train(cfg: TrainConfig, resume: bool = True, progress: bool = True, bank: Pa
         step, rows = state["step"], state["rows"]
         if stop_at is not None and step > stop_at:
             raise InputError(f"{ckpt}: the checkpoint is at step {step}, past --stop-at {stop_at}")
-    if bank is None:
-        bank = PairBank(cfg.data, variants=cfg.variants, max_corruption_px=cfg.max_corruption_px, seed=cfg.seed,
-                        limit=cfg.limit, progress=progress, probs=tuple(cfg.corruption_probs))
+    if bank is None:  # kept in the run folder: a resumed run reads it instead of rendering it again
+        bank = PairBank.cached(out / "bank.npz", cfg.data, progress=progress, variants=cfg.variants, seed=cfg.seed,
+                               limit=cfg.limit, probs=tuple(cfg.corruption_probs))
     model.train()
     bar = tqdm(total=cfg.steps, initial=step, desc="training refiner", disable=not progress, unit="step")
     while step < cfg.steps and (stop_at is None or step < stop_at):
         t0 = time.perf_counter()
-        batch = bank.batch(rng, cfg.batch, cfg.crop)
+        batch = bank.batch(rng, cfg.batch, cfg.crop, edge_share=cfg.edge_share)
         focus, render, target, coc = _to_tensors(batch, device)
         opts = PisaMaskOptions(hardness=hardness_at(step, cfg))
         pisa = PisaMaskProvider(batch["disparity"], batch["focus_disparity"], batch["k_px"], opts,
                                 torch_device=device)
-        pred = model(focus, render, coc, pisa)
-        mse = F.mse_loss(pred, target)
+        # what refine keeps: the network's output within the edge band, the classical render elsewhere
+        band = torch.from_numpy(batch["band"])[:, None].to(device)
+        pred = render + band * (model(focus, render, coc, pisa) - render)
+        inside = (band > 0).to(pred.dtype)  # the MSE over the band only: outside it the error is not the model's
+        mse = ((pred - target) ** 2 * inside).sum() / (3 * inside.sum()).clamp(min=1.0)
         edge = edge_loss(pred, target, focus)
         loss = cfg.mse_weight * mse + cfg.edge_weight * edge
         extra = {}

@@ -85,7 +85,7 @@ def test_training_lowers_the_loss(pairs, tmp_path):
     weights = train(cfg, resume=False, progress=False, bank=one)
     with open(tmp_path / "loss.csv") as f:
         loss = [float(r["loss"]) for r in csv.DictReader(f)]
-    assert len(loss) == 16 and loss[-1] < 0.95 * loss[0] and np.mean(loss[-4:]) < np.mean(loss[4:8]) < loss[0]
+    assert len(loss) == 16 and loss[-1] < 0.98 * loss[0] and np.mean(loss[-4:]) < np.mean(loss[4:8]) < loss[0]
     assert (tmp_path / "loss.png").is_file() and weights.is_file()
     meta = json.loads(weights.with_suffix(".json").read_text())
     assert meta["steps"] == 16 and meta["fingerprint"] == pytest.approx(fingerprint(load_refiner(weights)))

@@ -182,6 +182,10 @@ def build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--size", type=int, default=512, help="image side in pixels (default 512)")
     sy.add_argument("--blur-levels", default="10,20,30", help="K values, comma separated (default 10,20,30)")
     sy.add_argument("--max-spp", type=int, default=64, help="most rays (aperture cells) per pixel (default 64)")
+    sy.add_argument("--kinds", metavar="KIND=W,...",
+                    help="built-in foregrounds drawn with these relative weights, e.g. strands=3,fur=2,cutout=1 "
+                    "(kinds: cutout, strands, foliage, mesh, lights, fur, whiskers, softcut; default: the first "
+                    "five, uniformly)")
     from ..executor import add_executor_args
 
     add_executor_args(sy)
@@ -199,9 +203,11 @@ def build_parser() -> argparse.ArgumentParser:
     t = sub.add_parser(
         "train-refiner",
         help="train the small one-step refiner on synthetic pairs (needs the 'refiner' extra)",
-        description="Trains on a BLB-layout folder from `bokehray synth`: classical previews rendered from corrupted "
-        "disparity (eroded, dilated, blurred, shifted) against the exact targets. Resumes from OUT/checkpoint.pt. "
-        "Writes OUT/refiner.safetensors, refiner.json, loss.csv and loss.png. See docs/refiner.md.",
+        description="Trains on a BLB-layout folder from `bokehray synth`: the classical level rendered, as `render "
+        "--refine` does, after the depth fix on corrupted disparity (an estimator's map, locally misplaced edges, "
+        "missing thin structures, eroded, dilated, exact) against the exact targets. Resumes from "
+        "OUT/checkpoint.pt; the rendered inputs are kept in OUT/bank.npz. Writes OUT/refiner.safetensors, "
+        "refiner.json, loss.csv and loss.png. See docs/refiner.md.",
     )
     t.add_argument("--data", required=True, help="BLB-layout training folder (from bokehray synth)")
     t.add_argument("--out", required=True, help="run folder: checkpoints, loss log and plot, final weights")
@@ -210,6 +216,11 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--crop", type=int, default=96, help="crop side in pixels, a multiple of 8 (default 96)")
     t.add_argument("--lr", type=float, default=1e-3, help="peak AdamW learning rate (default 1e-3)")
     t.add_argument("--variants", type=int, default=2, help="corrupted-depth renders per pair (default 2)")
+    t.add_argument("--corruptions", metavar="KIND=SHARE,...",
+                   help="shares of the corruptions (kinds: none, erode, dilate, blur, shift, estimator, local, "
+                   "missing; unnamed kinds get 0; default: docs/refiner.md)")
+    t.add_argument("--edge-share", type=float, default=0.8,
+                   help="share of crops centred on the edge band, where the loss counts (default 0.8)")
     t.add_argument("--limit", type=int, help="use only the first N pairs")
     t.add_argument("--seed", type=int, default=0, help="seed of the model, the corruptions and the batches")
     t.add_argument("--edge-weight", type=float, default=0.5, help="weight of the multi-scale edge loss (eq. 9)")
@@ -314,9 +325,15 @@ def cmd_synth(args: argparse.Namespace) -> int:
         levels = tuple(float(v) for v in args.blur_levels.split(","))
     except ValueError:
         raise InputError(f"--blur-levels: expected comma-separated numbers, got {args.blur_levels!r}") from None
-    start_warp(args)
+    kinds = None
+    if args.kinds:
+        try:
+            kinds = tuple((k.strip(), float(w)) for k, w in (item.split("=") for item in args.kinds.split(",")))
+        except ValueError:
+            raise InputError(f"--kinds: expected KIND=WEIGHT pairs separated by commas, got {args.kinds!r}") from None
     config = SynthConfig(size=args.size, blur_levels=levels, aperture=aperture_of(args), max_spp=args.max_spp,
-                         fg_dir=args.fg, bg_dir=args.bg)
+                         fg_dir=args.fg, bg_dir=args.bg, kinds=kinds)
+    start_warp(args)
     paths = generate(config, args.n, args.output, seed=args.seed, workers=args.workers, progress=not args.quiet,
                      overwrite=args.overwrite, executor=args.executor, scheduler=args.scheduler)
     if not args.quiet:
@@ -343,9 +360,26 @@ def cmd_train_refiner(args: argparse.Namespace) -> int:
         import torch
 
         torch.set_num_threads(args.threads)
+    extra = {}
+    if args.corruptions:
+        CORRUPTIONS = _refiner_module("data").CORRUPTIONS
+        try:
+            shares = dict((k.strip(), float(v)) for k, v in (item.split("=") for item in args.corruptions.split(",")))
+        except ValueError:
+            raise InputError(f"--corruptions: expected KIND=SHARE pairs separated by commas, got "
+                             f"{args.corruptions!r}") from None
+        unknown = sorted(set(shares) - set(CORRUPTIONS))
+        total = sum(shares.values())
+        if unknown or not total > 0 or min(shares.values()) < 0:
+            raise InputError(f"--corruptions: expected shares >= 0 of {CORRUPTIONS} with a positive sum, got "
+                             f"{args.corruptions!r}")
+        extra["corruption_probs"] = [shares.get(k, 0.0) / total for k in CORRUPTIONS]
+    if not 0.0 <= args.edge_share <= 1.0:
+        raise InputError(f"--edge-share: expected a share in [0, 1], got {args.edge_share}")
     try:
         cfg = train.TrainConfig(
             data=args.data, out=args.out, steps=args.steps, batch=args.batch, crop=args.crop, lr=args.lr,
+            edge_share=args.edge_share, **extra,
             variants=args.variants, limit=args.limit, seed=args.seed, edge_weight=args.edge_weight,
             adv_weight=args.adv_weight, lpips_model=args.lpips_model, lpips_weight=args.lpips_weight,
             checkpoint_every=args.checkpoint_every, device=args.device)

@@ -2,7 +2,8 @@
 
 Each scene is a stack of planar layers, nearest first: one or two RGBA
 foregrounds (photo cut-outs, or procedural hard cases: hair-like strands with
-partial alpha, foliage, a fence mesh, small very bright lights) at random
+partial alpha, foliage, a fence mesh, small very bright lights; on request fur,
+whiskers and cut-outs with soft rims, with per-kind weights) at random
 scale, placement, facing angle (tilted planes) and depth, over a tilted photo
 background. The all-in-focus image is the same layers seen through a pinhole;
 the targets are exact thin-lens renders (``bokehray.raytrace_layers``) for
@@ -28,11 +29,16 @@ from ..lens import Aperture, BlurParams
 from ..levels.raytrace import Layer, raytrace_layers
 from ..options import RaytraceOptions
 
-__all__ = ["SynthConfig", "bundled_photo", "cutout_layer", "fit_crop", "generate", "generate_one", "make_scene",
+__all__ = ["ALL_KINDS", "SynthConfig", "bundled_photo", "cutout_layer", "fit_crop", "generate", "generate_one", "make_scene",
            "mean_disparity", "pinhole_layers", "procedural_layer", "stroke_coverage"]
 
 BUILTIN_BACKGROUNDS = ("astronaut", "coffee", "chelsea", "rocket", "brick", "gravel", "page", "coins", "camera")
 FOREGROUND_KINDS = ("cutout", "strands", "foliage", "mesh", "lights")
+"""The kinds drawn, uniformly, when no weights are given (scene ``i`` of a seed is then what it always was)."""
+EXTRA_KINDS = ("fur", "whiskers", "softcut")
+"""Further hard kinds, drawn only when :attr:`SynthConfig.kinds` names them: fur (a body fringed by many short
+strands), whiskers (a few long sub-pixel to 1 px strands) and cut-outs whose rim is a 1 - 4 px alpha ramp."""
+ALL_KINDS = FOREGROUND_KINDS + EXTRA_KINDS
 
 
 @dataclass(frozen=True)
@@ -46,6 +52,8 @@ class SynthConfig:
         max_spp: ray cap per pixel (see docs/raytracer.md for the error it buys).
         fg_dir, bg_dir: optional folders of RGBA foregrounds (PNG with alpha) and
             background photos; when absent, built-in sources are used.
+        kinds: ``((kind, weight), ...)``: draw the built-in foregrounds with these relative weights (any of
+            :data:`ALL_KINDS`); None draws :data:`FOREGROUND_KINDS` uniformly.
     """
 
     size: int = 512
@@ -54,8 +62,17 @@ class SynthConfig:
     max_spp: int = 64
     fg_dir: str | None = None
     bg_dir: str | None = None
+    kinds: tuple[tuple[str, float], ...] | None = None
 
     def __post_init__(self) -> None:
+        if self.kinds is not None:
+            names = [k for k, _ in self.kinds]
+            weights = [w for _, w in self.kinds]
+            bad = [k for k in names if k not in ALL_KINDS]
+            if bad or not names or len(set(names)) != len(names):
+                raise InputError(f"kinds: expected distinct names from {ALL_KINDS}, got {names}")
+            if any(not (math.isfinite(w) and w >= 0) for w in weights) or sum(weights) <= 0:
+                raise InputError(f"kinds: expected weights >= 0 with a positive sum, got {weights}")
         if not 32 <= self.size <= 4096:
             raise InputError(f"size: expected 32..4096 px, got {self.size}")
         if not self.blur_levels or any(not (math.isfinite(k) and 0 < k <= 1e4) for k in self.blur_levels):
@@ -108,7 +125,49 @@ def stroke_coverage(dist: np.ndarray, width: float) -> np.ndarray:
     return np.clip(width / 2 + 0.5 - dist, 0.0, 1.0) * min(1.0, width)
 
 
+def _fur_layer(size: int, rng: np.random.Generator) -> np.ndarray:
+    """A body fringed by many short strands pointing outwards, one tint with some variation."""
+    yy, xx = (np.mgrid[0:size, 0:size] + 0.5).astype(np.float32)
+    rgba = np.zeros((size, size, 4), np.float32)
+    colour = np.asarray(rng.choice([[0.35, 0.22, 0.12], [0.8, 0.65, 0.4], [0.08, 0.06, 0.05], [0.9, 0.9, 0.85]]))
+    cx, cy = rng.uniform(0.3, 0.7, 2) * size
+    rx, ry = rng.uniform(0.12, 0.28, 2) * size
+    body = np.clip(0.5 - (np.hypot((xx - cx) / rx, (yy - cy) / ry) - 1.0) * min(rx, ry), 0, 1)
+    rgba[..., 3] = body
+    for _ in range(int(rng.integers(80, 200))):
+        t = rng.uniform(0, 2 * np.pi)
+        ox, oy = cx + rx * np.cos(t), cy + ry * np.sin(t)
+        a0 = t + rng.normal(0, 0.35)
+        length = rng.uniform(4, 18)
+        u = (xx - ox) * np.cos(a0) + (yy - oy) * np.sin(a0)
+        v = -(xx - ox) * np.sin(a0) + (yy - oy) * np.cos(a0)
+        cov = stroke_coverage(np.abs(v), rng.uniform(0.3, 1.5)) * ((u > -4) & (u < length))
+        rgba[..., 3] = np.maximum(rgba[..., 3], cov)
+    shade = 0.85 + 0.3 * np.clip(rng.normal(0, 0.3, (size, size)), -1, 1)
+    rgba[..., :3] = np.clip(colour * shade[..., None], 0, 1)
+    return rgba
+
+
+def _whiskers_layer(size: int, rng: np.random.Generator) -> np.ndarray:
+    """A few long, straight-ish, sub-pixel to 1 px strands, light or dark."""
+    yy, xx = (np.mgrid[0:size, 0:size] + 0.5).astype(np.float32)
+    rgba = np.zeros((size, size, 4), np.float32)
+    colour = rng.choice([[0.95, 0.95, 0.92], [0.05, 0.04, 0.04], [0.7, 0.6, 0.45]])
+    cx, cy = rng.uniform(0.3, 0.7, 2) * size
+    for _ in range(int(rng.integers(6, 16))):
+        a0, bend = rng.uniform(0, 2 * np.pi), rng.uniform(-0.003, 0.003)
+        u = (xx - cx) * np.cos(a0) + (yy - cy) * np.sin(a0)
+        v = -(xx - cx) * np.sin(a0) + (yy - cy) * np.cos(a0) - bend * u * u
+        reach = rng.uniform(0.2, 0.45) * size
+        cov = stroke_coverage(np.abs(v), rng.uniform(0.3, 1.0)) * ((u > 0.02 * size) & (u < reach))
+        rgba[..., 3] = np.maximum(rgba[..., 3], cov)
+    rgba[..., :3] = colour
+    return rgba
+
+
 def procedural_layer(kind: str, size: int, rng: np.random.Generator) -> np.ndarray:
+    if kind in ("fur", "whiskers"):
+        return (_fur_layer if kind == "fur" else _whiskers_layer)(size, rng)
     yy, xx = (np.mgrid[0:size, 0:size] + 0.5).astype(np.float32)
     rgba = np.zeros((size, size, 4), np.float32)
     if kind == "strands":  # hair / fur: many thin curved strands, partial alpha, one tint
@@ -153,18 +212,18 @@ def procedural_layer(kind: str, size: int, rng: np.random.Generator) -> np.ndarr
             rgba[..., :3] = np.where(cov[..., None] > 0, np.asarray(hue) * rng.uniform(5, 20), rgba[..., :3])
             rgba[..., 3] = np.maximum(rgba[..., 3], cov)
     else:
-        raise InputError(f"foreground kind: expected one of {FOREGROUND_KINDS}, got {kind!r}")
+        raise InputError(f"foreground kind: expected one of {ALL_KINDS}, got {kind!r}")
     return rgba
 
 
-def cutout_layer(photo: np.ndarray, size: int, rng: np.random.Generator) -> np.ndarray:
-    """An elliptical cut-out of a photo at a random scale and place."""
+def cutout_layer(photo: np.ndarray, size: int, rng: np.random.Generator, rim_px: float = 1.0) -> np.ndarray:
+    """An elliptical cut-out of a photo at a random scale and place; its alpha ramps over ``rim_px`` pixels."""
     yy, xx = (np.mgrid[0:size, 0:size] + 0.5).astype(np.float32)
     tex = fit_crop(photo, size, rng)
     cx, cy = rng.uniform(0.25, 0.75, 2) * size
     ax, ay = rng.uniform(0.12, 0.3, 2) * size
     dist = (np.hypot((xx - cx) / ax, (yy - cy) / ay) - 1.0) * min(ax, ay)
-    alpha = np.clip(0.5 - dist, 0, 1)
+    alpha = np.clip(0.5 - dist / rim_px, 0, 1)
     return np.concatenate([tex, alpha[..., None]], axis=2)
 
 
@@ -202,9 +261,16 @@ def make_scene(config: SynthConfig, seed: int, index: int) -> tuple[list[Layer],
         if config.fg_dir:
             tex, kind = _load_rgba(rng.choice(_files(config.fg_dir, "foreground")), n, rng), "user"
         else:
-            kind = str(rng.choice(FOREGROUND_KINDS))
-            tex = cutout_layer(bundled_photo(str(rng.choice(BUILTIN_BACKGROUNDS))), n, rng) if kind == "cutout" \
-                else procedural_layer(kind, n, rng)
+            if config.kinds is None:
+                kind = str(rng.choice(FOREGROUND_KINDS))
+            else:
+                w = np.array([wk for _, wk in config.kinds], np.float64)
+                kind = str(rng.choice([k for k, _ in config.kinds], p=w / w.sum()))
+            if kind in ("cutout", "softcut"):
+                photo = bundled_photo(str(rng.choice(BUILTIN_BACKGROUNDS)))
+                tex = cutout_layer(photo, n, rng, rim_px=1.0 if kind == "cutout" else float(rng.uniform(1.0, 4.0)))
+            else:
+                tex = procedural_layer(kind, n, rng)
         # facing angle: a tilt of up to 0.15 in disparity across the image, above everything behind it
         g = rng.uniform(-1, 1, 2) * rng.uniform(0.0, 0.15) / n
         span = np.abs(g).sum() * n
