@@ -39,6 +39,8 @@ from common import REPO, machine_info, write_json
 
 CONDITIONS = [("none", 0), ("erode", 1), ("erode", 3), ("erode", 5), ("dilate", 1), ("dilate", 3), ("dilate", 5)]
 DEV_CONDITIONS = CONDITIONS + [("blur", 3), ("shift", 2), ("estimator", 4)]
+NET_CONDITIONS = [("none", 0), ("local", 10), ("estimator", 6), ("missing", 2)]
+"""The network's own target (docs/refiner.md): what the depth fix cannot undo, and the exact map."""
 METHODS = ("preview", "raytrace", "depthfix", "refine", "refine_ungated", "refine_nofix")
 
 
@@ -70,6 +72,9 @@ def main() -> None:  # noqa: C901
     src.add_argument("--data", help="held-out BLB-layout folder (never used for training)")
     src.add_argument("--devset", help="the path-traced dev set folder (with score.py)")
     ap.add_argument("--all-corruptions", action="store_true", help="synthetic split: also blur, shift, estimator")
+    ap.add_argument("--network-conditions", action="store_true",
+                    help="instead: the exact map, edges misplaced locally by 10 px, an estimator's map (1/6 "
+                    "resolution) and strands up to 5 px missing (the network's own target)")
     ap.add_argument("--pairs", type=int, default=48, help="pairs to score (every k-th pair of the folder)")
     ap.add_argument("--weights", help="refiner weights (default: the shipped ones)")
     ap.add_argument("--max-spp", type=int, default=64, help="raytrace rays per pixel cap")
@@ -110,14 +115,15 @@ def main() -> None:  # noqa: C901
         return timing(args, model, ropts)
     if args.devset:
         samples = list(devset_samples(Path(args.devset)))
-        conditions = DEV_CONDITIONS
+        conditions = NET_CONDITIONS if args.network_conditions else DEV_CONDITIONS
     else:
         ds = BLBDataset(args.data)
         step = max(1, len(ds) // args.pairs)
         idx = list(range(0, len(ds), step))[: args.pairs]
         samples = [(s.name, s.image, s.disparity, br.BlurParams(s.k_px, s.focus_disparity), s.target,
                     discontinuity_band(s.disparity)) for s in (ds[i] for i in idx)]
-        conditions = DEV_CONDITIONS if args.all_corruptions else CONDITIONS
+        conditions = NET_CONDITIONS if args.network_conditions else (DEV_CONDITIONS if args.all_corruptions
+                                                                      else CONDITIONS)
     ungated = replace(ropts, gate=replace(ropts.gate, enabled=False))
     fix_only = replace(ropts, neural=False)
     nofix = replace(ropts, depthfix=replace(ropts.depthfix, enabled=False))
@@ -162,10 +168,14 @@ def main() -> None:  # noqa: C901
         print(f"{n + 1}/{len(samples)} {name}", flush=True)
     data_label = str(args.devset or args.data)
     summary = summarise(rows, conditions)
+    gains = network_gains(summary)
     write_json(args.out, {"machine": machine_info(), "data": data_label, "pairs": len(samples),
                           "weights": str(args.weights or "shipped"), "refine_options": repr(ropts),
-                          "summary": summary, "rows": rows})
+                          "network_gain": gains, "summary": summary, "rows": rows})
     print_table(summary)
+    for g in gains:
+        print(f"network alone (refine - depth fix), {g['corruption']} {g['px']}: whole {g['psnr']:+.2f} dB, "
+              f"band {g['band_psnr']:+.2f} dB")
     plot(summary, args.plot)
 
 
@@ -250,6 +260,17 @@ def summarise(rows: list[dict], conditions=CONDITIONS) -> list[dict]:
                         "gate_open": float(np.mean([r["gate_open"] for r in sel]))
                         if method.startswith("refine") else None,
                         "depth_fixed_px": float(np.mean([r.get("depth_fixed_px") or 0 for r in sel]))})
+    return out
+
+
+def network_gains(summary: list[dict]) -> list[dict]:
+    """Per condition, what the network adds on top of the classical pipeline: refine - depth fix (mean dB)."""
+    out = []
+    for kind, amount in dict.fromkeys((r["corruption"], r["px"]) for r in summary):
+        get = {r["method"]: r for r in summary if (r["corruption"], r["px"]) == (kind, amount)}
+        if "refine" in get and "depthfix" in get:
+            out.append({"corruption": kind, "px": amount,
+                        **{m: get["refine"][m] - get["depthfix"][m] for m in ("psnr", "band_psnr")}})
     return out
 
 

@@ -116,3 +116,23 @@ def test_any_foreground_coverage_is_labelled_with_the_foregrounds_depth():
     _, d = pinhole_layers(layers)
     assert np.allclose(d[4:12, 4:9], 0.9) and np.allclose(d[2], 0.9)
     assert d[0, 0] == pytest.approx(0.1) and np.allclose(d[13:], 0.1) and np.allclose(d[4:12, 9:], 0.1)
+
+
+def test_weighted_kinds_draw_only_what_is_named_and_bad_weights_are_refused(tmp_path, capsys):
+    from bokehray.data.synth import ALL_KINDS
+
+    cfg = SynthConfig(size=48, blur_levels=(6.0,), max_spp=8, kinds=(("fur", 1.0), ("whiskers", 1.0),
+                                                                     ("softcut", 1.0), ("mesh", 0.0)))
+    drawn = {lyr["kind"] for i in range(12) for lyr in make_scene(cfg, seed=2, index=i)[1]["layers"][:-1]}
+    assert drawn == {"fur", "whiskers", "softcut"}
+    for kind in ALL_KINDS:  # every kind makes some coverage, none above 1
+        layers, _ = make_scene(SynthConfig(size=64, kinds=((kind, 1.0),)), seed=1, index=0)
+        a = layers[0].rgba[..., 3]
+        assert 0 < a.mean() and a.max() <= 1.0 and np.isfinite(layers[0].rgba).all()
+    for bad in ((("hair", 1.0),), (("fur", -1.0),), (("fur", 0.0),), ()):
+        with pytest.raises(br.InputError, match="kinds"):
+            SynthConfig(kinds=bad)
+    code = main(["synth", "-n", "1", "-o", str(tmp_path / "o"), "--kinds", "fur:2", "--quiet"])
+    assert code == 2 and "--kinds" in capsys.readouterr().err and not (tmp_path / "o").exists()
+    code = main(["synth", "-n", "1", "-o", str(tmp_path / "o"), "--kinds", "hair=2", "--quiet"])
+    assert code == 2 and "kinds" in capsys.readouterr().err and not (tmp_path / "o").exists()

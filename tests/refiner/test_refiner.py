@@ -439,3 +439,57 @@ def test_render_refine_renders_the_level_once_and_equals_fixing_an_existing_rend
     np.testing.assert_array_equal(out, br.render(img, flat, blur))
     with pytest.raises(InputError):
         refine(img, dc, blur, None, model=model)
+
+
+def test_missing_strands_vanish_from_the_map_and_large_regions_keep_their_outline():
+    d = np.full((48, 48), 0.1, np.float32)
+    d[10:30, 10:30] = 0.9  # a body
+    d[5:45, 38:40] = 0.9  # a 2 px strand
+    out = corrupt_disparity(d, "missing", 2)
+    assert np.all(out[5:45, 38:40] == pytest.approx(0.1))  # the strand is gone: the background's depth
+    assert np.array_equal(out[12:28, 12:28], d[12:28, 12:28]) and out[10, 20] == 0.9 and out[20, 10] == 0.9
+    assert np.array_equal(corrupt_disparity(d, "missing", 0), d)
+
+
+def test_local_misplacement_moves_edges_by_at_most_the_amount_and_not_all_the_same_way():
+    d = np.full((192, 192), 0.1, np.float32)
+    d[:, 96:] = 0.9  # one long vertical edge
+    out = corrupt_disparity(d, "local", 12, np.random.default_rng(1))
+    assert set(np.unique(out)) <= {np.float32(0.1), np.float32(0.9)}  # edges stay steps: no new depths
+    cols = np.array([np.argmax(row > 0.5) for row in out])  # where each row's edge went
+    moved = cols - 96
+    assert np.abs(moved).max() <= 12 and np.ptp(moved) >= 4  # each stretch of the edge moved its own way
+    assert np.array_equal(corrupt_disparity(d, "local", 12, np.random.default_rng(1)), out)  # deterministic
+
+
+def test_pair_bank_makes_the_input_refine_makes_and_caches_it(pairs, tmp_path):
+    from bokehray_refiner.refine import correct_and_render
+
+    from bokehray.colour import linear_to_srgb
+    from bokehray.data.datasets import BLBDataset
+
+    bank = PairBank(str(pairs), variants=1, seed=3, limit=2, progress=False, probs=(0, 0, 0, 0, 0, 0, 1.0, 0))
+    s = BLBDataset(str(pairs))[0]
+    blur = br.BlurParams(s.k_px, s.focus_disparity)
+    dc = np.clip(corrupt_disparity(s.disparity, "local", 0), 0, 1)  # amount 0 is the exact map: a known input
+    assert bank.pairs[0].kinds == ["local"]
+    rendered, used = correct_and_render(s.image, dc, blur, lambda d: br.render(s.image, d, blur))
+    exact = PairBank(str(pairs), variants=1, seed=3, limit=1, progress=False, probs=(1.0, 0, 0, 0, 0, 0, 0, 0))
+    expect = linear_to_srgb(np.clip(rendered[..., :3], 0, 1)).astype(np.float16)
+    assert np.array_equal(exact.pairs[0].renders[0], expect)
+    assert np.array_equal(exact.pairs[0].disparities[0], used.astype(np.float16))
+    path = tmp_path / "bank.npz"
+    first = PairBank.cached(path, str(pairs), progress=False, variants=1, seed=3, limit=2)
+    again = PairBank.cached(path, str(pairs), progress=False, variants=1, seed=3, limit=2)
+    for a, b in zip(first.pairs, again.pairs):
+        assert all(np.array_equal(x, y) for x, y in zip(a.renders + a.bands + a.disparities,
+                                                         b.renders + b.bands + b.disparities))
+        assert a.kinds == b.kinds and np.array_equal(a.target, b.target) and np.array_equal(a.focus, b.focus)
+    other = PairBank.cached(path, str(pairs), progress=False, variants=1, seed=4, limit=2)  # another key: rebuilt
+    assert other.pairs[0].kinds != first.pairs[0].kinds or not np.array_equal(other.pairs[0].renders[0],
+                                                                             first.pairs[0].renders[0])
+
+
+def test_edge_crops_are_centred_on_the_band(bank):
+    b = bank.batch(np.random.default_rng(0), 16, 32, edge_share=1.0)
+    assert (b["band"][:, 16, 16] > 0).mean() >= 0.9  # crop centres (clamped only at the image border)
