@@ -173,10 +173,10 @@ def main() -> None:  # noqa: C901
                           "weights": str(args.weights or "shipped"), "refine_options": repr(ropts),
                           "network_gain": gains, "summary": summary, "rows": rows})
     print_table(summary)
+    (plot_network if args.network_conditions else plot)(summary, args.plot)
     for g in gains:
         print(f"network alone (refine - depth fix), {g['corruption']} {g['px']}: whole {g['psnr']:+.2f} dB, "
               f"band {g['band_psnr']:+.2f} dB")
-    plot(summary, args.plot)
 
 
 def timing(args, model, ropts) -> None:
@@ -325,6 +325,39 @@ def plot(summary: list[dict], path: str) -> None:
     ax.set_title("per corruption")
     ax.grid(alpha=0.3, axis="y")
     ax.legend()
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+
+
+def plot_network(summary: list[dict], path: str) -> None:
+    """Per condition: band PSNR of each method, and what the network adds over the depth fix."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    conds = list(dict.fromkeys((r["corruption"], r["px"]) for r in summary))
+    names = [f"{k} {p}" if p else "exact" for k, p in conds]
+    fig, axes = plt.subplots(1, 2, figsize=(11, 3.8), dpi=120)
+    methods = [m for m in ("preview", "depthfix", "refine", "refine_ungated") if any(r["method"] == m for r in summary)]
+    for j, method in enumerate(methods):
+        ys = [next((r["band_psnr"] for r in summary if (r["corruption"], r["px"]) == c and r["method"] == method),
+                   math.nan) for c in conds]
+        axes[0].bar(np.arange(len(conds)) + 0.8 / len(methods) * (j - (len(methods) - 1) / 2), ys,
+                    0.8 / len(methods), label=method)
+    axes[0].set_ylabel("band PSNR (dB)")
+    axes[0].set_ylim(bottom=min(r["band_psnr"] for r in summary) - 2)
+    gains = network_gains(summary)
+    axes[1].bar(np.arange(len(gains)), [g["band_psnr"] for g in gains], color="tab:green", label="band")
+    axes[1].bar(np.arange(len(gains)) + 0.3, [g["psnr"] for g in gains], 0.3, color="tab:olive", label="whole")
+    axes[1].axhline(0, color="k", lw=0.8)
+    axes[1].set_ylabel("refine - depth fix (dB)")
+    axes[1].set_title("the network's own contribution")
+    for ax in axes:
+        ax.set_xticks(np.arange(len(conds)), names)
+        ax.grid(alpha=0.3, axis="y")
+        ax.legend(fontsize=8)
     fig.tight_layout()
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path)
