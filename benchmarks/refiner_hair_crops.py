@@ -45,7 +45,7 @@ def fur_scene():
     return layers, image, disparity
 
 
-def main() -> None:  # noqa: C901
+def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--weights", nargs="*", default=[None], help="refiner weights to compare (default: shipped)")
     ap.add_argument("--labels", nargs="*", help="a label for each --weights")
