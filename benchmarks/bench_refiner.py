@@ -85,6 +85,8 @@ def main() -> None:  # noqa: C901
     ap.add_argument("--reuse-raytrace", default=None,
                     help="take the raytrace rows from this earlier JSON of the same data instead of rendering them "
                          "(the ray tracer does not depend on the refiner)")
+    ap.add_argument("--no-agreement", action="store_true",
+                    help="refine with the gate's colour/depth agreement off (highlight guard only)")
     ap.add_argument("--no-nofix", action="store_true", help="skip refine_nofix (the refiner without the depth fix)")
     ap.add_argument("--no-ungated", action="store_true", help="skip refine_ungated (and, with --timing, its timing)")
     ap.add_argument("--timing", action="store_true",
@@ -109,6 +111,8 @@ def main() -> None:  # noqa: C901
     from bokehray.data.metrics import discontinuity_band, score
 
     ropts = RefineOptions() if args.band_margin is None else RefineOptions(band_margin_px=args.band_margin)
+    if args.no_agreement:
+        ropts = replace(ropts, gate=replace(ropts.gate, agreement=False))
 
     model = load_refiner(args.weights)
     if args.timing:

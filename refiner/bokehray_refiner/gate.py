@@ -41,6 +41,8 @@ class GateOptions:
 
     Args:
         enabled: False lets every band pixel through (the ungated refiner, for measurements).
+        agreement: False skips the colour/depth edge agreement: the whole band is open but for the highlight guard
+            (a refiner trained to leave right edges alone decides there by itself).
         radius_px: how far across a depth edge the colour edge is searched.
         near_px: a colour edge within this distance of the depth edge counts as "on" it.
         lo, hi: agreement ratios below ``lo`` open the gate fully, above ``hi`` close it.
@@ -54,6 +56,7 @@ class GateOptions:
     """
 
     enabled: bool = True
+    agreement: bool = True
     radius_px: float = 6.0
     near_px: float = 0.5
     lo: float = 0.55
@@ -197,12 +200,18 @@ def refine_gate(image: np.ndarray, focus_srgb: np.ndarray, disparity: np.ndarray
     h, w = coc.shape
     if not options.enabled:
         return np.ones((h, w), np.float32)
-    ys, xs, ratio = edge_agreement(focus_srgb, disparity, edge_pairs(coc, min_jump_px), options)
+    if options.agreement:
+        ys, xs, ratio = edge_agreement(focus_srgb, disparity, edge_pairs(coc, min_jump_px), options)
+        opened = 1.0 - _smoothstep(options.lo, options.hi, ratio)
+    else:
+        pairs = edge_pairs(coc, min_jump_px)
+        ys, xs = np.concatenate([e[0] for e in pairs]), np.concatenate([e[1] for e in pairs])
+        opened = np.ones(ys.shape, np.float32)
     if ys.size == 0:
         return np.zeros((h, w), np.float32)
     open_ = np.zeros((h, w), np.float32)
     mark = np.zeros((h, w), bool)
-    np.maximum.at(open_, (ys, xs), 1.0 - _smoothstep(options.lo, options.hi, ratio))
+    np.maximum.at(open_, (ys, xs), opened)
     mark[ys, xs] = True
     if nearest is None:
         _, (iy, ix) = ndimage.distance_transform_edt(~mark, return_indices=True)

@@ -493,3 +493,22 @@ def test_pair_bank_makes_the_input_refine_makes_and_caches_it(pairs, tmp_path):
 def test_edge_crops_are_centred_on_the_band(bank):
     b = bank.batch(np.random.default_rng(0), 16, 32, edge_share=1.0)
     assert (b["band"][:, 16, 16] > 0).mean() >= 0.9  # crop centres (clamped only at the image border)
+
+
+def test_gate_without_the_agreement_opens_the_whole_band_but_guards_lights():
+    from bokehray_refiner.gate import refine_gate
+
+    rng = np.random.default_rng(0)
+    img = rng.uniform(0.1, 0.6, (48, 48, 3)).astype(np.float32)
+    d = np.full((48, 48), 0.1, np.float32)
+    d[:, 24:] = 0.9
+    img[:, 24:] *= 0.3  # a colour edge right on the depth edge: the agreement closes the gate there
+    img[4, 4] = 5.0  # a clipped light far from the edge, within its own reach
+    coc = 20.0 * (d - 0.1)
+    srgb = br.colour.linear_to_srgb(np.clip(img, 0, 1))
+    shut = refine_gate(img, srgb, d, img, coc, 1.0, GateOptions())
+    free = refine_gate(img, srgb, d, img, coc, 1.0, GateOptions(agreement=False))
+    assert shut[:, 20:28].max() < 0.5 and free[20:28, 20:28].min() == 1.0
+    assert free[4, 4] == 0.0  # the highlight guard still holds
+    assert np.array_equal(refine_gate(img, srgb, np.full_like(d, 0.5), img, np.zeros_like(coc), 1.0,
+                                      GateOptions(agreement=False)), np.zeros_like(d))
