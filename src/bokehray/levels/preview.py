@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import bokehray_kernels as bk
 import numpy as np
 import warp as wp
+from bokehray_kernels.routing import cluster_grid
 
 from .. import scene as sc
 from .. import tiling
@@ -374,7 +375,7 @@ def render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatt
               device=device)
     if routed:
         for lev in range(max(1, first), n_levels):
-            wp.launch(bk.scatter_clusters_kernel, dim=routing.cluster_shape.shape[1:],
+            wp.launch(bk.scatter_clusters_kernel, dim=cluster_grid(h, w, lev),
                       inputs=[routing.struct(), lev, scatter.shape], outputs=[bufs[0]], device=device)
     for lv in range(n_levels):
         if lv == 0 or lv >= first:
