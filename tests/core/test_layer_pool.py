@@ -1,6 +1,7 @@
 """The preview's layer pool: workers take layers in any order, compositing stays back to front."""
 
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -59,3 +60,28 @@ def test_a_free_worker_takes_the_next_layer_else_the_costliest(monkeypatch, thre
         assert index[0] == min(index)  # the farthest first: it is composited first
         costs = [pv.layer_cost(lyr) for lyr in started[1:]]
         assert costs == sorted(costs, reverse=True) and index[1:] != sorted(index[1:])
+
+
+def test_one_fill_at_a_time(monkeypatch):
+    """Two workers never build layer sources (the pull-push fill, the layer's largest working set) at once."""
+    from bokehray import scene as sc
+
+    image, s = _scene()
+    build, lock, now, most = sc.build_layer_sources, threading.Lock(), [0], [0]
+
+    def counted(layer, arrays):
+        with lock:
+            now[0] += 1
+            most[0] = max(most[0], now[0])
+        time.sleep(0.05)  # a window wide enough for another worker to come in, were it let in
+        try:
+            return build(layer, arrays)
+        finally:
+            with lock:
+                now[0] -= 1
+
+    monkeypatch.setattr(sc, "build_layer_sources", counted)
+    want, stats = pv.render_signed_coc(image, s, Aperture(), options=PreviewOptions(threads=1))
+    got, _ = pv.render_signed_coc(image, s, Aperture(), options=PreviewOptions(threads=3))
+    assert stats.layers >= 5 and most[0] == 1
+    np.testing.assert_array_equal(got, want)

@@ -20,8 +20,10 @@ Large renders go tile by tile through ``bokehray.tiling`` with exact halos (``bo
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
+import threading
 import time
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass
@@ -81,6 +83,8 @@ class _Scatter:
     exact_highlights: bool
     threads: int
     device: str
+    fill_gate: threading.Lock = dataclasses.field(default_factory=threading.Lock)
+    """Held while a layer builds its sources: one pull-push fill at a time (see :func:`render_layer`)."""
 
 
 def aperture_shape(aperture: Aperture, blade_rows: np.ndarray, device: str) -> bk.Shape:
@@ -356,7 +360,11 @@ def render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatt
     y0, y1, x0, x1 = layer.bbox
     h, w = y1 - y0, x1 - x0
     support = sc.LayerSupport.of(layer, device)
-    src, coc = sc.build_layer_sources(layer, arrays)
+    # The fill is the layer's largest working set (sources, pull-push pyramid, distance map: about 56 bytes a box
+    # pixel, against about 43 for the scatter that follows): one worker fills at a time, so two workers' fills never
+    # overlap (the other worker scatters meanwhile). Nothing else is shared: values do not depend on it.
+    with scatter.fill_gate:
+        src, coc = sc.build_layer_sources(layer, arrays)
     n_levels = sc.pyramid_levels(layer.max_radius, scatter.level_radius_px)
     first = sc.lowest_level(layer, scatter.level_radius_px)  # levels 1 .. first - 1 stay empty
     bufs = []
