@@ -85,3 +85,22 @@ def test_one_fill_at_a_time(monkeypatch):
     got, _ = pv.render_signed_coc(image, s, Aperture(), options=PreviewOptions(threads=3))
     assert stats.layers >= 5 and most[0] == 1
     np.testing.assert_array_equal(got, want)
+
+
+def test_a_short_budget_takes_fewer_workers_before_tiles():
+    """A budget between the one-worker and the two-worker estimates: one worker, untiled, the same render."""
+    from bokehray import MemoryOptions, ResourceError
+
+    image, s = _scene(240)
+    two = PreviewOptions(threads=2)
+    want, st2 = pv.render_signed_coc(image, s, Aperture(), options=two)
+    _, st1 = pv.render_signed_coc(image, s, Aperture(), options=PreviewOptions(threads=1))
+    assert st2.threads == 2 and st1.memory_estimate_mb < st2.memory_estimate_mb
+    limit = 0.5 * (st1.memory_estimate_mb + st2.memory_estimate_mb)
+    got, st = pv.render_signed_coc(image, s, Aperture(), options=two, memory=MemoryOptions(memory_limit_mb=limit))
+    assert st.threads == 1 and st.image_tiles == 1 and st.memory_estimate_mb == st1.memory_estimate_mb
+    np.testing.assert_array_equal(got, want)
+    # a budget not even one worker fits untiled: tiles, or (here, a small frame) refused, as before
+    with pytest.raises(ResourceError):
+        pv.render_signed_coc(image, s, Aperture(), options=two,
+                             memory=MemoryOptions(memory_limit_mb=0.9 * st1.memory_estimate_mb))

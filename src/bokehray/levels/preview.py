@@ -266,11 +266,18 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
     stats.sources_scattered = int((scene.ids >= 0).sum()) + len(scene.near)
     stats.pyramid_levels = max(sc.pyramid_levels(lyr.max_radius, options.level_radius_px) for lyr in scene.layers)
     threads = 1 if wp.get_device(ctx.device).is_cuda else max(1, options.threads or os.cpu_count() or 1)
-    stats.threads = threads
 
     whole = WHOLE_IMAGE_B * h * w
     n_lv = stats.pyramid_levels if options.exact_highlights else 1  # the routing's arrays grow with the levels
     areas = [_area(lyr.bbox) for lyr in scene.layers]
+    if ctx.memory.tile_size is None:
+        # fewer layers in flight before tiles: where the budget does not hold a layer a worker but holds the frame
+        # with fewer workers, those render it untiled (the same values, the layers' CPU time the same, less
+        # parallel), where tiles would repeat every window's halo work or be refused
+        budget = tiling.budget_bytes(ctx.memory)
+        threads = next((k for k in range(threads, 0, -1)
+                        if whole + _region_bytes(h * w, areas, k, n_lv) <= budget), threads)
+    stats.threads = threads
     margin = 2 * max(sum(sc.scatter_halo(lyr, options.level_radius_px)) for lyr in scene.layers)
     tile, need = tiling.choose_tile(
         h, w, ctx.memory, untiled_bytes=whole + _region_bytes(h * w, areas, threads, n_lv), margin=margin,
