@@ -34,20 +34,24 @@ def test_renders_are_bit_identical_for_any_number_of_threads():
 
 @pytest.mark.parametrize("threads", [1, 2])
 def test_a_free_worker_takes_the_next_layer_else_the_costliest(monkeypatch, threads):
-    """With the farthest layer held back until every other one has started, the other worker takes them
-    costliest first."""
+    """With the farthest layer held back, the other worker takes the others costliest first, and stops once as many
+    results wait as there are workers (each holds its box's result until the layers behind it are composited)."""
     image, s = _scene()
     _, stats = pv.render_signed_coc(image, s, Aperture(), options=PreviewOptions(threads=1))
-    started, lock, all_started = [], threading.Lock(), threading.Event()
+    started, lock, ahead = [], threading.Lock(), threading.Event()
     render_layer = pv.render_layer
+    seen = []
 
     def record(layer, arrays, scatter):
         with lock:
             started.append(layer)
-            if len(started) == stats.layers:
-                all_started.set()
-        if threads > 1 and len(started) == 1:
-            assert all_started.wait(60)
+            first = len(started) == 1
+            if len(started) == 1 + threads:
+                ahead.set()
+        if threads > 1 and first:
+            assert ahead.wait(60)
+            time.sleep(0.3)  # a worker let through would start a layer now
+            seen.append(len(started))
         return render_layer(layer, arrays, scatter)
 
     monkeypatch.setattr(pv, "render_layer", record)
@@ -58,7 +62,8 @@ def test_a_free_worker_takes_the_next_layer_else_the_costliest(monkeypatch, thre
         assert index == sorted(index)  # one worker: back to front
     else:
         assert index[0] == min(index)  # the farthest first: it is composited first
-        costs = [pv.layer_cost(lyr) for lyr in started[1:]]
+        assert seen == [1 + threads]  # two results waiting behind the held layer: the other worker stopped
+        costs = [pv.layer_cost(lyr) for lyr in started[1:1 + threads]]
         assert costs == sorted(costs, reverse=True) and index[1:] != sorted(index[1:])
 
 

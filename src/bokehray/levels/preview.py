@@ -56,9 +56,10 @@ LAYER_B = 44
 """Per pixel of a layer's box in flight: sources (16 + 4) and the radius-pyramid difference buffers (16 x 4/3 and 2
 spare columns); the pull-push pyramid and distance map (24 x 4/3 + 4) come and go before them, in the same
 reused buffers (``bokehray.levels.buffers``)."""
-RESULT_B = 4
-"""Per pixel of every rendered layer's box, for the results waiting to be composited (16 bytes each: premultiplied RGB
-and coverage) counted at a quarter: the workers seldom run more than a layer ahead of the compositing (measured)."""
+RESULT_B = 16
+"""Per pixel of a finished layer's box waiting to be composited (premultiplied RGB and coverage): while the next
+layer to composite is in work, at most ``threads - 1`` others' results wait beside the other workers' layers
+(``_render_window`` starts no more once ``threads`` wait)."""
 ROUTING_B_PER_LEVEL = 18
 """For :func:`route_salient`, per pixel of a layer's box in flight and per coarse level of its pyramid, weighted
 1, 1/4, 1/16, ... from the first (pages are taken only where written: ``buffers.lazy_zeros``): the radiance pyramid,
@@ -107,10 +108,11 @@ def pyramid_buffers(bufs: list[wp.array]) -> bk.Levels:
 
 
 def _region_bytes(window_px: int, layer_areas: list[int], threads: int, n_levels: int = 1) -> int:
-    # at most one layer in work per thread (the largest, at worst), and any of the others finished, waiting to be
-    # composited (a layer started out of order, or one behind a slower one)
-    in_flight = sorted(layer_areas, reverse=True)[:threads]
-    return REGION_B * window_px + _layer_bytes(n_levels) * sum(in_flight) + RESULT_B * sum(layer_areas)
+    # at most one layer in work per thread (the largest, at worst), and threads - 1 of the others finished, waiting
+    # to be composited behind a slower one (the next largest, at worst)
+    areas = sorted(layer_areas, reverse=True)
+    return (REGION_B * window_px + _layer_bytes(n_levels) * sum(areas[:threads])
+            + RESULT_B * sum(areas[threads : 2 * threads - 1]))
 
 
 SALIENT_VISIBLE = 0.002
@@ -416,8 +418,9 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
     # Layers render independently (Warp CPU launches release the GIL) on ``threads`` workers and are composited
     # strictly back to front as they complete. A free worker takes the next layer to composite if it has not
     # started, else the costliest one left (:func:`layer_cost`), so that a slow layer does not start last while the
-    # other workers idle. A finished layer waiting to be composited holds only its result (16 B/px;
-    # :func:`_region_bytes` counts one working layer a thread and, at a quarter, every result).
+    # other workers idle. A finished layer waiting to be composited holds only its result (16 B/px); while as many
+    # results wait as there are workers, only the next layer to composite starts (:func:`_region_bytes` counts one
+    # working layer a thread and that many results).
     done = 0
     order = sorted(range(len(layers)), key=lambda k: -layer_cost(layers[k]) if scatter.threads > 1 else k)
     pool = ThreadPoolExecutor(max_workers=scatter.threads)
@@ -426,8 +429,12 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
         head = 0  # the next layer to composite
         while head < len(layers):
             running = [f for f in started.values() if not f.done()]
+            waiting = len(started) - len(running)  # finished, waiting for the layers behind them
             if len(running) < scatter.threads:
-                pick = head if head not in started else next((k for k in order if k > head and k not in started), None)
+                # the next to composite always; another only while fewer results than workers wait (each holds
+                # 16 B a box pixel: workers far ahead of a slow back layer would stack them up)
+                pick = head if head not in started else next(
+                    (k for k in order if k > head and k not in started and waiting < scatter.threads), None)
                 if pick is not None:
                     started[pick] = pool.submit(render_layer, layers[pick], arrays, scatter)
                     continue
