@@ -52,10 +52,15 @@ WHOLE_IMAGE_B = 32
 split pixels hold their far part), layer ids, tile masks; the plan's transients (sort keys) are gone by then."""
 REGION_B = 16
 """Per pixel of the rendered region: the accumulator (the image, CoC and layer ids are read in place on the CPU)."""
-LAYER_B = 44
-"""Per pixel of a layer's box in flight: sources (16 + 4) and the radius-pyramid difference buffers (16 x 4/3 and 2
-spare columns); the pull-push pyramid and distance map (24 x 4/3 + 4) come and go before them, in the same
-reused buffers (``bokehray.levels.buffers``)."""
+LAYER_B = 41
+"""Per pixel of a layer's box while it scatters: sources (16 + 4) and the radius-pyramid difference buffers (16 x 4/3
+and 2 spare columns), plus the routing's arrays (``ROUTING_B_PER_LEVEL``)."""
+FILL_B = 60
+"""Per pixel of a layer's box while it builds its sources: sources (16 + 4), the pull-push pyramid (24 x 4/3) and the
+distance map (4), in reused buffers (``bokehray.levels.buffers``); a layer in work peaks at the larger of the two."""
+OTHER_LAYER_B = 30
+"""Per pixel of the box of each other worker's layer, at the peak: one layer fills at a time (``render_layer``), so
+the others are then waiting for the fill or scattering; calibrated on measured peaks (6 to 24 MP, two workers)."""
 RESULT_B = 16
 """Per pixel of a finished layer's box waiting to be composited (premultiplied RGB and coverage): while the next
 layer to composite is in work, at most ``threads - 1`` others' results wait beside the other workers' layers
@@ -68,10 +73,11 @@ quarter of the pixels; plus 1 byte a pixel for the routing flags."""
 
 
 def _layer_bytes(n_levels: int) -> int:
-    """Per pixel of a layer's box in flight, with ``n_levels`` pyramid levels (the routing's arrays included)."""
+    """Per pixel of a layer's box in work, with ``n_levels`` pyramid levels: its fill or its scatter (the routing's
+    arrays included), whichever is larger."""
     if n_levels <= 1:
-        return LAYER_B
-    return LAYER_B + 1 + math.ceil(ROUTING_B_PER_LEVEL * sum(0.25**k for k in range(n_levels - 1)))
+        return max(FILL_B, LAYER_B)
+    return max(FILL_B, LAYER_B + 1 + math.ceil(ROUTING_B_PER_LEVEL * sum(0.25**k for k in range(n_levels - 1))))
 
 
 @dataclass(frozen=True, slots=True)
@@ -108,10 +114,10 @@ def pyramid_buffers(bufs: list[wp.array]) -> bk.Levels:
 
 
 def _region_bytes(window_px: int, layer_areas: list[int], threads: int, n_levels: int = 1) -> int:
-    # at most one layer in work per thread (the largest, at worst), and threads - 1 of the others finished, waiting
-    # to be composited behind a slower one (the next largest, at worst)
+    # at most one layer in work per thread (the largest, at worst: one of them at its peak, the others as they are
+    # then), and threads - 1 of the others finished, waiting to be composited behind a slower one (the next largest)
     areas = sorted(layer_areas, reverse=True)
-    return (REGION_B * window_px + _layer_bytes(n_levels) * sum(areas[:threads])
+    return (REGION_B * window_px + _layer_bytes(n_levels) * sum(areas[:1]) + OTHER_LAYER_B * sum(areas[1:threads])
             + RESULT_B * sum(areas[threads : 2 * threads - 1]))
 
 
