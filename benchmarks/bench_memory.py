@@ -10,6 +10,7 @@ Usage (from the repository root)::
 
     python benchmarks/bench_memory.py              # the full sweep (about 15 minutes on 2 cores)
     python benchmarks/bench_memory.py --quick      # 1.5 MP only, a smoke test
+    python benchmarks/bench_memory.py --model      # the preview's memory model against peaks, 1.5 to 24 MP
 """
 
 from __future__ import annotations
@@ -44,6 +45,11 @@ FULL = [
     (6, "raytrace", 16, 1024, None, 4),
     (24, "raytrace", 16, 2048, None, 4),
 ]
+# the preview's memory model (``bokehray.levels.preview``): untiled at R = 64, and 12 MP under a budget that holds
+# one layer a worker untiled for one worker only (fewer workers instead of tiles)
+MODEL = [(1.5, "preview", 64, None, None, None), (6, "preview", 64, None, None, None),
+         (12, "preview", 64, None, None, None), (24, "preview", 64, None, None, None),
+         (12, "preview", 64, None, 1700, None)]
 QUICK = [(1.5, "preview", 64, None, None, None), (1.5, "preview", 16, 512, None, None),
          (1.5, "raytrace", 16, None, None, 4), (1.5, "preview", 64, None, 50, None)]
 
@@ -70,7 +76,8 @@ def child(npz: str, quality: str, radius: str, tile: str, limit: str, spp: str) 
     try:
         _, stats = br.render_with_stats(image, disparity, blur, quality=quality, options=rays, memory=memory)
         info = {"seconds": time.perf_counter() - t, "image_tiles": stats.image_tiles,
-                "memory_estimate_mb": getattr(stats, "memory_estimate_mb", None), "layers": stats.layers}
+                "memory_estimate_mb": getattr(stats, "memory_estimate_mb", None), "layers": stats.layers,
+                "threads": getattr(stats, "threads", None)}
     except br.ResourceError as e:
         info = {"seconds": time.perf_counter() - t, "refused": str(e)}
     print("INFO=" + json.dumps(info), flush=True)
@@ -109,25 +116,26 @@ def run(plan: list, tmp: str) -> list[dict]:
 
 def table(rows: list[dict]) -> str:
     out = ["| size | quality | R (px) | tile | budget (MB) | tiles | time (s) | peak RSS (MB) | of which before render | "
-           "estimate (MB) | estimate / growth |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+           "estimate (MB) | estimate / growth | workers |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         size = f"{r['width']}x{r['height']} ({r['megapixels']:g} MP)"
         rays = f" ({r['max_spp']} rays)" if r["max_spp"] else ""
         if "error" in r:
-            out.append(f"| {size} | {r['quality']}{rays} | {r['radius']} | | | | | error: {r['error']} | | | |")
+            out.append(f"| {size} | {r['quality']}{rays} | {r['radius']} | | | | | error: {r['error']} | | | | |")
             continue
         tiles = "refused" if "refused" in r else r["image_tiles"]
         est = r.get("memory_estimate_mb")
         ratio = f"{est / (r['peak_mb'] - r['before_mb']):.2f}" if est else ""
         out.append(f"| {size} | {r['quality']}{rays} | {r['radius']} | {r['tile_size'] or 'auto'} | "
                    f"{r['memory_limit_mb'] or 'auto'} | {tiles} | {r['seconds']:.1f} | {r['peak_mb']:.0f} | "
-                   f"{r['before_mb']:.0f} | {f'{est:.0f}' if est else ''} | {ratio} |")
+                   f"{r['before_mb']:.0f} | {f'{est:.0f}' if est else ''} | {ratio} | {r.get('threads') or ''} |")
     return "\n".join(out)
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="1.5 MP only")
+    ap.add_argument("--model", action="store_true", help="the preview's memory model: estimate against growth")
     ap.add_argument("--out", type=Path, default=common.REPO / "benchmarks" / "results")
     ap.add_argument("--child", nargs=6, help=argparse.SUPPRESS)
     args = ap.parse_args()
@@ -136,9 +144,20 @@ def main() -> int:
         return 0
     machine = common.machine_info()
     with tempfile.TemporaryDirectory(prefix="bokehray-mem-") as tmp:
-        rows = run(QUICK if args.quick else FULL, tmp)
+        rows = run(QUICK if args.quick else MODEL if args.model else FULL, tmp)
     print(table(rows))
-    if not args.quick:
+    if args.model:
+        for r in rows:
+            if "peak_mb" in r and r.get("memory_estimate_mb"):
+                r["growth_mb"] = r["peak_mb"] - r["before_mb"]
+                r["estimate_over_growth"] = r["memory_estimate_mb"] / r["growth_mb"]
+        path = common.write_json(args.out / f"memory-model--{common.machine_tag(machine)}.json",
+                                 {"what": "demo scene, focused near, K such that the largest CoC is R px, untiled; "
+                                          "one fresh process a row; growth = peak (VmHWM) - RSS after a 256 x 256 "
+                                          "warm-up render; estimate = the render's memory_estimate_mb",
+                                  "machine": machine, "rows": rows})
+        print("wrote", path)
+    elif not args.quick:
         path = common.write_json(args.out / f"memory--{common.machine_tag(machine)}.json",
                                  {"machine": machine, "rows": rows})
         print("wrote", path)

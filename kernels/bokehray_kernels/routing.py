@@ -324,6 +324,13 @@ def route_cells_kernel(  # noqa: C901
                                                          b_s / b_e, 1.0)
 
 
+def cluster_grid(h: int, w: int, lev: int) -> tuple[int, int]:
+    """The blocks of level ``lev``'s clusters in an ``h x w`` box (``route_cells_kernel``: blocks of ``2^b`` px,
+    ``b = max(1, lev - 2)``): the corner of the level-1 grid the cluster arrays are allocated at that level uses."""
+    b = max(1, lev - 2)
+    return (h + (1 << b) - 1) >> b, (w + (1 << b) - 1) >> b
+
+
 @wp.kernel
 def scatter_clusters_kernel(routing: Routing, lev: int, shape: Shape, buf0: wp.array2d(dtype=wp.vec4)):
     """Scatter the level-``lev`` cluster sources (``route_cells_kernel``; one thread per block) at level 0:

@@ -66,3 +66,15 @@ def test_lazy_zeros_are_zeros():
         np.testing.assert_array_equal(a.numpy(), b.numpy())
         a.fill_(dtype(1) if dtype is not wp.vec4 else wp.vec4(1.0, 1.0, 1.0, 1.0))  # writable, its own memory
         assert a.numpy().all()
+
+
+def test_a_slightly_larger_request_reuses_a_freed_block():
+    """A freed (h, w) plane serves the (h, w + 2) pyramid buffer asked for next (``SLACK``): no new block."""
+    with buffers.reuse_buffers("cpu") as cache:
+        a = wp.zeros((600, 1000), dtype=wp.vec4, device="cpu")
+        ptr = a.ptr
+        del a
+        b = wp.zeros((600, 1002), dtype=wp.vec4, device="cpu")
+        assert b.ptr == ptr and cache.hits == 1 and cache.misses == 1
+        assert not b.numpy().any()
+        del b

@@ -1,6 +1,7 @@
 """The preview's layer pool: workers take layers in any order, compositing stays back to front."""
 
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -33,20 +34,24 @@ def test_renders_are_bit_identical_for_any_number_of_threads():
 
 @pytest.mark.parametrize("threads", [1, 2])
 def test_a_free_worker_takes_the_next_layer_else_the_costliest(monkeypatch, threads):
-    """With the farthest layer held back until every other one has started, the other worker takes them
-    costliest first."""
+    """With the farthest layer held back, the other worker takes the others costliest first, and stops once as many
+    results wait as there are workers (each holds its box's result until the layers behind it are composited)."""
     image, s = _scene()
     _, stats = pv.render_signed_coc(image, s, Aperture(), options=PreviewOptions(threads=1))
-    started, lock, all_started = [], threading.Lock(), threading.Event()
+    started, lock, ahead = [], threading.Lock(), threading.Event()
     render_layer = pv.render_layer
+    seen = []
 
     def record(layer, arrays, scatter):
         with lock:
             started.append(layer)
-            if len(started) == stats.layers:
-                all_started.set()
-        if threads > 1 and len(started) == 1:
-            assert all_started.wait(60)
+            first = len(started) == 1
+            if len(started) == 1 + threads:
+                ahead.set()
+        if threads > 1 and first:
+            assert ahead.wait(60)
+            time.sleep(0.3)  # a worker let through would start a layer now
+            seen.append(len(started))
         return render_layer(layer, arrays, scatter)
 
     monkeypatch.setattr(pv, "render_layer", record)
@@ -57,5 +62,50 @@ def test_a_free_worker_takes_the_next_layer_else_the_costliest(monkeypatch, thre
         assert index == sorted(index)  # one worker: back to front
     else:
         assert index[0] == min(index)  # the farthest first: it is composited first
-        costs = [pv.layer_cost(lyr) for lyr in started[1:]]
+        assert seen == [1 + threads]  # two results waiting behind the held layer: the other worker stopped
+        costs = [pv.layer_cost(lyr) for lyr in started[1:1 + threads]]
         assert costs == sorted(costs, reverse=True) and index[1:] != sorted(index[1:])
+
+
+def test_one_fill_at_a_time(monkeypatch):
+    """Two workers never build layer sources (the pull-push fill, the layer's largest working set) at once."""
+    from bokehray import scene as sc
+
+    image, s = _scene()
+    build, lock, now, most = sc.build_layer_sources, threading.Lock(), [0], [0]
+
+    def counted(layer, arrays):
+        with lock:
+            now[0] += 1
+            most[0] = max(most[0], now[0])
+        time.sleep(0.05)  # a window wide enough for another worker to come in, were it let in
+        try:
+            return build(layer, arrays)
+        finally:
+            with lock:
+                now[0] -= 1
+
+    monkeypatch.setattr(sc, "build_layer_sources", counted)
+    want, stats = pv.render_signed_coc(image, s, Aperture(), options=PreviewOptions(threads=1))
+    got, _ = pv.render_signed_coc(image, s, Aperture(), options=PreviewOptions(threads=3))
+    assert stats.layers >= 5 and most[0] == 1
+    np.testing.assert_array_equal(got, want)
+
+
+def test_a_short_budget_takes_fewer_workers_before_tiles():
+    """A budget between the one-worker and the two-worker estimates: one worker, untiled, the same render."""
+    from bokehray import MemoryOptions, ResourceError
+
+    image, s = _scene(240)
+    two = PreviewOptions(threads=2)
+    want, st2 = pv.render_signed_coc(image, s, Aperture(), options=two)
+    _, st1 = pv.render_signed_coc(image, s, Aperture(), options=PreviewOptions(threads=1))
+    assert st2.threads == 2 and st1.memory_estimate_mb < st2.memory_estimate_mb
+    limit = 0.5 * (st1.memory_estimate_mb + st2.memory_estimate_mb)
+    got, st = pv.render_signed_coc(image, s, Aperture(), options=two, memory=MemoryOptions(memory_limit_mb=limit))
+    assert st.threads == 1 and st.image_tiles == 1 and st.memory_estimate_mb == st1.memory_estimate_mb
+    np.testing.assert_array_equal(got, want)
+    # a budget not even one worker fits untiled: tiles, or (here, a small frame) refused, as before
+    with pytest.raises(ResourceError):
+        pv.render_signed_coc(image, s, Aperture(), options=two,
+                             memory=MemoryOptions(memory_limit_mb=0.9 * st1.memory_estimate_mb))

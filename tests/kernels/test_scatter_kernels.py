@@ -359,3 +359,36 @@ def test_a_small_lamp_keeps_its_outline(device):
     exact, _ = render_signed_coc(image, s, Aperture(), options=PreviewOptions(level_radius_px=1000), device=device)
     assert np.abs(got - exact).max() < 0.085 * exact.max()
     assert np.abs(got - exact).sum() < 0.0105 * np.abs(exact - 0.05).sum()
+
+
+def test_clusters_lie_in_their_levels_block_grid(device, rng):
+    """Level ``lev``'s clusters sit on blocks of ``2^max(1, lev - 2)`` px: ``cluster_grid`` holds them all, so the
+    preview launches ``scatter_clusters_kernel`` on it (not on the whole level-1 grid) and deposits the same."""
+    from bokehray_kernels.routing import cluster_grid
+
+    from bokehray.levels.preview import route_salient
+
+    h, w = 150, 170
+    src = np.zeros((h, w, 4), np.float32)
+    src[..., :3] = rng.random((h, w, 3)) * 0.05
+    src[..., 3] = 1.0
+    for y, x in ((20, 30), (90, 120), (130, 15), (60, 160)):  # lamps of many dim-ish pixels, gathered per block
+        src[y:y + 7, x:x + 7, :3] += rng.uniform(0.5, 3.0, 3).astype(np.float32)
+    coc = np.full((h, w), -100.0, np.float32)  # level 4 at r0 = 8
+    coc[:, w // 2:] = 230.0  # level 5
+    routing = route_salient(wp.array(src, dtype=wp.vec4, device=device), wp.array(coc, device=device), 6, 8.0, device)
+    shape = routing.cluster_shape.numpy()
+    for lev in (4, 5):
+        gh, gw = cluster_grid(h, w, lev)
+        held = shape[lev - 1, ..., 3] == 1.0
+        assert held.any() and not held[gh:].any() and not held[:, gw:].any()
+    ap = aperture_shape(Aperture(), Aperture().blade_discs(), device)
+    bufs = []
+    for dims in (lambda lev: routing.cluster_shape.shape[1:], lambda lev: cluster_grid(h, w, lev)):
+        buf = wp.zeros((h, w + 2), dtype=wp.vec4, device=device)
+        for lev in (4, 5):
+            wp.launch(bk.scatter_clusters_kernel, dim=dims(lev), inputs=[routing.struct(), lev, ap], outputs=[buf],
+                      device=device)
+        bufs.append(buf.numpy())
+    assert np.abs(bufs[0]).sum() > 0
+    np.testing.assert_array_equal(bufs[1], bufs[0])

@@ -29,6 +29,10 @@ MIN_BYTES = 1 << 20
 """Blocks below this go straight to the C allocator (which reuses small blocks itself)."""
 FIT = 4
 """A cached block serves a request of at least 1 / FIT of its size (its unused tail is not touched again)."""
+SLACK = 64
+"""A new block is ``1 / SLACK`` larger than asked (rounded up to 64 KiB), so that a later request a little larger
+(a pyramid buffer's two spare columns on a box the size of a freed plane) still fits it. The tail is address space
+only: no page of it is touched unless a later array uses it."""
 
 
 class CachingHostAllocator:
@@ -66,9 +70,10 @@ class CachingHostAllocator:
                 size, ptr = self.free.pop(0)  # the smallest first: the least likely to fit a later request
                 cached -= size
                 self.inner.deallocate(ptr, size)
-        ptr = self.inner.allocate(size_in_bytes)
+        block = -(-(size_in_bytes + size_in_bytes // SLACK) // (1 << 16)) << 16
+        ptr = self.inner.allocate(block)
         with self.lock:
-            self._take(ptr, size_in_bytes, size_in_bytes)
+            self._take(ptr, block, size_in_bytes)
         return ptr
 
     def _take(self, ptr: int, size: int, asked: int) -> None:

@@ -20,8 +20,10 @@ Large renders go tile by tile through ``bokehray.tiling`` with exact halos (``bo
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
+import threading
 import time
 from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass
@@ -29,6 +31,7 @@ from dataclasses import dataclass
 import bokehray_kernels as bk
 import numpy as np
 import warp as wp
+from bokehray_kernels.routing import cluster_grid
 
 from .. import scene as sc
 from .. import tiling
@@ -49,13 +52,19 @@ WHOLE_IMAGE_B = 32
 split pixels hold their far part), layer ids, tile masks; the plan's transients (sort keys) are gone by then."""
 REGION_B = 16
 """Per pixel of the rendered region: the accumulator (the image, CoC and layer ids are read in place on the CPU)."""
-LAYER_B = 44
-"""Per pixel of a layer's box in flight: sources (16 + 4) and the radius-pyramid difference buffers (16 x 4/3 and 2
-spare columns); the pull-push pyramid and distance map (24 x 4/3 + 4) come and go before them, in the same
-reused buffers (``bokehray.levels.buffers``)."""
-RESULT_B = 4
-"""Per pixel of every rendered layer's box, for the results waiting to be composited (16 bytes each: premultiplied RGB
-and coverage) counted at a quarter: the workers seldom run more than a layer ahead of the compositing (measured)."""
+LAYER_B = 41
+"""Per pixel of a layer's box while it scatters: sources (16 + 4) and the radius-pyramid difference buffers (16 x 4/3
+and 2 spare columns), plus the routing's arrays (``ROUTING_B_PER_LEVEL``)."""
+FILL_B = 60
+"""Per pixel of a layer's box while it builds its sources: sources (16 + 4), the pull-push pyramid (24 x 4/3) and the
+distance map (4), in reused buffers (``bokehray.levels.buffers``); a layer in work peaks at the larger of the two."""
+OTHER_LAYER_B = 30
+"""Per pixel of the box of each other worker's layer, at the peak: one layer fills at a time (``render_layer``), so
+the others are then waiting for the fill or scattering; calibrated on measured peaks (6 to 24 MP, two workers)."""
+RESULT_B = 16
+"""Per pixel of a finished layer's box waiting to be composited (premultiplied RGB and coverage): while the next
+layer to composite is in work, at most ``threads - 1`` others' results wait beside the other workers' layers
+(``_render_window`` starts no more once ``threads`` wait)."""
 ROUTING_B_PER_LEVEL = 18
 """For :func:`route_salient`, per pixel of a layer's box in flight and per coarse level of its pyramid, weighted
 1, 1/4, 1/16, ... from the first (pages are taken only where written: ``buffers.lazy_zeros``): the radiance pyramid,
@@ -64,10 +73,11 @@ quarter of the pixels; plus 1 byte a pixel for the routing flags."""
 
 
 def _layer_bytes(n_levels: int) -> int:
-    """Per pixel of a layer's box in flight, with ``n_levels`` pyramid levels (the routing's arrays included)."""
+    """Per pixel of a layer's box in work, with ``n_levels`` pyramid levels: its fill or its scatter (the routing's
+    arrays included), whichever is larger."""
     if n_levels <= 1:
-        return LAYER_B
-    return LAYER_B + 1 + math.ceil(ROUTING_B_PER_LEVEL * sum(0.25**k for k in range(n_levels - 1)))
+        return max(FILL_B, LAYER_B)
+    return max(FILL_B, LAYER_B + 1 + math.ceil(ROUTING_B_PER_LEVEL * sum(0.25**k for k in range(n_levels - 1))))
 
 
 @dataclass(frozen=True, slots=True)
@@ -80,6 +90,8 @@ class _Scatter:
     exact_highlights: bool
     threads: int
     device: str
+    fill_gate: threading.Lock = dataclasses.field(default_factory=threading.Lock)
+    """Held while a layer builds its sources: one pull-push fill at a time (see :func:`render_layer`)."""
 
 
 def aperture_shape(aperture: Aperture, blade_rows: np.ndarray, device: str) -> bk.Shape:
@@ -102,10 +114,11 @@ def pyramid_buffers(bufs: list[wp.array]) -> bk.Levels:
 
 
 def _region_bytes(window_px: int, layer_areas: list[int], threads: int, n_levels: int = 1) -> int:
-    # at most one layer in work per thread (the largest, at worst), and any of the others finished, waiting to be
-    # composited (a layer started out of order, or one behind a slower one)
-    in_flight = sorted(layer_areas, reverse=True)[:threads]
-    return REGION_B * window_px + _layer_bytes(n_levels) * sum(in_flight) + RESULT_B * sum(layer_areas)
+    # at most one layer in work per thread (the largest, at worst: one of them at its peak, the others as they are
+    # then), and threads - 1 of the others finished, waiting to be composited behind a slower one (the next largest)
+    areas = sorted(layer_areas, reverse=True)
+    return (REGION_B * window_px + _layer_bytes(n_levels) * sum(areas[:1]) + OTHER_LAYER_B * sum(areas[1:threads])
+            + RESULT_B * sum(areas[threads : 2 * threads - 1]))
 
 
 SALIENT_VISIBLE = 0.002
@@ -261,11 +274,18 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
     stats.sources_scattered = int((scene.ids >= 0).sum()) + len(scene.near)
     stats.pyramid_levels = max(sc.pyramid_levels(lyr.max_radius, options.level_radius_px) for lyr in scene.layers)
     threads = 1 if wp.get_device(ctx.device).is_cuda else max(1, options.threads or os.cpu_count() or 1)
-    stats.threads = threads
 
     whole = WHOLE_IMAGE_B * h * w
     n_lv = stats.pyramid_levels if options.exact_highlights else 1  # the routing's arrays grow with the levels
     areas = [_area(lyr.bbox) for lyr in scene.layers]
+    if ctx.memory.tile_size is None:
+        # fewer layers in flight before tiles: where the budget does not hold a layer a worker but holds the frame
+        # with fewer workers, those render it untiled (the same values, the layers' CPU time the same, less
+        # parallel), where tiles would repeat every window's halo work or be refused
+        budget = tiling.budget_bytes(ctx.memory)
+        threads = next((k for k in range(threads, 0, -1)
+                        if whole + _region_bytes(h * w, areas, k, n_lv) <= budget), threads)
+    stats.threads = threads
     margin = 2 * max(sum(sc.scatter_halo(lyr, options.level_radius_px)) for lyr in scene.layers)
     tile, need = tiling.choose_tile(
         h, w, ctx.memory, untiled_bytes=whole + _region_bytes(h * w, areas, threads, n_lv), margin=margin,
@@ -355,7 +375,11 @@ def render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatt
     y0, y1, x0, x1 = layer.bbox
     h, w = y1 - y0, x1 - x0
     support = sc.LayerSupport.of(layer, device)
-    src, coc = sc.build_layer_sources(layer, arrays)
+    # The fill is the layer's largest working set (sources, pull-push pyramid, distance map: about 56 bytes a box
+    # pixel, against about 43 for the scatter that follows): one worker fills at a time, so two workers' fills never
+    # overlap (the other worker scatters meanwhile). Nothing else is shared: values do not depend on it.
+    with scatter.fill_gate:
+        src, coc = sc.build_layer_sources(layer, arrays)
     n_levels = sc.pyramid_levels(layer.max_radius, scatter.level_radius_px)
     first = sc.lowest_level(layer, scatter.level_radius_px)  # levels 1 .. first - 1 stay empty
     bufs = []
@@ -374,7 +398,7 @@ def render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatt
               device=device)
     if routed:
         for lev in range(max(1, first), n_levels):
-            wp.launch(bk.scatter_clusters_kernel, dim=routing.cluster_shape.shape[1:],
+            wp.launch(bk.scatter_clusters_kernel, dim=cluster_grid(h, w, lev),
                       inputs=[routing.struct(), lev, scatter.shape], outputs=[bufs[0]], device=device)
     for lv in range(n_levels):
         if lv == 0 or lv >= first:
@@ -400,8 +424,9 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
     # Layers render independently (Warp CPU launches release the GIL) on ``threads`` workers and are composited
     # strictly back to front as they complete. A free worker takes the next layer to composite if it has not
     # started, else the costliest one left (:func:`layer_cost`), so that a slow layer does not start last while the
-    # other workers idle. A finished layer waiting to be composited holds only its result (16 B/px;
-    # :func:`_region_bytes` counts one working layer a thread and, at a quarter, every result).
+    # other workers idle. A finished layer waiting to be composited holds only its result (16 B/px); while as many
+    # results wait as there are workers, only the next layer to composite starts (:func:`_region_bytes` counts one
+    # working layer a thread and that many results).
     done = 0
     order = sorted(range(len(layers)), key=lambda k: -layer_cost(layers[k]) if scatter.threads > 1 else k)
     pool = ThreadPoolExecutor(max_workers=scatter.threads)
@@ -410,8 +435,12 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
         head = 0  # the next layer to composite
         while head < len(layers):
             running = [f for f in started.values() if not f.done()]
+            waiting = len(started) - len(running)  # finished, waiting for the layers behind them
             if len(running) < scatter.threads:
-                pick = head if head not in started else next((k for k in order if k > head and k not in started), None)
+                # the next to composite always; another only while fewer results than workers wait (each holds
+                # 16 B a box pixel: workers far ahead of a slow back layer would stack them up)
+                pick = head if head not in started else next(
+                    (k for k in order if k > head and k not in started and waiting < scatter.threads), None)
                 if pick is not None:
                     started[pick] = pool.submit(render_layer, layers[pick], arrays, scatter)
                     continue
