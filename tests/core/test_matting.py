@@ -268,9 +268,9 @@ def test_band_kernel_matches_the_reference(device, soft):
 
 
 def test_threads_do_not_change_the_result(monkeypatch):
-    import bokehray.matting as matting
+    import bokehray.edge_estimate as edge_estimate
 
-    monkeypatch.setattr(matting, "PIXELS_PER_THREAD", 16)  # a small scene in several launches
+    monkeypatch.setattr(edge_estimate, "PIXELS_PER_THREAD", 16)  # a small scene in several launches
     photo, coc, _, _, _ = two_plane(n=96, seed=2, kind="strands")
     one = split_mixed_pixels(photo, coc, threads=1)
     two = split_mixed_pixels(photo, coc, threads=3)
