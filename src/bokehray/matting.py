@@ -27,6 +27,9 @@ blur the two parts with their own CoC. NumPy for the edges and the band, one War
    (times the Gaussian), so the purest nearby samples dominate: a strand's own core, not the body it grows
    from. The parts' CoC are the window's largest and smallest CoC (the plateaus either side of the edge), not
    the pixel's own value, which a soft map's ramp leaves in between.
+4b. **Alpha fused with the projection.** The model's alpha (biased towards the window's mean by the ridge) and the
+   projection of the pixel's colour on its F-B line are fused by their inverse variances (:func:`fuse_alpha`):
+   over flat sides the projection decides, over texture the model.
 5. **Compositing identity.** Per channel, the change of (F, B) that makes ``alpha F + (1 - alpha) B`` the
    photo's colour while moving each part the least relative to the spread of its side's colours (a light
    behind a strand stays in B instead of lighting up the strand), then kept between 0 and the photo's colour
@@ -34,7 +37,7 @@ blur the two parts with their own CoC. NumPy for the edges and the band, one War
    about alpha and the pixel is left alone.
 
 A band pixel is split when its alpha (on a sharp map also the projection of its colour on the F-B line) lies
-in ``[min_alpha, 1 - min_alpha]``, or when its own CoC puts it on the side its alpha says it is not (a misplaced
+in ``[min_alpha, max_alpha]``, or when its own CoC puts it on the side its alpha says it is not (a misplaced
 depth edge): then alpha is clipped into that range. Every other
 pixel is untouched. Results and the choice of method: docs/soft-scene.md.
 """
@@ -55,7 +58,7 @@ from .errors import InputError
 from .scene import SoftEdges
 from .validate import check_finite
 
-__all__ = ["isolated_share", "ramp_width", "split_mixed_pixels", "window_offsets"]
+__all__ = ["fuse_alpha", "isolated_share", "ramp_width", "split_mixed_pixels", "window_offsets"]
 
 def _check(image: np.ndarray, signed_coc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     img = np.asarray(image)
@@ -110,8 +113,13 @@ def split_mixed_pixels(
         min_contrast: pixels whose F and B differ by less than this share of the brighter of the two (Euclidean,
             linear RGB) are left alone: their colour says nothing about alpha.
         min_alpha: a pixel is split when its alpha (on a sharp map also its colour's projection on the F-B line)
-            lies in ``[min_alpha, 1 - min_alpha]``; otherwise it keeps its one depth, unless the depth map puts it
+            lies in ``[min_alpha, max_alpha]``; otherwise it keeps its one depth, unless the depth map puts it
             on the other side than its alpha (then alpha is clipped into the range).
+        max_alpha: the top of that range: a nearly pure foreground pixel stays whole (splitting it would leave a
+            sharp sliver ``I - alpha F`` of the foreground's colour where F is a little off), a faint background one
+            is split (whole, its share of the strand would stay sharp and feed the fill behind the strand).
+        model_sd: the standard deviation given to the model's alpha when it is fused with the projection of the
+            pixel's colour on the F-B line (:func:`fuse_alpha`); None: the model's alpha alone.
         max_isolated_share: a map where more than this share of the pixels differ by more than ``jump_px`` from
             all their neighbours is noise, not edges: nothing is split (a strand one pixel wide, even diagonal,
             has neighbours of its own depth along it).
