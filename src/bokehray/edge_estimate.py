@@ -4,9 +4,8 @@ alpha is, by the photo's colour (a local linear colour model per band pixel).
 Two consumers, one estimate:
 
 * ``bokehray.matting.split_mixed_pixels`` splits the band pixels whose alpha is mixed into a near and a far part.
-* ``bokehray.depthfix.correct_disparity`` leaves a depth edge where this estimate says it already lies on the
-  colour edge (:meth:`EdgeEstimate.settled`), and looks for smeared ramps only where the estimate measured ramps
-  (:func:`ramp_width` > 0).
+* ``bokehray.depthfix.correct_disparity`` takes its depth edges from here and looks for smeared ramps only
+  where this module measures ramps (:func:`ramp_width` > 0, the measure that widens the matting's band).
 
 Steps (docs/soft-scene.md): the depth edges (4-neighbour pairs whose signed CoC differs by more than
 ``jump_px``); a map whose edges are noise is left alone (:func:`isolated_share`); the unknown band (the
@@ -207,23 +206,6 @@ class EdgeEstimate:
         den = (d * d).sum(1)
         bright = np.maximum((self.fg * self.fg).sum(1), (self.bg * self.bg).sum(1))
         return (den > np.float32(min_contrast) ** 2 * bright) & (den > 1e-20)
-
-    def projection(self) -> np.ndarray:
-        """Each band pixel's colour projected on its F-B line: ``(I - B) . (F - B) / |F - B|^2`` (unclipped)."""
-        d = (self.fg - self.bg).astype(np.float64)
-        den = np.maximum((d * d).sum(1), 1e-30)
-        return (((self.image[self.by, self.bx] - self.bg) * d).sum(1) / den).astype(np.float32)
-
-    def alpha_map(self, min_contrast: float) -> np.ndarray:
-        """``H x W`` float32: the colour alpha of the band pixels whose F and B differ (``min_contrast``) and whose
-        window holds both sides; NaN elsewhere."""
-        h, w = self.shape
-        y0, _, x0, _ = self.box
-        proj = self.projection()
-        keep = self.ok & self.contrast(min_contrast) & ((self.alpha >= 0.5) == (proj >= 0.5))
-        out = np.full((h, w), np.nan, np.float32)
-        out[self.by[keep] + y0, self.bx[keep] + x0] = self.alpha[keep]
-        return out
 
 
 def estimate_edges(image: np.ndarray, signed_coc: np.ndarray, *, jump_px: float = 1.0, band_px: int = 0,
