@@ -14,7 +14,9 @@ edges and rendering again can be worth more than a learned residual on the image
    edge and step looks like the *other* side of the edge, the pixels of that stretch are suspect
    (:func:`untrusted`): on the far side a too thin near region (erosion), on the near side a too fat one
    (dilation). A third hypothesis marks pixels inside a smeared edge (:func:`smeared`: the local largest
-   and smallest disparity both differ from the pixel's by more than ``snap_px`` of CoC).
+   and smallest disparity both differ from the pixel's by more than ``snap_px`` of CoC), only on a map
+   whose edges the edge estimate the matting shares (``bokehray.edge_estimate.ramp_width``) measures as
+   ramps: on a map of steps a pixel between two depths is a third surface.
 2. **A colour vote of the trusted pixels.** For each suspect pixel, the other pixels within
    ``radius_px`` vote, weighted by colour similarity and distance, in three classes relative to the
    pixel's own disparity (farther, the same within ``snap_px`` of CoC, nearer). The pixel moves to the
@@ -38,8 +40,8 @@ import numpy as np
 
 from .edge_estimate import depth_edges, ramp_width
 
-__all__ = ["DepthFixOptions", "colour_edge_offsets", "correct_disparity", "depth_edges", "edge_pairs", "global_shift", "has_ramps",
-           "pass_reach", "shift_map", "smeared", "step_flips", "untrusted", "vote", "weighted_median"]
+__all__ = ["DepthFixOptions", "colour_edge_offsets", "correct_disparity", "depth_edges", "edge_pairs", "global_shift",
+           "has_ramps", "pass_reach", "shift_map", "smeared", "step_flips", "untrusted", "vote", "weighted_median"]
 
 
 @dataclass(frozen=True)
