@@ -27,6 +27,9 @@ blur the two parts with their own CoC. NumPy for the edges and the band, one War
    (times the Gaussian), so the purest nearby samples dominate: a strand's own core, not the body it grows
    from. The parts' CoC are the window's largest and smallest CoC (the plateaus either side of the edge), not
    the pixel's own value, which a soft map's ramp leaves in between.
+4b. **Alpha fused with the projection.** The model's alpha (biased towards the window's mean by the ridge) and the
+   projection of the pixel's colour on its F-B line are fused by their inverse variances (:func:`fuse_alpha`):
+   over flat sides the projection decides, over texture the model.
 5. **Compositing identity.** Per channel, the change of (F, B) that makes ``alpha F + (1 - alpha) B`` the
    photo's colour while moving each part the least relative to the spread of its side's colours (a light
    behind a strand stays in B instead of lighting up the strand), then kept between 0 and the photo's colour
@@ -34,88 +37,28 @@ blur the two parts with their own CoC. NumPy for the edges and the band, one War
    about alpha and the pixel is left alone.
 
 A band pixel is split when its alpha (on a sharp map also the projection of its colour on the F-B line) lies
-in ``[min_alpha, 1 - min_alpha]``, or when its own CoC puts it on the side its alpha says it is not (a misplaced
+in ``[min_alpha, max_alpha]``, or when its own CoC puts it on the side its alpha says it is not (a misplaced
 depth edge): then alpha is clipped into that range. Every other
 pixel is untouched. Results and the choice of method: docs/soft-scene.md.
 """
 
 from __future__ import annotations
 
-import os
-from concurrent.futures import ThreadPoolExecutor
-
-import bokehray_kernels.matting as bk_matting
 import numpy as np
 
-from .depthfix import depth_edges
+from .edge_estimate import (  # noqa: F401  (re-exported: the matting's public names before the shared estimate)
+    PIXELS_PER_THREAD,
+    estimate_edges,
+    isolated_share,
+    launch_band_kernel,
+    ramp_width,
+    window_offsets,
+)
 from .errors import InputError
-from .scene import SoftEdges, dilate
+from .scene import SoftEdges
 from .validate import check_finite
 
-__all__ = ["isolated_share", "ramp_width", "split_mixed_pixels", "window_offsets"]
-
-PIXELS_PER_THREAD = 4096
-"""Fewest band pixels a CPU thread of the kernel gets (fewer are not worth a thread)."""
-
-
-def ramp_width(signed_coc: np.ndarray, jump_px: float, cap: int) -> int:
-    """How many pixels a depth edge's CoC ramp spans (0 for a hard edge): the 90th percentile, over the map's
-    depth-edge pairs, of the length of the run of consecutive same-sign steps above ``jump_px`` a pair belongs
-    to (along its axis), minus one; at most ``cap``."""
-    lengths = []
-    for ax in (0, 1):
-        dd = np.diff(signed_coc, axis=ax)
-        if dd.size == 0:
-            continue
-        pos = np.flatnonzero(np.abs(dd) > jump_px)  # row-major positions of the steps (the edge pairs only)
-        if pos.size == 0:
-            continue
-        sign = np.sign(dd.ravel()[pos]).astype(np.int8)
-        rows, cols = np.divmod(pos, dd.shape[1])
-        if ax == 0:  # runs go down the columns: order the steps column by column
-            order = np.lexsort((rows, cols))
-            line, along, sign = cols[order], rows[order], sign[order]
-        else:
-            line, along = rows, cols
-        # a run continues where the next step is the next pixel of the same line with the same sign
-        cont = (line[1:] == line[:-1]) & (along[1:] == along[:-1] + 1) & (sign[1:] == sign[:-1])
-        starts = np.flatnonzero(np.concatenate([[True], ~cont]))
-        run = np.diff(np.concatenate([starts, [pos.size]]))
-        lengths.append(np.repeat(run, run))
-    if not lengths:
-        return 0
-    return int(min(cap, max(0, int(np.percentile(np.concatenate(lengths), 90)) - 1)))
-
-
-def isolated_share(signed_coc: np.ndarray, jump_px: float) -> float:
-    """The share of pixels whose CoC differs by more than ``jump_px`` from each of their neighbours in the image
-    (eight, fewer at the border); 0 for a single pixel."""
-    h, w = signed_coc.shape
-    if h * w < 2:
-        return 0.0
-    p = np.pad(signed_coc.astype(np.float64), 1, mode="constant", constant_values=np.nan)
-    iso = np.ones((h, w), bool)
-    for dy in (-1, 0, 1):
-        for dx in (-1, 0, 1):
-            if dy or dx:
-                nb = p[1 + dy:1 + dy + h, 1 + dx:1 + dx + w]
-                iso &= ~(np.abs(nb - signed_coc) <= jump_px)  # NaN (outside) counts as different
-    return float(iso.mean())
-
-
-def window_offsets(radius: int) -> tuple[np.ndarray, np.ndarray]:
-    """(dy, dx) offsets of the search window and their distances, nearest first: every pixel within 4 px, and a
-    grid of pitch 2 from there to ``radius`` (the far rings of a wide window hold the same colours at a quarter
-    of the cost)."""
-    r = int(radius)
-    g = np.arange(-r, r + 1)
-    oy, ox = np.meshgrid(g, g, indexing="ij")
-    dist = np.hypot(oy, ox)
-    keep = (dist <= r + 0.5) & ((dist <= 4.0) | ((oy % 2 == 0) & (ox % 2 == 0)))
-    order = np.argsort(dist[keep], kind="stable")
-    offs = np.stack([oy[keep], ox[keep]], 1)[order]
-    return offs.astype(np.int64), dist[keep][order].astype(np.float32)
-
+__all__ = ["fuse_alpha", "isolated_share", "ramp_width", "split_mixed_pixels", "window_offsets"]
 
 def _check(image: np.ndarray, signed_coc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     img = np.asarray(image)
@@ -146,9 +89,11 @@ def split_mixed_pixels(
     max_ramp_px: int = 6,
     unknown_weight: float = 0.3,
     ridge: float = 0.03,
-    purity: float = 8.0,
+    purity: float = 12.0,
     min_contrast: float = 0.02,
-    min_alpha: float = 0.1,
+    min_alpha: float = 0.02,
+    max_alpha: float = 0.9,
+    model_sd: float | None = 0.1,
     max_isolated_share: float = 0.25,
     device: str = "cpu",
     threads: int | None = None,
@@ -168,8 +113,13 @@ def split_mixed_pixels(
         min_contrast: pixels whose F and B differ by less than this share of the brighter of the two (Euclidean,
             linear RGB) are left alone: their colour says nothing about alpha.
         min_alpha: a pixel is split when its alpha (on a sharp map also its colour's projection on the F-B line)
-            lies in ``[min_alpha, 1 - min_alpha]``; otherwise it keeps its one depth, unless the depth map puts it
+            lies in ``[min_alpha, max_alpha]``; otherwise it keeps its one depth, unless the depth map puts it
             on the other side than its alpha (then alpha is clipped into the range).
+        max_alpha: the top of that range: a nearly pure foreground pixel stays whole (splitting it would leave a
+            sharp sliver ``I - alpha F`` of the foreground's colour where F is a little off), a faint background one
+            is split (whole, its share of the strand would stay sharp and feed the fill behind the strand).
+        model_sd: the standard deviation given to the model's alpha when it is fused with the projection of the
+            pixel's colour on the F-B line (:func:`fuse_alpha`); None: the model's alpha alone.
         max_isolated_share: a map where more than this share of the pixels differ by more than ``jump_px`` from
             all their neighbours is noise, not edges: nothing is split (a strand one pixel wide, even diagonal,
             has neighbours of its own depth along it).
@@ -187,44 +137,30 @@ def split_mixed_pixels(
     """
     img, s = _check(image, signed_coc)
     photo = img
-    h, w = s.shape
-    if h < 2 and w < 2:
+    est = estimate_edges(img, s, jump_px=jump_px, band_px=band_px, max_ramp_px=max_ramp_px,
+                         unknown_weight=unknown_weight, ridge=ridge, purity=purity,
+                         max_isolated_share=max_isolated_share, device=device, threads=threads)
+    if est is None:
         return SoftEdges.empty()
-    edges = depth_edges(s, float(jump_px))
-    if not edges.any():
-        return SoftEdges.empty()
-    # isolated pixels are edge pixels: only a map with more edge pixels than the share allows can be noise
-    if edges.mean() > max_isolated_share and isolated_share(s, float(jump_px)) > max_isolated_share:
-        return SoftEdges.empty()  # noise in the map, not edges
-
-    scale = float(np.abs(img).max()) or 1.0
-    img = img / np.float32(scale)  # every threshold below is relative: the result does not depend on the exposure
-    ramp = ramp_width(s, float(jump_px), int(max_ramp_px))
-    b = int(band_px) + (ramp + 1) // 2
-    radius = ramp + 2 * b + 2
-    # work on the box of the edges, padded by everything a band pixel's window reaches
-    ey, ex = np.nonzero(edges)
-    pad = b + radius
-    y0, y1 = max(0, int(ey.min()) - pad), min(h, int(ey.max()) + pad + 1)
-    x0, x1 = max(0, int(ex.min()) - pad), min(w, int(ex.max()) + pad + 1)
-    band = dilate(edges[y0:y1, x0:x1], b)
-    by, bx = np.nonzero(band)
-    out = launch_band_kernel(img[y0:y1, x0:x1], s[y0:y1, x0:x1], band, by, bx, radius, jump_px, unknown_weight, ridge,
-                       purity, device, threads)
-    alpha, F, B, vF, vB, near, far, flags = out
-    ok = (flags & bk_matting.BAND_OK) != 0
-    own_near = (flags & bk_matting.BAND_OWN_NEAR) != 0
+    w = s.shape[1]
+    y0, y1, x0, x1 = est.box
+    by, bx, ramp, scale = est.by, est.bx, est.ramp, est.scale
+    alpha, F, B, vF, vB, near, far = est.alpha, est.fg, est.bg, est.fg_var, est.bg_var, est.near, est.far
+    ok, own_near = est.ok, est.own_near
 
     d = F - B
     den = (d * d).sum(1)
-    contrast = (den > np.float32(min_contrast) ** 2 * np.maximum((F * F).sum(1), (B * B).sum(1))) & (den > 1e-20)
-    lo_a, hi_a = np.float32(min_alpha), np.float32(1.0 - min_alpha)
+    contrast = est.contrast(min_contrast)
+    if model_sd is not None:
+        alpha = fuse_alpha(alpha, est.image[by, bx], F, B, vF, vB, float(model_sd))
+    lo_a = np.float32(min_alpha)
+    hi_a = np.float32(max_alpha)
     mixed = (alpha >= lo_a) & (alpha <= hi_a)
     if ramp == 0:
         # a sharp map's labels are trusted: a pixel the model calls mixed but whose colour's place on the F-B line
         # is F or B stays whole (a pure corner whose window is mostly the other side's texture). A soft map's
         # F and B are rougher; there the model alone decides (the check lost 0.4 dB on the estimated maps)
-        proj = np.clip(((img[y0:y1, x0:x1][by, bx] - B) * d).sum(1) / np.maximum(den, np.float32(1e-30)), 0.0, 1.0)
+        proj = np.clip(((est.image[by, bx] - B) * d).sum(1) / np.maximum(den, np.float32(1e-30)), 0.0, 1.0)
         mixed &= (proj >= lo_a) & (proj <= hi_a)
     misplaced = ((alpha < lo_a) & own_near) | ((alpha > hi_a) & ~own_near)
     split = ok & contrast & (mixed | misplaced) & (near > far)
@@ -239,47 +175,20 @@ def split_mixed_pixels(
     return SoftEdges(index, a, Fs, Bs, near[split], far[split])
 
 
-def launch_band_kernel(img, s, band, by, bx, radius, jump_px, unknown_weight, ridge, purity, device, threads):
-    """Launch ``bokehray_kernels.matting.matting_band_kernel`` over the band pixels (in ``threads`` row bands on
-    the CPU: Warp CPU launches release the GIL). Returns NumPy arrays: alpha, F, B, their variances, the near and
-    far CoC and the flags."""
-    import warp as wp
-
-    n = by.size
-    offs, dist = window_offsets(radius)
-    dev = wp.get_device(device)
-    image = wp.array(np.ascontiguousarray(img, np.float32), dtype=wp.vec3, device=dev)
-    coc = wp.array(np.ascontiguousarray(s, np.float32), dtype=float, device=dev)
-    unknown = wp.array(band.astype(np.uint8), dtype=wp.uint8, device=dev)
-    oy = wp.array(offs[:, 0].astype(np.int32), dtype=wp.int32, device=dev)
-    ox = wp.array(offs[:, 1].astype(np.int32), dtype=wp.int32, device=dev)
-    sigma = 0.5 * radius
-    og = wp.array(np.exp(-(dist.astype(np.float64) ** 2) / (2.0 * sigma * sigma)).astype(np.float32), dtype=float,
-                  device=dev)
-    parts = 1 if dev.is_cuda else max(1, min(int(threads or os.cpu_count() or 1), -(-n // PIXELS_PER_THREAD)))
-    cuts = np.linspace(0, n, parts + 1).astype(np.int64)
-    outs = [None] * parts
-
-    def launch(j: int) -> None:
-        a, b = int(cuts[j]), int(cuts[j + 1])
-        m = b - a
-        res = [wp.empty(m, dtype=float, device=dev)] + [wp.empty(m, dtype=wp.vec3, device=dev) for _ in range(4)] \
-            + [wp.empty(m, dtype=float, device=dev), wp.empty(m, dtype=float, device=dev),
-               wp.empty(m, dtype=wp.int32, device=dev)]
-        if m:
-            wp.launch(bk_matting.matting_band_kernel, dim=m,
-                      inputs=[image, coc, unknown, wp.array(by[a:b].astype(np.int32), dtype=wp.int32, device=dev),
-                              wp.array(bx[a:b].astype(np.int32), dtype=wp.int32, device=dev), oy, ox, og,
-                              float(jump_px), float(unknown_weight), float(ridge), float(purity)],
-                      outputs=res, device=dev)
-        outs[j] = [r.numpy() for r in res]
-
-    if parts == 1:
-        launch(0)
-    else:
-        with ThreadPoolExecutor(max_workers=parts) as pool:
-            list(pool.map(launch, range(parts)))
-    return tuple(np.concatenate([o[k] for o in outs]) for k in range(8))
+def fuse_alpha(alpha: np.ndarray, I: np.ndarray, F: np.ndarray, B: np.ndarray, var_f: np.ndarray,
+               var_b: np.ndarray, model_sd: float) -> np.ndarray:
+    """The linear model's alpha fused with the projection of the pixel's colour on its F-B line, each weighted by
+    the inverse of its variance: the model's is ``model_sd^2``; the projection's is the spread of F and B's samples
+    carried through it, ``(a^2 |var F| + (1 - a)^2 |var B|) / |F - B|^2``. Where both sides are uniform (a wire
+    over the sky) the projection is exact and the model's ridge bias goes; over texture the model decides."""
+    a = alpha.astype(np.float64)
+    d = (F - B).astype(np.float64)
+    den = np.maximum((d * d).sum(1), 1e-30)
+    proj = ((I.astype(np.float64) - B) * d).sum(1) / den
+    vp = (a * a * var_f.astype(np.float64).sum(1) + (1 - a) ** 2 * var_b.astype(np.float64).sum(1)) / den
+    vm = model_sd * model_sd
+    out = (a * vp + proj * vm) / (vp + vm)
+    return np.clip(out, 0.0, 1.0).astype(np.float32)
 
 
 def _composite_exact(I: np.ndarray, a: np.ndarray, F: np.ndarray, B: np.ndarray, var_f: np.ndarray,

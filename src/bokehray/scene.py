@@ -28,6 +28,7 @@ import bokehray_kernels as bk
 import numpy as np
 import warp as wp
 
+from .edge_estimate import dilate
 from .options import LayerOptions
 
 __all__ = [
@@ -271,21 +272,6 @@ def tile_max(values: np.ndarray, tile: int) -> np.ndarray:
     pad = np.zeros((th * tile, tw * tile), values.dtype)
     pad[:h, :w] = values
     return pad.reshape(th, tile, tw, tile).max(axis=(1, 3))
-
-
-def dilate(mask: np.ndarray, k: int) -> np.ndarray:
-    """Binary dilation of a 2-D mask (a tile grid, a small image) by a (2k+1)^2 square, via 2-D prefix sums."""
-    if k <= 0 or not mask.any():
-        return mask.copy()
-    h, w = mask.shape
-    c = np.zeros((h + 1, w + 1), np.int32)
-    c[1:, 1:] = np.cumsum(np.cumsum(mask.astype(np.int32), 0), 1)
-    y0 = np.clip(np.arange(h) - k, 0, h)
-    y1 = np.clip(np.arange(h) + k + 1, 0, h)
-    x0 = np.clip(np.arange(w) - k, 0, w)
-    x1 = np.clip(np.arange(w) + k + 1, 0, w)
-    s = c[y1][:, x1] - c[y0][:, x1] - c[y1][:, x0] + c[y0][:, x0]
-    return s > 0
 
 
 def grid_to_pixels(grid: np.ndarray, tile: int, shape: tuple[int, int]) -> np.ndarray:

@@ -280,3 +280,22 @@ def test_a_dense_blurred_map_is_corrected_not_taken_for_noise(monkeypatch):
     rng = np.random.default_rng(0)
     noisy = np.clip(0.5 + 0.03 * rng.standard_normal((96, 96)), 0, 1).astype(np.float32)
     assert depthfix.step_flips(np.float32(64.0) * noisy, 1.0) > 0.5
+
+
+def test_a_third_surface_between_two_steps_is_not_taken_for_a_ramp():
+    """A 2 px strip at a middle depth between a near block and the far plane, each edge a step (an exact map): the
+    shared edge estimate measures no ramp, so the smeared-edge hypothesis does not snap the strip to a plateau
+    (with it, the strip, coloured like the near block, moved to the near depth)."""
+    from bokehray.depthfix import has_ramps
+
+    img, d = _scene(3, size=48, box=(12, 36, 10, 30))
+    d = d.copy()
+    d[12:36, 30:32] = 0.5  # the strip, right of the block
+    img = img.copy()
+    img[12:36, 30:32] = img[12:36, 26:28]  # its colour is the block's
+    assert not has_ramps(d, 16.0)
+    assert has_ramps(ndimage.gaussian_filter(d, 1.5), 16.0)
+    fixed, changed = correct_disparity(img, d, 16.0)
+    assert not changed[12:36, 30:32].any() and (fixed[12:36, 30:32] == 0.5).all()
+    old, _ = correct_disparity(img, d, 16.0, DepthFixOptions(ramps_only=False))
+    assert (old[12:36, 30:32] != 0.5).any()  # the case is one the hypothesis acts on

@@ -14,6 +14,8 @@ from scipy import ndimage
 
 from bokehray.depthfix import DepthFixOptions
 
+from .matting_ref import ramp_width_ref
+
 DEFAULT = DepthFixOptions()
 
 
@@ -253,11 +255,13 @@ def correct_disparity_ref(focus, disparity, k_px, options=DEFAULT, active=None, 
     if sy or sx:  # the map moved by (sy, sx), its border continued
         out = np.array([[d[min(max(y - sy, 0), d.shape[0] - 1), min(max(x - sx, 0), d.shape[1] - 1)]
                          for x in range(d.shape[1])] for y in range(d.shape[0])], np.float32)
+    # the smeared-edge hypothesis only on a map with ramps (the matting's measure, on the map as given)
+    ramps = not options.ramps_only or ramp_width_ref(np.float32(k_px) * out, options.jump_px, options.max_ramp_px) > 0
     for _ in range(max(1, options.iterations)):
         cur = out
         new = cur.copy()
         hyps = list(untrusted_ref(img, cur, k_px, options))
-        if options.ramp_px > 0:
+        if options.ramp_px > 0 and ramps:
             hyps.append(smeared_ref(cur, k_px, options))
         for i, sus in enumerate(hyps):
             if active is not None:

@@ -75,3 +75,19 @@ def band_pixel_ref(image, coc, unknown, y, x, offsets, weights, jump_px, unknown
 def gaussian_weights(dist: np.ndarray, radius: int) -> np.ndarray:
     sigma = 0.5 * radius
     return np.array([math.exp(-(d * d) / (2.0 * sigma * sigma)) for d in dist])
+
+
+def fuse_alpha_ref(alpha, image, fg, bg, var_f, var_b, model_sd):
+    """Pixel by pixel: the model's alpha and the projection of the colour on the F-B line, each weighted by the
+    inverse of its variance (the model's ``model_sd^2``; the projection's the spread of F and B carried through
+    it), clipped to [0, 1]."""
+    out = []
+    for a, c, f, b, vf, vb in zip(alpha, image, fg, bg, var_f, var_b):
+        a = float(a)
+        d = [float(f[k]) - float(b[k]) for k in range(3)]
+        den = max(sum(x * x for x in d), 1e-30)
+        proj = sum((float(c[k]) - float(b[k])) * d[k] for k in range(3)) / den
+        vp = (a * a * sum(float(v) for v in vf) + (1 - a) ** 2 * sum(float(v) for v in vb)) / den
+        vm = model_sd * model_sd
+        out.append(min(1.0, max(0.0, (a * vp + proj * vm) / (vp + vm))))
+    return np.array(out)

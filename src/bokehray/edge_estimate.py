@@ -1,0 +1,243 @@
+"""The edge estimate the matting and the depth fix share: where a depth edge's mixed pixels are and what their
+alpha is, by the photo's colour (a local linear colour model per band pixel).
+
+Two consumers, one estimate:
+
+* ``bokehray.matting.split_mixed_pixels`` splits the band pixels whose alpha is mixed into a near and a far part.
+* ``bokehray.depthfix.correct_disparity`` takes its depth edges from here and looks for smeared ramps only
+  where this module measures ramps (:func:`ramp_width` > 0, the measure that widens the matting's band).
+
+Steps (docs/soft-scene.md): the depth edges (4-neighbour pairs whose signed CoC differs by more than
+``jump_px``); a map whose edges are noise is left alone (:func:`isolated_share`); the unknown band (the
+depth-edge pixels, widened with the map's measured ramp width); per band pixel the kernel
+``bokehray_kernels.matting.matting_band_kernel`` (alpha, F, B and the parts' CoC).
+
+This module sits beside the depth fix and below the matting in the package's layers (the depth fix cannot import
+the matting), so both import it.
+"""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import bokehray_kernels.matting as bk_matting
+import numpy as np
+
+__all__ = ["PIXELS_PER_THREAD", "EdgeEstimate", "depth_edges", "dilate", "estimate_edges", "isolated_share",
+           "launch_band_kernel", "ramp_width", "window_offsets"]
+
+PIXELS_PER_THREAD = 4096
+"""Fewest band pixels a CPU thread of the kernel gets (fewer are not worth a thread)."""
+
+
+def ramp_width(signed_coc: np.ndarray, jump_px: float, cap: int) -> int:
+    """How many pixels a depth edge's CoC ramp spans (0 for a hard edge): the 90th percentile, over the map's
+    depth-edge pairs, of the length of the run of consecutive same-sign steps above ``jump_px`` a pair belongs
+    to (along its axis), minus one; at most ``cap``."""
+    lengths = []
+    for ax in (0, 1):
+        dd = np.diff(signed_coc, axis=ax)
+        if dd.size == 0:
+            continue
+        pos = np.flatnonzero(np.abs(dd) > jump_px)  # row-major positions of the steps (the edge pairs only)
+        if pos.size == 0:
+            continue
+        sign = np.sign(dd.ravel()[pos]).astype(np.int8)
+        rows, cols = np.divmod(pos, dd.shape[1])
+        if ax == 0:  # runs go down the columns: order the steps column by column
+            order = np.lexsort((rows, cols))
+            line, along, sign = cols[order], rows[order], sign[order]
+        else:
+            line, along = rows, cols
+        # a run continues where the next step is the next pixel of the same line with the same sign
+        cont = (line[1:] == line[:-1]) & (along[1:] == along[:-1] + 1) & (sign[1:] == sign[:-1])
+        starts = np.flatnonzero(np.concatenate([[True], ~cont]))
+        run = np.diff(np.concatenate([starts, [pos.size]]))
+        lengths.append(np.repeat(run, run))
+    if not lengths:
+        return 0
+    return int(min(cap, max(0, int(np.percentile(np.concatenate(lengths), 90)) - 1)))
+
+
+def isolated_share(signed_coc: np.ndarray, jump_px: float) -> float:
+    """The share of pixels whose CoC differs by more than ``jump_px`` from each of their neighbours in the image
+    (eight, fewer at the border); 0 for a single pixel."""
+    h, w = signed_coc.shape
+    if h * w < 2:
+        return 0.0
+    p = np.pad(signed_coc.astype(np.float64), 1, mode="constant", constant_values=np.nan)
+    iso = np.ones((h, w), bool)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            if dy or dx:
+                nb = p[1 + dy:1 + dy + h, 1 + dx:1 + dx + w]
+                iso &= ~(np.abs(nb - signed_coc) <= jump_px)  # NaN (outside) counts as different
+    return float(iso.mean())
+
+
+def window_offsets(radius: int) -> tuple[np.ndarray, np.ndarray]:
+    """(dy, dx) offsets of the search window and their distances, nearest first: every pixel within 4 px, and a
+    grid of pitch 2 from there to ``radius`` (the far rings of a wide window hold the same colours at a quarter
+    of the cost)."""
+    r = int(radius)
+    g = np.arange(-r, r + 1)
+    oy, ox = np.meshgrid(g, g, indexing="ij")
+    dist = np.hypot(oy, ox)
+    keep = (dist <= r + 0.5) & ((dist <= 4.0) | ((oy % 2 == 0) & (ox % 2 == 0)))
+    order = np.argsort(dist[keep], kind="stable")
+    offs = np.stack([oy[keep], ox[keep]], 1)[order]
+    return offs.astype(np.int64), dist[keep][order].astype(np.float32)
+
+
+def dilate(mask: np.ndarray, k: int) -> np.ndarray:
+    """Binary dilation of a 2-D mask (a tile grid, a small image) by a (2k+1)^2 square, via 2-D prefix sums."""
+    if k <= 0 or not mask.any():
+        return mask.copy()
+    h, w = mask.shape
+    c = np.zeros((h + 1, w + 1), np.int32)
+    c[1:, 1:] = np.cumsum(np.cumsum(mask.astype(np.int32), 0), 1)
+    y0 = np.clip(np.arange(h) - k, 0, h)
+    y1 = np.clip(np.arange(h) + k + 1, 0, h)
+    x0 = np.clip(np.arange(w) - k, 0, w)
+    x1 = np.clip(np.arange(w) + k + 1, 0, w)
+    s = c[y1][:, x1] - c[y0][:, x1] - c[y1][:, x0] + c[y0][:, x0]
+    return s > 0
+
+
+def depth_edges(coc: np.ndarray, jump_px: float) -> np.ndarray:
+    """Boolean map: both pixels of every 4-neighbour pair whose CoC differs by more than ``jump_px``."""
+    e = np.zeros(coc.shape, bool)
+    jy = np.abs(np.diff(coc, axis=0)) > jump_px
+    jx = np.abs(np.diff(coc, axis=1)) > jump_px
+    e[:-1] |= jy
+    e[1:] |= jy
+    e[:, :-1] |= jx
+    e[:, 1:] |= jx
+    return e
+
+
+def launch_band_kernel(img, s, band, by, bx, radius, jump_px, unknown_weight, ridge, purity, device, threads):
+    """Launch ``bokehray_kernels.matting.matting_band_kernel`` over the band pixels (in ``threads`` row bands on
+    the CPU: Warp CPU launches release the GIL). Returns NumPy arrays: alpha, F, B, their variances, the near and
+    far CoC and the flags."""
+    import warp as wp
+
+    n = by.size
+    offs, dist = window_offsets(radius)
+    dev = wp.get_device(device)
+    image = wp.array(np.ascontiguousarray(img, np.float32), dtype=wp.vec3, device=dev)
+    coc = wp.array(np.ascontiguousarray(s, np.float32), dtype=float, device=dev)
+    unknown = wp.array(band.astype(np.uint8), dtype=wp.uint8, device=dev)
+    oy = wp.array(offs[:, 0].astype(np.int32), dtype=wp.int32, device=dev)
+    ox = wp.array(offs[:, 1].astype(np.int32), dtype=wp.int32, device=dev)
+    sigma = 0.5 * radius
+    og = wp.array(np.exp(-(dist.astype(np.float64) ** 2) / (2.0 * sigma * sigma)).astype(np.float32), dtype=float,
+                  device=dev)
+    parts = 1 if dev.is_cuda else max(1, min(int(threads or os.cpu_count() or 1), -(-n // PIXELS_PER_THREAD)))
+    cuts = np.linspace(0, n, parts + 1).astype(np.int64)
+    outs = [None] * parts
+
+    def launch(j: int) -> None:
+        a, b = int(cuts[j]), int(cuts[j + 1])
+        m = b - a
+        res = [wp.empty(m, dtype=float, device=dev)] + [wp.empty(m, dtype=wp.vec3, device=dev) for _ in range(4)] \
+            + [wp.empty(m, dtype=float, device=dev), wp.empty(m, dtype=float, device=dev),
+               wp.empty(m, dtype=wp.int32, device=dev)]
+        if m:
+            wp.launch(bk_matting.matting_band_kernel, dim=m,
+                      inputs=[image, coc, unknown, wp.array(by[a:b].astype(np.int32), dtype=wp.int32, device=dev),
+                              wp.array(bx[a:b].astype(np.int32), dtype=wp.int32, device=dev), oy, ox, og,
+                              float(jump_px), float(unknown_weight), float(ridge), float(purity)],
+                      outputs=res, device=dev)
+        outs[j] = [r.numpy() for r in res]
+
+    if parts == 1:
+        launch(0)
+    else:
+        with ThreadPoolExecutor(max_workers=parts) as pool:
+            list(pool.map(launch, range(parts)))
+    return tuple(np.concatenate([o[k] for o in outs]) for k in range(8))
+
+
+@dataclass(frozen=True, eq=False)
+class EdgeEstimate:
+    """The matting of the unknown band around a map's depth edges, on the box ``(y0, y1, x0, x1)`` of the edges
+    padded by what the band pixels' windows reach. Band pixel ``k`` lies at ``(y0 + by[k], x0 + bx[k])``.
+
+    ``alpha`` is the local linear colour model's coverage of the near part, ``fg`` / ``bg`` the near and far
+    colours and ``fg_var`` / ``bg_var`` their spreads (all in units of ``scale``: the image was divided by its
+    largest value), ``near`` / ``far`` the parts' CoC (the window's largest and smallest), ``flags`` the
+    kernel's ``BAND_OK`` / ``BAND_OWN_NEAR`` bits. ``ramp`` is the map's measured ramp width (0: its edges are
+    steps), ``image`` the scaled box of the image the model saw.
+    """
+
+    shape: tuple[int, int]
+    box: tuple[int, int, int, int]
+    by: np.ndarray
+    bx: np.ndarray
+    ramp: int
+    scale: float
+    image: np.ndarray
+    alpha: np.ndarray
+    fg: np.ndarray
+    bg: np.ndarray
+    fg_var: np.ndarray
+    bg_var: np.ndarray
+    near: np.ndarray
+    far: np.ndarray
+    flags: np.ndarray
+
+    @property
+    def ok(self) -> np.ndarray:
+        """The band pixels whose window holds a depth edge and samples of both sides."""
+        return (self.flags & bk_matting.BAND_OK) != 0
+
+    @property
+    def own_near(self) -> np.ndarray:
+        """The band pixels the map puts on the near side of their window's CoC range."""
+        return (self.flags & bk_matting.BAND_OWN_NEAR) != 0
+
+    def contrast(self, min_contrast: float) -> np.ndarray:
+        """The band pixels whose F and B differ by more than ``min_contrast`` of the brighter of the two
+        (Euclidean, linear RGB): elsewhere the colour says nothing about alpha."""
+        d = self.fg - self.bg
+        den = (d * d).sum(1)
+        bright = np.maximum((self.fg * self.fg).sum(1), (self.bg * self.bg).sum(1))
+        return (den > np.float32(min_contrast) ** 2 * bright) & (den > 1e-20)
+
+
+def estimate_edges(image: np.ndarray, signed_coc: np.ndarray, *, jump_px: float = 1.0, band_px: int = 0,
+                   max_ramp_px: int = 6, unknown_weight: float = 0.3, ridge: float = 0.03, purity: float = 12.0,
+                   max_isolated_share: float = 0.25, device: str = "cpu",
+                   threads: int | None = None) -> EdgeEstimate | None:
+    """The edge estimate of a checked ``H x W x 3`` float32 linear image and its ``H x W`` float32 signed CoC
+    (parameters: ``bokehray.matting.split_mixed_pixels``). None where the map has no depth edge or its edges
+    are noise."""
+    s = signed_coc
+    h, w = s.shape
+    if h < 2 and w < 2:
+        return None
+    edges = depth_edges(s, float(jump_px))
+    if not edges.any():
+        return None
+    # isolated pixels are edge pixels: only a map with more edge pixels than the share allows can be noise
+    if edges.mean() > max_isolated_share and isolated_share(s, float(jump_px)) > max_isolated_share:
+        return None  # noise in the map, not edges
+    scale = float(np.abs(image).max()) or 1.0
+    img = image / np.float32(scale)  # every threshold is relative: the result does not depend on the exposure
+    ramp = ramp_width(s, float(jump_px), int(max_ramp_px))
+    b = int(band_px) + (ramp + 1) // 2
+    radius = ramp + 2 * b + 2
+    # work on the box of the edges, padded by everything a band pixel's window reaches
+    ey, ex = np.nonzero(edges)
+    pad = b + radius
+    y0, y1 = max(0, int(ey.min()) - pad), min(h, int(ey.max()) + pad + 1)
+    x0, x1 = max(0, int(ex.min()) - pad), min(w, int(ex.max()) + pad + 1)
+    band = dilate(edges[y0:y1, x0:x1], b)
+    by, bx = np.nonzero(band)
+    box_img = img[y0:y1, x0:x1]
+    out = launch_band_kernel(box_img, s[y0:y1, x0:x1], band, by, bx, radius, jump_px, unknown_weight, ridge,
+                             purity, device, threads)
+    return EdgeEstimate((h, w), (y0, y1, x0, x1), by, bx, ramp, scale, box_img, *out)
