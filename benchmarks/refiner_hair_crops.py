@@ -47,13 +47,14 @@ def fur_scene():
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--weights", nargs="*", default=[None], help="refiner weights to compare (default: shipped)")
+    ap.add_argument("--weights", nargs="*", default=["shipped"],
+                    help="refiner weights to compare; 'shipped': the package's own (the default)")
     ap.add_argument("--labels", nargs="*", help="a label for each --weights")
     ap.add_argument("--out", default=str(REPO / "docs/img/refiner_hair_crops.png"))
     ap.add_argument("--json", default=str(REPO / "benchmarks/results/refiner_hair.json"))
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args()
-    labels = args.labels or [("shipped" if w is None else Path(w).parent.name) for w in args.weights]
+    labels = args.labels or [(w if w == "shipped" else Path(w).parent.name) for w in args.weights]
     import torch
 
     torch.set_num_threads(args.threads)
@@ -72,7 +73,7 @@ def main() -> None:
     cy, cx = int(np.percentile(ys, 10)), int(np.median(xs))  # the top of the fur: hair against the photo
     y0, x0 = int(np.clip(cy - CROP // 2, 0, SIZE - CROP)), int(np.clip(cx - CROP // 2, 0, SIZE - CROP))
     sl = (slice(y0, y0 + CROP), slice(x0, x0 + CROP))
-    models = [load_refiner(w) for w in args.weights]
+    models = [load_refiner(None if w == "shipped" else w) for w in args.weights]
     rows, strips = [], []
     for focus_name, d_f in (("background", 0.1), ("fur", 0.7)):
         blur = br.BlurParams(K, d_f)
@@ -96,7 +97,7 @@ def main() -> None:
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(a).resize((a.shape[1] * 2, a.shape[0] * 2), Image.NEAREST).save(args.out)
     write_json(args.json, {"machine": machine_info(), "size": SIZE, "k_px": K, "crop": [y0, x0, CROP],
-                           "weights": [str(w or "shipped") for w in args.weights], "rows": rows})
+                           "weights": args.weights, "rows": rows})
     print(args.out)
 
 
