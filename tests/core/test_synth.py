@@ -2,6 +2,7 @@
 
 import itertools
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -136,3 +137,23 @@ def test_weighted_kinds_draw_only_what_is_named_and_bad_weights_are_refused(tmp_
     assert code == 2 and "--kinds" in capsys.readouterr().err and not (tmp_path / "o").exists()
     code = main(["synth", "-n", "1", "-o", str(tmp_path / "o"), "--kinds", "hair=2", "--quiet"])
     assert code == 2 and "kinds" in capsys.readouterr().err and not (tmp_path / "o").exists()
+
+
+def test_the_half_rule_labels_only_pixels_a_foreground_covers_at_least_half(tmp_path):
+    from bokehray.data.synth import pinhole_layers
+    from bokehray.levels.raytrace import Layer
+
+    fg = np.zeros((16, 16, 4), np.float32)
+    fg[..., :3] = 0.8
+    fg[4:12, 4:8, 3] = 1.0
+    fg[4:12, 8, 3] = 0.3  # an antialiased edge below one half
+    fg[4:12, 3, 3] = 0.5  # one at one half
+    fg[2, :, 3] = 0.1  # a sub-pixel strand
+    bg = np.ones((16, 16, 4), np.float32)
+    layers = [Layer(fg, plane=(0.0, 0.0, 0.9)), Layer(bg, plane=(0.0, 0.0, 0.1))]
+    _, d = pinhole_layers(layers, "half")
+    assert np.allclose(d[4:12, 3:8], 0.9) and np.allclose(d[4:12, 8], 0.1) and np.allclose(d[2], 0.1)
+    with pytest.raises(br.InputError, match="depth rule"):
+        pinhole_layers(layers, "most")
+    generate(replace(SMALL, depth_rule="half"), 1, tmp_path, seed=3, workers=1, progress=False)
+    assert json.loads((tmp_path / "scene_00000" / "info.json").read_text())["depth_rule"] == "half"

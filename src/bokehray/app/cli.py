@@ -182,6 +182,9 @@ def build_parser() -> argparse.ArgumentParser:
     sy.add_argument("--size", type=int, default=512, help="image side in pixels (default 512)")
     sy.add_argument("--blur-levels", default="10,20,30", help="K values, comma separated (default 10,20,30)")
     sy.add_argument("--max-spp", type=int, default=64, help="most rays (aperture cells) per pixel (default 64)")
+    sy.add_argument("--depth-rule", choices=("any", "half"), default="any",
+                    help="which pixels a foreground labels in the map: any coverage (default) or at least half "
+                    "(a point-sampled sensor's rule, the dev set's and the soft scene's)")
     sy.add_argument("--kinds", metavar="KIND=W,...",
                     help="built-in foregrounds drawn with these relative weights, e.g. strands=3,fur=2,cutout=1 "
                     "(kinds: cutout, strands, foliage, mesh, lights, fur, whiskers, softcut; default: the first "
@@ -332,7 +335,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
         except ValueError:
             raise InputError(f"--kinds: expected KIND=WEIGHT pairs separated by commas, got {args.kinds!r}") from None
     config = SynthConfig(size=args.size, blur_levels=levels, aperture=aperture_of(args), max_spp=args.max_spp,
-                         fg_dir=args.fg, bg_dir=args.bg, kinds=kinds)
+                         fg_dir=args.fg, bg_dir=args.bg, kinds=kinds, depth_rule=args.depth_rule)
     start_warp(args)
     paths = generate(config, args.n, args.output, seed=args.seed, workers=args.workers, progress=not args.quiet,
                      overwrite=args.overwrite, executor=args.executor, scheduler=args.scheduler)

@@ -54,6 +54,7 @@ class SynthConfig:
             background photos; when absent, built-in sources are used.
         kinds: ``((kind, weight), ...)``: draw the built-in foregrounds with these relative weights (any of
             :data:`ALL_KINDS`); None draws :data:`FOREGROUND_KINDS` uniformly.
+        depth_rule: which pixels a foreground labels in the written map (:func:`pinhole_layers`).
     """
 
     size: int = 512
@@ -63,8 +64,11 @@ class SynthConfig:
     fg_dir: str | None = None
     bg_dir: str | None = None
     kinds: tuple[tuple[str, float], ...] | None = None
+    depth_rule: str = "any"
 
     def __post_init__(self) -> None:
+        if self.depth_rule not in ("any", "half"):
+            raise InputError(f"depth rule: expected 'any' or 'half', got {self.depth_rule!r}")
         if self.kinds is not None:
             names = [k for k, _ in self.kinds]
             weights = [w for _, w in self.kinds]
@@ -288,13 +292,20 @@ FOREGROUND_COVERAGE = 1.0 / 255.0
 """A foreground layer labels a pixel's disparity wherever its alpha exceeds this (any visible coverage)."""
 
 
-def pinhole_layers(layers: list[Layer]) -> tuple[np.ndarray, np.ndarray]:
-    """All-in-focus image and disparity: the front-most foreground with any coverage gives the depth.
+def pinhole_layers(layers: list[Layer], rule: str = "any") -> tuple[np.ndarray, np.ndarray]:
+    """All-in-focus image and disparity: the front-most foreground that covers a pixel gives its depth.
 
-    Mixed edge pixels and sub-pixel strands (alpha < 0.5) are labelled with the foreground's disparity, not
-    the background's: with an alpha >= 0.5 rule the "exact" map would itself be eroded at thin structures,
-    and the refiner's training inputs and targets would disagree about which depth is right.
+    ``rule``: ``"any"`` (the default): a foreground labels every pixel it covers at all (alpha > 1/255);
+    ``"half"``: only where it covers at least half (alpha >= 0.5), the rule of a point-sampled depth sensor,
+    of the path-traced dev set's maps and of the soft scene's matting, which splits the mixed pixels below
+    one half itself.
+
+    ``"any"`` was chosen when the renderer gave every pixel one depth: mixed edge pixels and sub-pixel strands
+    then had to carry the foreground's depth or stay sharp. With the soft scene that is the matting's job, and
+    ``"any"`` maps are a fraction of a pixel fatter than the dev set's (docs/refiner.md, "Labels").
     """
+    if rule not in ("any", "half"):
+        raise InputError(f"depth rule: expected 'any' or 'half', got {rule!r}")
     img, _ = raytrace_layers(layers, BlurParams(0.0, 0.0), options=RaytraceOptions(max_spp=1))
     n = layers[0].rgba.shape[0]
     yy, xx = (np.mgrid[0:n, 0:n] + 0.5).astype(np.float32)
@@ -304,7 +315,8 @@ def pinhole_layers(layers: list[Layer]) -> tuple[np.ndarray, np.ndarray]:
         a, b, c = lyr.plane
         d = a * xx + b * yy + c
         alpha = lyr.rgba[..., 3]
-        hit = ((alpha > FOREGROUND_COVERAGE) if i < len(layers) - 1 else (alpha >= 0.5)) & ~taken
+        foreground = i < len(layers) - 1 and rule == "any"
+        hit = ((alpha > FOREGROUND_COVERAGE) if foreground else (alpha >= 0.5)) & ~taken
         disparity[hit] = d[hit]
         taken |= hit
     return img[..., :3], np.clip(disparity, 0.0, 1.0)
@@ -325,7 +337,7 @@ def generate_one(args: tuple[SynthConfig, int, int, str, bool]) -> str:
 
     config, seed, index, out, overwrite = args
     layers, desc = make_scene(config, seed, index)
-    image, disparity = pinhole_layers(layers)
+    image, disparity = pinhole_layers(layers, config.depth_rule)
     focus = [mean_disparity(layers[0]), mean_disparity(layers[-1])]
     renders, spp = [], []
     opts = RaytraceOptions(max_spp=config.max_spp)
@@ -344,6 +356,7 @@ def generate_one(args: tuple[SynthConfig, int, int, str, bool]) -> str:
         "coc_convention": "CoC radius [px] = K * |disparity - focus_disparity|",
         "renderer": "bokehray layered ray tracer",
         "max_spp": config.max_spp,
+        "depth_rule": config.depth_rule,
         "mean_spp": float(np.mean(spp)),
         **desc,
     }
