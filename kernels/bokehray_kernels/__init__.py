@@ -19,6 +19,7 @@ from .fill import FILL_GATE_SLOPE as FILL_GATE_SLOPE
 from .fill import PullPushLevel as PullPushLevel
 from .fill import column_distance_kernel as column_distance_kernel
 from .fill import fill_sources_kernel as fill_sources_kernel
+from .fill import layer_pull_kernel as layer_pull_kernel
 from .fill import layer_sources_kernel as layer_sources_kernel
 from .fill import pull_kernel as pull_kernel
 from .fill import push_kernel as push_kernel
@@ -55,6 +56,7 @@ __all__ = [
     "fill_sources_kernel",
     "finalize_kernel",
     "halve_mean_kernel",
+    "layer_pull_kernel",
     "layer_sources_kernel",
     "matting_band_kernel",
     "near_sources_kernel",

@@ -92,6 +92,48 @@ def pull_kernel(fine: PullPushLevel, coarse: PullPushLevel):
     coarse.known[y, x] = sum_2x2_float(fine.known, y, x)
 
 
+@wp.kernel
+def layer_pull_kernel(
+    image: wp.array2d(dtype=wp.vec3),
+    signed_coc: wp.array2d(dtype=float),
+    slice_id: wp.array2d(dtype=wp.int32),
+    layer: int,
+    x0: int,
+    y0: int,
+    h: int,
+    w: int,
+    coarse: PullPushLevel,
+):
+    """Level 1 of the pull-push pyramid of the ``h x w`` window at ``(y0, x0)``, straight from the photo: bit for bit
+    :func:`pull_kernel` of the level 0 that :func:`layer_sources_kernel` writes with ``with_fill != 0`` (the same
+    texels, summed in the same order), without storing level 0 (24 bytes a pixel of the layer's box)."""
+    cy, cx = wp.tid()
+    total = wp.vec4()
+    weight = float(0.0)
+    known = float(0.0)
+    for dy in range(2):
+        for dx in range(2):
+            y = 2 * cy + dy
+            x = 2 * cx + dx
+            if y < h and x < w:
+                t = wp.vec4()
+                wt = float(0.0)
+                k = float(0.0)
+                sid = slice_id[y + y0, x + x0]
+                if sid >= 0 and sid <= layer:
+                    k = 1.0
+                    if sid == layer:
+                        c = image[y + y0, x + x0]
+                        t = wp.vec4(_tonemap(c[0]), _tonemap(c[1]), _tonemap(c[2]), signed_coc[y + y0, x + x0])
+                        wt = 1.0
+                total = total + t
+                weight = weight + wt
+                known = known + k
+    coarse.total[cy, cx] = total
+    coarse.weight[cy, cx] = weight
+    coarse.known[cy, cx] = known
+
+
 @wp.struct
 class Pushed:
     """One texel of a pushed level: mean value, density, and whether the density is known (1) or not (0)."""
@@ -178,7 +220,6 @@ def fill_sources_kernel(
     layer: int,
     x0: int,
     y0: int,
-    fill: PullPushLevel,
     coarse: PullPushLevel,
     dist_l1: wp.array2d(dtype=float),
     signed_coc: wp.array2d(dtype=float),
@@ -190,9 +231,9 @@ def fill_sources_kernel(
 ):
     """Add the filled colour as sources where a nearer layer hides this one.
 
-    ``fill`` holds level 0's sums (not pushed), ``coarse`` level 1 pushed: each hidden
-    pixel pushes its own level-0 texel (:func:`push_texel`, exactly what ``push_kernel``
-    would have stored there), so level 0 is never pushed as a whole.
+    ``coarse``: level 1, pushed. Each hidden pixel pushes its own level-0 texel (:func:`push_texel`, exactly
+    what ``push_kernel`` would have stored there), so level 0 is never pushed, nor stored: a hidden pixel's
+    level-0 sums are zero (:func:`layer_sources_kernel` writes none there).
 
     Opacity is the layer's extrapolated density: 1 for a continuous surface,
     the stroke coverage for a sparse layer (premultiplied, like every source).
@@ -207,7 +248,7 @@ def fill_sources_kernel(
     gx = x + x0
     if slice_id[gy, gx] <= layer or dist_l1[y, x] > _GATE * wp.abs(signed_coc[gy, gx]) + 1.0:
         return  # not hidden, or behind a hider too sharp to reveal it
-    p = push_texel(coarse, 0, x, y, fill.total[y, x], fill.weight[y, x], fill.known[y, x])
+    p = push_texel(coarse, 0, x, y, wp.vec4(), 0.0, 0.0)  # a hidden pixel's level-0 sums: all zero
     density = p.density
     if density >= 0.02:
         v = p.value

@@ -612,50 +612,69 @@ def build_layer_sources(layer: LayerRecord, arrays: LayerSources) -> tuple[wp.ar
     h, w = y1 - y0, x1 - x0
     src = wp.zeros((h, w), dtype=wp.vec4, device=device)  # zeroed: the kernel writes the layer's pixels only
     coc = wp.zeros((h, w), dtype=float, device=device)
-    fill = layer.filled
-    pp_shape = (h, w) if fill else (1, 1)  # the pull-push pyramid, only when this layer is filled
-    totals = [wp.zeros(pp_shape, dtype=wp.vec4, device=device)]
-    weights = [wp.zeros(pp_shape, dtype=float, device=device)]
-    knowns = [wp.zeros(pp_shape, dtype=float, device=device)]
+    none = wp.zeros((1, 1), dtype=float, device=device)  # no level 0: the pyramid starts at level 1 (below)
+    level0 = bk.PullPushLevel()
+    level0.total, level0.weight, level0.known = wp.zeros((1, 1), dtype=wp.vec4, device=device), none, none
     wp.launch(
         bk.layer_sources_kernel,
         dim=(h, w),
-        inputs=[arrays.image, arrays.signed_coc, arrays.ids, layer.index, x0, y0, int(fill)],
-        outputs=[src, coc, _pull_push(totals, weights, knowns, 0)],
+        inputs=[arrays.image, arrays.signed_coc, arrays.ids, layer.index, x0, y0, 0],
+        outputs=[src, coc, level0],
         device=device,
     )
     if arrays.near is not None:  # the near parts of split pixels that fall in this layer
         wp.launch(bk.near_sources_kernel, dim=arrays.near[0].shape[0], inputs=[*arrays.near, layer.index, x0, y0],
                   outputs=[src, coc], device=device)
-    if fill:
-        for _ in range(pull_levels(layer.fill_reach)):
-            ph, pw = totals[-1].shape
-            ch, cw = (ph + 1) // 2, (pw + 1) // 2
-            totals.append(wp.empty((ch, cw), dtype=wp.vec4, device=device))
-            weights.append(wp.empty((ch, cw), dtype=float, device=device))
-            knowns.append(wp.empty((ch, cw), dtype=float, device=device))
+    if layer.filled:
+        _fill(layer, arrays, src, coc)
+    return src, coc
+
+
+def _fill(layer: LayerRecord, arrays: LayerSources, src: wp.array, coc: wp.array) -> None:
+    """Add the pull-push fill of the region nearer layers hide to a layer's sources (``src``, ``coc``, in place).
+
+    Level 0 of the pyramid is never stored (a third of the fill's bytes): level 1 is pulled straight from the
+    photo (``layer_pull_kernel``) and a hidden pixel's level-0 sums are zero (``fill_sources_kernel``). Each
+    level is freed once the push no longer reads it: pushing level ``lv`` reads level ``lv + 1`` only, and the
+    fill reads level 1 only. The values are those of the whole pyramid, bit for bit.
+    """
+    device = arrays.device
+    y0, y1, x0, x1 = layer.bbox
+    h, w = y1 - y0, x1 - x0
+    totals, weights, knowns = [], [], []
+    for lv in range(1, pull_levels(layer.fill_reach) + 1):
+        ch, cw = (h + (1 << lv) - 1) >> lv, (w + (1 << lv) - 1) >> lv
+        totals.append(wp.empty((ch, cw), dtype=wp.vec4, device=device))
+        weights.append(wp.empty((ch, cw), dtype=float, device=device))
+        knowns.append(wp.empty((ch, cw), dtype=float, device=device))
+        if lv == 1:
+            wp.launch(bk.layer_pull_kernel, dim=(ch, cw),
+                      inputs=[arrays.image, arrays.signed_coc, arrays.ids, layer.index, x0, y0, h, w],
+                      outputs=[_pull_push(totals, weights, knowns, -1)], device=device)
+        else:
             wp.launch(bk.pull_kernel, dim=(ch, cw), inputs=[_pull_push(totals, weights, knowns, -2)],
                       outputs=[_pull_push(totals, weights, knowns, -1)], device=device)
-        top = len(totals) - 1
-        for lv in range(top, 0, -1):  # down to level 1: the fill pushes the level-0 texels it needs
-            c = min(lv + 1, top)  # the top level has no coarser level (flag 1): it passes itself
-            wp.launch(bk.push_kernel, dim=totals[lv].shape,
-                      inputs=[_pull_push(totals, weights, knowns, c), int(lv == top)],
-                      outputs=[_pull_push(totals, weights, knowns, lv)], device=device)
-        dist = wp.empty((h, w), dtype=float, device=device)
-        wp.launch(bk.row_distance_kernel, dim=h, inputs=[arrays.ids, layer.index, x0, y0, w], outputs=[dist],
-                  device=device)
-        band = 1 if wp.get_device(device).is_cuda else 64
-        wp.launch(bk.column_distance_kernel, dim=(w + band - 1) // band, inputs=[dist, h, band], device=device)
-        wp.launch(
-            bk.fill_sources_kernel,
-            dim=(h, w),
-            inputs=[arrays.ids, layer.index, x0, y0, _pull_push(totals, weights, knowns, 0),
-                    _pull_push(totals, weights, knowns, 1), dist, arrays.signed_coc, layer.s_lo, layer.s_hi],
-            outputs=[src, coc, arrays.filled],
-            device=device,
-        )
-    return src, coc
+    top = len(totals) - 1  # list index i holds level i + 1
+    for i in range(top, -1, -1):  # down to level 1: the fill pushes the level-0 texels it needs
+        c = min(i + 1, top)  # the top level has no coarser level (flag 1): it passes itself
+        wp.launch(bk.push_kernel, dim=totals[i].shape, inputs=[_pull_push(totals, weights, knowns, c), int(i == top)],
+                  outputs=[_pull_push(totals, weights, knowns, i)], device=device)
+        if i < top:  # nothing reads the coarser level any more
+            totals[i + 1] = weights[i + 1] = knowns[i + 1] = None
+    level1 = _pull_push(totals, weights, knowns, 0)
+    del totals, weights, knowns
+    dist = wp.empty((h, w), dtype=float, device=device)
+    wp.launch(bk.row_distance_kernel, dim=h, inputs=[arrays.ids, layer.index, x0, y0, w], outputs=[dist],
+              device=device)
+    band = 1 if wp.get_device(device).is_cuda else 64
+    wp.launch(bk.column_distance_kernel, dim=(w + band - 1) // band, inputs=[dist, h, band], device=device)
+    wp.launch(
+        bk.fill_sources_kernel,
+        dim=(h, w),
+        inputs=[arrays.ids, layer.index, x0, y0, level1, dist, arrays.signed_coc, layer.s_lo, layer.s_hi],
+        outputs=[src, coc, arrays.filled],
+        device=device,
+    )
 
 
 def _pull_push(totals: list, weights: list, knowns: list, level: int) -> bk.PullPushLevel:

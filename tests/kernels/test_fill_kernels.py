@@ -105,38 +105,45 @@ def _run_fill(scene, pull_levels, band: int = 64) -> dict:
     src = wp.zeros((h, w), dtype=wp.vec4, device=DEVICE)  # the kernel writes the layer's pixels only
     coc = wp.zeros((h, w), dtype=float, device=DEVICE)
     filled = wp.zeros(scene["n_layers"], dtype=wp.int32, device=DEVICE)
-    pp = (h, w) if fill else (1, 1)
-    totals = [wp.zeros(pp, dtype=wp.vec4, device=DEVICE)]
-    weights = [wp.zeros(pp, dtype=float, device=DEVICE)]
-    knowns = [wp.zeros(pp, dtype=float, device=DEVICE)]
-    wp.launch(bk.layer_sources_kernel, dim=(h, w), inputs=[image, scoc, sid, layer, x0, y0, int(fill)],
-              outputs=[src, coc, _pp(totals[0], weights[0], knowns[0])], device=DEVICE)
+    none = wp.zeros((1, 1), dtype=float, device=DEVICE)
+    wp.launch(bk.layer_sources_kernel, dim=(h, w), inputs=[image, scoc, sid, layer, x0, y0, 0],
+              outputs=[src, coc, _pp(wp.zeros((1, 1), dtype=wp.vec4, device=DEVICE), none, none)], device=DEVICE)
     out = {}
     if fill:
-        for _ in range(pull_levels):
-            ph, pw = totals[-1].shape
-            shape = ((ph + 1) // 2, (pw + 1) // 2)
+        totals, weights, knowns = [], [], []  # index i: level i + 1 (level 0 is never stored)
+        for lv in range(1, pull_levels + 1):
+            shape = ((h + (1 << lv) - 1) >> lv, (w + (1 << lv) - 1) >> lv)
             totals.append(wp.empty(shape, dtype=wp.vec4, device=DEVICE))
             weights.append(wp.empty(shape, dtype=float, device=DEVICE))
             knowns.append(wp.empty(shape, dtype=float, device=DEVICE))
-            wp.launch(bk.pull_kernel, dim=shape, inputs=[_pp(totals[-2], weights[-2], knowns[-2])],
-                      outputs=[_pp(totals[-1], weights[-1], knowns[-1])], device=DEVICE)
+            if lv == 1:
+                wp.launch(bk.layer_pull_kernel, dim=shape, inputs=[image, scoc, sid, layer, x0, y0, h, w],
+                          outputs=[_pp(totals[-1], weights[-1], knowns[-1])], device=DEVICE)
+            else:
+                wp.launch(bk.pull_kernel, dim=shape, inputs=[_pp(totals[-2], weights[-2], knowns[-2])],
+                          outputs=[_pp(totals[-1], weights[-1], knowns[-1])], device=DEVICE)
         top = len(totals) - 1
-        for lv in range(top, 0, -1):  # as the preview: down to level 1
-            c = min(lv + 1, top)
-            wp.launch(bk.push_kernel, dim=totals[lv].shape, inputs=[_pp(totals[c], weights[c], knowns[c]), int(lv == top)],
-                      outputs=[_pp(totals[lv], weights[lv], knowns[lv])], device=DEVICE)
+        for i in range(top, -1, -1):  # as the preview: down to level 1
+            c = min(i + 1, top)
+            wp.launch(bk.push_kernel, dim=totals[i].shape, inputs=[_pp(totals[c], weights[c], knowns[c]), int(i == top)],
+                      outputs=[_pp(totals[i], weights[i], knowns[i])], device=DEVICE)
         dist = wp.empty((h, w), dtype=float, device=DEVICE)
         wp.launch(bk.row_distance_kernel, dim=h, inputs=[sid, layer, x0, y0, w], outputs=[dist], device=DEVICE)
         wp.launch(bk.column_distance_kernel, dim=(w + band - 1) // band, inputs=[dist, h, band], device=DEVICE)
         wp.launch(bk.fill_sources_kernel, dim=(h, w),
-                  inputs=[sid, layer, x0, y0, _pp(totals[0], weights[0], knowns[0]), _pp(totals[1], weights[1], knowns[1]),
-                          dist, scoc, scene["s_lo"], scene["s_hi"]],
+                  inputs=[sid, layer, x0, y0, _pp(totals[0], weights[0], knowns[0]), dist, scoc, scene["s_lo"],
+                          scene["s_hi"]],
                   outputs=[src, coc, filled], device=DEVICE)
-        # level 0 pushed as a whole (what the fill pushed texel by texel), for the comparison with the oracle
-        wp.launch(bk.push_kernel, dim=totals[0].shape, inputs=[_pp(totals[1], weights[1], knowns[1]), 0],
-                  outputs=[_pp(totals[0], weights[0], knowns[0])], device=DEVICE)
-        out.update(value=totals[0].numpy(), density=weights[0].numpy(), has=knowns[0].numpy(), distance=dist.numpy())
+        # level 0 stored and pushed as a whole (what the fill pushed texel by texel), for the comparison with the
+        # oracle
+        lv0 = [wp.zeros((h, w), dtype=wp.vec4, device=DEVICE), wp.zeros((h, w), dtype=float, device=DEVICE),
+               wp.zeros((h, w), dtype=float, device=DEVICE)]
+        wp.launch(bk.layer_sources_kernel, dim=(h, w), inputs=[image, scoc, sid, layer, x0, y0, 1],
+                  outputs=[wp.zeros((h, w), dtype=wp.vec4, device=DEVICE), wp.zeros((h, w), dtype=float, device=DEVICE),
+                           _pp(*lv0)], device=DEVICE)
+        wp.launch(bk.push_kernel, dim=(h, w), inputs=[_pp(totals[0], weights[0], knowns[0]), 0],
+                  outputs=[_pp(*lv0)], device=DEVICE)
+        out.update(value=lv0[0].numpy(), density=lv0[1].numpy(), has=lv0[2].numpy(), distance=dist.numpy())
     out.update(src=src.numpy(), coc=coc.numpy(), n_filled=filled.numpy())
     return out
 
@@ -206,6 +213,38 @@ def test_pull_kernel_matches_reference(h, w, depth, seed):
     np.testing.assert_allclose(out[1].numpy().sum(), weight.sum(), rtol=1e-6)
 
 
+@given(scene=scenes())
+def test_layer_pull_kernel_matches_reference(scene):
+    """Level 1 straight from the photo: the oracle's pull of its level 0, and bit for bit ``pull_kernel`` of the
+    level 0 ``layer_sources_kernel`` writes (the fill's values do not change for not storing level 0)."""
+    y0, y1, x0, x1 = scene["bbox"]
+    h, w = y1 - y0, x1 - x0
+    layer = scene["layer"]
+    image, scoc, sid = _wp(scene["image"], wp.vec3), _wp(scene["scoc"], float), _wp(scene["sid"], wp.int32)
+    ch, cw = (h + 1) // 2, (w + 1) // 2
+
+    def level(shape):
+        return [wp.zeros(shape, dtype=wp.vec4, device=DEVICE), wp.zeros(shape, dtype=float, device=DEVICE),
+                wp.zeros(shape, dtype=float, device=DEVICE)]
+
+    got = level((ch, cw))
+    wp.launch(bk.layer_pull_kernel, dim=(ch, cw), inputs=[image, scoc, sid, layer, x0, y0, h, w],
+              outputs=[_pp(*got)], device=DEVICE)
+    lv0, pulled = level((h, w)), level((ch, cw))
+    wp.launch(bk.layer_sources_kernel, dim=(h, w), inputs=[image, scoc, sid, layer, x0, y0, 1],
+              outputs=[wp.zeros((h, w), dtype=wp.vec4, device=DEVICE), wp.zeros((h, w), dtype=float, device=DEVICE),
+                       _pp(*lv0)], device=DEVICE)
+    wp.launch(bk.pull_kernel, dim=(ch, cw), inputs=[_pp(*lv0)], outputs=[_pp(*pulled)], device=DEVICE)
+    for a, b in zip(got, pulled):
+        assert a.numpy().tobytes() == b.numpy().tobytes()
+    _, _, total, weight, known = fill_ref.layer_sources(scene["image"], scene["scoc"], scene["sid"], layer, x0, y0,
+                                                        h, w, True)
+    want = fill_ref.pull(total, weight, known)
+    np.testing.assert_allclose(got[0].numpy(), want[0], rtol=1e-6, atol=4 * ATOL)
+    np.testing.assert_array_equal(got[1].numpy(), want[1])
+    np.testing.assert_array_equal(got[2].numpy(), want[2])
+
+
 @given(h=st.integers(1, 13), w=st.integers(1, 13), depth=st.integers(0, 3), top=st.booleans(),
        seed=st.integers(0, 2**32 - 1))
 def test_push_kernel_matches_reference(h, w, depth, top, seed):
@@ -263,13 +302,14 @@ def test_row_then_column_pass_is_the_city_block_distance(scene, band):
 
 @given(scene=scenes(), seed=st.integers(0, 2**32 - 1))
 def test_fill_sources_kernel_matches_reference(scene, seed):
-    """Arbitrary level-0 sums and pushed level 1 (densities around the cut, some above 1), distances, prior
-    sources, CoC beyond the layer's range: the kernel pushes each hidden texel itself, then fills."""
+    """Arbitrary pushed level 1 (densities around the cut, some above 1), distances, prior sources, CoC beyond the
+    layer's range: the kernel pushes each hidden texel itself (its level-0 sums are zero: no pixel of the layer
+    and none visible), then fills."""
     rng = np.random.default_rng(seed)
     y0, y1, x0, x1 = scene["bbox"]
     h, w = y1 - y0, x1 - x0
     layer = scene["layer"]
-    total, weight, known = _level_sums(rng, h, w, 0)
+    total, weight, known = np.zeros((h, w, 4)), np.zeros((h, w)), np.zeros((h, w))
     ch, cw = (h + 1) // 2, (w + 1) // 2
     c_value = rng.uniform(0, 0.98, (ch, cw, 4))
     c_value[..., 3] = rng.uniform(-20, 20, (ch, cw))
@@ -288,8 +328,8 @@ def test_fill_sources_kernel_matches_reference(scene, seed):
     assume(not np.any(np.abs(density - fill_ref.MIN_FILL_DENSITY) <= 1e-5))
     src, coc, filled = _wp(src0, wp.vec4), _wp(coc0, float), wp.array(n0.astype(np.int32), device=DEVICE)
     wp.launch(bk.fill_sources_kernel, dim=(h, w),
-              inputs=[_wp(scene["sid"], wp.int32), layer, x0, y0, _pp(_wp(total, wp.vec4), _wp(weight, float),
-                      _wp(known, float)), _pp(_wp(c_value, wp.vec4), _wp(c_density, float), _wp(c_has, float)),
+              inputs=[_wp(scene["sid"], wp.int32), layer, x0, y0,
+                      _pp(_wp(c_value, wp.vec4), _wp(c_density, float), _wp(c_has, float)),
                       _wp(dist, float), _wp(scene["scoc"], float), scene["s_lo"], scene["s_hi"]],
               outputs=[src, coc, filled], device=DEVICE)
     w_src, w_coc, w_n = fill_ref.fill_sources(scene["sid"], layer, x0, y0, value, density, dist, scene["scoc"],

@@ -55,21 +55,24 @@ REGION_B = 16
 LAYER_B = 41
 """Per pixel of a layer's box while it scatters: sources (16 + 4) and the radius-pyramid difference buffers (16 x 4/3
 and 2 spare columns), plus the routing's arrays (``ROUTING_B_PER_LEVEL``)."""
-FILL_B = 60
-"""Per pixel of a layer's box while it builds its sources: sources (16 + 4), the pull-push pyramid (24 x 4/3) and the
-distance map (4), in reused buffers (``bokehray.levels.buffers``); a layer in work peaks at the larger of the two."""
-OTHER_LAYER_B = 30
+FILL_B = 30
+"""Per pixel of a layer's box while it builds its sources: sources (16 + 4), level 1 of the pull-push pyramid (24 / 4;
+level 0 is never stored, the coarser levels are freed once pushed) and the distance map (4), in reused buffers
+(``bokehray.levels.buffers``); a layer in work peaks at the larger of the two (now its scatter, ``LAYER_B``)."""
+OTHER_LAYER_B = 48
 """Per pixel of the box of each other worker's layer, at the peak: one layer fills at a time (``render_layer``), so
-the others are then waiting for the fill or scattering; calibrated on measured peaks (6 to 24 MP, two workers)."""
+the others are then waiting for the fill or scattering; calibrated on measured peaks (6 to 24 MP, two workers; 30
+while the fill held the whole pull-push pyramid and the layer in work was counted at 66)."""
 RESULT_B = 16
 """Per pixel of a finished layer's box waiting to be composited (premultiplied RGB and coverage): while the next
 layer to composite is in work, at most ``threads - 1`` others' results wait beside the other workers' layers
 (``_render_window`` starts no more once ``threads`` wait)."""
-ROUTING_B_PER_LEVEL = 18
+ROUTING_B_PER_LEVEL = 4
 """For :func:`route_salient`, per pixel of a layer's box in flight and per coarse level of its pyramid, weighted
-1, 1/4, 1/16, ... from the first (pages are taken only where written: ``buffers.lazy_zeros``): the radiance pyramid,
-the stored neighbourhoods and the cluster sources (vec4 16 + 16 + 16 and two floats) on the level-1 grid, a
-quarter of the pixels; plus 1 byte a pixel for the routing flags."""
+1, 1/4, 1/16, ... from the first, plus 1 byte a pixel for the routing flags: the radiance pyramid, the stored
+neighbourhoods and the cluster sources (vec4 16 + 16 + 16 and two floats) on the level-1 grid, a quarter of the
+pixels, would be 18; their pages are taken only where written (``buffers.lazy_zeros``), and the measured peaks
+(one worker, 12 MP) put the layer's scatter with its routing at about 46 bytes a box pixel (48 here at 4 levels)."""
 
 
 def _layer_bytes(n_levels: int) -> int:
