@@ -378,9 +378,10 @@ def render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatt
     y0, y1, x0, x1 = layer.bbox
     h, w = y1 - y0, x1 - x0
     support = sc.LayerSupport.of(layer, device)
-    # The fill is the layer's largest working set (sources, pull-push pyramid, distance map: about 56 bytes a box
-    # pixel, against about 43 for the scatter that follows): one worker fills at a time, so two workers' fills never
-    # overlap (the other worker scatters meanwhile). Nothing else is shared: values do not depend on it.
+    # One worker fills at a time (sources, the pull-push levels above level 0, distance map: about 30 bytes a box
+    # pixel; the scatter that follows takes about 46), so two workers' fills never overlap (the other worker
+    # scatters meanwhile); it was the largest working set before the fill stopped storing level 0. Nothing else is
+    # shared: values do not depend on it.
     with scatter.fill_gate:
         src, coc = sc.build_layer_sources(layer, arrays)
     n_levels = sc.pyramid_levels(layer.max_radius, scatter.level_radius_px)
