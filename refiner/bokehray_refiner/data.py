@@ -149,7 +149,7 @@ class PairBank:
         rng = np.random.default_rng(seed)
         opts = RefineOptions()
         self.pairs: list[Pair] = []
-        inputs: dict[tuple[str, float], list[tuple[str, np.ndarray, np.ndarray]]] = {}
+        inputs: dict[tuple[str, float], list[tuple[str, np.ndarray, np.ndarray | None]]] = {}  # this scene and K only
         focus_of: dict[str, np.ndarray] = {}
         for i in tqdm(range(n), desc="rendering corrupted-depth inputs", disable=not progress, unit="pair"):
             s = ds[i]
