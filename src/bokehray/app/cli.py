@@ -328,12 +328,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
         levels = tuple(float(v) for v in args.blur_levels.split(","))
     except ValueError:
         raise InputError(f"--blur-levels: expected comma-separated numbers, got {args.blur_levels!r}") from None
-    kinds = None
-    if args.kinds:
-        try:
-            kinds = tuple((k.strip(), float(w)) for k, w in (item.split("=") for item in args.kinds.split(",")))
-        except ValueError:
-            raise InputError(f"--kinds: expected KIND=WEIGHT pairs separated by commas, got {args.kinds!r}") from None
+    kinds = tuple(_name_values(args.kinds, "--kinds", "KIND=WEIGHT")) if args.kinds else None
     config = SynthConfig(size=args.size, blur_levels=levels, aperture=aperture_of(args), max_spp=args.max_spp,
                          fg_dir=args.fg, bg_dir=args.bg, kinds=kinds, depth_rule=args.depth_rule)
     start_warp(args)
@@ -342,6 +337,14 @@ def cmd_synth(args: argparse.Namespace) -> int:
     if not args.quiet:
         print(f"wrote {len(paths)} scenes to {args.output}")
     return 0
+
+
+def _name_values(text: str, option: str, form: str) -> list[tuple[str, float]]:
+    """``"a=1,b=2.5"`` -> ``[("a", 1.0), ("b", 2.5)]``, or one line naming ``option`` and the expected form."""
+    try:
+        return [(k.strip(), float(v)) for k, v in (item.split("=") for item in text.split(","))]
+    except ValueError:
+        raise InputError(f"{option}: expected {form} pairs separated by commas, got {text!r}") from None
 
 
 def _refiner_module(name: str):
@@ -366,11 +369,7 @@ def cmd_train_refiner(args: argparse.Namespace) -> int:
     extra = {}
     if args.corruptions:
         CORRUPTIONS = _refiner_module("data").CORRUPTIONS
-        try:
-            shares = dict((k.strip(), float(v)) for k, v in (item.split("=") for item in args.corruptions.split(",")))
-        except ValueError:
-            raise InputError(f"--corruptions: expected KIND=SHARE pairs separated by commas, got "
-                             f"{args.corruptions!r}") from None
+        shares = dict(_name_values(args.corruptions, "--corruptions", "KIND=SHARE"))
         unknown = sorted(set(shares) - set(CORRUPTIONS))
         total = sum(shares.values())
         if unknown or not total > 0 or min(shares.values()) < 0:

@@ -29,8 +29,8 @@ from ..lens import Aperture, BlurParams
 from ..levels.raytrace import Layer, raytrace_layers
 from ..options import RaytraceOptions
 
-__all__ = ["ALL_KINDS", "SynthConfig", "bundled_photo", "cutout_layer", "fit_crop", "generate", "generate_one", "make_scene",
-           "mean_disparity", "pinhole_layers", "procedural_layer", "stroke_coverage"]
+__all__ = ["ALL_KINDS", "DEPTH_RULES", "SynthConfig", "bundled_photo", "cutout_layer", "fit_crop", "generate",
+           "generate_one", "make_scene", "mean_disparity", "pinhole_layers", "procedural_layer", "stroke_coverage"]
 
 BUILTIN_BACKGROUNDS = ("astronaut", "coffee", "chelsea", "rocket", "brick", "gravel", "page", "coins", "camera")
 FOREGROUND_KINDS = ("cutout", "strands", "foliage", "mesh", "lights")
@@ -39,6 +39,8 @@ EXTRA_KINDS = ("fur", "whiskers", "softcut")
 """Further hard kinds, drawn only when :attr:`SynthConfig.kinds` names them: fur (a body fringed by many short
 strands), whiskers (a few long sub-pixel to 1 px strands) and cut-outs whose rim is a 1 - 4 px alpha ramp."""
 ALL_KINDS = FOREGROUND_KINDS + EXTRA_KINDS
+DEPTH_RULES = ("any", "half")
+"""Which pixels a foreground labels in the map (:func:`pinhole_layers`)."""
 
 
 @dataclass(frozen=True)
@@ -67,8 +69,7 @@ class SynthConfig:
     depth_rule: str = "any"
 
     def __post_init__(self) -> None:
-        if self.depth_rule not in ("any", "half"):
-            raise InputError(f"depth rule: expected 'any' or 'half', got {self.depth_rule!r}")
+        _check_depth_rule(self.depth_rule)
         if self.kinds is not None:
             names = [k for k, _ in self.kinds]
             weights = [w for _, w in self.kinds]
@@ -82,6 +83,11 @@ class SynthConfig:
         if not self.blur_levels or any(not (math.isfinite(k) and 0 < k <= 1e4) for k in self.blur_levels):
             raise InputError(f"blur levels: expected K values in (0, 10000], got {self.blur_levels}")
         RaytraceOptions(max_spp=self.max_spp)  # validates the ray cap
+
+
+def _check_depth_rule(rule: str) -> None:
+    if rule not in DEPTH_RULES:
+        raise InputError(f"depth rule: expected one of {DEPTH_RULES}, got {rule!r}")
 
 
 def _scene_rng(seed: int, index: int) -> np.random.Generator:
@@ -304,8 +310,7 @@ def pinhole_layers(layers: list[Layer], rule: str = "any") -> tuple[np.ndarray, 
     then had to carry the foreground's depth or stay sharp. With the soft scene that is the matting's job, and
     ``"any"`` maps are a fraction of a pixel fatter than the dev set's (docs/refiner.md, "Labels").
     """
-    if rule not in ("any", "half"):
-        raise InputError(f"depth rule: expected 'any' or 'half', got {rule!r}")
+    _check_depth_rule(rule)
     img, _ = raytrace_layers(layers, BlurParams(0.0, 0.0), options=RaytraceOptions(max_spp=1))
     n = layers[0].rgba.shape[0]
     yy, xx = (np.mgrid[0:n, 0:n] + 0.5).astype(np.float32)
