@@ -33,7 +33,7 @@ from .options import LayerOptions
 
 __all__ = [
     "FILL_MIN_REACH_PX", "LayerRecord", "LayerSources", "LayeredScene", "NearParts", "SoftEdges", "build_layer_sources",
-    "build_scene", "cap_coc", "check_soft_edges", "copy_tiles", "dilate", "fill_halo", "layer_edges", "pad_soft_edges",
+    "build_scene", "cap_coc", "check_soft_edges", "copy_tiles", "fill_halo", "layer_edges", "pad_soft_edges",
     "pyramid_levels", "scatter_halo", "soft_radius", "split_scene", "tile_max",
 ]  # fmt: skip
 

@@ -8,8 +8,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bokehray import Aperture, LayerOptions, MemoryOptions
+from bokehray.edge_estimate import dilate
 from bokehray.levels import preview as pv
-from bokehray.scene import dilate
 
 
 def _dilate_loops(mask: np.ndarray, k: int) -> np.ndarray:

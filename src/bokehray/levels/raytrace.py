@@ -19,6 +19,7 @@ import numpy as np
 
 from .. import scene as sc
 from .. import tiling
+from ..edge_estimate import dilate
 from ..errors import InputError
 from ..lens import Aperture, BlurParams
 from ..options import RaytraceOptions
@@ -129,7 +130,7 @@ def _visible_coc(coc: np.ndarray, content: np.ndarray, grid: int) -> np.ndarray:
     A layer whose disparity is defined everywhere but whose alpha is zero far from a pixel cannot send that
     pixel any light: it must not inflate the pixel's ray count.
     """
-    reach = sc.dilate(sc.tile_max(content, grid), int(np.ceil(float(coc.max()) / grid)) + 1)
+    reach = dilate(sc.tile_max(content, grid), int(np.ceil(float(coc.max()) / grid)) + 1)
     return np.where(sc.grid_to_pixels(reach, grid, coc.shape), coc, 0.0).astype(np.float32)
 
 
@@ -320,7 +321,7 @@ def _trace_tiles(ctx: RenderContext, scene: sc.LayeredScene, image: np.ndarray, 
             ty, tx = core[0] // grid, core[2] // grid
             t = sc.tile_max(stack.rgba[i, y0:y1, x0:x1, 3] > 0, grid)
             content[i, ty : ty + t.shape[0], tx : tx + t.shape[1]] |= t
-    reach = [sc.dilate(content[i], int(np.ceil(float(coc_max[i]) / grid)) + 1) for i in range(n)]
+    reach = [dilate(content[i], int(np.ceil(float(coc_max[i]) / grid)) + 1) for i in range(n)]
 
     stats = RaytraceStats(quality="raytrace", layers=n)
     all_cores = tiling.cores(h, w, tile)
