@@ -75,26 +75,27 @@ def cmd_view(args: argparse.Namespace) -> int:  # noqa: C901
     if args.host not in ("127.0.0.1", "localhost", "::1") and not args.quiet:
         print(f"bokehray view: listening on {args.host}, not only this machine: anyone who can reach it can "
               "render and export", file=sys.stderr)
-    # from the printed URL on the server is up: Ctrl-C is its normal stop wherever it lands (uvicorn re-raises the
-    # one it shut down on; under load one can land before its loop has started)
+    # from the printed URL on the server is up: Ctrl-C and SIGTERM only ask it to stop, wherever they land
+    # (ViewServer.stopping_on_signals); a KeyboardInterrupt raised otherwise is still the normal stop
     try:
-        print(f"bokehray view: {server.url}  ({session.w}x{session.h}, preview {session.proxy_image.shape[1]}x"
-              f"{session.proxy_image.shape[0]}; exports to {session.export_dir}; Ctrl-C stops)", flush=True)
-        if not args.quiet:
-            s = session.subject
-            metres = ""
-            if session.norm is not None:
-                near, far = session.depth_range_m()
-                metres = (f"; depth read: {near:.3g} .. {far:.3g} m, the subject "
-                          f"{float(session.norm.depth(s.d_f)):.3g} m away")
-            print(f"bokehray view: starts as `bokehray render` would: --amount 50 (K = {session.default_k:.1f} px), focus "
-                  f"{s.describe()}{', highlights reconstructed' if session.reconstruct_default else ''}{metres}",
-                  flush=True)
-        if args.open:
-            import webbrowser
+        with server.stopping_on_signals():
+            print(f"bokehray view: {server.url}  ({session.w}x{session.h}, preview {session.proxy_image.shape[1]}x"
+                  f"{session.proxy_image.shape[0]}; exports to {session.export_dir}; Ctrl-C stops)", flush=True)
+            if not args.quiet:
+                s = session.subject
+                metres = ""
+                if session.norm is not None:
+                    near, far = session.depth_range_m()
+                    metres = (f"; depth read: {near:.3g} .. {far:.3g} m, the subject "
+                              f"{float(session.norm.depth(s.d_f)):.3g} m away")
+                print(f"bokehray view: starts as `bokehray render` would: --amount 50 (K = {session.default_k:.1f} px), focus "
+                      f"{s.describe()}{', highlights reconstructed' if session.reconstruct_default else ''}{metres}",
+                      flush=True)
+            if args.open:
+                import webbrowser
 
-            webbrowser.open(server.url)
-        server.run()
+                webbrowser.open(server.url)
+            server.run()
     except KeyboardInterrupt:
         pass
     finally:

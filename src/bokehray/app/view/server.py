@@ -18,7 +18,9 @@ never names a path):
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
+import signal
 import socket
 import threading
 import time
@@ -278,6 +280,23 @@ class ViewServer:
     def url(self) -> str:
         host = f"[{self.host}]" if ":" in self.host else self.host
         return f"http://{host}:{self.port}/"
+
+    @contextlib.contextmanager
+    def stopping_on_signals(self):
+        """From here on Ctrl-C and SIGTERM ask the server to stop (uvicorn's own handler, installed early), instead
+        of raising wherever they land: one landing before uvicorn's loop has started (under load, inside the event
+        loop's constructor, which then failed in its ``__del__``) is then the normal stop too. The previous handlers
+        come back on exit. Main thread only (signals are delivered there)."""
+        if threading.current_thread() is not threading.main_thread():
+            yield
+            return
+        sigs = (signal.SIGINT, signal.SIGTERM)
+        previous = {sig: signal.signal(sig, self.server.handle_exit) for sig in sigs}
+        try:
+            yield
+        finally:
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
 
     def run(self) -> None:
         interrupted = False
