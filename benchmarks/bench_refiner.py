@@ -66,6 +66,20 @@ def devset_samples(root: Path):
             yield f"{scene.name}/{r['file']}", image, disparity, blur, target, band
 
 
+def synth_samples(root: str, pairs: int):
+    """(name, image, disparity, blur, target, band) for every k-th pair of a BLB-layout folder, ``pairs`` of them."""
+    import bokehray as br
+    from bokehray.data.datasets import BLBDataset
+    from bokehray.data.metrics import discontinuity_band
+
+    ds = BLBDataset(root)
+    step = max(1, len(ds) // pairs)
+    for i in list(range(0, len(ds), step))[:pairs]:
+        s = ds[i]
+        yield (s.name, s.image, s.disparity, br.BlurParams(s.k_px, s.focus_disparity), s.target,
+               discontinuity_band(s.disparity))
+
+
 def main() -> None:  # noqa: C901
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     src = ap.add_mutually_exclusive_group(required=True)
@@ -107,8 +121,7 @@ def main() -> None:  # noqa: C901
     from bokehray_refiner.refine import RefineOptions, load_refiner, refine
 
     import bokehray as br
-    from bokehray.data.datasets import BLBDataset
-    from bokehray.data.metrics import discontinuity_band, score
+    from bokehray.data.metrics import score
 
     ropts = RefineOptions() if args.band_margin is None else RefineOptions(band_margin_px=args.band_margin)
     if args.no_agreement:
@@ -121,11 +134,7 @@ def main() -> None:  # noqa: C901
         samples = list(devset_samples(Path(args.devset)))
         conditions = NET_CONDITIONS if args.network_conditions else DEV_CONDITIONS
     else:
-        ds = BLBDataset(args.data)
-        step = max(1, len(ds) // args.pairs)
-        idx = list(range(0, len(ds), step))[: args.pairs]
-        samples = [(s.name, s.image, s.disparity, br.BlurParams(s.k_px, s.focus_disparity), s.target,
-                    discontinuity_band(s.disparity)) for s in (ds[i] for i in idx)]
+        samples = list(synth_samples(args.data, args.pairs))
         conditions = NET_CONDITIONS if args.network_conditions else (DEV_CONDITIONS if args.all_corruptions
                                                                       else CONDITIONS)
     ungated = replace(ropts, gate=replace(ropts.gate, enabled=False))

@@ -111,13 +111,25 @@ def corrupt_disparity(d: np.ndarray, kind: str, amount: int, rng: np.random.Gene
     raise InputError(f"corruption: expected one of {CORRUPTIONS}, got {kind!r}")
 
 
+def _loss_weight(image: np.ndarray, focus_srgb: np.ndarray, disparity: np.ndarray, render_linear: np.ndarray,
+                 blur: BlurParams, opts, gated: bool) -> np.ndarray:
+    """Where refine keeps the network's output: the edge band, times the confidence gate when ``gated``."""
+    from .refine import blend_weight, edge_band, edge_reach
+
+    coc = blur.signed_coc(disparity).astype(np.float32)
+    if gated:
+        return blend_weight(image, focus_srgb, disparity, render_linear, coc, opts)[1]
+    return edge_band(edge_reach(coc, opts.min_jump_px), opts.band_margin_px, opts.band_feather_px)
+
+
 @dataclass
 class Pair:
     focus: np.ndarray  #: H x W x 3 sRGB float16, all in focus (shared by the pairs of one scene)
     target: np.ndarray  #: H x W x 3 sRGB float16, exact render
     renders: list[np.ndarray]  #: per variant, H x W x 3 sRGB float16: the level on the corrected map
     disparities: list[np.ndarray]  #: per variant, H x W float16: the corrected map (what the network sees)
-    bands: list[np.ndarray]  #: per variant, H x W float16: where refine keeps the network's output (its weight)
+    bands: list[np.ndarray]  #: per variant, H x W float16: where refine keeps the network's output (its weight:
+    #: the edge band, times the confidence gate in a ``gated`` bank)
     kinds: list[str]
     k_px: float
     focus_disparity: float
@@ -134,11 +146,15 @@ class PairBank:
     from :data:`AMOUNTS`), corrected by the depth fix (which depends on ``K``, not on the focus) and rendered at
     each focus of the scene, as ``render --refine`` would. Deterministic for a seed, so a resumed training run
     rebuilds the same bank; :meth:`cached` keeps it on disk.
+
+    Each input's weight (``bands``) is the edge band where refine keeps the network's output; with ``gated`` it is
+    also multiplied by the confidence gate, exactly the weight refine blends by
+    (:func:`bokehray_refiner.refine.blend_weight`), so the loss counts only what the network will be let change.
     """
 
     def __init__(self, root: str, variants: int = 2, seed: int = 0, limit: int | None = None,
-                 progress: bool = True, probs: tuple[float, ...] = CORRUPTION_PROBS):
-        from .refine import RefineOptions, correct_and_render, edge_band, edge_reach
+                 progress: bool = True, probs: tuple[float, ...] = CORRUPTION_PROBS, gated: bool = False):
+        from .refine import RefineOptions, correct_and_render
 
         if len(probs) != len(CORRUPTIONS) or min(probs) < 0 or abs(sum(probs) - 1.0) > 1e-6:
             raise InputError(f"corruption probabilities: expected {len(CORRUPTIONS)} shares summing to 1, got {probs}")
@@ -155,7 +171,8 @@ class PairBank:
             s = ds[i]
             scene = s.name.split("/")[0]
             if scene not in focus_of:
-                focus_of = {scene: linear_to_srgb(np.clip(s.image, 0.0, 1.0)).astype(np.float16)}
+                focus_full = linear_to_srgb(np.clip(s.image, 0.0, 1.0))
+                focus_of = {scene: focus_full.astype(np.float16)}
             key = (scene, float(s.k_px))
             if key not in inputs:  # the corrupted and corrected maps of this scene and K, for every focus
                 maps = []
@@ -174,8 +191,7 @@ class PairBank:
                     inputs[key][v] = (kind, dc, dfix)
                 else:
                     r = rerender(dfix)
-                coc = blur.signed_coc(dfix).astype(np.float32)
-                band = edge_band(edge_reach(coc, opts.min_jump_px), opts.band_margin_px, opts.band_feather_px)
+                band = _loss_weight(s.image, focus_full, dfix, r, blur, opts, gated)
                 renders.append(linear_to_srgb(np.clip(r[..., :3], 0.0, 1.0)).astype(np.float16))
                 disps.append(dfix.astype(np.float16))
                 bands.append(band.astype(np.float16))

@@ -45,7 +45,8 @@ from .masks import PisaMaskProvider
 from .model import BokehRefiner, RefinerConfig
 from .tiles import raised_cosine_ramp
 
-__all__ = ["DEFAULT_WEIGHTS", "RefineOptions", "RefineStats", "correct_and_render", "edge_band", "edge_reach",
+__all__ = ["DEFAULT_WEIGHTS", "RefineOptions", "RefineStats", "blend_weight", "correct_and_render", "edge_band",
+           "edge_reach",
            "load_refiner", "refine", "refine_boxes", "tiles_near", "tiles_to_refine"]
 
 DEFAULT_WEIGHTS = Path(__file__).parent / "weights" / "refiner.safetensors"
@@ -359,6 +360,21 @@ def _correct_depth(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, c
     return _DepthFix(classical, disparity, d_fixed, fixed_px, t_fix, t_re, focus_srgb)
 
 
+def blend_weight(image: np.ndarray, focus_srgb: np.ndarray, disparity: np.ndarray, classical: np.ndarray,
+                 coc: np.ndarray, options: RefineOptions = RefineOptions(),
+                 reach: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The edge band (:func:`edge_band`) and the weight :func:`refine` blends the network's output in by: the band
+    times the confidence gate. ``classical`` is the level's render on ``disparity`` (scene-linear), ``coc`` its
+    signed CoC; ``reach``: :func:`edge_reach` of ``coc`` when already computed. Training counts its loss where
+    this weight is (``PairBank(gated=True)``)."""
+    reach = edge_reach(coc, options.min_jump_px) if reach is None else reach
+    nearest = nearest_edge(reach)  # the gate's edge pixels are the band's: one distance transform for both
+    full_band = edge_band(reach, options.band_margin_px, options.band_feather_px, nearest)
+    gate = refine_gate(image, focus_srgb, disparity, classical, coc, options.min_jump_px, options.gate,
+                       nearest=None if nearest is None else nearest[1])
+    return full_band, full_band * gate
+
+
 def _gated_band(image: np.ndarray, focus_srgb: np.ndarray, disparity: np.ndarray, classical: np.ndarray,
                 coc: np.ndarray, reach: np.ndarray, need: np.ndarray, options: RefineOptions,
                 stats: RefineStats) -> np.ndarray:
@@ -366,10 +382,7 @@ def _gated_band(image: np.ndarray, focus_srgb: np.ndarray, disparity: np.ndarray
     gate closes are dropped from ``need`` (in place)."""
     h, w = disparity.shape
     t = options.tile
-    nearest = nearest_edge(reach)  # the gate's edge pixels are the band's: one distance transform for both
-    full_band = edge_band(reach, options.band_margin_px, options.band_feather_px, nearest)
-    band = full_band * refine_gate(image, focus_srgb, disparity, classical, coc, options.min_jump_px,
-                                   options.gate, nearest=None if nearest is None else nearest[1])
+    full_band, band = blend_weight(image, focus_srgb, disparity, classical, coc, options, reach)
     stats.band_pixels = int((full_band > 0).sum())
     stats.gate_open = float(band.sum() / full_band.sum()) if full_band.sum() > 0 else 0.0
     ty, tx = need.shape

@@ -53,6 +53,7 @@ class TrainConfig:
     variants: int = 2
     corruption_probs: list[float] = field(default_factory=lambda: list(CORRUPTION_PROBS))
     edge_share: float = 0.8
+    behind_gate: bool = True
     seed: int = 0
     mse_weight: float = 1.0
     edge_weight: float = 0.5
@@ -222,7 +223,7 @@ def train(cfg: TrainConfig, resume: bool = True, progress: bool = True, bank: Pa
             raise InputError(f"{ckpt}: the checkpoint is at step {step}, past --stop-at {stop_at}")
     if bank is None:  # kept in the run folder: a resumed run reads it instead of rendering it again
         bank = PairBank.cached(out / "bank.npz", cfg.data, progress=progress, variants=cfg.variants, seed=cfg.seed,
-                               limit=cfg.limit, probs=tuple(cfg.corruption_probs))
+                               limit=cfg.limit, probs=tuple(cfg.corruption_probs), gated=cfg.behind_gate)
     model.train()
     bar = tqdm(total=cfg.steps, initial=step, desc="training refiner", disable=not progress, unit="step")
     while step < cfg.steps and (stop_at is None or step < stop_at):
@@ -232,7 +233,8 @@ def train(cfg: TrainConfig, resume: bool = True, progress: bool = True, bank: Pa
         opts = PisaMaskOptions(hardness=hardness_at(step, cfg))
         pisa = PisaMaskProvider(batch["disparity"], batch["focus_disparity"], batch["k_px"], opts,
                                 torch_device=device)
-        # what refine keeps: the network's output within the edge band, the classical render elsewhere
+        # what refine keeps: the network's output within the edge band (times the gate: behind_gate), the classical
+        # render elsewhere
         band = torch.from_numpy(batch["band"])[:, None].to(device)
         pred = render + band * (model(focus, render, coc, pisa) - render)
         inside = (band > 0).to(pred.dtype)  # the MSE over the band only: outside it the error is not the model's

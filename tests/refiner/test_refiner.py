@@ -490,6 +490,35 @@ def test_pair_bank_makes_the_input_refine_makes_and_caches_it(pairs, tmp_path):
                                                                              first.pairs[0].renders[0])
 
 
+def test_a_gated_bank_weighs_each_input_as_refine_blends_it(pairs):
+    """Training behind the gate: the loss weight is the band times the confidence gate, as refine() blends."""
+    from bokehray_refiner.refine import RefineOptions, blend_weight
+
+    from bokehray.colour import linear_to_srgb
+    from bokehray.data.datasets import BLBDataset
+
+    probs = (0, 0.5, 0, 0, 0, 0, 0.5, 0)  # eroded or locally misplaced edges: the gate opens somewhere
+    gated = PairBank(str(pairs), variants=2, seed=1, limit=2, progress=False, probs=probs, gated=True)
+    plain = PairBank(str(pairs), variants=2, seed=1, limit=2, progress=False, probs=probs)
+    ds = BLBDataset(str(pairs))
+    for i, (g, p) in enumerate(zip(gated.pairs, plain.pairs)):
+        assert all(np.array_equal(a, b) for a, b in zip(g.renders, p.renders))  # same inputs, other weights
+        s = ds[i]
+        blur = br.BlurParams(s.k_px, s.focus_disparity)
+        for d, w, wp in zip(g.disparities, g.bands, p.bands):
+            linear = br.render(s.image, d.astype(np.float32), blur)
+            coc = blur.signed_coc(d.astype(np.float32)).astype(np.float32)
+            band, weight = blend_weight(s.image, linear_to_srgb(np.clip(s.image, 0, 1)), d.astype(np.float32),
+                                        linear, coc, RefineOptions())
+            # the bank stores the map in float16, from which this recomputes it: equal up to that rounding
+            assert np.abs(w.astype(np.float32) - weight).max() < 0.02
+            assert np.abs(wp.astype(np.float32) - band).max() < 0.02
+            assert np.all(w <= wp)
+    assert any((w > 0).any() for p in gated.pairs for w in p.bands)  # the gate let something through
+    assert any(((w == 0) & (wp > 0)).any() for p, q in zip(gated.pairs, plain.pairs)
+               for w, wp in zip(p.bands, q.bands))  # and closed something
+
+
 def test_edge_crops_are_centred_on_the_band(bank):
     b = bank.batch(np.random.default_rng(0), 16, 32, edge_share=1.0)
     assert (b["band"][:, 16, 16] > 0).mean() >= 0.9  # crop centres (clamped only at the image border)
