@@ -390,7 +390,10 @@ def render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatt
     for lv in range(bk.MAX_LEVELS):
         if lv < n_levels and (lv == 0 or lv >= first):
             shape = ((h + (1 << lv) - 1) >> lv, ((w + (1 << lv) - 1) >> lv) + 2)
-            bufs.append(wp.zeros(shape, dtype=wp.vec4, device=device))
+            # above a first level of 1 or more, level 0 holds only the routed light and sub-pixel sources: its
+            # pages are taken where deposited (the prefix sums store nothing before a row's first deposit)
+            zeros = lazy_zeros if lv == 0 and first > 0 else wp.zeros
+            bufs.append(zeros(shape, dtype=wp.vec4, device=device))
         else:
             bufs.append(bufs[0] if lv > 0 else None)
     routed = scatter.exact_highlights and n_levels > 1
@@ -423,7 +426,7 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
     device = scatter.device
     h, w = s.shape
     arrays = sc.LayerSources.upload(image, s, ids, n_slots, device, near)
-    acc = wp.zeros((h, w), dtype=wp.vec4, device=device)
+    acc = lazy_zeros((h, w), wp.vec4, device)  # its pages are taken at the first composite (after the back layer)
 
     # Layers render independently (Warp CPU launches release the GIL) on ``threads`` workers and are composited
     # strictly back to front as they complete. A free worker takes the next layer to composite if it has not
