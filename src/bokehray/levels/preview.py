@@ -51,10 +51,13 @@ WHOLE_IMAGE_B = 32
 """Whole-image arrays kept through the layers: the signed CoC and the scene's copy of it, the scene's colour (its
 split pixels hold their far part), layer ids, tile masks; the plan's transients (sort keys) are gone by then."""
 REGION_B = 16
-"""Per pixel of the rendered region: the accumulator (the image, CoC and layer ids are read in place on the CPU)."""
+"""Per pixel of the rendered region: the accumulator (the image, CoC and layer ids are read in place on the CPU; the
+accumulator's pages are taken from the first composite on, ``buffers.lazy_zeros``: counted whole all the same)."""
 LAYER_B = 41
 """Per pixel of a layer's box while it scatters: sources (16 + 4) and the radius-pyramid difference buffers (16 x 4/3
-and 2 spare columns), plus the routing's arrays (``ROUTING_B_PER_LEVEL``)."""
+and 2 spare columns), plus the routing's arrays (``ROUTING_B_PER_LEVEL``). A layer whose first level is 1 or more
+takes level 0's pages only where something is deposited (:func:`render_layer`); the model counts them all the same
+(an over-estimate of up to 16 bytes a box pixel there; the measured peaks stay within 15 %)."""
 FILL_B = 30
 """Per pixel of a layer's box while it builds its sources: sources (16 + 4), level 1 of the pull-push pyramid (24 / 4;
 level 0 is never stored, the coarser levels are freed once pushed) and the distance map (4), in reused buffers
