@@ -109,12 +109,20 @@ def scatter_kernel(  # noqa: C901
 
 @wp.kernel
 def prefix_rows_kernel(buf: wp.array2d(dtype=wp.vec4)):
-    """In-place running sum along each row: differences -> per-pixel values."""
+    """In-place running sum along each row: differences -> per-pixel values.
+
+    While the running sum is zero an element already holds its sum (``0 + d == d``: the buffers start at +0 and
+    only ever receive sums, so no -0 arises), so it is not stored: a lazily zeroed buffer (``bokehray.levels.
+    buffers.lazy_zeros``) keeps its untouched pages up to each row's first deposit."""
     y = wp.tid()
     acc = wp.vec4()
     for x in range(buf.shape[1]):
-        acc = acc + buf[y, x]
-        buf[y, x] = acc
+        d = buf[y, x]
+        if acc[0] != 0.0 or acc[1] != 0.0 or acc[2] != 0.0 or acc[3] != 0.0:
+            acc = acc + d
+            buf[y, x] = acc
+        else:
+            acc = d
 
 
 @wp.func

@@ -392,3 +392,63 @@ def test_clusters_lie_in_their_levels_block_grid(device, rng):
         bufs.append(buf.numpy())
     assert np.abs(bufs[0]).sum() > 0
     np.testing.assert_array_equal(bufs[1], bufs[0])
+
+
+def _sparse_differences(rows: list[list[tuple[int, int]]], w: int) -> np.ndarray:
+    """Difference rows as the scatter leaves them: +v at a span's start, -v at its end (the running sum returns to
+    zero after it, exactly or up to rounding)."""
+    d = np.zeros((len(rows), w + 2, 4), np.float32)
+    for y, spans in enumerate(rows):
+        for a, b in spans:
+            v = np.float32([0.1 * (a + 1), 0.3, 1.0 / (b + 3), 0.7])
+            d[y, min(a, b)] += v
+            d[y, max(a, b) + 1] -= v
+    return d
+
+
+@given(rows=st.lists(st.lists(st.tuples(st.integers(0, 40), st.integers(0, 40)), max_size=3), min_size=1,
+                     max_size=6))
+def test_prefix_sums_are_the_sequential_running_sums(rows):
+    """``prefix_rows_kernel`` against NumPy's running sum in float32, bit for bit (rows left zero, spans that
+    cancel exactly and ones that leave rounding behind)."""
+    d = _sparse_differences(rows, 41)
+    buf = wp.array(d, dtype=wp.vec4, device="cpu")
+    wp.launch(bk.prefix_rows_kernel, dim=d.shape[0], inputs=[buf], device="cpu")
+    np.testing.assert_array_equal(buf.numpy(), np.cumsum(d, axis=1, dtype=np.float32))
+
+
+def _anonymous_kb(ptr: int) -> int | None:
+    """The private pages (kB) of the mapping holding address ``ptr`` (``/proc/self/smaps``: the kernel's shared zero
+    page, which reading an untouched page maps, is not counted); None where there is no smaps."""
+    try:
+        text = open("/proc/self/smaps").read().splitlines()
+    except OSError:
+        return None
+    inside = False
+    for line in text:
+        head = line.split()[0]
+        if "-" in head and ":" not in head:
+            lo, hi = (int(v, 16) for v in head.split("-"))
+            inside = lo <= ptr < hi
+        elif inside and head == "Anonymous:":
+            return int(line.split()[1])
+    return None
+
+
+def test_prefix_sums_leave_a_lazy_buffers_empty_rows_untouched():
+    """On a lazily zeroed buffer the prefix sums store nothing before a row's first deposit: rows without one take
+    no page, and the values are the running sums."""
+    from bokehray.levels.buffers import lazy_zeros
+
+    h, w = 64, 4094  # 4 MiB, a row 64 KiB
+    buf = lazy_zeros((h, w + 2), wp.vec4, "cpu")
+    host = buf.numpy()  # aliases the mapping
+    d = _sparse_differences([[(3, 500)] if y % 8 == 5 else [] for y in range(h)], w)
+    host[5::8] = d[5::8]  # the deposited rows only
+    before = _anonymous_kb(buf.ptr)  # (the mapping may share its smaps entry with neighbouring ones)
+    wp.launch(bk.prefix_rows_kernel, dim=h, inputs=[buf], device="cpu")
+    after = _anonymous_kb(buf.ptr)
+    np.testing.assert_array_equal(host, np.cumsum(d, axis=1, dtype=np.float32))
+    if before is None or after is None:
+        pytest.skip("no /proc/self/smaps")
+    assert after - before < 1024  # storing every element would take all 4096 kB

@@ -51,10 +51,13 @@ WHOLE_IMAGE_B = 32
 """Whole-image arrays kept through the layers: the signed CoC and the scene's copy of it, the scene's colour (its
 split pixels hold their far part), layer ids, tile masks; the plan's transients (sort keys) are gone by then."""
 REGION_B = 16
-"""Per pixel of the rendered region: the accumulator (the image, CoC and layer ids are read in place on the CPU)."""
+"""Per pixel of the rendered region: the accumulator (the image, CoC and layer ids are read in place on the CPU; the
+accumulator's pages are taken from the first composite on, ``buffers.lazy_zeros``: counted whole all the same)."""
 LAYER_B = 41
 """Per pixel of a layer's box while it scatters: sources (16 + 4) and the radius-pyramid difference buffers (16 x 4/3
-and 2 spare columns), plus the routing's arrays (``ROUTING_B_PER_LEVEL``)."""
+and 2 spare columns), plus the routing's arrays (``ROUTING_B_PER_LEVEL``). A layer whose first level is 1 or more
+takes level 0's pages only where something is deposited (:func:`render_layer`); the model counts them all the same
+(an over-estimate of up to 16 bytes a box pixel there; the measured peaks stay within 15 %)."""
 FILL_B = 30
 """Per pixel of a layer's box while it builds its sources: sources (16 + 4), level 1 of the pull-push pyramid (24 / 4;
 level 0 is never stored, the coarser levels are freed once pushed) and the distance map (4), in reused buffers
@@ -390,7 +393,10 @@ def render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatt
     for lv in range(bk.MAX_LEVELS):
         if lv < n_levels and (lv == 0 or lv >= first):
             shape = ((h + (1 << lv) - 1) >> lv, ((w + (1 << lv) - 1) >> lv) + 2)
-            bufs.append(wp.zeros(shape, dtype=wp.vec4, device=device))
+            # above a first level of 1 or more, level 0 holds only the routed light and sub-pixel sources: its
+            # pages are taken where deposited (the prefix sums store nothing before a row's first deposit)
+            zeros = lazy_zeros if lv == 0 and first > 0 else wp.zeros
+            bufs.append(zeros(shape, dtype=wp.vec4, device=device))
         else:
             bufs.append(bufs[0] if lv > 0 else None)
     routed = scatter.exact_highlights and n_levels > 1
@@ -423,7 +429,7 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
     device = scatter.device
     h, w = s.shape
     arrays = sc.LayerSources.upload(image, s, ids, n_slots, device, near)
-    acc = wp.zeros((h, w), dtype=wp.vec4, device=device)
+    acc = lazy_zeros((h, w), wp.vec4, device)  # its pages are taken at the first composite (after the back layer)
 
     # Layers render independently (Warp CPU launches release the GIL) on ``threads`` workers and are composited
     # strictly back to front as they complete. A free worker takes the next layer to composite if it has not
