@@ -109,7 +109,7 @@ STAGES = [
     ("bokehray.photo.read", "read_image", "read image (decode, ICC, sRGB LUT)"),
     ("bokehray.photo.read", "read_disparity", "read disparity"),
     ("bokehray.photo.highlights", "reconstruct_highlights", "highlight reconstruction"),
-    ("bokehray.pipeline", "render_with_stats", "render"),
+    ("bokehray.pipeline", "render_handed_over", "render"),
     ("bokehray.pipeline", "check_image", "check image"),
     ("bokehray.pipeline", "check_radiance", "check radiance"),
     ("bokehray.pipeline", "check_disparity", "check disparity"),

@@ -30,7 +30,7 @@ from .validate import (
     first_bad_index,
 )
 
-__all__ = ["QUALITIES", "boost_highlights", "focus_at", "render", "render_with_stats"]
+__all__ = ["QUALITIES", "Handover", "boost_highlights", "focus_at", "render", "render_handed_over", "render_with_stats"]
 
 QUALITIES = tuple(LEVELS)
 """Quality levels: docs/renderer.md (preview) and docs/raytracer.md (raytrace)."""
@@ -130,6 +130,30 @@ def _check_refine(refine: object, quality: str) -> bool:
     return True
 
 
+class Handover:
+    """A photo and its disparity map handed over to :func:`render_handed_over`, which owns them from then on.
+
+    The caller builds it and keeps no other reference to the arrays (``inputs = Handover(image, disparity)``, then
+    ``del image, disparity``); the render takes them out of the holder (:meth:`take`: it is then empty) and drops
+    each as soon as it no longer reads it, so that an array nobody else holds is freed before the layers start
+    (at 12 MP the command line's photo, disparity and CoC: 240 MB). The arrays are never written to. A holder
+    serves one render.
+    """
+
+    __slots__ = ("disparity", "image")
+
+    def __init__(self, image: np.ndarray, disparity: np.ndarray) -> None:
+        self.image, self.disparity = image, disparity
+
+    def take(self) -> tuple[np.ndarray, np.ndarray]:
+        """The arrays, once: the holder keeps no reference to them."""
+        if self.image is None:
+            raise InputError("inputs: this Handover was already rendered (a holder serves one render)")
+        arrays = self.image, self.disparity
+        self.image = self.disparity = None
+        return arrays
+
+
 def render_with_stats(
     image: np.ndarray,
     disparity: np.ndarray,
@@ -150,14 +174,34 @@ def render_with_stats(
 
     Stages: :func:`_checked_arguments` -> :func:`_context` (validated pixels, grey / alpha, boost, the capped CoC,
     the soft edges) -> the level, or :func:`_render_refined` -> :func:`_output` (alpha through the level, the
-    output checks)."""
+    output checks). The caller's arrays are read, never written to, and stay the caller's."""
+    return _render_with_stats(Handover(image, disparity), blur, aperture, quality=quality, device=device,
+                              options=options, layers=layers, memory=memory, highlight_boost=highlight_boost,
+                              progress=progress, refine=refine)
+
+
+def render_handed_over(inputs: Handover, blur: BlurParams, aperture: Aperture | None = None, **kwargs):
+    """:func:`render_with_stats` of the photo and disparity in ``inputs`` (a :class:`Handover`), which the render
+    owns: it takes them out of the holder and drops each array once it no longer reads it (the preview: once the
+    scene is split), so that arrays the caller holds no other reference to are freed while the layers render. The
+    same values as :func:`render_with_stats` of the same arrays. The command line renders through it."""
+    check_type(inputs, Handover, "inputs", "a bokehray.pipeline.Handover")
+    return _render_with_stats(inputs, blur, aperture, **kwargs)
+
+
+def _render_with_stats(inputs: Handover, blur: BlurParams, aperture: Aperture | None, *, quality: str = "preview",
+                       device: str = "cpu", options: PreviewOptions | RaytraceOptions | None = None,
+                       layers: LayerOptions | None = None, memory: MemoryOptions | None = None,
+                       highlight_boost: float = 0.0, progress: Progress | None = None,
+                       refine: bool | str | os.PathLike = False) -> tuple[np.ndarray, RenderStats]:
     level = get_level(quality)
     layers, memory, options, aperture, device = _checked_arguments(
         level, blur, aperture, device, options, layers, memory, highlight_boost, progress)
     refining = _check_refine(refine, quality)
-    _check_shape_fits(image, level.whole_image_bytes(), memory)
-    ctx, work, raw_max, channels, lowest = _context(image, disparity, blur, aperture, layers, memory, options, device,
-                                                    progress, highlight_boost)
+    _check_shape_fits(inputs.image, level.whole_image_bytes(), memory)
+    # the context takes the arrays out of the holder: from here only the context (and the caller) holds them
+    ctx, work, raw_max, channels, lowest = _context(inputs, blur, aperture, layers, memory, options, device,
+                                                    progress, highlight_boost, keep_pixels=refining)
     if refining:
         out_rgb, stats, ctx = _render_refined(level, ctx, work, refine)
     else:
@@ -191,11 +235,15 @@ def _checked_arguments(level, blur: object, aperture: object, device: object, op
     return layers, memory, options, aperture, _check_device(device)
 
 
-def _context(image: object, disparity: object, blur: BlurParams, aperture: Aperture, layers: LayerOptions,
-             memory: MemoryOptions, options: object, device: str, progress: Progress | None,
-             highlight_boost: float) -> tuple[RenderContext, np.ndarray, float, int, float]:
-    """The validated pixels as one render's context, the working image (RGB or RGBA, boosted), the largest CoC
-    before the cap, the input's channels and its smallest value."""
+def _context(inputs: Handover, blur: BlurParams, aperture: Aperture, layers: LayerOptions, memory: MemoryOptions,
+             options: object, device: str, progress: Progress | None, highlight_boost: float,
+             keep_pixels: bool) -> tuple[RenderContext, np.ndarray | None, float, int, float]:
+    """The validated pixels as one render's context, the working image (RGB or RGBA, boosted; None when nothing
+    after the level reads it), the largest CoC before the cap, the input's channels and its smallest value.
+
+    The context is ``disposable`` (the level drops its pixels once read: ``RenderContext.release_pixels``) unless
+    something reads them after the level: the alpha of an RGBA input, or the refiner (``keep_pixels``)."""
+    image, disparity = inputs.take()
     img = check_image(image)
     check_radiance(img)
     d = check_disparity(disparity, img.shape[:2])
@@ -206,9 +254,10 @@ def _context(image: object, disparity: object, blur: BlurParams, aperture: Apert
     s = blur.signed_coc(d)
     raw_max = max(float(s.max()), -float(s.min())) if s.size else 0.0
     rgb, capped = np.ascontiguousarray(work[..., :3]), scene.cap_coc(s)
+    disposable = not keep_pixels and img.shape[2] != 4
     ctx = RenderContext(rgb, d, capped, blur, aperture, layers, memory, options, device, progress,
-                        _soft_edges(rgb, capped, layers))
-    return ctx, work, raw_max, img.shape[2], float(img.min())
+                        _soft_edges(rgb, capped, layers), disposable)
+    return ctx, None if disposable else work, raw_max, img.shape[2], float(img.min())
 
 
 def _render_refined(level, ctx: RenderContext, work: np.ndarray, refine: bool | str | os.PathLike):
@@ -236,7 +285,7 @@ def _render_refined(level, ctx: RenderContext, work: np.ndarray, refine: bool | 
     return out_rgb, stats, rendered["ctx"]  # alpha blurs with the corrected depth too
 
 
-def _output(level, ctx: RenderContext, work: np.ndarray, out_rgb: np.ndarray, quality: str, channels: int,
+def _output(level, ctx: RenderContext, work: np.ndarray | None, out_rgb: np.ndarray, quality: str, channels: int,
             lowest: float) -> np.ndarray:
     """The output in the input's ``channels`` (alpha rendered like a grey channel, through the same level), checked:
     finite, and non-negative for an input whose smallest value ``lowest`` is."""

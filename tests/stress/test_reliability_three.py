@@ -106,11 +106,11 @@ def test_a_render_of_an_odd_but_readable_file_prints_nothing_on_stderr(case, tmp
 _NATIVE_CHATTER = """
 import os
 import bokehray.pipeline as r
-_render = r.render_with_stats
+_render = r.render_handed_over
 def _chatty(*a, **k):
     os.write(2, b"some C library: a warning straight to descriptor 2\\n")  # what libpng, Warp or a worker would do
     return _render(*a, **k)
-r.render_with_stats = _chatty
+r.render_handed_over = _chatty
 """
 
 
@@ -133,14 +133,14 @@ def test_the_cli_drops_native_lines_and_keeps_its_own(tmp_path):
 _SLOW_SECOND_RENDER = """
 import sys, time
 import bokehray.pipeline as r
-_render, _calls = r.render_with_stats, []
+_render, _calls = r.render_handed_over, []
 def _slow(*a, **k):
     _calls.append(1)
     if len(_calls) == 2:
         print("RENDERING", flush=True)
         time.sleep(HANG)
     return _render(*a, **k)
-r.render_with_stats = _slow
+r.render_handed_over = _slow
 """
 
 

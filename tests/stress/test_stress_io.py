@@ -326,7 +326,7 @@ import bokehray.pipeline as r
 def _slow(*a, **k):
     print("RENDERING", flush=True)
     time.sleep(60)
-r.render_with_stats = _slow
+r.render_handed_over = _slow
 """
     proc = _cli(["render", img, "--disparity", disp, "-o", out, "--blur", 4, "--focus", 0.5], prelude=prelude,
                 wait=False)

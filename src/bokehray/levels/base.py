@@ -28,6 +28,12 @@ class RenderContext:
     ``K (d - d_f)`` (``bokehray.scene.cap_coc``); ``options`` is the level's own options type. ``soft``: the
     mixed pixels at depth edges split into near and far parts (``bokehray.scene.SoftEdges``, on ``signed_coc``);
     None: one depth a pixel.
+
+    ``disposable``: nothing after the level reads the context's pixels (the pipeline sets it when the input has no
+    alpha to render and no refiner runs), so the level may drop the context's references to them once it has read
+    them (:meth:`release_pixels`). Dropping a reference never writes to an array nor frees one a caller still
+    holds: a caller's arrays are freed early only when the caller handed them over
+    (``bokehray.pipeline.render_handed_over``).
     """
 
     image: np.ndarray
@@ -41,7 +47,7 @@ class RenderContext:
     device: str
     progress: Progress | None = None
     soft: SoftEdges | None = None
-
+    disposable: bool = False
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -52,6 +58,14 @@ class RenderContext:
         pixel (the split pixels' colours are the photo's)."""
         return RenderContext(image, self.disparity, self.signed_coc, self.blur, self.aperture, self.layers,
                              self.memory, self.options, self.device, None)
+
+    def release_pixels(self) -> None:
+        """Drop the context's references to its whole-image arrays (image, disparity, signed CoC, soft edges) when it
+        is ``disposable``; else nothing. The preview calls it once the scene is split (it reads them no more): at
+        12 MP the photo, its disparity and the CoC are 240 MB, otherwise held through the layers."""
+        if self.disposable:
+            for name in ("image", "disparity", "signed_coc", "soft"):
+                object.__setattr__(self, name, None)  # frozen for the level's readers; this is the one writer
 
 
 @dataclass(frozen=True, slots=True)

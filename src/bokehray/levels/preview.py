@@ -275,7 +275,8 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
 
     photo = image
     image, s, scene = sc.split_scene(image, s, soft, active, ctx.layers, options.level_radius_px)
-    del active
+    del active, soft
+    ctx.release_pixels()  # the scene holds what the layers read (a disposable context's pixels are freed here)
     stats.layers = len(scene.layers)
     stats.sources_scattered = int((scene.ids >= 0).sum()) + len(scene.near)
     stats.pyramid_levels = max(sc.pyramid_levels(lyr.max_radius, options.level_radius_px) for lyr in scene.layers)
