@@ -55,7 +55,7 @@ def test_the_public_api_keeps_the_callers_arrays_untouched():
     assert np.array_equal(out, br.render(before[0], before[1], BLUR))
 
 
-def test_rgba_and_refined_contexts_keep_their_pixels():
+def test_an_rgba_context_keeps_its_pixels_for_the_alpha():
     """The alpha of an RGBA input renders after the colour, through the same context: it keeps its pixels (and
     the handed-over render equals the API's)."""
     image, d = _scene()

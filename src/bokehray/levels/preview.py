@@ -47,9 +47,14 @@ __all__ = ["aperture_shape", "border_pad", "no_routing", "pyramid_buffers", "ren
 # Bytes per pixel, from the arrays each stage allocates (float32 = 4 bytes), calibrated on measured peaks (the
 # growth of the process during renders of 1.5 to 24 MP, within 15 %: docs/renderer.md, "12 MP and 24 MP photos");
 # benchmarks/bench_memory.py prints the estimate beside the peak (docs/robustness.md).
-WHOLE_IMAGE_B = 32
-"""Whole-image arrays kept through the layers: the signed CoC and the scene's copy of it, the scene's colour (its
-split pixels hold their far part), layer ids, tile masks; the plan's transients (sort keys) are gone by then."""
+WHOLE_IMAGE_B = 24
+"""Whole-image arrays kept through the layers: the scene's colour (its split pixels hold their far part, 12), its
+signed CoC (4), layer ids (4), tile masks; the plan's transients (sort keys) are gone by then, and so are the
+context's pixels when it is disposable (``RenderContext.release_pixels``). 32 while the context's signed CoC stayed
+(recalibrated on the measured peaks: docs/renderer.md, "the command line's arrays handed over")."""
+KEPT_CONTEXT_B = 4
+"""The context's signed CoC, kept through the layers when the context is not disposable (an RGBA input's alpha or
+the refiner reads it after the level)."""
 REGION_B = 16
 """Per pixel of the rendered region: the accumulator (the image, CoC and layer ids are read in place on the CPU; the
 accumulator's pages are taken from the first composite on, ``buffers.lazy_zeros``: counted whole all the same)."""
@@ -282,7 +287,7 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
     stats.pyramid_levels = max(sc.pyramid_levels(lyr.max_radius, options.level_radius_px) for lyr in scene.layers)
     threads = 1 if wp.get_device(ctx.device).is_cuda else max(1, options.threads or os.cpu_count() or 1)
 
-    whole = WHOLE_IMAGE_B * h * w
+    whole = (WHOLE_IMAGE_B + (0 if ctx.disposable else KEPT_CONTEXT_B)) * h * w
     n_lv = stats.pyramid_levels if options.exact_highlights else 1  # the routing's arrays grow with the levels
     areas = [_area(lyr.bbox) for lyr in scene.layers]
     if ctx.memory.tile_size is None:
