@@ -8,7 +8,9 @@ include its children's); the layers render on worker threads, so a layer's line 
 
 Usage::
 
-    python benchmarks/profile_photo.py photo.jpg d.png [--json out.json]
+    python benchmarks/profile_photo.py photo.jpg d.png [--json out.json] [--out out.exr]
+    python benchmarks/profile_photo.py photo.jpg d.png --threads 1        # one worker (PreviewOptions(threads=1))
+    python benchmarks/profile_photo.py photo.jpg d.png --no-fill-lock     # layers fill concurrently (a measurement)
 """
 
 from __future__ import annotations
@@ -128,13 +130,39 @@ STAGES = [
 ]
 
 
+def _variants(threads: int | None, no_fill_lock: bool) -> None:
+    """The command line's render with another worker count, or without the fill lock (measurements only)."""
+    if threads is not None:
+        import bokehray.app.render_job as job
+
+        render = job._render
+
+        def with_threads(args, *a, **k):
+            args.threads = threads  # what a batch's worker processes set (PreviewOptions(threads=...))
+            return render(args, *a, **k)
+
+        job._render = with_threads
+    if no_fill_lock:
+        import contextlib
+        import dataclasses
+
+        import bokehray.levels.preview as preview
+
+        scatter = preview._Scatter
+        preview._Scatter = lambda *a, **k: dataclasses.replace(scatter(*a, **k), fill_gate=contextlib.nullcontext())
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("image")
     ap.add_argument("disparity")
     ap.add_argument("--out", default=None)
     ap.add_argument("--json", default=None)
+    ap.add_argument("--threads", type=int, default=None, help="worker threads (default: the command line's)")
+    ap.add_argument("--no-fill-lock", action="store_true",
+                    help="let layers build their sources concurrently (render_layer's fill lock off: same values)")
     a = ap.parse_args()
+    _variants(a.threads, a.no_fill_lock)
     prof = Profile()
     for st in STAGES:
         try:
