@@ -276,14 +276,15 @@ class PairBank:
         return len(self.pairs)
 
     def batch(self, rng: np.random.Generator, size: int, crop: int, edge_share: float = 0.0) -> dict[str, np.ndarray]:
-        """A random batch of ``crop x crop`` crops (random pair, variant, position and left-right flip).
+        """A random batch of ``crop x crop`` crops (random pair, variant, position and left-right flip); ``exact``
+        marks the crops whose input was rendered on the exact map.
 
         ``edge_share``: the share of crops centred on a random pixel of the variant's edge band (where the loss
         counts), the rest placed uniformly.
         """
         if crop > self.min_side:
             raise InputError(f"crop {crop} is larger than the smallest image ({self.min_side} px)")
-        keys = ("focus", "render", "target", "disparity", "band", "k_px", "focus_disparity")
+        keys = ("focus", "render", "target", "disparity", "band", "k_px", "focus_disparity", "exact")
         out: dict[str, list] = {k: [] for k in keys}
         for _ in range(size):
             i = int(rng.integers(len(self.pairs)))
@@ -305,5 +306,6 @@ class PairBank:
                 out[key].append(a[:, ::-1].copy() if flip else a)
             out["k_px"].append(p.k_px)
             out["focus_disparity"].append(p.focus_disparity)
-        return {k: np.stack(v) if k not in ("k_px", "focus_disparity") else np.array(v, np.float32)
-                for k, v in out.items()}
+            out["exact"].append(p.kinds[v] == "none")
+        scalars = {"k_px": np.float32, "focus_disparity": np.float32, "exact": bool}
+        return {k: np.array(v, scalars[k]) if k in scalars else np.stack(v) for k, v in out.items()}

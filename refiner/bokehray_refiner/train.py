@@ -53,7 +53,8 @@ class TrainConfig:
     variants: int = 2
     corruption_probs: list[float] = field(default_factory=lambda: list(CORRUPTION_PROBS))
     edge_share: float = 0.8
-    behind_gate: bool = True
+    behind_gate: bool = False
+    exact_weight: float = 1.0
     seed: int = 0
     mse_weight: float = 1.0
     edge_weight: float = 0.5
@@ -71,6 +72,8 @@ class TrainConfig:
         factor = RefinerConfig(**self.model).latent_factor
         if self.steps < 1 or self.batch < 1 or self.checkpoint_every < 1 or self.crop < factor or self.crop % factor:
             raise InputError(f"steps, batch and checkpoint_every must be >= 1 and crop a positive multiple of {factor}")
+        if not (math.isfinite(self.exact_weight) and self.exact_weight >= 0):
+            raise InputError(f"exact_weight: expected a finite weight >= 0, got {self.exact_weight}")
         if self.lpips_weight > 0 and not self.lpips_model:
             raise InputError("lpips_weight > 0 needs lpips_model: a local TorchScript LPIPS model")
 
@@ -233,11 +236,14 @@ def train(cfg: TrainConfig, resume: bool = True, progress: bool = True, bank: Pa
         opts = PisaMaskOptions(hardness=hardness_at(step, cfg))
         pisa = PisaMaskProvider(batch["disparity"], batch["focus_disparity"], batch["k_px"], opts,
                                 torch_device=device)
-        # what refine keeps: the network's output within the edge band (times the gate: behind_gate), the classical
-        # render elsewhere
+        # what refine keeps: the network's output within the edge band (times the gate, with behind_gate), the
+        # classical render elsewhere
         band = torch.from_numpy(batch["band"])[:, None].to(device)
         pred = render + band * (model(focus, render, coc, pisa) - render)
         inside = (band > 0).to(pred.dtype)  # the MSE over the band only: outside it the error is not the model's
+        if cfg.exact_weight != 1.0:  # a change to a render of the exact map is harm: weighted up (or down)
+            exact = torch.from_numpy(batch["exact"]).to(device)
+            inside = inside * torch.where(exact, cfg.exact_weight, 1.0).to(pred.dtype)[:, None, None, None]
         mse = ((pred - target) ** 2 * inside).sum() / (3 * inside.sum()).clamp(min=1.0)
         edge = edge_loss(pred, target, focus)
         loss = cfg.mse_weight * mse + cfg.edge_weight * edge

@@ -519,6 +519,25 @@ def test_a_gated_bank_weighs_each_input_as_refine_blends_it(pairs):
                for w, wp in zip(p.bands, q.bands))  # and closed something
 
 
+def test_batches_mark_the_crops_of_exact_inputs(pairs, tmp_path):
+    """``exact`` marks crops rendered on the exact map (the ones --exact-weight weighs), and only those."""
+    exact = PairBank(str(pairs), variants=1, seed=3, limit=2, progress=False, probs=(1.0, 0, 0, 0, 0, 0, 0, 0))
+    local = PairBank(str(pairs), variants=1, seed=3, limit=2, progress=False, probs=(0, 0, 0, 0, 0, 0, 1.0, 0))
+    rng = np.random.default_rng(0)
+    assert exact.batch(rng, 4, 32)["exact"].all() and not local.batch(rng, 4, 32)["exact"].any()
+    with pytest.raises(InputError, match="exact_weight"):
+        _cfg(pairs, tmp_path, exact_weight=-1.0)
+    import csv
+
+    for weight, zero in ((0.0, True), (1.0, False)):  # weight 0: the exact inputs' band error does not count
+        out = tmp_path / f"w{weight}"
+        train(_cfg(pairs, out, steps=2, batch=4, edge_share=1.0, exact_weight=weight, behind_gate=False),
+              resume=False, progress=False, bank=exact)
+        with open(out / "loss.csv") as f:
+            mse = [float(r["mse"]) for r in csv.DictReader(f)]
+        assert all(m == 0.0 for m in mse) == zero
+
+
 def test_edge_crops_are_centred_on_the_band(bank):
     b = bank.batch(np.random.default_rng(0), 16, 32, edge_share=1.0)
     assert (b["band"][:, 16, 16] > 0).mean() >= 0.9  # crop centres (clamped only at the image border)

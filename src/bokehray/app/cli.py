@@ -224,9 +224,11 @@ def build_parser() -> argparse.ArgumentParser:
                    "missing; unnamed kinds get 0; default: docs/refiner.md)")
     t.add_argument("--edge-share", type=float, default=0.8,
                    help="share of crops centred on the edge band, where the loss counts (default 0.8)")
-    t.add_argument("--ungated-loss", action="store_true",
-                   help="count the loss over the whole edge band; by default only where the confidence gate lets "
-                   "the network's output through at inference (weighted by it)")
+    t.add_argument("--behind-gate", action="store_true",
+                   help="count the loss only where the confidence gate lets the network's output through at "
+                   "inference (weighted by it); by default over the whole edge band (measured: docs/refiner.md)")
+    t.add_argument("--exact-weight", type=float, default=1.0,
+                   help="weight of the loss on inputs rendered on the exact map, where any change is harm (default 1)")
     t.add_argument("--limit", type=int, help="use only the first N pairs")
     t.add_argument("--seed", type=int, default=0, help="seed of the model, the corruptions and the batches")
     t.add_argument("--edge-weight", type=float, default=0.5, help="weight of the multi-scale edge loss (eq. 9)")
@@ -384,7 +386,7 @@ def cmd_train_refiner(args: argparse.Namespace) -> int:
     try:
         cfg = train.TrainConfig(
             data=args.data, out=args.out, steps=args.steps, batch=args.batch, crop=args.crop, lr=args.lr,
-            edge_share=args.edge_share, behind_gate=not args.ungated_loss, **extra,
+            edge_share=args.edge_share, behind_gate=args.behind_gate, exact_weight=args.exact_weight, **extra,
             variants=args.variants, limit=args.limit, seed=args.seed, edge_weight=args.edge_weight,
             adv_weight=args.adv_weight, lpips_model=args.lpips_model, lpips_weight=args.lpips_weight,
             checkpoint_every=args.checkpoint_every, device=args.device)
