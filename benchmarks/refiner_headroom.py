@@ -40,12 +40,35 @@ def _psnr(mse: float) -> float:
     return 10.0 * math.log10(1.0 / mse) if mse > 0 else math.inf
 
 
+def _best_choice(image, used, blur, render, t_srgb, band, m) -> float:
+    """Band PSNR of the best per-pixel choice (each pixel takes the render whose 5 x 5 px mean error is least) among
+    the level rendered on ``used`` and on it with near regions grown / shrunk by 3, 6 and 12 px, blended by the band."""
+    from scipy import ndimage
+
+    import bokehray as br
+    from bokehray.colour import linear_to_srgb
+
+    renders = [render]
+    for r in (3, 6, 12):
+        footprint = np.ones((2 * r + 1, 2 * r + 1), bool)
+        renders += [br.render(image, ndimage.grey_dilation(used, footprint=footprint), blur),
+                    br.render(image, ndimage.grey_erosion(used, footprint=footprint), blur)]
+    srgb = np.stack([linear_to_srgb(np.clip(x[..., :3], 0.0, 1.0)) for x in renders])
+    err = np.stack([ndimage.uniform_filter(((x - t_srgb) ** 2).sum(-1), 5) for x in srgb])
+    pick = np.take_along_axis(srgb, err.argmin(0)[None, ..., None].repeat(3, -1), 0)[0]
+    out = srgb[0] + band[..., None] * (pick - srgb[0])
+    return _psnr(float(((out - t_srgb) ** 2).mean(-1)[m].mean()))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     src = ap.add_mutually_exclusive_group(required=True)
     src.add_argument("--data", help="held-out BLB-layout folder (never used for training)")
     src.add_argument("--devset", help="the path-traced dev set folder (with score.py)")
     ap.add_argument("--pairs", type=int, default=24, help="--data: pairs to score (every k-th pair of the folder)")
+    ap.add_argument("--choices", action="store_true",
+                    help="also: a perfect per-pixel choice (smoothed over 5 x 5 px) within the band among the level "
+                    "rendered on the map and on it with near regions grown and shrunk by 3, 6 and 12 px (6 renders more)")
     ap.add_argument("--out", default=None, help="JSON (default: benchmarks/results/refiner_headroom_{devset,synth}.json)")
     args = ap.parse_args()
     args.out = args.out or str(REPO / f"benchmarks/results/refiner_headroom_{'devset' if args.devset else 'synth'}.json")
@@ -70,7 +93,11 @@ def main() -> None:
             band, weight = blend_weight(image, focus_srgb, used, render, coc, opts)
             err2 = ((linear_to_srgb(np.clip(render[..., :3], 0.0, 1.0)) - t_srgb) ** 2).mean(-1)[m]
             total = float(err2.sum())
-            rows.append({"pair": name, "corruption": kind, "px": amount,
+            if args.choices:
+                extra = {"choice": _best_choice(image, used, blur, render, t_srgb, band, m)}
+            else:
+                extra = {}
+            rows.append(extra | {"pair": name, "corruption": kind, "px": amount,
                          "fix": _psnr(float(err2.mean())),
                          "gated": _psnr(float(((1 - weight[m]) ** 2 * err2).mean())),
                          "band": _psnr(float(((1 - band[m]) ** 2 * err2).mean())),
@@ -82,13 +109,15 @@ def main() -> None:
         sel = [r for r in rows if (r["corruption"], r["px"]) == (kind, amount)]
         cap = lambda key, sel=sel: float(np.mean([min(r[key], 99.0) for r in sel]))  # noqa: E731  (inf: capped)
         summary.append({"corruption": kind, "px": amount, "fix": cap("fix"), "gated": cap("gated"),
+                        **({"choice": cap("choice")} if args.choices else {}),
                         "band": cap("band"),
                         "error_share_gated": float(np.mean([r["error_share_gated"] for r in sel])),
                         "error_share_band": float(np.mean([r["error_share_band"] for r in sel]))})
     print(f"{'depth':>12} {'fix':>6} {'perfect, gated':>15} {'error reachable: gated':>23} {'band':>6}")
     for s in summary:
         print(f"{s['corruption'] + ' ' + str(s['px']):>12} {s['fix']:6.2f} {s['gated'] - s['fix']:+15.2f} "
-              f"{100 * s['error_share_gated']:22.0f}% {100 * s['error_share_band']:5.0f}%")
+              f"{100 * s['error_share_gated']:22.0f}% {100 * s['error_share_band']:5.0f}%"
+              + (f"  perfect choice among renders: {s['choice'] - s['fix']:+.2f}" if "choice" in s else ""))
     print("(band PSNR in dB, mean over renders; a perfect network's gain behind the gate; the share of the score "
           "band's squared error a perfect network removes behind the gate, and behind the band alone)")
     write_json(args.out, {"machine": machine_info(), "data": str(args.devset or args.data),
