@@ -33,6 +33,7 @@ from scipy import ndimage
 import bokehray
 import bokehray.app.demo as demo
 from bokehray.colour import linear_to_srgb
+from bokehray.edge_estimate import depth_edges
 
 ROOT = Path(__file__).resolve().parents[1]
 IMG = ROOT / "docs" / "img" / "demo_soft_crops.png"
@@ -200,17 +201,6 @@ def psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
     return float("inf") if mse == 0 else 10.0 * math.log10(1.0 / mse)
 
 
-def edge_pixels(disp: np.ndarray) -> np.ndarray:
-    edge = np.zeros(disp.shape, bool)
-    jy = np.abs(np.diff(disp, axis=0)) > EDGE_JUMP
-    jx = np.abs(np.diff(disp, axis=1)) > EDGE_JUMP
-    edge[:-1] |= jy
-    edge[1:] |= jy
-    edge[:, :-1] |= jx
-    edge[:, 1:] |= jx
-    return edge
-
-
 # --------------------------------------------------------------------------- crops
 
 
@@ -220,7 +210,7 @@ def pick_crops(stack: TrueStack, img: np.ndarray, disp: np.ndarray, blur, size: 
     fewest other near layers in the crop, among the most grass blades, and at a visible fairy light closest to
     a depth edge."""
     H, W = disp.shape
-    edge = edge_pixels(disp)
+    edge = depth_edges(disp, EDGE_JUMP)
     cat = stack.own_alpha("cat") >= 0.5
     wire = stack.own_alpha("wire") >= 0.5
     grass = stack.name_alpha("grass") > 0
@@ -364,7 +354,7 @@ def main() -> None:
             np.savez(args.cache, before=before, after=after, exact=exact,
                      times=np.array([t_before, t_after, t_exact, halo]))
 
-    edge = edge_pixels(disp)
+    edge = depth_edges(disp, EDGE_JUMP)
     band = ndimage.distance_transform_edt(~edge) <= 8.0
     cat = stack.own_alpha("cat") >= 0.5
     wire_v, grass_v = stack.name_alpha("wire"), stack.name_alpha("grass")

@@ -40,7 +40,7 @@ import numpy as np
 
 from .edge_estimate import depth_edges, ramp_width
 
-__all__ = ["DepthFixOptions", "colour_edge_offsets", "correct_disparity", "depth_edges", "edge_pairs", "global_shift",
+__all__ = ["DepthFixOptions", "colour_edge_offsets", "correct_disparity", "edge_pairs", "global_shift",
            "has_ramps", "pass_reach", "shift_map", "smeared", "step_flips", "untrusted", "vote", "weighted_median"]
 
 

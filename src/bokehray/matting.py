@@ -7,7 +7,7 @@ blur the two parts with their own CoC. NumPy for the edges and the band, one War
 (``bokehray_kernels.matting``) for the matting:
 
 1. **Depth edges.** Pairs of 4-neighbours whose signed CoC differs by more than ``jump_px``
-   (``depthfix.depth_edges``). A map whose edges are noise (most pixels differ from all their neighbours:
+   (``edge_estimate.depth_edges``). A map whose edges are noise (most pixels differ from all their neighbours:
    :func:`isolated_share`) is left alone.
 2. **Trimap.** The unknown band is every pixel within ``band_px`` (Chebyshev) of a depth-edge pixel (0: the
    depth-edge pixels themselves, where the alpha >= 0.5 rule of a sensor or an estimator leaves the mixed
@@ -46,19 +46,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from .edge_estimate import (  # noqa: F401  (re-exported: the matting's public names before the shared estimate)
-    PIXELS_PER_THREAD,
-    estimate_edges,
-    isolated_share,
-    launch_band_kernel,
-    ramp_width,
-    window_offsets,
-)
+from .edge_estimate import estimate_edges
 from .errors import InputError
 from .scene import SoftEdges
 from .validate import check_finite
 
-__all__ = ["fuse_alpha", "isolated_share", "ramp_width", "split_mixed_pixels", "window_offsets"]
+__all__ = ["fuse_alpha", "split_mixed_pixels"]
 
 def _check(image: np.ndarray, signed_coc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     img = np.asarray(image)

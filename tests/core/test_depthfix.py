@@ -264,6 +264,7 @@ def test_a_dense_blurred_map_is_corrected_not_taken_for_noise(monkeypatch):
     """Steps on more than ``max_edge_share`` of the pixels are noise only when they flip sign: a blurred dense mesh
     (the dev set's wire mesh at K = 32 has steps on 42-47 % of its pixels) is still corrected."""
     import bokehray.depthfix as depthfix
+    from bokehray import edge_estimate
 
     calls = []
     real = depthfix.vote
@@ -273,7 +274,7 @@ def test_a_dense_blurred_map_is_corrected_not_taken_for_noise(monkeypatch):
     img = np.where((xx // 4) % 2 == 0, 0.8, 0.2)[..., None].repeat(3, 2).astype(np.float32)
     blurred = ndimage.gaussian_filter(d, 1.5).astype(np.float32)
     coc = np.float32(32.0) * blurred
-    assert depthfix.depth_edges(coc, 1.0).mean() > DepthFixOptions().max_edge_share
+    assert edge_estimate.depth_edges(coc, 1.0).mean() > DepthFixOptions().max_edge_share
     assert depthfix.step_flips(coc, 1.0) < 0.1
     correct_disparity(img, blurred, 32.0)
     assert calls  # voted: not left alone as noise

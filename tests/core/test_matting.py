@@ -8,9 +8,9 @@ from hypothesis import strategies as st
 from reference.matting_ref import ramp_width_ref
 from scipy import ndimage
 
-from bokehray.depthfix import depth_edges
+from bokehray.edge_estimate import depth_edges, isolated_share, ramp_width, window_offsets
 from bokehray.errors import InputError
-from bokehray.matting import isolated_share, ramp_width, split_mixed_pixels, window_offsets
+from bokehray.matting import split_mixed_pixels
 from bokehray.scene import SoftEdges
 
 K = 30.0
@@ -241,7 +241,7 @@ def test_band_kernel_matches_the_reference(device, soft):
     """The Warp kernel against the float64 loop of tests/reference/matting_ref.py, pixel by pixel."""
     from reference.matting_ref import band_pixel_ref, gaussian_weights
 
-    from bokehray.matting import launch_band_kernel
+    from bokehray.edge_estimate import launch_band_kernel
 
     photo, coc, _, _, _ = two_plane(n=28, seed=4, kind="strands" if soft else "disc")
     if soft:
