@@ -38,6 +38,13 @@ def _tonemap(c: float) -> float:
 
 
 @wp.func
+def _fill_texel(image: wp.array2d(dtype=wp.vec3), signed_coc: wp.array2d(dtype=float), gy: int, gx: int) -> wp.vec4:
+    """Level 0 of the pull-push pyramid at a pixel of the layer: (tone-mapped RGB, signed CoC), weight 1."""
+    c = image[gy, gx]
+    return wp.vec4(_tonemap(c[0]), _tonemap(c[1]), _tonemap(c[2]), signed_coc[gy, gx])
+
+
+@wp.func
 def _untonemap(t: float) -> float:
     t = wp.clamp(t, 0.0, 0.999999)
     return t / (1.0 - t)
@@ -79,7 +86,7 @@ def layer_sources_kernel(
         src[y, x] = wp.vec4(c[0], c[1], c[2], 1.0)
         coc[y, x] = s
         if with_fill != 0:
-            fill.total[y, x] = wp.vec4(_tonemap(c[0]), _tonemap(c[1]), _tonemap(c[2]), s)
+            fill.total[y, x] = _fill_texel(image, signed_coc, gy, gx)
             fill.weight[y, x] = 1.0
 
 
@@ -123,8 +130,7 @@ def layer_pull_kernel(
                 if sid >= 0 and sid <= layer:
                     k = 1.0
                     if sid == layer:
-                        c = image[y + y0, x + x0]
-                        t = wp.vec4(_tonemap(c[0]), _tonemap(c[1]), _tonemap(c[2]), signed_coc[y + y0, x + x0])
+                        t = _fill_texel(image, signed_coc, y + y0, x + x0)
                         wt = 1.0
                 total = total + t
                 weight = weight + wt
