@@ -111,17 +111,6 @@ def corrupt_disparity(d: np.ndarray, kind: str, amount: int, rng: np.random.Gene
     raise InputError(f"corruption: expected one of {CORRUPTIONS}, got {kind!r}")
 
 
-def _loss_weight(image: np.ndarray, focus_srgb: np.ndarray, disparity: np.ndarray, render_linear: np.ndarray,
-                 blur: BlurParams, opts, gated: bool) -> np.ndarray:
-    """Where refine keeps the network's output: the edge band, times the confidence gate when ``gated``."""
-    from .refine import blend_weight, edge_band, edge_reach
-
-    coc = blur.signed_coc(disparity).astype(np.float32)
-    if gated:
-        return blend_weight(image, focus_srgb, disparity, render_linear, coc, opts)[1]
-    return edge_band(edge_reach(coc, opts.min_jump_px), opts.band_margin_px, opts.band_feather_px)
-
-
 @dataclass
 class Pair:
     focus: np.ndarray  #: H x W x 3 sRGB float16, all in focus (shared by the pairs of one scene)
@@ -154,7 +143,8 @@ class PairBank:
 
     def __init__(self, root: str, variants: int = 2, seed: int = 0, limit: int | None = None,
                  progress: bool = True, probs: tuple[float, ...] = CORRUPTION_PROBS, gated: bool = False):
-        from .refine import RefineOptions, correct_and_render
+        from .gate import GateOptions
+        from .refine import RefineOptions, blend_weight, correct_and_render
 
         if len(probs) != len(CORRUPTIONS) or min(probs) < 0 or abs(sum(probs) - 1.0) > 1e-6:
             raise InputError(f"corruption probabilities: expected {len(CORRUPTIONS)} shares summing to 1, got {probs}")
@@ -164,40 +154,43 @@ class PairBank:
         n = len(ds) if limit is None else min(limit, len(ds))
         rng = np.random.default_rng(seed)
         opts = RefineOptions()
+        # the loss weight is refine's blend weight, with the gate open everywhere unless ``gated``
+        weight_opts = opts if gated else RefineOptions(gate=GateOptions(enabled=False))
         self.pairs: list[Pair] = []
-        inputs: dict[tuple[str, float], list[tuple[str, np.ndarray, np.ndarray | None]]] = {}  # this scene and K only
-        focus_of: dict[str, np.ndarray] = {}
+        scene_of, key_of = None, None  # the scene, and the scene and K, whose pairs are being rendered
         for i in tqdm(range(n), desc="rendering corrupted-depth inputs", disable=not progress, unit="pair"):
             s = ds[i]
             scene = s.name.split("/")[0]
-            if scene not in focus_of:
+            if scene != scene_of:
+                scene_of = scene
                 focus_full = linear_to_srgb(np.clip(s.image, 0.0, 1.0))
-                focus_of = {scene: focus_full.astype(np.float16)}
-            key = (scene, float(s.k_px))
-            if key not in inputs:  # the corrupted and corrected maps of this scene and K, for every focus
-                maps = []
+                focus16 = focus_full.astype(np.float16)
+            if (scene, float(s.k_px)) != key_of:  # the corrupted maps of this scene and K, for every focus
+                key_of = (scene, float(s.k_px))
+                variants_of = []  # [kind, corrupted map, corrected map (None until the first focus corrects it)]
                 for _ in range(variants):
                     kind = str(rng.choice(CORRUPTIONS, p=list(probs)))
                     lo, hi = AMOUNTS[kind]
                     amount = int(rng.integers(lo, hi + 1))
-                    maps.append((kind, np.clip(corrupt_disparity(s.disparity, kind, amount, rng), 0.0, 1.0)))
-                inputs = {key: [(kind, dc, None) for kind, dc in maps]}
+                    variants_of.append([kind, np.clip(corrupt_disparity(s.disparity, kind, amount, rng), 0.0, 1.0), None])
             renders, disps, bands, kinds = [], [], [], []
             blur = BlurParams(s.k_px, s.focus_disparity)
-            for v, (kind, dc, dfix) in enumerate(inputs[key]):
+            for entry in variants_of:
+                kind, dc, dfix = entry
                 rerender = lambda d, s=s, blur=blur: render(s.image, d, blur)  # noqa: E731
                 if dfix is None:  # the correction depends on K, not on the focus: once per scene, K and variant
                     r, dfix = correct_and_render(s.image, dc, blur, rerender, opts)
-                    inputs[key][v] = (kind, dc, dfix)
+                    entry[2] = dfix
                 else:
                     r = rerender(dfix)
-                band = _loss_weight(s.image, focus_full, dfix, r, blur, opts, gated)
+                coc = blur.signed_coc(dfix).astype(np.float32)
+                band = blend_weight(s.image, focus_full, dfix, r, coc, weight_opts)[1]
                 renders.append(linear_to_srgb(np.clip(r[..., :3], 0.0, 1.0)).astype(np.float16))
                 disps.append(dfix.astype(np.float16))
                 bands.append(band.astype(np.float16))
                 kinds.append(kind)
             self.pairs.append(Pair(
-                focus=focus_of[scene], target=linear_to_srgb(np.clip(s.target, 0.0, 1.0)).astype(np.float16),
+                focus=focus16, target=linear_to_srgb(np.clip(s.target, 0.0, 1.0)).astype(np.float16),
                 renders=renders, disparities=disps, bands=bands, kinds=kinds,
                 k_px=float(s.k_px), focus_disparity=float(s.focus_disparity)))
         if not self.pairs:

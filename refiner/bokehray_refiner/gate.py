@@ -200,11 +200,11 @@ def refine_gate(image: np.ndarray, focus_srgb: np.ndarray, disparity: np.ndarray
     h, w = coc.shape
     if not options.enabled:
         return np.ones((h, w), np.float32)
+    pairs = edge_pairs(coc, min_jump_px)
     if options.agreement:
-        ys, xs, ratio = edge_agreement(focus_srgb, disparity, edge_pairs(coc, min_jump_px), options)
+        ys, xs, ratio = edge_agreement(focus_srgb, disparity, pairs, options)
         opened = 1.0 - _smoothstep(options.lo, options.hi, ratio)
     else:
-        pairs = edge_pairs(coc, min_jump_px)
         ys, xs = np.concatenate([e[0] for e in pairs]), np.concatenate([e[1] for e in pairs])
         opened = np.ones(ys.shape, np.float32)
     if ys.size == 0:
