@@ -2,19 +2,25 @@
 
 import warp as wp
 
+from .support import Support, in_support
+
 wp.set_module_options({"enable_backward": False})
 
 
 @wp.kernel
-def composite_kernel(layer: wp.array2d(dtype=wp.vec4), x0: int, y0: int, acc: wp.array2d(dtype=wp.vec4)):
+def composite_kernel(layer: wp.array2d(dtype=wp.vec4), support: Support, x0: int, y0: int,
+                     acc: wp.array2d(dtype=wp.vec4)):
     """Composite one scattered layer OVER the accumulator (back-to-front "over").
 
     ``layer`` holds (sum of premultiplied RGB, sum of coverage) in local
     coordinates offset by ``(x0, y0)``. Its opacity is ``min(coverage, 1)`` and
     its colour is normalised by its coverage (so overlapping sources of one
-    layer average instead of adding up). ``acc`` holds (RGB, opacity).
+    layer average instead of adding up). ``acc`` holds (RGB, opacity). Outside the layer's ``support`` it holds
+    no light and is not read.
     """
     y, x = wp.tid()
+    if not in_support(support, y, x):
+        return
     l = layer[y, x]
     cov = l[3]
     if cov <= 1.0e-6:

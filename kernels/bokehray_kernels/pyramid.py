@@ -42,6 +42,7 @@ def level_of(r: float, r0: float, n_levels: int) -> int:
 def scatter_kernel(  # noqa: C901
     src: wp.array2d(dtype=wp.vec4),
     coc: wp.array2d(dtype=float),
+    support: Support,
     routing: Routing,
     shape: Shape,
     r0: float,
@@ -49,6 +50,9 @@ def scatter_kernel(  # noqa: C901
     levels: Levels,
 ):
     """Scatter every source of ``src`` (local coordinates) with radius ``|coc|`` [px].
+
+    Pixels outside the layer's ``support`` hold no source and are not read (a lazily zeroed ``src`` keeps its
+    pages there untouched).
 
     ``shape`` is the aperture (its blades, vertical extent and area at unit circumradius). A positive (in-front-of-focus) ``coc`` draws the shape
     point-reflected, as a thin lens does: the aperture's orientation is that of background bokeh.
@@ -62,6 +66,8 @@ def scatter_kernel(  # noqa: C901
     ``levels.l<l>`` is the difference buffer of level ``l``, ``(ceil(H/2^l), ceil(W/2^l) + 2)``.
     """
     y, x = wp.tid()
+    if not in_support(support, y, x):
+        return
     buf0 = levels.l0
     v = src[y, x]
     if v[3] == 0.0:
@@ -108,21 +114,31 @@ def scatter_kernel(  # noqa: C901
 
 
 @wp.kernel
-def prefix_rows_kernel(buf: wp.array2d(dtype=wp.vec4)):
-    """In-place running sum along each row: differences -> per-pixel values.
+def prefix_rows_kernel(buf: wp.array2d(dtype=wp.vec4), support: Support, width: int):
+    """In-place running sum along each row's first ``width`` columns: differences -> per-pixel values, stored
+    where they are read.
 
     While the running sum is zero an element already holds its sum (``0 + d == d``: the buffers start at +0 and
-    only ever receive sums, so no -0 arises), so it is not stored: a lazily zeroed buffer (``bokehray.levels.
-    buffers.lazy_zeros``) keeps its untouched pages up to each row's first deposit."""
+    only ever receive sums, so no -0 arises), so it is not stored. Nor is a sum outside the layer's ``support``
+    (:func:`resolve_levels_kernel` reads level 0 at the support's pixels only; coarser levels, read between
+    their cells, take the support "everywhere" and their full width). Every deposit lies in the support, but
+    for the step down one column after a run of it: the sum reads those columns only (adding the others' zeros
+    would change nothing), so every stored value is the one a full pass stores, and a lazily zeroed buffer
+    (``bokehray.levels.buffers.lazy_zeros``) is neither read nor written where the layer's light is not."""
     y = wp.tid()
     acc = wp.vec4()
-    for x in range(buf.shape[1]):
-        d = buf[y, x]
-        if acc[0] != 0.0 or acc[1] != 0.0 or acc[2] != 0.0 or acc[3] != 0.0:
-            acc = acc + d
-            buf[y, x] = acc
-        else:
-            acc = d
+    before = bool(False)  # whether the previous column is in the support
+    for x in range(width):
+        inside = in_support(support, y, x)
+        if inside or before:  # elsewhere nothing is deposited (the light lies in the support): nothing to add
+            d = buf[y, x]
+            if acc[0] != 0.0 or acc[1] != 0.0 or acc[2] != 0.0 or acc[3] != 0.0:
+                acc = acc + d
+                if inside:
+                    buf[y, x] = acc
+            else:
+                acc = d
+        before = inside
 
 
 @wp.func

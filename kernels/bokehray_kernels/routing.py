@@ -38,16 +38,18 @@ class Salience:
 
 
 @wp.kernel
-def radiance_mean_kernel(src: wp.array2d(dtype=wp.vec4), means: wp.array3d(dtype=wp.vec4),
+def radiance_mean_kernel(src: wp.array2d(dtype=wp.vec4), support: Support, means: wp.array3d(dtype=wp.vec4),
                          counts: wp.array3d(dtype=float)):
     """Level 1 of the radiance pyramid: mean over each 2 x 2 cell of the sources (premultiplied RGB, coverage).
 
     Sources of zero coverage count as black; cells cut by the array's edge average the pixels they hold
-    (``counts``). Level ``k`` lives in ``means[k - 1]``.
+    (``counts``). Level ``k`` lives in ``means[k - 1]``. A cell outside the layer's ``support`` holds no source:
+    its mean is zero (``means`` comes zeroed) and ``src`` is not read there.
     """
     cy, cx = wp.tid()
     n = children_2x2(src.shape[0], src.shape[1], cy, cx)
-    means[0, cy, cx] = sum_2x2_vec4(src, cy, cx) / n
+    if span_in_support(support, 2 * cy, wp.min(2 * cy + 2, src.shape[0]), 2 * cx, wp.min(2 * cx + 2, src.shape[1])):
+        means[0, cy, cx] = sum_2x2_vec4(src, cy, cx) / n
     counts[0, cy, cx] = n
 
 

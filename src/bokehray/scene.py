@@ -600,18 +600,20 @@ class LayerSources:
         return int(self.filled.numpy().sum())
 
 
-def build_layer_sources(layer: LayerRecord, arrays: LayerSources) -> tuple[wp.array, wp.array]:
+def build_layer_sources(layer: LayerRecord, arrays: LayerSources, zeros=wp.zeros) -> tuple[wp.array, wp.array]:
     """One layer's sources on its bounding box: (premultiplied RGB, coverage) and signed CoC.
 
     The layer's own pixels, the near parts of split pixels that fall in it (``arrays.near``), plus (when the
     layer is filled) the pull-push fill of the region nearer layers hide, at the layer's density; the number of
-    filled sources is added to ``arrays.filled[layer.index]``.
+    filled sources is added to ``arrays.filled[layer.index]``. ``zeros(shape, dtype, device)`` allocates the two
+    (zeroed) arrays: the kernels write the sources only, so a lazily zeroed array (``bokehray.levels.buffers.
+    lazy_zeros``) takes pages only where sources lie.
     """
     device = arrays.device
     y0, y1, x0, x1 = layer.bbox
     h, w = y1 - y0, x1 - x0
-    src = wp.zeros((h, w), dtype=wp.vec4, device=device)  # zeroed: the kernel writes the layer's pixels only
-    coc = wp.zeros((h, w), dtype=float, device=device)
+    src = zeros((h, w), wp.vec4, device)  # zeroed: the kernels write the layer's sources only
+    coc = zeros((h, w), float, device)
     none = wp.zeros((1, 1), dtype=float, device=device)  # no level 0: the pyramid starts at level 1 (below)
     level0 = bk.PullPushLevel()
     level0.total, level0.weight, level0.known = wp.zeros((1, 1), dtype=wp.vec4, device=device), none, none

@@ -74,13 +74,13 @@ def test_one_fill_at_a_time(monkeypatch):
     image, s = _scene()
     build, lock, now, most = sc.build_layer_sources, threading.Lock(), [0], [0]
 
-    def counted(layer, arrays):
+    def counted(layer, arrays, **kw):
         with lock:
             now[0] += 1
             most[0] = max(most[0], now[0])
         time.sleep(0.05)  # a window wide enough for another worker to come in, were it let in
         try:
-            return build(layer, arrays)
+            return build(layer, arrays, **kw)
         finally:
             with lock:
                 now[0] -= 1

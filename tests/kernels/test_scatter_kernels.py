@@ -18,7 +18,7 @@ from tolerances import (
 
 from bokehray import Aperture, LayerOptions, PreviewOptions
 from bokehray.lens import aperture_area
-from bokehray.levels.preview import aperture_shape, no_routing, pyramid_buffers, render_signed_coc
+from bokehray.levels.preview import aperture_shape, no_routing, prefix_rows, pyramid_buffers, render_signed_coc
 from bokehray.scene import LayerSupport, layer_edges
 
 APERTURES = [
@@ -71,9 +71,9 @@ def _point_response(ap: Aperture, radius: float, size: int, device: str, offset=
     shape = aperture_shape(ap, ap.blade_discs(), device)
     wp.launch(bk.scatter_kernel, dim=(size, size),
               inputs=[wp.array(src, dtype=wp.vec4, device=device), wp.array(radius_map, device=device),
-                      no_routing(device).struct(), shape, r0, levels, pyramid_buffers(bufs)], device=device)
+                      LayerSupport.everywhere(device).struct(), no_routing(device).struct(), shape, r0, levels, pyramid_buffers(bufs)], device=device)
     for lv in range(levels):
-        wp.launch(bk.prefix_rows_kernel, dim=bufs[lv].shape[0], inputs=[bufs[lv]], device=device)
+        prefix_rows(bufs[lv], device)
     out = wp.empty((size, size), dtype=wp.vec4, device=device)
     wp.launch(bk.resolve_levels_kernel, dim=(size, size),
               inputs=[levels, 0, pyramid_buffers(bufs), LayerSupport.everywhere(device).struct()], outputs=[out],
@@ -124,9 +124,9 @@ def test_scatter_matches_reference(ap, device, rng):
     bufs += [bufs[0]] * (bk.MAX_LEVELS - 1)
     wp.launch(bk.scatter_kernel, dim=(h, w),
               inputs=[wp.array(src, dtype=wp.vec4, device=device), wp.array(radius, device=device),
-                      no_routing(device).struct(), aperture_shape(ap, ap.blade_discs(), device), 1e6, 1,
+                      LayerSupport.everywhere(device).struct(), no_routing(device).struct(), aperture_shape(ap, ap.blade_discs(), device), 1e6, 1,
                       pyramid_buffers(bufs)], device=device)
-    wp.launch(bk.prefix_rows_kernel, dim=h, inputs=[bufs[0]], device=device)
+    prefix_rows(bufs[0], device)
     got = bufs[0].numpy()[:, :w]
     want = scatter_ref.scatter(src.astype(np.float64), radius, ap.blade_discs(), ap.vertical_extent())
     np.testing.assert_allclose(got, want, atol=SCATTER_VS_REFERENCE_ATOL)
@@ -413,8 +413,31 @@ def test_prefix_sums_are_the_sequential_running_sums(rows):
     cancel exactly and ones that leave rounding behind)."""
     d = _sparse_differences(rows, 41)
     buf = wp.array(d, dtype=wp.vec4, device="cpu")
-    wp.launch(bk.prefix_rows_kernel, dim=d.shape[0], inputs=[buf], device="cpu")
+    prefix_rows(buf, "cpu")
     np.testing.assert_array_equal(buf.numpy(), np.cumsum(d, axis=1, dtype=np.float32))
+
+
+@given(rows=st.lists(st.lists(st.tuples(st.integers(0, 40), st.integers(0, 40)), max_size=3), min_size=1,
+                     max_size=6), mask=st.lists(st.lists(st.booleans(), min_size=7, max_size=7), min_size=1, max_size=1),
+       oy=st.integers(0, 7), ox=st.integers(0, 7), width=st.integers(0, 43))
+def test_prefix_sums_store_the_running_sums_within_the_support_only(rows, mask, oy, ox, width):
+    """With a support (8 px tiles, the box at an offset in the scene) and a width: where the light lies (in the
+    support, and the step down one column after a run of it), the stored elements are the running sums bit for
+    bit; the others keep their differences (``resolve_levels_kernel`` never reads them) and are not read."""
+    d = _sparse_differences(rows, 41)
+    h, w = d.shape[:2]
+    width = min(width, w)
+    tiles = np.array(mask * (-(-(h + oy) // 8)), bool)  # every tile row alike: the hypothesis draws one
+    inside = np.repeat(np.repeat(tiles, 8, 0), 8, 1)[oy : oy + h, ox : ox + w]
+    inside[:, width:] = False
+    lit = inside.copy()
+    lit[:, 1:] |= inside[:, :-1]  # where deposits may lie
+    d[~lit] = np.nan  # never read: a NaN there would spread through the sums
+    support = LayerSupport(wp.array(tiles.astype(np.uint8), dtype=wp.uint8, device="cpu"), 3, oy, ox)
+    buf = wp.array(d, dtype=wp.vec4, device="cpu")
+    prefix_rows(buf, "cpu", support, width)
+    sums = np.cumsum(np.where(lit[..., None], d, 0), axis=1, dtype=np.float32)
+    np.testing.assert_array_equal(buf.numpy(), np.where(inside[..., None], sums, d))
 
 
 def _anonymous_kb(ptr: int) -> int | None:
@@ -446,7 +469,7 @@ def test_prefix_sums_leave_a_lazy_buffers_empty_rows_untouched():
     d = _sparse_differences([[(3, 500)] if y % 8 == 5 else [] for y in range(h)], w)
     host[5::8] = d[5::8]  # the deposited rows only
     before = _anonymous_kb(buf.ptr)  # (the mapping may share its smaps entry with neighbouring ones)
-    wp.launch(bk.prefix_rows_kernel, dim=h, inputs=[buf], device="cpu")
+    prefix_rows(buf, "cpu")
     after = _anonymous_kb(buf.ptr)
     np.testing.assert_array_equal(host, np.cumsum(d, axis=1, dtype=np.float32))
     if before is None or after is None:

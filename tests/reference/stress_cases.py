@@ -18,10 +18,10 @@ import numpy as np
 import warp as wp
 
 import bokehray as br
-from bokehray.levels.preview import aperture_shape, no_routing, pyramid_buffers, render_signed_coc
+from bokehray.levels.preview import aperture_shape, no_routing, prefix_rows, pyramid_buffers, render_signed_coc
 from bokehray.levels.raytrace import Layer, raytrace_layers
 from bokehray.options import LayerOptions, PreviewOptions, RaytraceOptions
-from bokehray.scene import cap_coc, copy_tiles, grid_to_pixels, layer_edges
+from bokehray.scene import LayerSupport, cap_coc, copy_tiles, grid_to_pixels, layer_edges
 
 from . import raytrace_ref, scatter_ref
 
@@ -73,9 +73,10 @@ def scatter_case(seed: int, device: str = "cpu") -> tuple[float, float, str]:
     rows = ap.blade_discs()
     wp.launch(bk.scatter_kernel, dim=(h, w),
               inputs=[wp.array(src, dtype=wp.vec4, device=device), wp.array(radius, device=device),
-                      no_routing(device).struct(), aperture_shape(ap, rows, device), 1e6, 1, pyramid_buffers(bufs)],
+                      LayerSupport.everywhere(device).struct(), no_routing(device).struct(),
+                      aperture_shape(ap, rows, device), 1e6, 1, pyramid_buffers(bufs)],
               device=device)
-    wp.launch(bk.prefix_rows_kernel, dim=h, inputs=[bufs[0]], device=device)
+    prefix_rows(bufs[0], device)
     got = bufs[0].numpy()[:, :w]
     want = scatter_ref.scatter(src.astype(np.float64), radius.astype(np.float64), rows, ap.vertical_extent())
     # colour channels relative to the radiance scale, coverage on its own

@@ -41,8 +41,8 @@ from ..stats import PreviewStats
 from .base import Progress, RenderContext
 from .buffers import lazy_zeros, reuse_buffers
 
-__all__ = ["aperture_shape", "border_pad", "no_routing", "pyramid_buffers", "render_preview", "render_signed_coc",
-           "route_salient"]
+__all__ = ["aperture_shape", "border_pad", "no_routing", "prefix_rows", "pyramid_buffers", "render_preview",
+           "render_signed_coc", "route_salient"]
 
 # Bytes per pixel, from the arrays each stage allocates (float32 = 4 bytes), calibrated on measured peaks (the
 # growth of the process during renders of 1.5 to 24 MP, within 15 %: docs/renderer.md, "12 MP and 24 MP photos");
@@ -187,7 +187,7 @@ def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device
     h1, w1 = (h + 1) // 2, (w + 1) // 2
     means = lazy_zeros((n_means, h1, w1), wp.vec4, device)
     counts = lazy_zeros((n_means, h1, w1), float, device)
-    wp.launch(bk.radiance_mean_kernel, dim=(h1, w1), inputs=[src], outputs=[means, counts], device=device)
+    wp.launch(bk.radiance_mean_kernel, dim=(h1, w1), inputs=[src, where], outputs=[means, counts], device=device)
     fh, fw = h1, w1
     for k in range(1, n_means):
         ch, cw = (fh + 1) // 2, (fw + 1) // 2
@@ -392,16 +392,17 @@ def render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatt
     # scatters meanwhile); it was the largest working set before the fill stopped storing level 0. Nothing else is
     # shared: values do not depend on it.
     with scatter.fill_gate:
-        src, coc = sc.build_layer_sources(layer, arrays)
+        src, coc = sc.build_layer_sources(layer, arrays, zeros=lazy_zeros)  # pages taken where sources lie
     n_levels = sc.pyramid_levels(layer.max_radius, scatter.level_radius_px)
     first = sc.lowest_level(layer, scatter.level_radius_px)  # levels 1 .. first - 1 stay empty
     bufs = []
     for lv in range(bk.MAX_LEVELS):
         if lv < n_levels and (lv == 0 or lv >= first):
             shape = ((h + (1 << lv) - 1) >> lv, ((w + (1 << lv) - 1) >> lv) + 2)
-            # above a first level of 1 or more, level 0 holds only the routed light and sub-pixel sources: its
-            # pages are taken where deposited (the prefix sums store nothing before a row's first deposit)
-            zeros = lazy_zeros if lv == 0 and first > 0 else wp.zeros
+            # level 0's pages are taken only within the support, where light is deposited and read (the prefix
+            # sums store nothing before a row's first deposit nor outside the support); above a first level of 1
+            # or more it holds only the routed light and sub-pixel sources
+            zeros = lazy_zeros if lv == 0 else wp.zeros
             bufs.append(zeros(shape, dtype=wp.vec4, device=device))
         else:
             bufs.append(bufs[0] if lv > 0 else None)
@@ -410,19 +411,29 @@ def render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatt
                else no_routing(device))
     levels = pyramid_buffers(bufs)
     wp.launch(bk.scatter_kernel, dim=(h, w),
-              inputs=[src, coc, routing.struct(), scatter.shape, scatter.level_radius_px, n_levels, levels],
+              inputs=[src, coc, support.struct(), routing.struct(), scatter.shape, scatter.level_radius_px, n_levels,
+                      levels],
               device=device)
     if routed:
         for lev in range(max(1, first), n_levels):
             wp.launch(bk.scatter_clusters_kernel, dim=cluster_grid(h, w, lev),
                       inputs=[routing.struct(), lev, scatter.shape], outputs=[bufs[0]], device=device)
+    del routing, coc  # scattered: their pages go before the prefix sums and the resolve (a layer's last stages)
     for lv in range(n_levels):
-        if lv == 0 or lv >= first:
-            wp.launch(bk.prefix_rows_kernel, dim=bufs[lv].shape[0], inputs=[bufs[lv]], device=device)
-    out = src  # the sources are scattered: reuse their memory for the result
+        if lv == 0 or lv >= first:  # level 0 is read at the support's pixels only, the coarser levels everywhere
+            prefix_rows(bufs[lv], device, support if lv == 0 else None, w if lv == 0 else None)
+    out = src  # the sources are scattered: reuse their memory for the result (zero outside the support)
     wp.launch(bk.resolve_levels_kernel, dim=(h, w), inputs=[n_levels, first, levels, support.struct()], outputs=[out],
               device=device)
     return out
+
+
+def prefix_rows(buf: wp.array, device: str, support: sc.LayerSupport | None = None, width: int | None = None) -> None:
+    """The running sums of a difference buffer's rows, in place (``prefix_rows_kernel``), stored within
+    ``support`` (None: everywhere) and the first ``width`` columns (None: all) only."""
+    inside = (support or sc.LayerSupport.everywhere(device)).struct()
+    wp.launch(bk.prefix_rows_kernel, dim=buf.shape[0], inputs=[buf, inside, buf.shape[1] if width is None else width],
+              device=device)
 
 
 def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_slots: int, scatter: _Scatter,
@@ -467,7 +478,9 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
             out = fut.result()
             del started[head]
             y0, y1, x0, x1 = layers[head].bbox
-            wp.launch(bk.composite_kernel, dim=(y1 - y0, x1 - x0), inputs=[out, x0, y0], outputs=[acc], device=device)
+            wp.launch(bk.composite_kernel, dim=(y1 - y0, x1 - x0),
+                      inputs=[out, sc.LayerSupport.of(layers[head], device).struct(), x0, y0], outputs=[acc],
+                      device=device)
             del out
             head += 1
             done += 1
