@@ -1,10 +1,13 @@
 """The preview's layer pool: workers take layers in any order, compositing stays back to front."""
 
+import dataclasses
 import threading
 import time
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from bokehray import Aperture, PreviewOptions
 from bokehray.levels import preview as pv
@@ -109,3 +112,21 @@ def test_a_short_budget_takes_fewer_workers_before_tiles():
     with pytest.raises(ResourceError):
         pv.render_signed_coc(image, s, Aperture(), options=two,
                              memory=MemoryOptions(memory_limit_mb=0.9 * st1.memory_estimate_mb))
+
+
+@given(mask=st.lists(st.lists(st.booleans(), min_size=9, max_size=9), min_size=7, max_size=7),
+       box=st.tuples(st.integers(0, 60), st.integers(0, 60), st.integers(0, 80), st.integers(0, 80)),
+       origin=st.tuples(st.integers(0, 40), st.integers(0, 60)))
+def test_a_layers_lit_area_counts_its_box_pixels_in_support_tiles(mask, box, origin):
+    """The memory model's area of a layer: the pixels of its box whose tile (on the scene's grid of 16 px, the box
+    at ``origin`` in the scene) is in its support, against the mask blown up to pixels."""
+    from bokehray.scene import LayerRecord
+
+    support = np.array(mask, bool)
+    y0, y1 = sorted(box[:2])
+    x0, x1 = sorted(box[2:])
+    layer = LayerRecord(0, -1.0, 1.0, (y0, y1, x0, x1), 1.0, 0.0, support, 16, origin)
+    pixels = np.repeat(np.repeat(support, 16, 0), 16, 1)
+    oy, ox = origin
+    assert pv._lit_area(layer) == int(pixels[oy + y0 : oy + y1, ox + x0 : ox + x1].sum())
+    assert pv._lit_area(dataclasses.replace(layer, support=None)) == (y1 - y0) * (x1 - x0)

@@ -45,7 +45,7 @@ __all__ = ["aperture_shape", "border_pad", "no_routing", "prefix_rows", "pyramid
            "render_signed_coc", "route_salient"]
 
 # Bytes per pixel, from the arrays each stage allocates (float32 = 4 bytes), calibrated on measured peaks (the
-# growth of the process during renders of 1.5 to 24 MP, within 15 %: docs/renderer.md, "12 MP and 24 MP photos");
+# growth of the process during renders of 6 to 24 MP, within 15 %: docs/renderer.md, "12 MP and 24 MP photos");
 # benchmarks/bench_memory.py prints the estimate beside the peak (docs/robustness.md).
 WHOLE_IMAGE_B = 24
 """Whole-image arrays kept through the layers: the scene's colour (its split pixels hold their far part, 12), its
@@ -58,37 +58,31 @@ the refiner reads it after the level)."""
 REGION_B = 16
 """Per pixel of the rendered region: the accumulator (the image, CoC and layer ids are read in place on the CPU; the
 accumulator's pages are taken from the first composite on, ``buffers.lazy_zeros``: counted whole all the same)."""
-LAYER_B = 41
-"""Per pixel of a layer's box while it scatters: sources (16 + 4) and the radius-pyramid difference buffers (16 x 4/3
-and 2 spare columns), plus the routing's arrays (``ROUTING_B_PER_LEVEL``). A layer whose first level is 1 or more
-takes level 0's pages only where something is deposited (:func:`render_layer`); the model counts them all the same
-(an over-estimate of up to 16 bytes a box pixel there; the measured peaks stay within 15 %)."""
-FILL_B = 30
-"""Per pixel of a layer's box while it builds its sources: sources (16 + 4), level 1 of the pull-push pyramid (24 / 4;
-level 0 is never stored, the coarser levels are freed once pushed) and the distance map (4), in reused buffers
-(``bokehray.levels.buffers``); a layer in work peaks at the larger of the two (now its scatter, ``LAYER_B``)."""
-OTHER_LAYER_B = 48
-"""Per pixel of the box of each other worker's layer, at the peak: one layer fills at a time (``render_layer``), so
-the others are then waiting for the fill or scattering; calibrated on measured peaks (6 to 24 MP, two workers; 30
-while the fill held the whole pull-push pyramid and the layer in work was counted at 66)."""
+LIT_B = 30
+"""Per pixel of a layer's lit area (its box's pixels in its support's tiles, :func:`_lit_area`) while it is in work
+on the CPU: its sources (16) and signed CoC (4), lazily zeroed, take pages where its sources and then its result
+lie, and the routing's planes and flags where the support is; calibrated on measured peaks (6 to 24 MP, two
+workers: docs/renderer.md, "pages only where a layer's light lies"). The pull-push fill's buffers and the coarse
+pyramid levels span the box but are a few bytes a box pixel and do not coincide with the peak (one fill at a time)."""
+LEVEL0_B = 16
+"""More per lit pixel for a layer whose first pyramid level is 0: its level-0 difference plane (a layer starting
+on a coarser level holds only routed light there, within ``LIT_B``)."""
+DENSE_LAYER_B = 48
+"""Per pixel of a layer's box in work on a GPU, where every array is dense (``buffers.lazy_zeros`` allocates
+whole): sources (16 + 4), the radius pyramid's difference buffers (16 x 4/3) and the routing's arrays (as the CPU
+model was calibrated before its pages followed the support; not measured on a GPU)."""
 RESULT_B = 16
-"""Per pixel of a finished layer's box waiting to be composited (premultiplied RGB and coverage): while the next
-layer to composite is in work, at most ``threads - 1`` others' results wait beside the other workers' layers
-(``_render_window`` starts no more once ``threads`` wait)."""
-ROUTING_B_PER_LEVEL = 4
-"""For :func:`route_salient`, per pixel of a layer's box in flight and per coarse level of its pyramid, weighted
-1, 1/4, 1/16, ... from the first, plus 1 byte a pixel for the routing flags: the radiance pyramid, the stored
-neighbourhoods and the cluster sources (vec4 16 + 16 + 16 and two floats) on the level-1 grid, a quarter of the
-pixels, would be 18; their pages are taken only where written (``buffers.lazy_zeros``), and the measured peaks
-(one worker, 12 MP) put the layer's scatter with its routing at about 46 bytes a box pixel (48 here at 4 levels)."""
+"""Per pixel of a finished layer's lit area (its box's on a GPU) waiting to be composited (premultiplied RGB and
+coverage): while the next layer to composite is in work, at most ``threads - 1`` others' results wait beside the
+other workers' layers (``_render_window`` starts no more once ``threads`` wait)."""
 
 
-def _layer_bytes(n_levels: int) -> int:
-    """Per pixel of a layer's box in work, with ``n_levels`` pyramid levels: its fill or its scatter (the routing's
-    arrays included), whichever is larger."""
-    if n_levels <= 1:
-        return max(FILL_B, LAYER_B)
-    return max(FILL_B, LAYER_B + 1 + math.ceil(ROUTING_B_PER_LEVEL * sum(0.25**k for k in range(n_levels - 1))))
+def _layer_footprint(layer: sc.LayerRecord, level_radius_px: float, on_cpu: bool) -> tuple[int, int]:
+    """(the pixels a layer's arrays take pages on, bytes per such pixel while it is in work)."""
+    if not on_cpu:
+        return _area(layer.bbox), DENSE_LAYER_B
+    dense_level0 = sc.lowest_level(layer, level_radius_px) == 0
+    return _lit_area(layer), LIT_B + (LEVEL0_B if dense_level0 else 0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -124,12 +118,14 @@ def pyramid_buffers(bufs: list[wp.array]) -> bk.Levels:
     return levels
 
 
-def _region_bytes(window_px: int, layer_areas: list[int], threads: int, n_levels: int = 1) -> int:
-    # at most one layer in work per thread (the largest, at worst: one of them at its peak, the others as they are
-    # then), and threads - 1 of the others finished, waiting to be composited behind a slower one (the next largest)
-    areas = sorted(layer_areas, reverse=True)
-    return (REGION_B * window_px + _layer_bytes(n_levels) * sum(areas[:1]) + OTHER_LAYER_B * sum(areas[1:threads])
-            + RESULT_B * sum(areas[threads : 2 * threads - 1]))
+def _region_bytes(window_px: int, layers: list[tuple[int, int]], threads: int) -> int:
+    """The peak beyond the whole-image arrays of rendering a region of ``window_px`` pixels whose layers take
+    ``layers`` (pixels, bytes a pixel: :func:`_layer_footprint`) on ``threads`` workers."""
+    # at most one layer in work per thread (the largest, at worst), and threads - 1 of the others finished,
+    # waiting to be composited behind a slower one (the next largest)
+    work = sorted((px * rate for px, rate in layers), reverse=True)
+    results = sorted((px for px, _ in layers), reverse=True)
+    return REGION_B * window_px + sum(work[:threads]) + RESULT_B * sum(results[threads : 2 * threads - 1])
 
 
 SALIENT_VISIBLE = 0.002
@@ -238,6 +234,23 @@ def _area(box: tiling.Box) -> int:
     return (box[1] - box[0]) * (box[3] - box[2])
 
 
+def _lit_area(layer: sc.LayerRecord) -> int:
+    """The pixels of a layer's box in its support's tiles (the whole box where it has none): on the CPU its
+    sources, level 0 and result take pages there only (:func:`render_layer`)."""
+    if layer.support is None:
+        return _area(layer.bbox)
+    t, (oy, ox) = layer.tile_px, layer.origin
+    y0, y1, x0, x1 = layer.bbox
+
+    def overlaps(lo: int, hi: int, n: int) -> np.ndarray:  # pixels of [lo, hi) in each of n tiles
+        edges = np.arange(n + 1) * t
+        return np.clip(np.minimum(edges[1:], hi) - np.maximum(edges[:-1], lo), 0, None)
+
+    rows = overlaps(y0 + oy, y1 + oy, layer.support.shape[0])
+    cols = overlaps(x0 + ox, x1 + ox, layer.support.shape[1])
+    return int(rows @ layer.support.astype(np.int64) @ cols)
+
+
 def layer_cost(layer: sc.LayerRecord) -> int:
     """A layer's render time, roughly (measured on the demo: about 0.1 s per megapixel of its box, and 0.4 s more
     per megapixel of its own pixels): only the order the workers take layers in depends on it."""
@@ -288,20 +301,22 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
     threads = 1 if wp.get_device(ctx.device).is_cuda else max(1, options.threads or os.cpu_count() or 1)
 
     whole = (WHOLE_IMAGE_B + (0 if ctx.disposable else KEPT_CONTEXT_B)) * h * w
-    n_lv = stats.pyramid_levels if options.exact_highlights else 1  # the routing's arrays grow with the levels
-    areas = [_area(lyr.bbox) for lyr in scene.layers]
+    # a layer's arrays take pages where its light lies on the CPU (lazily zeroed), its whole box on a GPU
+    on_cpu = wp.get_device(ctx.device).is_cpu
+    footprints = [_layer_footprint(lyr, options.level_radius_px, on_cpu) for lyr in scene.layers]
     if ctx.memory.tile_size is None:
         # fewer layers in flight before tiles: where the budget does not hold a layer a worker but holds the frame
         # with fewer workers, those render it untiled (the same values, the layers' CPU time the same, less
         # parallel), where tiles would repeat every window's halo work or be refused
         budget = tiling.budget_bytes(ctx.memory)
         threads = next((k for k in range(threads, 0, -1)
-                        if whole + _region_bytes(h * w, areas, k, n_lv) <= budget), threads)
+                        if whole + _region_bytes(h * w, footprints, k) <= budget), threads)
     stats.threads = threads
     margin = 2 * max(sum(sc.scatter_halo(lyr, options.level_radius_px)) for lyr in scene.layers)
     tile, need = tiling.choose_tile(
-        h, w, ctx.memory, untiled_bytes=whole + _region_bytes(h * w, areas, threads, n_lv), margin=margin,
-        window_bytes=lambda hy, wx: whole + _region_bytes(hy * wx, [min(a, hy * wx) for a in areas], threads, n_lv),
+        h, w, ctx.memory, untiled_bytes=whole + _region_bytes(h * w, footprints, threads), margin=margin,
+        window_bytes=lambda hy, wx: whole + _region_bytes(hy * wx, [(min(px, hy * wx), rate) for px, rate in footprints],
+                                                          threads),
         what=f"preview render at a largest CoC of {stats.max_coc_px:.0f} px",
     )
     stats.memory_estimate_mb = need / tiling.MB
