@@ -376,6 +376,21 @@ def test_reconstruction_leaves_unclipped_and_one_channel_clipped_images_alone():
     assert found == 0 and np.array_equal(out, red)
 
 
+def test_reconstruction_in_place_equals_the_copy_with_neighbouring_highlights():
+    """Lamps a few pixels apart (their boxes, rims and rings overlap): written into the photo itself
+    (``overwrite=True``) the result is the copy's, bit for bit, and by default the photo is not written to."""
+    _hdr, lamp = _lamp_scene()
+    img = np.concatenate([lamp[:, :28], lamp[:, 14:], lamp[:, 12:30]], axis=1)  # three lamps 10-12 px apart
+    img = np.concatenate([img, img[:, ::-1] * np.float32(0.995)], axis=0).astype(np.float32)
+    img[3, 3] = img[3, 60] = (1.0, 1.0, 0.2)  # two clipped pixels without a white core
+    before = img.copy()
+    out, found = highlights.reconstruct_highlights(img)
+    assert found == 6 and np.array_equal(img, before)
+    same, found_in_place = highlights.reconstruct_highlights(img, overwrite=True)
+    assert same is img and found_in_place == found
+    np.testing.assert_array_equal(same.view(np.uint32), out.view(np.uint32))
+
+
 def test_render_reconstructs_for_8_bit_but_never_for_exr(tmp_path, capsys):
     _hdr, img8 = _lamp_scene()
     d = np.full(img8.shape[:2], 0.5, np.float32)
