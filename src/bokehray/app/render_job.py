@@ -361,7 +361,7 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:  
             _say(args, f"focus: {subject.describe()}{_metres(norm, d_f)}; --focus-at X,Y to choose")
         blur = BlurParams(k, d_f)
     if is_display_referred(args.image) and not args.no_highlight_reconstruction and args.highlight_boost == 0:
-        image, found = reconstruct_highlights(image)
+        image, found = reconstruct_highlights(image, overwrite=True)  # the photo as read is ours: no copy
         if found:
             _say(args, f"highlights: {found} clipped highlight{'s' * (found > 1)} reconstructed (display-referred "
                  "input; --no-highlight-reconstruction keeps them clipped)")
