@@ -236,6 +236,26 @@ def test_ramp_width_matches_the_reference():
     assert ramp_width(np.zeros((1, 1), np.float32), 1.0, 6) == 0
 
 
+@pytest.mark.parametrize("shape", [(1, 1), (1, 6), (6, 1), (2, 2), (19, 23)])
+def test_shared_steps_give_the_depth_edges_and_ramp_of_the_map(shape):
+    """The edge estimate computes the steps once (map_steps) for both: the edges of a plain loop over the pairs,
+    and the reference's ramp width."""
+    from bokehray.edge_estimate import edges_of_steps, map_steps, ramp_of_steps
+
+    rng = np.random.default_rng(shape[0] * 31 + shape[1])
+    coc = ndimage.gaussian_filter(rng.choice([-8.0, 0.0, 9.0], shape), 0.7).astype(np.float32)
+    want = np.zeros(shape, bool)
+    for y in range(shape[0]):
+        for x in range(shape[1]):
+            for y2, x2 in ((y + 1, x), (y, x + 1)):
+                if y2 < shape[0] and x2 < shape[1] and abs(float(coc[y, x]) - float(coc[y2, x2])) > 1.0:
+                    want[y, x] = want[y2, x2] = True
+    steps = map_steps(coc, 1.0)
+    np.testing.assert_array_equal(edges_of_steps(steps), want)
+    np.testing.assert_array_equal(depth_edges(coc, 1.0), want)
+    assert ramp_of_steps(steps, 6) == ramp_width(coc, 1.0, 6) == ramp_width_ref(coc, 1.0, 6)
+
+
 @pytest.mark.parametrize("soft", [False, True])
 def test_band_kernel_matches_the_reference(device, soft):
     """The Warp kernel against the float64 loop of tests/reference/matting_ref.py, pixel by pixel."""
