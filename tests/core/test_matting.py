@@ -189,6 +189,15 @@ def test_bad_input_is_refused():
         split_mixed_pixels(img, bad)
 
 
+def test_finite_checked_inputs_split_alike():
+    """The pipeline's finite_checked=True skips the NaN/Inf scans only: the same split on finite input."""
+    photo, coc, _, _, _ = two_plane(n=40)
+    a, b = split_mixed_pixels(photo, coc), split_mixed_pixels(photo, coc, finite_checked=True)
+    assert len(a) > 0
+    for f in ("index", "alpha", "foreground", "background", "near_coc", "far_coc"):
+        np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
+
+
 def test_a_soft_map_widens_the_band():
     photo, coc, alpha, _, _ = two_plane(seed=1)
     soft = ndimage.gaussian_filter(coc, 1.5)
