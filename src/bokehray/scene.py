@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 
 import bokehray_kernels as bk
@@ -213,15 +214,16 @@ def split_scene(image: np.ndarray, signed_coc: np.ndarray, soft: SoftEdges | Non
     near = soft.near_coc[keep].astype(np.float32)
     s = signed_coc.copy()
     s.reshape(-1)[idx] = far
-    values = np.concatenate([s[active], near])
-    edges = layer_edges(values, options)
+    # the layer edges see the active pixels' CoC and the near parts' (read in place, band by band)
+    values, lo, hi, lo32, hi32 = _active_values(s, active, near)
+    edges = _layer_edges_of(values, lo32, hi32, options)
+    del values
     e32 = float32_edges(edges)
     far_id = np.clip(np.searchsorted(e32, far, side="right") - 1, 0, len(edges) - 2)
     near_id = np.clip(np.searchsorted(e32, near, side="right") - 1, 0, len(edges) - 2)
     split = near_id > far_id
     back = idx[~split]  # one layer (or near behind far): the photo's pixel
     s.reshape(-1)[back] = signed_coc.reshape(-1)[back]
-    lo, hi = float(values.min()), float(values.max())
     if len(back):  # keep the photo's CoC of those pixels inside the layers' range
         orig = signed_coc.reshape(-1)[back]
         edges[0] = min(edges[0], float(orig.min()) - 0.5)
@@ -326,11 +328,18 @@ def layer_edges(signed_coc: np.ndarray, options: LayerOptions) -> np.ndarray:
     """
     signed_coc = np.asarray(signed_coc, np.float32).ravel()
     lo, hi = float(signed_coc.min()), float(signed_coc.max())
+    return _layer_edges_of(lambda: (signed_coc,), lo, hi, options)
+
+
+def _layer_edges_of(parts: Callable[[], Iterable[np.ndarray]], lo: float, hi: float,
+                    options: LayerOptions) -> np.ndarray:
+    """:func:`layer_edges` of the float32 values ``parts()`` yields (in pieces; each call yields them again),
+    whose smallest and largest are ``lo`` and ``hi``: the values need not be gathered into one array."""
     if hi - lo < options.min_layer_px:
         return np.array([lo - 0.5, hi + 0.5])
     bin_px = _HISTOGRAM_BIN_PX
     n_bins = int(math.ceil((hi - lo) / bin_px)) + 1
-    hist = _histogram(signed_coc, lo, bin_px, n_bins)
+    hist = _histogram(parts(), lo, bin_px, n_bins)
     empty = hist == 0
     # runs of empty bins: candidate cuts at their centres, ranked by width
     change = np.flatnonzero(np.diff(np.concatenate([[0], empty.astype(np.int8), [0]])))
@@ -360,21 +369,46 @@ _BAND_PX = 1 << 18
 (float32 and int64 of a band) stay a few MB instead of 8 bytes a pixel of the frame."""
 
 
-def _histogram(values: np.ndarray, lo: float, bin_px: float, n_bins: int) -> np.ndarray:
-    """``np.bincount(((values - lo) / bin_px).astype(np.int64), minlength=n_bins)`` of float32 ``values`` (1-D),
-    a band at a time into one float32 buffer: the same float32 arithmetic, the same counts."""
+def _histogram(parts: Iterable[np.ndarray], lo: float, bin_px: float, n_bins: int) -> np.ndarray:
+    """``np.bincount(((values - lo) / bin_px).astype(np.int64), minlength=n_bins)`` of the float32 ``values``
+    that are the 1-D ``parts`` one after the other, a band at a time into one float32 buffer: the same float32
+    arithmetic, the same counts."""
     hist = np.zeros(n_bins, np.int64)
-    buf = np.empty(min(_BAND_PX, values.size), np.float32)
-    for i in range(0, values.size, _BAND_PX):
-        part = values[i : i + _BAND_PX]
-        b = buf[: part.size]
-        np.subtract(part, lo, out=b)
-        np.divide(b, bin_px, out=b)
-        c = np.bincount(b.astype(np.int64), minlength=n_bins)
-        if c.size > hist.size:  # a bin past n_bins (float32 rounding of the top value): bincount grows, so do we
-            hist = np.concatenate([hist, np.zeros(c.size - hist.size, np.int64)])
-        hist[: c.size] += c
+    buf = np.empty(_BAND_PX, np.float32)
+    for values in parts:
+        for i in range(0, values.size, _BAND_PX):
+            part = values[i : i + _BAND_PX]
+            b = buf[: part.size]
+            np.subtract(part, lo, out=b)
+            np.divide(b, bin_px, out=b)
+            c = np.bincount(b.astype(np.int64), minlength=n_bins)
+            if c.size > hist.size:  # a bin past n_bins (float32 rounding of the top value): bincount grows, so do we
+                hist = np.concatenate([hist, np.zeros(c.size - hist.size, np.int64)])
+            hist[: c.size] += c
     return hist
+
+
+def _active_values(s: np.ndarray, active: np.ndarray, extra: np.ndarray | None = None
+                   ) -> tuple[Callable[[], Iterator[np.ndarray]], float, float, float, float]:
+    """The values ``np.concatenate([s[active], extra])`` in pieces, without gathering them (two frame-sized
+    copies at 12 MP): ``(parts, lo, hi, lo32, hi32)``. ``parts()`` yields them as float32, a band of rows of
+    ``s[active]`` at a time, then ``extra``; ``lo`` and ``hi`` are the smallest and largest value as the
+    concatenation holds them, ``lo32`` and ``hi32`` as float32 holds them (:func:`layer_edges` casts to
+    float32; rounding is monotonic, so the float32 extremes are the extremes rounded)."""
+    rows = max(1, _BAND_PX // max(1, s.shape[1]))
+    extra = np.zeros(0, np.float32) if extra is None else extra
+
+    def native() -> Iterator[np.ndarray]:
+        for y in range(0, s.shape[0], rows):
+            yield s[y : y + rows][active[y : y + rows]]
+        yield extra
+
+    def parts() -> Iterator[np.ndarray]:
+        return (np.asarray(v, np.float32) for v in native())
+
+    lows, highs = zip(*((float(v.min()), float(v.max())) for v in native() if v.size))  # empty: as min() of none
+    lo, hi = min(lows), max(highs)
+    return parts, lo, hi, float(np.float32(lo)), float(np.float32(hi))
 
 
 def pyramid_levels(max_radius: float, level_radius_px: float) -> int:
@@ -497,10 +531,10 @@ def build_scene(signed_coc: np.ndarray, active: np.ndarray, options: LayerOption
     split pixels: they count among their layers' pixels and tiles); by default the active pixels' own.
     """
     h, w = signed_coc.shape
-    if edges is None:
-        values = signed_coc[active]
-        max_coc = max(float(values.max()), -float(values.min()))
-        edges = layer_edges(values, options)
+    if edges is None:  # the active pixels' own, read in place band by band (layer_edges of signed_coc[active])
+        values, lo, hi, lo32, hi32 = _active_values(signed_coc, active)
+        max_coc = max(hi, -lo)
+        edges = _layer_edges_of(values, lo32, hi32, options)
     n_slices = len(edges) - 1
     sid, counts = _layer_ids(signed_coc, active, float32_edges(edges), n_slices)
 

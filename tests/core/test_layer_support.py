@@ -160,8 +160,34 @@ def test_layer_ids_and_histogram_in_bands_equal_the_whole_map(h, w, n_edges, ban
     with pytest.MonkeyPatch.context() as m:
         m.setattr(sc, "_BAND_PX", band_px)
         ids, counts = sc._layer_ids(s, active, e32, n_edges)
-        hist = sc._histogram(values, lo, 0.25, n_bins)
+        hist = sc._histogram([values[:7], values[7:]], lo, 0.25, n_bins)
     assert ids.dtype == np.int32
     np.testing.assert_array_equal(ids, want)
     np.testing.assert_array_equal(counts, np.bincount(want[active], minlength=n_edges))
     np.testing.assert_array_equal(hist, np.bincount(((values - lo) / 0.25).astype(np.int64), minlength=n_bins))
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(1, 60), st.integers(1, 50), st.integers(0, 30), st.integers(1, 400), st.booleans(),
+       st.integers(0, 2**31 - 1))
+def test_layer_edges_of_the_active_values_in_bands_equal_the_gathered_ones(h, w, n_extra, band_px, wide, seed):
+    """split_scene and build_scene cut the layers on s[active] (and the near parts) read band by band: the
+    extremes and edges of the gathered array, float64 maps (cast to float32 by layer_edges) included."""
+    import bokehray.scene as sc
+
+    rng = np.random.default_rng(seed)
+    s = (rng.standard_normal((h, w)) * rng.uniform(0.3, 40)).astype(np.float64 if wide else np.float32)
+    active = rng.random((h, w)) < 0.7
+    active.ravel()[0] = True
+    extra = (rng.standard_normal(n_extra) * 20).astype(np.float32)
+    values = np.concatenate([s[active], extra])
+    opts = LayerOptions(max_layers=int(rng.integers(1, 12)), max_layer_px=float(rng.uniform(0.5, 10)))
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(sc, "_BAND_PX", band_px)
+        parts, lo, hi, lo32, hi32 = sc._active_values(s, active, extra)
+        got = sc._layer_edges_of(parts, lo32, hi32, opts)
+        assert np.array_equal(np.concatenate(list(parts())), values.astype(np.float32))
+    assert (lo, hi) == (float(values.min()), float(values.max()))
+    v32 = values.astype(np.float32)
+    assert (lo32, hi32) == (float(v32.min()), float(v32.max()))
+    np.testing.assert_array_equal(got, sc.layer_edges(values, opts))
