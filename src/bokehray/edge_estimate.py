@@ -32,39 +32,52 @@ PIXELS_PER_THREAD = 4096
 """Fewest band pixels a CPU thread of the kernel gets (fewer are not worth a thread)."""
 
 
-Steps = tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
-"""A map's steps (:func:`map_steps`): per axis, the differences of 4-neighbours and which exceed the jump."""
+Steps = tuple[np.ndarray, np.ndarray]
+"""A map's steps (:func:`map_steps`): which 4-neighbour differences exceed the jump, down and across."""
+
+_BAND_PX = 1 << 18
+"""Pixels a band of :func:`map_steps` differences at a time (its float temporaries stay a few MB)."""
 
 
 def map_steps(coc: np.ndarray, jump_px: float) -> Steps:
-    """The map's steps between 4-neighbours, for each axis (0: down, 1: across): ``(np.diff(coc, axis),
-    |diff| > jump_px)``. :func:`depth_edges` and :func:`ramp_width` both start from them; the edge estimate
-    computes them once for both (:func:`edges_of_steps`, :func:`ramp_of_steps`)."""
-    out = []
-    for ax in (0, 1):
-        dd = np.diff(coc, axis=ax)
-        out.append((dd, np.abs(dd) > jump_px))
-    return out[0], out[1]
+    """The map's steps between 4-neighbours: ``(|np.diff(coc, axis=0)| > jump_px, |np.diff(coc, axis=1)| >
+    jump_px)``, (H - 1) x W and H x (W - 1) booleans. :func:`depth_edges` and :func:`ramp_width` both start from
+    them; the edge estimate computes them once for both (:func:`edges_of_steps`, :func:`ramp_of_steps`). The
+    differences are taken a band of rows at a time (``np.diff``'s subtraction, no frame-sized difference or
+    absolute value)."""
+    h, w = coc.shape
+    jy = np.empty((max(h - 1, 0), w), bool)
+    jx = np.empty((h, max(w - 1, 0)), bool)
+    rows = max(1, _BAND_PX // max(1, w))
+    for y in range(0, h, rows):
+        y1 = min(h, y + rows)
+        for d, out in ((np.subtract(coc[y:y1, 1:], coc[y:y1, :-1]), jx[y:y1]),
+                       (np.subtract(coc[y + 1 : y1 + 1], coc[y : min(y1, h - 1)]), jy[y:y1])):
+            np.abs(d, out=d)
+            np.greater(d, jump_px, out=out)
+    return jy, jx
 
 
 def ramp_width(signed_coc: np.ndarray, jump_px: float, cap: int) -> int:
     """How many pixels a depth edge's CoC ramp spans (0 for a hard edge): the 90th percentile, over the map's
     depth-edge pairs, of the length of the run of consecutive same-sign steps above ``jump_px`` a pair belongs
     to (along its axis), minus one; at most ``cap``."""
-    return ramp_of_steps(map_steps(signed_coc, jump_px), cap)
+    return ramp_of_steps(signed_coc, map_steps(signed_coc, jump_px), cap)
 
 
-def ramp_of_steps(steps: Steps, cap: int) -> int:
-    """:func:`ramp_width` of the map whose :func:`map_steps` are ``steps``."""
+def ramp_of_steps(coc: np.ndarray, steps: Steps, cap: int) -> int:
+    """:func:`ramp_width` of the map ``coc`` whose :func:`map_steps` are ``steps`` (the sign of each step is
+    taken from the map, at the steps only)."""
     lengths = []
-    for ax, (dd, jump) in enumerate(steps):
-        if dd.size == 0:
+    for ax, jump in enumerate(steps):
+        if jump.size == 0:
             continue
         pos = np.flatnonzero(jump)  # row-major positions of the steps (the edge pairs only)
         if pos.size == 0:
             continue
-        sign = np.sign(dd.ravel()[pos]).astype(np.int8)
-        rows, cols = np.divmod(pos, dd.shape[1])
+        rows, cols = np.divmod(pos, jump.shape[1])
+        sign = np.sign(coc[rows + 1, cols] - coc[rows, cols] if ax == 0 else
+                       coc[rows, cols + 1] - coc[rows, cols]).astype(np.int8)  # np.diff's value at the step
         if ax == 0:  # runs go down the columns: order the steps column by column
             order = np.lexsort((rows, cols))
             line, along, sign = cols[order], rows[order], sign[order]
@@ -132,7 +145,7 @@ def depth_edges(coc: np.ndarray, jump_px: float) -> np.ndarray:
 
 def edges_of_steps(steps: Steps) -> np.ndarray:
     """:func:`depth_edges` of the map whose :func:`map_steps` are ``steps``."""
-    (_, jy), (_, jx) = steps
+    jy, jx = steps
     e = np.zeros((jx.shape[0], jy.shape[1]), bool)  # (H, W): jx is H x (W - 1), jy (H - 1) x W
     e[:-1] |= jy
     e[1:] |= jy
@@ -252,7 +265,7 @@ def estimate_edges(image: np.ndarray, signed_coc: np.ndarray, *, jump_px: float 
         return None  # noise in the map, not edges
     # max |v| as max(max v, -min v): the same value, without a frame-sized |image|
     scale = max(float(image.max()), -float(image.min())) or 1.0
-    ramp = ramp_of_steps(steps, int(max_ramp_px))
+    ramp = ramp_of_steps(s, steps, int(max_ramp_px))
     del steps
     b = int(band_px) + (ramp + 1) // 2
     radius = ramp + 2 * b + 2

@@ -262,7 +262,7 @@ def test_shared_steps_give_the_depth_edges_and_ramp_of_the_map(shape):
     steps = map_steps(coc, 1.0)
     np.testing.assert_array_equal(edges_of_steps(steps), want)
     np.testing.assert_array_equal(depth_edges(coc, 1.0), want)
-    assert ramp_of_steps(steps, 6) == ramp_width(coc, 1.0, 6) == ramp_width_ref(coc, 1.0, 6)
+    assert ramp_of_steps(coc, steps, 6) == ramp_width(coc, 1.0, 6) == ramp_width_ref(coc, 1.0, 6)
 
 
 @pytest.mark.parametrize("soft", [False, True])
