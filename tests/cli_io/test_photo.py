@@ -470,3 +470,16 @@ def test_the_highlight_reconstruction_does_not_import_scipy_ndimage():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "False"
 
+
+
+@given(seed=st.integers(0, 2**31 - 1), k=st.floats(0.0, 500.0), d_f=st.floats(0.0, 1.0), wide=st.booleans())
+def test_the_clis_max_coc_from_the_maps_ends_is_the_frames(seed, k, d_f, wide):
+    """The CLI's max CoC from the nearest and farthest disparity equals the largest CoC radius of the frame."""
+    from bokehray.app.render_job import max_coc_px
+
+    rng = np.random.default_rng(seed)
+    d = rng.random((13, 17)) ** rng.uniform(0.2, 5.0)
+    d = d.astype(np.float64 if wide else np.float32)
+    blur = br.BlurParams(k, d_f)
+    assert max_coc_px(blur, d) == float(blur.coc_radius(d).max())
+    assert max_coc_px(blur, np.zeros((0, 3), np.float32)) == 0.0
