@@ -218,7 +218,7 @@ def split_scene(image: np.ndarray, signed_coc: np.ndarray, soft: SoftEdges | Non
     far = soft.far_coc[keep].astype(np.float32)
     near = soft.near_coc[keep].astype(np.float32)
     s = signed_coc if overwrite and _writable(signed_coc, np.float32, 2) else signed_coc.copy()
-    photo_coc = s.reshape(-1)[idx]  # the photo's CoC of the split pixels (a copy), before the far parts' replace it
+    photo_coc = s.reshape(-1)[idx]  # the photo's CoC of the split pixels (a copy), before the far parts replace it
     s.reshape(-1)[idx] = far
     # the layer edges see the active pixels' CoC and the near parts' (read in place, band by band)
     values, lo, hi, lo32, hi32 = _active_values(s, active, near)
