@@ -25,27 +25,59 @@ from dataclasses import dataclass
 import bokehray_kernels.matting as bk_matting
 import numpy as np
 
-__all__ = ["PIXELS_PER_THREAD", "EdgeEstimate", "depth_edges", "dilate", "estimate_edges", "isolated_share",
-           "launch_band_kernel", "ramp_width", "window_offsets"]
+__all__ = ["PIXELS_PER_THREAD", "EdgeEstimate", "Steps", "depth_edges", "dilate", "edges_of_steps", "estimate_edges",
+           "isolated_share", "launch_band_kernel", "map_steps", "ramp_of_steps", "ramp_width", "window_offsets"]
 
 PIXELS_PER_THREAD = 4096
 """Fewest band pixels a CPU thread of the kernel gets (fewer are not worth a thread)."""
+
+
+Steps = tuple[np.ndarray, np.ndarray]
+"""A map's steps (:func:`map_steps`): which 4-neighbour differences exceed the jump, down and across."""
+
+_BAND_PX = 1 << 18
+"""Pixels a band of :func:`map_steps` differences at a time (its float temporaries stay a few MB)."""
+
+
+def map_steps(coc: np.ndarray, jump_px: float) -> Steps:
+    """The map's steps between 4-neighbours: ``(|np.diff(coc, axis=0)| > jump_px, |np.diff(coc, axis=1)| >
+    jump_px)``, (H - 1) x W and H x (W - 1) booleans. :func:`depth_edges` and :func:`ramp_width` both start from
+    them; the edge estimate computes them once for both (:func:`edges_of_steps`, :func:`ramp_of_steps`). The
+    differences are taken a band of rows at a time (``np.diff``'s subtraction, no frame-sized difference or
+    absolute value)."""
+    h, w = coc.shape
+    jy = np.empty((max(h - 1, 0), w), bool)
+    jx = np.empty((h, max(w - 1, 0)), bool)
+    rows = max(1, _BAND_PX // max(1, w))
+    for y in range(0, h, rows):
+        y1 = min(h, y + rows)
+        for d, out in ((np.subtract(coc[y:y1, 1:], coc[y:y1, :-1]), jx[y:y1]),
+                       (np.subtract(coc[y + 1 : y1 + 1], coc[y : min(y1, h - 1)]), jy[y:y1])):
+            np.abs(d, out=d)
+            np.greater(d, jump_px, out=out)
+    return jy, jx
 
 
 def ramp_width(signed_coc: np.ndarray, jump_px: float, cap: int) -> int:
     """How many pixels a depth edge's CoC ramp spans (0 for a hard edge): the 90th percentile, over the map's
     depth-edge pairs, of the length of the run of consecutive same-sign steps above ``jump_px`` a pair belongs
     to (along its axis), minus one; at most ``cap``."""
+    return ramp_of_steps(signed_coc, map_steps(signed_coc, jump_px), cap)
+
+
+def ramp_of_steps(coc: np.ndarray, steps: Steps, cap: int) -> int:
+    """:func:`ramp_width` of the map ``coc`` whose :func:`map_steps` are ``steps`` (the sign of each step is
+    taken from the map, at the steps only)."""
     lengths = []
-    for ax in (0, 1):
-        dd = np.diff(signed_coc, axis=ax)
-        if dd.size == 0:
+    for ax, jump in enumerate(steps):
+        if jump.size == 0:
             continue
-        pos = np.flatnonzero(np.abs(dd) > jump_px)  # row-major positions of the steps (the edge pairs only)
+        pos = np.flatnonzero(jump)  # row-major positions of the steps (the edge pairs only)
         if pos.size == 0:
             continue
-        sign = np.sign(dd.ravel()[pos]).astype(np.int8)
-        rows, cols = np.divmod(pos, dd.shape[1])
+        rows, cols = np.divmod(pos, jump.shape[1])
+        sign = np.sign(coc[rows + 1, cols] - coc[rows, cols] if ax == 0 else
+                       coc[rows, cols + 1] - coc[rows, cols]).astype(np.int8)  # np.diff's value at the step
         if ax == 0:  # runs go down the columns: order the steps column by column
             order = np.lexsort((rows, cols))
             line, along, sign = cols[order], rows[order], sign[order]
@@ -108,9 +140,13 @@ def dilate(mask: np.ndarray, k: int) -> np.ndarray:
 
 def depth_edges(coc: np.ndarray, jump_px: float) -> np.ndarray:
     """Boolean map: both pixels of every 4-neighbour pair whose CoC differs by more than ``jump_px``."""
-    e = np.zeros(coc.shape, bool)
-    jy = np.abs(np.diff(coc, axis=0)) > jump_px
-    jx = np.abs(np.diff(coc, axis=1)) > jump_px
+    return edges_of_steps(map_steps(coc, jump_px))
+
+
+def edges_of_steps(steps: Steps) -> np.ndarray:
+    """:func:`depth_edges` of the map whose :func:`map_steps` are ``steps``."""
+    jy, jx = steps
+    e = np.zeros((jx.shape[0], jy.shape[1]), bool)  # (H, W): jx is H x (W - 1), jy (H - 1) x W
     e[:-1] |= jy
     e[1:] |= jy
     e[:, :-1] |= jx
@@ -127,9 +163,10 @@ def launch_band_kernel(img, s, band, by, bx, radius, jump_px, unknown_weight, ri
     n = by.size
     offs, dist = window_offsets(radius)
     dev = wp.get_device(device)
-    image = wp.array(np.ascontiguousarray(img, np.float32), dtype=wp.vec3, device=dev)
-    coc = wp.array(np.ascontiguousarray(s, np.float32), dtype=float, device=dev)
-    unknown = wp.array(band.astype(np.uint8), dtype=wp.uint8, device=dev)
+    copy = not dev.is_cpu  # on the CPU the kernel reads the (contiguous) arrays in place: no copy of the box
+    image = wp.array(np.ascontiguousarray(img, np.float32), dtype=wp.vec3, device=dev, copy=copy)
+    coc = wp.array(np.ascontiguousarray(s, np.float32), dtype=float, device=dev, copy=copy)
+    unknown = wp.array(np.ascontiguousarray(band, bool).view(np.uint8), dtype=wp.uint8, device=dev, copy=copy)
     oy = wp.array(offs[:, 0].astype(np.int32), dtype=wp.int32, device=dev)
     ox = wp.array(offs[:, 1].astype(np.int32), dtype=wp.int32, device=dev)
     sigma = 0.5 * radius
@@ -219,25 +256,28 @@ def estimate_edges(image: np.ndarray, signed_coc: np.ndarray, *, jump_px: float 
     h, w = s.shape
     if h < 2 and w < 2:
         return None
-    edges = depth_edges(s, float(jump_px))
+    steps = map_steps(s, float(jump_px))  # the depth edges and the ramp width both read them
+    edges = edges_of_steps(steps)
     if not edges.any():
         return None
     # isolated pixels are edge pixels: only a map with more edge pixels than the share allows can be noise
     if edges.mean() > max_isolated_share and isolated_share(s, float(jump_px)) > max_isolated_share:
         return None  # noise in the map, not edges
-    scale = float(np.abs(image).max()) or 1.0
-    img = image / np.float32(scale)  # every threshold is relative: the result does not depend on the exposure
-    ramp = ramp_width(s, float(jump_px), int(max_ramp_px))
+    # max |v| as max(max v, -min v): the same value, without a frame-sized |image|
+    scale = max(float(image.max()), -float(image.min())) or 1.0
+    ramp = ramp_of_steps(s, steps, int(max_ramp_px))
+    del steps
     b = int(band_px) + (ramp + 1) // 2
     radius = ramp + 2 * b + 2
     # work on the box of the edges, padded by everything a band pixel's window reaches
-    ey, ex = np.nonzero(edges)
+    ey, ex = np.flatnonzero(edges.any(axis=1)), np.flatnonzero(edges.any(axis=0))
     pad = b + radius
     y0, y1 = max(0, int(ey.min()) - pad), min(h, int(ey.max()) + pad + 1)
     x0, x1 = max(0, int(ex.min()) - pad), min(w, int(ex.max()) + pad + 1)
     band = dilate(edges[y0:y1, x0:x1], b)
     by, bx = np.nonzero(band)
-    box_img = img[y0:y1, x0:x1]
+    # every threshold is relative: the result does not depend on the exposure (the box only: nothing reads more)
+    box_img = image[y0:y1, x0:x1] / np.float32(scale)
     out = launch_band_kernel(box_img, s[y0:y1, x0:x1], band, by, bx, radius, jump_px, unknown_weight, ridge,
                              purity, device, threads)
     return EdgeEstimate((h, w), (y0, y1, x0, x1), by, bx, ramp, scale, box_img, *out)

@@ -67,7 +67,7 @@ class BlurParams:
     def signed_coc(self, disparity: np.ndarray) -> np.ndarray:
         """Signed CoC radius ``K * (d - d_f)`` in pixels (> 0 in front of focus), float32."""
         return (np.float32(self.k_px) * (np.asarray(disparity, np.float32) - np.float32(self.focus_disparity))).astype(
-            np.float32
+            np.float32, copy=False  # float32 already: no second copy of the map
         )
 
     def coc_radius(self, disparity: np.ndarray) -> np.ndarray:

@@ -53,7 +53,7 @@ from .validate import check_finite
 
 __all__ = ["fuse_alpha", "split_mixed_pixels"]
 
-def _check(image: np.ndarray, signed_coc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _check(image: np.ndarray, signed_coc: np.ndarray, finite: bool = True) -> tuple[np.ndarray, np.ndarray]:
     img = np.asarray(image)
     s = np.asarray(signed_coc)
     if img.ndim == 2:
@@ -68,8 +68,9 @@ def _check(image: np.ndarray, signed_coc: np.ndarray) -> tuple[np.ndarray, np.nd
         raise InputError(f"image, signed_coc: expected numeric arrays, got {img.dtype} and {s.dtype}")
     img = np.asarray(img[..., :3] if img.shape[2] >= 3 else np.repeat(img, 3, axis=2), np.float32)
     s = np.asarray(s, np.float32)
-    check_finite(img, "image", "(y, x, c)")
-    check_finite(s, "signed_coc")
+    if finite:
+        check_finite(img, "image", "(y, x, c)")
+        check_finite(s, "signed_coc")
     return np.ascontiguousarray(img), np.ascontiguousarray(s)
 
 
@@ -90,6 +91,7 @@ def split_mixed_pixels(
     max_isolated_share: float = 0.25,
     device: str = "cpu",
     threads: int | None = None,
+    finite_checked: bool = False,
 ) -> SoftEdges:
     """Split the mixed pixels at the depth edges of ``signed_coc`` into a near and a far part.
 
@@ -118,6 +120,8 @@ def split_mixed_pixels(
             has neighbours of its own depth along it).
         device: the Warp device of the band's kernel.
         threads: CPU threads of the kernel (None: all cores); the result does not depend on it.
+        finite_checked: the caller has already refused NaN and Inf in both arrays (the render pipeline: a checked
+            photo, a CoC computed from a checked map): the scans for them (a pass over the frame each) are skipped.
 
     Returns:
         The split pixels (:class:`~bokehray.scene.SoftEdges`); ``SoftEdges.empty()`` when the map has no edge.
@@ -128,7 +132,7 @@ def split_mixed_pixels(
     Raises:
         InputError: mismatched shapes, non-numeric or non-finite input.
     """
-    img, s = _check(image, signed_coc)
+    img, s = _check(image, signed_coc, finite=not finite_checked)
     photo = img
     est = estimate_edges(img, s, jump_px=jump_px, band_px=band_px, max_ramp_px=max_ramp_px,
                          unknown_weight=unknown_weight, ridge=ridge, purity=purity,

@@ -99,14 +99,15 @@ def _check_device(device: str) -> str:
     return str(dev)
 
 
-def _soft_edges(image: np.ndarray, signed_coc: np.ndarray, layers: LayerOptions):
+def _soft_edges(image: np.ndarray, signed_coc: np.ndarray, layers: LayerOptions, finite_checked: bool = False):
     """The mixed pixels at depth edges split by matting (``LayerOptions.soft_edges``), a ``scene.SoftEdges``
-    checked against the image; None when off."""
+    checked against the image; None when off. ``finite_checked``: both arrays are known finite (the context's
+    checked photo and the CoC of its checked map), so the matting does not scan them again."""
     if not layers.soft_edges:
         return None
     from .matting import split_mixed_pixels
 
-    soft = split_mixed_pixels(image, signed_coc)
+    soft = split_mixed_pixels(image, signed_coc, finite_checked=finite_checked)
     scene.check_soft_edges(soft, signed_coc.shape)
     return soft
 
@@ -256,7 +257,7 @@ def _context(inputs: Handover, blur: BlurParams, aperture: Aperture, layers: Lay
     rgb, capped = np.ascontiguousarray(work[..., :3]), scene.cap_coc(s)
     disposable = not keep_pixels and img.shape[2] != 4
     ctx = RenderContext(rgb, d, capped, blur, aperture, layers, memory, options, device, progress,
-                        _soft_edges(rgb, capped, layers), disposable)
+                        _soft_edges(rgb, capped, layers, finite_checked=True), disposable)
     return ctx, None if disposable else work, raw_max, img.shape[2], float(img.min())
 
 

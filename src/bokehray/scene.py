@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 
 import bokehray_kernels as bk
@@ -34,7 +35,7 @@ from .options import LayerOptions
 __all__ = [
     "FILL_MIN_REACH_PX", "LayerRecord", "LayerSources", "LayeredScene", "NearParts", "SoftEdges", "build_layer_sources",
     "build_scene", "cap_coc", "check_soft_edges", "copy_tiles", "fill_halo", "layer_edges", "pad_soft_edges",
-    "pyramid_levels", "scatter_halo", "soft_radius", "split_scene", "tile_max",
+    "pyramid_levels", "scatter_halo", "soft_radius", "split_scene", "tile_max", "tile_reduce",
 ]  # fmt: skip
 
 FILL_MIN_REACH_PX = 0.5
@@ -192,7 +193,7 @@ def within_range(alpha: np.ndarray, fg: np.ndarray, bg: np.ndarray, photo: np.nd
 
 
 def split_scene(image: np.ndarray, signed_coc: np.ndarray, soft: SoftEdges | None, active: np.ndarray,
-                options: LayerOptions, level_radius_px: float | None = None
+                options: LayerOptions, level_radius_px: float | None = None, *, overwrite: bool = False
                 ) -> tuple[np.ndarray, np.ndarray, LayeredScene]:
     """The layered scene with the mixed pixels of ``soft`` split: (colour, signed CoC, scene) to build sources on.
 
@@ -203,6 +204,11 @@ def split_scene(image: np.ndarray, signed_coc: np.ndarray, soft: SoftEdges | Non
     one depth a pixel), and so does one on a pixel that is not ``active`` (a copied tile: its parts are both
     in focus, the photo's pixel is their sum). F and B are kept inside the photo's colour range
     (:func:`within_range`). Without split pixels this is ``build_scene`` on the inputs.
+
+    ``overwrite=True``: ``image`` and ``signed_coc`` are the caller's to change (copies it made, such as a padded
+    frame, that it reads no more as they were): the split pixels' far colour and CoC are written into them
+    (when float32, C-contiguous and writeable; ``image`` of three channels) instead of into copies (226 MB at
+    12 MP), and they are returned. The same values either way.
     """
     if soft is None or len(soft) == 0:
         return image, signed_coc, build_scene(signed_coc, active, options, level_radius_px)
@@ -211,25 +217,28 @@ def split_scene(image: np.ndarray, signed_coc: np.ndarray, soft: SoftEdges | Non
     idx = soft.index[keep]
     far = soft.far_coc[keep].astype(np.float32)
     near = soft.near_coc[keep].astype(np.float32)
-    s = signed_coc.copy()
+    s = signed_coc if overwrite and _writable(signed_coc, np.float32, 2) else signed_coc.copy()
+    photo_coc = s.reshape(-1)[idx]  # the photo's CoC of the split pixels (a copy), before the far parts replace it
     s.reshape(-1)[idx] = far
-    values = np.concatenate([s[active], near])
-    edges = layer_edges(values, options)
+    # the layer edges see the active pixels' CoC and the near parts' (read in place, band by band)
+    values, lo, hi, lo32, hi32 = _active_values(s, active, near)
+    edges = _layer_edges_of(values, lo32, hi32, options)
+    del values
     e32 = float32_edges(edges)
     far_id = np.clip(np.searchsorted(e32, far, side="right") - 1, 0, len(edges) - 2)
     near_id = np.clip(np.searchsorted(e32, near, side="right") - 1, 0, len(edges) - 2)
     split = near_id > far_id
     back = idx[~split]  # one layer (or near behind far): the photo's pixel
-    s.reshape(-1)[back] = signed_coc.reshape(-1)[back]
-    lo, hi = float(values.min()), float(values.max())
+    orig = photo_coc[~split]
+    s.reshape(-1)[back] = orig
     if len(back):  # keep the photo's CoC of those pixels inside the layers' range
-        orig = signed_coc.reshape(-1)[back]
         edges[0] = min(edges[0], float(orig.min()) - 0.5)
         edges[-1] = max(edges[-1], float(orig.max()) + 0.5)
         lo, hi = min(lo, float(orig.min())), max(hi, float(orig.max()))
     idx, keep_i = idx[split], np.flatnonzero(keep)[split]
     a = soft.alpha[keep_i].astype(np.float32)
-    img = np.array(image[..., :3], np.float32)
+    img = image if overwrite and _writable(image, np.float32, 3) and image.shape[2] == 3 else \
+        np.array(image[..., :3], np.float32)
     fg, bg = within_range(a, soft.foreground[keep_i], soft.background[keep_i], img.reshape(-1, 3)[idx],
                            img.min(axis=0).min(axis=0), img.max(axis=0).max(axis=0))  # per axis: far faster than axis=(0, 1)
     value = np.concatenate([fg * a[:, None], a[:, None]], axis=1).astype(np.float32)
@@ -239,6 +248,12 @@ def split_scene(image: np.ndarray, signed_coc: np.ndarray, soft: SoftEdges | Non
     scene = build_scene(s, active, options, level_radius_px, edges=edges, near=parts,
                         max_coc=max(hi, -lo))
     return img, s, scene
+
+
+def _writable(a: np.ndarray, dtype: type, ndim: int) -> bool:
+    """Whether ``a`` can be written in place as a ``dtype`` array of ``ndim`` dimensions whose ``reshape(-1)``
+    is a view (C-contiguous)."""
+    return a.dtype == dtype and a.ndim == ndim and a.flags.c_contiguous and a.flags.writeable
 
 
 def cap_coc(signed_coc: np.ndarray) -> np.ndarray:
@@ -266,12 +281,27 @@ def cap_coc(signed_coc: np.ndarray) -> np.ndarray:
 
 
 def tile_max(values: np.ndarray, tile: int) -> np.ndarray:
-    """Maximum of ``values`` over each ``tile`` x ``tile`` cell of the grid (partial cells at the far edges)."""
+    """Maximum of ``values`` over each ``tile`` x ``tile`` cell of the grid (partial cells at the far edges, as if
+    padded with zeros)."""
+    return tile_reduce(values, tile, 0, np.maximum)
+
+
+def tile_reduce(values: np.ndarray, tile: int, fill: object, op: np.ufunc) -> np.ndarray:
+    """``op`` (``np.maximum``, ``np.minimum``) of ``values`` over each ``tile`` x ``tile`` cell of the grid, the
+    partial cells at the far edges padded with ``fill``: the values of padding the map and reducing axes (1, 3)
+    of its ``(th, tile, tw, tile)`` view, without the padded copy of the map. The rows of each cell are reduced
+    first (a reduction over the middle axis of ``(th, tile, W)``, 4x faster than over two strided axes), then
+    the columns of that ``th x W`` array."""
     h, w = values.shape
     th, tw = -(-h // tile), -(-w // tile)
-    pad = np.zeros((th * tile, tw * tile), values.dtype)
-    pad[:h, :w] = values
-    return pad.reshape(th, tile, tw, tile).max(axis=(1, 3))
+    full = h // tile
+    rows = np.full((th, tw * tile), fill, values.dtype)
+    op.reduce(values[: full * tile].reshape(full, tile, w), axis=1, out=rows[:full, :w])
+    if full < th:  # the partial cells of the last row of the grid
+        last = np.full((tile, w), fill, values.dtype)
+        last[: h - full * tile] = values[full * tile :]
+        op.reduce(last, axis=0, out=rows[full, :w])
+    return op.reduce(rows.reshape(th, tw, tile), axis=2)
 
 
 def grid_to_pixels(grid: np.ndarray, tile: int, shape: tuple[int, int]) -> np.ndarray:
@@ -311,11 +341,18 @@ def layer_edges(signed_coc: np.ndarray, options: LayerOptions) -> np.ndarray:
     """
     signed_coc = np.asarray(signed_coc, np.float32).ravel()
     lo, hi = float(signed_coc.min()), float(signed_coc.max())
+    return _layer_edges_of(lambda: (signed_coc,), lo, hi, options)
+
+
+def _layer_edges_of(parts: Callable[[], Iterable[np.ndarray]], lo: float, hi: float,
+                    options: LayerOptions) -> np.ndarray:
+    """:func:`layer_edges` of the float32 values ``parts()`` yields (in pieces; each call yields them again),
+    whose smallest and largest are ``lo`` and ``hi``: the values need not be gathered into one array."""
     if hi - lo < options.min_layer_px:
         return np.array([lo - 0.5, hi + 0.5])
     bin_px = _HISTOGRAM_BIN_PX
     n_bins = int(math.ceil((hi - lo) / bin_px)) + 1
-    hist = np.bincount(((signed_coc - lo) / bin_px).astype(np.int64), minlength=n_bins)
+    hist = _histogram(parts(), lo, bin_px, n_bins)
     empty = hist == 0
     # runs of empty bins: candidate cuts at their centres, ranked by width
     change = np.flatnonzero(np.diff(np.concatenate([[0], empty.astype(np.int8), [0]])))
@@ -338,6 +375,53 @@ def layer_edges(signed_coc: np.ndarray, options: LayerOptions) -> np.ndarray:
     for a, b, n in zip(edges[:-1], edges[1:], want):
         out.extend(a + (b - a) * np.arange(1, n + 1) / n)
     return np.array(out)
+
+
+_BAND_PX = 1 << 18
+"""Values a band of the whole-map passes (:func:`_histogram`, :func:`_layer_ids`) holds: their temporaries
+(float32 and int64 of a band) stay a few MB instead of 8 bytes a pixel of the frame."""
+
+
+def _histogram(parts: Iterable[np.ndarray], lo: float, bin_px: float, n_bins: int) -> np.ndarray:
+    """``np.bincount(((values - lo) / bin_px).astype(np.int64), minlength=n_bins)`` of the float32 ``values``
+    that are the 1-D ``parts`` one after the other, a band at a time into one float32 buffer: the same float32
+    arithmetic, the same counts."""
+    hist = np.zeros(n_bins, np.int64)
+    buf = np.empty(_BAND_PX, np.float32)
+    for values in parts:
+        for i in range(0, values.size, _BAND_PX):
+            part = values[i : i + _BAND_PX]
+            b = buf[: part.size]
+            np.subtract(part, lo, out=b)
+            np.divide(b, bin_px, out=b)
+            c = np.bincount(b.astype(np.int64), minlength=n_bins)
+            if c.size > hist.size:  # a bin past n_bins (float32 rounding of the top value): bincount grows, so do we
+                hist = np.concatenate([hist, np.zeros(c.size - hist.size, np.int64)])
+            hist[: c.size] += c
+    return hist
+
+
+def _active_values(s: np.ndarray, active: np.ndarray, extra: np.ndarray | None = None
+                   ) -> tuple[Callable[[], Iterator[np.ndarray]], float, float, float, float]:
+    """The values ``np.concatenate([s[active], extra])`` in pieces, without gathering them (two frame-sized
+    copies at 12 MP): ``(parts, lo, hi, lo32, hi32)``. ``parts()`` yields them as float32, a band of rows of
+    ``s[active]`` at a time, then ``extra``; ``lo`` and ``hi`` are the smallest and largest value as the
+    concatenation holds them, ``lo32`` and ``hi32`` as float32 holds them (:func:`layer_edges` casts to
+    float32; rounding is monotonic, so the float32 extremes are the extremes rounded)."""
+    rows = max(1, _BAND_PX // max(1, s.shape[1]))
+    extra = np.zeros(0, np.float32) if extra is None else extra
+
+    def native() -> Iterator[np.ndarray]:
+        for y in range(0, s.shape[0], rows):
+            yield s[y : y + rows][active[y : y + rows]]
+        yield extra
+
+    def parts() -> Iterator[np.ndarray]:
+        return (np.asarray(v, np.float32) for v in native())
+
+    lows, highs = zip(*((float(v.min()), float(v.max())) for v in native() if v.size))  # empty: as min() of none
+    lo, hi = min(lows), max(highs)
+    return parts, lo, hi, float(np.float32(lo)), float(np.float32(hi))
 
 
 def pyramid_levels(max_radius: float, level_radius_px: float) -> int:
@@ -460,24 +544,19 @@ def build_scene(signed_coc: np.ndarray, active: np.ndarray, options: LayerOption
     split pixels: they count among their layers' pixels and tiles); by default the active pixels' own.
     """
     h, w = signed_coc.shape
-    if edges is None:
-        values = signed_coc[active]
-        max_coc = max(float(values.max()), -float(values.min()))
-        edges = layer_edges(values, options)
-    sid = (np.searchsorted(float32_edges(edges), signed_coc, side="right") - 1).astype(np.int32)
-    np.clip(sid, 0, len(edges) - 2, out=sid)
-    sid[~active] = -1
+    if edges is None:  # the active pixels' own, read in place band by band (layer_edges of signed_coc[active])
+        values, lo, hi, lo32, hi32 = _active_values(signed_coc, active)
+        max_coc = max(hi, -lo)
+        edges = _layer_edges_of(values, lo32, hi32, options)
     n_slices = len(edges) - 1
+    sid, counts = _layer_ids(signed_coc, active, float32_edges(edges), n_slices)
 
     # Per-layer extents on the tile grid (host side, on small arrays): a layer's
     # bounding box is the union of the tiles holding any of its pixels.
     t = options.tile_px
-    th, tw = -(-h // t), -(-w // t)
-    pad_h, pad_w = th * t - h, tw * t - w
-    sid_t = np.pad(sid, ((0, pad_h), (0, pad_w)), constant_values=-1).reshape(th, t, tw, t)
-    tile_lo = np.minimum(sid_t.view(np.uint32).min(axis=(1, 3)), n_slices)  # -1 (no layer) as the largest
-    tile_hi = sid_t.max(axis=(1, 3))
-    counts = np.bincount(sid[active], minlength=n_slices)
+    tile_lo = np.minimum(tile_reduce(sid.view(np.uint32), t, np.uint32(0xFFFFFFFF), np.minimum),
+                         n_slices)  # -1 (no layer, also the padding) as the largest
+    tile_hi = tile_reduce(sid, t, -1, np.maximum)
     near_tiles = None
     if near is not None and len(near):
         counts = counts + np.bincount(near.layer, minlength=n_slices)
@@ -507,6 +586,26 @@ def build_scene(signed_coc: np.ndarray, active: np.ndarray, options: LayerOption
                                   support, t, pixels=int(counts[i])))
     return LayeredScene(sid, edges, max_coc, tuple(layers), level_radius_px,
                         near if near is not None else NearParts.empty())
+
+
+def _layer_ids(signed_coc: np.ndarray, active: np.ndarray, e32: np.ndarray, n_slices: int
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel layer ids (int32; -1 where not ``active``) and the active pixels' count per layer, in one pass
+    over the map a band of rows at a time: the layer of ``s`` is ``searchsorted(e32, s, "right") - 1`` clipped to
+    ``[0, n_slices - 1]``. Each band's search result (int64: the id plus one, 0 for an inactive pixel) is counted
+    as it is (``bincount`` takes int64 without a conversion) and cast into the ids; no frame-sized int64 or mask
+    temporary."""
+    h, w = signed_coc.shape
+    sid = np.empty((h, w), np.int32)
+    counts = np.zeros(n_slices + 1, np.int64)
+    rows = max(1, _BAND_PX // max(1, w))
+    for y in range(0, h, rows):
+        k = np.searchsorted(e32, signed_coc[y : y + rows], side="right")
+        np.clip(k, 1, n_slices, out=k)
+        np.multiply(k, active[y : y + rows], out=k)
+        counts += np.bincount(k.reshape(-1), minlength=n_slices + 1)
+        np.subtract(k, 1, out=sid[y : y + rows], casting="unsafe")
+    return sid, counts[1:]
 
 
 def float32_edges(edges: np.ndarray) -> np.ndarray:

@@ -135,7 +135,10 @@ def check_image(image: np.ndarray, name: str = "image", channels: tuple[int, ...
 
 def check_radiance(image: np.ndarray, name: str = "image") -> None:
     """Refuse radiance beyond :data:`MAX_RADIANCE` (a finite float32 near its maximum would overflow a render)."""
-    peak = float(np.abs(image).max()) if image.size else 0.0
+    peak = 0.0
+    if image.size:  # |image|.max() as max(max, -min): the same value (NaN stays NaN), no frame-sized |image|
+        hi, lo = float(image.max()), float(image.min())
+        peak = hi if hi != hi else max(hi, -lo)
     if peak > MAX_RADIANCE:
         raise InputError(f"{name}: radiance up to {peak:.3g}; renders sum values in float32 and need them within "
                          f"+-{MAX_RADIANCE:g} (scale the image down)")

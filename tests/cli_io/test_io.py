@@ -219,6 +219,21 @@ def test_alpha_is_not_gamma_decoded(tmp_path):
     np.testing.assert_allclose(br.read_image(tmp_path / "la.png"), img, atol=1e-7)
 
 
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+@pytest.mark.parametrize(("channels", "n_colour"), [(1, 1), (2, 1), (3, 3), (4, 3)])
+def test_decode_codes_in_bands_equals_one_table_lookup(monkeypatch, dtype, channels, n_colour):
+    """The banded decode gives the values of the whole-image lookup, bit for bit, bands cut mid-image included."""
+    monkeypatch.setattr(rd, "_DECODE_BAND_PX", 7 * 5)  # 5 rows of 7 px a band: 23 rows end in a partial band
+    rng = np.random.default_rng(channels)
+    a = rng.integers(0, np.iinfo(dtype).max, (23, 7, channels), endpoint=True).astype(dtype)
+    ref = np.empty(a.shape, np.float32)
+    ref[..., :n_colour] = colour.srgb_decode_lut(a.dtype.itemsize * 8)[a[..., :n_colour]]
+    ref[..., n_colour:] = a[..., n_colour:] / np.float32(np.iinfo(dtype).max)
+    out = rd.decode_codes(a, n_colour)
+    assert out.dtype == np.float32 and out.shape == a.shape
+    np.testing.assert_array_equal(out.view(np.uint32), ref.view(np.uint32))
+
+
 def test_grey_png_is_expanded(tmp_path):
     Image.fromarray(np.arange(20, dtype=np.uint8).reshape(4, 5)).save(tmp_path / "g.png")
     img = br.read_image(tmp_path / "g.png")

@@ -376,6 +376,21 @@ def test_reconstruction_leaves_unclipped_and_one_channel_clipped_images_alone():
     assert found == 0 and np.array_equal(out, red)
 
 
+def test_reconstruction_in_place_equals_the_copy_with_neighbouring_highlights():
+    """Lamps a few pixels apart (their boxes, rims and rings overlap): written into the photo itself
+    (``overwrite=True``) the result is the copy's, bit for bit, and by default the photo is not written to."""
+    _hdr, lamp = _lamp_scene()
+    img = np.concatenate([lamp[:, :28], lamp[:, 14:], lamp[:, 12:30]], axis=1)  # three lamps 10-12 px apart
+    img = np.concatenate([img, img[:, ::-1] * np.float32(0.995)], axis=0).astype(np.float32)
+    img[3, 3] = img[3, 60] = (1.0, 1.0, 0.2)  # two clipped pixels without a white core
+    before = img.copy()
+    out, found = highlights.reconstruct_highlights(img)
+    assert found == 6 and np.array_equal(img, before)
+    same, found_in_place = highlights.reconstruct_highlights(img, overwrite=True)
+    assert same is img and found_in_place == found
+    np.testing.assert_array_equal(same.view(np.uint32), out.view(np.uint32))
+
+
 def test_render_reconstructs_for_8_bit_but_never_for_exr(tmp_path, capsys):
     _hdr, img8 = _lamp_scene()
     d = np.full(img8.shape[:2], 0.5, np.float32)
@@ -455,3 +470,16 @@ def test_the_highlight_reconstruction_does_not_import_scipy_ndimage():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "False"
 
+
+
+@given(seed=st.integers(0, 2**31 - 1), k=st.floats(0.0, 500.0), d_f=st.floats(0.0, 1.0), wide=st.booleans())
+def test_the_clis_max_coc_from_the_maps_ends_is_the_frames(seed, k, d_f, wide):
+    """The CLI's max CoC from the nearest and farthest disparity equals the largest CoC radius of the frame."""
+    from bokehray.app.render_job import max_coc_px
+
+    rng = np.random.default_rng(seed)
+    d = rng.random((13, 17)) ** rng.uniform(0.2, 5.0)
+    d = d.astype(np.float64 if wide else np.float32)
+    blur = br.BlurParams(k, d_f)
+    assert max_coc_px(blur, d) == float(blur.coc_radius(d).max())
+    assert max_coc_px(blur, np.zeros((0, 3), np.float32)) == 0.0

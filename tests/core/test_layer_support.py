@@ -112,3 +112,82 @@ def test_float32_edges_assign_every_pixel_the_float64_layer(edges, seed):
                              np.nextafter(near, np.float32(-np.inf)), np.nextafter(near, np.float32(np.inf))])
     np.testing.assert_array_equal(np.searchsorted(float32_edges(e), values, side="right"),
                                   np.searchsorted(e, values, side="right"))
+
+
+# --------------------------------------------------------------------------- the banded whole-map passes
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 40), st.integers(1, 40), st.integers(1, 9), st.sampled_from(["f4", "i4", "u4", "bool"]),
+       st.integers(0, 2**31 - 1))
+def test_tile_reduce_equals_padding_the_map(h, w, tile, dtype, seed):
+    """Rows of each cell then columns: the values of the padded (th, tile, tw, tile) reduction, partial cells
+    (padded with ``fill``), NaN and the uint32 view of -1 included."""
+    from bokehray.scene import tile_max, tile_reduce
+
+    rng = np.random.default_rng(seed)
+    v = rng.integers(-3, 5, (h, w)).astype(dtype) if dtype != "bool" else rng.random((h, w)) < 0.1
+    if dtype == "f4":
+        v[rng.random((h, w)) < 0.05] = np.nan
+    th, tw = -(-h // tile), -(-w // tile)
+    for fill, op, name in ((0, np.maximum, "max"), (np.iinfo(np.int32).max if dtype == "i4" else 1, np.minimum, "min")):
+        fill = np.array(fill).astype(v.dtype)
+        pad = np.full((th * tile, tw * tile), fill, v.dtype)
+        pad[:h, :w] = v
+        want = getattr(pad.reshape(th, tile, tw, tile), name)(axis=(1, 3))
+        got = tile_reduce(v, tile, fill, op)
+        assert got.dtype == want.dtype
+        np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(tile_max(v, tile), tile_reduce(v, tile, 0, np.maximum))
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(1, 60), st.integers(1, 50), st.integers(1, 9), st.integers(1, 400), st.integers(0, 2**31 - 1))
+def test_layer_ids_and_histogram_in_bands_equal_the_whole_map(h, w, n_edges, band_px, seed):
+    """The banded ids, counts and histogram equal the whole-map expressions they replace, bands cut mid-row."""
+    import bokehray.scene as sc
+
+    rng = np.random.default_rng(seed)
+    s = (rng.standard_normal((h, w)) * 30).astype(np.float32)
+    active = rng.random((h, w)) < 0.8
+    e = np.sort(rng.uniform(-40, 40, n_edges + 1))
+    e32 = sc.float32_edges(e)
+    want = np.clip((np.searchsorted(e32, s, side="right") - 1).astype(np.int32), 0, n_edges - 1)
+    want[~active] = -1
+    values = s[active]
+    lo = float(values.min()) if values.size else 0.0
+    n_bins = int(np.ceil((float(s.max()) - lo) / 0.25)) + 1
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(sc, "_BAND_PX", band_px)
+        ids, counts = sc._layer_ids(s, active, e32, n_edges)
+        hist = sc._histogram([values[:7], values[7:]], lo, 0.25, n_bins)
+    assert ids.dtype == np.int32
+    np.testing.assert_array_equal(ids, want)
+    np.testing.assert_array_equal(counts, np.bincount(want[active], minlength=n_edges))
+    np.testing.assert_array_equal(hist, np.bincount(((values - lo) / 0.25).astype(np.int64), minlength=n_bins))
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(1, 60), st.integers(1, 50), st.integers(0, 30), st.integers(1, 400), st.booleans(),
+       st.integers(0, 2**31 - 1))
+def test_layer_edges_of_the_active_values_in_bands_equal_the_gathered_ones(h, w, n_extra, band_px, wide, seed):
+    """split_scene and build_scene cut the layers on s[active] (and the near parts) read band by band: the
+    extremes and edges of the gathered array, float64 maps (cast to float32 by layer_edges) included."""
+    import bokehray.scene as sc
+
+    rng = np.random.default_rng(seed)
+    s = (rng.standard_normal((h, w)) * rng.uniform(0.3, 40)).astype(np.float64 if wide else np.float32)
+    active = rng.random((h, w)) < 0.7
+    active.ravel()[0] = True
+    extra = (rng.standard_normal(n_extra) * 20).astype(np.float32)
+    values = np.concatenate([s[active], extra])
+    opts = LayerOptions(max_layers=int(rng.integers(1, 12)), max_layer_px=float(rng.uniform(0.5, 10)))
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(sc, "_BAND_PX", band_px)
+        parts, lo, hi, lo32, hi32 = sc._active_values(s, active, extra)
+        got = sc._layer_edges_of(parts, lo32, hi32, opts)
+        assert np.array_equal(np.concatenate(list(parts())), values.astype(np.float32))
+    assert (lo, hi) == (float(values.min()), float(values.max()))
+    v32 = values.astype(np.float32)
+    assert (lo32, hi32) == (float(v32.min()), float(v32.max()))
+    np.testing.assert_array_equal(got, sc.layer_edges(values, opts))

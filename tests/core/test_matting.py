@@ -189,6 +189,15 @@ def test_bad_input_is_refused():
         split_mixed_pixels(img, bad)
 
 
+def test_finite_checked_inputs_split_alike():
+    """The pipeline's finite_checked=True skips the NaN/Inf scans only: the same split on finite input."""
+    photo, coc, _, _, _ = two_plane(n=40)
+    a, b = split_mixed_pixels(photo, coc), split_mixed_pixels(photo, coc, finite_checked=True)
+    assert len(a) > 0
+    for f in ("index", "alpha", "foreground", "background", "near_coc", "far_coc"):
+        np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
+
+
 def test_a_soft_map_widens_the_band():
     photo, coc, alpha, _, _ = two_plane(seed=1)
     soft = ndimage.gaussian_filter(coc, 1.5)
@@ -234,6 +243,26 @@ def test_ramp_width_matches_the_reference():
         for cap in (2, 6):
             assert ramp_width(coc, 1.0, cap) == ramp_width_ref(coc, 1.0, cap)
     assert ramp_width(np.zeros((1, 1), np.float32), 1.0, 6) == 0
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (1, 6), (6, 1), (2, 2), (19, 23)])
+def test_shared_steps_give_the_depth_edges_and_ramp_of_the_map(shape):
+    """The edge estimate computes the steps once (map_steps) for both: the edges of a plain loop over the pairs,
+    and the reference's ramp width."""
+    from bokehray.edge_estimate import edges_of_steps, map_steps, ramp_of_steps
+
+    rng = np.random.default_rng(shape[0] * 31 + shape[1])
+    coc = ndimage.gaussian_filter(rng.choice([-8.0, 0.0, 9.0], shape), 0.7).astype(np.float32)
+    want = np.zeros(shape, bool)
+    for y in range(shape[0]):
+        for x in range(shape[1]):
+            for y2, x2 in ((y + 1, x), (y, x + 1)):
+                if y2 < shape[0] and x2 < shape[1] and abs(float(coc[y, x]) - float(coc[y2, x2])) > 1.0:
+                    want[y, x] = want[y2, x2] = True
+    steps = map_steps(coc, 1.0)
+    np.testing.assert_array_equal(edges_of_steps(steps), want)
+    np.testing.assert_array_equal(depth_edges(coc, 1.0), want)
+    assert ramp_of_steps(coc, steps, 6) == ramp_width(coc, 1.0, 6) == ramp_width_ref(coc, 1.0, 6)
 
 
 @pytest.mark.parametrize("soft", [False, True])

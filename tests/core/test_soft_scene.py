@@ -202,6 +202,31 @@ def test_a_split_in_one_layer_or_a_copied_tile_stays_the_photos_pixel():
     np.testing.assert_array_equal(s2, s)
 
 
+@given(seed=st.integers(0, 2**16), h=st.integers(1, 30), w=st.integers(1, 30), far_coc=st.floats(-12.0, 3.0),
+       gap=st.floats(0.0, 20.0))
+def test_split_scene_in_place_equals_the_copies(seed, h, w, far_coc, gap):
+    """overwrite=True writes the far parts into the caller's arrays: the same colours, CoCs and scene as the
+    copies, splits kept in one layer (a small gap) and splits on inactive pixels included."""
+    rng = np.random.default_rng(seed)
+    s, soft = _two_regions(rng, h, w, far_coc, far_coc + gap)
+    image = rng.random((h, w, 3)).astype(np.float32)
+    active = rng.random((h, w)) < 0.9
+    active.ravel()[0] = True
+    options = br.LayerOptions(tile_px=8)
+    img, s2, scene = sc.split_scene(image, s, soft, active, options, 8.0)
+    image2, s_in = image.copy(), s.copy()
+    img_in, s2_in, scene_in = sc.split_scene(image2, s_in, soft, active, options, 8.0, overwrite=True)
+    if len(soft):
+        assert img_in is image2 and s2_in is s_in
+    np.testing.assert_array_equal(img_in, img)
+    np.testing.assert_array_equal(s2_in, s2)
+    np.testing.assert_array_equal(scene_in.ids, scene.ids)
+    np.testing.assert_array_equal(scene_in.edges, scene.edges)
+    assert scene_in.layers == scene.layers and scene_in.max_coc == scene.max_coc
+    for f in ("y", "x", "value", "coc", "layer"):
+        np.testing.assert_array_equal(getattr(scene_in.near, f), getattr(scene.near, f))
+
+
 @given(seed=st.integers(0, 2**16), n=st.integers(1, 30))
 def test_split_colours_are_kept_inside_the_photos_range_and_sum_to_its_pixel(seed, n):
     rng = np.random.default_rng(seed)

@@ -240,3 +240,25 @@ def test_radiance_near_the_float32_limit_is_refused_by_every_level(quality):
     with pytest.raises(br.InputError, match="radiance up to 3e\\+38.*within \\+-1e\\+36"):
         br.render(image, d, br.BlurParams(5.0, 1.0), quality=quality)
     np.testing.assert_array_equal(br.render(image * 1e-3, d, br.BlurParams(5.0, 1.0), quality=quality) >= 0, True)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64, np.float16, np.int16, np.uint8])
+def test_check_radiance_peak_is_the_largest_magnitude(dtype):
+    """check_radiance's peak, max(max, -min), is |image|.max(): negative peaks, NaN (not refused, as before) and
+    integer arrays (no wrap of -min) alike."""
+    from bokehray.validate import MAX_RADIANCE, check_radiance
+
+    rng = np.random.default_rng(3)
+    big = np.finfo(np.float32).max if np.issubdtype(dtype, np.floating) and dtype != np.float16 else None
+    image = (rng.standard_normal((6, 7, 3)) * 50).astype(dtype)
+    check_radiance(image)
+    check_radiance(np.zeros((0, 3), dtype))
+    if big is not None:
+        for sign in (1, -1):
+            bad = image.astype(dtype)
+            bad[1, 2, 0] = sign * big
+            with pytest.raises(br.InputError, match="radiance up to 3.4e\\+38"):
+                check_radiance(bad)
+            bad[4, 4, 2] = np.nan  # |image|.max() is NaN: not refused here (the finite check says what is wrong)
+            check_radiance(bad)
+    assert float(np.abs(image).max()) <= MAX_RADIANCE

@@ -301,6 +301,15 @@ def render_one(args: argparse.Namespace) -> dict:
         bar.close()
 
 
+def max_coc_px(blur, disparity: np.ndarray) -> float:
+    """``blur.coc_radius(disparity).max()`` from the map's nearest and farthest values alone: the float32
+    ``K (d - d_f)`` is monotonic in ``d`` (each rounding is), so its magnitude peaks at an end of the range (no
+    frame-sized CoC, 48 MB at 12 MP, twice over). 0 for an empty map."""
+    if not disparity.size:
+        return 0.0
+    return float(blur.coc_radius(np.array([disparity.min(), disparity.max()])).max())
+
+
 def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:  # noqa: C901
     from ..lens import BlurParams, ThinLens
     from ..output.write import write_image
@@ -361,7 +370,7 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:  
             _say(args, f"focus: {subject.describe()}{_metres(norm, d_f)}; --focus-at X,Y to choose")
         blur = BlurParams(k, d_f)
     if is_display_referred(args.image) and not args.no_highlight_reconstruction and args.highlight_boost == 0:
-        image, found = reconstruct_highlights(image)
+        image, found = reconstruct_highlights(image, overwrite=True)  # the photo as read is ours: no copy
         if found:
             _say(args, f"highlights: {found} clipped highlight{'s' * (found > 1)} reconstructed (display-referred "
                  "input; --no-highlight-reconstruction keeps them clipped)")
@@ -371,7 +380,7 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:  
     from ..options import PreviewOptions
     from ..pipeline import Handover, render_handed_over
 
-    max_coc = float(blur.coc_radius(disparity).max()) if disparity.size else 0.0  # said after the render
+    max_coc = max_coc_px(blur, disparity)  # said after the render
     # a batch's worker processes share the machine's cores (``threads``; the output does not depend on it)
     level_options = PreviewOptions(threads=getattr(args, "threads", None))
     # the render owns the photo and its map from here: it frees them once the scene is split (240 MB at 12 MP)

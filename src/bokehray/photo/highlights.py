@@ -54,9 +54,11 @@ def label8(mask: np.ndarray) -> tuple[np.ndarray, list[tuple[int, int, int, int]
     by union-find over runs: the work grows with the number of runs, not of pixels.
     """
     h, w = mask.shape
-    edges = np.diff(np.pad(mask, ((0, 0), (1, 1))).astype(np.int8), axis=1)
+    rows = np.flatnonzero(mask.any(axis=1))  # only the rows that hold a run are scanned (highlights are small)
+    edges = np.diff(np.pad(mask[rows], ((0, 0), (1, 1))).astype(np.int8), axis=1)
     ry, rs = np.nonzero(edges == 1)  # run starts (row-major order)
     re = np.nonzero(edges == -1)[1]  # run ends (exclusive), in the same order
+    ry = rows[ry]
     n = len(ry)
     parent = list(range(n))
 
@@ -131,7 +133,7 @@ def edge_distance(mask: np.ndarray, cap: float) -> np.ndarray:
     return dist
 
 
-def reconstruct_highlights(image: np.ndarray) -> tuple[np.ndarray, int]:
+def reconstruct_highlights(image: np.ndarray, *, overwrite: bool = False) -> tuple[np.ndarray, int]:
     """Re-inflate the clipped highlights of a display-referred photo; returns ``(image, highlights found)``.
 
     An 8-bit file stores a lamp of radiance 5 as 1.0, so its bokeh ball comes out dim. Here:
@@ -146,15 +148,25 @@ def reconstruct_highlights(image: np.ndarray) -> tuple[np.ndarray, int]:
 
     Alpha, if present, is not touched. The rule and its measured effect are in docs/usage.md and
     benchmarks/bench_highlights.py.
+
+    ``overwrite=True`` writes the highlights into ``image`` itself when it is float32 (a caller that no longer
+    needs the clipped photo, the command line: no frame-sized copy, 144 MB at 12 MP); by default ``image`` is
+    never written to.
     """
     img = np.asarray(image, np.float32)
     rgb = img[..., :3]
-    clipped_ch = rgb >= CLIP_LEVEL
-    if not clipped_ch.all(axis=2).any():  # no white-clipped core anywhere: nothing to do
+    # one pass over the frame, a channel at a time (a reduction over a 3-long last axis is 3x slower); the
+    # white-core test then looks at the clipped pixels only
+    clipped = rgb[..., 0] >= CLIP_LEVEL
+    for c in (1, 2):
+        clipped |= rgb[..., c] >= CLIP_LEVEL
+    ys, xs = np.nonzero(clipped)
+    if not (rgb[ys, xs] >= CLIP_LEVEL).all(axis=1).any():  # no white-clipped core anywhere: nothing to do
         return img, 0
-    clipped = clipped_ch.any(axis=2)
     labels, boxes = label8(clipped)
-    out = img.copy()
+    # overwriting is safe: a highlight writes only its own clipped channels, which every other highlight's rim,
+    # ring and core leave out (``others``, ``mine``), so each reads what it would read from the untouched photo
+    out = img if overwrite and img.flags.writeable else img.copy()
     found = 0
     h, w = clipped.shape
     pad = 5  # the rim (1 px) and the background ring (3-4 px) around each highlight
@@ -162,11 +174,11 @@ def reconstruct_highlights(image: np.ndarray) -> tuple[np.ndarray, int]:
         y0, y1 = max(0, by0 - pad), min(h, by1 + pad)
         x0, x1 = max(0, bx0 - pad), min(w, bx1 + pad)
         mine = labels[y0:y1, x0:x1] == i
-        ch = clipped_ch[y0:y1, x0:x1] & mine[..., None]
+        crop = rgb[y0:y1, x0:x1]
+        ch = (crop >= CLIP_LEVEL) & mine[..., None]
         if not ch.all(axis=2).any():
             continue  # no white core: a saturated colour, not a light
         found += 1
-        crop = rgb[y0:y1, x0:x1]
         others = clipped[y0:y1, x0:x1] & ~mine  # another highlight's pixels are neither rim nor background
         rim = dilate8(mine, 1) & ~mine & ~others
         ring = dilate8(mine, 4) & ~dilate8(mine, 2) & ~others

@@ -27,7 +27,7 @@ from ..errors import InputError, ResourceError
 from ..formats import check_finite, first_index, format_of, range_prefix, to_float32
 from ..validate import check_path
 
-__all__ = ["MAX_PIXELS", "load_samples", "read_disparity", "read_image", "read_size", "single_channel"]
+__all__ = ["MAX_PIXELS", "decode_codes", "load_samples", "read_disparity", "read_image", "read_size", "single_channel"]
 
 MAX_PIXELS = 200_000_000
 """Largest image (height x width) any reader accepts."""
@@ -268,6 +268,31 @@ def single_channel(path: Path, a: np.ndarray, fmt: str, what: str) -> np.ndarray
     return a
 
 
+_DECODE_BAND_PX = 1 << 18
+"""Pixels :func:`decode_codes` converts at a time: the table lookup's index temporary (8 bytes a sample) stays a
+few MB, where one lookup of a 12 MP photo would allocate 288 MB of indices and a second 144 MB float32 copy."""
+
+
+def decode_codes(a: np.ndarray, n_colour: int) -> np.ndarray:
+    """Linear float32 of integer codes ``a`` (H x W x C, uint8 or uint16): the first ``n_colour`` channels decoded
+    from sRGB by table (:func:`~bokehray.colour.srgb_decode_lut`), the others (alpha) divided by the largest code.
+
+    Band by band of rows, straight into the result (``np.take`` into it): the same values as the whole-image
+    ``lut[a]``, without its full-size index and value temporaries."""
+    lut = srgb_decode_lut(a.dtype.itemsize * 8)
+    top = np.float32(np.iinfo(a.dtype).max)
+    out = np.empty(a.shape, np.float32)
+    rows = max(1, _DECODE_BAND_PX // max(1, a.shape[1]))
+    for y in range(0, a.shape[0], rows):
+        src, dst = a[y : y + rows], out[y : y + rows]
+        if n_colour == a.shape[2]:
+            np.take(lut, src, out=dst)
+        else:
+            dst[..., :n_colour] = np.take(lut, src[..., :n_colour])
+            dst[..., n_colour:] = src[..., n_colour:] / top
+    return out
+
+
 # --------------------------------------------------------------------------- public readers
 
 
@@ -334,9 +359,7 @@ def read_image(path: str | os.PathLike[str]) -> np.ndarray:
         from .embedded import embedded, to_srgb_codes
 
         a = to_srgb_codes(a, embedded(p, fmt), str(p))  # an embedded ICC profile (Display P3, Adobe RGB) -> sRGB
-        out = np.empty(a.shape, np.float32)
-        out[..., :n_colour] = srgb_decode_lut(a.dtype.itemsize * 8)[a[..., :n_colour]]
-        out[..., n_colour:] = a[..., n_colour:] / np.float32(np.iinfo(a.dtype).max)
+        out = decode_codes(a, n_colour)
     else:
         raise InputError(f"{p}: expected 8- or 16-bit integer or float samples, got {a.dtype}")
     if n_colour == 1:
@@ -362,8 +385,8 @@ def read_disparity(path: str | os.PathLike[str], *, check_range: bool = False) -
     check_path(path)
     p, fmt = format_of(path, ("PNG", "TIFF", "EXR", "NPY"), "disparity")
     a = single_channel(p, load_samples(p, fmt, (("Y",), ("R",))), fmt, "disparity")
-    if a.dtype.kind == "u" and fmt != "NPY":
-        return (a / np.float32(np.iinfo(a.dtype).max)).astype(np.float32)
+    if a.dtype.kind == "u" and fmt != "NPY":  # uint8 / uint16 over a float32 is float32 already: no second copy
+        return (a / np.float32(np.iinfo(a.dtype).max)).astype(np.float32, copy=False)
     if a.dtype.kind == "i" and fmt != "NPY":
         raise InputError(f"{p}: expected unsigned integer or float samples, got {a.dtype}")
     out = to_float32(a, f"{p}: expected finite values, got", range_prefix(p))
