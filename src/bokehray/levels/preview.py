@@ -292,7 +292,10 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
         return ctx.image.copy(), stats
 
     photo = image
-    image, s, scene = sc.split_scene(image, s, soft, active, ctx.layers, options.level_radius_px)
+    # padded, the image and CoC are this function's copies: the split pixels' far parts are written into them (the
+    # tiled path reads ``photo`` on copied tiles only, where no pixel is split)
+    image, s, scene = sc.split_scene(image, s, soft, active, ctx.layers, options.level_radius_px,
+                                     overwrite=(h, w) != (h0, w0))
     del active, soft
     ctx.release_pixels()  # the scene holds what the layers read (a disposable context's pixels are freed here)
     stats.layers = len(scene.layers)
