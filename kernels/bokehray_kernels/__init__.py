@@ -27,6 +27,7 @@ from .fill import row_distance_kernel as row_distance_kernel
 from .matting import matting_band_kernel as matting_band_kernel
 from .pyramid import MAX_LEVELS as MAX_LEVELS
 from .pyramid import Levels as Levels
+from .pyramid import clear_support_kernel as clear_support_kernel
 from .pyramid import prefix_rows_kernel as prefix_rows_kernel
 from .pyramid import resolve_levels_kernel as resolve_levels_kernel
 from .pyramid import scatter_kernel as scatter_kernel
@@ -51,6 +52,7 @@ __all__ = [
     "Shape",
     "Support",
     "chord",
+    "clear_support_kernel",
     "column_distance_kernel",
     "composite_kernel",
     "fill_sources_kernel",

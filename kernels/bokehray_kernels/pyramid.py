@@ -184,3 +184,15 @@ def resolve_levels_kernel(n_levels: int, first: int, levels: Levels, support: Su
     if n_levels > 5 and first <= 5:
         acc = acc + _level_sample(levels.l5, x, y, 5, h, w)
     out[y, x] = acc
+
+
+@wp.kernel
+def clear_support_kernel(support: Support, buf: wp.array2d(dtype=wp.vec4)):
+    """Store zero at the pixels of ``buf`` in the layer's ``support`` (columns beyond the support's mask are left).
+
+    The values do not change (``buf`` comes zeroed); on a lazily zeroed buffer the support's pages are then taken
+    by a write, once, where a first read would map the shared zero page and the later write fault again to copy it.
+    """
+    y, x = wp.tid()
+    if in_support(support, y, x):
+        buf[y, x] = wp.vec4()
