@@ -45,7 +45,7 @@ __all__ = ["aperture_shape", "border_pad", "no_routing", "prefix_rows", "pyramid
            "render_signed_coc", "route_salient"]
 
 # Bytes per pixel, from the arrays each stage allocates (float32 = 4 bytes), calibrated on measured peaks (the
-# growth of the process during renders of 6 to 24 MP, within 15 %: docs/renderer.md, "12 MP and 24 MP photos");
+# growth of the process during renders of 1.5 to 24 MP, within 15 %: docs/renderer.md, "The memory model");
 # benchmarks/bench_memory.py prints the estimate beside the peak (docs/robustness.md).
 WHOLE_IMAGE_B = 24
 """Whole-image arrays kept through the layers: the scene's colour (its split pixels hold their far part, 12), its
@@ -416,9 +416,8 @@ def render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatt
             wp.launch(bk.clear_support_kernel, dim=(h, w), inputs=[support.struct()], outputs=[a], device=device)
         return a
 
-    # One worker fills at a time (sources, the pull-push levels above level 0, distance map: about 30 bytes a box
-    # pixel; the scatter that follows takes about 46), so two workers' fills never overlap (the other worker
-    # scatters meanwhile); it was the largest working set before the fill stopped storing level 0. Nothing else is
+    # One worker fills at a time (the sources, the pull-push levels above level 0 and the distance map, the last two
+    # on the whole box), so two workers' fills never overlap (the other worker scatters meanwhile). Nothing else is
     # shared: values do not depend on it.
     with scatter.fill_gate:
         src, coc = sc.build_layer_sources(layer, arrays, zeros=sources_zeros)
