@@ -71,6 +71,10 @@ DENSE_LAYER_B = 48
 """Per pixel of a layer's box in work on a GPU, where every array is dense (``buffers.lazy_zeros`` allocates
 whole): sources (16 + 4), the radius pyramid's difference buffers (16 x 4/3) and the routing's arrays (as the CPU
 model was calibrated before its pages followed the support; not measured on a GPU)."""
+TILED_B = 12
+"""Per pixel of the frame in a tiled render: the output the tiles' cores are copied into (``_render_tiled``); 12 more
+where the frame is not padded, for the photo it keeps for the copied tiles (padded, that photo is the scene's colour,
+``split_scene`` writing into it)."""
 RESULT_B = 16
 """Per pixel of a finished layer's lit area (its box's on a GPU) waiting to be composited (premultiplied RGB and
 coverage): while the next layer to composite is in work, at most ``threads - 1`` others' results wait beside the
@@ -316,10 +320,11 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
                         if whole + _region_bytes(h * w, footprints, k) <= budget), threads)
     stats.threads = threads
     margin = 2 * max(sum(sc.scatter_halo(lyr, options.level_radius_px)) for lyr in scene.layers)
+    tiled = (TILED_B if (h, w) != (h0, w0) else 2 * TILED_B) * h * w
     tile, need = tiling.choose_tile(
         h, w, ctx.memory, untiled_bytes=whole + _region_bytes(h * w, footprints, threads), margin=margin,
-        window_bytes=lambda hy, wx: whole + _region_bytes(hy * wx, [(min(px, hy * wx), rate) for px, rate in footprints],
-                                                          threads),
+        window_bytes=lambda hy, wx: whole + tiled + _region_bytes(hy * wx, [(min(px, hy * wx), rate)
+                                                                            for px, rate in footprints], threads),
         what=f"preview render at a largest CoC of {stats.max_coc_px:.0f} px",
     )
     stats.memory_estimate_mb = need / tiling.MB
