@@ -46,8 +46,7 @@ from .model import BokehRefiner, RefinerConfig
 from .tiles import raised_cosine_ramp
 
 __all__ = ["DEFAULT_WEIGHTS", "RefineOptions", "RefineStats", "blend_weight", "correct_and_render", "edge_band",
-           "edge_reach",
-           "load_refiner", "refine", "refine_boxes", "tiles_near", "tiles_to_refine"]
+           "edge_reach", "load_refiner", "refine", "refine_boxes", "tiles_near", "tiles_to_refine"]
 
 DEFAULT_WEIGHTS = Path(__file__).parent / "weights" / "refiner.safetensors"
 

@@ -25,6 +25,8 @@ from dataclasses import dataclass
 import bokehray_kernels.matting as bk_matting
 import numpy as np
 
+from ._memory import row_bands
+
 __all__ = ["PIXELS_PER_THREAD", "EdgeEstimate", "Steps", "depth_edges", "dilate", "edges_of_steps", "estimate_edges",
            "isolated_share", "launch_band_kernel", "map_steps", "ramp_of_steps", "ramp_width", "window_offsets"]
 
@@ -35,10 +37,6 @@ PIXELS_PER_THREAD = 4096
 Steps = tuple[np.ndarray, np.ndarray]
 """A map's steps (:func:`map_steps`): which 4-neighbour differences exceed the jump, down and across."""
 
-_BAND_PX = 1 << 18
-"""Pixels a band of :func:`map_steps` differences at a time (its float temporaries stay a few MB)."""
-
-
 def map_steps(coc: np.ndarray, jump_px: float) -> Steps:
     """The map's steps between 4-neighbours: ``(|np.diff(coc, axis=0)| > jump_px, |np.diff(coc, axis=1)| >
     jump_px)``, (H - 1) x W and H x (W - 1) booleans. :func:`depth_edges` and :func:`ramp_width` both start from
@@ -48,9 +46,7 @@ def map_steps(coc: np.ndarray, jump_px: float) -> Steps:
     h, w = coc.shape
     jy = np.empty((max(h - 1, 0), w), bool)
     jx = np.empty((h, max(w - 1, 0)), bool)
-    rows = max(1, _BAND_PX // max(1, w))
-    for y in range(0, h, rows):
-        y1 = min(h, y + rows)
+    for y, y1 in row_bands(h, w):
         for d, out in ((np.subtract(coc[y:y1, 1:], coc[y:y1, :-1]), jx[y:y1]),
                        (np.subtract(coc[y + 1 : y1 + 1], coc[y : min(y1, h - 1)]), jy[y:y1])):
             np.abs(d, out=d)

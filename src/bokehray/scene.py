@@ -29,6 +29,8 @@ import bokehray_kernels as bk
 import numpy as np
 import warp as wp
 
+from . import _memory
+from ._memory import row_bands
 from .edge_estimate import dilate
 from .options import LayerOptions
 
@@ -377,20 +379,16 @@ def _layer_edges_of(parts: Callable[[], Iterable[np.ndarray]], lo: float, hi: fl
     return np.array(out)
 
 
-_BAND_PX = 1 << 18
-"""Values a band of the whole-map passes (:func:`_histogram`, :func:`_layer_ids`) holds: their temporaries
-(float32 and int64 of a band) stay a few MB instead of 8 bytes a pixel of the frame."""
-
-
 def _histogram(parts: Iterable[np.ndarray], lo: float, bin_px: float, n_bins: int) -> np.ndarray:
     """``np.bincount(((values - lo) / bin_px).astype(np.int64), minlength=n_bins)`` of the float32 ``values``
     that are the 1-D ``parts`` one after the other, a band at a time into one float32 buffer: the same float32
     arithmetic, the same counts."""
     hist = np.zeros(n_bins, np.int64)
-    buf = np.empty(_BAND_PX, np.float32)
+    band = _memory.BAND_PX
+    buf = np.empty(band, np.float32)
     for values in parts:
-        for i in range(0, values.size, _BAND_PX):
-            part = values[i : i + _BAND_PX]
+        for i in range(0, values.size, band):
+            part = values[i : i + band]
             b = buf[: part.size]
             np.subtract(part, lo, out=b)
             np.divide(b, bin_px, out=b)
@@ -408,12 +406,11 @@ def _active_values(s: np.ndarray, active: np.ndarray, extra: np.ndarray | None =
     ``s[active]`` at a time, then ``extra``; ``lo`` and ``hi`` are the smallest and largest value as the
     concatenation holds them, ``lo32`` and ``hi32`` as float32 holds them (:func:`layer_edges` casts to
     float32; rounding is monotonic, so the float32 extremes are the extremes rounded)."""
-    rows = max(1, _BAND_PX // max(1, s.shape[1]))
     extra = np.zeros(0, np.float32) if extra is None else extra
 
     def native() -> Iterator[np.ndarray]:
-        for y in range(0, s.shape[0], rows):
-            yield s[y : y + rows][active[y : y + rows]]
+        for y0, y1 in row_bands(*s.shape):
+            yield s[y0:y1][active[y0:y1]]
         yield extra
 
     def parts() -> Iterator[np.ndarray]:
@@ -598,13 +595,12 @@ def _layer_ids(signed_coc: np.ndarray, active: np.ndarray, e32: np.ndarray, n_sl
     h, w = signed_coc.shape
     sid = np.empty((h, w), np.int32)
     counts = np.zeros(n_slices + 1, np.int64)
-    rows = max(1, _BAND_PX // max(1, w))
-    for y in range(0, h, rows):
-        k = np.searchsorted(e32, signed_coc[y : y + rows], side="right")
+    for y0, y1 in row_bands(h, w):
+        k = np.searchsorted(e32, signed_coc[y0:y1], side="right")
         np.clip(k, 1, n_slices, out=k)
-        np.multiply(k, active[y : y + rows], out=k)
+        np.multiply(k, active[y0:y1], out=k)
         counts += np.bincount(k.reshape(-1), minlength=n_slices + 1)
-        np.subtract(k, 1, out=sid[y : y + rows], casting="unsafe")
+        np.subtract(k, 1, out=sid[y0:y1], casting="unsafe")
     return sid, counts[1:]
 
 

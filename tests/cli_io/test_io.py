@@ -15,6 +15,7 @@ import tifffile
 from PIL import Image
 
 import bokehray as br
+from bokehray import _memory as memory
 from bokehray import colour
 from bokehray.errors import InputError
 from bokehray.output import atomic as at
@@ -223,7 +224,7 @@ def test_alpha_is_not_gamma_decoded(tmp_path):
 @pytest.mark.parametrize(("channels", "n_colour"), [(1, 1), (2, 1), (3, 3), (4, 3)])
 def test_decode_codes_in_bands_equals_one_table_lookup(monkeypatch, dtype, channels, n_colour):
     """The banded decode gives the values of the whole-image lookup, bit for bit, bands cut mid-image included."""
-    monkeypatch.setattr(rd, "_DECODE_BAND_PX", 7 * 5)  # 5 rows of 7 px a band: 23 rows end in a partial band
+    monkeypatch.setattr(memory, "BAND_PX", 7 * 5)  # 5 rows of 7 px a band: 23 rows end in a partial band
     rng = np.random.default_rng(channels)
     a = rng.integers(0, np.iinfo(dtype).max, (23, 7, channels), endpoint=True).astype(dtype)
     ref = np.empty(a.shape, np.float32)

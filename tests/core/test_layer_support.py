@@ -8,6 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bokehray import Aperture, LayerOptions, MemoryOptions
+from bokehray import _memory as memory
 from bokehray.edge_estimate import dilate
 from bokehray.levels import preview as pv
 
@@ -158,7 +159,7 @@ def test_layer_ids_and_histogram_in_bands_equal_the_whole_map(h, w, n_edges, ban
     lo = float(values.min()) if values.size else 0.0
     n_bins = int(np.ceil((float(s.max()) - lo) / 0.25)) + 1
     with pytest.MonkeyPatch.context() as m:
-        m.setattr(sc, "_BAND_PX", band_px)
+        m.setattr(memory, "BAND_PX", band_px)
         ids, counts = sc._layer_ids(s, active, e32, n_edges)
         hist = sc._histogram([values[:7], values[7:]], lo, 0.25, n_bins)
     assert ids.dtype == np.int32
@@ -183,7 +184,7 @@ def test_layer_edges_of_the_active_values_in_bands_equal_the_gathered_ones(h, w,
     values = np.concatenate([s[active], extra])
     opts = LayerOptions(max_layers=int(rng.integers(1, 12)), max_layer_px=float(rng.uniform(0.5, 10)))
     with pytest.MonkeyPatch.context() as m:
-        m.setattr(sc, "_BAND_PX", band_px)
+        m.setattr(memory, "BAND_PX", band_px)
         parts, lo, hi, lo32, hi32 = sc._active_values(s, active, extra)
         got = sc._layer_edges_of(parts, lo32, hi32, opts)
         assert np.array_equal(np.concatenate(list(parts())), values.astype(np.float32))

@@ -20,7 +20,7 @@ import OpenEXR
 import tifffile
 from PIL import Image
 
-from .._memory import available_bytes
+from .._memory import available_bytes, row_bands
 from .._quiet import library_log, native_output
 from ..colour import srgb_decode_lut
 from ..errors import InputError, ResourceError
@@ -268,23 +268,18 @@ def single_channel(path: Path, a: np.ndarray, fmt: str, what: str) -> np.ndarray
     return a
 
 
-_DECODE_BAND_PX = 1 << 18
-"""Pixels :func:`decode_codes` converts at a time: the table lookup's index temporary (8 bytes a sample) stays a
-few MB, where one lookup of a 12 MP photo would allocate 288 MB of indices and a second 144 MB float32 copy."""
-
-
 def decode_codes(a: np.ndarray, n_colour: int) -> np.ndarray:
     """Linear float32 of integer codes ``a`` (H x W x C, uint8 or uint16): the first ``n_colour`` channels decoded
     from sRGB by table (:func:`~bokehray.colour.srgb_decode_lut`), the others (alpha) divided by the largest code.
 
-    Band by band of rows, straight into the result (``np.take`` into it): the same values as the whole-image
-    ``lut[a]``, without its full-size index and value temporaries."""
+    Band by band of rows (``_memory.row_bands``), straight into the result (``np.take`` into it): the same values
+    as the whole-image ``lut[a]``, without its full-size index and value temporaries (at 12 MP, 288 MB of indices and
+    a second 144 MB float32 copy)."""
     lut = srgb_decode_lut(a.dtype.itemsize * 8)
     top = np.float32(np.iinfo(a.dtype).max)
     out = np.empty(a.shape, np.float32)
-    rows = max(1, _DECODE_BAND_PX // max(1, a.shape[1]))
-    for y in range(0, a.shape[0], rows):
-        src, dst = a[y : y + rows], out[y : y + rows]
+    for y0, y1 in row_bands(*a.shape[:2]):
+        src, dst = a[y0:y1], out[y0:y1]
         if n_colour == a.shape[2]:
             np.take(lut, src, out=dst)
         else:
