@@ -15,7 +15,7 @@ Usage (from the repository root)::
 
     python benchmarks/bench_photo.py                      # 1, 12 and 24 MP (about 10 minutes on 2 cores)
     python benchmarks/bench_photo.py --sizes 1 --rounds 1 # a smoke test
-    python benchmarks/bench_photo.py --src OTHER/src:OTHER/kernels --label before   # another checkout's code
+    python benchmarks/bench_photo.py --src OTHER/src:OTHER/kernels --label before  # another checkout's code (src_commit)
     python benchmarks/bench_photo.py --plot benchmarks/results/photo--*.json
 """
 
@@ -150,6 +150,22 @@ def plot(paths: list[str], out: Path) -> None:
     print(f"wrote {out}")
 
 
+def src_commit(src: str) -> str:
+    """The commit (``+dirty`` with uncommitted changes) of the checkout holding ``--src``'s first path."""
+    where = Path(src.split(os.pathsep)[0]).resolve()
+    if not where.is_dir():
+        return "unknown"
+
+    def git(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run(["git", *args], cwd=where, capture_output=True, text=True)
+
+    head = git("rev-parse", "--short", "HEAD")
+    if head.returncode != 0:
+        return "unknown"
+    dirty = git("status", "--porcelain", "--untracked-files=no").stdout.strip()
+    return head.stdout.strip() + ("+dirty" if dirty else "")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[1, 12, 24], choices=sorted(SIZES))
@@ -165,6 +181,8 @@ def main() -> None:
     if a.src:
         env["PYTHONPATH"] = a.src
     info = common.machine_info()
+    if a.src:  # the code measured is --src's, not this checkout's (machine_info's git_commit)
+        info["src_commit"] = src_commit(a.src)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for mp in a.sizes:
