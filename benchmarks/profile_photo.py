@@ -130,8 +130,28 @@ STAGES = [
 ]
 
 
+class _TimedLock:
+    """The fill lock, with the time each worker waited for it (idle: the other worker was filling)."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.waits: list[float] = []
+
+    def __enter__(self) -> None:
+        t = time.perf_counter()
+        self.lock.acquire()
+        self.waits.append(time.perf_counter() - t)
+
+    def __exit__(self, *exc) -> None:
+        self.lock.release()
+
+
+FILL_LOCKS: list[_TimedLock] = []
+
+
 def _variants(threads: int | None, no_fill_lock: bool) -> None:
-    """The command line's render with another worker count, or without the fill lock (measurements only)."""
+    """The command line's render with another worker count, or without the fill lock (measurements only); with the
+    lock, the time the workers waited for it is recorded (``FILL_LOCKS``)."""
     if threads is not None:
         import bokehray.app.render_job as job
 
@@ -142,14 +162,20 @@ def _variants(threads: int | None, no_fill_lock: bool) -> None:
             return render(args, *a, **k)
 
         job._render = with_threads
-    if no_fill_lock:
-        import contextlib
-        import dataclasses
+    import contextlib
+    import dataclasses
 
-        import bokehray.levels.preview as preview
+    import bokehray.levels.preview as preview
 
-        scatter = preview._Scatter
-        preview._Scatter = lambda *a, **k: dataclasses.replace(scatter(*a, **k), fill_gate=contextlib.nullcontext())
+    scatter = preview._Scatter
+
+    def gate():
+        if no_fill_lock:
+            return contextlib.nullcontext()
+        FILL_LOCKS.append(_TimedLock())
+        return FILL_LOCKS[-1]
+
+    preview._Scatter = lambda *a, **k: dataclasses.replace(scatter(*a, **k), fill_gate=gate())
 
 
 def main() -> None:
@@ -178,6 +204,9 @@ def main() -> None:
     ru = resource.getrusage(resource.RUSAGE_SELF)
     print(f"process: user {ru.ru_utime:.2f} s, sys {ru.ru_stime:.2f} s, minor faults {ru.ru_minflt}, "
           f"max RSS {ru.ru_maxrss / 1024:.0f} MB (since start; import {ru0.ru_maxrss / 1024:.0f} MB)")
+    waits = [w for lock in FILL_LOCKS for w in lock.waits]
+    if waits:
+        print(f"fill lock: {len(waits)} fills, the workers waited {sum(waits):.2f} s for it (longest {max(waits):.2f} s)")
     if a.json:
         Path(a.json).write_text(json.dumps(prof.rows, indent=1))
 

@@ -20,6 +20,7 @@ textures and traces rays through them (``bokehray.levels.raytrace``). Nothing el
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 from collections.abc import Callable, Iterable, Iterator
@@ -695,14 +696,16 @@ class LayerSources:
         return int(self.filled.numpy().sum())
 
 
-def build_layer_sources(layer: LayerRecord, arrays: LayerSources, zeros=wp.zeros) -> tuple[wp.array, wp.array]:
+def build_layer_sources(layer: LayerRecord, arrays: LayerSources, zeros=wp.zeros,
+                        fill_gate=None) -> tuple[wp.array, wp.array]:
     """One layer's sources on its bounding box: (premultiplied RGB, coverage) and signed CoC.
 
     The layer's own pixels, the near parts of split pixels that fall in it (``arrays.near``), plus (when the
     layer is filled) the pull-push fill of the region nearer layers hide, at the layer's density; the number of
     filled sources is added to ``arrays.filled[layer.index]``. ``zeros(shape, dtype, device)`` allocates the two
     (zeroed) arrays: the kernels write the sources only, so a lazily zeroed array (``bokehray.levels.buffers.
-    lazy_zeros``) takes pages only where sources lie.
+    lazy_zeros``) takes pages only where sources lie. The fill runs inside ``fill_gate`` (a context manager, None:
+    none; the preview's lock, one fill at a time over its workers); the layer's own sources are written before it.
     """
     device = arrays.device
     y0, y1, x0, x1 = layer.bbox
@@ -723,7 +726,8 @@ def build_layer_sources(layer: LayerRecord, arrays: LayerSources, zeros=wp.zeros
         wp.launch(bk.near_sources_kernel, dim=arrays.near[0].shape[0], inputs=[*arrays.near, layer.index, x0, y0],
                   outputs=[src, coc], device=device)
     if layer.filled:
-        _fill(layer, arrays, src, coc)
+        with fill_gate or contextlib.nullcontext():
+            _fill(layer, arrays, src, coc)
     return src, coc
 
 

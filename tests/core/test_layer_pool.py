@@ -71,27 +71,29 @@ def test_a_free_worker_takes_the_next_layer_else_the_costliest(monkeypatch, thre
 
 
 def test_one_fill_at_a_time(monkeypatch):
-    """Two workers never build layer sources (the pull-push fill, the layer's largest working set) at once."""
+    """Two workers never run the pull-push fill (a layer's box-sized working set) at once; the layers' own sources
+    are written outside the lock."""
     from bokehray import scene as sc
 
     image, s = _scene()
-    build, lock, now, most = sc.build_layer_sources, threading.Lock(), [0], [0]
+    fill, lock, now, most, fills = sc._fill, threading.Lock(), [0], [0], [0]
 
-    def counted(layer, arrays, **kw):
+    def counted(*args):
         with lock:
             now[0] += 1
+            fills[0] += 1
             most[0] = max(most[0], now[0])
         time.sleep(0.05)  # a window wide enough for another worker to come in, were it let in
         try:
-            return build(layer, arrays, **kw)
+            return fill(*args)
         finally:
             with lock:
                 now[0] -= 1
 
-    monkeypatch.setattr(sc, "build_layer_sources", counted)
+    monkeypatch.setattr(sc, "_fill", counted)
     want, stats = pv.render_signed_coc(image, s, Aperture(), options=PreviewOptions(threads=1))
     got, _ = pv.render_signed_coc(image, s, Aperture(), options=PreviewOptions(threads=3))
-    assert stats.layers >= 5 and most[0] == 1
+    assert stats.layers >= 5 and fills[0] >= 4 and most[0] == 1
     np.testing.assert_array_equal(got, want)
 
 

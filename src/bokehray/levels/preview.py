@@ -100,7 +100,7 @@ class _Scatter:
     threads: int
     device: str
     fill_gate: threading.Lock = dataclasses.field(default_factory=threading.Lock)
-    """Held while a layer builds its sources: one pull-push fill at a time (see :func:`render_layer`)."""
+    """Held while a layer fills what nearer layers hide: one pull-push fill at a time (see :func:`render_layer`)."""
 
 
 def aperture_shape(aperture: Aperture, blade_rows: np.ndarray, device: str) -> bk.Shape:
@@ -421,11 +421,10 @@ def render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatt
             wp.launch(bk.clear_support_kernel, dim=(h, w), inputs=[support.struct()], outputs=[a], device=device)
         return a
 
-    # One worker fills at a time (the sources, the pull-push levels above level 0 and the distance map, the last two
-    # on the whole box), so two workers' fills never overlap (the other worker scatters meanwhile). Nothing else is
-    # shared: values do not depend on it.
-    with scatter.fill_gate:
-        src, coc = sc.build_layer_sources(layer, arrays, zeros=sources_zeros)
+    # One worker fills at a time (the pull-push levels above level 0 and the distance map, on the whole box), so two
+    # workers' fills never overlap; the layer's own sources are written before, outside the lock (a worker waiting
+    # for it holds only those). Nothing else is shared: values do not depend on it.
+    src, coc = sc.build_layer_sources(layer, arrays, zeros=sources_zeros, fill_gate=scatter.fill_gate)
     n_levels = sc.pyramid_levels(layer.max_radius, scatter.level_radius_px)
     first = sc.lowest_level(layer, scatter.level_radius_px)  # levels 1 .. first - 1 stay empty
     bufs = []
