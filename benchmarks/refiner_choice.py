@@ -1,0 +1,294 @@
+"""A learned choice among renders: how much of a perfect choice's gain a small network reaches (issue 26's next step).
+
+``refiner_headroom.py --choices`` bounds what choosing, per pixel of the edge band, among the level rendered on the
+corrected map and on it with its near regions grown and shrunk by 3, 6 and 12 px could gain (an oracle that sees the
+exact render). This script trains a small convolutional network to make that choice from what refine has at
+inference (the all-in-focus photo, the seven renders, the band) and scores it beside the oracle, per corruption of
+``bench_refiner.NET_CONDITIONS``, in the score band of the true depth (as ``bench_refiner.py``):
+
+* ``fix``: the depth fix's render (what refine starts from, ``RefineOptions(neural=False)``);
+* ``learned``: the network's choice, blended by the band (``fix`` where the band is 0);
+* ``oracle``: the perfect choice (each pixel the render whose 5 x 5 px mean error is least), blended by the band.
+
+Training pairs come from a BLB folder (``bokehray synth``); each pair gets one corrupted map: the exact one for
+``--exact-share`` of them (where the right choice is the render as it is; loss weight ``--exact-weight``), else one
+of the three corruptions. Each score is also given behind refine's confidence gate (``learned_gated``). A research
+measurement: refine does not use the choice (seven renders of the level are over the refine pass's 3x budget;
+docs/refiner.md, "A learned choice among renders").
+
+    bokehray synth -n 80 -o data/train --seed 2000 --size 256 --blur-levels 8,16,24 --depth-rule half \\
+        --kinds strands=3,fur=2,whiskers=1,foliage=2,mesh=1,softcut=1.5,cutout=1,lights=1
+    bokehray synth -n 12 -o data/heldout --seed 9000 ... (the same kinds)
+    python benchmarks/refiner_choice.py --train data/train --heldout data/heldout \\
+        --devset ../shared/data/pathtraced-dev --steps 1500 --exact-share 0.4 --exact-weight 3 --save data/chooser.pt
+    python benchmarks/refiner_choice.py ... --load data/chooser.pt   # score a saved chooser (no training)
+
+Writes ``benchmarks/results/refiner_choice.json`` (and the trained chooser's state to ``--save``, if given).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from bench_refiner import NET_CONDITIONS, devset_samples, synth_samples
+from common import REPO, machine_info, write_json
+
+RADII = (3, 6, 12)
+"""Near regions grown and shrunk by these radii [px]: with the render as it is, 7 candidates."""
+N_CAND = 1 + 2 * len(RADII)
+KEEP_LOGIT = 3.0
+"""The chooser's initial preference for the render as it is (its logit's bias over the others')."""
+
+
+def _srgb(x: np.ndarray) -> np.ndarray:
+    from bokehray.colour import linear_to_srgb
+
+    return linear_to_srgb(np.clip(x[..., :3], 0.0, 1.0)).astype(np.float32)
+
+
+def bank_entry(image, disparity, blur, target, kind: str, amount: int, opts) -> dict:
+    """What the chooser sees for one corrupted map, and the exact render it is scored against (sRGB)."""
+    from bokehray_refiner.data import corrupt_disparity
+    from bokehray_refiner.refine import blend_weight, correct_and_render
+    from scipy import ndimage
+
+    import bokehray as br
+
+    d = np.clip(corrupt_disparity(disparity, kind, amount), 0.0, 1.0)
+    render, used = correct_and_render(image, d, blur, lambda dd: br.render(image, dd, blur), opts)
+    focus = _srgb(image)
+    band, gated = blend_weight(image, focus, used, render, blur.signed_coc(used).astype(np.float32), opts)
+    cands = [render]
+    for r in RADII:
+        footprint = np.ones((2 * r + 1, 2 * r + 1), bool)
+        cands += [br.render(image, ndimage.grey_dilation(used, footprint=footprint), blur),
+                  br.render(image, ndimage.grey_erosion(used, footprint=footprint), blur)]
+    return {"focus": focus, "cands": np.stack([_srgb(c) for c in cands]), "band": band.astype(np.float32),
+            "disparity": used.astype(np.float32), "target": _srgb(target), "exact": kind == "none",
+            "gated": gated.astype(np.float32)}
+
+
+def oracle(entry: dict) -> np.ndarray:
+    """The perfect choice: each pixel the candidate whose 5 x 5 px mean error is least, blended by the band."""
+    from scipy import ndimage
+
+    err = np.stack([ndimage.uniform_filter(((c - entry["target"]) ** 2).sum(-1), 5) for c in entry["cands"]])
+    pick = np.take_along_axis(entry["cands"], err.argmin(0)[None, ..., None].repeat(3, -1), 0)[0]
+    base = entry["cands"][0]
+    return base + entry["band"][..., None] * (pick - base)
+
+
+def make_chooser(width: int = 32):
+    import torch
+    from torch import nn
+
+    class Chooser(nn.Module):
+        """Per-pixel softmax weights over the candidates from the photo, the render, the other renders' differences
+        from it, the map the render used and the band; dilated 3 x 3 convolutions (receptive field 65 px); the output
+        is the render plus the band times (the weighted candidates - the render). It starts out keeping the render
+        (its logit 3 above the others')."""
+
+        def __init__(self) -> None:
+            super().__init__()
+            c_in = 3 + 3 * N_CAND + 2
+            layers: list[nn.Module] = [nn.Conv2d(c_in, width, 3, padding=1), nn.ReLU()]
+            for dil in (2, 4, 8, 16, 1):
+                layers += [nn.Conv2d(width, width, 3, padding=dil, dilation=dil), nn.ReLU()]
+            layers.append(nn.Conv2d(width, N_CAND, 1))
+            with torch.no_grad():
+                layers[-1].bias.zero_()
+                layers[-1].bias[0] = KEEP_LOGIT
+            self.net = nn.Sequential(*layers)
+
+        def choose(self, focus, cands, band, disparity):  # (B, 3, H, W), (B, K, 3, H, W), (B, 1, H, W) twice
+            """The weighted candidates (B, 3, H, W)."""
+            base = cands[:, 0]
+            diff = (cands[:, 1:] - base[:, None]).flatten(1, 2)
+            w = torch.softmax(self.net(torch.cat([focus, base, diff, disparity, band], 1)), 1)
+            return (w[:, :, None] * cands).sum(1)
+
+        def forward(self, focus, cands, band, disparity):
+            base = cands[:, 0]
+            return base + band * (self.choose(focus, cands, band, disparity) - base)
+
+    return Chooser()
+
+
+def _tensors(entries: list[dict]):
+    import torch
+
+    focus = torch.from_numpy(np.stack([e["focus"] for e in entries])).permute(0, 3, 1, 2)
+    cands = torch.from_numpy(np.stack([e["cands"] for e in entries])).permute(0, 1, 4, 2, 3)
+    band = torch.from_numpy(np.stack([e["band"] for e in entries]))[:, None]
+    disparity = torch.from_numpy(np.stack([e["disparity"] for e in entries]))[:, None]
+    target = torch.from_numpy(np.stack([e["target"] for e in entries])).permute(0, 3, 1, 2)
+    weight = torch.tensor([e["weight"] for e in entries], dtype=torch.float32)
+    return focus, cands, band, disparity, target, weight
+
+
+def train(entries: list[dict], steps: int, batch: int, crop: int, seed: int, exact_weight: float = 1.0,
+          log_every: int = 100):
+    import torch
+
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    model = make_chooser()
+    opt = torch.optim.AdamW(model.parameters(), lr=2e-3, weight_decay=1e-4)
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=2e-3, total_steps=steps,
+                                                pct_start=min(0.3, max(0.05, 10 / steps)))
+    losses = []
+    for step in range(steps):
+        crops = []
+        for i in rng.integers(0, len(entries), batch):
+            e = entries[i]
+            h, w = e["band"].shape
+            ys, xs = np.nonzero(e["band"] > 0)
+            if len(ys) and rng.random() < 0.9:  # crops on the band, where the choice matters
+                j = rng.integers(len(ys))
+                y0 = int(np.clip(ys[j] - crop // 2, 0, h - crop))
+                x0 = int(np.clip(xs[j] - crop // 2, 0, w - crop))
+            else:
+                y0, x0 = int(rng.integers(0, h - crop + 1)), int(rng.integers(0, w - crop + 1))
+            sl = (slice(y0, y0 + crop), slice(x0, x0 + crop))
+            crops.append({"focus": e["focus"][sl], "cands": e["cands"][:, sl[0], sl[1]], "band": e["band"][sl],
+                          "disparity": e["disparity"][sl], "target": e["target"][sl],
+                          "weight": exact_weight if e["exact"] else 1.0})
+        focus, cands, band, disparity, target, weight = _tensors(crops)
+        out = model(focus, cands, band, disparity)
+        band_w = band * weight[:, None, None, None]
+        loss = (((out - target) ** 2).sum(1, keepdim=True) * band_w).sum() / band_w.sum().clamp_min(1.0)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        sched.step()
+        losses.append(loss.item())
+        if (step + 1) % log_every == 0:
+            print(f"step {step + 1}: band loss {np.mean(losses[-log_every:]):.5f}", flush=True)
+    return model, losses
+
+
+def _psnr(err2: np.ndarray) -> float:
+    mse = float(err2.mean())
+    return 10.0 * math.log10(1.0 / mse) if mse > 0 else 99.0
+
+
+def score(model, samples, opts) -> tuple[list[dict], list[dict]]:
+    """Band PSNR of fix, learned and oracle, per render and condition, and their means per condition."""
+    import torch
+
+    rows = []
+    for name, image, disparity, blur, target, score_band in samples:
+        m = np.asarray(score_band, bool)
+        for kind, amount in NET_CONDITIONS:
+            e = bank_entry(image, disparity, blur, target, kind, amount, opts)
+            with torch.no_grad():
+                pick = model.choose(*_tensors([e | {"weight": 1.0}])[:4])[0].permute(1, 2, 0).numpy()
+            base = e["cands"][0]
+            learned = base + e["band"][..., None] * (pick - base)
+            gated = base + e["gated"][..., None] * (pick - base)  # behind refine's confidence gate as well
+            row = {"pair": name, "corruption": kind, "px": amount}
+            for key, img in (("fix", base), ("learned", learned), ("learned_gated", gated), ("oracle", oracle(e))):
+                row[key] = _psnr(((img - e["target"]) ** 2).mean(-1)[m])
+            rows.append(row)
+        print(name, flush=True)
+    summary = []
+    for kind, amount in NET_CONDITIONS:
+        sel = [r for r in rows if (r["corruption"], r["px"]) == (kind, amount)]
+        summary.append({"corruption": kind, "px": amount,
+                        **{k: float(np.mean([r[k] for r in sel])) for k in ("fix", "learned", "learned_gated", "oracle")},
+                        "learned_worst": float(min(r["learned"] - r["fix"] for r in sel)),
+                        "learned_gated_worst": float(min(r["learned_gated"] - r["fix"] for r in sel))})
+    return rows, summary
+
+
+def training_bank(args: argparse.Namespace, opts) -> list[dict]:
+    """One corrupted map per training pair (the exact one for ``--exact-share`` of them), read from ``--bank`` when
+    it exists, else rendered (and written there)."""
+    import bokehray as br
+    from bokehray.data.datasets import BLBDataset
+
+    if args.bank and Path(args.bank).is_file():
+        with np.load(args.bank) as z:
+            keys = {name.split("_", 1)[1] for name in z.files if name != "n"} - {"exact"}
+            return [{k: z[f"{i}_{k}"] for k in keys} | {"exact": bool(z[f"{i}_exact"])} for i in range(int(z["n"]))]
+    rng = np.random.default_rng(args.seed)
+    ds = BLBDataset(args.train)
+    others = [c for c in NET_CONDITIONS if c[0] != "none"]
+    entries = []
+    for i in range(len(ds)):
+        s = ds[i]
+        kind, amount = ("none", 0) if rng.random() < args.exact_share else others[int(rng.integers(len(others)))]
+        entries.append(bank_entry(s.image, s.disparity, br.BlurParams(s.k_px, s.focus_disparity), s.target, kind,
+                                  amount, opts))
+    if args.bank:
+        np.savez(args.bank, n=len(entries), **{f"{i}_{k}": v for i, e in enumerate(entries) for k, v in e.items()})
+    return entries
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--train", required=True, help="BLB folder to train on (bokehray synth)")
+    ap.add_argument("--heldout", help="held-out BLB folder to score on")
+    ap.add_argument("--devset", help="the path-traced dev set folder (with score.py) to score on")
+    ap.add_argument("--pairs", type=int, default=24, help="--heldout: pairs to score")
+    ap.add_argument("--steps", type=int, default=1500)
+    ap.add_argument("--batch", type=int, default=8)
+    ap.add_argument("--crop", type=int, default=96)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--exact-share", type=float, default=0.25, help="share of training pairs given the exact map")
+    ap.add_argument("--exact-weight", type=float, default=1.0, help="loss weight of the pairs given the exact map")
+    ap.add_argument("--bank", default=None, help="cache of the training inputs (.npz): read if present, else written")
+    ap.add_argument("--threads", type=int, default=None, help="torch threads")
+    ap.add_argument("--save", default=None, help="write the trained chooser's state_dict here (torch.save)")
+    ap.add_argument("--load", default=None, help="score this saved chooser (--save) instead of training one")
+    ap.add_argument("--out", default=str(REPO / "benchmarks/results/refiner_choice.json"))
+    args = ap.parse_args()
+
+    import torch
+    from bokehray_refiner.refine import RefineOptions
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    opts = RefineOptions()
+    t = time.perf_counter()
+    entries = [] if args.load else training_bank(args, opts)  # nothing to train on when loading
+    t_bank = time.perf_counter() - t
+    print(f"bank: {len(entries)} pairs in {t_bank:.0f} s", flush=True)
+    t = time.perf_counter()
+    if args.load:
+        model, losses = make_chooser(), []
+        model.load_state_dict(torch.load(args.load))
+    else:
+        model, losses = train(entries, args.steps, args.batch, args.crop, args.seed, args.exact_weight)
+    t_train = time.perf_counter() - t
+    model.eval()
+    if args.save:
+        torch.save(model.state_dict(), args.save)
+    result = {"machine": machine_info(), "train": args.train, "pairs": len(entries), "steps": args.steps,
+              "batch": args.batch, "crop": args.crop, "seed": args.seed, "exact_share": args.exact_share,
+              "exact_weight": args.exact_weight, "keep_logit": KEEP_LOGIT, "bank_s": t_bank, "train_s": t_train,
+              "parameters": sum(p.numel() for p in model.parameters()), "loss": losses}
+    for split, samples in (("devset", devset_samples(Path(args.devset)) if args.devset else None),
+                           ("heldout", synth_samples(args.heldout, args.pairs) if args.heldout else None)):
+        if samples is None:
+            continue
+        rows, summary = score(model, samples, opts)
+        result[split] = {"rows": rows, "summary": summary}
+        print(f"{split}: band PSNR dB, mean over renders (gain over the depth fix)")
+        for s in summary:
+            print(f"  {s['corruption'] + ' ' + str(s['px']):>12} fix {s['fix']:6.2f}  learned {s['learned'] - s['fix']:+.2f}"
+                  f" (worst render {s['learned_worst']:+.2f}), behind the gate {s['learned_gated'] - s['fix']:+.2f}"
+                  f" (worst {s['learned_gated_worst']:+.2f})  oracle {s['oracle'] - s['fix']:+.2f}")
+    write_json(args.out, result)
+
+
+if __name__ == "__main__":
+    main()

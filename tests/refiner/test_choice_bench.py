@@ -1,0 +1,51 @@
+"""benchmarks/refiner_choice.py: its oracle and its chooser do what the measurement says they do."""
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def choice():
+    spec = importlib.util.spec_from_file_location("refiner_choice", ROOT / "benchmarks" / "refiner_choice.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)  # it puts benchmarks/ on the path for its own imports
+    return mod
+
+
+def _entry(choice, rng, band):
+    h, w = band.shape
+    cands = rng.random((choice.N_CAND, h, w, 3), dtype=np.float32)
+    return {"focus": rng.random((h, w, 3), dtype=np.float32), "cands": cands, "band": band.astype(np.float32),
+            "disparity": rng.random((h, w), dtype=np.float32), "target": cands[3].copy(), "weight": 1.0}
+
+
+def test_the_oracle_takes_the_render_that_is_right_and_only_in_the_band(choice):
+    rng = np.random.default_rng(0)
+    band = np.zeros((24, 32))
+    band[:, 16:] = 1.0
+    e = _entry(choice, rng, band)
+    out = choice.oracle(e)
+    np.testing.assert_array_equal(out[:, 16:], e["target"][:, 16:])  # the exact render is a candidate: taken
+    np.testing.assert_array_equal(out[:, :16], e["cands"][0][:, :16])  # outside the band: the render as it is
+
+
+def test_the_chooser_blends_candidates_within_the_band_only(choice):
+    rng = np.random.default_rng(1)
+    torch.manual_seed(0)
+    band = np.zeros((16, 40))
+    band[:, 20:] = 1.0
+    e = _entry(choice, rng, band)
+    with torch.no_grad():
+        out = choice.make_chooser()(*choice._tensors([e])[:4])[0].permute(1, 2, 0).numpy()
+    np.testing.assert_array_equal(out[:, :20], e["cands"][0][:, :20])
+    lo, hi = e["cands"].min(0), e["cands"].max(0)  # a convex combination of the candidates
+    inside = out[:, 20:]
+    assert np.all(inside >= lo[:, 20:] - 1e-6) and np.all(inside <= hi[:, 20:] + 1e-6)
+    assert not np.allclose(inside, e["cands"][0][:, 20:])
