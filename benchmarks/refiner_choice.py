@@ -76,12 +76,18 @@ def bank_entry(image, disparity, blur, target, kind: str, amount: int, opts) -> 
             "gated": gated.astype(np.float32)}
 
 
-def oracle(entry: dict) -> np.ndarray:
-    """The perfect choice: each pixel the candidate whose 5 x 5 px mean error is least, blended by the band."""
+def oracle_choice(entry: dict) -> np.ndarray:
+    """Per pixel, the candidate whose 5 x 5 px mean error is least (the first of equals: the render as it is where
+    no other is better)."""
     from scipy import ndimage
 
     err = np.stack([ndimage.uniform_filter(((c - entry["target"]) ** 2).sum(-1), 5) for c in entry["cands"]])
-    pick = np.take_along_axis(entry["cands"], err.argmin(0)[None, ..., None].repeat(3, -1), 0)[0]
+    return err.argmin(0)
+
+
+def oracle(entry: dict) -> np.ndarray:
+    """The perfect choice (:func:`oracle_choice`), blended by the band."""
+    pick = np.take_along_axis(entry["cands"], oracle_choice(entry)[None, ..., None].repeat(3, -1), 0)[0]
     base = entry["cands"][0]
     return base + entry["band"][..., None] * (pick - base)
 
@@ -108,11 +114,14 @@ def make_chooser(width: int = 32):
                 layers[-1].bias[0] = KEEP_LOGIT
             self.net = nn.Sequential(*layers)
 
-        def choose(self, focus, cands, band, disparity):  # (B, 3, H, W), (B, K, 3, H, W), (B, 1, H, W) twice
-            """The weighted candidates (B, 3, H, W)."""
+        def logits(self, focus, cands, band, disparity):  # (B, 3, H, W), (B, K, 3, H, W), (B, 1, H, W) twice
             base = cands[:, 0]
             diff = (cands[:, 1:] - base[:, None]).flatten(1, 2)
-            w = torch.softmax(self.net(torch.cat([focus, base, diff, disparity, band], 1)), 1)
+            return self.net(torch.cat([focus, base, diff, disparity, band], 1))
+
+        def choose(self, focus, cands, band, disparity):
+            """The weighted candidates (B, 3, H, W)."""
+            w = torch.softmax(self.logits(focus, cands, band, disparity), 1)
             return (w[:, :, None] * cands).sum(1)
 
         def forward(self, focus, cands, band, disparity):
@@ -135,8 +144,15 @@ def _tensors(entries: list[dict]):
 
 
 def train(entries: list[dict], steps: int, batch: int, crop: int, seed: int, exact_weight: float = 1.0,
-          log_every: int = 100):
+          choice_weight: float = 0.0, log_every: int = 100):
+    """AdamW on the band's squared error (weighted ``exact_weight`` on exact maps), plus ``choice_weight`` times the
+    cross-entropy of the logits against the oracle's choice in the band (the render that is right, told directly)."""
     import torch
+    import torch.nn.functional as F
+
+    if choice_weight:
+        for e in entries:
+            e.setdefault("choice", oracle_choice(e))
 
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
@@ -160,11 +176,19 @@ def train(entries: list[dict], steps: int, batch: int, crop: int, seed: int, exa
             sl = (slice(y0, y0 + crop), slice(x0, x0 + crop))
             crops.append({"focus": e["focus"][sl], "cands": e["cands"][:, sl[0], sl[1]], "band": e["band"][sl],
                           "disparity": e["disparity"][sl], "target": e["target"][sl],
-                          "weight": exact_weight if e["exact"] else 1.0})
+                          "weight": exact_weight if e["exact"] else 1.0,
+                          **({"choice": e["choice"][sl]} if choice_weight else {})})
         focus, cands, band, disparity, target, weight = _tensors(crops)
-        out = model(focus, cands, band, disparity)
+        logits = model.logits(focus, cands, band, disparity)
+        w = torch.softmax(logits, 1)
+        base = cands[:, 0]
+        out = base + band * ((w[:, :, None] * cands).sum(1) - base)
         band_w = band * weight[:, None, None, None]
         loss = (((out - target) ** 2).sum(1, keepdim=True) * band_w).sum() / band_w.sum().clamp_min(1.0)
+        if choice_weight:
+            labels = torch.from_numpy(np.stack([c["choice"] for c in crops]))
+            ce = F.cross_entropy(logits, labels, reduction="none")[:, None]
+            loss = loss + choice_weight * (ce * band_w).sum() / band_w.sum().clamp_min(1.0)
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -245,6 +269,8 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--exact-share", type=float, default=0.25, help="share of training pairs given the exact map")
     ap.add_argument("--exact-weight", type=float, default=1.0, help="loss weight of the pairs given the exact map")
+    ap.add_argument("--choice-weight", type=float, default=0.0,
+                    help="weight of the cross-entropy against the oracle's choice in the band (0: the error alone)")
     ap.add_argument("--bank", default=None, help="cache of the training inputs (.npz): read if present, else written")
     ap.add_argument("--threads", type=int, default=None, help="torch threads")
     ap.add_argument("--save", default=None, help="write the trained chooser's state_dict here (torch.save)")
@@ -267,14 +293,15 @@ def main() -> None:
         model, losses = make_chooser(), []
         model.load_state_dict(torch.load(args.load))
     else:
-        model, losses = train(entries, args.steps, args.batch, args.crop, args.seed, args.exact_weight)
+        model, losses = train(entries, args.steps, args.batch, args.crop, args.seed, args.exact_weight,
+                              args.choice_weight)
     t_train = time.perf_counter() - t
     model.eval()
     if args.save:
         torch.save(model.state_dict(), args.save)
     result = {"machine": machine_info(), "train": args.train, "pairs": len(entries), "steps": args.steps,
               "batch": args.batch, "crop": args.crop, "seed": args.seed, "exact_share": args.exact_share,
-              "exact_weight": args.exact_weight, "keep_logit": KEEP_LOGIT, "bank_s": t_bank, "train_s": t_train,
+              "exact_weight": args.exact_weight, "choice_weight": args.choice_weight, "keep_logit": KEEP_LOGIT, "bank_s": t_bank, "train_s": t_train,
               "parameters": sum(p.numel() for p in model.parameters()), "loss": losses}
     for split, samples in (("devset", devset_samples(Path(args.devset)) if args.devset else None),
                            ("heldout", synth_samples(args.heldout, args.pairs) if args.heldout else None)):
