@@ -150,22 +150,6 @@ def plot(paths: list[str], out: Path) -> None:
     print(f"wrote {out}")
 
 
-def src_commit(src: str) -> str:
-    """The commit (``+dirty`` with uncommitted changes) of the checkout holding ``--src``'s first path."""
-    where = Path(src.split(os.pathsep)[0]).resolve()
-    if not where.is_dir():
-        return "unknown"
-
-    def git(*args: str) -> subprocess.CompletedProcess:
-        return subprocess.run(["git", *args], cwd=where, capture_output=True, text=True)
-
-    head = git("rev-parse", "--short", "HEAD")
-    if head.returncode != 0:
-        return "unknown"
-    dirty = git("status", "--porcelain", "--untracked-files=no").stdout.strip()
-    return head.stdout.strip() + ("+dirty" if dirty else "")
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[1, 12, 24], choices=sorted(SIZES))
@@ -182,7 +166,7 @@ def main() -> None:
         env["PYTHONPATH"] = a.src
     info = common.machine_info()
     if a.src:  # the code measured is --src's, not this checkout's (machine_info's git_commit)
-        info["src_commit"] = src_commit(a.src)
+        info["src_commit"] = common.git_commit(Path(a.src.split(os.pathsep)[0]).resolve())
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for mp in a.sizes:

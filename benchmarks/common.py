@@ -12,9 +12,9 @@ import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from bokehray.app.bench.machine import machine_info, reset_peak_rss, status_kb
+from bokehray.app.bench.machine import git_commit, machine_info, reset_peak_rss, status_kb
 
-__all__ = ["REPO", "machine_info", "machine_tag", "peak_rss_mb_of", "report_rss", "reset_peak_rss", "time_warm",
+__all__ = ["REPO", "git_commit", "machine_info", "machine_tag", "peak_rss_mb_of", "report_rss", "reset_peak_rss", "time_warm",
            "write_json"]
 
 REPO = Path(__file__).resolve().parent.parent

@@ -15,7 +15,7 @@ import socket
 import subprocess
 from pathlib import Path
 
-__all__ = ["machine_info", "reset_peak_rss", "status_kb"]
+__all__ = ["git_commit", "machine_info", "reset_peak_rss", "status_kb"]
 
 
 def _read(path: str) -> str:
@@ -40,8 +40,12 @@ def reset_peak_rss() -> bool:
         return False
 
 
-def _git_commit() -> str:
-    here = Path(__file__).parent
+def git_commit(where: str | os.PathLike[str] | None = None) -> str:
+    """The short commit (``+dirty`` with uncommitted changes to tracked files) of the checkout holding ``where``
+    (default: this code's), or ``unknown``."""
+    here = Path(__file__).parent if where is None else Path(where)
+    if not here.is_dir():
+        return "unknown"
     try:
         def git(*args: str) -> subprocess.CompletedProcess:
             return subprocess.run(["git", *args], cwd=here, capture_output=True, text=True)
@@ -69,6 +73,6 @@ def machine_info() -> dict:
         "python": platform.python_version(),
         "numpy": numpy.__version__,
         "warp": warp.__version__,
-        "git_commit": _git_commit(),
+        "git_commit": git_commit(),
         "date": datetime.datetime.now().astimezone().isoformat(timespec="seconds"),
     }
