@@ -54,11 +54,31 @@ def _srgb(x: np.ndarray) -> np.ndarray:
     return linear_to_srgb(np.clip(x[..., :3], 0.0, 1.0)).astype(np.float32)
 
 
+def other_renders(image: np.ndarray, used: np.ndarray, blur) -> list[np.ndarray]:
+    """The level (``bokehray.render``) on ``used`` with its near regions grown and shrunk by each of ``RADII``:
+    the candidates besides the render as it is."""
+    from scipy import ndimage
+
+    import bokehray as br
+
+    out = []
+    for r in RADII:
+        footprint = np.ones((2 * r + 1, 2 * r + 1), bool)
+        out += [br.render(image, ndimage.grey_dilation(used, footprint=footprint), blur),
+                br.render(image, ndimage.grey_erosion(used, footprint=footprint), blur)]
+    return out
+
+
+def blend(base, weight, pick):
+    """``base + weight (pick - base)``: a choice let in by a weight (the band, or the band times the gate); NumPy
+    or torch."""
+    return base + weight * (pick - base)
+
+
 def bank_entry(image, disparity, blur, target, kind: str, amount: int, opts) -> dict:
     """What the chooser sees for one corrupted map, and the exact render it is scored against (sRGB)."""
     from bokehray_refiner.data import corrupt_disparity
     from bokehray_refiner.refine import blend_weight, correct_and_render
-    from scipy import ndimage
 
     import bokehray as br
 
@@ -66,30 +86,36 @@ def bank_entry(image, disparity, blur, target, kind: str, amount: int, opts) -> 
     render, used = correct_and_render(image, d, blur, lambda dd: br.render(image, dd, blur), opts)
     focus = _srgb(image)
     band, gated = blend_weight(image, focus, used, render, blur.signed_coc(used).astype(np.float32), opts)
-    cands = [render]
-    for r in RADII:
-        footprint = np.ones((2 * r + 1, 2 * r + 1), bool)
-        cands += [br.render(image, ndimage.grey_dilation(used, footprint=footprint), blur),
-                  br.render(image, ndimage.grey_erosion(used, footprint=footprint), blur)]
+    cands = [render, *other_renders(image, used, blur)]
     return {"focus": focus, "cands": np.stack([_srgb(c) for c in cands]), "band": band.astype(np.float32),
             "disparity": used.astype(np.float32), "target": _srgb(target), "exact": kind == "none",
             "gated": gated.astype(np.float32)}
 
 
-def oracle_choice(entry: dict) -> np.ndarray:
-    """Per pixel, the candidate whose 5 x 5 px mean error is least (the first of equals: the render as it is where
-    no other is better)."""
+def oracle_choice(cands: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Per pixel, the candidate (``cands``: K x H x W x 3) whose 5 x 5 px mean error is least (the first of equals:
+    the render as it is where no other is better)."""
     from scipy import ndimage
 
-    err = np.stack([ndimage.uniform_filter(((c - entry["target"]) ** 2).sum(-1), 5) for c in entry["cands"]])
+    err = np.stack([ndimage.uniform_filter(((c - target) ** 2).sum(-1), 5) for c in cands])
     return err.argmin(0)
 
 
+def oracle_pick(cands: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """The perfect choice's pixels (:func:`oracle_choice`)."""
+    return np.take_along_axis(cands, oracle_choice(cands, target)[None, ..., None].repeat(3, -1), 0)[0]
+
+
 def oracle(entry: dict) -> np.ndarray:
-    """The perfect choice (:func:`oracle_choice`), blended by the band."""
-    pick = np.take_along_axis(entry["cands"], oracle_choice(entry)[None, ..., None].repeat(3, -1), 0)[0]
-    base = entry["cands"][0]
-    return base + entry["band"][..., None] * (pick - base)
+    """The perfect choice, blended by the band."""
+    return blend(entry["cands"][0], entry["band"][..., None], oracle_pick(entry["cands"], entry["target"]))
+
+
+def weighted(logits, cands):
+    """The candidates (B, K, 3, H, W) weighted by the softmax of ``logits`` (B, K, H, W) per pixel."""
+    import torch
+
+    return (torch.softmax(logits, 1)[:, :, None] * cands).sum(1)
 
 
 def make_chooser(width: int = 32):
@@ -121,12 +147,10 @@ def make_chooser(width: int = 32):
 
         def choose(self, focus, cands, band, disparity):
             """The weighted candidates (B, 3, H, W)."""
-            w = torch.softmax(self.logits(focus, cands, band, disparity), 1)
-            return (w[:, :, None] * cands).sum(1)
+            return weighted(self.logits(focus, cands, band, disparity), cands)
 
         def forward(self, focus, cands, band, disparity):
-            base = cands[:, 0]
-            return base + band * (self.choose(focus, cands, band, disparity) - base)
+            return blend(cands[:, 0], band, self.choose(focus, cands, band, disparity))
 
     return Chooser()
 
@@ -152,7 +176,7 @@ def train(entries: list[dict], steps: int, batch: int, crop: int, seed: int, exa
 
     if choice_weight:
         for e in entries:
-            e.setdefault("choice", oracle_choice(e))
+            e.setdefault("choice", oracle_choice(e["cands"], e["target"]))
 
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
@@ -180,9 +204,7 @@ def train(entries: list[dict], steps: int, batch: int, crop: int, seed: int, exa
                           **({"choice": e["choice"][sl]} if choice_weight else {})})
         focus, cands, band, disparity, target, weight = _tensors(crops)
         logits = model.logits(focus, cands, band, disparity)
-        w = torch.softmax(logits, 1)
-        base = cands[:, 0]
-        out = base + band * ((w[:, :, None] * cands).sum(1) - base)
+        out = blend(cands[:, 0], band, weighted(logits, cands))
         band_w = band * weight[:, None, None, None]
         loss = (((out - target) ** 2).sum(1, keepdim=True) * band_w).sum() / band_w.sum().clamp_min(1.0)
         if choice_weight:
@@ -216,8 +238,8 @@ def score(model, samples, opts) -> tuple[list[dict], list[dict]]:
             with torch.no_grad():
                 pick = model.choose(*_tensors([e | {"weight": 1.0}])[:4])[0].permute(1, 2, 0).numpy()
             base = e["cands"][0]
-            learned = base + e["band"][..., None] * (pick - base)
-            gated = base + e["gated"][..., None] * (pick - base)  # behind refine's confidence gate as well
+            learned = blend(base, e["band"][..., None], pick)
+            gated = blend(base, e["gated"][..., None], pick)  # behind refine's confidence gate as well
             row = {"pair": name, "corruption": kind, "px": amount}
             for key, img in (("fix", base), ("learned", learned), ("learned_gated", gated), ("oracle", oracle(e))):
                 row[key] = _psnr(((img - e["target"]) ** 2).mean(-1)[m])

@@ -34,6 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_refiner import NET_CONDITIONS, devset_samples, synth_samples
 from common import REPO, machine_info, write_json
+from refiner_choice import blend, oracle_pick, other_renders
 
 
 def _psnr(mse: float) -> float:
@@ -43,20 +44,11 @@ def _psnr(mse: float) -> float:
 def _best_choice(image, used, blur, render, t_srgb, band, m) -> float:
     """Band PSNR of the best per-pixel choice (each pixel takes the render whose 5 x 5 px mean error is least) among
     the level rendered on ``used`` and on it with near regions grown / shrunk by 3, 6 and 12 px, blended by the band."""
-    from scipy import ndimage
-
-    import bokehray as br
     from bokehray.colour import linear_to_srgb
 
-    renders = [render]
-    for r in (3, 6, 12):
-        footprint = np.ones((2 * r + 1, 2 * r + 1), bool)
-        renders += [br.render(image, ndimage.grey_dilation(used, footprint=footprint), blur),
-                    br.render(image, ndimage.grey_erosion(used, footprint=footprint), blur)]
+    renders = [render, *other_renders(image, used, blur)]
     srgb = np.stack([linear_to_srgb(np.clip(x[..., :3], 0.0, 1.0)) for x in renders])
-    err = np.stack([ndimage.uniform_filter(((x - t_srgb) ** 2).sum(-1), 5) for x in srgb])
-    pick = np.take_along_axis(srgb, err.argmin(0)[None, ..., None].repeat(3, -1), 0)[0]
-    out = srgb[0] + band[..., None] * (pick - srgb[0])
+    out = blend(srgb[0], band[..., None], oracle_pick(srgb, t_srgb))
     return _psnr(float(((out - t_srgb) ** 2).mean(-1)[m].mean()))
 
 
