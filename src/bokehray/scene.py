@@ -31,7 +31,6 @@ import numpy as np
 import warp as wp
 
 from . import _memory
-from ._memory import row_bands
 from .edge_estimate import dilate
 from .options import LayerOptions
 
@@ -410,7 +409,7 @@ def _active_values(s: np.ndarray, active: np.ndarray, extra: np.ndarray | None =
     extra = np.zeros(0, np.float32) if extra is None else extra
 
     def native() -> Iterator[np.ndarray]:
-        for y0, y1 in row_bands(*s.shape):
+        for y0, y1 in _memory.row_bands(*s.shape):
             yield s[y0:y1][active[y0:y1]]
         yield extra
 
@@ -596,7 +595,7 @@ def _layer_ids(signed_coc: np.ndarray, active: np.ndarray, e32: np.ndarray, n_sl
     h, w = signed_coc.shape
     sid = np.empty((h, w), np.int32)
     counts = np.zeros(n_slices + 1, np.int64)
-    for y0, y1 in row_bands(h, w):
+    for y0, y1 in _memory.row_bands(h, w):
         k = np.searchsorted(e32, signed_coc[y0:y1], side="right")
         np.clip(k, 1, n_slices, out=k)
         np.multiply(k, active[y0:y1], out=k)
