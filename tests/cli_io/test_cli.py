@@ -237,6 +237,17 @@ def test_negative_number_pairs_are_values_not_options(scene, tmp_path, capsys, a
     assert not (tmp_path / "o.png").exists()
 
 
+def test_a_demo_size_beyond_memory_is_one_line(tmp_path, capsys, monkeypatch):
+    """``demo --size 100000,100000`` allocated its coordinate grids first: NumPy's raw MemoryError, a traceback."""
+    import bokehray.validate
+
+    monkeypatch.setattr(bokehray.validate, "available_bytes", lambda: 1 << 30)
+    code, _, err = run(capsys, "demo", "-o", tmp_path / "demo", "--size", "100000,100000", "--quiet")
+    assert code == 2 and err.count("\n") == 1, err
+    assert err.startswith("bokehray: error: demo size: 100000 x 100000 px needs about"), err
+    assert not (tmp_path / "demo").exists()
+
+
 def test_unwritable_output_is_refused_before_rendering(scene, tmp_path, capsys):
     p, _, _ = scene
     (tmp_path / "a_file").write_text("not a folder")

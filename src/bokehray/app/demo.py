@@ -30,6 +30,7 @@ from skimage import data as skdata
 from skimage.transform import resize
 
 from ..errors import InputError
+from ..validate import fits_in_memory
 
 __all__ = ["SHEET_GAP", "SHEET_LABEL_H", "DemoScene", "build_demo_scene", "contact_sheet", "stroke"]
 
@@ -39,6 +40,7 @@ _BG_D = (0.16, 0.04)  # background disparity slope along y and x (0 at top left)
 _PANEL_D = (0.45, 0.55)
 _SUBJECT_D = (0.92, 0.86)  # centre, rim
 _FOCUS_FAR = 0.1
+_BUILD_BYTES_PER_PX = 64  # peak of build_demo_scene: 55 B/px measured at 4 MP (coordinate grids, layers, texture)
 SHEET_GAP = 8  # contact sheet: gap between tiles (px)
 SHEET_LABEL_H = 26  # contact sheet: label strip height under each tile (px)
 
@@ -128,10 +130,12 @@ def build_demo_scene(width: int = 768, height: int = 512, seed: int = 0) -> Demo
 
     Raises:
         InputError: if the size is smaller than 64 x 64.
+        ResourceError: if the scene would not fit in the memory available.
     """
     W, H = int(width), int(height)
     if W < 64 or H < 64:
         raise InputError(f"demo size: expected width and height >= 64, got {width} x {height}")
+    fits_in_memory((H, W), _BUILD_BYTES_PER_PX, "demo size")  # before the coordinate grids are allocated
     rng = np.random.default_rng(seed)
     s = W / _REF_WIDTH  # pixel-size scale
     gy, gx = np.mgrid[0:H, 0:W].astype(np.float32)
