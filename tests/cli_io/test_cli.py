@@ -271,6 +271,14 @@ def test_bad_numbers_for_rays_and_workers(scene, tmp_path, capsys):
     assert code == 2 and "--workers" in err
 
 
+def test_a_negative_synth_seed_names_the_flag_before_the_folder_is_made(tmp_path, capsys):
+    """It used to fail inside the first scene (``scene_00000: ValueError: expected non-negative integer``),
+    after the output folder had been created."""
+    code, _, err = run(capsys, "synth", "-n", 1, "-o", tmp_path / "s", "--seed", -1, "--workers", 1, "--quiet")
+    assert code == 2 and err == "bokehray: error: --seed: expected an integer >= 0, got -1\n", err
+    assert not (tmp_path / "s").exists()
+
+
 def test_focus_at_the_sky_is_a_clear_error(tmp_path, capsys):
     img = br.write_image(tmp_path / "i.png", np.full((16, 16, 3), 0.5, np.float32))
     z = np.full((16, 16), 3.0, np.float32)

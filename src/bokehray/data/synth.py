@@ -382,6 +382,8 @@ def generate(config: SynthConfig, n: int, out: str | os.PathLike, *, seed: int =
 
     if n < 1:
         raise InputError(f"-n: expected at least 1 scene, got {n}")
+    if seed < 0:  # NumPy's SeedSequence refuses it inside the first worker, after the folder was made
+        raise InputError(f"--seed: expected an integer >= 0, got {seed}")
     if workers is not None and workers < 1:
         raise InputError(f"--workers: expected at least 1, got {workers}")
     existing = [f"scene_{i:05d}" for i in range(n) if (Path(out) / f"scene_{i:05d}").exists()]
