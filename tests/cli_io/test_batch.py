@@ -242,6 +242,23 @@ def test_bad_sweep_arguments(shoot, capsys, args, message):
     assert not (shoot / "sweep").exists() or not any((shoot / "sweep").glob("*.png"))
 
 
+@pytest.mark.parametrize("inputs, args, message", [
+    ("sweep", ["--blur", "2,4", "--jpeg-quality", 0], "--jpeg-quality: expected 1..100, got 0"),
+    ("sweep", ["--focus", "0.2,0.4", "--focus-at", "3,3"], "--focus and --focus-at contradict each other"),
+    ("sweep", ["--blur", "2,4", "--focal-length", 50, "--f-number", 2], "a physical lens"),
+    ("folder", ["--blur", 4, "--focus", 0.5, "--focus-at", "3,3"], "--focus and --focus-at contradict each other"),
+    ("folder", ["--amount", 200], "--amount: expected a number in [0, 100], got 200"),
+])
+def test_contradicting_flags_are_refused_once_before_the_batch_starts(shoot, capsys, inputs, args, message):
+    """They were checked inside every render: the folder and its state file made, then the same line once per
+    photo or frame in the failure summary."""
+    photo, maps = ((shoot / "photos" / "p0.png", shoot / "maps" / "p0.png") if inputs == "sweep"
+                   else (shoot / "photos", shoot / "maps"))
+    code, _, err = run(capsys, "render", photo, "--disparity", maps, "-o", shoot / "out", "--workers", 1, *args)
+    assert code == 2 and err.startswith(f"bokehray: error: {message}") and err.count("\n") == 1, err
+    assert not (shoot / "out").exists()
+
+
 def test_a_file_name_as_batch_output_is_refused(shoot, capsys):
     code, _, err = run(capsys, "render", shoot / "photos", "--disparity", shoot / "maps", "-o", shoot / "x.png",
                        "--blur", 4, "--focus", 0.5)

@@ -419,6 +419,11 @@ def run_batch(args: argparse.Namespace) -> int:  # noqa: C901
     if args.stats:
         raise InputError("--stats: single-file renders only (a batch prints its throughput at the end)")
     name, values = sweep_values(args)
+    # the flags' contradictions and values, as a single render checks them: once, before the folder is made (not
+    # once per render in the summary); a swept value is checked by sweep_values, its first one stands for it here
+    from .render_job import check_render_flags
+
+    check_render_flags(argparse.Namespace(**{**vars(args), **({name: values[0]} if name else {})}))
     labels = frame_labels(name, values) if name is not None else []
     settings = _settings(args)
     out = Path(args.output)

@@ -19,7 +19,7 @@ from .._quiet import init_warp_quietly
 from ..errors import InputError
 from ..photo.subject import AMOUNT_DEFAULT, AMOUNT_K_FRACTION
 
-__all__ = ["aperture_of", "layer_options_of", "read_map", "render_one", "start_warp"]
+__all__ = ["aperture_of", "check_render_flags", "layer_options_of", "read_map", "render_one", "start_warp"]
 
 
 def start_warp(args: argparse.Namespace) -> None:
@@ -121,7 +121,7 @@ def _warn(args: argparse.Namespace, text: str) -> None:
         print(f"bokehray: warning: {text}", file=sys.stderr)
 
 
-def _check_render_flags(args: argparse.Namespace) -> bool:  # noqa: C901
+def check_render_flags(args: argparse.Namespace) -> bool:  # noqa: C901
     """Contradictions between flags, found before any file is read (and before Warp starts). Returns whether
     the blur is a physical lens."""
     from ..levels import check_photo_quality
@@ -291,7 +291,7 @@ def render_one(args: argparse.Namespace) -> dict:
     """One photo, as ``bokehray render IMAGE ... -o OUTPUT`` does it; every batch task runs this too (with
     ``quiet``), so a batch output is the single-file output. Returns what was done (output, pixels, K, d_f, how
     the focus was chosen, the amount when the blur came from one, the focus distance in metres for metric depth)."""
-    physical = _check_render_flags(args)  # before any import that takes time
+    physical = check_render_flags(args)  # before any import that takes time
     _check_output(args.output, args)
     _check_sizes_from_headers(args)
     bar = _Progress(args, {"read": 5, **({"depth": 30} if args.depth_model else {}), "render": 60, "write": 5})
