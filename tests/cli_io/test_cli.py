@@ -248,6 +248,29 @@ def test_a_demo_size_beyond_memory_is_one_line(tmp_path, capsys, monkeypatch):
     assert not (tmp_path / "demo").exists()
 
 
+@pytest.mark.parametrize("which, what", [("png", "photo"), ("disp_png", "map")])
+def test_an_output_that_is_an_input_is_refused_and_the_input_kept(scene, tmp_path, capsys, which, what):
+    """``-o`` naming the photo or its map replaced it with the render (a map then no longer reads as one)."""
+    p, _, _ = scene
+    before = p[which].read_bytes()
+    out = tmp_path / "." / p[which].name  # another spelling of the same file
+    code, _, err = run(capsys, "render", p["png"], "--disparity", p["disp_png"], "-o", out, "--blur", 4, "--focus", 0.5)
+    assert code == 2 and err.count("\n") == 1 and f"is the {what} being rendered" in err, err
+    assert p[which].read_bytes() == before
+
+
+def test_a_batch_into_its_own_folder_keeps_the_photos_even_with_overwrite(scene, tmp_path, capsys):
+    p, _, _ = scene
+    for folder, name in (("photos", "png"), ("maps", "disp_png")):
+        (tmp_path / folder).mkdir()
+        (tmp_path / folder / "in.png").write_bytes(p[name].read_bytes())
+    before = p["png"].read_bytes()
+    code, _, err = run(capsys, "render", tmp_path / "photos", "--disparity", tmp_path / "maps", "-o",
+                       tmp_path / "photos", "--blur", 4, "--focus", 0.5, "--workers", 1, "--overwrite", "--quiet")
+    assert code == 2 and "is the photo being rendered" in err, err
+    assert (tmp_path / "photos" / "in.png").read_bytes() == before
+
+
 def test_unwritable_output_is_refused_before_rendering(scene, tmp_path, capsys):
     p, _, _ = scene
     (tmp_path / "a_file").write_text("not a folder")

@@ -101,6 +101,13 @@ def _check_output(path: str, args: argparse.Namespace) -> None:
     from ..output.write import check_output_path
 
     check_output_path(path, bit_depth=getattr(args, "bit_depth", None), half=getattr(args, "half", False))
+    out = Path(path)
+    for what, source in (("photo", args.image), ("map", getattr(args, "disparity", None) or
+                                                  getattr(args, "depth", None))):
+        # the render would replace the very file it reads (a batch with -o its own folder and --overwrite, too)
+        if source is not None and out.is_file() and Path(source).is_file() and out.samefile(source):
+            raise InputError(f"{path}: is the {what} being rendered ({source}), and writing the render there would "
+                             "replace it; choose another output name (or folder)")
 
 
 def _say(args: argparse.Namespace, text: str) -> None:
