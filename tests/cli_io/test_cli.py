@@ -271,6 +271,18 @@ def test_a_batch_into_its_own_folder_keeps_the_photos_even_with_overwrite(scene,
     assert (tmp_path / "photos" / "in.png").read_bytes() == before
 
 
+def test_an_output_format_that_contradicts_the_output_name_is_refused(scene, tmp_path, capsys):
+    """``-o o.png --output-format jpg`` wrote a PNG without a word: the flag only acts on a batch's outputs."""
+    p, _, _ = scene
+    code, _, err = run(capsys, "render", p["png"], "--disparity", p["disp_png"], "-o", tmp_path / "o.png",
+                       "--output-format", "jpg", "--blur", 4, "--focus", 0.5)
+    assert code == 2 and err.count("\n") == 1 and "--output-format jpg" in err and "name it .jpg" in err, err
+    assert not (tmp_path / "o.png").exists()
+    code, _, err = run(capsys, "render", p["png"], "--disparity", p["disp_png"], "-o", tmp_path / "o.JPEG",
+                       "--output-format", "jpg", "--blur", 4, "--focus", 0.5, "--quiet")
+    assert code == 0 and (tmp_path / "o.JPEG").exists(), err
+
+
 def test_unwritable_output_is_refused_before_rendering(scene, tmp_path, capsys):
     p, _, _ = scene
     (tmp_path / "a_file").write_text("not a folder")

@@ -259,6 +259,10 @@ def cmd_render(args: argparse.Namespace) -> int:
 
     if is_batch(args):  # folders, globs, manifests or a focal sweep (docs/scale.md)
         return run_batch(args)
+    suffix = Path(args.output).suffix.lower().lstrip(".")
+    if args.output_format is not None and {"jpeg": "jpg", "tiff": "tif"}.get(suffix, suffix) != args.output_format:
+        raise InputError(f"--output-format {args.output_format} sets the format of a batch's outputs; one render is "
+                         f"written in the format its -o name says ({args.output}): name it .{args.output_format}")
     render_one(args)
     return 0
 
