@@ -668,6 +668,43 @@ def test_multi_page_tiff_is_refused_but_reduced_resolution_pages_are_ignored(tmp
     np.testing.assert_array_equal(br.read_disparity(tmp_path / "pyramid.tif"), b / np.float32(65535))
 
 
+def test_jpeg_compressed_ycbcr_tiff_reads_as_rgb_and_other_ycbcr_is_refused(tmp_path):
+    """Scanners and Photoshop save JPEG-compressed TIFFs as YCbCr; tifffile's JPEG decoder returns them as RGB, so
+    they were refused for nothing. Uncompressed YCbCr comes back as luma and chroma: still refused, saying why."""
+    codes = np.round(colour.linear_to_srgb(_smooth()) * 255).astype(np.uint8)
+    tifffile.imwrite(tmp_path / "rgb.tif", codes, photometric="rgb")
+    tifffile.imwrite(tmp_path / "ycc.tif", codes, photometric="rgb", compression="jpeg")  # stored as YCbCr
+    with tifffile.TiffFile(tmp_path / "ycc.tif") as tf:
+        assert tf.pages[0].photometric == tifffile.PHOTOMETRIC.YCBCR
+        decoded = tf.pages[0].asarray()
+    ycc = br.read_image(tmp_path / "ycc.tif")
+    rgb = br.read_image(tmp_path / "rgb.tif")
+    assert ycc.shape == rgb.shape == (48, 64, 3)
+    assert np.abs(ycc - rgb).mean() < 0.01 and np.abs(ycc - rgb).max() < 0.05  # JPEG's loss only
+    tifffile.imwrite(tmp_path / "same.tif", decoded, photometric="rgb")  # the decoded codes, decoded from sRGB alike
+    np.testing.assert_array_equal(ycc, br.read_image(tmp_path / "same.tif"))
+    tifffile.imwrite(tmp_path / "raw.tif", codes, photometric="ycbcr")
+    with _raises(tmp_path / "raw.tif", "got photometric YCBCR with NONE compression, whose samples decode as luma"):
+        br.read_image(tmp_path / "raw.tif")
+
+
+def test_white_is_zero_tiff_is_inverted(tmp_path):
+    """A MINISWHITE (0 = white) greyscale TIFF reads as the picture it shows, as its black-is-zero twin would."""
+    grey = RNG.integers(0, 65536, (12, 16), dtype=np.uint16)
+    tifffile.imwrite(tmp_path / "black.tif", grey, photometric="minisblack")
+    tifffile.imwrite(tmp_path / "white.tif", 65535 - grey, photometric="miniswhite")
+    np.testing.assert_array_equal(br.read_image(tmp_path / "white.tif"), br.read_image(tmp_path / "black.tif"))
+    np.testing.assert_array_equal(br.read_disparity(tmp_path / "white.tif"), grey / np.float32(65535))
+    with_alpha = np.stack([255 - (grey >> 8), np.full_like(grey, 200)], axis=-1).astype(np.uint8)
+    tifffile.imwrite(tmp_path / "wa.tif", with_alpha, photometric="miniswhite", extrasamples=["unassalpha"])
+    back = br.read_image(tmp_path / "wa.tif")
+    np.testing.assert_allclose(back[..., 3], 200 / 255, rtol=1e-6)  # the alpha is not inverted
+    np.testing.assert_array_equal(back[..., 0], colour.srgb_decode_lut(8)[(grey >> 8).astype(np.uint8)])
+    tifffile.imwrite(tmp_path / "wf.tif", grey.astype(np.float32) / 65535, photometric="miniswhite")
+    with _raises(tmp_path / "wf.tif", r"expected integer samples in a white-is-zero \(MINISWHITE\) TIFF, got float32"):
+        br.read_image(tmp_path / "wf.tif")
+
+
 @pytest.mark.parametrize("name", ["i.png", "i16.png", "i.jpg", "i.tif", "i.exr", "d.npy", "d.exr", "planar.tif"])
 def test_read_size_matches_the_decoded_shape_without_decoding(tmp_path, monkeypatch, name):
     img = _image(13, 17)

@@ -120,6 +120,18 @@ _TIFF_AUXILIARY = 0b101
 """NewSubfileType bits of pages that are not separate images: reduced resolution (1), transparency mask (4)."""
 
 
+_TIFF_JPEG = (tifffile.COMPRESSION.JPEG, tifffile.COMPRESSION.OJPEG, tifffile.COMPRESSION.JPEG_LOSSY,
+              tifffile.COMPRESSION.ALT_JPEG)
+"""Compressions whose YCbCr samples tifffile has libjpeg convert to RGB (its ``jpeg_decode_colorspace``)."""
+
+
+def _ycbcr_decodes_to_rgb(page: tifffile.TiffPage) -> bool:
+    """Whether tifffile returns a YCbCr page as RGB: only a JPEG decoder converts it, and only for interleaved
+    samples without extra (alpha) ones; other YCbCr pages (uncompressed, LZW, planar) come back as Y, Cb, Cr."""
+    return (page.compression in _TIFF_JPEG and page.planarconfig == tifffile.PLANARCONFIG.CONTIG
+            and not page.extrasamples)
+
+
 def _load_tiff_quietly(path: Path, *, size_only: bool = False) -> np.ndarray | tuple[int, int]:
     with tifffile.TiffFile(path) as tf:
         page = tf.pages[0]
@@ -136,14 +148,28 @@ def _load_tiff_quietly(path: Path, *, size_only: bool = False) -> np.ndarray | t
                              "save the page to use as its own file")
         if set(axes) - set("SYX"):
             raise InputError(f"{path}: expected a 2-D TIFF image (axes YX, YXS or SYX), got axes {axes}")
-        if page.photometric not in (tifffile.PHOTOMETRIC.MINISBLACK, tifffile.PHOTOMETRIC.RGB):
-            raise InputError(f"{path}: expected a greyscale or RGB TIFF, got photometric {page.photometric.name}")
+        photometric, ph = page.photometric, tifffile.PHOTOMETRIC
+        if photometric not in (ph.MINISBLACK, ph.MINISWHITE, ph.RGB, ph.YCBCR):
+            raise InputError(f"{path}: expected a greyscale or RGB TIFF, got photometric {photometric.name}")
+        if photometric == ph.YCBCR and not _ycbcr_decodes_to_rgb(page):
+            raise InputError(f"{path}: expected a greyscale or RGB TIFF, got photometric YCBCR with "
+                             f"{page.compression.name} compression, whose samples decode as luma and chroma, not RGB "
+                             "(only JPEG-compressed, interleaved YCbCr without extra samples decodes to RGB); save it "
+                             "as an RGB TIFF first")
         if tifffile.EXTRASAMPLE.ASSOCALPHA in page.extrasamples:
             raise InputError(f"{path}: expected unassociated alpha, got associated (premultiplied) alpha")
         if page.dtype not in (np.uint8, np.uint16, np.float16, np.float32, np.float64):
             raise InputError(f"{path}: expected uint8, uint16 or float samples, got {page.dtype}")
+        if photometric == ph.MINISWHITE and page.dtype.kind != "u":
+            raise InputError(f"{path}: expected integer samples in a white-is-zero (MINISWHITE) TIFF, got "
+                             f"{page.dtype}, which has no defined white to invert from")
         a = page.asarray()
-    return np.moveaxis(a, axes.index("S"), -1) if "S" in axes else a
+        white = (1 << page.bitspersample) - 1
+    a = np.moveaxis(a, axes.index("S"), -1) if "S" in axes else a
+    if photometric == ph.MINISWHITE:  # 0 is white: the grey (not the alpha) turned into black-is-zero codes
+        grey = a[..., 0] if a.ndim == 3 else a
+        np.subtract(white, grey, out=grey, casting="unsafe")
+    return a
 
 
 def _exr_size(path: Path) -> tuple[int, int]:
