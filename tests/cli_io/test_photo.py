@@ -183,6 +183,21 @@ def test_default_focus_is_a_disparity_of_the_map(d):
     assert 0 < subject.share <= 1 + 1e-9
 
 
+def test_empty_stretches_of_the_histogram_are_not_regions():
+    """A flat map said "2 regions found": the smoothed histogram falls to 0 beyond the one value and its first 0 was
+    a cut, so the 249 empty bins after it made a second region. Empty stretches join a neighbour; the focus stays."""
+    for v in (0.0, 0.4, 1.0):
+        s = subj.subject_focus(np.full((48, 64), v, np.float32))
+        assert (s.regions, s.d_f, s.share) == (1, float(np.float32(v)), pytest.approx(1.0)), s
+        assert "1 region found" in s.describe()
+    hist = np.zeros(256)
+    hist[[3, 60, 61, 200]] = [0.5, 0.2, 0.1, 0.2]  # three surfaces, empty bins before, between and after them
+    regions = subj.depth_regions(hist)
+    assert len(regions) == 3 and all(hist[lo : hi + 1].sum() > 0 for lo, hi in regions)
+    assert regions[0][0] == 0 and regions[-1][1] == 255  # still from the first bin to the last
+    assert subj.depth_regions(np.zeros(256)) == [(0, 255)]
+
+
 # --------------------------------------------------------------------------- depth conventions
 
 

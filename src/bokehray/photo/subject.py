@@ -94,7 +94,9 @@ def depth_regions(hist: np.ndarray) -> list[tuple[int, int]]:
     some valley between two neighbouring regions is higher than ``_VALLEY`` times the lower of their two peaks, the
     shallowest such valley is removed (the two merge). What remains are the regions a real gap in depth separates,
     whether the gap is empty (a hard-edged map) or only a trough (a soft, dithered or estimated map: brush edges
-    and blur fill every bin between two surfaces with a thin ramp, far below either surface's peak).
+    and blur fill every bin between two surfaces with a thin ramp, far below either surface's peak). A region that
+    holds no weight of ``hist`` joins its neighbour, so every region returned holds some (all of ``hist`` is one
+    region when it is all zero).
     """
     s = _smooth(np.asarray(hist, np.float64), _SMOOTH_BINS)
     n = s.size
@@ -108,7 +110,12 @@ def depth_regions(hist: np.ndarray) -> list[tuple[int, int]]:
             break
         peaks[j : j + 2] = [max(peaks[j], peaks[j + 1])]
         del edges[j + 1]
-    return [(a, b - 1) for a, b in itertools.pairwise(edges)]
+    # A stretch of empty bins the cuts set apart (a flat map's 249 bins beyond its one value: the smoothed
+    # histogram falls to 0 and the first 0 is a cut) holds no weight: it joins the region before it (the first
+    # region, the one after it) instead of counting as a region of its own.
+    raw = np.asarray(hist, np.float64)
+    starts = [a for a, b in itertools.pairwise(edges) if raw[a:b].sum() > 0.0][1:]
+    return [(a, b - 1) for a, b in itertools.pairwise([0, *starts, n])]
 
 
 def subject_focus(disparity: np.ndarray) -> Subject:
