@@ -61,8 +61,9 @@ class BlurParams:
         f = _finite("focus disparity", self.focus_disparity)
         if not 0.0 <= f <= 1.0:
             raise InputError(f"focus disparity: expected a value in [0, 1] (1 = nearest), got {f:g}")
-        object.__setattr__(self, "k_px", k)
-        object.__setattr__(self, "focus_disparity", f)
+        # + 0.0: a negative zero (-0 given for either) is 0, not "-0.000" in every line, stats and JSON after it
+        object.__setattr__(self, "k_px", k + 0.0)
+        object.__setattr__(self, "focus_disparity", f + 0.0)
 
     def signed_coc(self, disparity: np.ndarray) -> np.ndarray:
         """Signed CoC radius ``K * (d - d_f)`` in pixels (> 0 in front of focus), float32."""

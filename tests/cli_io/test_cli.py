@@ -1,11 +1,13 @@
 """The command line: every path a user takes, and every error path (exit 2, one line, no output file)."""
 
 import json
+import math
 
 import numpy as np
 import pytest
 
 import bokehray as br
+from bokehray.app.batch import parse_sweep
 from bokehray.app.cli import main
 
 
@@ -62,6 +64,27 @@ def test_focus_at_and_stats(scene, tmp_path, capsys):
     assert stats["blur"]["focus_disparity"] == pytest.approx(float(np.median(d[6:15, 28:37])), abs=1e-4)
     assert {"read", "plan", "layers", "total", "write"} <= set(stats["stage_seconds"])
     assert stats["tiles_total"] > 0 and "max_coc_px" in stats
+
+
+@pytest.mark.parametrize("blur", [("--blur", "-0"), ("--amount", "-0")])
+def test_negative_zero_blur_and_focus_are_said_as_zero(scene, tmp_path, capsys, blur):
+    """``--blur -0 --focus -0`` printed ``K = -0.000 px, d_f = -0.0000`` and ``"K_px": -0.0`` in --stats."""
+    p, _, _ = scene
+    code, out, err = run(capsys, "render", p["png"], "--disparity", p["disp_png"], "-o", tmp_path / "o.png",
+                         *blur, "--focus", "-0", "--stats")
+    assert code == 0, err
+    assert "(K = 0.000 px, d_f = 0.0000, max CoC 0.0 px" in out
+    if blur[0] == "--amount":
+        assert "blur: --amount 0 -> K = 0.0 px (0.0% of" in out
+    stats = out[out.index("{"):]
+    values = json.loads(stats)
+    assert "-0.0" not in stats and "-0," not in stats
+    for v in (values["blur"]["K_px"], values["blur"]["focus_disparity"], values["max_coc_px"]):
+        assert v == 0.0 and math.copysign(1.0, v) == 1.0
+    for given in (br.BlurParams(-0.0, -0.0), br.BlurParams(np.float32(-0.0), -0)):  # the API alike
+        assert math.copysign(1.0, given.k_px) == math.copysign(1.0, given.focus_disparity) == 1.0
+    for v in (parse_sweep("-0"), *parse_sweep("-0,0.5"), *parse_sweep("-0:1:3")):
+        assert math.copysign(1.0, v) == 1.0
 
 
 def test_physical_lens_with_metric_depth(scene, tmp_path, capsys):

@@ -49,7 +49,8 @@ MAX_SWEEP = 1000
 
 
 def parse_sweep(text: str) -> float | tuple[float, ...]:
-    """``0.5`` -> 0.5; ``0.2,0.4,0.6`` -> a list; ``START:STOP:COUNT`` -> COUNT values from START to STOP."""
+    """``0.5`` -> 0.5; ``0.2,0.4,0.6`` -> a list; ``START:STOP:COUNT`` -> COUNT values from START to STOP.
+    ``-0`` is read as 0 (``+ 0.0``): a negative zero would print as ``-0.000`` in every line and JSON after it."""
     try:
         if ":" in text:
             parts = text.split(":")
@@ -58,13 +59,13 @@ def parse_sweep(text: str) -> float | tuple[float, ...]:
             start, stop, count = float(parts[0]), float(parts[1]), int(parts[2])
             if not 2 <= count <= MAX_SWEEP:
                 raise argparse.ArgumentTypeError(f"a range needs 2..{MAX_SWEEP} values, got {count} in {text!r}")
-            return tuple(start + (stop - start) * i / (count - 1) for i in range(count))
+            return tuple(start + (stop - start) * i / (count - 1) + 0.0 for i in range(count))
         if "," in text:
-            values = tuple(float(v) for v in text.split(",") if v.strip())
+            values = tuple(float(v) + 0.0 for v in text.split(",") if v.strip())
             if not 1 <= len(values) <= MAX_SWEEP:
                 raise ValueError
             return values
-        return float(text)
+        return float(text) + 0.0
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a number, a list A,B,C or a range START:STOP:COUNT, "
                                          f"got {text!r}") from None

@@ -356,7 +356,7 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:  
         if args.blur is not None:
             k = args.blur
         else:  # the amount
-            amount = AMOUNT_DEFAULT if args.amount is None else args.amount
+            amount = AMOUNT_DEFAULT if args.amount is None else args.amount + 0.0  # -0 said as 0
             k = k_from_amount(amount, h, w)
             _say(args, f"blur: --amount {amount:g} -> K = {k:.1f} px ({amount / 100 * AMOUNT_K_FRACTION:.1%} of the "
                  f"{math.hypot(h, w):.0f}-px diagonal){'' if args.amount is not None else ' (the default)'}")
