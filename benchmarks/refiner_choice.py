@@ -12,7 +12,9 @@ inference (the all-in-focus photo, the seven renders, the band) and scores it be
 
 Training pairs come from a BLB folder (``bokehray synth``); each pair gets one corrupted map: the exact one for
 ``--exact-share`` of them (where the right choice is the render as it is; loss weight ``--exact-weight``), else one
-of the three corruptions. Each score is also given behind refine's confidence gate (``learned_gated``). A research
+of the three corruptions. Each score is also given behind refine's confidence gate (``learned_gated``). With
+``--alignment`` the chooser also sees, per candidate map, how well its depth edges run along the photo's colour edges
+(:func:`edge_alignment`). A research
 measurement: refine does not use the choice (seven renders of the level are over the refine pass's 3x budget;
 docs/refiner.md, "A learned choice among renders").
 
@@ -54,19 +56,48 @@ def _srgb(x: np.ndarray) -> np.ndarray:
     return linear_to_srgb(np.clip(x[..., :3], 0.0, 1.0)).astype(np.float32)
 
 
-def other_renders(image: np.ndarray, used: np.ndarray, blur) -> list[np.ndarray]:
-    """The level (``bokehray.render``) on ``used`` with its near regions grown and shrunk by each of ``RADII``:
-    the candidates besides the render as it is."""
+def candidate_maps(used: np.ndarray) -> list[np.ndarray]:
+    """The maps of the candidates: ``used``, then its near regions grown and shrunk by each of ``RADII``."""
     from scipy import ndimage
 
-    import bokehray as br
-
-    out = []
+    out = [used]
     for r in RADII:
         footprint = np.ones((2 * r + 1, 2 * r + 1), bool)
-        out += [br.render(image, ndimage.grey_dilation(used, footprint=footprint), blur),
-                br.render(image, ndimage.grey_erosion(used, footprint=footprint), blur)]
+        out += [ndimage.grey_dilation(used, footprint=footprint), ndimage.grey_erosion(used, footprint=footprint)]
     return out
+
+
+def other_renders(image: np.ndarray, used: np.ndarray, blur) -> list[np.ndarray]:
+    """The level (``bokehray.render``) on each of :func:`candidate_maps` but ``used``: the candidates besides the
+    render as it is."""
+    import bokehray as br
+
+    return [br.render(image, m, blur) for m in candidate_maps(used)[1:]]
+
+
+ALIGN_SIGMA_PX = 6.0
+"""How far along a map's depth edge :func:`edge_alignment` averages the photo's colour step (a Gaussian's sigma)."""
+
+
+def edge_alignment(focus: np.ndarray, maps: list[np.ndarray], coc_of, min_jump_px: float = 1.0) -> np.ndarray:
+    """Per candidate map, how strongly the photo changes colour on that map's depth edges near each pixel (K x H x W,
+    each pixel's largest 1): the signal that tells a right edge from a misplaced one.
+
+    A map's edge pixels are those whose 3 x 3 neighbourhood spans a CoC jump over ``min_jump_px``; the photo's step
+    is its sRGB gradient magnitude (Sobel, over the three channels). Near each pixel, the Gaussian-weighted mean of
+    the step over a map's edge pixels (``ALIGN_SIGMA_PX``), divided by the largest candidate's (plus 0.02, so that
+    where no map has a colour edge all read low)."""
+    from scipy import ndimage
+
+    grad = np.sqrt(sum(ndimage.sobel(focus[..., c], a) ** 2 for c in range(3) for a in (0, 1))) / 8.0
+    means = []
+    for m in maps:
+        coc = coc_of(m)
+        edge = (ndimage.maximum_filter(coc, 3) - ndimage.minimum_filter(coc, 3) > min_jump_px).astype(np.float32)
+        w = ndimage.gaussian_filter(edge, ALIGN_SIGMA_PX)
+        means.append(ndimage.gaussian_filter(edge * grad, ALIGN_SIGMA_PX) / np.maximum(w, 1e-3))
+    means = np.stack(means)
+    return (means / (means.max(0, keepdims=True) + 0.02)).astype(np.float32)
 
 
 def blend(base, weight, pick):
@@ -87,9 +118,10 @@ def bank_entry(image, disparity, blur, target, kind: str, amount: int, opts) -> 
     focus = _srgb(image)
     band, gated = blend_weight(image, focus, used, render, blur.signed_coc(used).astype(np.float32), opts)
     cands = [render, *other_renders(image, used, blur)]
+    align = edge_alignment(focus, candidate_maps(used), lambda m: blur.signed_coc(m).astype(np.float32))
     return {"focus": focus, "cands": np.stack([_srgb(c) for c in cands]), "band": band.astype(np.float32),
             "disparity": used.astype(np.float32), "target": _srgb(target), "exact": kind == "none",
-            "gated": gated.astype(np.float32)}
+            "gated": gated.astype(np.float32), "align": align}
 
 
 def oracle_choice(cands: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -118,7 +150,7 @@ def weighted(logits, cands):
     return (torch.softmax(logits, 1)[:, :, None] * cands).sum(1)
 
 
-def make_chooser(width: int = 32):
+def make_chooser(width: int = 32, alignment: bool = False):
     import torch
     from torch import nn
 
@@ -126,11 +158,12 @@ def make_chooser(width: int = 32):
         """Per-pixel softmax weights over the candidates from the photo, the render, the other renders' differences
         from it, the map the render used and the band; dilated 3 x 3 convolutions (receptive field 65 px); the output
         is the render plus the band times (the weighted candidates - the render). It starts out keeping the render
-        (its logit 3 above the others')."""
+        (its logit 3 above the others'). With ``alignment``, the candidates' :func:`edge_alignment` is an input too."""
 
         def __init__(self) -> None:
             super().__init__()
-            c_in = 3 + 3 * N_CAND + 2
+            self.alignment = alignment
+            c_in = 3 + 3 * N_CAND + 2 + (N_CAND if alignment else 0)
             layers: list[nn.Module] = [nn.Conv2d(c_in, width, 3, padding=1), nn.ReLU()]
             for dil in (2, 4, 8, 16, 1):
                 layers += [nn.Conv2d(width, width, 3, padding=dil, dilation=dil), nn.ReLU()]
@@ -140,17 +173,19 @@ def make_chooser(width: int = 32):
                 layers[-1].bias[0] = KEEP_LOGIT
             self.net = nn.Sequential(*layers)
 
-        def logits(self, focus, cands, band, disparity):  # (B, 3, H, W), (B, K, 3, H, W), (B, 1, H, W) twice
+        def logits(self, focus, cands, band, disparity, align):
+            # (B, 3, H, W), (B, K, 3, H, W), (B, 1, H, W) twice, (B, K, H, W)
             base = cands[:, 0]
             diff = (cands[:, 1:] - base[:, None]).flatten(1, 2)
-            return self.net(torch.cat([focus, base, diff, disparity, band], 1))
+            extra = [align] if self.alignment else []
+            return self.net(torch.cat([focus, base, diff, disparity, band, *extra], 1))
 
-        def choose(self, focus, cands, band, disparity):
+        def choose(self, focus, cands, band, disparity, align):
             """The weighted candidates (B, 3, H, W)."""
-            return weighted(self.logits(focus, cands, band, disparity), cands)
+            return weighted(self.logits(focus, cands, band, disparity, align), cands)
 
-        def forward(self, focus, cands, band, disparity):
-            return blend(cands[:, 0], band, self.choose(focus, cands, band, disparity))
+        def forward(self, focus, cands, band, disparity, align):
+            return blend(cands[:, 0], band, self.choose(focus, cands, band, disparity, align))
 
     return Chooser()
 
@@ -162,13 +197,14 @@ def _tensors(entries: list[dict]):
     cands = torch.from_numpy(np.stack([e["cands"] for e in entries])).permute(0, 1, 4, 2, 3)
     band = torch.from_numpy(np.stack([e["band"] for e in entries]))[:, None]
     disparity = torch.from_numpy(np.stack([e["disparity"] for e in entries]))[:, None]
+    align = torch.from_numpy(np.stack([e["align"] for e in entries]))
     target = torch.from_numpy(np.stack([e["target"] for e in entries])).permute(0, 3, 1, 2)
     weight = torch.tensor([e["weight"] for e in entries], dtype=torch.float32)
-    return focus, cands, band, disparity, target, weight
+    return focus, cands, band, disparity, align, target, weight
 
 
 def train(entries: list[dict], steps: int, batch: int, crop: int, seed: int, exact_weight: float = 1.0,
-          choice_weight: float = 0.0, log_every: int = 100):
+          choice_weight: float = 0.0, alignment: bool = False, log_every: int = 100):
     """AdamW on the band's squared error (weighted ``exact_weight`` on exact maps), plus ``choice_weight`` times the
     cross-entropy of the logits against the oracle's choice in the band (the render that is right, told directly)."""
     import torch
@@ -180,7 +216,7 @@ def train(entries: list[dict], steps: int, batch: int, crop: int, seed: int, exa
 
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
-    model = make_chooser()
+    model = make_chooser(alignment=alignment)
     opt = torch.optim.AdamW(model.parameters(), lr=2e-3, weight_decay=1e-4)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=2e-3, total_steps=steps,
                                                 pct_start=min(0.3, max(0.05, 10 / steps)))
@@ -199,11 +235,12 @@ def train(entries: list[dict], steps: int, batch: int, crop: int, seed: int, exa
                 y0, x0 = int(rng.integers(0, h - crop + 1)), int(rng.integers(0, w - crop + 1))
             sl = (slice(y0, y0 + crop), slice(x0, x0 + crop))
             crops.append({"focus": e["focus"][sl], "cands": e["cands"][:, sl[0], sl[1]], "band": e["band"][sl],
-                          "disparity": e["disparity"][sl], "target": e["target"][sl],
+                          "disparity": e["disparity"][sl], "align": e["align"][:, sl[0], sl[1]],
+                          "target": e["target"][sl],
                           "weight": exact_weight if e["exact"] else 1.0,
                           **({"choice": e["choice"][sl]} if choice_weight else {})})
-        focus, cands, band, disparity, target, weight = _tensors(crops)
-        logits = model.logits(focus, cands, band, disparity)
+        focus, cands, band, disparity, align, target, weight = _tensors(crops)
+        logits = model.logits(focus, cands, band, disparity, align)
         out = blend(cands[:, 0], band, weighted(logits, cands))
         band_w = band * weight[:, None, None, None]
         loss = (((out - target) ** 2).sum(1, keepdim=True) * band_w).sum() / band_w.sum().clamp_min(1.0)
@@ -236,7 +273,7 @@ def score(model, samples, opts) -> tuple[list[dict], list[dict]]:
         for kind, amount in NET_CONDITIONS:
             e = bank_entry(image, disparity, blur, target, kind, amount, opts)
             with torch.no_grad():
-                pick = model.choose(*_tensors([e | {"weight": 1.0}])[:4])[0].permute(1, 2, 0).numpy()
+                pick = model.choose(*_tensors([e | {"weight": 1.0}])[:5])[0].permute(1, 2, 0).numpy()
             base = e["cands"][0]
             learned = blend(base, e["band"][..., None], pick)
             gated = blend(base, e["gated"][..., None], pick)  # behind refine's confidence gate as well
@@ -293,6 +330,8 @@ def main() -> None:
     ap.add_argument("--exact-weight", type=float, default=1.0, help="loss weight of the pairs given the exact map")
     ap.add_argument("--choice-weight", type=float, default=0.0,
                     help="weight of the cross-entropy against the oracle's choice in the band (0: the error alone)")
+    ap.add_argument("--alignment", action="store_true",
+                    help="give the chooser each candidate map's edge alignment with the photo (edge_alignment)")
     ap.add_argument("--bank", default=None, help="cache of the training inputs (.npz): read if present, else written")
     ap.add_argument("--threads", type=int, default=None, help="torch threads")
     ap.add_argument("--save", default=None, help="write the trained chooser's state_dict here (torch.save)")
@@ -312,18 +351,19 @@ def main() -> None:
     print(f"bank: {len(entries)} pairs in {t_bank:.0f} s", flush=True)
     t = time.perf_counter()
     if args.load:
-        model, losses = make_chooser(), []
+        model, losses = make_chooser(alignment=args.alignment), []
         model.load_state_dict(torch.load(args.load))
     else:
         model, losses = train(entries, args.steps, args.batch, args.crop, args.seed, args.exact_weight,
-                              args.choice_weight)
+                              args.choice_weight, args.alignment)
     t_train = time.perf_counter() - t
     model.eval()
     if args.save:
         torch.save(model.state_dict(), args.save)
     result = {"machine": machine_info(), "train": args.train, "pairs": len(entries), "steps": args.steps,
               "batch": args.batch, "crop": args.crop, "seed": args.seed, "exact_share": args.exact_share,
-              "exact_weight": args.exact_weight, "choice_weight": args.choice_weight, "keep_logit": KEEP_LOGIT, "bank_s": t_bank, "train_s": t_train,
+              "exact_weight": args.exact_weight, "choice_weight": args.choice_weight,
+              "alignment": args.alignment, "keep_logit": KEEP_LOGIT, "bank_s": t_bank, "train_s": t_train,
               "parameters": sum(p.numel() for p in model.parameters()), "loss": losses}
     for split, samples in (("devset", devset_samples(Path(args.devset)) if args.devset else None),
                            ("heldout", synth_samples(args.heldout, args.pairs) if args.heldout else None)):
