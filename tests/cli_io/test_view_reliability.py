@@ -4,8 +4,10 @@ SIGTERM) and does not hold previews back while it runs, and no native Warp line 
 from __future__ import annotations
 
 import json
+import logging
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -80,6 +82,39 @@ def test_malformed_values_are_400_with_one_line(server, path, body):
     assert status == 400, answer
     message = json.loads(answer)["error"]
     assert "\n" not in message and len(message) < 400
+
+
+
+class _Records(logging.Handler):
+    def __init__(self) -> None:
+        super().__init__(logging.ERROR)
+        self.records: list[logging.LogRecord] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.records.append(record)
+
+
+@pytest.mark.parametrize("path", ["api/render", "api/export"])
+def test_a_client_gone_before_its_body_ends_leaves_no_traceback(server, path):
+    """A client that closes after half of its body (a browser tab closed, a killed script) made Starlette raise
+    ClientDisconnect out of the handler: uvicorn's "Exception in ASGI application" and a traceback on the console."""
+    records = _Records()
+    logger = logging.getLogger("uvicorn.error")
+    logger.addHandler(records)
+    try:
+        rejected = server.app.state.stats["rejected"]
+        with socket.create_connection(("127.0.0.1", server.port), timeout=HANG_S) as s:
+            s.sendall(f"POST /{path} HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
+                      f"Content-Length: 100\r\n\r\n{{\"blur\": ".encode())
+        deadline = time.monotonic() + HANG_S  # until the server has handled the disconnect, one way or the other
+        while not records.records and server.app.state.stats["rejected"] == rejected and time.monotonic() < deadline:
+            time.sleep(0.02)
+    finally:
+        logger.removeHandler(records)
+    assert not records.records, records.records[0].getMessage()
+    assert server.app.state.stats["rejected"] == rejected + 1
+    with urllib.request.urlopen(server.url + "api/info", timeout=HANG_S) as r:
+        assert r.status == 200
 
 
 # an export long enough to be interrupted: every full-resolution layer (the photo is 240 x 160; the page's proxies

@@ -52,7 +52,7 @@ def _static(name: str) -> bytes:
 def create_app(session: ViewSession, worker: RenderWorker | None = None, allowed_hosts: tuple[str, ...] = ()):  # noqa: C901
     """The Starlette app over ``session``; ``worker`` defaults to a new :class:`RenderWorker`."""
     from starlette.applications import Starlette
-    from starlette.requests import Request
+    from starlette.requests import ClientDisconnect, Request
     from starlette.responses import JSONResponse, Response
     from starlette.routing import Route
 
@@ -78,10 +78,13 @@ def create_app(session: ViewSession, worker: RenderWorker | None = None, allowed
         if declared is not None and (not declared.isdigit() or int(declared) > MAX_BODY_BYTES):
             raise _TooLarge()
         body = b""
-        async for chunk in request.stream():
-            body += chunk
-            if len(body) > MAX_BODY_BYTES:
-                raise _TooLarge()
+        try:
+            async for chunk in request.stream():
+                body += chunk
+                if len(body) > MAX_BODY_BYTES:
+                    raise _TooLarge()
+        except ClientDisconnect:  # the answer goes nowhere, but it is an answer: no traceback on the console
+            raise _Refused(400, "request body: the client disconnected before sending all of it") from None
         try:
             return json.loads(body)
         except (ValueError, UnicodeDecodeError) as e:
