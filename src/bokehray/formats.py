@@ -21,12 +21,16 @@ F32_MAX = float(np.finfo(np.float32).max)
 def format_of(
     path: str | os.PathLike[str], allowed: tuple[str, ...], what: str, *, read: bool = True
 ) -> tuple[Path, str]:
-    """Check that ``path`` exists (when reading) and that its extension is one of the ``allowed`` formats."""
+    """Check that ``path`` exists and is a regular file (when reading) and that its extension is one of the
+    ``allowed`` formats."""
     p = Path(path)
     if read and not p.exists():
         raise InputError(f"{p}: file does not exist")
     if p.is_dir():
         raise InputError(f"{p}: expected a file, got a directory")
+    if read and not p.is_file():  # opening a FIFO waits for a writer forever; a device never ends
+        kind = "a named pipe (FIFO)" if p.is_fifo() else "a socket" if p.is_socket() else "a device"
+        raise InputError(f"{p}: expected a regular file, got {kind}")
     fmt = FORMATS.get(p.suffix.lower())
     if fmt not in allowed:
         exts = ", ".join(e for e, f in FORMATS.items() if f in allowed)

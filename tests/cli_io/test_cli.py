@@ -1,5 +1,6 @@
 """The command line: every path a user takes, and every error path (exit 2, one line, no output file)."""
 
+import contextlib
 import json
 import math
 
@@ -377,6 +378,44 @@ def test_a_closed_stdout_is_not_an_error(scene, tmp_path, capsys, monkeypatch):
     assert code == 0 and (tmp_path / "o.png").exists()
     assert capsys.readouterr().err == ""
 
+
+
+@pytest.mark.parametrize("which", ["photo", "map"])
+def test_a_named_pipe_as_input_is_refused_not_waited_on(scene, tmp_path, capsys, which):
+    """``render fifo.png ...``: opening a FIFO waits for a writer, so the command hung until killed. A FIFO (a device
+    or a socket too) is refused before it is opened; here a writer stands by with a valid file, each time the pipe is
+    opened, so that the old behaviour shows as a render, not as a hang."""
+    import os
+    import threading
+
+    p, _, _ = scene
+    fifo = tmp_path / "pipe.png"
+    os.mkfifo(fifo)
+    data = (p["png"] if which == "photo" else p["disp_png"]).read_bytes()
+    done = threading.Event()
+
+    def feed():
+        while not done.is_set():
+            with contextlib.suppress(BrokenPipeError), open(fifo, "wb") as w:  # waits for a reader to open the pipe
+                w.write(data)
+
+    writer = threading.Thread(target=feed, daemon=True)
+    writer.start()
+    args = [fifo, "--disparity", p["disp_png"]] if which == "photo" else [p["png"], "--disparity", fifo]
+    try:
+        code, _, err = run(capsys, "render", *args, "-o", tmp_path / "o.png", "--blur", "4", "--focus", "0.5")
+    finally:
+        done.set()
+        fd = os.open(fifo, os.O_RDONLY | os.O_NONBLOCK)  # the writer's open returns: nothing is left blocked
+        try:
+            while writer.is_alive():
+                with contextlib.suppress(BlockingIOError):
+                    os.read(fd, 1 << 16)
+                writer.join(0.01)
+        finally:
+            os.close(fd)
+    assert code == 2 and err == f"bokehray: error: {fifo}: expected a regular file, got a named pipe (FIFO)\n", err
+    assert not (tmp_path / "o.png").exists()
 
 @pytest.mark.parametrize("fails", [False, True])
 def test_warnings_are_one_line_on_success_and_dropped_on_error(monkeypatch, capsys, fails):
