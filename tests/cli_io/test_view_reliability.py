@@ -117,6 +117,32 @@ def test_a_client_gone_before_its_body_ends_leaves_no_traceback(server, path):
         assert r.status == 200
 
 
+def _half_a_body(port: int, path: str = "api/render") -> socket.socket:
+    s = socket.create_connection(("127.0.0.1", port), timeout=HANG_S)
+    s.sendall(f"POST /{path} HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
+              f"Content-Length: 100\r\n\r\n{{\"blur\": ".encode())
+    return s
+
+
+def _answer(s: socket.socket) -> bytes:
+    data = b""
+    while chunk := s.recv(65536):  # until the server closes the connection
+        data += chunk
+    return data
+
+
+def test_a_body_that_stops_half_way_is_answered_408_and_the_connection_closed(server, monkeypatch):
+    """A client that sent half of its body and then nothing held its connection (one of uvicorn's 64) for as long
+    as it stayed open: 64 of them and every other request was refused with 503."""
+    import bokehray.app.view.server as view_server
+
+    monkeypatch.setattr(view_server, "BODY_TIMEOUT_S", 0.2, raising=False)
+    with _half_a_body(server.port) as s:
+        head, _, body = _answer(s).partition(b"\r\n\r\n")
+    assert head.startswith(b"HTTP/1.1 408 "), head
+    assert json.loads(body) == {"error": "request body: not all of it arrived within 0.2 s"}
+
+
 # an export long enough to be interrupted: every full-resolution layer (the photo is 240 x 160; the page's proxies
 # and screen renders are smaller) takes a second longer, and the export's progress check runs between layers
 SLOW_LAYERS = """
@@ -233,3 +259,22 @@ subject.Subject.describe = _interrupted
     proc, _ = _start_view(files, prelude=prelude)
     _, err = proc.communicate(timeout=HANG_S)
     assert proc.returncode == 0 and err.strip() == "bokehray view: stopped", err
+
+
+@pytest.mark.slow
+def test_a_ctrl_c_while_a_body_is_half_sent_is_a_clean_stop(files):
+    """Ctrl-C while a request's body was half-way: the handler waited for the rest, uvicorn's graceful shutdown gave
+    up after 10 s and cancelled it, and a CancelledError traceback was printed before "stopped"."""
+    proc, url = _start_view(files)
+    try:
+        with _half_a_body(int(url.rstrip("/").rsplit(":", 1)[1])) as s:
+            urllib.request.urlopen(url + "api/status", timeout=HANG_S).read()  # the server has the half body by now
+            proc.send_signal(signal.SIGINT)
+            _, err = proc.communicate(timeout=HANG_S)
+            answer = _answer(s)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0 and err.strip() == "bokehray view: stopped", err
+    assert answer.startswith(b"HTTP/1.1 408 "), answer

@@ -45,6 +45,10 @@ _SECURITY_HEADERS = {
 }
 
 
+BODY_TIMEOUT_S = 5.0
+"""Seconds a request body (at most 4096 bytes, from this machine) has to arrive; then 408 and the connection closes."""
+
+
 def _static(name: str) -> bytes:
     return resources.files("bokehray.app.view").joinpath("static", name).read_bytes()
 
@@ -61,7 +65,8 @@ def create_app(session: ViewSession, worker: RenderWorker | None = None, allowed
 
     def error(status: int, message: str) -> JSONResponse:
         stats["rejected"] += status >= 400 and status != 409
-        return JSONResponse({"error": message}, status_code=status, headers=_SECURITY_HEADERS)
+        headers = {**_SECURITY_HEADERS, "Connection": "close"} if status == 408 else _SECURITY_HEADERS
+        return JSONResponse({"error": message}, status_code=status, headers=headers)
 
     def blob(data: bytes, media: str, headers: dict | None = None) -> Response:
         return Response(data, media_type=media, headers={**_SECURITY_HEADERS, **(headers or {})})
@@ -79,12 +84,17 @@ def create_app(session: ViewSession, worker: RenderWorker | None = None, allowed
             raise _TooLarge()
         body = b""
         try:
-            async for chunk in request.stream():
-                body += chunk
-                if len(body) > MAX_BODY_BYTES:
-                    raise _TooLarge()
+            # a body that stops half-way held a connection slot for good, and held up Ctrl-C until uvicorn cancelled
+            # the handler (a traceback): it has BODY_TIMEOUT_S to arrive
+            async with asyncio.timeout(BODY_TIMEOUT_S):
+                async for chunk in request.stream():
+                    body += chunk
+                    if len(body) > MAX_BODY_BYTES:
+                        raise _TooLarge()
         except ClientDisconnect:  # the answer goes nowhere, but it is an answer: no traceback on the console
             raise _Refused(400, "request body: the client disconnected before sending all of it") from None
+        except TimeoutError:
+            raise _Refused(408, f"request body: not all of it arrived within {BODY_TIMEOUT_S:g} s") from None
         try:
             return json.loads(body)
         except (ValueError, UnicodeDecodeError) as e:
