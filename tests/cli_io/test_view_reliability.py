@@ -143,6 +143,36 @@ def test_a_body_that_stops_half_way_is_answered_408_and_the_connection_closed(se
     assert json.loads(body) == {"error": "request body: not all of it arrived within 0.2 s"}
 
 
+def _get(url: str, host: str):
+    req = urllib.request.Request(url, headers={"Host": host})
+    try:
+        with urllib.request.urlopen(req, timeout=HANG_S) as r:
+            return r.status, r.read()
+    except urllib.error.HTTPError as e:
+        return e.code, e.read()
+
+
+def test_a_server_on_another_address_refuses_another_sites_name(server):
+    """``--host`` other than the loopback names turned the Host check off: a page of any site, its name rebound to
+    this machine's address (DNS rebinding), read the photo and made exports. Off loopback, the Host must now be an
+    address or a name of this machine."""
+    from bokehray.errors import InputError
+
+    try:
+        other = ViewServer(server.session, host="127.0.0.2")
+    except InputError as e:  # 127.0.0.2 is loopback on Linux, not everywhere
+        pytest.skip(str(e))
+    with other.start():
+        port = other.port
+        status, answer = _get(other.url + "api/photo.jpg", f"rebound.attacker.example:{port}")
+        assert status == 400 and "rebound.attacker.example" in json.loads(answer)["error"]
+        for host in (f"127.0.0.2:{port}", f"localhost:{port}", f"{socket.gethostname()}:{port}", "[::1]"):
+            status, answer = _get(other.url + "api/info", host)
+            assert status == 200, (host, answer)
+    status, answer = _get(server.url + "api/info", "127.0.0.2")  # on loopback: only the loopback names
+    assert status == 400
+
+
 # an export long enough to be interrupted: every full-resolution layer (the photo is 240 x 160; the page's proxies
 # and screen renders are smaller) takes a second longer, and the export's progress check runs between layers
 SLOW_LAYERS = """

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import ipaddress
 import json
 import signal
 import socket
@@ -53,8 +54,10 @@ def _static(name: str) -> bytes:
     return resources.files("bokehray.app.view").joinpath("static", name).read_bytes()
 
 
-def create_app(session: ViewSession, worker: RenderWorker | None = None, allowed_hosts: tuple[str, ...] = ()):  # noqa: C901
-    """The Starlette app over ``session``; ``worker`` defaults to a new :class:`RenderWorker`."""
+def create_app(session: ViewSession, worker: RenderWorker | None = None, allowed_hosts: tuple[str, ...] = (),  # noqa: C901
+               any_address: bool = False):
+    """The Starlette app over ``session``; ``worker`` defaults to a new :class:`RenderWorker`. With ``allowed_hosts``
+    only requests whose ``Host`` is one of them (or, with ``any_address``, an IP address) are answered."""
     from starlette.applications import Starlette
     from starlette.requests import ClientDisconnect, Request
     from starlette.responses import JSONResponse, Response
@@ -226,13 +229,50 @@ def create_app(session: ViewSession, worker: RenderWorker | None = None, allowed
     if allowed_hosts:
         # a page on another site cannot reach this server through DNS rebinding: the Host must be ours
         from starlette.middleware import Middleware
-        from starlette.middleware.trustedhost import TrustedHostMiddleware
 
-        middleware.append(Middleware(TrustedHostMiddleware, allowed_hosts=list(allowed_hosts)))
+        middleware.append(Middleware(_HostCheck, names=allowed_hosts, addresses=any_address))
     app = Starlette(routes=routes, middleware=middleware)
     app.state.worker = worker
     app.state.stats = stats
     return app
+
+
+def _host_name(host: str) -> str:
+    """The name or address of a ``Host`` header: lower case, without the port or an IPv6 address's brackets."""
+    host = host.strip().lower()
+    return host[1:].partition("]")[0] if host.startswith("[") else host.partition(":")[0]
+
+
+class _HostCheck:
+    """Answers only requests whose ``Host`` is one of ``names`` or, with ``addresses``, an IP address: a page of another
+    site reaches this server through DNS rebinding only under a name of its own, and an address cannot be rebound."""
+
+    def __init__(self, app, names: tuple[str, ...], addresses: bool = False) -> None:
+        self.app, self.names, self.addresses = app, {_host_name(n) for n in names}, addresses
+
+    def allowed(self, host: str) -> bool:
+        name = _host_name(host)
+        if name in self.names:
+            return True
+        if not self.addresses:
+            return False
+        try:
+            ipaddress.ip_address(name)
+        except ValueError:
+            return False
+        return True
+
+    async def __call__(self, scope, receive, send) -> None:
+        if scope["type"] == "http":
+            host = dict(scope["headers"]).get(b"host", b"").decode("latin-1")
+            if not self.allowed(host):
+                from starlette.responses import JSONResponse
+
+                answer = JSONResponse({"error": f"Host {host[:100]!r} refused: not a name of this server"},
+                                      status_code=400, headers=_SECURITY_HEADERS)
+                await answer(scope, receive, send)
+                return
+        await self.app(scope, receive, send)
 
 
 class _TooLarge(Exception):
@@ -271,9 +311,12 @@ class ViewServer:
         self.session = session
         self.sock = bind(host, port)
         self.host, self.port = host, self.sock.getsockname()[1]
-        hosts = ("127.0.0.1", "localhost", "[::1]") if host in ("127.0.0.1", "localhost", "::1") else ()
+        loopback = host in ("127.0.0.1", "localhost", "::1")
+        # elsewhere the page is reached by any address of this machine, or by its name; never by another site's name
+        hosts = ("127.0.0.1", "localhost", "::1") if loopback else ("localhost", host, socket.gethostname(),
+                                                                   socket.gethostname() + ".local")
         self.worker = RenderWorker()
-        self.app = create_app(session, self.worker, allowed_hosts=hosts)
+        self.app = create_app(session, self.worker, allowed_hosts=hosts, any_address=not loopback)
         config = uvicorn.Config(self.app, log_level="warning", access_log=False, lifespan="off",
                                 limit_concurrency=64, timeout_keep_alive=5, h11_max_incomplete_event_size=16384,
                                 timeout_graceful_shutdown=10)
