@@ -404,6 +404,20 @@ def test_depth_map_session_and_its_command(scene_files, tmp_path):
     np.testing.assert_array_equal(br.read_image(path), br.read_image(again))
 
 
+def test_info_of_a_depth_map_with_sky_is_json(scene_files, tmp_path):
+    """A metric depth map with sky (+Inf, which `render --depth` takes) made /api/info a 500: its farthest depth and
+    the normalisation's far end are infinite, and JSON has no infinity. They are null now (the page: Infinity)."""
+    _, img, _, sc = scene_files
+    depth = (1.0 / (0.2 + sc.disparity)).astype(np.float32)
+    depth[:20] = np.inf  # the sky
+    dpath = tmp_path / "depth.npy"
+    np.save(dpath, depth)
+    s = ViewSession.from_files(str(img), depth=str(dpath), export_dir=tmp_path, proxy_long_side=64)
+    with ViewServer(s) as server, urllib.request.urlopen(server.url + "api/info", timeout=60) as r:
+        metric = json.loads(r.read())["metric"]
+    assert metric["farthest_m"] is None and metric["z_far_m"] is None
+    assert metric["nearest_m"] == pytest.approx(float(depth.min()))
+
 @pytest.mark.slow
 def test_cli_serves_until_interrupted(scene_files, tmp_path):
     """`bokehray view` prints its 127.0.0.1 URL, serves the page, and stops cleanly on Ctrl-C (SIGINT)."""

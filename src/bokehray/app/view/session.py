@@ -428,6 +428,8 @@ class ViewSession:
             near, far = self.depth_range_m()
             metric = {"z_near_m": self.norm.z_near_m, "z_far_m": self.norm.z_far_m, "nearest_m": near,
                       "farthest_m": far, "subject_m": float(self.norm.depth(s.d_f))}
+            # JSON has no infinity (the answer was a 500 on a map with sky): null, which the page reads as Infinity
+            metric = {k: float(v) if math.isfinite(v) else None for k, v in metric.items()}
         return {
             "width": self.w, "height": self.h, "files": names,
             "proxy": {"factor": self.proxy_factor, "width": self.proxy_image.shape[1],

@@ -318,6 +318,8 @@ async function exportImage() {
 
 async function start() {
   info = await (await fetch("/api/info")).json();
+  // JSON has no infinity: a depth at infinity (sky) comes as null
+  if (info.metric) for (const k in info.metric) if (info.metric[k] === null) info.metric[k] = Infinity;
   const d = info.defaults;
   state.amount = d.amount;
   state.reconstruct = d.reconstruct;
