@@ -98,7 +98,7 @@ function describeFocus(d) {
               state.focus !== null ? "the disparity slider" :
               state.lens && state.lens.focus_distance !== info.metric.subject_m ? "the focus distance" : "the subject";
   where += ` (disparity ${d.toFixed(3)}`;
-  if (info.metric && lastRender && lastRender.focusM !== null) where += `, ${lastRender.focusM.toPrecision(3)} m away`;
+  if (info.metric && lastRender && lastRender.focusM !== null) where += isFinite(lastRender.focusM) ? `, ${lastRender.focusM.toPrecision(3)} m away` : ", at infinity";
   return where + ")";
 }
 
@@ -129,7 +129,7 @@ async function requestRender(stage, v) {
   const factor = Number(r.headers.get("X-Bokehray-Factor"));
   const focusM = r.headers.get("X-Bokehray-Focus-M");
   lastRender = { bitmap, factor, stage, k: Number(r.headers.get("X-Bokehray-K")),
-                 focusM: focusM ? Number(focusM) : null };
+                 focusM: focusM ? (focusM === "inf" ? Infinity : Number(focusM)) : null };  // "inf": sky
   focusDisparity = Number(r.headers.get("X-Bokehray-Focus-Disparity"));
   mark("focusDisparity", focusDisparity);
   mark("stage", stage);
