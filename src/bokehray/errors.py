@@ -6,6 +6,8 @@ message reads ``<what>: expected <what>, got <what>`` followed by how to fix it.
 
 from __future__ import annotations
 
+import signal
+
 __all__ = [
     "EXIT_INTERRUPTED",
     "EXIT_TERMINATED",
@@ -47,5 +49,19 @@ EXIT_TERMINATED = 143  # 128 + SIGTERM
 
 
 class Terminated(KeyboardInterrupt):
-    """SIGTERM, raised in the main thread like Ctrl-C (``bokehray.app.cli`` installs the handler) so that every
-    cleanup path runs (atomic writes remove their temporary file); the CLI then exits with 143, not Ctrl-C's 130."""
+    """SIGTERM (or SIGHUP: the terminal closed), raised in the main thread like Ctrl-C (``bokehray.app.cli`` installs
+    the handler) so that every cleanup path runs (atomic writes remove their temporary file); the CLI then exits with
+    128 + the signal's number (143 for SIGTERM, 129 for SIGHUP), not Ctrl-C's 130."""
+
+    def __init__(self, signum: int = signal.SIGTERM) -> None:
+        super().__init__()
+        self.signum = int(signum)
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + self.signum
+
+    @property
+    def said(self) -> str:
+        """How the CLI names it: ``terminated (SIGTERM)``, ``terminated (SIGHUP)``."""
+        return f"terminated ({signal.Signals(self.signum).name})"

@@ -289,15 +289,36 @@ def _start_and_signal(args, sig):
 
 
 @pytest.mark.parametrize("sig,code,words", [(signal.SIGTERM, 143, "terminated (SIGTERM)"),
-                                            (signal.SIGINT, 130, "interrupted")])
+                                            (signal.SIGINT, 130, "interrupted"),
+                                            (signal.SIGHUP, 129, "terminated (SIGHUP)")])
 def test_a_signal_while_writing_removes_the_temporary_file(inputs, tmp_path, sig, code, words):
-    """issue 18.6: SIGTERM used to kill the process mid-write, leaving ``.o.png.XXXX.png`` beside the output."""
+    """issue 18.6: SIGTERM used to kill the process mid-write, leaving ``.o.png.XXXX.png`` beside the output; SIGHUP
+    (the terminal closed) did until round 7."""
     img, disp = inputs
     out = tmp_path / "o.png"
     rc, err = _start_and_signal(["render", img, "--disparity", disp, "-o", out, "--blur", 4, "--focus", 0.5], sig)
     assert rc == code, err
     assert err.strip() == f"bokehray: {words}; no partial output was left"
     assert sorted(os.listdir(tmp_path)) == ["d.png", "in.png"]
+
+
+def test_an_ignored_sighup_stays_ignored_so_a_nohup_render_outlives_its_terminal(inputs, tmp_path):
+    """Under ``nohup`` (SIGHUP ignored) the render does not take SIGHUP as a reason to stop: it writes its output."""
+    img, disp = inputs
+    out = tmp_path / "o.png"
+    prelude = """
+import os, signal, sys
+signal.signal(signal.SIGHUP, signal.SIG_IGN)
+import bokehray.output.write as wr
+_encode = wr.encode_pil
+def _hup_then_encode(*a, **k):
+    os.kill(os.getpid(), signal.SIGHUP)  # mid-write, as a terminal closing would
+    return _encode(*a, **k)
+wr.encode_pil = _hup_then_encode
+"""
+    proc = _cli(["render", img, "--disparity", disp, "-o", out, "--blur", 4, "--focus", 0.5], prelude=prelude)
+    assert proc.returncode == 0 and proc.stderr == "", proc.stderr
+    assert br.read_image(out).shape == (96, 128, 3)
 
 
 @pytest.mark.slow

@@ -22,6 +22,7 @@ summary at the end and never stops the batch; the command then exits with 2.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import glob
 import hashlib
@@ -33,7 +34,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from ..errors import EXIT_INTERRUPTED, EXIT_TERMINATED, InputError, Terminated
+from ..errors import EXIT_INTERRUPTED, InputError, Terminated
 
 __all__ = ["Pair", "RenderSettings", "RenderTask", "add_batch_args", "find_pairs", "frame_labels", "is_batch",
            "parse_sweep", "render_file", "run_batch", "sweep_values"]
@@ -498,10 +499,10 @@ def run_batch(args: argparse.Namespace) -> int:  # noqa: C901
         # counted on disk once the executor has closed: the renders in flight when the signal came finished
         # (atomically) while it shut down, and they are done as much as those whose outcome was seen
         complete = sum(1 for t in todo if _stamp(t.output) not in (None, before[t.output]))
-        terminated = isinstance(e, Terminated)
-        what, code = ("terminated (SIGTERM)", EXIT_TERMINATED) if terminated else ("interrupted", EXIT_INTERRUPTED)
-        print(f"bokehray: {what} after {complete} of {len(todo)} renders; they are complete in {out}, "
-              "run the same command again to render the rest", file=sys.stderr)
+        what, code = (e.said, e.exit_code) if isinstance(e, Terminated) else ("interrupted", EXIT_INTERRUPTED)
+        with contextlib.suppress(OSError):  # after SIGHUP the terminal may be gone
+            print(f"bokehray: {what} after {complete} of {len(todo)} renders; they are complete in {out}, "
+                  "run the same command again to render the rest", file=sys.stderr)
         return code
     finally:
         remove_stale_outputs(out, names)

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from .._quiet import collect_warnings, command_stderr
-from ..errors import EXIT_INTERRUPTED, EXIT_TERMINATED, BokehrayError, InputError, Terminated
+from ..errors import EXIT_INTERRUPTED, BokehrayError, InputError, Terminated
 from ..photo.subject import AMOUNT_DEFAULT, AMOUNT_K_FRACTION
 from .render_job import aperture_of, layer_options_of, render_one, start_warp
 
@@ -28,21 +28,27 @@ EXIT_INPUT = 2
 
 
 def _on_sigterm(signum: int, frame) -> None:
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)  # a second SIGTERM during the clean-up ends the process
-    raise Terminated()
+    signal.signal(signum, signal.SIG_DFL)  # a second one during the clean-up ends the process
+    raise Terminated(signum)
 
 
 @contextlib.contextmanager
 def _sigterm_raises() -> Iterator[None]:
-    """Within the block, SIGTERM raises :class:`Terminated` (main thread only; the previous handler is restored)."""
+    """Within the block, SIGTERM and SIGHUP (the terminal closed) raise :class:`Terminated` (main thread only; the
+    previous handlers are restored). A SIGHUP that is ignored (``nohup``) stays ignored: the render outlives the
+    terminal, as asked."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = signal.signal(signal.SIGTERM, _on_sigterm)
+    previous = {}
+    for sig in (signal.SIGTERM, signal.SIGHUP):
+        if sig != signal.SIGHUP or signal.getsignal(sig) is not signal.SIG_IGN:
+            previous[sig] = signal.signal(sig, _on_sigterm)
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 def _parse_xy(text: str) -> tuple[int, int]:
@@ -443,7 +449,7 @@ def main(argv: Sequence[str] | None = None) -> int:  # noqa: C901
             parser = build_parser()
             args = parser.parse_args(argv)
         except KeyboardInterrupt as e:  # before any work: nothing to clean up
-            return EXIT_TERMINATED if isinstance(e, Terminated) else EXIT_INTERRUPTED
+            return e.exit_code if isinstance(e, Terminated) else EXIT_INTERRUPTED
         debug = getattr(args, "debug", False)
         code, message = None, None
         # native libraries' lines (libpng, Warp, workers) go nowhere, bokehray's own reach the terminal
@@ -463,9 +469,10 @@ def main(argv: Sequence[str] | None = None) -> int:  # noqa: C901
                 message = _os_error_line(e)
             except KeyboardInterrupt as e:
                 # atomic writes removed their temporary file on the way out: nothing partial is left
-                what = "terminated (SIGTERM)" if isinstance(e, Terminated) else "interrupted"
-                print(f"bokehray: {what}; no partial output was left", file=sys.stderr)
-                code = EXIT_TERMINATED if isinstance(e, Terminated) else EXIT_INTERRUPTED
+                what = e.said if isinstance(e, Terminated) else "interrupted"
+                with contextlib.suppress(OSError):  # after SIGHUP the terminal may be gone
+                    print(f"bokehray: {what}; no partial output was left", file=sys.stderr)
+                code = e.exit_code if isinstance(e, Terminated) else EXIT_INTERRUPTED
                 if argv is None:  # the command itself (not a caller's main([...])): do not wait at exit for a
                     _exit_now(code)  # worker thread still inside a native launch (up to seconds on a 12 MP layer)
                 return code

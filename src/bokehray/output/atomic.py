@@ -152,7 +152,7 @@ def atomic_write(path: Path, encode: Callable[[str], None]) -> Path:
 def _block_signals() -> set[int] | None:
     if not hasattr(signal, "pthread_sigmask"):
         return None
-    return signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+    return signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM, signal.SIGHUP})
 
 
 def _unblock_signals(previous: set[int] | None) -> None:
