@@ -117,6 +117,22 @@ def test_a_client_gone_before_its_body_ends_leaves_no_traceback(server, path):
         assert r.status == 200
 
 
+def test_a_malformed_request_is_answered_without_a_line_on_the_console(server):
+    """uvicorn printed "WARNING: Invalid HTTP request received." on the user's console for any client's garbage."""
+    records = _Records()
+    records.setLevel(logging.WARNING)
+    logger = logging.getLogger("uvicorn.error")
+    logger.addHandler(records)
+    try:
+        with socket.create_connection(("127.0.0.1", server.port), timeout=HANG_S) as s:
+            s.sendall(b"NOT HTTP AT ALL\x00\r\n\r\n")
+            answer = s.recv(4096)
+    finally:
+        logger.removeHandler(records)
+    assert answer.startswith(b"HTTP/1.1 400"), answer
+    assert not records.records, records.records[0].getMessage()
+
+
 def _half_a_body(port: int, path: str = "api/render") -> socket.socket:
     s = socket.create_connection(("127.0.0.1", port), timeout=HANG_S)
     s.sendall(f"POST /{path} HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"

@@ -317,7 +317,9 @@ class ViewServer:
                                                                    socket.gethostname() + ".local")
         self.worker = RenderWorker()
         self.app = create_app(session, self.worker, allowed_hosts=hosts, any_address=not loopback)
-        config = uvicorn.Config(self.app, log_level="warning", access_log=False, lifespan="off",
+        # "error": a malformed request or one over the concurrency limit is answered (400, 503); uvicorn's warning
+        # line about it on the user's console ("Invalid HTTP request received.") is noise, not theirs to act on
+        config = uvicorn.Config(self.app, log_level="error", access_log=False, lifespan="off",
                                 limit_concurrency=64, timeout_keep_alive=5, h11_max_incomplete_event_size=16384,
                                 timeout_graceful_shutdown=10)
         worker = self.worker
