@@ -10,7 +10,7 @@ import pytest
 
 from bokehray.data import datasets as ds
 from bokehray.data.datasets import BLBDataset, EBBDataset, Sample, write_blb_scene
-from bokehray.errors import InputError
+from bokehray.errors import InputError, OutputError
 from bokehray.output.write import write_disparity, write_image
 
 H, W = 16, 20
@@ -291,3 +291,29 @@ def test_ebb_errors(tmp_path):
         (empty / sub).mkdir(parents=True)
     with pytest.raises(InputError, match="expected input images"):
         EBBDataset(empty)
+
+
+def test_a_write_failure_names_the_scene_folder_not_its_hidden_temporary(tmp_path, monkeypatch):
+    """A full disk during a scene's write named ``.scene_0000.tmp-<pid>-<random>/bokeh_0_1.exr``, a folder the user
+    never sees (it is removed); the message names the scene's folder, and nothing is left."""
+    import errno
+    import os
+
+    real = ds.write_image
+
+    def full_at_the_third(path, *a, **k):
+        if Path(path).name == "bokeh_0_1.exr":
+            from bokehray.output.atomic import atomic_write
+
+            def enospc(tmp):
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+            return atomic_write(Path(path), enospc)
+        return real(path, *a, **k)
+
+    monkeypatch.setattr(ds, "write_image", full_at_the_third)
+    folder = tmp_path / "scene_0000"
+    with pytest.raises(OutputError) as e:
+        write_blb_scene(folder, *_scene(), previews=False)
+    assert str(e.value) == f"cannot write {folder / 'bokeh_0_1.exr'}: No space left on device"
+    assert _listing(tmp_path) == []

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, OutputError
 from ..output.write import write_disparity, write_image
 from ..photo.depth import read_depth
 from ..photo.read import read_disparity, read_image
@@ -181,6 +181,9 @@ def write_blb_scene(  # noqa: C901
                 write_image(tmp / f"bokeh_{k}_{f}.png", out)
         (tmp / "info.json").write_text(text + "\n")
         _swap_in(tmp, folder)
+    except OutputError as e:  # name the scene's folder, not the hidden one it is written in (removed below)
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise OutputError(str(e).replace(str(tmp), str(folder))) from None
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
