@@ -24,6 +24,7 @@ docs/refiner.md, "A learned choice among renders").
     python benchmarks/refiner_choice.py --train data/train --heldout data/heldout \\
         --devset ../shared/data/pathtraced-dev --steps 1500 --exact-share 0.4 --exact-weight 3 --save data/chooser.pt
     python benchmarks/refiner_choice.py ... --load data/chooser.pt   # score a saved chooser (no training)
+    python benchmarks/refiner_choice.py ... --steps 50000 --checkpoint data/run.pt  # in pieces: rerun to go on
 
 Writes ``benchmarks/results/refiner_choice.json`` (and the trained chooser's state to ``--save``, if given).
 """
@@ -204,9 +205,14 @@ def _tensors(entries: list[dict]):
 
 
 def train(entries: list[dict], steps: int, batch: int, crop: int, seed: int, exact_weight: float = 1.0,
-          choice_weight: float = 0.0, alignment: bool = False, log_every: int = 100):
+          choice_weight: float = 0.0, alignment: bool = False, log_every: int = 100, checkpoint: str | None = None,
+          checkpoint_every: int = 500):
     """AdamW on the band's squared error (weighted ``exact_weight`` on exact maps), plus ``choice_weight`` times the
-    cross-entropy of the logits against the oracle's choice in the band (the render that is right, told directly)."""
+    cross-entropy of the logits against the oracle's choice in the band (the render that is right, told directly).
+
+    With ``checkpoint`` the run's whole state (model, optimiser, schedule, both generators, the losses so far) is
+    written there every ``checkpoint_every`` steps and at the end (atomically), and a run started with an existing
+    one goes on from it: the same steps, bit for bit, as one run without a stop (long training in pieces)."""
     import torch
     import torch.nn.functional as F
 
@@ -220,8 +226,9 @@ def train(entries: list[dict], steps: int, batch: int, crop: int, seed: int, exa
     opt = torch.optim.AdamW(model.parameters(), lr=2e-3, weight_decay=1e-4)
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=2e-3, total_steps=steps,
                                                 pct_start=min(0.3, max(0.05, 10 / steps)))
-    losses = []
-    for step in range(steps):
+    parts = {"model": model, "opt": opt, "sched": sched}
+    losses, start = _resume(checkpoint, steps, seed, parts, rng) if checkpoint else ([], 0)
+    for step in range(start, steps):
         crops = []
         for i in rng.integers(0, len(entries), batch):
             e = entries[i]
@@ -255,7 +262,38 @@ def train(entries: list[dict], steps: int, batch: int, crop: int, seed: int, exa
         losses.append(loss.item())
         if (step + 1) % log_every == 0:
             print(f"step {step + 1}: band loss {np.mean(losses[-log_every:]):.5f}", flush=True)
+        if checkpoint and ((step + 1) % checkpoint_every == 0 or step + 1 == steps):
+            _save(checkpoint, {"steps": steps, "seed": seed, "step": step + 1, "losses": losses,
+                               "rng": rng.bit_generator.state, **{k: v.state_dict() for k, v in parts.items()}})
     return model, losses
+
+
+def _save(checkpoint: str, state: dict) -> None:
+    """Write a training state atomically (a run killed while writing keeps the previous one)."""
+    import torch
+
+    tmp = f"{checkpoint}.tmp"
+    torch.save({**state, "torch_rng": torch.get_rng_state()}, tmp)
+    Path(tmp).replace(checkpoint)
+
+
+def _resume(checkpoint: str, steps: int, seed: int, parts: dict, rng) -> tuple[list[float], int]:
+    """Load ``checkpoint`` (if it exists) into the model, optimiser and schedule of ``parts`` and the generators;
+    the losses so far and the step to go on from."""
+    import torch
+
+    if not Path(checkpoint).is_file():
+        return [], 0
+    state = torch.load(checkpoint, weights_only=False)
+    if state["steps"] != steps or state["seed"] != seed:
+        raise SystemExit(f"{checkpoint}: a run of {state['steps']} steps with seed {state['seed']}, not {steps} with "
+                         f"{seed}: the schedule would differ")
+    for key, part in parts.items():
+        part.load_state_dict(state[key])
+    rng.bit_generator.state = state["rng"]
+    torch.set_rng_state(state["torch_rng"])
+    print(f"resumed {checkpoint} at step {state['step']}", flush=True)
+    return state["losses"], state["step"]
 
 
 def _psnr(err2: np.ndarray) -> float:
@@ -335,6 +373,9 @@ def main() -> None:
     ap.add_argument("--bank", default=None, help="cache of the training inputs (.npz): read if present, else written")
     ap.add_argument("--threads", type=int, default=None, help="torch threads")
     ap.add_argument("--save", default=None, help="write the trained chooser's state_dict here (torch.save)")
+    ap.add_argument("--checkpoint", default=None,
+                    help="the training state, written every --checkpoint-every steps; an existing one is resumed")
+    ap.add_argument("--checkpoint-every", type=int, default=500)
     ap.add_argument("--load", default=None, help="score this saved chooser (--save) instead of training one")
     ap.add_argument("--out", default=str(REPO / "benchmarks/results/refiner_choice.json"))
     args = ap.parse_args()
@@ -355,7 +396,8 @@ def main() -> None:
         model.load_state_dict(torch.load(args.load))
     else:
         model, losses = train(entries, args.steps, args.batch, args.crop, args.seed, args.exact_weight,
-                              args.choice_weight, args.alignment)
+                              args.choice_weight, args.alignment, checkpoint=args.checkpoint,
+                              checkpoint_every=args.checkpoint_every)
     t_train = time.perf_counter() - t
     model.eval()
     if args.save:

@@ -69,3 +69,33 @@ def test_edge_alignment_reads_highest_for_the_map_whose_edge_is_the_photos(choic
     assert near_edge[1] > 0.9 and near_edge[1] > 3 * max(near_edge[0], near_edge[2])
     flat = choice.edge_alignment(np.full((h, w, 3), 0.5, np.float32), [short, right, long_], lambda m: 10.0 * m)
     assert flat.max() == 0.0  # no colour edge anywhere: no map is preferred
+
+
+def test_training_resumed_from_its_checkpoint_is_the_same_run_bit_for_bit(choice, tmp_path, monkeypatch):
+    """Long training in pieces: a run killed right after its checkpoint at step 3 of 6, started again, ends with the
+    weights and losses of one run of 6 steps."""
+    rng = np.random.default_rng(2)
+    band = np.zeros((40, 40))
+    band[:, 18:26] = 1.0
+    entries = [_entry(choice, rng, band) | {"exact": i == 0} for i in range(3)]
+    kw = {"batch": 2, "crop": 32, "seed": 5, "choice_weight": 0.01, "log_every": 1000}
+    whole, whole_losses = choice.train(entries, 6, **kw)
+
+    class Killed(Exception):
+        pass
+
+    real_save = choice._save
+
+    def save_then_die(path, state):
+        real_save(path, state)
+        raise Killed
+
+    ckpt = str(tmp_path / "run.pt")
+    monkeypatch.setattr(choice, "_save", save_then_die)
+    with pytest.raises(Killed):
+        choice.train(entries, 6, checkpoint=ckpt, checkpoint_every=3, **kw)
+    monkeypatch.undo()
+    resumed, losses = choice.train(entries, 6, checkpoint=ckpt, checkpoint_every=3, **kw)
+    assert len(losses) == 6 and losses == whole_losses
+    for a, b in zip(whole.state_dict().values(), resumed.state_dict().values(), strict=True):
+        assert torch.equal(a, b)
