@@ -68,12 +68,12 @@ def candidate_maps(used: np.ndarray) -> list[np.ndarray]:
     return out
 
 
-def other_renders(image: np.ndarray, used: np.ndarray, blur) -> list[np.ndarray]:
-    """The level (``bokehray.render``) on each of :func:`candidate_maps` but ``used``: the candidates besides the
-    render as it is."""
+def other_renders(image: np.ndarray, maps: list[np.ndarray], blur) -> list[np.ndarray]:
+    """The level (``bokehray.render``) on each of :func:`candidate_maps` ``maps`` but the first (the map the render
+    at hand used): the candidates besides the render as it is."""
     import bokehray as br
 
-    return [br.render(image, m, blur) for m in candidate_maps(used)[1:]]
+    return [br.render(image, m, blur) for m in maps[1:]]
 
 
 ALIGN_SIGMA_PX = 6.0
@@ -118,8 +118,9 @@ def bank_entry(image, disparity, blur, target, kind: str, amount: int, opts) -> 
     render, used = correct_and_render(image, d, blur, lambda dd: br.render(image, dd, blur), opts)
     focus = _srgb(image)
     band, gated = blend_weight(image, focus, used, render, blur.signed_coc(used).astype(np.float32), opts)
-    cands = [render, *other_renders(image, used, blur)]
-    align = edge_alignment(focus, candidate_maps(used), lambda m: blur.signed_coc(m).astype(np.float32))
+    maps = candidate_maps(used)
+    cands = [render, *other_renders(image, maps, blur)]
+    align = edge_alignment(focus, maps, blur.signed_coc)
     return {"focus": focus, "cands": np.stack([_srgb(c) for c in cands]), "band": band.astype(np.float32),
             "disparity": used.astype(np.float32), "target": _srgb(target), "exact": kind == "none",
             "gated": gated.astype(np.float32), "align": align}

@@ -34,7 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_refiner import NET_CONDITIONS, devset_samples, synth_samples
 from common import REPO, machine_info, write_json
-from refiner_choice import blend, oracle_pick, other_renders
+from refiner_choice import blend, candidate_maps, oracle_pick, other_renders
 
 
 def _psnr(mse: float) -> float:
@@ -46,7 +46,7 @@ def _best_choice(image, used, blur, render, t_srgb, band, m) -> float:
     the level rendered on ``used`` and on it with near regions grown / shrunk by 3, 6 and 12 px, blended by the band."""
     from bokehray.colour import linear_to_srgb
 
-    renders = [render, *other_renders(image, used, blur)]
+    renders = [render, *other_renders(image, candidate_maps(used), blur)]
     srgb = np.stack([linear_to_srgb(np.clip(x[..., :3], 0.0, 1.0)) for x in renders])
     out = blend(srgb[0], band[..., None], oracle_pick(srgb, t_srgb))
     return _psnr(float(((out - t_srgb) ** 2).mean(-1)[m].mean()))

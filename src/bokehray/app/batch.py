@@ -60,13 +60,14 @@ def parse_sweep(text: str) -> float | tuple[float, ...]:
             start, stop, count = float(parts[0]), float(parts[1]), int(parts[2])
             if not 2 <= count <= MAX_SWEEP:
                 raise argparse.ArgumentTypeError(f"a range needs 2..{MAX_SWEEP} values, got {count} in {text!r}")
-            return tuple(start + (stop - start) * i / (count - 1) + 0.0 for i in range(count))
-        if "," in text:
-            values = tuple(float(v) + 0.0 for v in text.split(",") if v.strip())
+            values = tuple(start + (stop - start) * i / (count - 1) for i in range(count))
+        elif "," in text:
+            values = tuple(float(v) for v in text.split(",") if v.strip())
             if not 1 <= len(values) <= MAX_SWEEP:
                 raise ValueError
-            return values
-        return float(text) + 0.0
+        else:
+            return float(text) + 0.0
+        return tuple(v + 0.0 for v in values)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a number, a list A,B,C or a range START:STOP:COUNT, "
                                          f"got {text!r}") from None
@@ -282,7 +283,7 @@ def sweep_values(args: argparse.Namespace) -> tuple[str | None, tuple[float, ...
     if not (f or b):
         return None, ()
     name = "focus" if f else "blur"
-    values = tuple(v + 0.0 for v in (args.focus if f else args.blur))  # -0.0 is 0.0 (one name, one render)
+    values = args.focus if f else args.blur  # parse_sweep read -0 as 0: one name, one render
     if len(set(values)) != len(values):
         raise InputError(f"--{name}: the values repeat ({', '.join(f'{v:g}' for v in values)})")
     # every value is checked as a single one is, before any frame is written (not frame by frame, half a stack later)

@@ -21,6 +21,7 @@ import numpy as np
 
 from .._quiet import collect_warnings, command_stderr
 from ..errors import EXIT_INTERRUPTED, BokehrayError, InputError, Terminated
+from ..formats import FORMATS
 from ..photo.subject import AMOUNT_DEFAULT, AMOUNT_K_FRACTION
 from .render_job import aperture_of, layer_options_of, render_one, start_warp
 
@@ -265,8 +266,8 @@ def cmd_render(args: argparse.Namespace) -> int:
 
     if is_batch(args):  # folders, globs, manifests or a focal sweep (docs/scale.md)
         return run_batch(args)
-    suffix = Path(args.output).suffix.lower().lstrip(".")
-    if args.output_format is not None and {"jpeg": "jpg", "tiff": "tif"}.get(suffix, suffix) != args.output_format:
+    fmt = args.output_format  # a batch's option; one render's format is its -o name's (FORMATS: .jpeg is jpg)
+    if fmt is not None and FORMATS.get(Path(args.output).suffix.lower()) != FORMATS["." + fmt]:
         raise InputError(f"--output-format {args.output_format} sets the format of a batch's outputs; one render is "
                          f"written in the format its -o name says ({args.output}): name it .{args.output_format}")
     render_one(args)
