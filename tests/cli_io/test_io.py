@@ -705,6 +705,42 @@ def test_white_is_zero_tiff_is_inverted(tmp_path):
         br.read_image(tmp_path / "wf.tif")
 
 
+@pytest.mark.parametrize(("bits", "dtype"), [(12, np.uint16), (10, np.uint16), (4, np.uint8)])
+def test_tiff_codes_are_scaled_by_the_files_own_bit_depth(tmp_path, bits, dtype):
+    """A 12-bit TIFF (BitsPerSample 12: packed samples tifffile unpacks into uint16 codes up to 4095) was divided by
+    65535, the container's largest code, and read 16 times too dark; a 4-bit one by 255 instead of 15. Codes are
+    divided by the file's own largest code now. Depth maps keep their codes (metres per code is the user's scale)."""
+    white = (1 << bits) - 1
+    codes = RNG.integers(0, white + 1, (12, 16), dtype=dtype)
+    codes[0, 0], codes[0, 1] = 0, white
+    tifffile.imwrite(tmp_path / "g.tif", codes, photometric="minisblack", bitspersample=bits)
+    with tifffile.TiffFile(tmp_path / "g.tif") as tf:  # what the decoder gives: the file's codes in a wider container
+        assert tf.pages[0].bitspersample == bits and tf.pages[0].dtype == dtype
+        np.testing.assert_array_equal(tf.pages[0].asarray(), codes)
+    np.testing.assert_array_equal(br.read_disparity(tmp_path / "g.tif"), (codes / np.float64(white)).astype(np.float32))
+    img = br.read_image(tmp_path / "g.tif")
+    expected = colour.srgb_decode_lut(bits)[codes]
+    np.testing.assert_array_equal(img, np.repeat(expected[..., None], 3, axis=2))
+    assert img[0, 1, 0] == 1.0 and img[0, 0, 0] == 0.0  # the file's white is white
+    np.testing.assert_array_equal(br.read_depth(tmp_path / "g.tif", scale=0.001), codes * 0.001)
+    rgba = np.stack([codes, codes[::-1], codes[:, ::-1], np.full_like(codes, white)], axis=-1)
+    tifffile.imwrite(tmp_path / "c.tif", rgba, photometric="rgb", bitspersample=bits, extrasamples=["unassalpha"])
+    back = br.read_image(tmp_path / "c.tif")
+    np.testing.assert_array_equal(back[..., :3], colour.srgb_decode_lut(bits)[rgba[..., :3]])
+    np.testing.assert_array_equal(back[..., 3], 1.0)
+    tifffile.imwrite(tmp_path / "w.tif", white - codes, photometric="miniswhite", bitspersample=bits)
+    np.testing.assert_array_equal(br.read_disparity(tmp_path / "w.tif"), br.read_disparity(tmp_path / "g.tif"))
+
+
+def test_tiff_codes_beyond_the_declared_bit_depth_are_refused(tmp_path, monkeypatch):
+    """A decoder handing back codes above what BitsPerSample allows (a damaged or mislabelled file) is refused
+    rather than read past 1 (or past the 12-bit decoding table)."""
+    tifffile.imwrite(tmp_path / "g.tif", np.full((4, 5), 4095, np.uint16), photometric="minisblack", bitspersample=12)
+    monkeypatch.setattr(tifffile.TiffPage, "asarray", lambda self, *a, **k: np.full((4, 5), 5000, np.uint16))
+    with _raises(tmp_path / "g.tif", "holds codes up to 5000, above 4095, the largest 12-bit code"):
+        br.read_image(tmp_path / "g.tif")
+
+
 @pytest.mark.parametrize("name", ["i.png", "i16.png", "i.jpg", "i.tif", "i.exr", "d.npy", "d.exr", "planar.tif"])
 def test_read_size_matches_the_decoded_shape_without_decoding(tmp_path, monkeypatch, name):
     img = _image(13, 17)

@@ -104,6 +104,10 @@ def test_display_p3_in_jpeg_and_tiff(tmp_path):
     for name in ("p3.jpg", "p3.tif"):
         got = colour.linear_to_srgb(br.read_image(tmp_path / name)).mean(axis=(0, 1)) * 255
         assert np.abs(got - want).max() < 2.5, (name, got, want)
+    codes12 = np.full((8, 8, 3), (200 * 4095 // 255, 120 * 4095 // 255, 80 * 4095 // 255), np.uint16)
+    tifffile.imwrite(tmp_path / "p3-12.tif", codes12, photometric="rgb", iccprofile=P3, bitspersample=12)
+    got = colour.linear_to_srgb(br.read_image(tmp_path / "p3-12.tif")).mean(axis=(0, 1)) * 255  # 12-bit: by 4095
+    assert np.abs(got - want).max() < 2.5, ("p3-12.tif", got, want)
 
 
 def test_srgb_profile_is_left_alone(tmp_path, codes):

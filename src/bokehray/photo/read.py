@@ -132,7 +132,15 @@ def _ycbcr_decodes_to_rgb(page: tifffile.TiffPage) -> bool:
             and not page.extrasamples)
 
 
-def _load_tiff_quietly(path: Path, *, size_only: bool = False) -> np.ndarray | tuple[int, int]:
+def _check_codes_fit(path: Path, a: np.ndarray, bits: int) -> None:
+    """Integer codes of a file narrower than their dtype (12-bit in uint16) must fit the file's bit depth."""
+    white = (1 << bits) - 1
+    if a.dtype.kind == "u" and bits < a.dtype.itemsize * 8 and a.size and int(a.max()) > white:
+        raise InputError(f"{path}: holds codes up to {int(a.max())}, above {white}, the largest {bits}-bit code its "
+                         "BitsPerSample declares")
+
+
+def _load_tiff_quietly(path: Path, *, size_only: bool = False) -> tuple[np.ndarray, int] | tuple[int, int]:
     with tifffile.TiffFile(path) as tf:
         page = tf.pages[0]
         axes = page.axes
@@ -164,12 +172,14 @@ def _load_tiff_quietly(path: Path, *, size_only: bool = False) -> np.ndarray | t
             raise InputError(f"{path}: expected integer samples in a white-is-zero (MINISWHITE) TIFF, got "
                              f"{page.dtype}, which has no defined white to invert from")
         a = page.asarray()
-        white = (1 << page.bitspersample) - 1
+        bits = int(page.bitspersample)
+        white = (1 << bits) - 1
     a = np.moveaxis(a, axes.index("S"), -1) if "S" in axes else a
+    _check_codes_fit(path, a, bits)
     if photometric == ph.MINISWHITE:  # 0 is white: the grey (not the alpha) turned into black-is-zero codes
         grey = a[..., 0] if a.ndim == 3 else a
         np.subtract(white, grey, out=grey, casting="unsafe")
-    return a
+    return a, bits
 
 
 def _exr_size(path: Path) -> tuple[int, int]:
@@ -258,15 +268,21 @@ def _load_npy(path: Path, *, size_only: bool = False):
     return np.array(np.load(path, mmap_mode="r", allow_pickle=False))
 
 
-def load_samples(path: Path, fmt: str, exr_channels: tuple[tuple[str, ...], ...]) -> np.ndarray:
-    """Decode ``path`` to its stored samples: H x W or H x W x C, integer codes or floats."""
+def load_samples(path: Path, fmt: str, exr_channels: tuple[tuple[str, ...], ...], *,
+                 with_bits: bool = False) -> np.ndarray | tuple[np.ndarray, int]:
+    """Decode ``path`` to its stored samples: H x W or H x W x C, integer codes or floats.
+
+    With ``with_bits``, ``(samples, bits)``: their bit depth as the file declares it, the dtype's except for TIFFs
+    of other depths, which decode into the next wider dtype (12-bit: uint16 codes up to 4095; 4-bit: uint8 up to
+    15). Readers that scale codes need it; depth maps keep the codes as they are."""
+    bits = None
     with _decoding(path, fmt):
         if fmt == "PNG":
             a = _load_png(path)
         elif fmt == "JPEG":
             a = decode_pil(path, "JPEG")
         elif fmt == "TIFF":
-            a = _load_tiff(path)
+            a, bits = _load_tiff(path)
         elif fmt == "EXR":
             a = _load_exr(path, exr_channels)
         else:
@@ -280,7 +296,9 @@ def load_samples(path: Path, fmt: str, exr_channels: tuple[tuple[str, ...], ...]
     _check_dims(path, a.shape[0], a.shape[1])
     if a.ndim == 3 and not 1 <= a.shape[2] <= 4:
         raise InputError(f"{path}: expected 1 to 4 channels, got {a.shape[2]}")
-    return a
+    if not with_bits:
+        return a
+    return a, a.dtype.itemsize * 8 if bits is None or a.dtype.kind != "u" else bits
 
 
 def single_channel(path: Path, a: np.ndarray, fmt: str, what: str) -> np.ndarray:
@@ -294,15 +312,17 @@ def single_channel(path: Path, a: np.ndarray, fmt: str, what: str) -> np.ndarray
     return a
 
 
-def decode_codes(a: np.ndarray, n_colour: int) -> np.ndarray:
+def decode_codes(a: np.ndarray, n_colour: int, bits: int | None = None) -> np.ndarray:
     """Linear float32 of integer codes ``a`` (H x W x C, uint8 or uint16): the first ``n_colour`` channels decoded
-    from sRGB by table (:func:`~bokehray.colour.srgb_decode_lut`), the others (alpha) divided by the largest code.
+    from sRGB by table (:func:`~bokehray.colour.srgb_decode_lut`), the others (alpha) divided by the largest code,
+    ``2**bits - 1`` (``bits``: the file's bit depth, by default the dtype's; a 12-bit TIFF's codes end at 4095).
 
     Band by band of rows (``_memory.row_bands``), straight into the result (``np.take`` into it): the same values
     as the whole-image ``lut[a]``, without its full-size index and value temporaries (at 12 MP, 288 MB of indices and
     a second 144 MB float32 copy)."""
-    lut = srgb_decode_lut(a.dtype.itemsize * 8)
-    top = np.float32(np.iinfo(a.dtype).max)
+    bits = a.dtype.itemsize * 8 if bits is None else bits
+    lut = srgb_decode_lut(bits)
+    top = np.float32((1 << bits) - 1)
     out = np.empty(a.shape, np.float32)
     for y0, y1 in row_bands(*a.shape[:2]):
         src, dst = a[y0:y1], out[y0:y1]
@@ -348,8 +368,8 @@ def read_size(path: str | os.PathLike[str]) -> tuple[int, int]:
 def read_image(path: str | os.PathLike[str]) -> np.ndarray:
     """Read a colour image as scene-linear float32.
 
-    PNG, JPEG and TIFF (8- or 16-bit integer) are scaled to [0, 1] and decoded
-    from sRGB; float TIFF and OpenEXR (HALF or FLOAT; channels ``R,G,B[,A]`` or
+    PNG, JPEG and TIFF (8- or 16-bit integer; TIFF also 2 to 15 bits, scaled by its own
+    largest code) are scaled to [0, 1] and decoded from sRGB; float TIFF and OpenEXR (HALF or FLOAT; channels ``R,G,B[,A]`` or
     ``Y[,A]``) are linear already. Grey images are expanded to three channels.
 
     Args:
@@ -365,7 +385,7 @@ def read_image(path: str | os.PathLike[str]) -> np.ndarray:
     """
     check_path(path)
     p, fmt = format_of(path, ("PNG", "JPEG", "TIFF", "EXR"), "images")
-    a = load_samples(p, fmt, (("R", "G", "B", "A"), ("R", "G", "B"), ("Y", "A"), ("Y",)))
+    a, bits = load_samples(p, fmt, (("R", "G", "B", "A"), ("R", "G", "B"), ("Y", "A"), ("Y",)), with_bits=True)
     a = a[..., None] if a.ndim == 2 else a
     n_colour = 1 if a.shape[2] <= 2 else 3
     if a.dtype.kind == "f":
@@ -379,8 +399,12 @@ def read_image(path: str | os.PathLike[str]) -> np.ndarray:
     elif a.dtype in (np.uint8, np.uint16):
         from .embedded import embedded, to_srgb_codes
 
-        a = to_srgb_codes(a, embedded(p, fmt), str(p))  # an embedded ICC profile (Display P3, Adobe RGB) -> sRGB
-        out = decode_codes(a, n_colour)
+        meta = embedded(p, fmt)
+        if not meta.is_srgb and bits != a.dtype.itemsize * 8:  # the profile's conversion takes 8- or 16-bit codes
+            a = np.round(a * (np.iinfo(a.dtype).max / ((1 << bits) - 1))).astype(a.dtype)
+            bits = a.dtype.itemsize * 8
+        a = to_srgb_codes(a, meta, str(p))  # an embedded ICC profile (Display P3, Adobe RGB) -> sRGB
+        out = decode_codes(a, n_colour, bits)
     else:
         raise InputError(f"{p}: expected 8- or 16-bit integer or float samples, got {a.dtype}")
     if n_colour == 1:
@@ -391,7 +415,8 @@ def read_image(path: str | os.PathLike[str]) -> np.ndarray:
 def read_disparity(path: str | os.PathLike[str], *, check_range: bool = False) -> np.ndarray:
     """Read a disparity map (1 = nearest, 0 = farthest) as float32 ``H x W``.
 
-    PNG and integer TIFF codes are divided by their largest code (255, 65535) with
+    PNG and integer TIFF codes are divided by their largest code (255, 65535; a TIFF of
+    another bit depth by its own, 4095 for 12 bits) with
     no sRGB decoding; float TIFF and OpenEXR (channel ``Y``, else ``R``, else the only
     channel) are taken as they are; ``.npy`` holds a 2-D (or ``H x W x 1``) float or
     integer array of the values themselves. A three-channel PNG/TIFF is accepted
@@ -405,9 +430,10 @@ def read_disparity(path: str | os.PathLike[str], *, check_range: bool = False) -
     """
     check_path(path)
     p, fmt = format_of(path, ("PNG", "TIFF", "EXR", "NPY"), "disparity")
-    a = single_channel(p, load_samples(p, fmt, (("Y",), ("R",))), fmt, "disparity")
+    a, bits = load_samples(p, fmt, (("Y",), ("R",)), with_bits=True)
+    a = single_channel(p, a, fmt, "disparity")
     if a.dtype.kind == "u" and fmt != "NPY":  # uint8 / uint16 over a float32 is float32 already: no second copy
-        return (a / np.float32(np.iinfo(a.dtype).max)).astype(np.float32, copy=False)
+        return (a / np.float32((1 << bits) - 1)).astype(np.float32, copy=False)  # a 12-bit TIFF's white: 4095
     if a.dtype.kind == "i" and fmt != "NPY":
         raise InputError(f"{p}: expected unsigned integer or float samples, got {a.dtype}")
     out = to_float32(a, f"{p}: expected finite values, got", range_prefix(p))
