@@ -705,6 +705,41 @@ def test_white_is_zero_tiff_is_inverted(tmp_path):
         br.read_image(tmp_path / "wf.tif")
 
 
+def _write_exr_windows(path: Path, channels: dict[str, np.ndarray], data: tuple, display: tuple) -> None:
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
+              "dataWindow": data, "displayWindow": display}
+    with OpenEXR.File(header, {k: np.ascontiguousarray(v) for k, v in channels.items()}) as f:
+        f.write(str(path))
+
+
+def test_an_exr_whose_data_window_is_not_its_display_window_is_refused(tmp_path, capsys):
+    """A crop or border render (data window inside the frame) or overscan (beyond it) was read as a smaller or larger
+    picture that had lost its place in the frame. Refused now, naming both windows; equal windows anywhere are read."""
+    from bokehray.app.cli import main
+
+    v = RNG.uniform(0.0, 1.0, (4, 5)).astype(np.float32)
+    chans = {"R": v, "G": v, "B": v, "Y": v, "Z": v + 1}
+    _write_exr_windows(tmp_path / "crop.exr", chans, ((10, 20), (14, 23)), ((0, 0), (99, 99)))
+    _write_exr_windows(tmp_path / "over.exr", chans, ((-1, -1), (3, 2)), ((0, 0), (2, 1)))
+    _write_exr_windows(tmp_path / "corner.exr", chans, ((0, 0), (4, 3)), ((0, 0), (99, 99)))
+    for name, data, display in (("crop.exr", r"\(10, 20\)..\(14, 23\), 5 x 4", r"\(0, 0\)..\(99, 99\), 100 x 100"),
+                                ("over.exr", r"\(-1, -1\)..\(3, 2\), 5 x 4", r"\(0, 0\)..\(2, 1\), 3 x 2"),
+                                ("corner.exr", r"\(0, 0\)..\(4, 3\), 5 x 4", r"\(0, 0\)..\(99, 99\), 100 x 100")):
+        for read in (br.read_image, br.read_disparity, br.read_depth, rd.read_size):
+            with _raises(tmp_path / name, f"its data window {data} \\(the pixels it stores\\) differs from its "
+                                          f"display window {display}"):
+                read(tmp_path / name)
+    _write_exr_windows(tmp_path / "moved.exr", chans, ((10, 20), (14, 23)), ((10, 20), (14, 23)))
+    np.testing.assert_array_equal(br.read_image(tmp_path / "moved.exr"), np.stack([v, v, v], axis=-1))
+    np.testing.assert_array_equal(br.read_disparity(tmp_path / "moved.exr"), v)
+    assert rd.read_size(tmp_path / "moved.exr") == (4, 5)
+    br.write_disparity(tmp_path / "d.npy", v)
+    code = main(["render", str(tmp_path / "crop.exr"), "--disparity", str(tmp_path / "d.npy"), "-o", str(tmp_path / "o.png")])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and err.startswith("bokehray: error: ") and "crop.exr" in err, err
+    assert "display window" in err and not (tmp_path / "o.png").exists()
+
+
 @pytest.mark.parametrize(("bits", "dtype"), [(12, np.uint16), (10, np.uint16), (4, np.uint8)])
 def test_tiff_codes_are_scaled_by_the_files_own_bit_depth(tmp_path, bits, dtype):
     """A 12-bit TIFF (BitsPerSample 12: packed samples tifffile unpacks into uint16 codes up to 4095) was divided by

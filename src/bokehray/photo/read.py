@@ -182,32 +182,55 @@ def _load_tiff_quietly(path: Path, *, size_only: bool = False) -> tuple[np.ndarr
     return a, bits
 
 
-def _exr_size(path: Path) -> tuple[int, int]:
-    if not OpenEXR.isOpenExrFile(str(path)):
-        raise InputError(f"cannot read {path} as EXR: not an OpenEXR file (bad magic number)")
+def _exr_windows(path: Path) -> tuple[tuple[int, int, int, int], tuple[int, int, int, int] | None]:
+    """The header's dataWindow (the pixels the file stores) and displayWindow (the picture's frame), each as
+    ``(x0, y0, x1, y1)``, inclusive; a file the binding cannot read is an InputError naming it."""
     failure = None
     with native_output() as said:
         try:
             with OpenEXR.File(str(path), header_only=True) as f:
-                (x0, y0), (x1, y1) = f.header()["dataWindow"]
+                header = f.header()
+                (x0, y0), (x1, y1) = header["dataWindow"]
+                data = int(x0), int(y0), int(x1), int(y1)
+                display = header.get("displayWindow")
+                if display is not None:
+                    (x0, y0), (x1, y1) = display
+                    display = int(x0), int(y0), int(x1), int(y1)
         except Exception as exc:  # noqa: BLE001 - as in _load_exr
             failure = exc
     if failure is not None or said:
         why = (said[0] if said else str(failure)).removeprefix(f"{path}: ")
         raise InputError(f"cannot read {path} as EXR: file is truncated or corrupt ({why})")
-    return int(y1 - y0 + 1), int(x1 - x0 + 1)
+    return data, display
 
 
-def _load_exr(path: Path, choices: tuple[tuple[str, ...], ...]) -> np.ndarray:  # noqa: C901
+def _exr_size(path: Path, *, check: bool = False) -> tuple[int, int]:
+    """``(height, width)`` of the EXR's data window, which must be its display window (docs/robustness.md, round 8):
+    a data window inside a larger frame (a crop or border render) or beyond it (overscan) is refused, naming both,
+    rather than read as a smaller or larger picture that has lost its place in the frame. ``check``: the pixel and
+    memory limits as well (the reader's)."""
     if not OpenEXR.isOpenExrFile(str(path)):
         raise InputError(f"cannot read {path} as EXR: not an OpenEXR file (bad magic number)")
+    data, display = _exr_windows(path)
+    h, w = data[3] - data[1] + 1, data[2] - data[0] + 1
+    if check:
+        _check_dims(path, h, w)
+    if display is not None and display != data:
+        def box(b: tuple[int, int, int, int]) -> str:
+            return f"({b[0]}, {b[1]})..({b[2]}, {b[3]}), {b[2] - b[0] + 1} x {b[3] - b[1] + 1}"
+        raise InputError(f"{path}: its data window {box(data)} (the pixels it stores) differs from its display "
+                         f"window {box(display)} (the picture's frame); bokehray reads EXRs whose two windows are the "
+                         "same: crop or pad it to the display window first (e.g. oiiotool in.exr --croptofull -o "
+                         "out.exr)")
+    return h, w
+
+
+def _load_exr(path: Path, choices: tuple[tuple[str, ...], ...]) -> np.ndarray:
+    _exr_size(path, check=True)  # the magic number, the windows, the size
     chans: dict[str, np.ndarray] = {}
     failure = None
     with native_output() as said:
         try:
-            with OpenEXR.File(str(path), header_only=True) as f:
-                (x0, y0), (x1, y1) = f.header()["dataWindow"]
-            _check_dims(path, int(y1 - y0 + 1), int(x1 - x0 + 1))
             with OpenEXR.File(str(path), separate_channels=True) as f:
                 for name, ch in f.parts[0].channels.items():
                     px = ch.pixels
@@ -368,9 +391,11 @@ def read_size(path: str | os.PathLike[str]) -> tuple[int, int]:
 def read_image(path: str | os.PathLike[str]) -> np.ndarray:
     """Read a colour image as scene-linear float32.
 
-    PNG, JPEG and TIFF (8- or 16-bit integer; TIFF also 2 to 15 bits, scaled by its own
-    largest code) are scaled to [0, 1] and decoded from sRGB; float TIFF and OpenEXR (HALF or FLOAT; channels ``R,G,B[,A]`` or
-    ``Y[,A]``) are linear already. Grey images are expanded to three channels.
+    PNG, JPEG and TIFF (8- or 16-bit integer; TIFF also 2 to 15 bits, scaled by its
+    own largest code) are scaled to [0, 1] and decoded from sRGB; float TIFF and
+    OpenEXR (HALF or FLOAT; channels ``R,G,B[,A]`` or ``Y[,A]``; the data window must
+    be the display window) are linear already. Grey images are expanded to three
+    channels.
 
     Args:
         path: A ``.png``, ``.jpg``/``.jpeg``, ``.tif``/``.tiff`` or ``.exr`` file.
