@@ -272,6 +272,42 @@ def test_a_demo_size_beyond_memory_is_one_line(tmp_path, capsys, monkeypatch):
     assert not (tmp_path / "demo").exists()
 
 
+def _fill_disk_at(monkeypatch, name: str) -> None:
+    """The disk fills up when the demo writes ``name`` (the earlier files are written whole)."""
+    import errno
+    import os
+
+    from bokehray.output import write as wr
+
+    real = wr.encode_pil
+
+    def encode(tmp, codes, fmt, **options):
+        if f".{name}." in os.path.basename(tmp):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        real(tmp, codes, fmt, **options)
+
+    monkeypatch.setattr(wr, "encode_pil", encode)
+
+
+def test_a_demo_that_fails_removes_the_folder_it_made(tmp_path, capsys, monkeypatch):
+    """A full disk left the demo's folder behind (empty, or holding the files written before the disk filled); the
+    folder the demo made, and any parent it made, are removed now, and the error is still one line."""
+    _fill_disk_at(monkeypatch, "render_focus_near.png")
+    out = tmp_path / "new" / "demo"
+    code, stdout, err = run(capsys, "demo", "-o", out, "--size", "96,64")
+    assert code == 2 and err == f"bokehray: error: cannot write {out / 'render_focus_near.png'}: No space left on device\n"
+    assert stdout == "" and list(tmp_path.iterdir()) == []
+
+
+def test_a_demo_that_fails_in_a_folder_that_was_there_leaves_the_folder(tmp_path, capsys, monkeypatch):
+    """The user's own folder is not the demo's to remove: it stays, with what was in it."""
+    _fill_disk_at(monkeypatch, "input.png")
+    (tmp_path / "notes.txt").write_text("mine")
+    code, _, err = run(capsys, "demo", "-o", tmp_path, "--size", "96,64")
+    assert code == 2 and err.count("\n") == 1 and "No space left on device" in err, err
+    assert [f.name for f in tmp_path.iterdir()] == ["notes.txt"]
+
+
 @pytest.mark.parametrize("which, what", [("png", "photo"), ("disp_png", "map")])
 def test_an_output_that_is_an_input_is_refused_and_the_input_kept(scene, tmp_path, capsys, which, what):
     """``-o`` naming the photo or its map replaced it with the render (a map then no longer reads as one)."""

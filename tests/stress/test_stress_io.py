@@ -261,6 +261,16 @@ def test_disk_full_while_writing_is_one_line_naming_the_output(inputs, full_disk
     assert sorted(os.listdir(folder)) == []
 
 
+@pytest.mark.slow
+def test_a_demo_on_a_full_disk_leaves_no_folder(full_disk):
+    """Round 8: ``bokehray demo`` on a full disk said so in one line but left its (empty) output folder behind."""
+    folder, mounted = full_disk
+    out = folder / "demo"
+    proc = _cli(["demo", "-o", out, "--size", "96,64", "--quiet"], prelude="" if mounted else _ENOSPC_WRITERS)
+    assert _one_error_line(proc) == f"bokehray: error: cannot write {out / 'input.png'}: No space left on device"
+    assert sorted(os.listdir(folder)) == []
+
+
 def _slow_writer(marker: str) -> str:
     """A prelude whose PNG encoder writes part of the file, says so on stdout, then hangs (until a signal)."""
     return f"""

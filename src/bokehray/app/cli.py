@@ -14,8 +14,9 @@ import re
 import signal
 import sys
 import threading
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -24,6 +25,9 @@ from ..errors import EXIT_INTERRUPTED, BokehrayError, InputError, Terminated
 from ..formats import FORMATS
 from ..photo.subject import AMOUNT_DEFAULT, AMOUNT_K_FRACTION
 from .render_job import aperture_of, layer_options_of, render_one, start_warp
+
+if TYPE_CHECKING:
+    from .demo import DemoScene
 
 EXIT_INPUT = 2
 
@@ -274,27 +278,23 @@ def cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_demo(args: argparse.Namespace) -> int:
+def _demo_files(args: argparse.Namespace, scene: DemoScene, out_dir: Path,
+                keep: Callable[[str, Path], None]) -> list[tuple[str, object]]:
+    """Render and write the demo's files into ``out_dir``, each given to ``keep(what, path)``; the render stats."""
     from ..lens import BlurParams
     from ..output.write import write_disparity, write_image
     from ..pipeline import render_with_stats
-    from .demo import build_demo_scene, contact_sheet
+    from .demo import contact_sheet
 
-    start_warp(args)
-    w, h = args.size
-    out_dir = Path(args.output)
-    scene = build_demo_scene(width=w, height=h)
     aperture = aperture_of(args)
     opts = layer_options_of(args)
-    written: list[tuple[str, Path]] = []
 
     def save(name: str, img: np.ndarray, what: str) -> None:
-        written.append((what, write_image(out_dir / name, img)))
+        keep(what, write_image(out_dir / name, img))
 
     save("input.png", scene.image, "all-in-focus input (sRGB preview)")
-    written.append(("all-in-focus input (linear EXR)", write_image(out_dir / "input.exr", scene.image)))
-    written.append(("disparity (16-bit PNG, 1 = nearest)", write_disparity(out_dir / "disparity.png",
-                                                                            scene.disparity)))
+    keep("all-in-focus input (linear EXR)", write_image(out_dir / "input.exr", scene.image))
+    keep("disparity (16-bit PNG, 1 = nearest)", write_disparity(out_dir / "disparity.png", scene.disparity))
     all_stats = []
     renders = {}
     for label, d_f in (("near", scene.focus_near), ("far", scene.focus_far)):
@@ -303,7 +303,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
         renders[label] = out
         all_stats.append((label, stats))
         save(f"render_focus_{label}.png", out, f"focused {label} (d_f = {d_f:.3f}, K = {scene.k_px:.2f})")
-        written.append((f"focused {label} (linear EXR)", write_image(out_dir / f"render_focus_{label}.exr", out)))
+        keep(f"focused {label} (linear EXR)", write_image(out_dir / f"render_focus_{label}.exr", out))
 
     stack_d = np.linspace(scene.focus_far, scene.focus_near, 6)
     tiles, labels = [scene.image], ["all in focus"]
@@ -322,7 +322,27 @@ def cmd_demo(args: argparse.Namespace) -> int:
     sheet_path = out_dir / "focal_stack.png"
     from ..colour import srgb_to_linear
 
-    written.append(("focal-stack contact sheet", write_image(sheet_path, srgb_to_linear(sheet / 255.0))))
+    keep("focal-stack contact sheet", write_image(sheet_path, srgb_to_linear(sheet / 255.0)))
+    return all_stats
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from ..output.atomic import remove_made_folder_on_failure
+    from .demo import build_demo_scene
+
+    start_warp(args)
+    w, h = args.size
+    out_dir = Path(args.output)
+    scene = build_demo_scene(width=w, height=h)
+    written: list[tuple[str, Path]] = []
+    # a failure (a full disk, Ctrl-C) removes the folder the demo made, with what it wrote there
+    with remove_made_folder_on_failure(out_dir) as files:
+
+        def keep(what: str, path: Path) -> None:
+            files.append(path)
+            written.append((what, path))
+
+        all_stats = _demo_files(args, scene, out_dir, keep)
     if not args.quiet:
         print(scene.description)
         for what, path in written:

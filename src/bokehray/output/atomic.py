@@ -14,14 +14,15 @@ import shutil
 import signal
 import socket
 import tempfile
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 import psutil
 
 from ..errors import BokehrayError, OutputError, ResourceError
 
-__all__ = ["atomic_write", "is_zombie", "remove_stale_outputs", "remove_stale_temporaries", "temporary_prefix", "writer_alive"]
+__all__ = ["atomic_write", "is_zombie", "remove_made_folder_on_failure", "remove_stale_outputs",
+           "remove_stale_temporaries", "temporary_prefix", "writer_alive"]
 
 _TMP_TAG = ".tmp-"
 """Temporary siblings are named ``.<name>.tmp-<host>-<pid>-<random><suffix>``: hidden, never read by
@@ -80,6 +81,37 @@ def remove_stale_temporaries(path: str | os.PathLike[str]) -> list[Path]:
             os.unlink(e.path)
             removed.append(Path(e.path))
     return removed
+
+
+@contextlib.contextmanager
+def remove_made_folder_on_failure(folder: str | os.PathLike[str]) -> Iterator[list[Path]]:
+    """For a command that writes several files into ``folder``: yields a list it appends each file it writes to.
+
+    If the block raises (an error, a full disk, Ctrl-C, SIGTERM), the folders it made are removed: ``folder`` and
+    each missing parent, those that did not exist on entry, with the listed files inside them (atomic writes have
+    removed their own temporaries). A folder that was there already is the user's and stays, with the files
+    written into it (each whole). A made folder that holds anything else (another writer's file) stays too. The
+    exception always propagates.
+    """
+    made = []
+    p = Path(folder).absolute()
+    while not os.path.lexists(p) and p != p.parent:
+        made.append(p)
+        p = p.parent
+    written: list[Path] = []
+    try:
+        yield written
+    except BaseException:
+        if made:
+            top = made[-1]
+            for f in written:
+                if Path(f).absolute().is_relative_to(top):
+                    with contextlib.suppress(OSError):
+                        os.unlink(f)
+            for d in made:  # deepest first; a folder not empty stays (rmdir refuses)
+                with contextlib.suppress(OSError):
+                    os.rmdir(d)
+        raise
 
 
 _WRITE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EACCES, errno.EPERM, errno.EIO,
