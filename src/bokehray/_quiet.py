@@ -19,6 +19,8 @@
   (a C library's warning, Warp's CUDA lines, a worker process's output) goes nowhere, while Python's
   ``sys.stderr`` (bokehray's own one-line errors, warnings and progress bars) keeps the terminal; and log
   records no handler takes are dropped, not printed by logging's last resort.
+- :func:`progress_bar`: a tqdm bar on a terminal; on a stderr that is no terminal (a file, a CI log) no
+  carriage-return frames: nothing, or a plain line now and then.
 
 All of them except the two capturing ones step aside with ``debug=True`` (the CLI's ``--debug``), which
 :func:`init_warp_quietly` remembers for :func:`native_stderr_quiet`.
@@ -34,11 +36,13 @@ import logging
 import os
 import sys
 import tempfile
+import time
 import warnings
 from collections.abc import Iterator
+from typing import Any
 
 __all__ = ["collect_warnings", "command_stderr", "init_warp_quietly", "library_log", "native_output",
-           "native_stderr_quiet", "quiet_warp_on_import"]
+           "native_stderr_quiet", "progress_bar", "quiet_warp_on_import"]
 
 _show_native = False
 
@@ -238,3 +242,46 @@ def command_stderr(debug: bool = False) -> Iterator[None]:
         os.close(saved)
         os.close(devnull)
         root.removeHandler(drop)
+
+
+PLAIN_PROGRESS_EVERY_S = 30.0
+"""Off a terminal, a bar that asks for lines prints one at most this often (a CI log of a long run)."""
+
+
+class _PlainProgress:
+    """What a batch or ``synth`` uses for a progress bar when stderr is no terminal: tqdm would redraw itself
+    there with carriage returns, a long smear in a log file. This prints ``<desc>: N of TOTAL (P%)`` on its own
+    line at most every :data:`PLAIN_PROGRESS_EVERY_S` seconds (``lines``), or nothing."""
+
+    def __init__(self, total: int, desc: str, lines: bool) -> None:
+        self.n, self.total, self.desc, self.lines = 0, total, desc, lines
+        self.last = time.monotonic()
+
+    def update(self, k: int = 1) -> None:
+        self.n += k
+        now = time.monotonic()
+        if self.lines and self.n < self.total and now - self.last >= PLAIN_PROGRESS_EVERY_S:
+            self.last = now
+            print(f"{self.desc}: {self.n} of {self.total} ({100 * self.n // max(self.total, 1)}%)", file=sys.stderr)
+
+    @staticmethod
+    def write(s: str, file: Any = None) -> None:
+        print(s, file=sys.stdout if file is None else file)
+
+    def __enter__(self) -> _PlainProgress:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        return None
+
+
+def progress_bar(total: int, desc: str, unit: str, *, enabled: bool = True, lines: bool = False) -> Any:
+    """A progress bar on stderr for ``total`` items: tqdm's when stderr is a terminal, else one that draws no
+    frames (:class:`_PlainProgress`; with ``lines``, a plain line every :data:`PLAIN_PROGRESS_EVERY_S` seconds at
+    most). Disabled (``enabled=False``, ``--quiet``) it prints nothing either way. Both have ``update()``,
+    ``write(s, file=)`` and work as context managers."""
+    if enabled and sys.stderr.isatty():
+        from tqdm import tqdm
+
+        return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr)
+    return _PlainProgress(total, desc, enabled and lines)

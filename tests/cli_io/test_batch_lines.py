@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import io
+import sys
+
 import numpy as np
 
 import bokehray as br
@@ -29,6 +32,30 @@ def test_batch_prints_one_line_per_photo_with_its_focus_and_amount(tmp_path, cap
     code = main(["render", str(tmp_path / "photos"), "--disparity", str(tmp_path / "maps"), "-o",
                  str(tmp_path / "out2"), "--workers", "1", "--quiet"])
     assert code == 0 and "focus d_f" not in capsys.readouterr().out
+
+
+class _Terminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def test_a_batch_draws_no_bar_frames_when_stderr_is_no_terminal(tmp_path, capsys, monkeypatch):
+    """Round 8: the batch's tqdm bar redrew itself with carriage returns into a stderr redirected to a file or a CI
+    log. Off a terminal there is no bar now (the per-photo lines on stdout say the progress); on one it is drawn."""
+    rng = np.random.default_rng(8)
+    for i in range(3):
+        br.write_image(tmp_path / "photos" / f"p{i}.png", (rng.random((24, 32, 3)) * 0.8).astype(np.float32))
+        br.write_disparity(tmp_path / "maps" / f"p{i}.png", rng.random((24, 32)).astype(np.float32))
+    argv = ["render", str(tmp_path / "photos"), "--disparity", str(tmp_path / "maps"), "--workers", "1",
+            "--blur", "3", "--focus", "0.5", "-o"]
+    code = main([*argv, str(tmp_path / "out")])
+    captured = capsys.readouterr()
+    assert code == 0 and captured.out.count(": focus d_f = ") == 3, captured
+    assert "\r" not in captured.err and "\r" not in captured.out, repr(captured.err)
+    terminal = _Terminal()
+    monkeypatch.setattr(sys, "stderr", terminal)
+    assert main([*argv, str(tmp_path / "out2")]) == 0
+    assert "\r" in terminal.getvalue() and "render" in terminal.getvalue()
 
 
 def test_photo_line_of_a_given_blur_and_metric_focus():

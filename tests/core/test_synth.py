@@ -69,6 +69,19 @@ def test_cli_synth_and_bad_input(tmp_path, capsys):
     assert code == 2 and "--blur-levels" in capsys.readouterr().err
 
 
+def test_synth_progress_off_a_terminal_is_plain_lines(tmp_path, capsys, monkeypatch):
+    """Round 8: ``synth``'s tqdm bar wrote carriage-return frames into a stderr that was a file or a CI log. Off a
+    terminal it prints a plain line now and then (here every time: the interval is set to 0), never a frame."""
+    import bokehray._quiet
+
+    monkeypatch.setattr(bokehray._quiet, "PLAIN_PROGRESS_EVERY_S", 0.0)
+    code = main(["synth", "-n", "2", "-o", str(tmp_path / "out"), "--size", "40", "--blur-levels", "5",
+                 "--max-spp", "4", "--workers", "1"])
+    err = capsys.readouterr().err
+    assert code == 0 and "\r" not in err, repr(err)
+    assert "scenes: 1 of 2 (50%)\n" in err, err
+
+
 def test_focus_choices_are_the_foreground_and_background_planes():
     from bokehray.data.synth import mean_disparity
 

@@ -407,8 +407,7 @@ def _state(out: Path, fingerprint: str, outputs: Sequence[str], overwrite: bool)
 
 def run_batch(args: argparse.Namespace) -> int:  # noqa: C901
     """``bokehray render`` with many inputs or a sweep: plan, skip what is done, run, summarise."""
-    from tqdm import tqdm
-
+    from .._quiet import progress_bar
     from ..executor import check_executor_args, make_executor
     from ..output.atomic import remove_stale_outputs
 
@@ -486,7 +485,8 @@ def run_batch(args: argparse.Namespace) -> int:  # noqa: C901
                 if not quiet:
                     print(f"rendering {len(todo)} of {len(tasks)} outputs on {ex.describe()}"
                           + (f" ({skipped} done already)" if skipped else ""), file=sys.stderr)
-                with tqdm(total=len(todo), desc="render", unit="img", disable=quiet, file=sys.stderr) as bar:
+                # a bar on a terminal only: in a log, the photo lines below say the progress
+                with progress_bar(len(todo), "render", "img", enabled=not quiet) as bar:
                     for o in ex.map(render_file, todo):
                         if o.ok:
                             done_pixels += o.value["pixels"]

@@ -396,12 +396,12 @@ def generate(config: SynthConfig, n: int, out: str | os.PathLike, *, seed: int =
         _files(config.bg_dir, "background")
     Path(out).mkdir(parents=True, exist_ok=True)
     jobs = [(config, seed, i, str(out), overwrite) for i in range(n)]
-    from tqdm import tqdm
+    from .._quiet import progress_bar
 
     done: dict[int, str] = {}
     try:
         with make_executor(executor, workers=workers, scheduler=scheduler, tasks=n) as ex, \
-                tqdm(total=n, desc="scenes", unit="scene", disable=not progress) as bar:
+                progress_bar(n, "scenes", "scene", enabled=progress, lines=True) as bar:  # no frames in a log
             for o in ex.map(generate_one, jobs):
                 if not o.ok:
                     raise InputError(f"scene_{o.index:05d}: {o.error}")
