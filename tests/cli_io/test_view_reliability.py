@@ -159,6 +159,51 @@ def test_a_body_that_stops_half_way_is_answered_408_and_the_connection_closed(se
     assert json.loads(body) == {"error": "request body: not all of it arrived within 0.2 s"}
 
 
+def _response(s: socket.socket) -> bytes:
+    """One whole response on a connection the server keeps open (its Content-Length says where it ends)."""
+    data = b""
+    while b"\r\n\r\n" not in data:
+        data += s.recv(65536)
+    head, _, body = data.partition(b"\r\n\r\n")
+    length = next(int(line.split(b":")[1]) for line in head.split(b"\r\n") if line.lower().startswith(b"content-length:"))
+    while len(body) < length:
+        body += s.recv(65536)
+    return head
+
+
+def test_connections_that_never_finish_their_headers_are_closed_and_the_server_answers_again(server, monkeypatch):
+    """Round 7 left this open: a connection that sent nothing, or half of its request headers, was never timed out;
+    64 of them (uvicorn's concurrency limit) and every other request was answered 503 until they closed. Each has
+    HEADER_TIMEOUT_S now: half a request is answered 408, a silent connection closed; so is a kept-alive connection
+    that starts its next request and stops. Outcomes only; HANG_S is a hang detector."""
+    import bokehray.app.view.server as view_server
+
+    monkeypatch.setattr(view_server, "HEADER_TIMEOUT_S", 0.2, raising=False)
+    stalled = []
+    try:
+        for i in range(70):  # more than uvicorn's 64
+            s = socket.create_connection(("127.0.0.1", server.port), timeout=HANG_S)
+            if i % 2:
+                s.sendall(b"GET /api/info HTTP/1.1\r\nHost: 127.0.0.1\r\nAccept: ")
+            stalled.append(s)
+        answers = [_answer(s) for s in stalled]  # each returns once the server has closed its connection
+    finally:
+        for s in stalled:
+            s.close()
+    assert answers[::2] == [b""] * 35
+    for a in answers[1::2]:
+        head, _, body = a.partition(b"\r\n\r\n")
+        assert head.startswith(b"HTTP/1.1 408 "), a
+        assert json.loads(body) == {"error": "request headers: not all of them arrived within 0.2 s"}
+    with socket.create_connection(("127.0.0.1", server.port), timeout=HANG_S) as s:
+        s.sendall(b"GET /api/info HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+        assert _response(s).startswith(b"HTTP/1.1 200 ")  # kept alive; then the next request stops half-way
+        s.sendall(b"GET /api/info HTTP/1.1\r\nHost: 127.0.0.1\r\nAcc")
+        assert _answer(s).startswith(b"HTTP/1.1 408 ")
+    with urllib.request.urlopen(server.url + "api/info", timeout=HANG_S) as r:
+        assert r.status == 200
+
+
 def _get(url: str, host: str):
     req = urllib.request.Request(url, headers={"Host": host})
     try:

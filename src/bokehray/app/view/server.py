@@ -49,6 +49,70 @@ _SECURITY_HEADERS = {
 BODY_TIMEOUT_S = 5.0
 """Seconds a request body (at most 4096 bytes, from this machine) has to arrive; then 408 and the connection closes."""
 
+HEADER_TIMEOUT_S = 10.0
+"""Seconds a connection has, from its opening or from its previous response, to finish its next request's headers
+(a browser sends them in one packet): then half a request is answered 408, and a silent connection is closed.
+uvicorn times out nothing before the headers are complete, so 64 stalled connections took every slot of its
+``limit_concurrency`` and every other request was answered 503 until they closed."""
+
+
+def _http_protocol() -> type:  # noqa: C901 - one small class, defined where uvicorn (an extra) is imported
+    """uvicorn's h11 protocol with a deadline for the request headers (:data:`HEADER_TIMEOUT_S`).
+
+    uvicorn has ``timeout_keep_alive`` (idle after a response) but no header timeout, and its h11 options limit a
+    request's size, not its time. The deadline starts when the connection opens, and again when a response is
+    complete (a kept-alive connection's next request: uvicorn's keep-alive timer stops at its first byte); it is
+    cancelled once h11 has the whole request line and headers, and never reset by a byte that does not finish them
+    (a client trickling a byte a second stays bounded)."""
+    import h11
+    from uvicorn.protocols.http.h11_impl import H11Protocol
+
+    class _HeaderDeadlineH11(H11Protocol):
+        _header_timer: asyncio.TimerHandle | None = None
+
+        def connection_made(self, transport) -> None:
+            super().connection_made(transport)
+            self._watch_headers()
+
+        def data_received(self, data: bytes) -> None:
+            super().data_received(data)
+            self._watch_headers()
+
+        def on_response_complete(self) -> None:
+            super().on_response_complete()
+            self._watch_headers()
+
+        def connection_lost(self, exc: Exception | None) -> None:
+            self._stop_header_timer()
+            super().connection_lost(exc)
+
+        def _stop_header_timer(self) -> None:
+            if self._header_timer is not None:
+                self._header_timer.cancel()
+                self._header_timer = None
+
+        def _waiting_for_headers(self) -> bool:
+            return self.conn.their_state is h11.IDLE and not self.transport.is_closing()
+
+        def _watch_headers(self) -> None:
+            if not self._waiting_for_headers():
+                self._stop_header_timer()
+            elif self._header_timer is None:
+                self._header_timer = self.loop.call_later(HEADER_TIMEOUT_S, self._headers_timed_out)
+
+        def _headers_timed_out(self) -> None:
+            self._header_timer = None
+            if not self._waiting_for_headers():
+                return
+            if self.conn.trailing_data[0]:  # half a request: say why it ends
+                body = json.dumps({"error": f"request headers: not all of them arrived within {HEADER_TIMEOUT_S:g} "
+                                            "s"}).encode()
+                self.transport.write(b"HTTP/1.1 408 Request Timeout\r\ncontent-type: application/json\r\n"
+                                     b"connection: close\r\ncontent-length: %d\r\n\r\n%s" % (len(body), body))
+            self.transport.close()
+
+    return _HeaderDeadlineH11
+
 
 def _static(name: str) -> bytes:
     return resources.files("bokehray.app.view").joinpath("static", name).read_bytes()
@@ -319,9 +383,9 @@ class ViewServer:
         self.app = create_app(session, self.worker, allowed_hosts=hosts, any_address=not loopback)
         # "error": a malformed request or one over the concurrency limit is answered (400, 503); uvicorn's warning
         # line about it on the user's console ("Invalid HTTP request received.") is noise, not theirs to act on
-        config = uvicorn.Config(self.app, log_level="error", access_log=False, lifespan="off",
-                                limit_concurrency=64, timeout_keep_alive=5, h11_max_incomplete_event_size=16384,
-                                timeout_graceful_shutdown=10)
+        config = uvicorn.Config(self.app, http=_http_protocol(), log_level="error", access_log=False,
+                                lifespan="off", limit_concurrency=64, timeout_keep_alive=5,
+                                h11_max_incomplete_event_size=16384, timeout_graceful_shutdown=10)
         worker = self.worker
 
         class _Server(uvicorn.Server):
