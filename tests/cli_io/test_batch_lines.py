@@ -6,6 +6,7 @@ import io
 import sys
 
 import numpy as np
+import pytest
 
 import bokehray as br
 from bokehray.app.batch import photo_line
@@ -62,3 +63,27 @@ def test_photo_line_of_a_given_blur_and_metric_focus():
     line = photo_line("/a/b/x.jpg", {"output": "/o/x.jpg", "focus_disparity": 0.5, "focus": "--focus-at",
                                      "focus_m": 2.5, "amount": None, "k_px": 12.25})
     assert line == "x.jpg -> x.jpg: focus d_f = 0.500 (--focus-at, 2.5 m), K = 12.2 px"
+
+
+@pytest.mark.parametrize("terminal", [False, True])
+def test_train_refiner_draws_its_bars_only_on_a_terminal(tmp_path, monkeypatch, terminal):
+    """train-refiner's tqdm bars (the bank's and the steps') wrote carriage-return frames into a log; off a terminal
+    they are off now, on one they are drawn (unless --quiet)."""
+    pytest.importorskip("torch")
+    from bokehray.app import cli
+
+    seen = {}
+
+    class _Train:
+        TrainConfig = staticmethod(lambda **kw: kw)
+
+        @staticmethod
+        def train(cfg, resume, progress, stop_at):
+            seen["progress"] = progress
+            return tmp_path / "w.safetensors"
+
+    monkeypatch.setattr(cli, "_refiner_module", lambda name: _Train)
+    if terminal:
+        monkeypatch.setattr(sys, "stderr", _Terminal())
+    assert main(["train-refiner", "--data", str(tmp_path), "--out", str(tmp_path / "run")]) == 0
+    assert seen["progress"] is terminal

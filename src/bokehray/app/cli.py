@@ -421,7 +421,9 @@ def cmd_train_refiner(args: argparse.Namespace) -> int:
             variants=args.variants, limit=args.limit, seed=args.seed, edge_weight=args.edge_weight,
             adv_weight=args.adv_weight, lpips_model=args.lpips_model, lpips_weight=args.lpips_weight,
             checkpoint_every=args.checkpoint_every, device=args.device)
-        weights = train.train(cfg, resume=not args.no_resume, progress=not args.quiet, stop_at=args.stop_at)
+        # tqdm's frames only on a terminal: in a log they are carriage-return noise (the loss log is the record)
+        weights = train.train(cfg, resume=not args.no_resume, progress=not args.quiet and sys.stderr.isatty(),
+                              stop_at=args.stop_at)
     except ValueError as e:
         raise InputError(str(e)) from None
     if not args.quiet:
