@@ -40,12 +40,13 @@ from bokehray.errors import InputError
 from bokehray.lens import BlurParams
 from bokehray_refiner.pisa import PisaMaskOptions
 
+from .edges import EdgeNet, load_edge_net, place_edges
 from .gate import GateOptions, channel_max, refine_gate
 from .masks import PisaMaskProvider
 from .model import BokehRefiner, RefinerConfig
 from .tiles import raised_cosine_ramp
 
-__all__ = ["DEFAULT_WEIGHTS", "RefineOptions", "RefineStats", "blend_weight", "correct_and_render", "edge_band",
+__all__ = ["DEFAULT_WEIGHTS", "RefineOptions", "RefineStats", "blend_weight", "correct_and_render", "corrected_disparity", "edge_band",
            "edge_reach", "load_refiner", "refine", "refine_boxes", "tiles_near", "tiles_to_refine"]
 
 DEFAULT_WEIGHTS = Path(__file__).parent / "weights" / "refiner.safetensors"
@@ -70,6 +71,10 @@ class RefineOptions:
         neural: False stops after the depth correction (the neural residual is not run).
         merge_tiles: neighbouring tiles to refine run as one box with one halo (:func:`refine_boxes`), blended
             with the same per-tile weights, instead of one pass per tile, each with its own halo.
+        edges: after the depth correction, the learned edge placement (:mod:`.edges`) moves the map's edges in
+            the band, before the level renders again.
+        edge_threshold: the edge network moves a pixel across an edge only where it gives the other side at least
+            this probability.
     """
 
     tile: int = 64
@@ -83,6 +88,8 @@ class RefineOptions:
     depthfix: DepthFixOptions = DepthFixOptions()
     neural: bool = True
     merge_tiles: bool = True
+    edges: bool = False
+    edge_threshold: float = 0.9
 
     def __post_init__(self) -> None:
         if self.tile < 8 or self.tile % 8 or self.halo < 0 or self.halo % 8:
@@ -254,6 +261,7 @@ def refine(
     model: BokehRefiner | None = None,
     options: RefineOptions = RefineOptions(),
     rerender: Callable[[np.ndarray], np.ndarray] | None = None,
+    edge_model: EdgeNet | None = None,
 ) -> tuple[np.ndarray, RefineStats]:
     """Refine a classical render where depth discontinuities meet blur.
 
@@ -272,6 +280,7 @@ def refine(
         classical: the classical render (``H x W x 3``, scene-linear), or None (rendered here by ``rerender``).
         model: a loaded refiner (default: the shipped weights).
         rerender: ``disparity -> H x W x 3`` render of the same classical level (the pipeline passes its own).
+        edge_model: a loaded edge network, with ``options.edges`` (default: the shipped weights).
 
     Returns:
         The refined render (scene-linear float32; untouched pixels are the classical values exactly) and stats.
@@ -280,7 +289,7 @@ def refine(
     first = classical is None  # the level's only render happens here: it is not part of the refine pass's time
     if first and rerender is None:
         raise InputError("refine: without a classical render it needs the rerender callback that renders the level")
-    fix = _correct_depth(image, disparity, blur, classical, options, rerender)
+    fix = _correct_depth(image, disparity, blur, classical, options, rerender, edge_model)
     classical, disparity = fix.classical, fix.disparity
     coc = blur.signed_coc(disparity).astype(np.float32)
     reach = edge_reach(coc, options.min_jump_px)
@@ -312,10 +321,11 @@ def refine(
 
 def correct_and_render(image: np.ndarray, disparity: np.ndarray, blur: BlurParams,
                        rerender: Callable[[np.ndarray], np.ndarray],
-                       options: RefineOptions = RefineOptions()) -> tuple[np.ndarray, np.ndarray]:
+                       options: RefineOptions = RefineOptions(),
+                       edge_model: EdgeNet | None = None) -> tuple[np.ndarray, np.ndarray]:
     """What the network of :func:`refine` is given: the level's render after the depth correction, and the map it
     used (the corrected one, or the given one where nothing moved). The training pairs are made by this."""
-    fix = _correct_depth(image, disparity, blur, None, options, rerender)
+    fix = _correct_depth(image, disparity, blur, None, options, rerender, edge_model)
     return fix.classical, fix.disparity
 
 
@@ -332,20 +342,43 @@ class _DepthFix:
     focus_srgb: np.ndarray | None  # the photo in sRGB, when the correction computed it
 
 
-def _correct_depth(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, classical: np.ndarray | None,
-                   options: RefineOptions, rerender: Callable[[np.ndarray], np.ndarray] | None) -> _DepthFix:
-    """Stage 1: the colour-guided depth correction, then the level on the corrected map (or on the given map when
-    nothing was rendered yet)."""
-    fixed_px, t_fix, t_re, d_fixed, focus_srgb = 0, 0.0, 0.0, None, None
-    if rerender is not None and options.depthfix.enabled:
-        from scipy import ndimage
+def corrected_disparity(image: np.ndarray, disparity: np.ndarray, blur: BlurParams,
+                        options: RefineOptions = RefineOptions(), edge_model: EdgeNet | None = None,
+                        focus_srgb: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The map refine renders: the colour-guided depth correction (``bokehray.depthfix``), then, with
+    ``options.edges``, the learned edge placement (:mod:`.edges`) on its result; and which pixels moved. Clipped
+    lights (dilated by 2 px) never move and never vote."""
+    from scipy import ndimage
 
+    focus_srgb = linear_to_srgb(np.clip(image[..., :3], 0.0, 1.0)) if focus_srgb is None else focus_srgb
+    lights = channel_max(image) >= 1.0
+    if lights.any():
+        lights = ndimage.binary_dilation(lights, iterations=2)
+    d_new, changed = disparity, np.zeros(disparity.shape, bool)
+    if options.depthfix.enabled:
+        d_new, changed = correct_disparity(focus_srgb, disparity, blur.k_px, options.depthfix, keep=lights)
+    if options.edges:
+        model = edge_model or load_edge_net()
+        coc = blur.signed_coc(d_new).astype(np.float32)
+        reach = edge_reach(coc, options.min_jump_px)
+        band = edge_band(reach, options.band_margin_px, options.band_feather_px)
+        placed = place_edges(model, focus_srgb, np.asarray(d_new, np.float32), blur, band, options.edge_threshold,
+                             keep=lights)
+        changed = changed | (placed != d_new)
+        d_new = placed
+    return d_new, changed
+
+
+def _correct_depth(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, classical: np.ndarray | None,
+                   options: RefineOptions, rerender: Callable[[np.ndarray], np.ndarray] | None,
+                   edge_model: EdgeNet | None = None) -> _DepthFix:
+    """Stage 1: the depth correction (:func:`corrected_disparity`), then the level on the corrected map (or on the
+    given map when nothing was rendered yet)."""
+    fixed_px, t_fix, t_re, d_fixed, focus_srgb = 0, 0.0, 0.0, None, None
+    if rerender is not None and (options.depthfix.enabled or options.edges):
         t1 = time.perf_counter()
         focus_srgb = linear_to_srgb(np.clip(image[..., :3], 0.0, 1.0))
-        lights = channel_max(image) >= 1.0  # clipped lights (dilated by 2 px) never move and never vote
-        if lights.any():
-            lights = ndimage.binary_dilation(lights, iterations=2)
-        d_new, changed = correct_disparity(focus_srgb, disparity, blur.k_px, options.depthfix, keep=lights)
+        d_new, changed = corrected_disparity(image, disparity, blur, options, edge_model, focus_srgb)
         t_fix = time.perf_counter() - t1
         if changed.any():
             t1 = time.perf_counter()

@@ -1,0 +1,161 @@
+"""bokehray_refiner.edges: the learned edge placement moves only band pixels, only to its candidates, the same on
+tiles as on the whole frame, and its weights load only when they fit."""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+torch = pytest.importorskip("torch")
+
+from bokehray_refiner.edges import (  # noqa: E402
+    EdgeConfig,
+    EdgeNet,
+    candidates,
+    edge_features,
+    load_edge_net,
+    map_sides,
+    place_edges,
+    save_edge_net,
+)
+
+import bokehray as br  # noqa: E402
+from bokehray.errors import InputError  # noqa: E402
+
+SMALL = EdgeConfig(width=8, dilations=(2, 4), radius_px=6)
+
+
+def _scene(h=80, w=120, seed=0):
+    rng = np.random.default_rng(seed)
+    focus = rng.random((h, w, 3), dtype=np.float32)
+    d = np.full((h, w), 0.2, np.float32)
+    d[20:60, 30:70] = 0.8
+    d[35:45, 90:] = 0.6
+    return focus, d, br.BlurParams(12.0, 0.2)
+
+
+def _mover(config=SMALL, seed=0) -> EdgeNet:
+    """A random network (it does move pixels at a low threshold)."""
+    torch.manual_seed(seed)
+    return EdgeNet(config).eval()
+
+
+def test_the_candidates_are_the_local_extremes_of_the_map_and_the_sides_split_between_them():
+    _, d, _blur = _scene()
+    near, far = candidates(d, 6)
+    assert near[20 - 6, 30 - 6] == 0.8 and near[20 - 7, 30] == 0.2  # within the window of the near square only
+    assert far[25, 35] == 0.2 and far[30, 45] == 0.8
+    reach, on_near = map_sides(d, near, far)
+    assert reach[20 - 6, 30] and not reach[20 - 7, 30] and not reach[40, 50]  # no edge within 6 px: out of reach
+    assert on_near[25, 35] and not on_near[15, 35]
+    between = np.full_like(d, 0.5)  # halfway: a tie, which counts as far
+    assert not map_sides(between, np.full_like(d, 0.8), np.full_like(d, 0.2))[1].any()
+
+
+def test_on_tiles_the_network_moves_the_map_as_it_would_on_the_whole_frame():
+    focus, d, blur = _scene(90, 200)
+    band = np.zeros(d.shape, np.float32)
+    band[10:70, 20:80] = 1.0
+    band[30:50, 150:190] = 0.5  # two boxes of tiles, apart
+    m = _mover()
+    moved = place_edges(m, focus, d, blur, band, threshold=0.5, tile=16)
+    with torch.no_grad():
+        p = torch.sigmoid(m(torch.from_numpy(edge_features(focus, d, blur, band, SMALL))[None]))[0, 0].numpy()
+    near, far = candidates(d, SMALL.radius_px)
+    reach, on_near = map_sides(d, near, far)
+    open_ = (band > 0) & reach
+    expect = np.where(open_ & ~on_near & (p >= 0.5), near, np.where(open_ & on_near & (p <= 0.5), far, d))
+    np.testing.assert_array_equal(moved, expect)
+    assert (moved != d).any()
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**16), threshold=st.floats(0.0, 1.0), keep_lights=st.booleans(), attached=st.booleans())
+def test_moves_only_open_band_pixels_only_to_a_candidate(seed, threshold, keep_lights, attached):
+    focus, d, blur = _scene(48, 64, seed)
+    rng = np.random.default_rng(seed)
+    band = (rng.random(d.shape) < 0.4).astype(np.float32) * rng.random(d.shape, dtype=np.float32)
+    keep = rng.random(d.shape) < 0.3 if keep_lights else None
+    moved = place_edges(_mover(seed=seed % 7), focus, d, blur, band, threshold, keep=keep, tile=16,
+                        attached=attached)
+    near, far = candidates(d, SMALL.radius_px)
+    reach, on_near = map_sides(d, near, far)
+    changed = moved != d
+    if attached:  # every moved region touches the side it joins: no islands, no holes
+        from scipy import ndimage
+
+        eight = np.ones((3, 3), bool)
+        for joined, side in ((changed & ~on_near, on_near & ~changed), (changed & on_near, reach & ~on_near & ~changed)):
+            labels, n = ndimage.label(joined, structure=eight)
+            touching = set(np.unique(labels[ndimage.binary_dilation(side, structure=eight) & joined]))
+            assert set(range(1, n + 1)) <= touching
+    assert not (changed & ((band <= 0) | ~reach)).any()
+    if keep is not None:
+        assert not (changed & keep).any()
+    # a pixel moves only across the edge: from the far side to the near value, or the other way
+    assert np.all(~changed | (on_near & (moved == far)) | (~on_near & (moved == near)))
+
+
+def test_an_undecided_network_keeps_the_map():
+    focus, d, blur = _scene()
+    band = np.ones(d.shape, np.float32)
+    m = EdgeNet(SMALL).eval()
+    with torch.no_grad():
+        m.net[-1].weight.zero_()
+        m.net[-1].bias.zero_()  # p = 0.5 everywhere: sure of nothing
+    np.testing.assert_array_equal(place_edges(m, focus, d, blur, band, threshold=0.9), d)
+    with torch.no_grad():
+        m.net[-1].bias.fill_(10.0)  # sure every pixel is near: the far side next to the edges moves
+    moved = place_edges(m, focus, d, blur, band, threshold=0.9)
+    near, _ = candidates(d, SMALL.radius_px)
+    assert moved[20 - 6, 30] == near[20 - 6, 30] == 0.8 and moved[5, 5] == d[5, 5]
+
+
+def test_weights_round_trip_and_load_only_when_they_fit(tmp_path):
+    m = _mover()
+    save_edge_net(m, tmp_path / "e.safetensors")
+    back = load_edge_net(tmp_path / "e.safetensors")
+    assert back.config == SMALL
+    for a, b in zip(m.state_dict().values(), back.state_dict().values()):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    # weights whose tensors do not fit the config they carry
+    import json
+
+    from safetensors.torch import save_file
+
+    state = EdgeNet(EdgeConfig(width=4, dilations=(2, 4), radius_px=6)).state_dict()
+    save_file(state, str(tmp_path / "bad.safetensors"),
+              metadata={"config": json.dumps({"width": 8, "dilations": [2, 4], "radius_px": 6}),
+                        "kind": "bokehray-edges"})
+    with pytest.raises(InputError, match="bad.safetensors: not edge-network weights"):
+        load_edge_net(tmp_path / "bad.safetensors")
+    save_file(state, str(tmp_path / "other.safetensors"), metadata={"config": "{}"})  # not ours
+    with pytest.raises(InputError, match="other.safetensors"):
+        load_edge_net(tmp_path / "other.safetensors")
+    with pytest.raises(InputError, match="no edge-network weights"):
+        load_edge_net(tmp_path / "missing.safetensors")
+
+
+def test_refine_renders_once_on_the_map_the_edge_network_moved():
+    """With ``RefineOptions(edges=True)`` the edge network runs after the depth fix, and the level renders once, on
+    its map; pixels it moved count as corrected."""
+    from bokehray_refiner.refine import RefineOptions, corrected_disparity, refine
+
+    from bokehray.depthfix import DepthFixOptions
+
+    focus, d, blur = _scene()
+    image = focus ** 2.2
+    m = EdgeNet(SMALL).eval()
+    with torch.no_grad():
+        m.net[-1].weight.zero_()
+        m.net[-1].bias.fill_(10.0)  # sure that every pixel is on the near side
+    opts = RefineOptions(edges=True, neural=False, depthfix=DepthFixOptions(enabled=False))
+    moved, changed = corrected_disparity(image, d, blur, opts, edge_model=m)
+    assert changed.any() and np.array_equal(changed, moved != d)
+    assert np.all(moved[changed] > d[changed])  # only towards the near side
+    seen = []
+    _out, stats = refine(image, d, blur, None, options=opts, edge_model=m,
+                        rerender=lambda dd: seen.append(dd) or np.zeros(image.shape, np.float32))
+    assert len(seen) == 1 and np.array_equal(seen[0], moved) and stats.depth_fixed_px == int(changed.sum())
+    off, _ = corrected_disparity(image, d, blur, RefineOptions(edges=False, depthfix=opts.depthfix), edge_model=m)
+    np.testing.assert_array_equal(off, d)
