@@ -41,7 +41,7 @@ CONDITIONS = [("none", 0), ("erode", 1), ("erode", 3), ("erode", 5), ("dilate", 
 DEV_CONDITIONS = CONDITIONS + [("blur", 3), ("shift", 2), ("estimator", 4)]
 NET_CONDITIONS = [("none", 0), ("local", 10), ("estimator", 6), ("missing", 2)]
 """The network's own target (docs/refiner.md): what the depth fix cannot undo, and the exact map."""
-METHODS = ("preview", "raytrace", "depthfix", "refine", "refine_ungated", "refine_nofix")
+METHODS = ("preview", "raytrace", "depthfix", "edges", "refine", "refine_ungated", "refine_nofix")
 
 
 def devset_samples(root: Path):
@@ -91,6 +91,9 @@ def main() -> None:  # noqa: C901
                     "resolution) and strands up to 5 px missing (the network's own target)")
     ap.add_argument("--pairs", type=int, default=48, help="pairs to score (every k-th pair of the folder)")
     ap.add_argument("--weights", help="refiner weights (default: the shipped ones)")
+    ap.add_argument("--edges", nargs="?", const="shipped", default=None,
+                    help="refine with the learned edge placement (these weights, or the shipped ones); adds the "
+                         "method 'edges' (the depth fix and the edge network, no residual network)")
     ap.add_argument("--max-spp", type=int, default=64, help="raytrace rays per pixel cap")
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--band-margin", type=float, default=None,
@@ -118,6 +121,7 @@ def main() -> None:  # noqa: C901
     if args.threads:
         torch.set_num_threads(args.threads)
     from bokehray_refiner.data import corrupt_disparity
+    from bokehray_refiner.edges import load_edge_net
     from bokehray_refiner.refine import RefineOptions, load_refiner, refine
 
     import bokehray as br
@@ -128,8 +132,12 @@ def main() -> None:  # noqa: C901
         ropts = replace(ropts, gate=replace(ropts.gate, agreement=False))
 
     model = load_refiner(args.weights)
+    edge_model = None
+    if args.edges:
+        edge_model = load_edge_net(None if args.edges == "shipped" else args.edges)
+        ropts = replace(ropts, edges=True)
     if args.timing:
-        return timing(args, model, ropts)
+        return timing(args, model, ropts, edge_model)
     if args.devset:
         samples = list(devset_samples(Path(args.devset)))
         conditions = NET_CONDITIONS if args.network_conditions else DEV_CONDITIONS
@@ -138,7 +146,8 @@ def main() -> None:  # noqa: C901
         conditions = NET_CONDITIONS if args.network_conditions else (DEV_CONDITIONS if args.all_corruptions
                                                                       else CONDITIONS)
     ungated = replace(ropts, gate=replace(ropts.gate, enabled=False))
-    fix_only = replace(ropts, neural=False)
+    fix_only = replace(ropts, neural=False, edges=False)  # the classical pipeline: what the networks add to
+    edges_only = replace(ropts, neural=False)
     nofix = replace(ropts, depthfix=replace(ropts.depthfix, enabled=False))
     old_ray = {}
     if args.reuse_raytrace:
@@ -160,13 +169,19 @@ def main() -> None:  # noqa: C901
                 rows.append(old_ray[(name, kind, amount)] | {"reused": True})
             rer = lambda dd, im=image, bl=blur: br.render(im, dd, bl)  # noqa: E731  (the preview on the fixed map)
             fixed, st_fix = refine(image, d, blur, preview, options=fix_only, rerender=rer)
-            refined, st = refine(image, d, blur, preview, model=model, options=ropts, rerender=rer)
+            moved, st_edges = (None, None) if edge_model is None else refine(
+                image, d, blur, preview, options=edges_only, rerender=rer, edge_model=edge_model)
+            refined, st = refine(image, d, blur, preview, model=model, options=ropts, rerender=rer,
+                                 edge_model=edge_model)
             raw, st_raw = (None, None) if args.no_ungated else refine(image, d, blur, preview, model=model,
-                                                                       options=ungated, rerender=rer)
+                                                                       options=ungated, rerender=rer,
+                                                                       edge_model=edge_model)
             plain, st_plain = (None, None) if args.no_nofix else refine(image, d, blur, preview, model=model,
                                                                          options=nofix)
             for method, img, t, stx in (("preview", preview, t_preview, None), ("raytrace", ray, t_ray, None),
                                         ("depthfix", fixed, t_preview + st_fix.seconds, st_fix),
+                                        ("edges", moved, t_preview + (st_edges.seconds if st_edges else 0),
+                                         st_edges),
                                         ("refine", refined, t_preview + st.seconds, st),
                                         ("refine_ungated", raw, t_preview + (st_raw.seconds if st_raw else 0),
                                          st_raw),
@@ -183,7 +198,8 @@ def main() -> None:  # noqa: C901
     summary = summarise(rows, conditions)
     gains = network_gains(summary)
     write_json(args.out, {"machine": machine_info(), "data": data_label, "pairs": len(samples),
-                          "weights": str(args.weights or "shipped"), "refine_options": repr(ropts),
+                          "weights": str(args.weights or "shipped"), "edges": args.edges,
+                          "refine_options": repr(ropts),
                           "network_gain": gains, "summary": summary, "rows": rows})
     print_table(summary)
     (plot_network if args.network_conditions else plot)(summary, args.plot)
@@ -192,7 +208,7 @@ def main() -> None:  # noqa: C901
               f"band {g['band_psnr']:+.2f} dB")
 
 
-def timing(args, model, ropts) -> None:
+def timing(args, model, ropts, edge_model=None) -> None:
     """Preview vs preview + refine at 1536 x 1024, medians of warm runs, with the tiles refined."""
     from bokehray_refiner.data import corrupt_disparity
     from bokehray_refiner.refine import refine
@@ -217,20 +233,21 @@ def timing(args, model, ropts) -> None:
         d = np.clip(corrupt_disparity(disp, kind, amount), 0, 1)
         rer = lambda dd: br.render(image, dd, blur)  # noqa: E731
         br.render(image, d, blur)  # warm-up
-        refine(image, d, blur, None, model=model, options=ropts, rerender=rer)
+        refine(image, d, blur, None, model=model, options=ropts, rerender=rer, edge_model=edge_model)
         tp, tg, tu, tt, stages = [], [], [], [], {k: [] for k in ("depthfix", "rerender", "gate", "neural")}
         for _ in range(args.runs):  # alternating: the preview alone, then render --refine (fix, one render, gate, net)
             t0 = time.perf_counter()
             br.render(image, d, blur)
             tp.append(time.perf_counter() - t0)
             t0 = time.perf_counter()
-            _, st = refine(image, d, blur, None, model=model, options=ropts, rerender=rer)
+            _, st = refine(image, d, blur, None, model=model, options=ropts, rerender=rer, edge_model=edge_model)
             tt.append(time.perf_counter() - t0)
             tg.append(st.seconds)
             for k in stages:
                 stages[k].append(getattr(st, f"{k}_seconds"))
             if not args.no_ungated:
-                _, su = refine(image, d, blur, None, model=model, options=ungated, rerender=rer)
+                _, su = refine(image, d, blur, None, model=model, options=ungated, rerender=rer,
+                               edge_model=edge_model)
                 tu.append(su.seconds)
         row = {"disparity": f"{kind} {amount}", "preview_s": float(np.median(tp)), "refine_s": float(np.median(tg)),
                "render_refine_s": float(np.median(tt)), "preview_runs_s": tp, "refine_runs_s": tg,
@@ -269,7 +286,7 @@ def summarise(rows: list[dict], conditions=CONDITIONS) -> list[dict]:
                         "band_ssim": float(np.nanmean([r["band_ssim"] for r in sel])),
                         "seconds": float(np.median([r["seconds"] for r in sel])),
                         "share_refined": float(np.mean([r["share_refined"] for r in sel]))
-                        if method.startswith("refine") or method == "depthfix" else None,
+                        if method.startswith("refine") or method in ("depthfix", "edges") else None,
                         "gate_open": float(np.mean([r["gate_open"] for r in sel]))
                         if method.startswith("refine") else None,
                         "depth_fixed_px": float(np.mean([r.get("depth_fixed_px") or 0 for r in sel]))})
@@ -353,7 +370,7 @@ def plot_network(summary: list[dict], path: str) -> None:
     conds = list(dict.fromkeys((r["corruption"], r["px"]) for r in summary))
     names = [f"{k} {p}" if p else "exact" for k, p in conds]
     fig, axes = plt.subplots(1, 2, figsize=(11, 3.8), dpi=120)
-    methods = [m for m in ("preview", "depthfix", "refine", "refine_ungated") if any(r["method"] == m for r in summary)]
+    methods = [m for m in ("preview", "depthfix", "edges", "refine", "refine_ungated") if any(r["method"] == m for r in summary)]
     for j, method in enumerate(methods):
         ys = [next((r["band_psnr"] for r in summary if (r["corruption"], r["px"]) == c and r["method"] == method),
                    math.nan) for c in conds]

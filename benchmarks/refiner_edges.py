@@ -1,0 +1,359 @@
+"""Train and score the learned edge placement (``bokehray_refiner.edges``): refine's first network.
+
+Training pairs come from a BLB folder (``bokehray synth``). Each pair's map is corrupted ``--variants`` ways as real
+maps are wrong (the exact map; edges misplaced locally by 5-20 px; a monocular estimator's map at 1/3 to 1/8
+resolution; strands 1-3 px wide missing; near regions grown or shrunk by 2-6 px), each with its own random draw,
+then put through the colour-guided depth correction as refine does. The network learns, per pixel of the edge band,
+which side of the edge the pixel is on: the side (near or far candidate) whose CoC is nearer the true map's. Its loss
+is the binary cross-entropy against that side, each pixel weighted by the band, by the CoC span between the
+candidates (0 to 1 at 4 px) and ``--exact-weight`` on the exact maps.
+
+Scored on the path-traced dev set and a held-out synthetic split in the true depth's band, per corruption of
+``bench_refiner.NET_CONDITIONS``, as ``bench_refiner.py --network-conditions``: ``fix`` is the depth fix's render
+(refine without networks), ``edges`` the level on the map the edge network moved, at each ``--thresholds``
+(``gated``: only where refine's confidence gate opens), ``oracle`` the level on the map a perfect network would make
+(:func:`oracle_map`). Clipped lights are not held back here (refine holds them).
+
+    bokehray synth -n 80 -o data/train --seed 2000 --size 256 --blur-levels 8,16,24 --depth-rule half \\
+        --kinds strands=3,fur=2,whiskers=1,foliage=2,mesh=1,softcut=1.5,cutout=1,lights=1
+    python benchmarks/refiner_edges.py --train data/train --heldout data/heldout --devset ../shared/data/pathtraced-dev \\
+        --bank data/edges_bank.npz --checkpoint data/edges_run.pt --export data/edges.safetensors
+    python benchmarks/refiner_edges.py --load data/edges.safetensors --devset ... --heldout ... --gate --attached
+
+Writes ``benchmarks/results/refiner_edges.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from bench_refiner import NET_CONDITIONS, devset_samples, synth_samples
+from common import REPO, machine_info, write_json
+from refiner_choice import _resume, _save, _srgb
+
+COC_SCALE_PX = 8.0
+"""``EdgeConfig.coc_scale_px`` of the networks this script trains (the inputs' CoC unit)."""
+
+TRAIN_CORRUPTIONS = (("none", 0, 0), ("local", 5, 20), ("estimator", 3, 8), ("missing", 1, 3),
+                     ("erode", 2, 6), ("dilate", 2, 6))
+"""(kind, smallest amount, largest amount) of each corruption a training map may get."""
+
+
+def used_map(image, disparity, blur, opts):
+    """The depth fix's map (what the edge network is given) and the band refine would open on it."""
+    from bokehray_refiner.refine import corrected_disparity, edge_band, edge_reach
+
+    used, _ = corrected_disparity(image, disparity, blur, opts)
+    used = np.asarray(used, np.float32)
+    reach = edge_reach(blur.signed_coc(used).astype(np.float32), opts.min_jump_px)
+    return used, edge_band(reach, opts.band_margin_px, opts.band_feather_px)
+
+
+def side_costs(used: np.ndarray, truth: np.ndarray, blur, config, cap_px: float = 8.0) -> np.ndarray:
+    """Per pixel, how far (CoC px, capped) the true map is from keeping ``used``, from its near candidate and from its
+    far one (``3 x H x W``): the true side is the nearer candidate (:func:`side_labels`)."""
+    from bokehray_refiner.edges import candidates
+
+    near, far = candidates(used, config.radius_px)
+    t = blur.signed_coc(truth)
+    return np.minimum(np.stack([np.abs(blur.signed_coc(m) - t) for m in (used, near, far)]), cap_px)
+
+
+def side_labels(cost, x):
+    """From a bank entry's costs and inputs (torch, ``B x 3 x H x W`` and ``B x N_INPUTS x H x W``): the true side
+    (1: near, the near candidate is nearer the true CoC than the far one) and how much it counts: the CoC span
+    between the candidates, 0 to 1 at 4 px (none where no edge is in reach)."""
+    near_side = (cost[:, 1] < cost[:, 2]).float()
+    span = ((x[:, 4] - x[:, 5]) * x.new_tensor(COC_SCALE_PX) / 4.0).clamp(0.0, 1.0)
+    return near_side, span
+
+
+def bank(root: str, variants: int, seed: int, opts, config) -> list[dict]:
+    """``variants`` corrupted maps per training pair: the exact one, then the other kinds in turn (a random
+    amount each), as the network's inputs (float16) and each choice's cost."""
+    from bokehray_refiner.data import corrupt_disparity
+    from bokehray_refiner.edges import N_BASE, edge_features
+
+    import bokehray as br
+    from bokehray.data.datasets import BLBDataset
+
+    rng = np.random.default_rng(seed)
+    ds = BLBDataset(root)
+    out = []
+    for i in range(len(ds)):
+        s = ds[i]
+        blur = br.BlurParams(s.k_px, s.focus_disparity)
+        focus = _srgb(s.image)
+        kinds = [TRAIN_CORRUPTIONS[0]] + [TRAIN_CORRUPTIONS[1 + (i + j) % (len(TRAIN_CORRUPTIONS) - 1)]
+                                          for j in range(variants - 1)]
+        for kind, lo, hi in kinds:
+            amount = int(rng.integers(lo, hi + 1))
+            d = np.clip(corrupt_disparity(s.disparity, kind, amount, rng), 0.0, 1.0)
+            used, band = used_map(s.image, d, blur, opts)
+            out.append({"x": edge_features(focus, used, blur, band, config)[:N_BASE].astype(np.float16),
+                        "cost": side_costs(used, s.disparity, blur, config).astype(np.float16),
+                        "exact": kind == "none"})
+        if (i + 1) % 50 == 0:
+            print(f"bank: {i + 1}/{len(ds)} pairs", flush=True)
+    return out
+
+
+def train(entries: list[dict], config, steps: int, batch: int, crop: int, seed: int, exact_weight: float,
+          checkpoint: str | None, checkpoint_every: int = 500, log_every: int = 100):
+    """AdamW on the binary cross-entropy against the true side (:func:`side_labels`), on random crops on the band
+    (flipped and transposed at random), each pixel weighted by the band, the candidates' CoC span and
+    ``exact_weight`` on exact maps. With ``checkpoint``, resumable bit for bit (as ``refiner_choice.train``)."""
+    import torch
+    import torch.nn.functional as F
+    from bokehray_refiner.edges import EdgeNet
+
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    model = EdgeNet(config)
+    opt = torch.optim.AdamW(model.parameters(), lr=2e-3, weight_decay=1e-4)
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=2e-3, total_steps=steps,
+                                                pct_start=min(0.3, max(0.05, 10 / steps)))
+    parts = {"model": model, "opt": opt, "sched": sched}
+    losses, start = _resume(checkpoint, steps, seed, parts, rng) if checkpoint else ([], 0)
+    costs_seen: list[float] = []
+    map_wrong = _map_wrong(entries, exact_weight)
+    reach = config.reach_px
+    for step in range(start, steps):
+        xs, costs, ws = [], [], []
+        for i in rng.integers(0, len(entries), batch):
+            e = entries[i]
+            band = e["x"][6]
+            h, w = band.shape
+            ys, xx = np.nonzero(band > 0)
+            if len(ys) and rng.random() < 0.9:
+                j = rng.integers(len(ys))
+                y0, x0 = int(np.clip(ys[j] - crop // 2, 0, h - crop)), int(np.clip(xx[j] - crop // 2, 0, w - crop))
+            else:
+                y0, x0 = int(rng.integers(0, h - crop + 1)), int(rng.integers(0, w - crop + 1))
+            # the loss counts the crop; the network sees its receptive field around it too, as on a whole frame
+            # (zeros beyond the frame's edges, as there): no output it is trained on sees padding a frame lacks
+            x = _window(e["x"], y0 - reach, x0 - reach, crop + 2 * reach)
+            c = np.zeros((4, crop + 2 * reach, crop + 2 * reach), np.float16)  # the costs, then where they count
+            c[:3, reach:reach + crop, reach:reach + crop] = e["cost"][:, y0:y0 + crop, x0:x0 + crop]
+            c[3, reach:reach + crop, reach:reach + crop] = 1.0
+            flip = rng.integers(0, 8)
+            if flip & 1:
+                x, c = x[:, ::-1], c[:, ::-1]
+            if flip & 2:
+                x, c = x[:, :, ::-1], c[:, :, ::-1]
+            if flip & 4:
+                x, c = x.transpose(0, 2, 1), c.transpose(0, 2, 1)
+            xs.append(np.ascontiguousarray(x, np.float32))
+            costs.append(np.ascontiguousarray(c, np.float32))
+            ws.append(exact_weight if e["exact"] else 1.0)
+        x = torch.from_numpy(np.stack(xs))
+        cost = torch.from_numpy(np.stack(costs))
+        cost, counted = cost[:, :3], cost[:, 3]
+        weight = x[:, 6] * counted * torch.tensor(ws)[:, None, None]
+        logit = model(x)[:, 0]
+        label, span = side_labels(cost, x)
+        weight = weight * span
+        loss = (F.binary_cross_entropy_with_logits(logit, label, reduction="none") * weight).sum() \
+            / weight.sum().clamp_min(1.0)
+        with torch.no_grad():  # the share of counted pixels put on the wrong side at 0.5
+            costs_seen.append(float((((logit > 0).float() != label).float() * weight).sum()
+                                    / weight.sum().clamp_min(1.0)))
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        sched.step()
+        losses.append(loss.item())
+        if (step + 1) % log_every == 0:
+            print(f"step {step + 1}: loss {np.mean(losses[-log_every:]):.4f}, wrong side {np.mean(costs_seen[-log_every:]):.3f} "
+                  f"(the map's: {map_wrong:.3f})", flush=True)
+        if checkpoint and ((step + 1) % checkpoint_every == 0 or step + 1 == steps):
+            _save(checkpoint, {"steps": steps, "seed": seed, "step": step + 1, "losses": losses,
+                               "rng": rng.bit_generator.state, **{k: v.state_dict() for k, v in parts.items()}})
+    return model, losses
+
+
+def _map_wrong(entries: list[dict], exact_weight: float) -> float:
+    """The share of counted pixels the given maps themselves put on the wrong side (what a network that keeps every
+    map scores)."""
+    import torch
+
+    wrong = total = 0.0
+    for e in entries:
+        x, cost = torch.from_numpy(e["x"][None].astype(np.float32)), torch.from_numpy(e["cost"][None].astype(np.float32))
+        label, span = side_labels(cost, x)
+        on_near = (-x[:, 5] > x[:, 4]).float()  # c - far > near - c (the inputs hold near - c and far - c)
+        w = x[:, 6] * span * (exact_weight if e["exact"] else 1.0)
+        wrong += float(((on_near != label).float() * w).sum())
+        total += float(w.sum())
+    return wrong / max(total, 1.0)
+
+
+def _window(a: np.ndarray, y0: int, x0: int, size: int) -> np.ndarray:
+    """``a[:, y0:y0 + size, x0:x0 + size]``, zeros where the window leaves ``a``."""
+    out = np.zeros((a.shape[0], size, size), a.dtype)
+    h, w = a.shape[1:]
+    sy, sx = max(y0, 0), max(x0, 0)
+    ey, ex = min(y0 + size, h), min(x0 + size, w)
+    out[:, sy - y0:ey - y0, sx - x0:ex - x0] = a[:, sy:ey, sx:ex]
+    return out
+
+
+def _psnr(err2: np.ndarray) -> float:
+    mse = float(err2.mean())
+    return 10.0 * math.log10(1.0 / mse) if mse > 0 else 99.0
+
+
+def score(model, samples, opts, thresholds, gate: bool = False, min_region: int = 0, attached: bool = False) -> tuple[list[dict], list[dict]]:
+    """Band PSNR of the depth fix's render and of the level on the edge network's map (``edges``; with ``gate``
+    also behind refine's confidence gate, ``gated``), per render and condition."""
+    from bokehray_refiner.data import corrupt_disparity
+    from bokehray_refiner.edges import place_edges
+
+    import bokehray as br
+
+    rows = []
+    for name, image, disparity, blur, target, score_band in samples:
+        m = np.asarray(score_band, bool)
+        t = _srgb(target)
+        focus = _srgb(image)
+        for kind, amount in NET_CONDITIONS:
+            d = np.clip(corrupt_disparity(disparity, kind, amount), 0.0, 1.0)
+            used, band = used_map(image, d, blur, opts)
+            render = br.render(image, used, blur)
+            row = {"pair": name, "corruption": kind, "px": amount,
+                   "fix": _psnr(((_srgb(render) - t) ** 2).mean(-1)[m]),
+                   "oracle": _psnr(((_srgb(br.render(image, oracle_map(used, disparity, band, model.config), blur))
+                                     - t) ** 2).mean(-1)[m])}
+            gated = None
+            if gate:  # refine's confidence gate on the depth fix's render: where it closes, no edge moves
+                from bokehray_refiner.refine import blend_weight
+
+                _, gated = blend_weight(image, focus, used, render, blur.signed_coc(used).astype(np.float32), opts)
+            for th in thresholds:
+                for tag, b in (("edges", band), ("gated", gated)):
+                    if b is None:
+                        continue
+                    moved = place_edges(model, focus, used, blur, b, th, min_region_px=min_region, attached=attached)
+                    row[f"{tag}_{th:g}"] = _psnr(((_srgb(br.render(image, moved, blur)) - t) ** 2).mean(-1)[m])
+                    row[f"{tag}_moved_{th:g}"] = int((moved != used).sum())
+            rows.append(row)
+        print(name, flush=True)
+    return rows, summarise(rows)
+
+
+def oracle_map(used: np.ndarray, truth: np.ndarray, band: np.ndarray, config) -> np.ndarray:
+    """What a perfect edge network would make of ``used``: every pixel of the band with an edge in reach that ``used``
+    puts on the wrong side (its true side: the candidate nearer the true disparity) moves to the other side's value."""
+    from bokehray_refiner.edges import candidates, map_sides
+
+    near, far = candidates(used, config.radius_px)
+    reach, on_near = map_sides(used, near, far)
+    true_near = truth - far > near - truth
+    move = (band > 0) & reach & (true_near != on_near)
+    return np.where(move, np.where(true_near, near, far), used)
+
+
+def summarise(rows: list[dict]) -> list[dict]:
+    """Per condition: the mean band PSNR of each column, and each column's worst render against the depth fix."""
+    summary = []
+    for kind, amount in NET_CONDITIONS:
+        sel = [r for r in rows if (r["corruption"], r["px"]) == (kind, amount)]
+        s = {"corruption": kind, "px": amount, "fix": float(np.mean([r["fix"] for r in sel]))}
+        for k in sel[0]:
+            if (k.startswith(("edges_", "gated_")) and "_moved_" not in k) or k == "oracle":
+                s[k] = float(np.mean([r[k] for r in sel]))
+                s[f"{k}_worst"] = float(min(r[k] - r["fix"] for r in sel))
+        summary.append(s)
+    return summary
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--train", help="BLB folder to train on (bokehray synth)")
+    ap.add_argument("--heldout", help="held-out BLB folder to score on")
+    ap.add_argument("--devset", help="the path-traced dev set folder (with score.py) to score on")
+    ap.add_argument("--pairs", type=int, default=24, help="--heldout: pairs to score")
+    ap.add_argument("--variants", type=int, default=5, help="corrupted maps per training pair (the first exact)")
+    ap.add_argument("--steps", type=int, default=4000)
+    ap.add_argument("--batch", type=int, default=8)
+    ap.add_argument("--crop", type=int, default=64,
+                    help="side of the crop the loss counts (the network sees its receptive field around it too)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--exact-weight", type=float, default=2.0, help="loss weight of the exact maps")
+    ap.add_argument("--width", type=int, default=32)
+    ap.add_argument("--dilations", default="2,4,8,1", help="the hidden 3 x 3 convolutions' dilations")
+    ap.add_argument("--bank", default=None, help="cache of the training inputs (.npz): read if present, else written")
+    ap.add_argument("--checkpoint", default=None,
+                    help="the training state, written every --checkpoint-every steps; an existing one is resumed")
+    ap.add_argument("--checkpoint-every", type=int, default=500)
+    ap.add_argument("--export", default=None, help="write the trained network here (safetensors)")
+    ap.add_argument("--load", default=None, help="score these weights (safetensors) instead of training")
+    ap.add_argument("--thresholds", default="0.7,0.8,0.9")
+    ap.add_argument("--gate", action="store_true", help="score behind refine's confidence gate as well")
+    ap.add_argument("--min-region", type=int, default=0, help="place_edges' min_region_px")
+    ap.add_argument("--attached", action="store_true", help="place_edges' attached: no islands, no holes")
+    ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--out", default=str(REPO / "benchmarks/results/refiner_edges.json"))
+    args = ap.parse_args()
+
+    import torch
+    from bokehray_refiner.edges import EdgeConfig, colour_features, load_edge_net, save_edge_net
+    from bokehray_refiner.refine import RefineOptions
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    torch.set_flush_denormal(True)
+    opts = RefineOptions()
+    result = {"machine": machine_info(), "args": vars(args)}
+    if args.load:
+        model = load_edge_net(args.load)
+    else:
+        config = EdgeConfig(width=args.width, dilations=tuple(int(v) for v in args.dilations.split(",")))
+        t = time.perf_counter()
+        if args.bank and Path(args.bank).is_file():
+            with np.load(args.bank) as z:
+                entries = [{"x": z[f"{i}_x"], "cost": z[f"{i}_cost"], "exact": bool(z[f"{i}_exact"])}
+                           for i in range(int(z["n"]))]
+        else:
+            entries = bank(args.train, args.variants, args.seed, opts, config)
+            if args.bank:
+                np.savez(args.bank, n=len(entries), **{f"{i}_{k}": v for i, e in enumerate(entries)
+                                                       for k, v in e.items()})
+        for e in entries:  # the bank keeps the first channels; the colour models are made from them
+            e["x"] = np.concatenate([e["x"], colour_features(e["x"].astype(np.float32)).astype(np.float16)])
+        result["bank_s"] = time.perf_counter() - t
+        print(f"bank: {len(entries)} maps in {result['bank_s']:.0f} s", flush=True)
+        t = time.perf_counter()
+        model, losses = train(entries, config, args.steps, args.batch, args.crop, args.seed, args.exact_weight,
+                              args.checkpoint, args.checkpoint_every)
+        del entries
+        result |= {"train_s": time.perf_counter() - t, "loss": losses}
+        model.eval()
+        if args.export:
+            save_edge_net(model, args.export, steps=str(args.steps), seed=str(args.seed))
+    result["parameters"] = sum(p.numel() for p in model.parameters())
+    thresholds = [float(v) for v in args.thresholds.split(",")]
+    for split, samples in (("devset", devset_samples(Path(args.devset)) if args.devset else None),
+                           ("heldout", synth_samples(args.heldout, args.pairs) if args.heldout else None)):
+        if samples is None:
+            continue
+        rows, summary = score(model, samples, opts, thresholds, args.gate, args.min_region, args.attached)
+        result[split] = {"rows": rows, "summary": summary}
+        print(f"{split}: band PSNR dB, mean over renders (gain over the depth fix; worst render)")
+        for s in summary:
+            gains = "  ".join(f"{k}: {s[k] - s['fix']:+.2f} ({s[k + '_worst']:+.2f})"
+                              for th in thresholds for k in (f"edges_{th:g}", f"gated_{th:g}") if k in s)
+            print(f"  {s['corruption'] + ' ' + str(s['px']):>12} fix {s['fix']:6.2f}  {gains}", flush=True)
+    write_json(args.out, result)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,76 @@
+"""benchmarks/refiner_edges.py: its labels, its oracle and its training crops are what the measurement says."""
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from bokehray_refiner.edges import EdgeConfig, edge_features  # noqa: E402
+
+import bokehray as br  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[2]
+SMALL = EdgeConfig(width=8, dilations=(2, 1), radius_px=6)
+
+
+@pytest.fixture(scope="module")
+def bench():
+    spec = importlib.util.spec_from_file_location("refiner_edges", ROOT / "benchmarks" / "refiner_edges.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)  # it puts benchmarks/ on the path for its own imports
+    return mod
+
+
+def _maps():
+    truth = np.full((40, 60), 0.2, np.float32)
+    truth[10:30, 20:40] = 0.8
+    shrunk = truth.copy()
+    shrunk[10:30, 20:24] = 0.2  # the near square's left 4 columns lost
+    return truth, shrunk, br.BlurParams(10.0, 0.2)
+
+
+def test_the_oracle_moves_only_wrong_sided_pixels_back(bench):
+    truth, shrunk, _blur = _maps()
+    band = np.ones(truth.shape, np.float32)
+    np.testing.assert_array_equal(bench.oracle_map(truth, truth, band, SMALL), truth)  # a right map stays
+    np.testing.assert_array_equal(bench.oracle_map(shrunk, truth, band, SMALL), truth)
+    band[:, :22] = 0.0
+    fixed = bench.oracle_map(shrunk, truth, band, SMALL)  # only where the band is open
+    assert np.all(fixed[10:30, 20:22] == 0.2) and np.all(fixed[10:30, 22:24] == 0.8)
+
+
+def test_labels_are_the_true_side_weighted_by_the_candidates_span(bench):
+    truth, shrunk, blur = _maps()
+    rng = np.random.default_rng(0)
+    focus = rng.random(truth.shape + (3,), dtype=np.float32)
+    band = np.ones(truth.shape, np.float32)
+    x = torch.from_numpy(edge_features(focus, shrunk, blur, band, SMALL))[None]
+    cost = torch.from_numpy(bench.side_costs(shrunk, truth, blur, SMALL).astype(np.float32))[None]
+    label, span = bench.side_labels(cost, x)
+    assert torch.all(label[0, 10:30, 20:30] == 1)  # the lost columns and the square's inside near them: near
+    assert torch.all(label[0, 4:10, 20:30] == 0) and torch.all(span[0, 4:10, 20:30] > 0)  # above it: far, counted
+    assert torch.all(span[0, 15, 18:30] == 1.0) and span[0, 15, 17] == 0  # an edge of 6 px CoC within 6 px: counts
+    assert torch.all(span[0, 0, :] == 0.0)  # no edge within 6 px: does not count
+
+
+def test_training_windows_pad_with_zeros_beyond_the_frame(bench):
+    a = np.arange(2 * 5 * 6, dtype=np.float32).reshape(2, 5, 6) + 1
+    w = bench._window(a, -2, 3, 4)
+    assert w.shape == (2, 4, 4)
+    assert np.all(w[:, :2] == 0) and np.all(w[:, :, 3:] == 0)
+    np.testing.assert_array_equal(w[:, 2:, :3], a[:, :2, 3:6])
+
+
+def test_a_few_training_steps_run_and_count_only_the_crop(bench):
+    truth, shrunk, blur = _maps()
+    rng = np.random.default_rng(1)
+    focus = rng.random(truth.shape + (3,), dtype=np.float32)
+    band = np.ones(truth.shape, np.float32)
+    entry = {"x": edge_features(focus, shrunk, blur, band, SMALL).astype(np.float16),
+             "cost": bench.side_costs(shrunk, truth, blur, SMALL).astype(np.float16), "exact": False}
+    _model, losses = bench.train([entry], SMALL, steps=3, batch=2, crop=16, seed=0, exact_weight=2.0,
+                                checkpoint=None)
+    assert len(losses) == 3 and all(np.isfinite(losses))
