@@ -207,13 +207,17 @@ def _tensors(entries: list[dict]):
 
 def train(entries: list[dict], steps: int, batch: int, crop: int, seed: int, exact_weight: float = 1.0,
           choice_weight: float = 0.0, alignment: bool = False, log_every: int = 100, checkpoint: str | None = None,
-          checkpoint_every: int = 500):
+          checkpoint_every: int = 500, context: int = 0):
     """AdamW on the band's squared error (weighted ``exact_weight`` on exact maps), plus ``choice_weight`` times the
     cross-entropy of the logits against the oracle's choice in the band (the render that is right, told directly).
 
     With ``checkpoint`` the run's whole state (model, optimiser, schedule, both generators, the losses so far) is
     written there every ``checkpoint_every`` steps and at the end (atomically), and a run started with an existing
-    one goes on from it: the same steps, bit for bit, as one run without a stop (long training in pieces)."""
+    one goes on from it: the same steps, bit for bit, as one run without a stop (long training in pieces).
+
+    ``context`` [px]: each crop comes with that much of the frame around it and the loss counts the crop only, so
+    that (with ``context`` at least the receptive field's radius, 32 px) no output it learns from sees padding that a
+    whole frame does not have (0: the crop alone, as in rounds 6 and 7)."""
     import torch
     import torch.nn.functional as F
 
@@ -241,16 +245,21 @@ def train(entries: list[dict], steps: int, batch: int, crop: int, seed: int, exa
                 x0 = int(np.clip(xs[j] - crop // 2, 0, w - crop))
             else:
                 y0, x0 = int(rng.integers(0, h - crop + 1)), int(rng.integers(0, w - crop + 1))
-            sl = (slice(y0, y0 + crop), slice(x0, x0 + crop))
-            crops.append({"focus": e["focus"][sl], "cands": e["cands"][:, sl[0], sl[1]], "band": e["band"][sl],
-                          "disparity": e["disparity"][sl], "align": e["align"][:, sl[0], sl[1]],
-                          "target": e["target"][sl],
-                          "weight": exact_weight if e["exact"] else 1.0,
-                          **({"choice": e["choice"][sl]} if choice_weight else {})})
+            # with ``context``, the crop plus that much around it (zeros beyond the frame), the loss on the crop only
+            def cut(a, lead=0, y0=y0, x0=x0):
+                return _region(a, y0 - context, x0 - context, crop + 2 * context, lead)
+
+            counted = np.zeros((crop + 2 * context,) * 2, np.float32)
+            counted[context:context + crop, context:context + crop] = 1.0
+            crops.append({"focus": cut(e["focus"]), "cands": cut(e["cands"], 1), "band": cut(e["band"]),
+                          "disparity": cut(e["disparity"]), "align": cut(e["align"], 1), "target": cut(e["target"]),
+                          "counted": counted, "weight": exact_weight if e["exact"] else 1.0,
+                          **({"choice": cut(e["choice"])} if choice_weight else {})})
         focus, cands, band, disparity, align, target, weight = _tensors(crops)
         logits = model.logits(focus, cands, band, disparity, align)
         out = blend(cands[:, 0], band, weighted(logits, cands))
-        band_w = band * weight[:, None, None, None]
+        counted = torch.from_numpy(np.stack([c["counted"] for c in crops]))[:, None]
+        band_w = band * counted * weight[:, None, None, None]
         loss = (((out - target) ** 2).sum(1, keepdim=True) * band_w).sum() / band_w.sum().clamp_min(1.0)
         if choice_weight:
             labels = torch.from_numpy(np.stack([c["choice"] for c in crops]))
@@ -267,6 +276,17 @@ def train(entries: list[dict], steps: int, batch: int, crop: int, seed: int, exa
             _save(checkpoint, {"steps": steps, "seed": seed, "step": step + 1, "losses": losses,
                                "rng": rng.bit_generator.state, **{k: v.state_dict() for k, v in parts.items()}})
     return model, losses
+
+
+def _region(a: np.ndarray, y0: int, x0: int, size: int, lead: int = 0) -> np.ndarray:
+    """The ``size`` x ``size`` window at (``y0``, ``x0``) of ``a``'s spatial axes (after ``lead`` leading axes),
+    zeros where it leaves ``a``."""
+    h, w = a.shape[lead:lead + 2]
+    out = np.zeros(a.shape[:lead] + (size, size) + a.shape[lead + 2:], a.dtype)
+    sy, sx, ey, ex = max(y0, 0), max(x0, 0), min(y0 + size, h), min(x0 + size, w)
+    pre = (slice(None),) * lead
+    out[pre + (slice(sy - y0, ey - y0), slice(sx - x0, ex - x0))] = a[pre + (slice(sy, ey), slice(sx, ex))]
+    return out
 
 
 def _save(checkpoint: str, state: dict) -> None:
@@ -377,6 +397,8 @@ def main() -> None:
     ap.add_argument("--checkpoint", default=None,
                     help="the training state, written every --checkpoint-every steps; an existing one is resumed")
     ap.add_argument("--checkpoint-every", type=int, default=500)
+    ap.add_argument("--context", type=int, default=0,
+                    help="frame around each training crop the chooser sees and the loss does not count [px]")
     ap.add_argument("--load", default=None, help="score this saved chooser (--save) instead of training one")
     ap.add_argument("--out", default=str(REPO / "benchmarks/results/refiner_choice.json"))
     args = ap.parse_args()
@@ -398,7 +420,7 @@ def main() -> None:
     else:
         model, losses = train(entries, args.steps, args.batch, args.crop, args.seed, args.exact_weight,
                               args.choice_weight, args.alignment, checkpoint=args.checkpoint,
-                              checkpoint_every=args.checkpoint_every)
+                              checkpoint_every=args.checkpoint_every, context=args.context)
     t_train = time.perf_counter() - t
     model.eval()
     if args.save:
@@ -406,7 +428,8 @@ def main() -> None:
     result = {"machine": machine_info(), "train": args.train, "pairs": len(entries), "steps": args.steps,
               "batch": args.batch, "crop": args.crop, "seed": args.seed, "exact_share": args.exact_share,
               "exact_weight": args.exact_weight, "choice_weight": args.choice_weight,
-              "alignment": args.alignment, "keep_logit": KEEP_LOGIT, "bank_s": t_bank, "train_s": t_train,
+              "alignment": args.alignment, "context": args.context, "keep_logit": KEEP_LOGIT, "bank_s": t_bank,
+              "train_s": t_train,
               "parameters": sum(p.numel() for p in model.parameters()), "loss": losses}
     for split, samples in (("devset", devset_samples(Path(args.devset)) if args.devset else None),
                            ("heldout", synth_samples(args.heldout, args.pairs) if args.heldout else None)):
