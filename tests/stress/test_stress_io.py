@@ -208,8 +208,11 @@ def _cli(args, *, prelude: str = "", wait: bool = True, timeout: float = 120):
     if wait:
         return subprocess.run([sys.executable, "-c", code, *map(str, args)], capture_output=True, text=True, env=env,
                               timeout=timeout, check=False)
+    # SIGHUP at its default, whatever this test run inherited (under nohup it is ignored, and so would the CLI's be:
+    # it keeps an ignored SIGHUP ignored on purpose)
     return subprocess.Popen([sys.executable, "-c", code, *map(str, args)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=env)
+                            stderr=subprocess.PIPE, text=True, env=env,
+                            preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_DFL))
 
 
 @pytest.fixture
