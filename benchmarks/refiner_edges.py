@@ -238,10 +238,12 @@ def score(model, samples, opts, thresholds, gate: bool = False, min_region: int 
 
                 _, gated = blend_weight(image, focus, used, render, blur.signed_coc(used).astype(np.float32), opts)
             for th in thresholds:
-                for tag, b in (("edges", band), ("gated", gated)):
-                    if b is None:
+                # the network always sees the band it was trained with; the gate only holds pixels back
+                for tag, hold in (("edges", None), ("gated", None if gated is None else gated <= 0)):
+                    if tag == "gated" and hold is None:
                         continue
-                    moved = place_edges(model, focus, used, blur, b, th, min_region_px=min_region, attached=attached)
+                    moved = place_edges(model, focus, used, blur, band, th, keep=hold, min_region_px=min_region,
+                                        attached=attached)
                     row[f"{tag}_{th:g}"] = _psnr(((_srgb(br.render(image, moved, blur)) - t) ** 2).mean(-1)[m])
                     row[f"{tag}_moved_{th:g}"] = int((moved != used).sum())
             rows.append(row)

@@ -358,12 +358,12 @@ def corrected_disparity(image: np.ndarray, disparity: np.ndarray, blur: BlurPara
     if options.depthfix.enabled:
         d_new, changed = correct_disparity(focus_srgb, disparity, blur.k_px, options.depthfix, keep=lights)
     if options.edges:
-        model = edge_model or load_edge_net()
+        model = load_edge_net() if edge_model is None else edge_model
+        d_new = np.asarray(d_new, np.float32)  # the network's map is float32: compared with it, not a float64 one
         coc = blur.signed_coc(d_new).astype(np.float32)
         reach = edge_reach(coc, options.min_jump_px)
         band = edge_band(reach, options.band_margin_px, options.band_feather_px)
-        placed = place_edges(model, focus_srgb, np.asarray(d_new, np.float32), blur, band, options.edge_threshold,
-                             keep=lights)
+        placed = place_edges(model, focus_srgb, d_new, blur, band, options.edge_threshold, keep=lights)
         changed = changed | (placed != d_new)
         d_new = placed
     return d_new, changed

@@ -159,3 +159,14 @@ def test_refine_renders_once_on_the_map_the_edge_network_moved():
     assert len(seen) == 1 and np.array_equal(seen[0], moved) and stats.depth_fixed_px == int(changed.sum())
     off, _ = corrected_disparity(image, d, blur, RefineOptions(edges=False, depthfix=opts.depthfix), edge_model=m)
     np.testing.assert_array_equal(off, d)
+
+
+def test_a_float64_map_counts_only_the_pixels_the_network_moved():
+    from bokehray_refiner.refine import RefineOptions, corrected_disparity
+
+    from bokehray.depthfix import DepthFixOptions
+
+    focus, d, blur = _scene()
+    opts = RefineOptions(edges=True, depthfix=DepthFixOptions(enabled=False))
+    _, changed = corrected_disparity(focus ** 2.2, d.astype(np.float64) + 1e-9, blur, opts, edge_model=EdgeNet(SMALL))
+    assert not changed.any()  # an undecided network moves nothing; float32 rounding is not a move
