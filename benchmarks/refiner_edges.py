@@ -2,11 +2,12 @@
 
 Training pairs come from a BLB folder (``bokehray synth``). Each pair's map is corrupted ``--variants`` ways as real
 maps are wrong (the exact map; edges misplaced locally by 5-20 px; a monocular estimator's map at 1/3 to 1/8
-resolution; strands 1-3 px wide missing; near regions grown or shrunk by 2-6 px), each with its own random draw,
-then put through the colour-guided depth correction as refine does. The network learns, per pixel of the edge band,
-which side of the edge the pixel is on: the side (near or far candidate) whose CoC is nearer the true map's. Its loss
-is the binary cross-entropy against that side, each pixel weighted by the band, by the CoC span between the
-candidates (0 to 1 at 4 px) and ``--exact-weight`` on the exact maps.
+resolution; a grey opening of radius 1-3 px, so that strands narrower than 3-7 px go missing; near regions grown or
+shrunk by 2-6 px), each with its own random draw, then put through the colour-guided depth correction as refine does.
+The network learns, per pixel of the edge band, which side of the edge the pixel is on: the side (near or far
+candidate) whose CoC is nearer the true map's. Its loss is the binary cross-entropy against that side, each pixel
+weighted by the band, by the CoC span between the candidates (0 to 1 at 4 px) and ``--exact-weight`` on the exact
+maps.
 
 Scored on the path-traced dev set and a held-out synthetic split in the true depth's band, per corruption of
 ``bench_refiner.NET_CONDITIONS``, as ``bench_refiner.py --network-conditions``: ``fix`` is the depth fix's render
