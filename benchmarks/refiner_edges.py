@@ -27,7 +27,6 @@ Writes ``benchmarks/results/refiner_edges.json``.
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import time
 from pathlib import Path
@@ -38,7 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_refiner import NET_CONDITIONS, devset_samples, synth_samples
 from common import REPO, machine_info, write_json
-from refiner_choice import _resume, _save, _srgb
+from refiner_choice import _psnr, _region, _resume, _save, _srgb
 
 COC_SCALE_PX = 8.0
 """``EdgeConfig.coc_scale_px`` of the networks this script trains (the inputs' CoC unit)."""
@@ -141,7 +140,7 @@ def train(entries: list[dict], config, steps: int, batch: int, crop: int, seed: 
                 y0, x0 = int(rng.integers(0, h - crop + 1)), int(rng.integers(0, w - crop + 1))
             # the loss counts the crop; the network sees its receptive field around it too, as on a whole frame
             # (zeros beyond the frame's edges, as there): no output it is trained on sees padding a frame lacks
-            x = _window(e["x"], y0 - reach, x0 - reach, crop + 2 * reach)
+            x = _region(e["x"], y0 - reach, x0 - reach, crop + 2 * reach, lead=1)
             c = np.zeros((4, crop + 2 * reach, crop + 2 * reach), np.float16)  # the costs, then where they count
             c[:3, reach:reach + crop, reach:reach + crop] = e["cost"][:, y0:y0 + crop, x0:x0 + crop]
             c[3, reach:reach + crop, reach:reach + crop] = 1.0
@@ -195,21 +194,6 @@ def _map_wrong(entries: list[dict], exact_weight: float) -> float:
         wrong += float(((on_near != label).float() * w).sum())
         total += float(w.sum())
     return wrong / max(total, 1.0)
-
-
-def _window(a: np.ndarray, y0: int, x0: int, size: int) -> np.ndarray:
-    """``a[:, y0:y0 + size, x0:x0 + size]``, zeros where the window leaves ``a``."""
-    out = np.zeros((a.shape[0], size, size), a.dtype)
-    h, w = a.shape[1:]
-    sy, sx = max(y0, 0), max(x0, 0)
-    ey, ex = min(y0 + size, h), min(x0 + size, w)
-    out[:, sy - y0:ey - y0, sx - x0:ex - x0] = a[:, sy:ey, sx:ex]
-    return out
-
-
-def _psnr(err2: np.ndarray) -> float:
-    mse = float(err2.mean())
-    return 10.0 * math.log10(1.0 / mse) if mse > 0 else 99.0
 
 
 def score(model, samples, opts, thresholds, gate: bool = False, min_region: int = 0, attached: bool = False) -> tuple[list[dict], list[dict]]:

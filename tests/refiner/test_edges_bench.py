@@ -58,7 +58,7 @@ def test_labels_are_the_true_side_weighted_by_the_candidates_span(bench):
 
 def test_training_windows_pad_with_zeros_beyond_the_frame(bench):
     a = np.arange(2 * 5 * 6, dtype=np.float32).reshape(2, 5, 6) + 1
-    w = bench._window(a, -2, 3, 4)
+    w = bench._region(a, -2, 3, 4, lead=1)
     assert w.shape == (2, 4, 4)
     assert np.all(w[:, :2] == 0) and np.all(w[:, :, 3:] == 0)
     np.testing.assert_array_equal(w[:, 2:, :3], a[:, :2, 3:6])
