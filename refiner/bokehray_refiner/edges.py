@@ -30,6 +30,8 @@ from torch import nn
 from bokehray.errors import InputError
 from bokehray.lens import BlurParams
 
+from .tiles import refine_boxes
+
 __all__ = ["DEFAULT_EDGE_WEIGHTS", "EdgeConfig", "EdgeNet", "candidates", "colour_features", "edge_features",
            "load_edge_net", "map_sides", "place_edges", "save_edge_net"]
 
@@ -154,8 +156,6 @@ def place_edges(model: EdgeNet, focus_srgb: np.ndarray, disparity: np.ndarray, b
 
     The network runs only on the tiles with band pixels, each box of them with a halo of its receptive field, so its
     output there is what it would be on the whole frame."""
-    from .refine import refine_boxes
-
     config = model.config
     h, w = disparity.shape
     near, far = candidates(disparity, config.radius_px)

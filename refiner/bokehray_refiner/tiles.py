@@ -8,7 +8,7 @@ import numpy as np
 
 from bokehray.errors import InputError
 
-__all__ = ["blend_tiles", "raised_cosine_ramp", "tile_grid"]
+__all__ = ["blend_tiles", "raised_cosine_ramp", "refine_boxes", "tile_grid"]
 
 Box = tuple[int, int, int, int]  # y0, y1, x0, x1
 
@@ -64,3 +64,36 @@ def blend_tiles(tiles: list[np.ndarray], boxes: list[Box], shape: tuple[int, int
         acc[y0:y1, x0:x1] += wt * t
         total[y0:y1, x0:x1] += wt
     return (acc / total).astype(np.float32)
+
+
+def refine_boxes(need: np.ndarray, tile: int, halo: int) -> list[tuple[tuple[int, int, int, int], list]]:
+    """Boxes of tiles (``(ty0, ty1, tx0, tx1)`` on the tile grid, each with the tiles it stands for) that cover
+    every tile of ``need`` once, each run with one halo around it.
+
+    Greedy: every tile starts as its own box; the two boxes whose bounding box (with its halo) has the most less
+    area than the two apart merge, until no merge saves area. The network's cost grows with the area it runs on,
+    and one halo around neighbouring tiles costs less than one around each.
+    """
+    ys, xs = np.nonzero(need)
+    boxes = np.stack([ys, ys + 1, xs, xs + 1], 1).astype(np.int64)
+    members = [[(int(y), int(x))] for y, x in zip(ys, xs)]
+
+    def area(b):
+        return ((b[..., 1] - b[..., 0]) * tile + 2 * halo) * ((b[..., 3] - b[..., 2]) * tile + 2 * halo)
+
+    while len(boxes) > 1:
+        a = area(boxes)
+        union = np.stack([np.minimum(boxes[:, None, 0], boxes[None, :, 0]), np.maximum(boxes[:, None, 1], boxes[None, :, 1]),
+                          np.minimum(boxes[:, None, 2], boxes[None, :, 2]), np.maximum(boxes[:, None, 3], boxes[None, :, 3])],
+                         -1)
+        saving = a[:, None] + a[None, :] - area(union)
+        np.fill_diagonal(saving, -1)
+        k = int(np.argmax(saving))
+        i, j = divmod(k, len(boxes))
+        if saving[i, j] <= 0:
+            break
+        boxes[i] = union[i, j]
+        members[i] += members[j]
+        boxes = np.delete(boxes, j, 0)
+        del members[j]
+    return [(tuple(int(v) for v in b), sorted(m)) for b, m in zip(boxes, members)]
