@@ -99,11 +99,11 @@ def candidates(disparity: np.ndarray, radius_px: int) -> tuple[np.ndarray, np.nd
 
 
 def edge_features(focus_srgb: np.ndarray, disparity: np.ndarray, blur: BlurParams, band: np.ndarray,
-                  config: EdgeConfig) -> np.ndarray:
+                  config: EdgeConfig, near_far: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """What the network sees, ``13 x H x W`` float32: the photo, the map's signed CoC, the near and far candidates'
     CoCs less the map's (all divided by ``coc_scale_px``, clipped to +-4), the band, then
-    :func:`colour_features` of those."""
-    near, far = candidates(disparity, config.radius_px)
+    :func:`colour_features` of those. ``near_far``: :func:`candidates` of ``disparity``, when already computed."""
+    near, far = candidates(disparity, config.radius_px) if near_far is None else near_far
     c = blur.signed_coc(disparity)
     s = config.coc_scale_px
     cocs = [c / s, (blur.signed_coc(near) - c) / s, (blur.signed_coc(far) - c) / s]
@@ -170,7 +170,7 @@ def place_edges(model: EdgeNet, focus_srgb: np.ndarray, disparity: np.ndarray, b
     padded[:h, :w] = need_px
     need = padded.reshape(ty, tile, tx, tile).any(axis=(1, 3))
     halo = config.reach_px
-    feats = edge_features(focus_srgb, disparity, blur, band, config)
+    feats = edge_features(focus_srgb, disparity, blur, band, config, (near, far))
     to_near = np.zeros((h, w), bool)
     to_far = np.zeros((h, w), bool)
     device = next(model.parameters()).device
