@@ -265,17 +265,24 @@ def train(entries: list[dict], steps: int, batch: int, crop: int, seed: int, exa
             labels = torch.from_numpy(np.stack([c["choice"] for c in crops]))
             ce = F.cross_entropy(logits, labels, reduction="none")[:, None]
             loss = loss + choice_weight * (ce * band_w).sum() / band_w.sum().clamp_min(1.0)
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-        sched.step()
-        losses.append(loss.item())
+        _optimise(loss, step, parts, losses, rng, steps, seed, checkpoint, checkpoint_every)
         if (step + 1) % log_every == 0:
             print(f"step {step + 1}: band loss {np.mean(losses[-log_every:]):.5f}", flush=True)
-        if checkpoint and ((step + 1) % checkpoint_every == 0 or step + 1 == steps):
-            _save(checkpoint, {"steps": steps, "seed": seed, "step": step + 1, "losses": losses,
-                               "rng": rng.bit_generator.state, **{k: v.state_dict() for k, v in parts.items()}})
     return model, losses
+
+
+def _optimise(loss, step: int, parts: dict, losses: list[float], rng, steps: int, seed: int,
+              checkpoint: str | None, checkpoint_every: int) -> None:
+    """One training step's end: the optimiser and the schedule of ``parts`` step on ``loss``, which joins
+    ``losses``; then, with ``checkpoint``, the whole state is written when one is due (:func:`_resume` reads it)."""
+    parts["opt"].zero_grad()
+    loss.backward()
+    parts["opt"].step()
+    parts["sched"].step()
+    losses.append(loss.item())
+    if checkpoint and ((step + 1) % checkpoint_every == 0 or step + 1 == steps):
+        _save(checkpoint, {"steps": steps, "seed": seed, "step": step + 1, "losses": losses,
+                           "rng": rng.bit_generator.state, **{k: v.state_dict() for k, v in parts.items()}})
 
 
 def _region(a: np.ndarray, y0: int, x0: int, size: int, lead: int = 0) -> np.ndarray:

@@ -37,10 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from bench_refiner import NET_CONDITIONS, devset_samples, synth_samples
 from common import REPO, machine_info, write_json
-from refiner_choice import _psnr, _region, _resume, _save, _srgb
-
-COC_SCALE_PX = 8.0
-"""``EdgeConfig.coc_scale_px`` of the networks this script trains (the inputs' CoC unit)."""
+from refiner_choice import _optimise, _psnr, _region, _resume, _srgb
 
 TRAIN_CORRUPTIONS = (("none", 0, 0), ("local", 5, 20), ("estimator", 3, 8), ("missing", 1, 3),
                      ("erode", 2, 6), ("dilate", 2, 6))
@@ -67,12 +64,12 @@ def side_costs(used: np.ndarray, truth: np.ndarray, blur, config, cap_px: float 
     return np.minimum(np.stack([np.abs(blur.signed_coc(m) - t) for m in (used, near, far)]), cap_px)
 
 
-def side_labels(cost, x):
+def side_labels(cost, x, config):
     """From a bank entry's costs and inputs (torch, ``B x 3 x H x W`` and ``B x N_INPUTS x H x W``): the true side
     (1: near, the near candidate is nearer the true CoC than the far one) and how much it counts: the CoC span
     between the candidates, 0 to 1 at 4 px (none where no edge is in reach)."""
     near_side = (cost[:, 1] < cost[:, 2]).float()
-    span = ((x[:, 4] - x[:, 5]) * x.new_tensor(COC_SCALE_PX) / 4.0).clamp(0.0, 1.0)
+    span = ((x[:, 4] - x[:, 5]) * config.coc_scale_px / 4.0).clamp(0.0, 1.0)
     return near_side, span
 
 
@@ -123,8 +120,8 @@ def train(entries: list[dict], config, steps: int, batch: int, crop: int, seed: 
                                                 pct_start=min(0.3, max(0.05, 10 / steps)))
     parts = {"model": model, "opt": opt, "sched": sched}
     losses, start = _resume(checkpoint, steps, seed, parts, rng) if checkpoint else ([], 0)
-    costs_seen: list[float] = []
-    map_wrong = _map_wrong(entries, exact_weight)
+    wrong_seen: list[float] = []
+    map_wrong = _map_wrong(entries, exact_weight, config)
     reach = config.reach_px
     for step in range(start, steps):
         xs, costs, ws = [], [], []
@@ -159,28 +156,21 @@ def train(entries: list[dict], config, steps: int, batch: int, crop: int, seed: 
         cost, counted = cost[:, :3], cost[:, 3]
         weight = x[:, 6] * counted * torch.tensor(ws)[:, None, None]
         logit = model(x)[:, 0]
-        label, span = side_labels(cost, x)
+        label, span = side_labels(cost, x, config)
         weight = weight * span
         loss = (F.binary_cross_entropy_with_logits(logit, label, reduction="none") * weight).sum() \
             / weight.sum().clamp_min(1.0)
         with torch.no_grad():  # the share of counted pixels put on the wrong side at 0.5
-            costs_seen.append(float((((logit > 0).float() != label).float() * weight).sum()
+            wrong_seen.append(float((((logit > 0).float() != label).float() * weight).sum()
                                     / weight.sum().clamp_min(1.0)))
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-        sched.step()
-        losses.append(loss.item())
+        _optimise(loss, step, parts, losses, rng, steps, seed, checkpoint, checkpoint_every)
         if (step + 1) % log_every == 0:
-            print(f"step {step + 1}: loss {np.mean(losses[-log_every:]):.4f}, wrong side {np.mean(costs_seen[-log_every:]):.3f} "
-                  f"(the map's: {map_wrong:.3f})", flush=True)
-        if checkpoint and ((step + 1) % checkpoint_every == 0 or step + 1 == steps):
-            _save(checkpoint, {"steps": steps, "seed": seed, "step": step + 1, "losses": losses,
-                               "rng": rng.bit_generator.state, **{k: v.state_dict() for k, v in parts.items()}})
+            print(f"step {step + 1}: loss {np.mean(losses[-log_every:]):.4f}, wrong side "
+                  f"{np.mean(wrong_seen[-log_every:]):.3f} (the map's: {map_wrong:.3f})", flush=True)
     return model, losses
 
 
-def _map_wrong(entries: list[dict], exact_weight: float) -> float:
+def _map_wrong(entries: list[dict], exact_weight: float, config) -> float:
     """The share of counted pixels the given maps themselves put on the wrong side (what a network that keeps every
     map scores)."""
     import torch
@@ -188,7 +178,7 @@ def _map_wrong(entries: list[dict], exact_weight: float) -> float:
     wrong = total = 0.0
     for e in entries:
         x, cost = torch.from_numpy(e["x"][None].astype(np.float32)), torch.from_numpy(e["cost"][None].astype(np.float32))
-        label, span = side_labels(cost, x)
+        label, span = side_labels(cost, x, config)
         on_near = (-x[:, 5] > x[:, 4]).float()  # c - far > near - c (the inputs hold near - c and far - c)
         w = x[:, 6] * span * (exact_weight if e["exact"] else 1.0)
         wrong += float(((on_near != label).float() * w).sum())

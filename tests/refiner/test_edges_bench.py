@@ -49,7 +49,7 @@ def test_labels_are_the_true_side_weighted_by_the_candidates_span(bench):
     band = np.ones(truth.shape, np.float32)
     x = torch.from_numpy(edge_features(focus, shrunk, blur, band, SMALL))[None]
     cost = torch.from_numpy(bench.side_costs(shrunk, truth, blur, SMALL).astype(np.float32))[None]
-    label, span = bench.side_labels(cost, x)
+    label, span = bench.side_labels(cost, x, SMALL)
     assert torch.all(label[0, 10:30, 20:30] == 1)  # the lost columns and the square's inside near them: near
     assert torch.all(label[0, 4:10, 20:30] == 0) and torch.all(span[0, 4:10, 20:30] > 0)  # above it: far, counted
     assert torch.all(span[0, 15, 18:30] == 1.0) and span[0, 15, 17] == 0  # an edge of 6 px CoC within 6 px: counts
