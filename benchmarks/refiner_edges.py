@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -104,13 +105,15 @@ def bank(root: str, variants: int, seed: int, opts, config) -> list[dict]:
 
 
 def train(entries: list[dict], config, steps: int, batch: int, crop: int, seed: int, exact_weight: float,
-          checkpoint: str | None, checkpoint_every: int = 500, log_every: int = 100):
+          checkpoint: str | None, checkpoint_every: int = 500, log_every: int = 100, contrast: float = 0.0):
     """AdamW on the binary cross-entropy against the true side (:func:`side_labels`), on random crops on the band
     (flipped and transposed at random), each pixel weighted by the band, the candidates' CoC span and
-    ``exact_weight`` on exact maps. With ``checkpoint``, resumable bit for bit (as ``refiner_choice.train``)."""
+    ``exact_weight`` on exact maps; with ``contrast`` (sRGB) also by the local colour contrast across the edge over
+    that, clamped to [0.05, 1] (a pixel put on the wrong side of an edge with no contrast costs the render nothing).
+    With ``checkpoint``, resumable bit for bit (as ``refiner_choice.train``)."""
     import torch
     import torch.nn.functional as F
-    from bokehray_refiner.edges import EdgeNet
+    from bokehray_refiner.edges import N_BASE, EdgeNet
 
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
@@ -158,6 +161,9 @@ def train(entries: list[dict], config, steps: int, batch: int, crop: int, seed: 
         logit = model(x)[:, 0]
         label, span = side_labels(cost, x, config)
         weight = weight * span
+        if contrast > 0:  # the two sides' local mean colours differ by (photo - far mean) - (photo - near mean)
+            step_contrast = (x[:, N_BASE + 3:N_BASE + 6] - x[:, N_BASE:N_BASE + 3]).square().sum(1).sqrt()
+            weight = weight * (step_contrast / contrast).clamp(0.05, 1.0)
         loss = (F.binary_cross_entropy_with_logits(logit, label, reduction="none") * weight).sum() \
             / weight.sum().clamp_min(1.0)
         with torch.no_grad():  # the share of counted pixels put on the wrong side at 0.5
@@ -186,27 +192,31 @@ def _map_wrong(entries: list[dict], exact_weight: float, config) -> float:
     return wrong / max(total, 1.0)
 
 
-def score(model, samples, opts, thresholds, gate: bool = False, min_region: int = 0, attached: bool = False) -> tuple[list[dict], list[dict]]:
+def score(model, samples, opts, thresholds, gate: bool = False, min_region: int = 0, attached: bool = False,
+          margins: tuple[float, ...] = ()) -> tuple[list[dict], list[dict]]:
     """Band PSNR of the depth fix's render and of the level on the edge network's map (``edges``; with ``gate``
-    also behind refine's confidence gate, ``gated``), per render and condition."""
+    also behind refine's confidence gate, ``gated``), per render and condition; each also with the colour veto at
+    each of ``margins`` (``_v<margin>``, ``place_edges(colour_margin=)``), the oracle too."""
     from bokehray_refiner.data import corrupt_disparity
-    from bokehray_refiner.edges import place_edges
+    from bokehray_refiner.edges import edge_features, place_edges
 
     import bokehray as br
 
     rows = []
+    config = model.config
     for name, image, disparity, blur, target, score_band in samples:
-        m = np.asarray(score_band, bool)
-        t = _srgb(target)
         focus = _srgb(image)
+
+        band_psnr = partial(_band_psnr, image, blur, _srgb(target), np.asarray(score_band, bool))
         for kind, amount in NET_CONDITIONS:
             d = np.clip(corrupt_disparity(disparity, kind, amount), 0.0, 1.0)
             used, band = used_map(image, d, blur, opts)
             render = br.render(image, used, blur)
-            row = {"pair": name, "corruption": kind, "px": amount,
-                   "fix": _psnr(((_srgb(render) - t) ** 2).mean(-1)[m]),
-                   "oracle": _psnr(((_srgb(br.render(image, oracle_map(used, disparity, band, model.config), blur))
-                                     - t) ** 2).mean(-1)[m])}
+            row = {"pair": name, "corruption": kind, "px": amount, "fix": band_psnr(used, render),
+                   "oracle": band_psnr(oracle_map(used, disparity, band, config))}
+            feats = edge_features(focus, used, blur, band, config) if margins else None
+            for margin in margins:
+                row[f"oracle_v{margin:g}"] = band_psnr(oracle_map(used, disparity, band, config, feats, margin))
             gated = None
             if gate:  # refine's confidence gate on the depth fix's render: where it closes, no edge moves
                 from bokehray_refiner.refine import blend_weight
@@ -217,24 +227,39 @@ def score(model, samples, opts, thresholds, gate: bool = False, min_region: int 
                 for tag, hold in (("edges", None), ("gated", None if gated is None else gated <= 0)):
                     if tag == "gated" and hold is None:
                         continue
-                    moved = place_edges(model, focus, used, blur, band, th, keep=hold, min_region_px=min_region,
-                                        attached=attached)
-                    row[f"{tag}_{th:g}"] = _psnr(((_srgb(br.render(image, moved, blur)) - t) ** 2).mean(-1)[m])
-                    row[f"{tag}_moved_{th:g}"] = int((moved != used).sum())
+                    for margin in (None, *margins):
+                        key = f"{tag}_{th:g}" + ("" if margin is None else f"_v{margin:g}")
+                        moved = place_edges(model, focus, used, blur, band, th, keep=hold,
+                                            min_region_px=min_region, attached=attached, colour_margin=margin)
+                        row[key] = band_psnr(moved)
+                        row[key.replace("_", "_moved_", 1)] = int((moved != used).sum())
             rows.append(row)
         print(name, flush=True)
     return rows, summarise(rows)
 
 
-def oracle_map(used: np.ndarray, truth: np.ndarray, band: np.ndarray, config) -> np.ndarray:
+def _band_psnr(image, blur, target_srgb, score_band, disparity, render=None) -> float:
+    """PSNR in ``score_band`` of the level's render on ``disparity`` (``render``, when already made)."""
+    import bokehray as br
+
+    render = br.render(image, disparity, blur) if render is None else render
+    return _psnr(((_srgb(render) - target_srgb) ** 2).mean(-1)[score_band])
+
+
+def oracle_map(used: np.ndarray, truth: np.ndarray, band: np.ndarray, config, features: np.ndarray | None = None,
+               margin: float | None = None) -> np.ndarray:
     """What a perfect edge network would make of ``used``: every pixel of the band with an edge in reach that ``used``
-    puts on the wrong side (its true side: the candidate nearer the true disparity) moves to the other side's value."""
-    from bokehray_refiner.edges import candidates, map_sides
+    puts on the wrong side (its true side: the candidate nearer the true disparity) moves to the other side's value;
+    with ``margin``, only where the colour veto lets it (``colour_allows`` of ``features``)."""
+    from bokehray_refiner.edges import candidates, colour_allows, map_sides
 
     near, far = candidates(used, config.radius_px)
     reach, on_near = map_sides(used, near, far)
     true_near = truth - far > near - truth
     move = (band > 0) & reach & (true_near != on_near)
+    if margin is not None:
+        near_ok, far_ok = colour_allows(features, margin)
+        move &= np.where(true_near, near_ok, far_ok)
     return np.where(move, np.where(true_near, near, far), used)
 
 
@@ -245,7 +270,7 @@ def summarise(rows: list[dict]) -> list[dict]:
         sel = [r for r in rows if (r["corruption"], r["px"]) == (kind, amount)]
         s = {"corruption": kind, "px": amount, "fix": float(np.mean([r["fix"] for r in sel]))}
         for k in sel[0]:
-            if (k.startswith(("edges_", "gated_")) and "_moved_" not in k) or k == "oracle":
+            if k.startswith(("edges_", "gated_", "oracle")) and "_moved_" not in k:
                 s[k] = float(np.mean([r[k] for r in sel]))
                 s[f"{k}_worst"] = float(min(r[k] - r["fix"] for r in sel))
         summary.append(s)
@@ -265,6 +290,8 @@ def main() -> None:
                     help="side of the crop the loss counts (the network sees its receptive field around it too)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--exact-weight", type=float, default=2.0, help="loss weight of the exact maps")
+    ap.add_argument("--contrast", type=float, default=0.0,
+                    help="weight the loss by the local colour contrast across the edge over this (sRGB), at most 1")
     ap.add_argument("--width", type=int, default=32)
     ap.add_argument("--dilations", default="2,4,8,1", help="the hidden 3 x 3 convolutions' dilations")
     ap.add_argument("--bank", default=None, help="cache of the training inputs (.npz): read if present, else written")
@@ -277,6 +304,8 @@ def main() -> None:
     ap.add_argument("--gate", action="store_true", help="score behind refine's confidence gate as well")
     ap.add_argument("--min-region", type=int, default=0, help="place_edges' min_region_px")
     ap.add_argument("--attached", action="store_true", help="place_edges' attached: no islands, no holes")
+    ap.add_argument("--veto", default="",
+                    help="score with the colour veto too, at each of these margins (sRGB; place_edges' colour_margin)")
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--out", default=str(REPO / "benchmarks/results/refiner_edges.json"))
     args = ap.parse_args()
@@ -310,7 +339,7 @@ def main() -> None:
         print(f"bank: {len(entries)} maps in {result['bank_s']:.0f} s", flush=True)
         t = time.perf_counter()
         model, losses = train(entries, config, args.steps, args.batch, args.crop, args.seed, args.exact_weight,
-                              args.checkpoint, args.checkpoint_every)
+                              args.checkpoint, args.checkpoint_every, contrast=args.contrast)
         del entries
         result |= {"train_s": time.perf_counter() - t, "loss": losses}
         model.eval()
@@ -318,16 +347,17 @@ def main() -> None:
             save_edge_net(model, args.export, steps=str(args.steps), seed=str(args.seed))
     result["parameters"] = sum(p.numel() for p in model.parameters())
     thresholds = [float(v) for v in args.thresholds.split(",")]
+    margins = tuple(float(v) for v in args.veto.split(",")) if args.veto else ()
     for split, samples in (("devset", devset_samples(Path(args.devset)) if args.devset else None),
                            ("heldout", synth_samples(args.heldout, args.pairs) if args.heldout else None)):
         if samples is None:
             continue
-        rows, summary = score(model, samples, opts, thresholds, args.gate, args.min_region, args.attached)
+        rows, summary = score(model, samples, opts, thresholds, args.gate, args.min_region, args.attached, margins)
         result[split] = {"rows": rows, "summary": summary}
         print(f"{split}: band PSNR dB, mean over renders (gain over the depth fix; worst render)")
         for s in summary:
             gains = "  ".join(f"{k}: {s[k] - s['fix']:+.2f} ({s[k + '_worst']:+.2f})"
-                              for th in thresholds for k in (f"edges_{th:g}", f"gated_{th:g}") if k in s)
+                              for k in s if k.startswith(("edges_", "gated_", "oracle")) and "_worst" not in k)
             print(f"  {s['corruption'] + ' ' + str(s['px']):>12} fix {s['fix']:6.2f}  {gains}", flush=True)
     write_json(args.out, result)
 

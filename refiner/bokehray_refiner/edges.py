@@ -32,8 +32,8 @@ from bokehray.lens import BlurParams
 
 from .tiles import refine_boxes
 
-__all__ = ["DEFAULT_EDGE_WEIGHTS", "EdgeConfig", "EdgeNet", "candidates", "colour_features", "edge_features",
-           "load_edge_net", "map_sides", "place_edges", "save_edge_net"]
+__all__ = ["DEFAULT_EDGE_WEIGHTS", "EdgeConfig", "EdgeNet", "candidates", "colour_allows", "colour_features",
+           "edge_features", "load_edge_net", "map_sides", "place_edges", "save_edge_net"]
 
 DEFAULT_EDGE_WEIGHTS = Path(__file__).parent / "weights" / "edges.safetensors"
 
@@ -137,6 +137,16 @@ def colour_features(base: np.ndarray) -> np.ndarray:
     return out
 
 
+def colour_allows(features: np.ndarray, margin: float) -> tuple[np.ndarray, np.ndarray]:
+    """Where the photo's colour lets a pixel move to the near side, and where to the far side: its colour must be
+    nearer (Euclidean, sRGB) the local mean of the side it moves to than that of the other side, by ``margin``.
+    ``features``: :func:`edge_features` (its colour channels). A pixel inside a sharp subject has its subject's colour,
+    so no move punches a hole in it; a strip the map puts on the wrong side has the other side's colour."""
+    to_near = np.sqrt((features[N_BASE:N_BASE + 3] ** 2).sum(0))
+    to_far = np.sqrt((features[N_BASE + 3:N_BASE + 6] ** 2).sum(0))
+    return to_near + margin < to_far, to_far + margin < to_near
+
+
 def map_sides(disparity: np.ndarray, near: np.ndarray, far: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Where an edge is in reach (the candidates differ), and which of those pixels ``disparity`` puts on the near
     side (nearer the near candidate than the far one; ties count as far)."""
@@ -146,13 +156,15 @@ def map_sides(disparity: np.ndarray, near: np.ndarray, far: np.ndarray) -> tuple
 
 def place_edges(model: EdgeNet, focus_srgb: np.ndarray, disparity: np.ndarray, blur: BlurParams,
                 band: np.ndarray, threshold: float = 0.9, keep: np.ndarray | None = None,
-                tile: int = 64, min_region_px: int = 0, attached: bool = False) -> np.ndarray:
+                tile: int = 64, min_region_px: int = 0, attached: bool = False,
+                colour_margin: float | None = None) -> np.ndarray:
     """The map with the network's segmentation applied where the band is open and the network is sure: a pixel the
     map puts on the far side takes the near value where the near side's probability is at least ``threshold``, and
     the other way round; ``keep`` marks pixels never moved (clipped lights). Moves in connected regions (8-connected)
     smaller than ``min_region_px`` are dropped: a misplaced edge moves a strip, and a lone pixel moved into the
     near layer scatters its colour over a whole CoC disc. With ``attached``, a region moves only where it touches the
-    side it moves to (the near region grows or shrinks from its edge; no islands, no holes).
+    side it moves to (the near region grows or shrinks from its edge; no islands, no holes). With ``colour_margin``,
+    a pixel moves only where its colour is nearer the side it moves to by that much (:func:`colour_allows`).
 
     The network runs only on the tiles with band pixels, each box of them with a halo of its receptive field, so its
     output there is what it would be on the whole frame."""
@@ -184,6 +196,10 @@ def place_edges(model: EdgeNet, focus_srgb: np.ndarray, disparity: np.ndarray, b
         sl = (slice(y0, y1), slice(x0, x1))
         to_near[sl] = need_px[sl] & ~on_near[sl] & (p >= threshold)
         to_far[sl] = need_px[sl] & on_near[sl] & (p <= 1.0 - threshold)
+    if colour_margin is not None:
+        near_ok, far_ok = colour_allows(feats, colour_margin)
+        to_near &= near_ok
+        to_far &= far_ok
     if min_region_px > 1:
         to_near, to_far = _drop_small(to_near, min_region_px), _drop_small(to_far, min_region_px)
     if attached:

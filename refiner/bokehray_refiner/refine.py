@@ -97,6 +97,8 @@ class RefineOptions:
                              f"{self.halo}")
         if not (np.isfinite(self.min_jump_px) and self.min_jump_px > 0) or self.batch < 1:
             raise InputError("refine: min_jump_px must be > 0 and batch >= 1")
+        if not 0.5 <= self.edge_threshold <= 1.0:  # below 0.5 a pixel would be sure of both sides
+            raise InputError(f"refine: edge_threshold must be in [0.5, 1], got {self.edge_threshold}")
 
 
 @dataclass
@@ -110,7 +112,7 @@ class RefineStats:
     band_pixels: int = 0  #: pixels of the edge band (where a depth error can change the image)
     gate_open: float = 0.0  #: mean gate over the band: the share of the correction let through
     depth_fixed_px: int = 0  #: pixels whose disparity the depth correction changed (then the level ran again)
-    depthfix_seconds: float = 0.0  #: the correction itself
+    depthfix_seconds: float = 0.0  #: the correction itself (with ``options.edges``, the edge network's too)
     rerender_seconds: float = 0.0  #: the classical level again, on the corrected disparity (its only render, when
     #: refine() was given no classical render: then not part of ``seconds``)
     gate_seconds: float = 0.0  #: the edge band and the confidence gate

@@ -12,6 +12,7 @@ from bokehray_refiner.edges import (  # noqa: E402
     EdgeConfig,
     EdgeNet,
     candidates,
+    colour_allows,
     edge_features,
     load_edge_net,
     map_sides,
@@ -70,14 +71,15 @@ def test_on_tiles_the_network_moves_the_map_as_it_would_on_the_whole_frame():
 
 
 @settings(max_examples=20, deadline=None)
-@given(seed=st.integers(0, 2**16), threshold=st.floats(0.0, 1.0), keep_lights=st.booleans(), attached=st.booleans())
-def test_moves_only_open_band_pixels_only_to_a_candidate(seed, threshold, keep_lights, attached):
+@given(seed=st.integers(0, 2**16), threshold=st.floats(0.0, 1.0), keep_lights=st.booleans(), attached=st.booleans(),
+       margin=st.one_of(st.none(), st.floats(0.0, 0.3)))
+def test_moves_only_open_band_pixels_only_to_a_candidate(seed, threshold, keep_lights, attached, margin):
     focus, d, blur = _scene(48, 64, seed)
     rng = np.random.default_rng(seed)
     band = (rng.random(d.shape) < 0.4).astype(np.float32) * rng.random(d.shape, dtype=np.float32)
     keep = rng.random(d.shape) < 0.3 if keep_lights else None
     moved = place_edges(_mover(seed=seed % 7), focus, d, blur, band, threshold, keep=keep, tile=16,
-                        attached=attached)
+                        attached=attached, colour_margin=margin)
     near, far = candidates(d, SMALL.radius_px)
     reach, on_near = map_sides(d, near, far)
     changed = moved != d
@@ -94,6 +96,34 @@ def test_moves_only_open_band_pixels_only_to_a_candidate(seed, threshold, keep_l
         assert not (changed & keep).any()
     # a pixel moves only across the edge: from the far side to the near value, or the other way
     assert np.all(~changed | (on_near & (moved == far)) | (~on_near & (moved == near)))
+    if margin is not None:  # and only where its colour is nearer the side it joins
+        near_ok, far_ok = colour_allows(edge_features(focus, d, blur, band, SMALL), margin)
+        assert not (changed & on_near & ~far_ok).any() and not (changed & ~on_near & ~near_ok).any()
+
+
+def test_the_colour_veto_keeps_a_sharp_subject_whole_and_lets_a_misplaced_strip_go():
+    """A network sure that every pixel is far would punch the subject's rim out of an exact map; with the colour veto
+    only the strip of background the map wrongly gave the subject moves."""
+    h, w = 64, 64
+    focus = np.zeros((h, w, 3), np.float32)
+    focus[..., 2] = 0.8  # a blue background
+    focus[16:48, 16:48] = (0.9, 0.1, 0.1)  # a red subject
+    exact = np.full((h, w), 0.2, np.float32)
+    exact[16:48, 16:48] = 0.8
+    blur = br.BlurParams(12.0, 0.8)
+    band = np.ones((h, w), np.float32)
+    m = EdgeNet(SMALL).eval()
+    with torch.no_grad():
+        m.net[-1].weight.zero_()
+        m.net[-1].bias.fill_(-10.0)  # sure every pixel is far
+    assert (place_edges(m, focus, exact, blur, band, 0.9) != exact).any()  # holes in the rim
+    np.testing.assert_array_equal(place_edges(m, focus, exact, blur, band, 0.9, colour_margin=0.05), exact)
+    grown = np.full((h, w), 0.2, np.float32)
+    grown[12:52, 12:52] = 0.8  # the subject grown by 4 px into the background
+    moved = place_edges(m, focus, grown, blur, band, 0.9, colour_margin=0.05)
+    strip = (grown != exact)
+    assert (moved[strip] == 0.2).mean() > 0.9  # the background strip goes back to the background
+    np.testing.assert_array_equal(moved[16:48, 16:48], exact[16:48, 16:48])  # and the subject stays whole
 
 
 def test_an_undecided_network_keeps_the_map():
@@ -170,3 +200,11 @@ def test_a_float64_map_counts_only_the_pixels_the_network_moved():
     opts = RefineOptions(edges=True, depthfix=DepthFixOptions(enabled=False))
     _, changed = corrected_disparity(focus ** 2.2, d.astype(np.float64) + 1e-9, blur, opts, edge_model=EdgeNet(SMALL))
     assert not changed.any()  # an undecided network moves nothing; float32 rounding is not a move
+
+
+@pytest.mark.parametrize("threshold", [0.49, 1.01, float("nan")])
+def test_an_edge_threshold_outside_a_half_to_one_is_refused(threshold):
+    from bokehray_refiner.refine import RefineOptions
+
+    with pytest.raises(InputError, match="edge_threshold"):
+        RefineOptions(edges=True, edge_threshold=threshold)
