@@ -15,6 +15,7 @@ __all__ = [
     "InputError",
     "NumericalError",
     "OutputError",
+    "OutputExistsError",
     "ResourceError",
     "Terminated",
 ]
@@ -42,6 +43,10 @@ class OutputError(BokehrayError, OSError):
     Nothing partial is left behind: the writer's temporary file is removed and an existing
     file at that path is untouched.
     """
+
+
+class OutputExistsError(OutputError):
+    """An exclusive write found its file there already (made meanwhile by another writer); nothing was written."""
 
 
 EXIT_INTERRUPTED = 130  # 128 + SIGINT: the CLI's exit status after Ctrl-C

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import re
 import struct
@@ -814,3 +815,30 @@ def test_outputs_are_byte_reproducible_across_processes(tmp_path):
         subprocess.run([sys.executable, "-c", code, str(p)], check=True)
         outs.append(p.read_bytes())
     assert outs[0] == outs[1]
+
+
+@pytest.mark.parametrize("links", [True, False])
+def test_an_exclusive_write_never_replaces_a_file_made_meanwhile(tmp_path, monkeypatch, links):
+    """Two writers that chose the same free name: the one that finishes second gets OutputExistsError, the first one's
+    file stays as written and no temporary is left (``links=False``: a file system without hard links)."""
+    from bokehray.errors import OutputExistsError
+
+    target = tmp_path / "o.png"
+    if not links:
+        def no_link(src, dst):
+            raise OSError(errno.EPERM, os.strerror(errno.EPERM))
+
+        monkeypatch.setattr(at.os, "link", no_link)
+
+    def encode_while_another_writes(tmp):
+        target.write_bytes(b"the other writer's file")
+        Path(tmp).write_bytes(b"ours")
+
+    with pytest.raises(OutputExistsError, match="o.png: a file of that name was made meanwhile"):
+        at.atomic_write(target, encode_while_another_writes, exclusive=True)
+    assert target.read_bytes() == b"the other writer's file" and [f.name for f in tmp_path.iterdir()] == ["o.png"]
+    fresh = tmp_path / "p.png"
+    assert at.atomic_write(fresh, lambda tmp: Path(tmp).write_bytes(b"ours"), exclusive=True) == fresh
+    assert fresh.read_bytes() == b"ours" and sorted(f.name for f in tmp_path.iterdir()) == ["o.png", "p.png"]
+    at.atomic_write(target, lambda tmp: Path(tmp).write_bytes(b"replaced"))  # not exclusive: replaces, as before
+    assert target.read_bytes() == b"replaced"

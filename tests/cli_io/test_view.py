@@ -9,6 +9,7 @@ import time
 import urllib.error
 import urllib.request
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -445,3 +446,21 @@ def test_cli_serves_until_interrupted(scene_files, tmp_path):
             proc.wait()
     assert proc.returncode == 0, err
     assert "Traceback" not in err and "stopped" in err
+
+
+def test_an_export_whose_name_another_process_takes_meanwhile_writes_the_next_free_name(session, monkeypatch):
+    """Two views exporting to one folder both choose the first free name; the one that finishes second writes the
+    next free name instead of replacing the other's file."""
+    fmt = "png"
+    taken = session.export_path(fmt)
+    render_full = session.render_full
+
+    def render_while_another_exports(p, check=None):
+        taken.write_bytes(b"the other view's export")
+        return render_full(p, check)
+
+    monkeypatch.setattr(session, "render_full", render_while_another_exports)
+    written, command = session.export(parse_params({"blur": 6.0}, session.disparity), fmt, None)
+    assert taken.read_bytes() == b"the other view's export"
+    assert Path(written) != taken and Path(written).parent == taken.parent and str(written) in command
+    assert br.read_image(written).shape[:2] == session.image.shape[:2]

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import psutil
 
-from ..errors import BokehrayError, OutputError, ResourceError
+from ..errors import BokehrayError, OutputError, OutputExistsError, ResourceError
 
 __all__ = ["atomic_write", "is_zombie", "remove_made_folder_on_failure", "remove_stale_outputs",
            "remove_stale_temporaries", "temporary_prefix", "writer_alive"]
@@ -135,8 +135,13 @@ def _why(exc: BaseException, tmp: str | None) -> str:
     return text.strip().rstrip(".")
 
 
-def atomic_write(path: Path, encode: Callable[[str], None]) -> Path:
+def atomic_write(path: Path, encode: Callable[[str], None], exclusive: bool = False) -> Path:
     """Run ``encode(tmp_name)`` on a temporary sibling of ``path``, then move it onto ``path``.
+
+    With ``exclusive``, an existing ``path`` is never replaced, even one another process made
+    after the caller chose the name: the finished file is hard-linked to ``path``, which fails
+    when the name is taken, raising :class:`OutputExistsError` (on a file system without hard
+    links, a check just before the move).
 
     Any failure of the encoder or of the file system (disk full, permissions, a folder that
     cannot be made) raises :class:`OutputError` naming ``path``; the temporary file is removed
@@ -166,7 +171,10 @@ def atomic_write(path: Path, encode: Callable[[str], None]) -> Path:
             os.umask(umask)
             mode = 0o666 & ~umask
         os.chmod(tmp, mode)
-        os.replace(tmp, path)
+        if exclusive:
+            _publish_new(tmp, path)
+        else:
+            os.replace(tmp, path)
     except BaseException as exc:
         if tmp is not None:
             with contextlib.suppress(OSError):
@@ -179,6 +187,23 @@ def atomic_write(path: Path, encode: Callable[[str], None]) -> Path:
             raise OutputError(f"cannot write {path}: {_why(exc, tmp)}") from exc
         raise
     return path
+
+
+def _publish_new(tmp: str, path: Path) -> None:
+    """Move ``tmp`` onto ``path`` only if no file is there (atomically where the file system has hard links)."""
+    try:
+        os.link(tmp, path)
+    except FileExistsError:
+        raise OutputExistsError(f"cannot write {path}: a file of that name was made meanwhile") from None
+    except OSError as e:
+        if e.errno not in (errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EXDEV, errno.EMLINK):
+            raise
+        if path.exists():
+            raise OutputExistsError(f"cannot write {path}: a file of that name was made meanwhile") from None
+        os.replace(tmp, path)
+        return
+    with contextlib.suppress(OSError):
+        os.unlink(tmp)
 
 
 def _block_signals() -> set[int] | None:

@@ -119,6 +119,7 @@ def write_image(  # noqa: C901
     half: bool = False,
     quality: int = 95,
     exif: bytes | None = None,
+    exclusive: bool = False,
 ) -> Path:
     """Write a linear float image atomically, choosing the format from the extension.
 
@@ -137,6 +138,8 @@ def write_image(  # noqa: C901
         quality: JPEG quality, 1 to 100.
         exif: an EXIF block to embed in a JPEG (``bokehray.photo.embedded.exif_for_output`` keeps the input's, with the
             orientation reset), or None.
+        exclusive: never replace a file at ``path``, even one made while this wrote
+            (``OutputExistsError``; see :func:`~bokehray.output.atomic.atomic_write`).
 
     Display-referred outputs are tagged sRGB: an sRGB ICC profile in PNG, JPEG and integer TIFF; EXR files carry
     the sRGB / Rec. 709 primaries as their ``chromaticities`` attribute.
@@ -171,11 +174,11 @@ def write_image(  # noqa: C901
         if bits == 16 and big.any():
             y, x = first_index(big)[:2]
             raise InputError(f"refusing to write {p}: value beyond the HALF range (+-65504) at (y, x) = ({y}, {x})")
-        return atomic_write(p, lambda tmp: _write_exr(tmp, img, half=bits == 16))
+        return atomic_write(p, lambda tmp: _write_exr(tmp, img, half=bits == 16), exclusive)
     if fmt == "TIFF":
         data = img if bits == 32 else srgb_codes(img, bits)
         icc = None if bits == 32 else srgb_icc()
-        return atomic_write(p, lambda tmp: _write_tiff(tmp, data, icc))
+        return atomic_write(p, lambda tmp: _write_tiff(tmp, data, icc), exclusive)
     if fmt == "JPEG" and img.shape[2] == 4:
         raise InputError(f"{p}: expected an image without alpha for JPEG, got 4 channels")
     if fmt == "JPEG" and not 1 <= quality <= 100:
@@ -183,11 +186,11 @@ def write_image(  # noqa: C901
     codes = srgb_codes(img, bits)
     icc = srgb_icc() if img.shape[2] >= 3 else None
     if fmt == "JPEG":
-        return atomic_write(p, lambda tmp: encode_pil(tmp, codes, "JPEG", quality=quality, icc_profile=icc, exif=exif))
+        return atomic_write(p, lambda tmp: encode_pil(tmp, codes, "JPEG", quality=quality, icc_profile=icc, exif=exif), exclusive)
     if bits == 16:
         data = imagecodecs.png_encode(codes)
-        return atomic_write(p, lambda tmp: write_bytes(tmp, _png_with_icc(data, icc) if icc else data))
-    return atomic_write(p, lambda tmp: encode_pil(tmp, codes, "PNG", icc_profile=icc, compress_level=PNG_COMPRESS_LEVEL))
+        return atomic_write(p, lambda tmp: write_bytes(tmp, _png_with_icc(data, icc) if icc else data), exclusive)
+    return atomic_write(p, lambda tmp: encode_pil(tmp, codes, "PNG", icc_profile=icc, compress_level=PNG_COMPRESS_LEVEL), exclusive)
 
 
 def write_disparity(path: str | os.PathLike[str], d: npt.ArrayLike) -> Path:

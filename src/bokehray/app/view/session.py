@@ -21,7 +21,7 @@ import numpy as np
 
 import bokehray as br
 
-from ...errors import InputError
+from ...errors import InputError, OutputError, OutputExistsError
 from ...levels import PHOTO_QUALITIES, check_photo_quality
 
 __all__ = ["EXPORT_FORMATS", "MAX_BODY_BYTES", "ProxyLadder", "RenderParams", "ViewSession", "box_factor", "box_reduce",
@@ -36,6 +36,8 @@ EXPORT_FORMATS = {"png": (8, 16), "jpg": (8,), "tif": (8, 16, 32), "exr": (16, 3
 
 JPEG_QUALITY = 95
 """``render``'s default ``--jpeg-quality``: a JPEG export is the file the shown command writes."""
+EXPORT_NAME_TRIES = 100
+"""Names an export tries when other exports keep taking the next free one first."""
 
 _PARAM_KEYS = {"lens", "amount", "blur", "focus", "focus_at", "aperture", "blades", "rotation", "curvature", "highlight_boost",
                "reconstruct", "quality"}
@@ -561,7 +563,16 @@ class ViewSession:
 
         check_output_path(path, bit_depth=bits, half=half)
         out = self.render_full(p, check)
-        written = br.write_image(path, out, bit_depth=bits, half=half, quality=JPEG_QUALITY, exif=self._exif())
+        exif = self._exif()
+        for _ in range(EXPORT_NAME_TRIES):  # another export (this view's or another process's) may take the name first
+            try:
+                written = br.write_image(path, out, bit_depth=bits, half=half, quality=JPEG_QUALITY, exif=exif,
+                                         exclusive=True)
+                break
+            except OutputExistsError:
+                path = self.export_path(fmt)
+        else:
+            raise OutputError(f"{self.export_dir}: every free export name was taken while writing")
         return written, self.command(p, written, bit_depth=bits, half=half)
 
     def command(self, p: RenderParams, output: str | Path, *, bit_depth: int | None = None,  # noqa: C901
