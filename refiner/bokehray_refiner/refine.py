@@ -75,6 +75,8 @@ class RefineOptions:
             the band, before the level renders again.
         edge_threshold: the edge network moves a pixel across an edge only where it gives the other side at least
             this probability.
+        edge_colour_margin: and only where the pixel's colour is nearer the local mean colour of the side it joins,
+            by this much (sRGB; :func:`.edges.colour_allows`); None: no colour veto.
     """
 
     tile: int = 64
@@ -90,6 +92,7 @@ class RefineOptions:
     merge_tiles: bool = True
     edges: bool = False
     edge_threshold: float = 0.9
+    edge_colour_margin: float | None = None
 
     def __post_init__(self) -> None:
         if self.tile < 8 or self.tile % 8 or self.halo < 0 or self.halo % 8:
@@ -99,6 +102,8 @@ class RefineOptions:
             raise InputError("refine: min_jump_px must be > 0 and batch >= 1")
         if not 0.5 <= self.edge_threshold <= 1.0:  # below 0.5 a pixel would be sure of both sides
             raise InputError(f"refine: edge_threshold must be in [0.5, 1], got {self.edge_threshold}")
+        if self.edge_colour_margin is not None and not 0.0 <= self.edge_colour_margin < 2.0:
+            raise InputError(f"refine: edge_colour_margin must be None or in [0, 2), got {self.edge_colour_margin}")
 
 
 @dataclass
@@ -332,7 +337,8 @@ def corrected_disparity(image: np.ndarray, disparity: np.ndarray, blur: BlurPara
         coc = blur.signed_coc(d_new).astype(np.float32)
         reach = edge_reach(coc, options.min_jump_px)
         band = edge_band(reach, options.band_margin_px, options.band_feather_px)
-        placed = place_edges(model, focus_srgb, d_new, blur, band, options.edge_threshold, keep=lights)
+        placed = place_edges(model, focus_srgb, d_new, blur, band, options.edge_threshold, keep=lights,
+                             colour_margin=options.edge_colour_margin)
         changed = changed | (placed != d_new)
         d_new = placed
     return d_new, changed

@@ -189,6 +189,10 @@ def test_refine_renders_once_on_the_map_the_edge_network_moved():
     assert len(seen) == 1 and np.array_equal(seen[0], moved) and stats.depth_fixed_px == int(changed.sum())
     off, _ = corrected_disparity(image, d, blur, RefineOptions(edges=False, depthfix=opts.depthfix), edge_model=m)
     np.testing.assert_array_equal(off, d)
+    from dataclasses import replace
+
+    vetoed, held = corrected_disparity(image, d, blur, replace(opts, edge_colour_margin=0.1), edge_model=m)
+    assert held.any() and held.sum() < changed.sum() and np.array_equal(vetoed[held], moved[held])
 
 
 def test_a_float64_map_counts_only_the_pixels_the_network_moved():
@@ -202,9 +206,11 @@ def test_a_float64_map_counts_only_the_pixels_the_network_moved():
     assert not changed.any()  # an undecided network moves nothing; float32 rounding is not a move
 
 
-@pytest.mark.parametrize("threshold", [0.49, 1.01, float("nan")])
-def test_an_edge_threshold_outside_a_half_to_one_is_refused(threshold):
+@pytest.mark.parametrize("field,value", [("edge_threshold", 0.49), ("edge_threshold", 1.01),
+                                         ("edge_threshold", float("nan")), ("edge_colour_margin", -0.1),
+                                         ("edge_colour_margin", float("nan")), ("edge_colour_margin", 2.0)])
+def test_edge_options_out_of_range_are_refused(field, value):
     from bokehray_refiner.refine import RefineOptions
 
-    with pytest.raises(InputError, match="edge_threshold"):
-        RefineOptions(edges=True, edge_threshold=threshold)
+    with pytest.raises(InputError, match=field):
+        RefineOptions(edges=True, **{field: value})
