@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from dataclasses import replace
 from functools import partial
 from pathlib import Path
 
@@ -46,13 +47,14 @@ TRAIN_CORRUPTIONS = (("none", 0, 0), ("local", 5, 20), ("estimator", 3, 8), ("mi
 
 
 def used_map(image, disparity, blur, opts):
-    """The depth fix's map (what the edge network is given) and the band refine would open on it."""
+    """The depth fix's map (what the edge network is given), the band refine would open on it, and the pixels the
+    fix moved."""
     from bokehray_refiner.refine import corrected_disparity, edge_band, edge_reach
 
-    used, _ = corrected_disparity(image, disparity, blur, opts)
+    used, changed = corrected_disparity(image, disparity, blur, replace(opts, edges=False))
     used = np.asarray(used, np.float32)
     reach = edge_reach(blur.signed_coc(used).astype(np.float32), opts.min_jump_px)
-    return used, edge_band(reach, opts.band_margin_px, opts.band_feather_px)
+    return used, edge_band(reach, opts.band_margin_px, opts.band_feather_px), changed
 
 
 def side_costs(used: np.ndarray, truth: np.ndarray, blur, config, cap_px: float = 8.0) -> np.ndarray:
@@ -95,7 +97,7 @@ def bank(root: str, variants: int, seed: int, opts, config) -> list[dict]:
         for kind, lo, hi in kinds:
             amount = int(rng.integers(lo, hi + 1))
             d = np.clip(corrupt_disparity(s.disparity, kind, amount, rng), 0.0, 1.0)
-            used, band = used_map(s.image, d, blur, opts)
+            used, band, _ = used_map(s.image, d, blur, opts)
             out.append({"x": edge_features(focus, used, blur, band, config)[:N_BASE].astype(np.float16),
                         "cost": side_costs(used, s.disparity, blur, config).astype(np.float16),
                         "exact": kind == "none"})
@@ -199,6 +201,7 @@ def score(model, samples, opts, thresholds, gate: bool = False, min_region: int 
     each of ``margins`` (``_v<margin>``, ``place_edges(colour_margin=)``), the oracle too."""
     from bokehray_refiner.data import corrupt_disparity
     from bokehray_refiner.edges import edge_features, place_edges
+    from bokehray_refiner.refine import map_found_wrong
 
     import bokehray as br
 
@@ -210,9 +213,11 @@ def score(model, samples, opts, thresholds, gate: bool = False, min_region: int 
         band_psnr = partial(_band_psnr, image, blur, _srgb(target), np.asarray(score_band, bool))
         for kind, amount in NET_CONDITIONS:
             d = np.clip(corrupt_disparity(disparity, kind, amount), 0.0, 1.0)
-            used, band = used_map(image, d, blur, opts)
+            used, band, fixed = used_map(image, d, blur, opts)
+            runs = map_found_wrong(fixed, band, opts.edge_min_fixed_share)  # else refine leaves the map as it is
             render = br.render(image, used, blur)
-            row = {"pair": name, "corruption": kind, "px": amount, "fix": band_psnr(used, render),
+            row = {"pair": name, "corruption": kind, "px": amount, "fix": band_psnr(used, render), "runs": runs,
+                   "fixed_share": float(fixed.sum() / max((band > 0).sum(), 1)),
                    "oracle": band_psnr(oracle_map(used, disparity, band, config))}
             feats = edge_features(focus, used, blur, band, config) if margins else None
             for margin in margins:
@@ -229,6 +234,9 @@ def score(model, samples, opts, thresholds, gate: bool = False, min_region: int 
                         continue
                     for margin in (None, *margins):
                         key = f"{tag}_{th:g}" + ("" if margin is None else f"_v{margin:g}")
+                        if not runs:
+                            row[key], row[key.replace("_", "_moved_", 1)] = row["fix"], 0
+                            continue
                         moved = place_edges(model, focus, used, blur, band, th, keep=hold,
                                             min_region_px=min_region, attached=attached, colour_margin=margin)
                         row[key] = band_psnr(moved)
@@ -304,6 +312,9 @@ def main() -> None:
     ap.add_argument("--gate", action="store_true", help="score behind refine's confidence gate as well")
     ap.add_argument("--min-region", type=int, default=0, help="place_edges' min_region_px")
     ap.add_argument("--attached", action="store_true", help="place_edges' attached: no islands, no holes")
+    ap.add_argument("--min-fixed-share", type=float, default=None,
+                    help="the network runs only on maps the depth fix moved at least this share of the band of "
+                         "(refine's edge_min_fixed_share, whose default is the default; 0: on every map)")
     ap.add_argument("--veto", default="",
                     help="score with the colour veto too, at each of these margins (sRGB; place_edges' colour_margin)")
     ap.add_argument("--threads", type=int, default=None)
@@ -317,7 +328,7 @@ def main() -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
     torch.set_flush_denormal(True)
-    opts = RefineOptions()
+    opts = RefineOptions() if args.min_fixed_share is None else RefineOptions(edge_min_fixed_share=args.min_fixed_share)
     result = {"machine": machine_info(), "args": vars(args)}
     if args.load:
         model = load_edge_net(args.load)

@@ -11,7 +11,10 @@ Columns: all-in-focus input, the map given, preview, depth fix alone, refine wit
 the shipped ones), the exact render. Scores (PSNR in sRGB, clipped): the whole image and the band within 8 px of a
 depth edge of the *true* map (the fur).
 
-    python benchmarks/refiner_hair_crops.py [--weights A.safetensors B.safetensors] [--labels shipped new]
+    python benchmarks/refiner_hair_crops.py [--weights A.safetensors B.safetensors] [--labels shipped new] \
+        [--edges E.safetensors --edge-threshold 0.9 --edge-colour-margin 0.05]
+
+``--edges`` adds a column: the depth fix and the learned edge placement (``bokehray_refiner.edges``), no residual.
 
 Writes ``docs/img/refiner_hair_crops.png`` and ``benchmarks/results/refiner_hair.json``.
 """
@@ -50,6 +53,9 @@ def main() -> None:
     ap.add_argument("--weights", nargs="*", default=["shipped"],
                     help="refiner weights to compare; 'shipped': the package's own (the default)")
     ap.add_argument("--labels", nargs="*", help="a label for each --weights")
+    ap.add_argument("--edges", default=None, help="edge-network weights (safetensors): add the edge placement")
+    ap.add_argument("--edge-threshold", type=float, default=0.9)
+    ap.add_argument("--edge-colour-margin", type=float, default=None)
     ap.add_argument("--out", default=str(REPO / "docs/img/refiner_hair_crops.png"))
     ap.add_argument("--json", default=str(REPO / "benchmarks/results/refiner_hair.json"))
     ap.add_argument("--threads", type=int, default=1)
@@ -59,6 +65,7 @@ def main() -> None:
 
     torch.set_num_threads(args.threads)
     from bokehray_refiner.data import corrupt_disparity
+    from bokehray_refiner.edges import load_edge_net
     from bokehray_refiner.refine import RefineOptions, load_refiner, refine
     from PIL import Image
 
@@ -74,6 +81,9 @@ def main() -> None:
     y0, x0 = int(np.clip(cy - CROP // 2, 0, SIZE - CROP)), int(np.clip(cx - CROP // 2, 0, SIZE - CROP))
     sl = (slice(y0, y0 + CROP), slice(x0, x0 + CROP))
     models = [load_refiner(None if w == "shipped" else w) for w in args.weights]
+    edge_model = load_edge_net(args.edges) if args.edges else None
+    edges_only = RefineOptions(neural=False, edges=True, edge_threshold=args.edge_threshold,
+                               edge_colour_margin=args.edge_colour_margin)
     rows, strips = [], []
     for focus_name, d_f in (("background", 0.1), ("fur", 0.7)):
         blur = br.BlurParams(K, d_f)
@@ -83,6 +93,9 @@ def main() -> None:
         pre = br.render(image, given, blur)
         fixed, _ = refine(image, given, blur, None, options=RefineOptions(neural=False), rerender=rer)
         outs = [("preview", pre), ("depth fix", fixed)]
+        if edge_model is not None:
+            outs.append(("edges", refine(image, given, blur, None, options=edges_only, rerender=rer,
+                                         edge_model=edge_model)[0]))
         for label, model in zip(labels, models):
             outs.append((f"refine ({label})", refine(image, given, blur, None, model=model, rerender=rer)[0]))
         for name, img in outs:
@@ -97,7 +110,8 @@ def main() -> None:
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(a).resize((a.shape[1] * 2, a.shape[0] * 2), Image.NEAREST).save(args.out)
     write_json(args.json, {"machine": machine_info(), "size": SIZE, "k_px": K, "crop": [y0, x0, CROP],
-                           "weights": args.weights, "rows": rows})
+                           "weights": args.weights, "edges": args.edges, "edge_threshold": args.edge_threshold,
+                           "edge_colour_margin": args.edge_colour_margin, "rows": rows})
     print(args.out)
 
 

@@ -47,7 +47,7 @@ from .model import BokehRefiner, RefinerConfig
 from .tiles import raised_cosine_ramp, refine_boxes
 
 __all__ = ["DEFAULT_WEIGHTS", "RefineOptions", "RefineStats", "blend_weight", "correct_and_render", "corrected_disparity", "edge_band",
-           "edge_reach", "load_refiner", "refine", "refine_boxes", "tiles_near", "tiles_to_refine"]
+           "edge_reach", "load_refiner", "map_found_wrong", "refine", "refine_boxes", "tiles_near", "tiles_to_refine"]
 
 DEFAULT_WEIGHTS = Path(__file__).parent / "weights" / "refiner.safetensors"
 
@@ -77,6 +77,9 @@ class RefineOptions:
             this probability.
         edge_colour_margin: and only where the pixel's colour is nearer the local mean colour of the side it joins,
             by this much (sRGB; :func:`.edges.colour_allows`); None: no colour veto.
+        edge_min_fixed_share: the edge network runs only on a map the depth correction found wrong: where it moved
+            at least this share of the edge band's pixels. A map whose edges already sit on the photo's is left
+            as it is (the network's few confident wrong moves cost more there than it can gain).
     """
 
     tile: int = 64
@@ -93,6 +96,7 @@ class RefineOptions:
     edges: bool = False
     edge_threshold: float = 0.9
     edge_colour_margin: float | None = None
+    edge_min_fixed_share: float = 0.01
 
     def __post_init__(self) -> None:
         if self.tile < 8 or self.tile % 8 or self.halo < 0 or self.halo % 8:
@@ -104,6 +108,8 @@ class RefineOptions:
             raise InputError(f"refine: edge_threshold must be in [0.5, 1], got {self.edge_threshold}")
         if self.edge_colour_margin is not None and not 0.0 <= self.edge_colour_margin < 2.0:
             raise InputError(f"refine: edge_colour_margin must be None or in [0, 2), got {self.edge_colour_margin}")
+        if not 0.0 <= self.edge_min_fixed_share <= 1.0:
+            raise InputError(f"refine: edge_min_fixed_share must be in [0, 1], got {self.edge_min_fixed_share}")
 
 
 @dataclass
@@ -337,11 +343,19 @@ def corrected_disparity(image: np.ndarray, disparity: np.ndarray, blur: BlurPara
         coc = blur.signed_coc(d_new).astype(np.float32)
         reach = edge_reach(coc, options.min_jump_px)
         band = edge_band(reach, options.band_margin_px, options.band_feather_px)
-        placed = place_edges(model, focus_srgb, d_new, blur, band, options.edge_threshold, keep=lights,
-                             colour_margin=options.edge_colour_margin)
-        changed = changed | (placed != d_new)
-        d_new = placed
+        if map_found_wrong(changed, band, options.edge_min_fixed_share):
+            placed = place_edges(model, focus_srgb, d_new, blur, band, options.edge_threshold, keep=lights,
+                                 colour_margin=options.edge_colour_margin)
+            changed = changed | (placed != d_new)
+            d_new = placed
     return d_new, changed
+
+
+def map_found_wrong(fixed: np.ndarray, band: np.ndarray, min_share: float) -> bool:
+    """Whether the depth correction moved at least ``min_share`` of the edge band's pixels (``fixed``: the pixels it
+    moved): the evidence that the map's edges are off the photo's, without which the edge network does not run."""
+    band_px = int((band > 0).sum())
+    return band_px > 0 and int(fixed.sum()) >= min_share * band_px
 
 
 def _correct_depth(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, classical: np.ndarray | None,

@@ -1,6 +1,8 @@
 """bokehray_refiner.edges: the learned edge placement moves only band pixels, only to its candidates, the same on
 tiles as on the whole frame, and its weights load only when they fit."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -179,7 +181,10 @@ def test_refine_renders_once_on_the_map_the_edge_network_moved():
     with torch.no_grad():
         m.net[-1].weight.zero_()
         m.net[-1].bias.fill_(10.0)  # sure that every pixel is on the near side
-    opts = RefineOptions(edges=True, neural=False, depthfix=DepthFixOptions(enabled=False))
+    trusted = RefineOptions(edges=True, neural=False, depthfix=DepthFixOptions(enabled=False))
+    kept, none = corrected_disparity(image, d, blur, trusted, edge_model=m)  # nothing corrected: the map is trusted
+    assert kept is not None and np.array_equal(kept, d) and not none.any()
+    opts = replace(trusted, edge_min_fixed_share=0.0)  # the network runs on every map
     moved, changed = corrected_disparity(image, d, blur, opts, edge_model=m)
     assert changed.any() and np.array_equal(changed, moved != d)
     assert np.all(moved[changed] > d[changed])  # only towards the near side
@@ -189,8 +194,6 @@ def test_refine_renders_once_on_the_map_the_edge_network_moved():
     assert len(seen) == 1 and np.array_equal(seen[0], moved) and stats.depth_fixed_px == int(changed.sum())
     off, _ = corrected_disparity(image, d, blur, RefineOptions(edges=False, depthfix=opts.depthfix), edge_model=m)
     np.testing.assert_array_equal(off, d)
-    from dataclasses import replace
-
     vetoed, held = corrected_disparity(image, d, blur, replace(opts, edge_colour_margin=0.1), edge_model=m)
     assert held.any() and held.sum() < changed.sum() and np.array_equal(vetoed[held], moved[held])
 
@@ -201,14 +204,28 @@ def test_a_float64_map_counts_only_the_pixels_the_network_moved():
     from bokehray.depthfix import DepthFixOptions
 
     focus, d, blur = _scene()
-    opts = RefineOptions(edges=True, depthfix=DepthFixOptions(enabled=False))
+    opts = RefineOptions(edges=True, depthfix=DepthFixOptions(enabled=False), edge_min_fixed_share=0.0)
     _, changed = corrected_disparity(focus ** 2.2, d.astype(np.float64) + 1e-9, blur, opts, edge_model=EdgeNet(SMALL))
     assert not changed.any()  # an undecided network moves nothing; float32 rounding is not a move
 
 
+def test_the_network_runs_only_on_a_map_the_depth_fix_found_wrong():
+    from bokehray_refiner.refine import map_found_wrong
+
+    band = np.zeros((10, 10), np.float32)
+    band[:, :5] = 0.5  # 50 band pixels
+    fixed = np.zeros((10, 10), bool)
+    assert not map_found_wrong(fixed, band, 0.01) and map_found_wrong(fixed, band, 0.0)
+    fixed[0, 0] = True  # one of 50 moved: 2 %
+    assert map_found_wrong(fixed, band, 0.02) and not map_found_wrong(fixed, band, 0.021)
+    assert not map_found_wrong(fixed, np.zeros_like(band), 0.0)  # no band: nothing to place
+
+
 @pytest.mark.parametrize("field,value", [("edge_threshold", 0.49), ("edge_threshold", 1.01),
                                          ("edge_threshold", float("nan")), ("edge_colour_margin", -0.1),
-                                         ("edge_colour_margin", float("nan")), ("edge_colour_margin", 2.0)])
+                                         ("edge_colour_margin", float("nan")), ("edge_colour_margin", 2.0),
+                                         ("edge_min_fixed_share", -0.01), ("edge_min_fixed_share", 1.5),
+                                         ("edge_min_fixed_share", float("nan"))])
 def test_edge_options_out_of_range_are_refused(field, value):
     from bokehray_refiner.refine import RefineOptions
 
