@@ -12,7 +12,7 @@ the shipped ones), the exact render. Scores (PSNR in sRGB, clipped): the whole i
 depth edge of the *true* map (the fur).
 
     python benchmarks/refiner_hair_crops.py [--weights A.safetensors B.safetensors] [--labels shipped new] \
-        [--edges E.safetensors --edge-threshold 0.9 --edge-colour-margin 0.05]
+        [--edges [E.safetensors] --edge-threshold 0.7 --edge-colour-margin 0.05]
 
 ``--edges`` adds a column: the depth fix and the learned edge placement (``bokehray_refiner.edges``), no residual.
 
@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -53,8 +54,9 @@ def main() -> None:
     ap.add_argument("--weights", nargs="*", default=["shipped"],
                     help="refiner weights to compare; 'shipped': the package's own (the default)")
     ap.add_argument("--labels", nargs="*", help="a label for each --weights")
-    ap.add_argument("--edges", default=None, help="edge-network weights (safetensors): add the edge placement")
-    ap.add_argument("--edge-threshold", type=float, default=0.9)
+    ap.add_argument("--edges", nargs="?", const="shipped", default=None,
+                    help="add the edge placement: the shipped edge network, or these weights (safetensors)")
+    ap.add_argument("--edge-threshold", type=float, default=None, help="default: refine's")
     ap.add_argument("--edge-colour-margin", type=float, default=None)
     ap.add_argument("--out", default=str(REPO / "docs/img/refiner_hair_crops.png"))
     ap.add_argument("--json", default=str(REPO / "benchmarks/results/refiner_hair.json"))
@@ -81,9 +83,10 @@ def main() -> None:
     y0, x0 = int(np.clip(cy - CROP // 2, 0, SIZE - CROP)), int(np.clip(cx - CROP // 2, 0, SIZE - CROP))
     sl = (slice(y0, y0 + CROP), slice(x0, x0 + CROP))
     models = [load_refiner(None if w == "shipped" else w) for w in args.weights]
-    edge_model = load_edge_net(args.edges) if args.edges else None
-    edges_only = RefineOptions(neural=False, edges=True, edge_threshold=args.edge_threshold,
-                               edge_colour_margin=args.edge_colour_margin)
+    edge_model = load_edge_net(None if args.edges == "shipped" else args.edges) if args.edges else None
+    edges_only = RefineOptions(neural=False, edges=True, edge_colour_margin=args.edge_colour_margin)
+    if args.edge_threshold is not None:
+        edges_only = replace(edges_only, edge_threshold=args.edge_threshold)
     rows, strips = [], []
     for focus_name, d_f in (("background", 0.1), ("fur", 0.7)):
         blur = br.BlurParams(K, d_f)
@@ -110,7 +113,7 @@ def main() -> None:
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(a).resize((a.shape[1] * 2, a.shape[0] * 2), Image.NEAREST).save(args.out)
     write_json(args.json, {"machine": machine_info(), "size": SIZE, "k_px": K, "crop": [y0, x0, CROP],
-                           "weights": args.weights, "edges": args.edges, "edge_threshold": args.edge_threshold,
+                           "weights": args.weights, "edges": args.edges, "edge_threshold": edges_only.edge_threshold,
                            "edge_colour_margin": args.edge_colour_margin, "rows": rows})
     print(args.out)
 

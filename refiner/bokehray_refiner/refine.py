@@ -94,7 +94,7 @@ class RefineOptions:
     neural: bool = True
     merge_tiles: bool = True
     edges: bool = False
-    edge_threshold: float = 0.9
+    edge_threshold: float = 0.7
     edge_colour_margin: float | None = None
     edge_min_fixed_share: float = 0.01
 

@@ -231,3 +231,14 @@ def test_edge_options_out_of_range_are_refused(field, value):
 
     with pytest.raises(InputError, match=field):
         RefineOptions(edges=True, **{field: value})
+
+
+def test_the_shipped_edge_weights_load_and_fit_their_recorded_config():
+    import json
+
+    from bokehray_refiner.edges import DEFAULT_EDGE_WEIGHTS
+
+    m = load_edge_net()
+    recorded = json.loads((DEFAULT_EDGE_WEIGHTS.parent / "edges.json").read_text())
+    assert m.config == EdgeConfig(**recorded["config"])
+    assert sum(p.numel() for p in m.parameters()) == recorded["parameters"]
