@@ -217,7 +217,7 @@ def score(model, samples, opts, thresholds, gate: bool = False, min_region: int 
             runs = map_found_wrong(fixed, band, opts.edge_min_fixed_share)  # else refine leaves the map as it is
             render = br.render(image, used, blur)
             row = {"pair": name, "corruption": kind, "px": amount, "fix": band_psnr(used, render), "runs": runs,
-                   "fixed_share": float(fixed.sum() / max((band > 0).sum(), 1)),
+                   "fixed_share": float((fixed & (band > 0)).sum() / max((band > 0).sum(), 1)),
                    "oracle": band_psnr(oracle_map(used, disparity, band, config))}
             feats = edge_features(focus, used, blur, band, config) if margins else None
             for margin in margins:

@@ -113,7 +113,8 @@ def main() -> None:
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(a).resize((a.shape[1] * 2, a.shape[0] * 2), Image.NEAREST).save(args.out)
     write_json(args.json, {"machine": machine_info(), "size": SIZE, "k_px": K, "crop": [y0, x0, CROP],
-                           "weights": args.weights, "edges": args.edges, "edge_threshold": edges_only.edge_threshold,
+                           "weights": args.weights, "edges": args.edges,
+                           "edge_threshold": edges_only.edge_threshold if args.edges else None,
                            "edge_colour_margin": args.edge_colour_margin, "rows": rows})
     print(args.out)
 

@@ -79,7 +79,8 @@ class RefineOptions:
             by this much (sRGB; :func:`.edges.colour_allows`); None: no colour veto.
         edge_min_fixed_share: the edge network runs only on a map the depth correction found wrong: where it moved
             at least this share of the edge band's pixels. A map whose edges already sit on the photo's is left
-            as it is (the network's few confident wrong moves cost more there than it can gain).
+            as it is (the network's few confident wrong moves cost more there than it can gain). With the depth
+            correction off there is no such evidence, and the network runs on every map.
     """
 
     tile: int = 64
@@ -343,7 +344,8 @@ def corrected_disparity(image: np.ndarray, disparity: np.ndarray, blur: BlurPara
         coc = blur.signed_coc(d_new).astype(np.float32)
         reach = edge_reach(coc, options.min_jump_px)
         band = edge_band(reach, options.band_margin_px, options.band_feather_px)
-        if map_found_wrong(changed, band, options.edge_min_fixed_share):
+        # without the depth correction there is no evidence either way: the network runs on every map
+        if not options.depthfix.enabled or map_found_wrong(changed, band, options.edge_min_fixed_share):
             placed = place_edges(model, focus_srgb, d_new, blur, band, options.edge_threshold, keep=lights,
                                  colour_margin=options.edge_colour_margin)
             changed = changed | (placed != d_new)
@@ -353,9 +355,11 @@ def corrected_disparity(image: np.ndarray, disparity: np.ndarray, blur: BlurPara
 
 def map_found_wrong(fixed: np.ndarray, band: np.ndarray, min_share: float) -> bool:
     """Whether the depth correction moved at least ``min_share`` of the edge band's pixels (``fixed``: the pixels it
-    moved): the evidence that the map's edges are off the photo's, without which the edge network does not run."""
-    band_px = int((band > 0).sum())
-    return band_px > 0 and int(fixed.sum()) >= min_share * band_px
+    moved; those outside the band do not count): the evidence that the map's edges are off the photo's, without
+    which the edge network does not run."""
+    inside = band > 0
+    band_px = int(inside.sum())
+    return band_px > 0 and int((fixed & inside).sum()) / band_px >= min_share
 
 
 def _correct_depth(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, classical: np.ndarray | None,

@@ -817,16 +817,17 @@ def test_outputs_are_byte_reproducible_across_processes(tmp_path):
     assert outs[0] == outs[1]
 
 
-@pytest.mark.parametrize("links", [True, False])
-def test_an_exclusive_write_never_replaces_a_file_made_meanwhile(tmp_path, monkeypatch, links):
+@pytest.mark.parametrize("no_links", [None, errno.EPERM, errno.EINVAL, errno.ENOSYS])
+def test_an_exclusive_write_never_replaces_a_file_made_meanwhile(tmp_path, monkeypatch, no_links):
     """Two writers that chose the same free name: the one that finishes second gets OutputExistsError, the first one's
-    file stays as written and no temporary is left (``links=False``: a file system without hard links)."""
+    file stays as written and no temporary is left (``no_links``: a file system without hard links, and how it
+    says so)."""
     from bokehray.errors import OutputExistsError
 
     target = tmp_path / "o.png"
-    if not links:
+    if no_links is not None:
         def no_link(src, dst):
-            raise OSError(errno.EPERM, os.strerror(errno.EPERM))
+            raise OSError(no_links, os.strerror(no_links))
 
         monkeypatch.setattr(at.os, "link", no_link)
 
@@ -842,3 +843,13 @@ def test_an_exclusive_write_never_replaces_a_file_made_meanwhile(tmp_path, monke
     assert fresh.read_bytes() == b"ours" and sorted(f.name for f in tmp_path.iterdir()) == ["o.png", "p.png"]
     at.atomic_write(target, lambda tmp: Path(tmp).write_bytes(b"replaced"))  # not exclusive: replaces, as before
     assert target.read_bytes() == b"replaced"
+
+
+def test_an_exclusive_write_does_not_replace_a_dangling_link(tmp_path):
+    from bokehray.errors import OutputExistsError
+
+    link = tmp_path / "o.png"
+    link.symlink_to(tmp_path / "gone.png")
+    with pytest.raises(OutputExistsError):
+        at.atomic_write(link, lambda tmp: Path(tmp).write_bytes(b"ours"), exclusive=True)
+    assert link.is_symlink() and [f.name for f in tmp_path.iterdir()] == ["o.png"]

@@ -464,3 +464,12 @@ def test_an_export_whose_name_another_process_takes_meanwhile_writes_the_next_fr
     assert taken.read_bytes() == b"the other view's export"
     assert Path(written) != taken and Path(written).parent == taken.parent and str(written) in command
     assert br.read_image(written).shape[:2] == session.image.shape[:2]
+
+
+def test_the_next_export_name_skips_a_dangling_link(session):
+    first = session.export_path("tif")
+    first.symlink_to(first.parent / "gone.tif")
+    try:
+        assert session.export_path("tif") not in (first,) and not session.export_path("tif").is_symlink()
+    finally:
+        first.unlink()

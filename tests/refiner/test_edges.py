@@ -181,10 +181,7 @@ def test_refine_renders_once_on_the_map_the_edge_network_moved():
     with torch.no_grad():
         m.net[-1].weight.zero_()
         m.net[-1].bias.fill_(10.0)  # sure that every pixel is on the near side
-    trusted = RefineOptions(edges=True, neural=False, depthfix=DepthFixOptions(enabled=False))
-    kept, none = corrected_disparity(image, d, blur, trusted, edge_model=m)  # nothing corrected: the map is trusted
-    assert kept is not None and np.array_equal(kept, d) and not none.any()
-    opts = replace(trusted, edge_min_fixed_share=0.0)  # the network runs on every map
+    opts = RefineOptions(edges=True, neural=False, depthfix=DepthFixOptions(enabled=False))  # no evidence: it runs
     moved, changed = corrected_disparity(image, d, blur, opts, edge_model=m)
     assert changed.any() and np.array_equal(changed, moved != d)
     assert np.all(moved[changed] > d[changed])  # only towards the near side
@@ -209,16 +206,42 @@ def test_a_float64_map_counts_only_the_pixels_the_network_moved():
     assert not changed.any()  # an undecided network moves nothing; float32 rounding is not a move
 
 
-def test_the_network_runs_only_on_a_map_the_depth_fix_found_wrong():
+def test_the_share_of_the_band_the_depth_fix_moved_counts_band_pixels_only():
     from bokehray_refiner.refine import map_found_wrong
 
     band = np.zeros((10, 10), np.float32)
     band[:, :5] = 0.5  # 50 band pixels
     fixed = np.zeros((10, 10), bool)
     assert not map_found_wrong(fixed, band, 0.01) and map_found_wrong(fixed, band, 0.0)
-    fixed[0, 0] = True  # one of 50 moved: 2 %
+    fixed[:, 5:] = True  # 50 moved outside the band: not evidence about the band's edges
+    assert not map_found_wrong(fixed, band, 0.01)
+    fixed[0, 0] = True  # one of 50 in the band: 2 %
     assert map_found_wrong(fixed, band, 0.02) and not map_found_wrong(fixed, band, 0.021)
     assert not map_found_wrong(fixed, np.zeros_like(band), 0.0)  # no band: nothing to place
+
+
+def test_a_map_whose_edges_sit_on_the_photos_is_left_to_the_depth_fix():
+    """A red square on blue with its exact map: the depth fix moves nothing, so a network sure that every pixel is
+    far is not run (it would punch out the square's rim); with the gate at 0 it is."""
+    from bokehray_refiner.refine import RefineOptions, corrected_disparity
+
+    h, w = 64, 64
+    image = np.zeros((h, w, 3), np.float32)
+    image[..., 2] = 0.6
+    image[16:48, 16:48] = (0.8, 0.05, 0.05)
+    exact = np.full((h, w), 0.2, np.float32)
+    exact[16:48, 16:48] = 0.8
+    blur = br.BlurParams(12.0, 0.8)
+    m = EdgeNet(SMALL).eval()
+    with torch.no_grad():
+        m.net[-1].weight.zero_()
+        m.net[-1].bias.fill_(-10.0)  # sure every pixel is far
+    kept, changed = corrected_disparity(image, exact, blur, RefineOptions(edges=True), edge_model=m)
+    np.testing.assert_array_equal(kept, exact)
+    assert not changed.any()
+    punched, changed = corrected_disparity(image, exact, blur, RefineOptions(edges=True, edge_min_fixed_share=0.0),
+                                           edge_model=m)
+    assert changed.any() and np.all(punched[changed] < exact[changed])
 
 
 @pytest.mark.parametrize("field,value", [("edge_threshold", 0.49), ("edge_threshold", 1.01),

@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import io
 import math
+import os
 import shlex
 import time
 from dataclasses import dataclass
@@ -539,7 +540,7 @@ class ViewSession:
         stem = Path(self.image_path).stem if self.image_path else "render"
         for n in range(1, 100000):
             p = self.export_dir / f"{stem}-bokeh-{n:03d}.{fmt}"
-            if not p.exists():
+            if not os.path.lexists(p):  # a dangling link takes its name too
                 return p
         raise InputError(f"{self.export_dir}: no free export name left")
 
