@@ -71,8 +71,9 @@ class RefineOptions:
         neural: False stops after the depth correction (the neural residual is not run).
         merge_tiles: neighbouring tiles to refine run as one box with one halo (:func:`refine_boxes`), blended
             with the same per-tile weights, instead of one pass per tile, each with its own halo.
-        edges: after the depth correction, the learned edge placement (:mod:`.edges`) moves the map's edges in
-            the band, before the level renders again.
+        edges: after the depth correction, the learned edge placement (:mod:`.edges`, the shipped weights unless
+            :func:`refine` is given ``edge_model``) moves the map's edges in the band, before the level renders
+            again; only on a map the correction found wrong (``edge_min_fixed_share``).
         edge_threshold: the edge network moves a pixel across an edge only where it gives the other side at least
             this probability.
         edge_colour_margin: and only where the pixel's colour is nearer the local mean colour of the side it joins,
@@ -80,7 +81,7 @@ class RefineOptions:
         edge_min_fixed_share: the edge network runs only on a map the depth correction found wrong: where it moved
             at least this share of the edge band's pixels. A map whose edges already sit on the photo's is left
             as it is (the network's few confident wrong moves cost more there than it can gain). With the depth
-            correction off there is no such evidence, and the network runs on every map.
+            correction off nothing is found wrong, so the network runs only with this at 0 (on every map).
     """
 
     tile: int = 64
@@ -94,7 +95,7 @@ class RefineOptions:
     depthfix: DepthFixOptions = DepthFixOptions()
     neural: bool = True
     merge_tiles: bool = True
-    edges: bool = False
+    edges: bool = True
     edge_threshold: float = 0.7
     edge_colour_margin: float | None = None
     edge_min_fixed_share: float = 0.01
@@ -344,8 +345,7 @@ def corrected_disparity(image: np.ndarray, disparity: np.ndarray, blur: BlurPara
         coc = blur.signed_coc(d_new).astype(np.float32)
         reach = edge_reach(coc, options.min_jump_px)
         band = edge_band(reach, options.band_margin_px, options.band_feather_px)
-        # without the depth correction there is no evidence either way: the network runs on every map
-        if not options.depthfix.enabled or map_found_wrong(changed, band, options.edge_min_fixed_share):
+        if map_found_wrong(changed, band, options.edge_min_fixed_share):
             placed = place_edges(model, focus_srgb, d_new, blur, band, options.edge_threshold, keep=lights,
                                  colour_margin=options.edge_colour_margin)
             changed = changed | (placed != d_new)

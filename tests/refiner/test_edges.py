@@ -181,7 +181,10 @@ def test_refine_renders_once_on_the_map_the_edge_network_moved():
     with torch.no_grad():
         m.net[-1].weight.zero_()
         m.net[-1].bias.fill_(10.0)  # sure that every pixel is on the near side
-    opts = RefineOptions(edges=True, neural=False, depthfix=DepthFixOptions(enabled=False))  # no evidence: it runs
+    opts = RefineOptions(edges=True, neural=False, depthfix=DepthFixOptions(enabled=False))
+    kept, none = corrected_disparity(image, d, blur, opts, edge_model=m)  # no correction, so nothing found wrong
+    assert np.array_equal(kept, d) and not none.any()
+    opts = replace(opts, edge_min_fixed_share=0.0)  # the network runs on every map
     moved, changed = corrected_disparity(image, d, blur, opts, edge_model=m)
     assert changed.any() and np.array_equal(changed, moved != d)
     assert np.all(moved[changed] > d[changed])  # only towards the near side
