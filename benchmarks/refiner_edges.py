@@ -13,7 +13,9 @@ Scored on the path-traced dev set and a held-out synthetic split in the true dep
 ``bench_refiner.NET_CONDITIONS``, as ``bench_refiner.py --network-conditions``: ``fix`` is the depth fix's render
 (refine without networks), ``edges`` the level on the map the edge network moved, at each ``--thresholds``
 (``gated``: only where refine's confidence gate opens), ``oracle`` the level on the map a perfect network would make
-(:func:`oracle_map`). Clipped lights are not held back here (refine holds them).
+(:func:`oracle_map`). As in refine, the network runs only on maps the depth fix found wrong (``--min-fixed-share``,
+refine's ``edge_min_fixed_share``; 0: every map); ``--veto`` adds columns with the colour veto. Clipped lights are
+not held back here (refine holds them).
 
     bokehray synth -n 80 -o data/train --seed 2000 --size 256 --blur-levels 8,16,24 --depth-rule half \\
         --kinds strands=3,fur=2,whiskers=1,foliage=2,mesh=1,softcut=1.5,cutout=1,lights=1
@@ -107,15 +109,13 @@ def bank(root: str, variants: int, seed: int, opts, config) -> list[dict]:
 
 
 def train(entries: list[dict], config, steps: int, batch: int, crop: int, seed: int, exact_weight: float,
-          checkpoint: str | None, checkpoint_every: int = 500, log_every: int = 100, contrast: float = 0.0):
+          checkpoint: str | None, checkpoint_every: int = 500, log_every: int = 100):
     """AdamW on the binary cross-entropy against the true side (:func:`side_labels`), on random crops on the band
     (flipped and transposed at random), each pixel weighted by the band, the candidates' CoC span and
-    ``exact_weight`` on exact maps; with ``contrast`` (sRGB) also by the local colour contrast across the edge over
-    that, clamped to [0.05, 1] (a pixel put on the wrong side of an edge with no contrast costs the render nothing).
-    With ``checkpoint``, resumable bit for bit (as ``refiner_choice.train``)."""
+    ``exact_weight`` on exact maps. With ``checkpoint``, resumable bit for bit (as ``refiner_choice.train``)."""
     import torch
     import torch.nn.functional as F
-    from bokehray_refiner.edges import N_BASE, EdgeNet
+    from bokehray_refiner.edges import EdgeNet
 
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
@@ -163,9 +163,6 @@ def train(entries: list[dict], config, steps: int, batch: int, crop: int, seed: 
         logit = model(x)[:, 0]
         label, span = side_labels(cost, x, config)
         weight = weight * span
-        if contrast > 0:  # the two sides' local mean colours differ by (photo - far mean) - (photo - near mean)
-            step_contrast = (x[:, N_BASE + 3:N_BASE + 6] - x[:, N_BASE:N_BASE + 3]).square().sum(1).sqrt()
-            weight = weight * (step_contrast / contrast).clamp(0.05, 1.0)
         loss = (F.binary_cross_entropy_with_logits(logit, label, reduction="none") * weight).sum() \
             / weight.sum().clamp_min(1.0)
         with torch.no_grad():  # the share of counted pixels put on the wrong side at 0.5
@@ -298,8 +295,6 @@ def main() -> None:
                     help="side of the crop the loss counts (the network sees its receptive field around it too)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--exact-weight", type=float, default=2.0, help="loss weight of the exact maps")
-    ap.add_argument("--contrast", type=float, default=0.0,
-                    help="weight the loss by the local colour contrast across the edge over this (sRGB), at most 1")
     ap.add_argument("--width", type=int, default=32)
     ap.add_argument("--dilations", default="2,4,8,1", help="the hidden 3 x 3 convolutions' dilations")
     ap.add_argument("--bank", default=None, help="cache of the training inputs (.npz): read if present, else written")
@@ -350,7 +345,7 @@ def main() -> None:
         print(f"bank: {len(entries)} maps in {result['bank_s']:.0f} s", flush=True)
         t = time.perf_counter()
         model, losses = train(entries, config, args.steps, args.batch, args.crop, args.seed, args.exact_weight,
-                              args.checkpoint, args.checkpoint_every, contrast=args.contrast)
+                              args.checkpoint, args.checkpoint_every)
         del entries
         result |= {"train_s": time.perf_counter() - t, "loss": losses}
         model.eval()
