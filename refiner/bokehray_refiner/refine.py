@@ -273,8 +273,11 @@ def refine(
         raise InputError("refine: without a classical render it needs the rerender callback that renders the level")
     fix = _correct_depth(image, disparity, blur, classical, options, rerender, edge_model)
     classical, disparity = fix.classical, fix.disparity
-    coc = blur.signed_coc(disparity).astype(np.float32)
-    reach = edge_reach(coc, options.min_jump_px)
+    edge_field = fix.edge_field
+    if edge_field is None or not _same_map(edge_field.disparity, disparity):
+        coc = blur.signed_coc(disparity).astype(np.float32)
+        edge_field = _EdgeField(disparity, coc, edge_reach(coc, options.min_jump_px))
+    coc, reach = edge_field.coc, edge_field.reach
     need = tiles_near(reach, options.tile)
     if not options.neural:
         need[:] = False
@@ -288,7 +291,8 @@ def refine(
     if need.any():
         if focus_srgb is None:
             focus_srgb = linear_to_srgb(np.clip(image[..., :3], 0.0, 1.0))
-        band = _gated_band(image, focus_srgb, disparity, classical, coc, reach, need, options, stats)
+        band = _gated_band(image, focus_srgb, disparity, classical, coc, reach, need, options, stats,
+                           edge_field.nearest)
     stats.tiles_refined = int(need.sum())
     stats.gate_seconds = time.perf_counter() - t1
     if not need.any():
@@ -322,6 +326,24 @@ class _DepthFix:
     seconds: float  # the correction's own time
     render_seconds: float  # the level's render on the corrected (or given) map, 0 when none was needed
     focus_srgb: np.ndarray | None  # the photo in sRGB, when the correction computed it
+    edge_field: _EdgeField | None = None  # the depth edges of the map the correction ended on, when it computed them
+
+
+@dataclass
+class _EdgeField:
+    """A map's signed CoC, its depth edges' reach (:func:`edge_reach`) and the distance to them
+    (:func:`nearest_edge`; None: not computed, or no edges): the edge network's band needs them, and refine's gate
+    needs them again for the same map."""
+
+    disparity: np.ndarray
+    coc: np.ndarray
+    reach: np.ndarray
+    nearest: tuple | None = None
+
+
+def _same_map(a: np.ndarray, b: np.ndarray) -> bool:
+    """The same map: the same array, or equal values of the same type (a float64 map is not its float32 copy)."""
+    return a is b or (a.dtype == b.dtype and np.array_equal(a, b))
 
 
 def corrected_disparity(image: np.ndarray, disparity: np.ndarray, blur: BlurParams,
@@ -330,13 +352,21 @@ def corrected_disparity(image: np.ndarray, disparity: np.ndarray, blur: BlurPara
     """The map refine renders: the colour-guided depth correction (``bokehray.depthfix``), then, with
     ``options.edges``, the learned edge placement (:mod:`.edges`) on its result; and which pixels moved. Clipped
     lights (dilated by 2 px) never move and never vote."""
+    return _corrected(image, disparity, blur, options, edge_model, focus_srgb)[:2]
+
+
+def _corrected(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, options: RefineOptions,
+               edge_model: EdgeNet | None, focus_srgb: np.ndarray | None,
+               ) -> tuple[np.ndarray, np.ndarray, _EdgeField | None]:
+    """:func:`corrected_disparity`, and the edge field of the map it ends on when it computed one (the edge
+    network's band; refine's gate needs the same)."""
     from scipy import ndimage
 
     focus_srgb = linear_to_srgb(np.clip(image[..., :3], 0.0, 1.0)) if focus_srgb is None else focus_srgb
     lights = channel_max(image) >= 1.0
     if lights.any():
         lights = ndimage.binary_dilation(lights, iterations=2)
-    d_new, changed = disparity, np.zeros(disparity.shape, bool)
+    d_new, changed, edge_field = disparity, np.zeros(disparity.shape, bool), None
     if options.depthfix.enabled:
         d_new, changed = correct_disparity(focus_srgb, disparity, blur.k_px, options.depthfix, keep=lights)
     if options.edges:
@@ -344,13 +374,14 @@ def corrected_disparity(image: np.ndarray, disparity: np.ndarray, blur: BlurPara
         d_new = np.asarray(d_new, np.float32)  # the network's map is float32: compared with it, not a float64 one
         coc = blur.signed_coc(d_new).astype(np.float32)
         reach = edge_reach(coc, options.min_jump_px)
-        band = edge_band(reach, options.band_margin_px, options.band_feather_px)
+        edge_field = _EdgeField(d_new, coc, reach, nearest_edge(reach))
+        band = edge_band(reach, options.band_margin_px, options.band_feather_px, edge_field.nearest)
         if map_found_wrong(changed, band, options.edge_min_fixed_share):
             placed = place_edges(model, focus_srgb, d_new, blur, band, options.edge_threshold, keep=lights,
                                  colour_margin=options.edge_colour_margin)
             changed = changed | (placed != d_new)
-            d_new = placed
-    return d_new, changed
+            d_new, edge_field = placed, None
+    return d_new, changed, edge_field
 
 
 def map_found_wrong(fixed: np.ndarray, band: np.ndarray, min_share: float) -> bool:
@@ -367,11 +398,11 @@ def _correct_depth(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, c
                    edge_model: EdgeNet | None = None) -> _DepthFix:
     """Stage 1: the depth correction (:func:`corrected_disparity`), then the level on the corrected map (or on the
     given map when nothing was rendered yet)."""
-    fixed_px, t_fix, t_re, d_fixed, focus_srgb = 0, 0.0, 0.0, None, None
+    fixed_px, t_fix, t_re, d_fixed, focus_srgb, edge_field = 0, 0.0, 0.0, None, None, None
     if rerender is not None and (options.depthfix.enabled or options.edges):
         t1 = time.perf_counter()
         focus_srgb = linear_to_srgb(np.clip(image[..., :3], 0.0, 1.0))
-        d_new, changed = corrected_disparity(image, disparity, blur, options, edge_model, focus_srgb)
+        d_new, changed, edge_field = _corrected(image, disparity, blur, options, edge_model, focus_srgb)
         t_fix = time.perf_counter() - t1
         if changed.any():
             t1 = time.perf_counter()
@@ -382,18 +413,19 @@ def _correct_depth(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, c
         t1 = time.perf_counter()
         classical = np.asarray(rerender(disparity), np.float32)
         t_re = time.perf_counter() - t1
-    return _DepthFix(classical, disparity, d_fixed, fixed_px, t_fix, t_re, focus_srgb)
+    return _DepthFix(classical, disparity, d_fixed, fixed_px, t_fix, t_re, focus_srgb, edge_field)
 
 
 def blend_weight(image: np.ndarray, focus_srgb: np.ndarray, disparity: np.ndarray, classical: np.ndarray,
                  coc: np.ndarray, options: RefineOptions = RefineOptions(),
-                 reach: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 reach: np.ndarray | None = None, nearest=None) -> tuple[np.ndarray, np.ndarray]:
     """The edge band (:func:`edge_band`) and the weight :func:`refine` blends the network's output in by: the band
     times the confidence gate. ``classical`` is the level's render on ``disparity`` (scene-linear), ``coc`` its
-    signed CoC; ``reach``: :func:`edge_reach` of ``coc`` when already computed. Training counts its loss where
-    this weight is (``PairBank(gated=True)``)."""
+    signed CoC; ``reach``: :func:`edge_reach` of ``coc`` and ``nearest``: :func:`nearest_edge` of ``reach``, when
+    already computed. Training counts its loss where this weight is (``PairBank(gated=True)``)."""
     reach = edge_reach(coc, options.min_jump_px) if reach is None else reach
-    nearest = nearest_edge(reach)  # the gate's edge pixels are the band's: one distance transform for both
+    if nearest is None:  # the gate's edge pixels are the band's: one distance transform for both
+        nearest = nearest_edge(reach)
     full_band = edge_band(reach, options.band_margin_px, options.band_feather_px, nearest)
     gate = refine_gate(image, focus_srgb, disparity, classical, coc, options.min_jump_px, options.gate,
                        nearest=None if nearest is None else nearest[1])
@@ -402,12 +434,12 @@ def blend_weight(image: np.ndarray, focus_srgb: np.ndarray, disparity: np.ndarra
 
 def _gated_band(image: np.ndarray, focus_srgb: np.ndarray, disparity: np.ndarray, classical: np.ndarray,
                 coc: np.ndarray, reach: np.ndarray, need: np.ndarray, options: RefineOptions,
-                stats: RefineStats) -> np.ndarray:
+                stats: RefineStats, nearest=None) -> np.ndarray:
     """Stage 2: the blend weight of the correction, the band near depth edges times the confidence gate; tiles the
     gate closes are dropped from ``need`` (in place)."""
     h, w = disparity.shape
     t = options.tile
-    full_band, band = blend_weight(image, focus_srgb, disparity, classical, coc, options, reach)
+    full_band, band = blend_weight(image, focus_srgb, disparity, classical, coc, options, reach, nearest)
     stats.band_pixels = int((full_band > 0).sum())
     stats.gate_open = float(band.sum() / full_band.sum()) if full_band.sum() > 0 else 0.0
     ty, tx = need.shape

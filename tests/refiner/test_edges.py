@@ -268,3 +268,29 @@ def test_the_shipped_edge_weights_load_and_fit_their_recorded_config():
     recorded = json.loads((DEFAULT_EDGE_WEIGHTS.parent / "edges.json").read_text())
     assert m.config == EdgeConfig(**recorded["config"])
     assert sum(p.numel() for p in m.parameters()) == recorded["parameters"]
+
+
+def test_refine_reuses_the_corrections_edge_field_without_changing_a_pixel(monkeypatch):
+    """The depth edges the correction found for the edge network's band are the gate's too: handed on instead of
+    found again, with the same render and stats."""
+    import bokehray_refiner.refine as refine_module
+    from bokehray_refiner.data import corrupt_disparity
+    from bokehray_refiner.model import BokehRefiner
+
+    focus, d, blur = _scene(96, 128)
+    image = focus ** 2.2
+    given = np.clip(corrupt_disparity(d, "erode", 3), 0, 1).astype(np.float32)
+    rer = lambda dd: br.render(image, dd, blur)  # noqa: E731
+    torch.manual_seed(0)
+    model = BokehRefiner().eval()
+    searches = []
+    nearest_edge = refine_module.nearest_edge
+    monkeypatch.setattr(refine_module, "nearest_edge", lambda reach: searches.append(1) or nearest_edge(reach))
+    reused, st1 = refine_module.refine(image, given, blur, None, model=model, rerender=rer)
+    assert len(searches) == 1 and st1.band_pixels > 0  # one distance transform for the band and the gate
+    corrected = refine_module._corrected
+    monkeypatch.setattr(refine_module, "_corrected", lambda *a: corrected(*a)[:2] + (None,))
+    fresh, st2 = refine_module.refine(image, given, blur, None, model=model, rerender=rer)
+    assert len(searches) == 3  # found again
+    np.testing.assert_array_equal(reused, fresh)
+    assert (st1.band_pixels, st1.gate_open, st1.tiles_refined) == (st2.band_pixels, st2.gate_open, st2.tiles_refined)
