@@ -18,18 +18,17 @@ from __future__ import annotations
 import json
 import os
 from dataclasses import asdict, dataclass
-from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 import torch
-from safetensors import SafetensorError, safe_open
-from safetensors.torch import load_file, save_file
+from safetensors.torch import save_file
 from torch import nn
 
 from bokehray.errors import InputError
 from bokehray.lens import BlurParams
 
+from .saved import load_saved
 from .tiles import refine_boxes
 
 __all__ = ["DEFAULT_EDGE_WEIGHTS", "EdgeConfig", "EdgeNet", "candidates", "colour_allows", "colour_features",
@@ -243,21 +242,10 @@ def save_edge_net(model: EdgeNet, path: str | os.PathLike, **metadata: str) -> N
 
 def load_edge_net(path: str | os.PathLike | None = None, device: str = "cpu") -> EdgeNet:
     """Load edge-network weights (default: the shipped ones); cached per file, modification time and device."""
-    path = Path(path) if path is not None else DEFAULT_EDGE_WEIGHTS
-    if not path.is_file():
-        raise InputError(f"{path}: no edge-network weights there (train them with benchmarks/refiner_edges.py)")
-    return _load(str(path.resolve()), path.stat().st_mtime_ns, str(device))
+    return load_saved(path, DEFAULT_EDGE_WEIGHTS, device, _build_edge_net, what="edge-network weights",
+                      made_by="bokehray", how_to_make="train them with benchmarks/refiner_edges.py",
+                      kind="bokehray-edges")
 
 
-@lru_cache(maxsize=4)
-def _load(path: str, mtime_ns: int, device: str) -> EdgeNet:
-    try:
-        with safe_open(path, framework="pt") as f:
-            meta = f.metadata() or {}
-        if meta.get("kind") != "bokehray-edges":
-            raise ValueError("no bokehray-edges marker in the metadata")
-        model = EdgeNet(EdgeConfig(**json.loads(meta["config"])))
-        model.load_state_dict(load_file(path), strict=True)
-    except (KeyError, ValueError, TypeError, RuntimeError, OSError, SafetensorError, InputError) as e:
-        raise InputError(f"{path}: not edge-network weights written by bokehray ({e})") from None
-    return model.to(device).eval()
+def _build_edge_net(config: dict) -> EdgeNet:
+    return EdgeNet(EdgeConfig(**config))

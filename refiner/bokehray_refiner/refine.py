@@ -20,19 +20,15 @@ gate closes entirely are not run through the network.
 
 from __future__ import annotations
 
-import json
 import os
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 import torch
-from safetensors import SafetensorError, safe_open
-from safetensors.torch import load_file
 
 from bokehray.colour import linear_to_srgb, srgb_to_linear
 from bokehray.depthfix import DepthFixOptions, correct_disparity
@@ -44,6 +40,7 @@ from .edges import EdgeNet, load_edge_net, place_edges
 from .gate import GateOptions, channel_max, refine_gate
 from .masks import PisaMaskProvider
 from .model import BokehRefiner, RefinerConfig
+from .saved import load_saved
 from .tiles import raised_cosine_ramp, refine_boxes
 
 __all__ = ["DEFAULT_WEIGHTS", "RefineOptions", "RefineStats", "blend_weight", "correct_and_render", "corrected_disparity", "edge_band",
@@ -150,23 +147,12 @@ def load_refiner(path: str | os.PathLike | None = None, device: str = "cpu") -> 
 
     Loaded models are cached per file, modification time and device (inference only: do not train them).
     """
-    path = Path(path) if path is not None else DEFAULT_WEIGHTS
-    if not path.is_file():
-        raise InputError(f"{path}: no refiner weights there (train them with `bokehray train-refiner`)")
-    return _load(str(path.resolve()), path.stat().st_mtime_ns, str(device))
+    return load_saved(path, DEFAULT_WEIGHTS, device, _build_refiner, what="refiner weights",
+                      made_by="bokehray train-refiner", how_to_make="train them with `bokehray train-refiner`")
 
 
-@lru_cache(maxsize=4)
-def _load(path: str, mtime_ns: int, device: str) -> BokehRefiner:
-    try:
-        with safe_open(str(path), framework="pt") as f:
-            config = json.loads((f.metadata() or {})["config"])
-        state = load_file(str(path))
-        model = BokehRefiner(RefinerConfig(**config))
-        model.load_state_dict(state, strict=True)
-    except (KeyError, ValueError, TypeError, RuntimeError, OSError, SafetensorError) as e:
-        raise InputError(f"{path}: not refiner weights written by bokehray train-refiner ({e})") from None
-    return model.to(device).eval()
+def _build_refiner(config: dict) -> BokehRefiner:
+    return BokehRefiner(RefinerConfig(**config))
 
 
 def edge_reach(coc: np.ndarray, min_jump_px: float) -> np.ndarray:
