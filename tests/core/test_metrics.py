@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import importlib.util
 import math
 from pathlib import Path
 
 import numpy as np
 import pytest
+from scripts import load_script
 
 from bokehray.data.metrics import PerceptualMetric, discontinuity_band, exposure_align, psnr, score, ssim_map, to_srgb
 from bokehray.errors import InputError
@@ -64,9 +64,7 @@ def test_band_hand_values():
 
 @pytest.mark.skipif(not SCORE_PY.is_file(), reason="path-traced dev set not present")
 def test_band_equals_the_dev_set_scoring_script():
-    spec = importlib.util.spec_from_file_location("devset_score", SCORE_PY)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_script(SCORE_PY, "devset_score")
     rng = np.random.default_rng(3)
     d = rng.choice([0.15, 0.3, 0.31, 0.8], size=(8, 10)).repeat(6, 0).repeat(6, 1).astype(np.float32)
     d += np.linspace(0, 0.01, d.shape[1], dtype=np.float32)  # a slight slope everywhere

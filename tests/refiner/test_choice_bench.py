@@ -1,22 +1,17 @@
 """benchmarks/refiner_choice.py: its oracle and its chooser do what the measurement says they do."""
 
-import importlib.util
 from pathlib import Path
 
 import numpy as np
 import pytest
+from scripts import load_script
 
 torch = pytest.importorskip("torch")
-
-ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
 def choice():
-    spec = importlib.util.spec_from_file_location("refiner_choice", ROOT / "benchmarks" / "refiner_choice.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)  # it puts benchmarks/ on the path for its own imports
-    return mod
+    return load_script(Path("benchmarks/refiner_choice.py"), "refiner_choice")
 
 
 def _entry(choice, rng, band):

@@ -1,10 +1,10 @@
 """benchmarks/refiner_edges.py: its labels, its oracle and its training crops are what the measurement says."""
 
-import importlib.util
 from pathlib import Path
 
 import numpy as np
 import pytest
+from scripts import load_script
 
 torch = pytest.importorskip("torch")
 
@@ -12,16 +12,12 @@ from bokehray_refiner.edges import EdgeConfig, edge_features  # noqa: E402
 
 import bokehray as br  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[2]
 SMALL = EdgeConfig(width=8, dilations=(2, 1), radius_px=6)
 
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("refiner_edges", ROOT / "benchmarks" / "refiner_edges.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)  # it puts benchmarks/ on the path for its own imports
-    return mod
+    return load_script(Path("benchmarks/refiner_edges.py"), "refiner_edges")
 
 
 def _maps():
