@@ -92,8 +92,8 @@ def main() -> None:  # noqa: C901
     ap.add_argument("--pairs", type=int, default=48, help="pairs to score (every k-th pair of the folder)")
     ap.add_argument("--weights", help="refiner weights (default: the shipped ones)")
     ap.add_argument("--edges", nargs="?", const="shipped", default=None,
-                    help="refine with the learned edge placement (these weights, or the shipped ones); adds the "
-                         "method 'edges' (the depth fix and the edge network, no residual network)")
+                    help="the edge network refine uses (these weights, or the shipped ones, which refine uses "
+                         "anyway); adds the method 'edges' (the depth fix and the edge network, no residual network)")
     ap.add_argument("--max-spp", type=int, default=64, help="raytrace rays per pixel cap")
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--band-margin", type=float, default=None,
@@ -135,7 +135,6 @@ def main() -> None:  # noqa: C901
     edge_model = None
     if args.edges:
         edge_model = load_edge_net(None if args.edges == "shipped" else args.edges)
-        ropts = replace(ropts, edges=True)
     if args.timing:
         return timing(args, model, ropts, edge_model)
     if args.devset:

@@ -192,13 +192,14 @@ def atomic_write(path: Path, encode: Callable[[str], None], exclusive: bool = Fa
 def _publish_new(tmp: str, path: Path) -> None:
     """Move ``tmp`` onto ``path`` only if nothing is there, not even a dangling link (atomically where the file system
     has hard links; elsewhere a check just before the move)."""
+    taken = OutputExistsError(f"cannot write {path}: a file of that name was made meanwhile")
     try:
         os.link(tmp, path)
     except FileExistsError:
-        raise OutputExistsError(f"cannot write {path}: a file of that name was made meanwhile") from None
+        raise taken from None
     except OSError:  # no hard links here (FAT, some FUSE and network file systems: EPERM, ENOTSUP, EINVAL, ENOSYS)
         if os.path.lexists(path):
-            raise OutputExistsError(f"cannot write {path}: a file of that name was made meanwhile") from None
+            raise taken from None
         os.replace(tmp, path)
         return
     with contextlib.suppress(OSError):  # the file is published; at worst its hidden second name stays
