@@ -191,7 +191,8 @@ def main() -> None:  # noqa: C901
                 rows.append({"pair": name, "k_px": blur.k_px, "corruption": kind, "px": amount, "method": method,
                              "seconds": t, "share_refined": stx.share_refined if stx else None,
                              "gate_open": stx.gate_open if stx else None,
-                             "depth_fixed_px": stx.depth_fixed_px if stx else None} | score(img, target, band))
+                             "depth_fixed_px": stx.depth_fixed_px if stx else None,
+                             "fixed_share": stx.fixed_share if stx else None} | score(img, target, band))
         print(f"{n + 1}/{len(samples)} {name}", flush=True)
     data_label = str(args.devset or args.data)
     summary = summarise(rows, conditions)

@@ -14,7 +14,7 @@ Scored on the path-traced dev set and a held-out synthetic split in the true dep
 (refine without networks), ``edges`` the level on the map the edge network moved, at each ``--thresholds``
 (``gated``: only where refine's confidence gate opens), ``oracle`` the level on the map a perfect network would make
 (:func:`oracle_map`). As in refine, the network runs only on maps the depth fix found wrong (``--min-fixed-share``,
-refine's ``edge_min_fixed_share``; 0: every map); ``--veto`` adds columns with the colour veto. Clipped lights are
+refine's ``min_fixed_share``; 0: every map); ``--veto`` adds columns with the colour veto. Clipped lights are
 not held back here (refine holds them).
 
     bokehray synth -n 80 -o data/train --seed 2000 --size 256 --blur-levels 8,16,24 --depth-rule half \\
@@ -211,7 +211,7 @@ def score(model, samples, opts, thresholds, gate: bool = False, min_region: int 
         for kind, amount in NET_CONDITIONS:
             d = np.clip(corrupt_disparity(disparity, kind, amount), 0.0, 1.0)
             used, band, fixed = used_map(image, d, blur, opts)
-            runs = map_found_wrong(fixed, band, opts.edge_min_fixed_share)  # else refine leaves the map as it is
+            runs = map_found_wrong(fixed, band, opts.min_fixed_share)  # else refine leaves the map as it is
             render = br.render(image, used, blur)
             row = {"pair": name, "corruption": kind, "px": amount, "fix": band_psnr(used, render), "runs": runs,
                    "fixed_share": float((fixed & (band > 0)).sum() / max((band > 0).sum(), 1)),
@@ -309,7 +309,7 @@ def main() -> None:
     ap.add_argument("--attached", action="store_true", help="place_edges' attached: no islands, no holes")
     ap.add_argument("--min-fixed-share", type=float, default=None,
                     help="the network runs only on maps the depth fix moved at least this share of the band of "
-                         "(refine's edge_min_fixed_share, whose default is the default; 0: on every map)")
+                         "(refine's min_fixed_share, whose default is the default; 0: on every map)")
     ap.add_argument("--veto", default="",
                     help="score with the colour veto too, at each of these margins (sRGB; place_edges' colour_margin)")
     ap.add_argument("--threads", type=int, default=None)
@@ -323,7 +323,7 @@ def main() -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
     torch.set_flush_denormal(True)
-    opts = RefineOptions() if args.min_fixed_share is None else RefineOptions(edge_min_fixed_share=args.min_fixed_share)
+    opts = RefineOptions() if args.min_fixed_share is None else RefineOptions(min_fixed_share=args.min_fixed_share)
     result = {"machine": machine_info(), "args": vars(args)}
     if args.load:
         model = load_edge_net(args.load)

@@ -12,7 +12,7 @@ the shipped ones), the exact render. Scores (PSNR in sRGB, clipped): the whole i
 depth edge of the *true* map (the fur).
 
     python benchmarks/refiner_hair_crops.py [--weights A.safetensors B.safetensors] [--labels shipped new] \
-        [--edges [E.safetensors] --edge-threshold 0.7 --edge-colour-margin 0.05 --edge-min-fixed-share 0]
+        [--edges [E.safetensors] --edge-threshold 0.7 --edge-colour-margin 0.05 --min-fixed-share 0]
 
 ``--edges`` adds a column: the depth fix and the learned edge placement (``bokehray_refiner.edges``), no residual.
 
@@ -58,8 +58,8 @@ def main() -> None:
                     help="add the edge placement: the shipped edge network, or these weights (safetensors)")
     ap.add_argument("--edge-threshold", type=float, default=None, help="default: refine's")
     ap.add_argument("--edge-colour-margin", type=float, default=None)
-    ap.add_argument("--edge-min-fixed-share", type=float, default=None,
-                    help="the edge column's map-level gate (default: refine's; 0: the network runs whatever the "
+    ap.add_argument("--min-fixed-share", type=float, default=None,
+                    help="the edges column's map-level gate (default: refine's; 0: the network runs whatever the "
                          "depth fix found)")
     ap.add_argument("--out", default=str(REPO / "docs/img/refiner_hair_crops.png"))
     ap.add_argument("--json", default=str(REPO / "benchmarks/results/refiner_hair.json"))
@@ -90,8 +90,8 @@ def main() -> None:
     edges_only = RefineOptions(neural=False, edges=True, edge_colour_margin=args.edge_colour_margin)
     if args.edge_threshold is not None:
         edges_only = replace(edges_only, edge_threshold=args.edge_threshold)
-    if args.edge_min_fixed_share is not None:
-        edges_only = replace(edges_only, edge_min_fixed_share=args.edge_min_fixed_share)
+    if args.min_fixed_share is not None:
+        edges_only = replace(edges_only, min_fixed_share=args.min_fixed_share)
     rows, strips = [], []
     for focus_name, d_f in (("background", 0.1), ("fur", 0.7)):
         blur = br.BlurParams(K, d_f)
@@ -99,7 +99,8 @@ def main() -> None:
         exact = exact[..., :3]
         rer = lambda d, b=blur: br.render(image, d, b)  # noqa: E731
         pre = br.render(image, given, blur)
-        fixed, _ = refine(image, given, blur, None, options=RefineOptions(neural=False), rerender=rer)
+        fixed, _ = refine(image, given, blur, None, options=RefineOptions(neural=False, edges=False),
+                          rerender=rer)
         outs = [("preview", pre), ("depth fix", fixed)]
         if edge_model is not None:
             outs.append(("edges", refine(image, given, blur, None, options=edges_only, rerender=rer,
@@ -120,7 +121,7 @@ def main() -> None:
     write_json(args.json, {"machine": machine_info(), "size": SIZE, "k_px": K, "crop": [y0, x0, CROP],
                            "weights": args.weights, "edges": args.edges,
                            "edge_threshold": edges_only.edge_threshold if args.edges else None,
-                           "edge_min_fixed_share": edges_only.edge_min_fixed_share if args.edges else None,
+                           "min_fixed_share": edges_only.min_fixed_share if args.edges else None,
                            "edge_colour_margin": args.edge_colour_margin, "rows": rows})
     print(args.out)
 

@@ -44,7 +44,7 @@ from .saved import load_saved
 from .tiles import raised_cosine_ramp, refine_boxes
 
 __all__ = ["DEFAULT_WEIGHTS", "RefineOptions", "RefineStats", "blend_weight", "correct_and_render", "corrected_disparity", "edge_band",
-           "edge_reach", "load_refiner", "map_found_wrong", "refine", "refine_boxes", "tiles_near", "tiles_to_refine"]
+           "edge_reach", "fixed_share", "load_refiner", "map_found_wrong", "refine", "refine_boxes", "tiles_near", "tiles_to_refine"]
 
 DEFAULT_WEIGHTS = Path(__file__).parent / "weights" / "refiner.safetensors"
 
@@ -70,15 +70,18 @@ class RefineOptions:
             with the same per-tile weights, instead of one pass per tile, each with its own halo.
         edges: after the depth correction, the learned edge placement (:mod:`.edges`, the shipped weights unless
             :func:`refine` is given ``edge_model``) moves the map's edges in the band, before the level renders
-            again; only on a map the correction found wrong (``edge_min_fixed_share``).
+            again.
         edge_threshold: the edge network moves a pixel across an edge only where it gives the other side at least
             this probability.
         edge_colour_margin: and only where the pixel's colour is nearer the local mean colour of the side it joins,
             by this much (sRGB; :func:`.edges.colour_allows`); None: no colour veto.
-        edge_min_fixed_share: the edge network runs only on a map the depth correction found wrong: where it moved
-            at least this share of the edge band's pixels. A map whose edges already sit on the photo's is left
-            as it is (the network's few confident wrong moves cost more there than it can gain). With the depth
-            correction off nothing is found wrong, so the network runs only with this at 0 (on every map).
+        min_fixed_share: refine changes only a map the depth correction found wrong: where it moved at least this
+            share of the edge band's pixels. On any other map the correction's few moves are dropped and neither
+            network runs: the render is the classical level's on the given map, bit for bit. A map whose edges sit on
+            the photo's has nothing to repair, and there the correction's and the networks' few confident wrong
+            moves cost more than they gain (docs/refiner.md, "Round 10"). 0: every map. Where the correction does
+            not run (off, or :func:`refine` without ``rerender``) there is no evidence either way: the residual
+            network runs on every map, and the edge network only with this at 0.
     """
 
     tile: int = 64
@@ -95,7 +98,7 @@ class RefineOptions:
     edges: bool = True
     edge_threshold: float = 0.7
     edge_colour_margin: float | None = None
-    edge_min_fixed_share: float = 0.01
+    min_fixed_share: float = 0.01
 
     def __post_init__(self) -> None:
         if self.tile < 8 or self.tile % 8 or self.halo < 0 or self.halo % 8:
@@ -107,8 +110,8 @@ class RefineOptions:
             raise InputError(f"refine: edge_threshold must be in [0.5, 1], got {self.edge_threshold}")
         if self.edge_colour_margin is not None and not 0.0 <= self.edge_colour_margin < 2.0:
             raise InputError(f"refine: edge_colour_margin must be None or in [0, 2), got {self.edge_colour_margin}")
-        if not 0.0 <= self.edge_min_fixed_share <= 1.0:
-            raise InputError(f"refine: edge_min_fixed_share must be in [0, 1], got {self.edge_min_fixed_share}")
+        if not 0.0 <= self.min_fixed_share <= 1.0:
+            raise InputError(f"refine: min_fixed_share must be in [0, 1], got {self.min_fixed_share}")
 
 
 @dataclass
@@ -122,6 +125,8 @@ class RefineStats:
     band_pixels: int = 0  #: pixels of the edge band (where a depth error can change the image)
     gate_open: float = 0.0  #: mean gate over the band: the share of the correction let through
     depth_fixed_px: int = 0  #: pixels whose disparity the depth correction changed (then the level ran again)
+    fixed_share: float | None = None  #: the share of the edge band the depth correction moved (None: it did not run)
+    found_wrong: bool = True  #: at least ``min_fixed_share`` of it: else nothing was changed (``RefineOptions``)
     depthfix_seconds: float = 0.0  #: the correction itself (with ``options.edges``, the edge network's too)
     rerender_seconds: float = 0.0  #: the classical level again, on the corrected disparity (its only render, when
     #: refine() was given no classical render: then not part of ``seconds``)
@@ -138,6 +143,7 @@ class RefineStats:
                 "share_refined": self.share_refined, "seconds": self.seconds,
                 "tiles_near_edges": self.tiles_near_edges, "band_pixels": self.band_pixels,
                 "gate_open": self.gate_open, "depth_fixed_px": self.depth_fixed_px,
+                "fixed_share": self.fixed_share, "found_wrong": self.found_wrong,
                 "depthfix_seconds": self.depthfix_seconds, "rerender_seconds": self.rerender_seconds,
                 "gate_seconds": self.gate_seconds, "neural_seconds": self.neural_seconds}
 
@@ -259,6 +265,13 @@ def refine(
         raise InputError("refine: without a classical render it needs the rerender callback that renders the level")
     fix = _correct_depth(image, disparity, blur, classical, options, rerender, edge_model)
     classical, disparity = fix.classical, fix.disparity
+    stats = RefineStats(depth_fixed_px=fix.fixed_px, fixed_share=fix.fixed_share, found_wrong=fix.found_wrong,
+                        depthfix_seconds=fix.seconds, rerender_seconds=fix.render_seconds, disparity=fix.fixed)
+    render_time = fix.render_seconds if first else 0.0
+    if not fix.found_wrong:  # as far as the correction can tell the map is right: the level's render, untouched
+        stats.tiles_total = -(-disparity.shape[0] // options.tile) * -(-disparity.shape[1] // options.tile)
+        stats.seconds = time.perf_counter() - t0 - render_time
+        return classical.astype(np.float32, copy=True), stats
     edge_field = fix.edge_field
     if edge_field is None or not _same_map(edge_field.disparity, disparity):
         coc = blur.signed_coc(disparity).astype(np.float32)
@@ -269,9 +282,7 @@ def refine(
         need[:] = False
     else:
         model = model or load_refiner()
-    stats = RefineStats(tiles_total=int(need.size), tiles_near_edges=int(need.sum()), depth_fixed_px=fix.fixed_px,
-                        depthfix_seconds=fix.seconds, rerender_seconds=fix.render_seconds, disparity=fix.fixed)
-    render_time = fix.render_seconds if first else 0.0
+    stats.tiles_total, stats.tiles_near_edges = int(need.size), int(need.sum())
     t1 = time.perf_counter()
     band, focus_srgb = None, fix.focus_srgb
     if need.any():
@@ -313,6 +324,8 @@ class _DepthFix:
     render_seconds: float  # the level's render on the corrected (or given) map, 0 when none was needed
     focus_srgb: np.ndarray | None  # the photo in sRGB, when the correction computed it
     edge_field: _EdgeField | None = None  # the depth edges of the map the correction ended on, when it computed them
+    fixed_share: float | None = None  # the share of the edge band the correction moved (None: it did not run)
+    found_wrong: bool = True  # at least options.min_fixed_share of it (or the correction did not run)
 
 
 @dataclass
@@ -337,46 +350,66 @@ def corrected_disparity(image: np.ndarray, disparity: np.ndarray, blur: BlurPara
                         focus_srgb: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The map refine renders: the colour-guided depth correction (``bokehray.depthfix``), then, with
     ``options.edges``, the learned edge placement (:mod:`.edges`) on its result; and which pixels moved. Clipped
-    lights (dilated by 2 px) never move and never vote."""
+    lights (dilated by 2 px) never move and never vote. A map the correction does not find wrong
+    (``options.min_fixed_share``) comes back as it is, with nothing moved."""
     return _corrected(image, disparity, blur, options, edge_model, focus_srgb)[:2]
 
 
 def _corrected(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, options: RefineOptions,
                edge_model: EdgeNet | None, focus_srgb: np.ndarray | None,
-               ) -> tuple[np.ndarray, np.ndarray, _EdgeField | None]:
-    """:func:`corrected_disparity`, and the edge field of the map it ends on when it computed one (the edge
-    network's band; refine's gate needs the same)."""
+               ) -> tuple[np.ndarray, np.ndarray, _EdgeField | None, float | None, bool]:
+    """:func:`corrected_disparity`, the edge field of the map it ends on when it computed one (the edge network's
+    band; refine's gate needs the same), the share of the band the depth correction moved (None: it did not run)
+    and whether that found the map wrong (True where it did not run)."""
     from scipy import ndimage
 
     focus_srgb = linear_to_srgb(np.clip(image[..., :3], 0.0, 1.0)) if focus_srgb is None else focus_srgb
     lights = channel_max(image) >= 1.0
     if lights.any():
         lights = ndimage.binary_dilation(lights, iterations=2)
-    d_new, changed, edge_field = disparity, np.zeros(disparity.shape, bool), None
+    d_new, changed, edge_field, share = disparity, np.zeros(disparity.shape, bool), None, None
+
+    def field_and_band(d: np.ndarray) -> tuple[_EdgeField, np.ndarray]:
+        coc = blur.signed_coc(d).astype(np.float32)
+        reach = edge_reach(coc, options.min_jump_px)
+        field = _EdgeField(d, coc, reach, nearest_edge(reach))
+        return field, edge_band(reach, options.band_margin_px, options.band_feather_px, field.nearest)
+
+    band = None
     if options.depthfix.enabled:
         d_new, changed = correct_disparity(focus_srgb, disparity, blur.k_px, options.depthfix, keep=lights)
-    if options.edges:
+        d32 = np.asarray(d_new, np.float32)  # the network's map is float32: compared with it, not a float64 one
+        edge_field, band = field_and_band(d32)
+        share = fixed_share(changed, band)
+        if not map_found_wrong(changed, band, options.min_fixed_share):
+            return disparity, np.zeros(disparity.shape, bool), None, share, False  # its few moves are not evidence
+        if options.edges:
+            d_new = d32
+    if options.edges and (band is not None or options.min_fixed_share == 0):
         model = load_edge_net() if edge_model is None else edge_model
-        d_new = np.asarray(d_new, np.float32)  # the network's map is float32: compared with it, not a float64 one
-        coc = blur.signed_coc(d_new).astype(np.float32)
-        reach = edge_reach(coc, options.min_jump_px)
-        edge_field = _EdgeField(d_new, coc, reach, nearest_edge(reach))
-        band = edge_band(reach, options.band_margin_px, options.band_feather_px, edge_field.nearest)
-        if map_found_wrong(changed, band, options.edge_min_fixed_share):
-            placed = place_edges(model, focus_srgb, d_new, blur, band, options.edge_threshold, keep=lights,
-                                 colour_margin=options.edge_colour_margin)
-            changed = changed | (placed != d_new)
-            d_new, edge_field = placed, None
-    return d_new, changed, edge_field
+        if band is None:  # no correction ran: the given map's band
+            d_new = np.asarray(d_new, np.float32)
+            edge_field, band = field_and_band(d_new)
+        placed = place_edges(model, focus_srgb, d_new, blur, band, options.edge_threshold, keep=lights,
+                             colour_margin=options.edge_colour_margin)
+        changed = changed | (placed != d_new)
+        d_new, edge_field = placed, None
+    return d_new, changed, edge_field, share, True
+
+
+def fixed_share(fixed: np.ndarray, band: np.ndarray) -> float:
+    """The share of the edge band's pixels (``band > 0``) that the depth correction moved (``fixed``; those outside
+    the band do not count); 0 without a band."""
+    inside = band > 0
+    band_px = int(inside.sum())
+    return int((fixed & inside).sum()) / band_px if band_px else 0.0
 
 
 def map_found_wrong(fixed: np.ndarray, band: np.ndarray, min_share: float) -> bool:
-    """Whether the depth correction moved at least ``min_share`` of the edge band's pixels (``fixed``: the pixels it
-    moved; those outside the band do not count): the evidence that the map's edges are off the photo's, without
-    which the edge network does not run."""
-    inside = band > 0
-    band_px = int(inside.sum())
-    return band_px > 0 and int((fixed & inside).sum()) / band_px >= min_share
+    """Whether the depth correction moved at least ``min_share`` of the edge band's pixels (:func:`fixed_share`):
+    the evidence that the map's edges are off the photo's, without which refine changes nothing. No band: nothing
+    to repair."""
+    return bool((band > 0).any()) and fixed_share(fixed, band) >= min_share
 
 
 def _correct_depth(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, classical: np.ndarray | None,
@@ -385,10 +418,11 @@ def _correct_depth(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, c
     """Stage 1: the depth correction (:func:`corrected_disparity`), then the level on the corrected map (or on the
     given map when nothing was rendered yet)."""
     fixed_px, t_fix, t_re, d_fixed, focus_srgb, edge_field = 0, 0.0, 0.0, None, None, None
+    share, wrong = None, True
     if rerender is not None and (options.depthfix.enabled or options.edges):
         t1 = time.perf_counter()
         focus_srgb = linear_to_srgb(np.clip(image[..., :3], 0.0, 1.0))
-        d_new, changed, edge_field = _corrected(image, disparity, blur, options, edge_model, focus_srgb)
+        d_new, changed, edge_field, share, wrong = _corrected(image, disparity, blur, options, edge_model, focus_srgb)
         t_fix = time.perf_counter() - t1
         if changed.any():
             t1 = time.perf_counter()
@@ -399,7 +433,7 @@ def _correct_depth(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, c
         t1 = time.perf_counter()
         classical = np.asarray(rerender(disparity), np.float32)
         t_re = time.perf_counter() - t1
-    return _DepthFix(classical, disparity, d_fixed, fixed_px, t_fix, t_re, focus_srgb, edge_field)
+    return _DepthFix(classical, disparity, d_fixed, fixed_px, t_fix, t_re, focus_srgb, edge_field, share, wrong)
 
 
 def blend_weight(image: np.ndarray, focus_srgb: np.ndarray, disparity: np.ndarray, classical: np.ndarray,

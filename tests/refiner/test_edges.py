@@ -184,7 +184,7 @@ def test_refine_renders_once_on_the_map_the_edge_network_moved():
     opts = RefineOptions(edges=True, neural=False, depthfix=DepthFixOptions(enabled=False))
     kept, none = corrected_disparity(image, d, blur, opts, edge_model=m)  # no correction, so nothing found wrong
     assert np.array_equal(kept, d) and not none.any()
-    opts = replace(opts, edge_min_fixed_share=0.0)  # the network runs on every map
+    opts = replace(opts, min_fixed_share=0.0)  # the network runs on every map
     moved, changed = corrected_disparity(image, d, blur, opts, edge_model=m)
     assert changed.any() and np.array_equal(changed, moved != d)
     assert np.all(moved[changed] > d[changed])  # only towards the near side
@@ -204,7 +204,7 @@ def test_a_float64_map_counts_only_the_pixels_the_network_moved():
     from bokehray.depthfix import DepthFixOptions
 
     focus, d, blur = _scene()
-    opts = RefineOptions(edges=True, depthfix=DepthFixOptions(enabled=False), edge_min_fixed_share=0.0)
+    opts = RefineOptions(edges=True, depthfix=DepthFixOptions(enabled=False), min_fixed_share=0.0)
     _, changed = corrected_disparity(focus ** 2.2, d.astype(np.float64) + 1e-9, blur, opts, edge_model=EdgeNet(SMALL))
     assert not changed.any()  # an undecided network moves nothing; float32 rounding is not a move
 
@@ -242,7 +242,7 @@ def test_a_map_whose_edges_sit_on_the_photos_is_left_to_the_depth_fix():
     kept, changed = corrected_disparity(image, exact, blur, RefineOptions(edges=True), edge_model=m)
     np.testing.assert_array_equal(kept, exact)
     assert not changed.any()
-    punched, changed = corrected_disparity(image, exact, blur, RefineOptions(edges=True, edge_min_fixed_share=0.0),
+    punched, changed = corrected_disparity(image, exact, blur, RefineOptions(edges=True, min_fixed_share=0.0),
                                            edge_model=m)
     assert changed.any() and np.all(punched[changed] < exact[changed])
 
@@ -250,8 +250,8 @@ def test_a_map_whose_edges_sit_on_the_photos_is_left_to_the_depth_fix():
 @pytest.mark.parametrize("field,value", [("edge_threshold", 0.49), ("edge_threshold", 1.01),
                                          ("edge_threshold", float("nan")), ("edge_colour_margin", -0.1),
                                          ("edge_colour_margin", float("nan")), ("edge_colour_margin", 2.0),
-                                         ("edge_min_fixed_share", -0.01), ("edge_min_fixed_share", 1.5),
-                                         ("edge_min_fixed_share", float("nan"))])
+                                         ("min_fixed_share", -0.01), ("min_fixed_share", 1.5),
+                                         ("min_fixed_share", float("nan"))])
 def test_edge_options_out_of_range_are_refused(field, value):
     from bokehray_refiner.refine import RefineOptions
 
@@ -271,11 +271,12 @@ def test_the_shipped_edge_weights_load_and_fit_their_recorded_config():
 
 
 def test_refine_reuses_the_corrections_edge_field_without_changing_a_pixel(monkeypatch):
-    """The depth edges the correction found for the edge network's band are the gate's too: handed on instead of
-    found again, with the same render and stats."""
+    """The depth edges the correction found for its band are the gate's too: handed on instead of found again, with
+    the same render and stats."""
     import bokehray_refiner.refine as refine_module
     from bokehray_refiner.data import corrupt_disparity
     from bokehray_refiner.model import BokehRefiner
+    from bokehray_refiner.refine import RefineOptions
 
     focus, d, blur = _scene(96, 128)
     image = focus ** 2.2
@@ -286,11 +287,13 @@ def test_refine_reuses_the_corrections_edge_field_without_changing_a_pixel(monke
     searches = []
     nearest_edge = refine_module.nearest_edge
     monkeypatch.setattr(refine_module, "nearest_edge", lambda reach: searches.append(1) or nearest_edge(reach))
-    reused, st1 = refine_module.refine(image, given, blur, None, model=model, rerender=rer)
+    # noise: the depth fix finds nothing, so the map-level gate is opened; no edge network (it would move the map)
+    opts = RefineOptions(min_fixed_share=0.0, edges=False)
+    reused, st1 = refine_module.refine(image, given, blur, None, model=model, rerender=rer, options=opts)
     assert len(searches) == 1 and st1.band_pixels > 0  # one distance transform for the band and the gate
     corrected = refine_module._corrected
-    monkeypatch.setattr(refine_module, "_corrected", lambda *a: corrected(*a)[:2] + (None,))
-    fresh, st2 = refine_module.refine(image, given, blur, None, model=model, rerender=rer)
+    monkeypatch.setattr(refine_module, "_corrected", lambda *a: (r := corrected(*a))[:2] + (None,) + r[3:])
+    fresh, st2 = refine_module.refine(image, given, blur, None, model=model, rerender=rer, options=opts)
     assert len(searches) == 3  # found again
     np.testing.assert_array_equal(reused, fresh)
     assert (st1.band_pixels, st1.gate_open, st1.tiles_refined) == (st2.band_pixels, st2.gate_open, st2.tiles_refined)

@@ -14,7 +14,14 @@ from bokehray_refiner.data import PairBank, corrupt_disparity  # noqa: E402
 from bokehray_refiner.gate import GateOptions  # noqa: E402
 from bokehray_refiner.masks import PisaMaskProvider  # noqa: E402
 from bokehray_refiner.model import BokehRefiner, fingerprint  # noqa: E402
-from bokehray_refiner.refine import DEFAULT_WEIGHTS, RefineOptions, load_refiner, refine, tiles_to_refine  # noqa
+from bokehray_refiner.refine import (  # noqa: E402
+    DEFAULT_WEIGHTS,
+    RefineOptions,
+    corrected_disparity,
+    load_refiner,
+    refine,
+    tiles_to_refine,
+)
 from bokehray_refiner.train import TrainConfig, edge_loss, hardness_at, train  # noqa: E402
 
 import bokehray as br  # noqa: E402
@@ -184,16 +191,22 @@ def weights(tmp_path_factory):
 
 
 def test_render_api_refines_and_reports(weights):
-    rng = np.random.default_rng(2)
-    img = rng.uniform(0, 1, (96, 96, 4)).astype(np.float32)  # RGBA: alpha is not refined
-    d = np.full((96, 96), 0.2, np.float32)
-    d[30:60, 30:60] = 0.9
+    rgb, exact = _edge_scene(2)
+    img = np.concatenate([rgb, np.full(rgb.shape[:2] + (1,), 0.7, np.float32)], axis=2)  # RGBA: alpha not refined
+    d = np.clip(corrupt_disparity(exact, "erode", 5), 0, 1)  # off the photo's edges: refine finds it wrong,
+    # and the fix leaves some of it for the residual network (at 3 px it fixes all, and the gate keeps the render)
     blur = br.BlurParams(10.0, 0.9)
-    plain, st0 = br.render_with_stats(img, d, blur)
+    _, st0 = br.render_with_stats(img, d, blur)
     out, st = br.render_with_stats(img, d, blur, refine=str(weights))
-    assert st0.refine is None and st.refine["tiles_refined"] > 0 and "refine" in st.stage_seconds
-    assert np.array_equal(out[..., 3], plain[..., 3]) and not np.array_equal(out[..., :3], plain[..., :3])
-    flat = np.full((96, 96), 0.5, np.float32)
+    assert st0.refine is None and st.refine["found_wrong"] and st.refine["fixed_share"] >= 0.01
+    assert st.refine["tiles_refined"] > 0 and "refine" in st.stage_seconds
+    level = br.render(img, corrected_disparity(img, d, blur)[0], blur)  # the level on the corrected map
+    assert np.array_equal(out[..., 3], level[..., 3]) and not np.array_equal(out[..., :3], level[..., :3])
+    # the exact map: the depth fix finds it right, so refine leaves the level's render as it is
+    same, st_exact = br.render_with_stats(img, exact, blur, refine=str(weights))
+    assert not st_exact.refine["found_wrong"] and st_exact.refine["tiles_refined"] == 0
+    assert np.array_equal(same, br.render(img, exact, blur))
+    flat = np.full(d.shape, 0.5, np.float32)
     same, st_flat = br.render_with_stats(img, flat, br.BlurParams(10.0, 0.5), refine=str(weights))
     assert st_flat.refine["tiles_refined"] == 0 and np.array_equal(same, br.render(img, flat, br.BlurParams(10.0, 0.5)))
 
@@ -560,3 +573,30 @@ def test_gate_without_the_agreement_opens_the_whole_band_but_guards_lights():
     assert free[4, 4] == 0.0  # the highlight guard still holds
     assert np.array_equal(refine_gate(img, srgb, np.full_like(d, 0.5), img, np.zeros_like(coc), 1.0,
                                       GateOptions(agreement=False)), np.zeros_like(d))
+
+
+def test_refine_leaves_a_map_the_depth_fix_finds_right_as_the_level_rendered_it(monkeypatch):
+    """A map whose edges sit on the photo's: the depth fix moves (almost) nothing, so refine changes nothing: its few
+    moves are dropped, no network runs, and the render is the level's on the given map, bit for bit. With
+    ``min_fixed_share=0`` the same moves are kept and the residual network runs (behind no confidence gate, which
+    would trust these edges)."""
+    import bokehray_refiner.refine as refine_module
+
+    img, d = _edge_scene(3)
+    blur = br.BlurParams(12.0, 0.9)
+    few = d.copy()
+    few[24, 20:25] = 0.2  # five pixels of the near block's corner: far below 1 % of the band
+    monkeypatch.setattr(refine_module, "correct_disparity", lambda *a, **k: (few, few != d))
+    seen, runs = [], []
+    model = BokehRefiner().eval()
+    model.register_forward_hook(lambda *a: runs.append(1))
+    rer = lambda dd: seen.append(dd.copy()) or br.render(img, dd, blur)  # noqa: E731
+    out, st = refine(img, d, blur, None, model=model, rerender=rer)
+    assert not st.found_wrong and 0 < st.fixed_share < 0.01 and st.depth_fixed_px == 0 and st.disparity is None
+    assert len(seen) == 1 and np.array_equal(seen[0], d) and not runs and st.tiles_refined == 0
+    np.testing.assert_array_equal(out, br.render(img, d, blur))
+    assert not refine_module.corrected_disparity(img, d, blur, RefineOptions(edges=False))[1].any()
+    seen.clear()
+    _, st0 = refine(img, d, blur, None, model=model, rerender=rer,
+                    options=RefineOptions(min_fixed_share=0.0, edges=False, gate=GateOptions(enabled=False)))
+    assert st0.found_wrong and st0.depth_fixed_px == 5 and np.array_equal(seen[0], few) and runs
