@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from bokehray.colour import linear_to_srgb, srgb_to_linear
-from bokehray.depthfix import DepthFixOptions, correct_disparity
+from bokehray.depthfix import DepthFixOptions, correction_steps
 from bokehray.errors import InputError
 from bokehray.lens import BlurParams
 from bokehray_refiner.pisa import PisaMaskOptions
@@ -377,14 +377,15 @@ def _corrected(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, optio
 
     band = None
     if options.depthfix.enabled:
-        d_new, changed = correct_disparity(focus_srgb, disparity, blur.k_px, options.depthfix, keep=lights)
-        d32 = np.asarray(d_new, np.float32)  # the network's map is float32: compared with it, not a float64 one
-        edge_field, band = field_and_band(d32)
-        share = fixed_share(changed, band)
-        if not map_found_wrong(changed, band, options.min_fixed_share):
-            return disparity, np.zeros(disparity.shape, bool), None, share, False  # its few moves are not evidence
-        if options.edges:
-            d_new = d32
+        (sy, sx), shifted, d_new = correction_steps(focus_srgb, disparity, blur.k_px, options.depthfix, keep=lights)
+        changed = d_new != np.asarray(disparity, np.float32)
+        edge_field, band = field_and_band(d_new)  # float32, as the network's map is
+        local = d_new != shifted  # the local passes' moves: a global shift moves every pixel and says nothing here
+        share = fixed_share(local, band)
+        if not map_found_wrong(local, band, options.min_fixed_share):  # their few moves are not evidence
+            if not (sy or sx):
+                return disparity, np.zeros(disparity.shape, bool), None, share, False
+            return shifted, shifted != np.asarray(disparity, np.float32), None, share, False  # the shift stays
     if options.edges and (band is not None or options.min_fixed_share == 0):
         model = load_edge_net() if edge_model is None else edge_model
         if band is None:  # no correction ran: the given map's band

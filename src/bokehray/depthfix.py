@@ -40,7 +40,7 @@ import numpy as np
 
 from .edge_estimate import depth_edges, ramp_width
 
-__all__ = ["DepthFixOptions", "colour_edge_offsets", "correct_disparity", "edge_pairs", "global_shift",
+__all__ = ["DepthFixOptions", "colour_edge_offsets", "correct_disparity", "correction_steps", "edge_pairs", "global_shift",
            "has_ramps", "pass_reach", "shift_map", "smeared", "step_flips", "untrusted", "vote", "weighted_median"]
 
 
@@ -474,10 +474,20 @@ def correct_disparity(focus_srgb: np.ndarray, disparity: np.ndarray, k_px: float
     Every output value is one of the input's values within ``radius_px`` (a median of trusted neighbours),
     so the correction never invents a disparity outside the local range.
     """
+    _shift, _shifted, out = correction_steps(focus_srgb, disparity, k_px, options, active, keep)
+    return out, out != np.asarray(disparity, np.float32)  # moved by the passes or by the shift, and not back
+
+
+def correction_steps(focus_srgb: np.ndarray, disparity: np.ndarray, k_px: float,
+                     options: DepthFixOptions = DepthFixOptions(), active: np.ndarray | None = None,
+                     keep: np.ndarray | None = None) -> tuple[tuple[int, int], np.ndarray, np.ndarray]:
+    """:func:`correct_disparity` in its two steps: the global shift found (``(0, 0)``: none), the map shifted back
+    by it, and that map after the local passes (the corrected disparity). Those who weigh the local passes' moves
+    (``refine``'s map-level gate) need them apart from the shift, which moves every pixel."""
     d = np.asarray(disparity, np.float32)
     out = d.copy()
     if not options.enabled or k_px <= 0:
-        return out, np.zeros(d.shape, bool)
+        return (0, 0), out, out
     from scipy import ndimage
 
     img = np.ascontiguousarray(focus_srgb[..., :3], np.float32)
@@ -486,11 +496,12 @@ def correct_disparity(focus_srgb: np.ndarray, disparity: np.ndarray, k_px: float
     h, w = d.shape
     coc = d * np.float32(k_px)
     if depth_edges(coc, options.jump_px).mean() > options.max_edge_share and step_flips(coc, options.jump_px) > 0.5:
-        return out, np.zeros(d.shape, bool)  # noise in the map, not misplaced edges
+        return (0, 0), out, out  # noise in the map, not misplaced edges
     snap = options.snap_px / float(k_px)
     sy, sx = global_shift(img, d, k_px, options) if active is None else (0, 0)  # a shift moves every pixel
     if sy or sx:  # a misregistered map: shifted back first, all of it (lights too: the whole map was off)
         out = shift_map(d, sy, sx)
+    shifted = out
     ramps = has_ramps(out, k_px, options)  # of the map as given (shifted back): the passes do not change it
     todo = None  # the first pass looks at the whole map, later ones only where the last one moved pixels
     reach = pass_reach(options)
@@ -519,4 +530,4 @@ def correct_disparity(focus_srgb: np.ndarray, disparity: np.ndarray, k_px: float
         out = new
         if options.incremental:
             todo = ndimage.maximum_filter(moved, size=2 * reach + 1, mode="constant")
-    return out, out != d  # moved by the passes or by the shift, and not back
+    return (int(sy), int(sx)), shifted, out

@@ -120,8 +120,10 @@ def _check_shape_fits(image: object, level_whole_image_b: int, memory: MemoryOpt
         tiling.check_whole_image(int(shape[0]), int(shape[1]), level_whole_image_b, memory)
 
 
-def _check_refine(refine: object, quality: str) -> bool:
+def _check_refine(refine: object, quality: str, refine_options: object = None) -> bool:
     if refine is None or refine is False:
+        if refine_options is not None:
+            raise InputError("refine_options: given without refine (pass refine=True or a path to weights)")
         return False
     if not (refine is True or isinstance(refine, (str, os.PathLike))):
         raise InputError(f"refine: expected True, False or a path to refiner weights, got {refine!r}")
@@ -169,6 +171,7 @@ def render_with_stats(
     highlight_boost: float = 0.0,
     progress: Progress | None = None,
     refine: bool | str | os.PathLike = False,
+    refine_options: object | None = None,
 ) -> tuple[np.ndarray, RenderStats]:
     """Like :func:`render`, and also return what the renderer did (a :class:`~bokehray.RenderStats`:
     :class:`~bokehray.PreviewStats` or :class:`~bokehray.RaytraceStats`).
@@ -178,7 +181,7 @@ def render_with_stats(
     output checks). The caller's arrays are read, never written to, and stay the caller's."""
     return _render_with_stats(Handover(image, disparity), blur, aperture, quality=quality, device=device,
                               options=options, layers=layers, memory=memory, highlight_boost=highlight_boost,
-                              progress=progress, refine=refine)
+                              progress=progress, refine=refine, refine_options=refine_options)
 
 
 def render_handed_over(inputs: Handover, blur: BlurParams, aperture: Aperture | None = None, **kwargs):
@@ -194,17 +197,18 @@ def _render_with_stats(inputs: Handover, blur: BlurParams, aperture: Aperture | 
                        device: str = "cpu", options: PreviewOptions | RaytraceOptions | None = None,
                        layers: LayerOptions | None = None, memory: MemoryOptions | None = None,
                        highlight_boost: float = 0.0, progress: Progress | None = None,
-                       refine: bool | str | os.PathLike = False) -> tuple[np.ndarray, RenderStats]:
+                       refine: bool | str | os.PathLike = False,
+                       refine_options: object | None = None) -> tuple[np.ndarray, RenderStats]:
     level = get_level(quality)
     layers, memory, options, aperture, device = _checked_arguments(
         level, blur, aperture, device, options, layers, memory, highlight_boost, progress)
-    refining = _check_refine(refine, quality)
+    refining = _check_refine(refine, quality, refine_options)
     _check_shape_fits(inputs.image, level.whole_image_bytes(), memory)
     # the context takes the arrays out of the holder: from here only the context (and the caller) holds them
     ctx, work, raw_max, channels, lowest = _context(inputs, blur, aperture, layers, memory, options, device,
                                                     progress, highlight_boost, keep_pixels=refining)
     if refining:
-        out_rgb, stats, ctx = _render_refined(level, ctx, work, refine)
+        out_rgb, stats, ctx = _render_refined(level, ctx, work, refine, refine_options)
     else:
         out_rgb, stats = level.render(ctx)
     stats.max_coc_px = raw_max
@@ -261,7 +265,8 @@ def _context(inputs: Handover, blur: BlurParams, aperture: Aperture, layers: Lay
     return ctx, None if disposable else work, raw_max, img.shape[2], float(img.min())
 
 
-def _render_refined(level, ctx: RenderContext, work: np.ndarray, refine: bool | str | os.PathLike):
+def _render_refined(level, ctx: RenderContext, work: np.ndarray, refine: bool | str | os.PathLike,
+                    refine_options: object | None = None):
     """The refiner's depth correction first, so the level renders once, on the corrected map; then the refiner.
     Returns the refined RGB, the level's stats (with the refiner's) and the context the level rendered."""
     rendered = {}
@@ -277,7 +282,7 @@ def _render_refined(level, ctx: RenderContext, work: np.ndarray, refine: bool | 
         rendered["ctx"] = c
         return rgb
 
-    out_rgb, rstats = refine_render(work[..., :3], d, blur, None, refine, ctx.device, render_level)
+    out_rgb, rstats = refine_render(work[..., :3], d, blur, None, refine, ctx.device, render_level, refine_options)
     stats = rendered["stats"]
     stats.refine = rstats.as_dict()
     stats.stage_seconds["refine"] = rstats.seconds
@@ -322,6 +327,7 @@ def render(
     highlight_boost: float = 0.0,
     progress: Progress | None = None,
     refine: bool | str | os.PathLike = False,
+    refine_options: object | None = None,
 ) -> np.ndarray:
     """Render ``image`` as a thin lens with aperture ``aperture`` would have seen it.
 
@@ -341,6 +347,8 @@ def render(
         progress: called as ``progress(done, total)`` after each depth layer.
         refine: True runs the shipped neural refiner (``bokehray_refiner``, the ``refiner`` extra) on the
             tiles near depth edges that matter (docs/refiner.md); a path uses those weights instead.
+        refine_options: with ``refine``, a ``bokehray_refiner.refine.RefineOptions`` (default: its defaults), e.g.
+            ``RefineOptions(min_fixed_share=0)`` to refine a map the depth fix finds right.
 
     Returns:
         float32 array shaped like ``image``, scene-linear.
@@ -351,5 +359,5 @@ def render(
     """
     out, _ = render_with_stats(image, disparity, blur, aperture, quality=quality, device=device, options=options,
                                layers=layers, memory=memory, highlight_boost=highlight_boost, progress=progress,
-                               refine=refine)
+                               refine=refine, refine_options=refine_options)
     return out

@@ -229,6 +229,41 @@ def test_cli_refine(weights, tmp_path, capsys):
     assert "no refiner weights" in capsys.readouterr().err and not (tmp_path / "bad.exr").exists()
 
 
+def test_refine_everywhere_refines_a_map_the_depth_fix_finds_right(weights, tmp_path, capsys):
+    """The noise photo's exact square: the depth fix finds nothing, so ``--refine`` leaves the preview as it is and
+    ``--refine-everywhere`` (``RefineOptions(min_fixed_share=0)``) runs the networks anyway."""
+    from bokehray.app.cli import main
+
+    rng = np.random.default_rng(3)
+    img = rng.uniform(0, 1, (64, 64, 3)).astype(np.float32)
+    d = np.full((64, 64), 0.1, np.float32)
+    d[20:44, 20:44] = 0.8
+    br.write_image(tmp_path / "img.exr", img)
+    np.save(tmp_path / "d.npy", d)
+    base = ["render", str(tmp_path / "img.exr"), "--disparity", str(tmp_path / "d.npy"), "--blur", "12",
+            "--focus", "0.8", "--stats", "--refine", str(weights), "-o"]
+    stats = lambda text: json.loads(text[text.index("{"):])["refine"]  # noqa: E731
+    assert main(base + [str(tmp_path / "kept.exr")]) == 0
+    kept = stats(capsys.readouterr().out)
+    assert not kept["found_wrong"] and kept["tiles_refined"] == 0
+    assert main(base + [str(tmp_path / "all.exr"), "--refine-everywhere"]) == 0
+    everywhere = stats(capsys.readouterr().out)
+    assert everywhere["found_wrong"] and everywhere["tiles_refined"] > 0
+    assert main(base[:-3] + ["-o", str(tmp_path / "no.exr"), "--refine-everywhere"]) == 2
+    assert "needs --refine" in capsys.readouterr().err and not (tmp_path / "no.exr").exists()
+
+
+def test_refine_options_are_checked():
+    from bokehray_refiner.refine import RefineOptions
+
+    img = np.zeros((16, 16, 3), np.float32)
+    d = np.zeros((16, 16), np.float32)
+    with pytest.raises(InputError, match="refine_options: given without refine"):
+        br.render(img, d, br.BlurParams(4.0, 0.5), refine_options=RefineOptions())
+    with pytest.raises(InputError, match="refine_options: expected"):
+        br.render(img, d, br.BlurParams(4.0, 0.5), refine=True, refine_options={"min_fixed_share": 0})
+
+
 def test_edge_band_follows_each_edges_reach():
     from bokehray_refiner.refine import edge_band, edge_reach
 
@@ -586,7 +621,7 @@ def test_refine_leaves_a_map_the_depth_fix_finds_right_as_the_level_rendered_it(
     blur = br.BlurParams(12.0, 0.9)
     few = d.copy()
     few[24, 20:25] = 0.2  # five pixels of the near block's corner: far below 1 % of the band
-    monkeypatch.setattr(refine_module, "correct_disparity", lambda *a, **k: (few, few != d))
+    monkeypatch.setattr(refine_module, "correction_steps", lambda *a, **k: ((0, 0), d, few))
     seen, runs = [], []
     model = BokehRefiner().eval()
     model.register_forward_hook(lambda *a: runs.append(1))
@@ -600,3 +635,27 @@ def test_refine_leaves_a_map_the_depth_fix_finds_right_as_the_level_rendered_it(
     _, st0 = refine(img, d, blur, None, model=model, rerender=rer,
                     options=RefineOptions(min_fixed_share=0.0, edges=False, gate=GateOptions(enabled=False)))
     assert st0.found_wrong and st0.depth_fixed_px == 5 and np.array_equal(seen[0], few) and runs
+
+
+def test_a_map_shifted_back_as_a_whole_is_rendered_shifted_without_the_networks(monkeypatch):
+    """The depth fix's global shift moves every pixel, which is no evidence that edges are misplaced locally: where the
+    local passes then move under ``min_fixed_share`` of the band, the shifted map is rendered and no network runs (the
+    edge network on a map the shift made right punched holes in it: -2.9 dB on the dev set's 2 px shift)."""
+    import bokehray_refiner.refine as refine_module
+
+    from bokehray.depthfix import shift_map
+
+    img, d = _edge_scene(4)
+    blur = br.BlurParams(12.0, 0.9)
+    given = shift_map(d, 0, 2)  # misregistered by 2 px
+    monkeypatch.setattr(refine_module, "correction_steps", lambda *a, **k: ((0, -2), d, d))
+    seen, runs = [], []
+    model = BokehRefiner().eval()
+    model.register_forward_hook(lambda *a: runs.append(1))
+    edge_model = refine_module.load_edge_net()
+    edge_model.register_forward_hook(lambda *a: runs.append(1))
+    out, st = refine(img, given, blur, None, model=model, edge_model=edge_model,
+                     rerender=lambda dd: seen.append(dd.copy()) or br.render(img, dd, blur))
+    assert not st.found_wrong and st.fixed_share == 0.0 and not runs
+    assert len(seen) == 1 and np.array_equal(seen[0], d) and st.depth_fixed_px == int((d != given).sum())
+    np.testing.assert_array_equal(out, br.render(img, d, blur))

@@ -49,6 +49,16 @@ def layer_options_of(args: argparse.Namespace):
     return LayerOptions(**kw)
 
 
+def refine_options_of(args: argparse.Namespace):
+    """``--refine-everywhere``: refine also a map the depth fix finds right (``RefineOptions(min_fixed_share=0)``);
+    None: the refiner's defaults."""
+    if not getattr(args, "refine_everywhere", False):
+        return None
+    from ..levels.refine import refine_options
+
+    return refine_options(min_fixed_share=0.0)
+
+
 class _Progress:
     """One bar over the stages of a render (read, depth estimation, render with its layers, write), on a
     terminal only; each stage owns a share of the bar in proportion to its usual cost."""
@@ -159,6 +169,8 @@ def check_render_flags(args: argparse.Namespace) -> bool:  # noqa: C901
                          "(near = small), and is converted to disparity with the thin-lens normalisation")
     if args.depth_scale is not None and args.depth is None:
         raise InputError("--depth-scale converts the codes of an integer --depth map to metres; it needs --depth")
+    if getattr(args, "refine_everywhere", False) and not args.refine:
+        raise InputError("--refine-everywhere changes what --refine does; it needs --refine")
     if args.blur is not None and args.blur < 0:
         raise InputError(f"--blur: expected K >= 0, got {args.blur:g}")
     if args.z_near is not None or args.z_far is not None:
@@ -396,7 +408,8 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:  
     out, stats = render_handed_over(inputs, blur, aperture_of(args), quality=args.quality,
                                     device=args.device, options=level_options,
                                     layers=layer_options_of(args), highlight_boost=args.highlight_boost,
-                                    progress=bar.layers(), refine=args.refine)
+                                    progress=bar.layers(), refine=args.refine,
+                                    refine_options=refine_options_of(args))
     t1 = time.perf_counter()
     bar.stage("write")
     path = write_image(args.output, out, bit_depth=args.bit_depth, half=args.half, quality=args.jpeg_quality,

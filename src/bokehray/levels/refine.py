@@ -13,25 +13,42 @@ import numpy as np
 from ..errors import InputError
 from ..lens import BlurParams
 
-__all__ = ["REFINABLE", "refine_render"]
+__all__ = ["REFINABLE", "refine_options", "refine_render"]
 
 REFINABLE = ("preview",)
 """Levels whose renders the refiner corrects (it was trained on preview renders)."""
 
 
+def _refiner_module():
+    try:
+        import bokehray_refiner.refine as module
+    except ImportError as e:
+        raise InputError(f"refine: the neural refiner needs its extra: pip install 'bokehray[refiner]' ({e})") from None
+    return module
+
+
+def refine_options(**overrides):
+    """A ``bokehray_refiner.refine.RefineOptions`` with these fields changed (the command line's refine flags)."""
+    return _refiner_module().RefineOptions(**overrides)
+
+
 def refine_render(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, classical: np.ndarray | None,
-                  weights: bool | str | os.PathLike, device: str, rerender=None):
+                  weights: bool | str | os.PathLike, device: str, rerender=None, options=None):
     """Run the refiner on ``classical`` (the level's RGB render); returns (refined RGB, the refiner's stats).
 
     ``rerender(disparity)`` renders the level (again) on a corrected disparity (the refiner's depth correction);
-    with ``classical=None`` the level has not rendered yet and renders once, after the correction.
+    with ``classical=None`` the level has not rendered yet and renders once, after the correction. ``options``: a
+    ``bokehray_refiner.refine.RefineOptions`` (None: its defaults).
     """
-    try:
-        from bokehray_refiner.refine import load_refiner, refine
-    except ImportError as e:
-        raise InputError(f"refine: the neural refiner needs its extra: pip install 'bokehray[refiner]' ({e})") from None
+    module = _refiner_module()
     import torch
 
+    if options is None:
+        options = module.RefineOptions()
+    elif not isinstance(options, module.RefineOptions):
+        raise InputError(f"refine_options: expected a bokehray_refiner.refine.RefineOptions, got "
+                         f"{type(options).__name__}")
+
     tdev = "cuda" if device.startswith("cuda") and torch.cuda.is_available() else "cpu"
-    return refine(image, disparity, blur, classical, model=load_refiner(None if weights is True else weights, tdev),
-                  rerender=rerender)
+    model = module.load_refiner(None if weights is True else weights, tdev)
+    return module.refine(image, disparity, blur, classical, model=model, rerender=rerender, options=options)
