@@ -853,3 +853,26 @@ def test_an_exclusive_write_does_not_replace_a_dangling_link(tmp_path):
     with pytest.raises(OutputExistsError):
         at.atomic_write(link, lambda tmp: Path(tmp).write_bytes(b"ours"), exclusive=True)
     assert link.is_symlink() and [f.name for f in tmp_path.iterdir()] == ["o.png"]
+
+
+def test_an_exclusive_write_tries_the_next_names_without_encoding_again(tmp_path):
+    """Where the name is taken, ``next_name`` gives the next one and the same encoded file is published there: the
+    encoder runs once, the taken files stay, no temporary is left; None gives up; a name in another folder or with
+    another extension (the file is encoded for this one) is refused."""
+    from bokehray.errors import OutputError, OutputExistsError
+
+    for name in ("o-001.png", "o-002.png"):
+        (tmp_path / name).write_bytes(b"taken")
+    encoded = []
+    encode = lambda tmp: encoded.append(tmp) or Path(tmp).write_bytes(b"ours")  # noqa: E731
+    names = iter(tmp_path / f"o-{n:03d}.png" for n in (2, 3))
+    got = at.atomic_write(tmp_path / "o-001.png", encode, exclusive=True, next_name=lambda taken: next(names))
+    assert got == tmp_path / "o-003.png" and got.read_bytes() == b"ours" and len(encoded) == 1
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["o-001.png", "o-002.png", "o-003.png"]
+    assert (tmp_path / "o-001.png").read_bytes() == (tmp_path / "o-002.png").read_bytes() == b"taken"
+    with pytest.raises(OutputExistsError):
+        at.atomic_write(tmp_path / "o-001.png", encode, exclusive=True, next_name=lambda taken: None)
+    for other in (tmp_path / "sub" / "o-009.png", tmp_path / "o-009.jpg"):
+        with pytest.raises(OutputError, match="encoded as .png"):
+            at.atomic_write(tmp_path / "o-001.png", encode, exclusive=True, next_name=lambda taken, o=other: o)
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["o-001.png", "o-002.png", "o-003.png"]

@@ -135,13 +135,16 @@ def _why(exc: BaseException, tmp: str | None) -> str:
     return text.strip().rstrip(".")
 
 
-def atomic_write(path: Path, encode: Callable[[str], None], exclusive: bool = False) -> Path:
+def atomic_write(path: Path, encode: Callable[[str], None], exclusive: bool = False,
+                 next_name: Callable[[Path], Path | None] | None = None) -> Path:
     """Run ``encode(tmp_name)`` on a temporary sibling of ``path``, then move it onto ``path``.
 
     With ``exclusive``, an existing ``path`` is never replaced, even one another process made
     after the caller chose the name: the finished file is hard-linked to ``path``, which fails
     when the name is taken, raising :class:`OutputExistsError` (on a file system without hard
-    links, a check just before the move).
+    links, a check just before the move). ``next_name(taken)`` then gives another name in the same folder to
+    publish the same encoded file under (it is not encoded again; same folder and extension), or None to give
+    up; the path published is returned.
 
     Any failure of the encoder or of the file system (disk full, permissions, a folder that
     cannot be made) raises :class:`OutputError` naming ``path``; the temporary file is removed
@@ -172,7 +175,7 @@ def atomic_write(path: Path, encode: Callable[[str], None], exclusive: bool = Fa
             mode = 0o666 & ~umask
         os.chmod(tmp, mode)
         if exclusive:
-            _publish_new(tmp, path)
+            path = _publish_under_a_free_name(tmp, path, next_name)
         else:
             os.replace(tmp, path)
     except BaseException as exc:
@@ -187,6 +190,22 @@ def atomic_write(path: Path, encode: Callable[[str], None], exclusive: bool = Fa
             raise OutputError(f"cannot write {path}: {_why(exc, tmp)}") from exc
         raise
     return path
+
+
+def _publish_under_a_free_name(tmp: str, path: Path, next_name: Callable[[Path], Path | None] | None) -> Path:
+    """:func:`_publish_new` under ``path``, or where it is taken under ``next_name(path)`` and so on; the path used."""
+    while True:
+        try:
+            _publish_new(tmp, path)
+            return path
+        except OutputExistsError:
+            other = None if next_name is None else next_name(path)
+            if other is None:
+                raise
+            if Path(other).parent != path.parent or Path(other).suffix != path.suffix:
+                raise OutputError(f"cannot write {other}: the file was encoded as {path.suffix} in "
+                                  f"{path.parent}") from None
+            path = Path(other)
 
 
 def _publish_new(tmp: str, path: Path) -> None:

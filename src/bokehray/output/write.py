@@ -9,6 +9,7 @@ from __future__ import annotations
 import io
 import os
 import struct
+from collections.abc import Callable
 from pathlib import Path
 
 import imagecodecs
@@ -120,6 +121,7 @@ def write_image(  # noqa: C901
     quality: int = 95,
     exif: bytes | None = None,
     exclusive: bool = False,
+    next_name: Callable[[Path], Path | None] | None = None,
 ) -> Path:
     """Write a linear float image atomically, choosing the format from the extension.
 
@@ -140,6 +142,8 @@ def write_image(  # noqa: C901
             orientation reset), or None.
         exclusive: never replace a file at ``path``, even one made while this wrote
             (``OutputExistsError``; see :func:`~bokehray.output.atomic.atomic_write`).
+        next_name: with ``exclusive``, where the name is taken: ``next_name(taken)`` is another name in the same
+            folder to publish the same encoded file under, or None to give up (the image is encoded once).
 
     Display-referred outputs are tagged sRGB: an sRGB ICC profile in PNG, JPEG and integer TIFF; EXR files carry
     the sRGB / Rec. 709 primaries as their ``chromaticities`` attribute.
@@ -174,11 +178,11 @@ def write_image(  # noqa: C901
         if bits == 16 and big.any():
             y, x = first_index(big)[:2]
             raise InputError(f"refusing to write {p}: value beyond the HALF range (+-65504) at (y, x) = ({y}, {x})")
-        return atomic_write(p, lambda tmp: _write_exr(tmp, img, half=bits == 16), exclusive)
+        return atomic_write(p, lambda tmp: _write_exr(tmp, img, half=bits == 16), exclusive, next_name)
     if fmt == "TIFF":
         data = img if bits == 32 else srgb_codes(img, bits)
         icc = None if bits == 32 else srgb_icc()
-        return atomic_write(p, lambda tmp: _write_tiff(tmp, data, icc), exclusive)
+        return atomic_write(p, lambda tmp: _write_tiff(tmp, data, icc), exclusive, next_name)
     if fmt == "JPEG" and img.shape[2] == 4:
         raise InputError(f"{p}: expected an image without alpha for JPEG, got 4 channels")
     if fmt == "JPEG" and not 1 <= quality <= 100:
@@ -186,11 +190,11 @@ def write_image(  # noqa: C901
     codes = srgb_codes(img, bits)
     icc = srgb_icc() if img.shape[2] >= 3 else None
     if fmt == "JPEG":
-        return atomic_write(p, lambda tmp: encode_pil(tmp, codes, "JPEG", quality=quality, icc_profile=icc, exif=exif), exclusive)
+        return atomic_write(p, lambda tmp: encode_pil(tmp, codes, "JPEG", quality=quality, icc_profile=icc, exif=exif), exclusive, next_name)
     if bits == 16:
         data = imagecodecs.png_encode(codes)
-        return atomic_write(p, lambda tmp: write_bytes(tmp, _png_with_icc(data, icc) if icc else data), exclusive)
-    return atomic_write(p, lambda tmp: encode_pil(tmp, codes, "PNG", icc_profile=icc, compress_level=PNG_COMPRESS_LEVEL), exclusive)
+        return atomic_write(p, lambda tmp: write_bytes(tmp, _png_with_icc(data, icc) if icc else data), exclusive, next_name)
+    return atomic_write(p, lambda tmp: encode_pil(tmp, codes, "PNG", icc_profile=icc, compress_level=PNG_COMPRESS_LEVEL), exclusive, next_name)
 
 
 def write_disparity(path: str | os.PathLike[str], d: npt.ArrayLike) -> Path:

@@ -565,15 +565,16 @@ class ViewSession:
         check_output_path(path, bit_depth=bits, half=half)
         out = self.render_full(p, check)
         exif = self._exif()
-        for _ in range(EXPORT_NAME_TRIES):  # another export (this view's or another process's) may take the name first
-            try:
-                written = br.write_image(path, out, bit_depth=bits, half=half, quality=JPEG_QUALITY, exif=exif,
-                                         exclusive=True)
-                break
-            except OutputExistsError:
-                path = self.export_path(fmt)
-        else:
-            raise OutputError(f"{self.export_dir}: every free export name was taken while writing")
+        tries = iter(range(EXPORT_NAME_TRIES - 1))
+
+        def next_name(_taken: Path) -> Path | None:  # another export (this view's or another process's) took it
+            return None if next(tries, None) is None else self.export_path(fmt)
+
+        try:  # encoded once, published under the first name still free
+            written = br.write_image(path, out, bit_depth=bits, half=half, quality=JPEG_QUALITY, exif=exif,
+                                     exclusive=True, next_name=next_name)
+        except OutputExistsError:
+            raise OutputError(f"{self.export_dir}: every free export name was taken while writing") from None
         return written, self.command(p, written, bit_depth=bits, half=half)
 
     def command(self, p: RenderParams, output: str | Path, *, bit_depth: int | None = None,  # noqa: C901
