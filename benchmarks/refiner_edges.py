@@ -50,10 +50,11 @@ TRAIN_CORRUPTIONS = (("none", 0, 0), ("local", 5, 20), ("estimator", 3, 8), ("mi
 
 def used_map(image, disparity, blur, opts):
     """The depth fix's map (what the edge network is given), the band refine would open on it, and the pixels the
-    fix moved."""
+    fix moved. Every map is corrected (``min_fixed_share=0``): the bank the shipped weights were trained on was made
+    so, before refine held back the maps the fix finds right; the caller decides which maps the network runs on."""
     from bokehray_refiner.refine import corrected_disparity, edge_band, edge_reach
 
-    used, changed = corrected_disparity(image, disparity, blur, replace(opts, edges=False))
+    used, changed = corrected_disparity(image, disparity, blur, replace(opts, edges=False, min_fixed_share=0.0))
     used = np.asarray(used, np.float32)
     reach = edge_reach(blur.signed_coc(used).astype(np.float32), opts.min_jump_px)
     return used, edge_band(reach, opts.band_margin_px, opts.band_feather_px), changed
