@@ -75,9 +75,11 @@ class RefineOptions:
             this probability.
         edge_colour_margin: and only where the pixel's colour is nearer the local mean colour of the side it joins,
             by this much (sRGB; :func:`.edges.colour_allows`); None: no colour veto.
-        min_fixed_share: refine changes only a map the depth correction found wrong: where it moved at least this
-            share of the edge band's pixels. On any other map the correction's few moves are dropped and neither
-            network runs: the render is the classical level's on the given map, bit for bit. A map whose edges sit on
+        min_fixed_share: refine changes only a map the depth correction found wrong: where its local passes moved at
+            least this share of the edge band's pixels. On any other map their few moves are dropped and neither
+            network runs: the render is the classical level's on the given map, bit for bit (on the map shifted
+            back, where the correction found the whole map misregistered: a shift moves every pixel and is not
+            counted). A map whose edges sit on
             the photo's has nothing to repair, and there the correction's and the networks' few confident wrong
             moves cost more than they gain (docs/refiner.md, "Round 10"). 0: every map. Where the correction does
             not run (off, or :func:`refine` without ``rerender``) there is no evidence either way: the residual
@@ -125,8 +127,9 @@ class RefineStats:
     band_pixels: int = 0  #: pixels of the edge band (where a depth error can change the image)
     gate_open: float = 0.0  #: mean gate over the band: the share of the correction let through
     depth_fixed_px: int = 0  #: pixels whose disparity the depth correction changed (then the level ran again)
-    fixed_share: float | None = None  #: the share of the edge band the depth correction moved (None: it did not run)
-    found_wrong: bool = True  #: at least ``min_fixed_share`` of it: else nothing was changed (``RefineOptions``)
+    fixed_share: float | None = None  #: the share of the edge band the depth correction's local passes moved (a
+    #: global shift not counted; None: the correction did not run)
+    found_wrong: bool = True  #: at least ``min_fixed_share`` of it: else no network ran and only a shift was kept
     depthfix_seconds: float = 0.0  #: the correction itself (with ``options.edges``, the edge network's too)
     rerender_seconds: float = 0.0  #: the classical level again, on the corrected disparity (its only render, when
     #: refine() was given no classical render: then not part of ``seconds``)
@@ -324,7 +327,7 @@ class _DepthFix:
     render_seconds: float  # the level's render on the corrected (or given) map, 0 when none was needed
     focus_srgb: np.ndarray | None  # the photo in sRGB, when the correction computed it
     edge_field: _EdgeField | None = None  # the depth edges of the map the correction ended on, when it computed them
-    fixed_share: float | None = None  # the share of the edge band the correction moved (None: it did not run)
+    fixed_share: float | None = None  # the share of the edge band its local passes moved (None: it did not run)
     found_wrong: bool = True  # at least options.min_fixed_share of it (or the correction did not run)
 
 

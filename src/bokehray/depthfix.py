@@ -40,8 +40,9 @@ import numpy as np
 
 from .edge_estimate import depth_edges, ramp_width
 
-__all__ = ["DepthFixOptions", "colour_edge_offsets", "correct_disparity", "correction_steps", "edge_pairs", "global_shift",
-           "has_ramps", "pass_reach", "shift_map", "smeared", "step_flips", "untrusted", "vote", "weighted_median"]
+__all__ = ["DepthFixOptions", "colour_edge_offsets", "correct_disparity", "correction_steps", "edge_pairs",
+           "global_shift", "has_ramps", "pass_reach", "shift_map", "smeared", "step_flips", "untrusted", "vote",
+           "weighted_median"]
 
 
 @dataclass(frozen=True)
