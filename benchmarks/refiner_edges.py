@@ -192,6 +192,19 @@ def _map_wrong(entries: list[dict], exact_weight: float, config) -> float:
     return wrong / max(total, 1.0)
 
 
+def network_runs(image, focus, blur, used, band, fixed, opts) -> bool:
+    """Whether refine runs the edge network on the depth fix's map ``used``: the fix found the map wrong (moved at
+    least ``min_fixed_share`` of the band) and left disagreement (``edge_min_disagreement``)."""
+    from bokehray_refiner.refine import disagreement, map_found_wrong
+
+    if not map_found_wrong(fixed, band, opts.min_fixed_share):
+        return False
+    if opts.edge_min_disagreement <= 0:
+        return True
+    coc = blur.signed_coc(used).astype(np.float32)
+    return disagreement(image, focus, used, coc, band, None, opts) >= opts.edge_min_disagreement
+
+
 def score(model, samples, opts, thresholds, gate: bool = False, min_region: int = 0, attached: bool = False,
           margins: tuple[float, ...] = ()) -> tuple[list[dict], list[dict]]:
     """Band PSNR of the depth fix's render and of the level on the edge network's map (``edges``; with ``gate``
@@ -199,7 +212,6 @@ def score(model, samples, opts, thresholds, gate: bool = False, min_region: int 
     each of ``margins`` (``_v<margin>``, ``place_edges(colour_margin=)``), the oracle too."""
     from bokehray_refiner.data import corrupt_disparity
     from bokehray_refiner.edges import edge_features, place_edges
-    from bokehray_refiner.refine import map_found_wrong
 
     import bokehray as br
 
@@ -212,7 +224,7 @@ def score(model, samples, opts, thresholds, gate: bool = False, min_region: int 
         for kind, amount in NET_CONDITIONS:
             d = np.clip(corrupt_disparity(disparity, kind, amount), 0.0, 1.0)
             used, band, fixed = used_map(image, d, blur, opts)
-            runs = map_found_wrong(fixed, band, opts.min_fixed_share)  # else refine leaves the map as it is
+            runs = network_runs(image, focus, blur, used, band, fixed, opts)  # else refine leaves the map as it is
             render = br.render(image, used, blur)
             row = {"pair": name, "corruption": kind, "px": amount, "fix": band_psnr(used, render), "runs": runs,
                    "fixed_share": float((fixed & (band > 0)).sum() / max((band > 0).sum(), 1)),

@@ -24,7 +24,7 @@ import os
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -43,8 +43,9 @@ from .model import BokehRefiner, RefinerConfig
 from .saved import load_saved
 from .tiles import raised_cosine_ramp, refine_boxes
 
-__all__ = ["DEFAULT_WEIGHTS", "RefineOptions", "RefineStats", "blend_weight", "correct_and_render", "corrected_disparity", "edge_band",
-           "edge_reach", "fixed_share", "load_refiner", "map_found_wrong", "refine", "refine_boxes", "tiles_near", "tiles_to_refine"]
+__all__ = ["DEFAULT_WEIGHTS", "RefineOptions", "RefineStats", "blend_weight", "correct_and_render",
+           "corrected_disparity", "disagreement", "edge_band", "edge_reach", "fixed_share", "load_refiner",
+           "map_found_wrong", "refine", "refine_boxes", "tiles_near", "tiles_to_refine"]
 
 DEFAULT_WEIGHTS = Path(__file__).parent / "weights" / "refiner.safetensors"
 
@@ -70,7 +71,12 @@ class RefineOptions:
             with the same per-tile weights, instead of one pass per tile, each with its own halo.
         edges: after the depth correction, the learned edge placement (:mod:`.edges`, the shipped weights unless
             :func:`refine` is given ``edge_model``) moves the map's edges in the band, before the level renders
-            again.
+            again; only where the correction left the map disagreeing with the photo (``edge_min_disagreement``).
+        edge_min_disagreement: the edge network runs only where, on the corrected map, the confidence gate's
+            colour/depth agreement (:func:`.gate.refine_gate`, no highlight guard) is open over at least this mean share
+            of the edge band: where the correction put nearly every depth edge on a colour edge (a map grown by
+            1 px, say) little is left for it, and its moves there cost more than they gain (docs/refiner.md,
+            "Round 10"). 0: whenever the map was found wrong.
         edge_threshold: the edge network moves a pixel across an edge only where it gives the other side at least
             this probability.
         edge_colour_margin: and only where the pixel's colour is nearer the local mean colour of the side it joins,
@@ -101,6 +107,7 @@ class RefineOptions:
     edge_threshold: float = 0.7
     edge_colour_margin: float | None = None
     min_fixed_share: float = 0.01
+    edge_min_disagreement: float = 0.04
 
     def __post_init__(self) -> None:
         if self.tile < 8 or self.tile % 8 or self.halo < 0 or self.halo % 8:
@@ -112,6 +119,8 @@ class RefineOptions:
             raise InputError(f"refine: edge_threshold must be in [0.5, 1], got {self.edge_threshold}")
         if self.edge_colour_margin is not None and not 0.0 <= self.edge_colour_margin < 2.0:
             raise InputError(f"refine: edge_colour_margin must be None or in [0, 2), got {self.edge_colour_margin}")
+        if not 0.0 <= self.edge_min_disagreement <= 1.0:
+            raise InputError(f"refine: edge_min_disagreement must be in [0, 1], got {self.edge_min_disagreement}")
         if not 0.0 <= self.min_fixed_share <= 1.0:
             raise InputError(f"refine: min_fixed_share must be in [0, 1], got {self.min_fixed_share}")
 
@@ -130,6 +139,8 @@ class RefineStats:
     fixed_share: float | None = None  #: the share of the edge band the depth correction's local passes moved (a
     #: global shift not counted; None: the correction did not run)
     found_wrong: bool = True  #: at least ``min_fixed_share`` of it: else no network ran and only a shift was kept
+    edge_disagreement: float | None = None  #: the gate's mean over the band of the corrected map (None: not measured)
+    edges_ran: bool = False  #: the edge network ran (``edge_min_disagreement``)
     depthfix_seconds: float = 0.0  #: the correction itself (with ``options.edges``, the edge network's too)
     rerender_seconds: float = 0.0  #: the classical level again, on the corrected disparity (its only render, when
     #: refine() was given no classical render: then not part of ``seconds``)
@@ -147,6 +158,7 @@ class RefineStats:
                 "tiles_near_edges": self.tiles_near_edges, "band_pixels": self.band_pixels,
                 "gate_open": self.gate_open, "depth_fixed_px": self.depth_fixed_px,
                 "fixed_share": self.fixed_share, "found_wrong": self.found_wrong,
+                "edge_disagreement": self.edge_disagreement, "edges_ran": self.edges_ran,
                 "depthfix_seconds": self.depthfix_seconds, "rerender_seconds": self.rerender_seconds,
                 "gate_seconds": self.gate_seconds, "neural_seconds": self.neural_seconds}
 
@@ -269,7 +281,8 @@ def refine(
     fix = _correct_depth(image, disparity, blur, classical, options, rerender, edge_model)
     classical, disparity = fix.classical, fix.disparity
     stats = RefineStats(depth_fixed_px=fix.fixed_px, fixed_share=fix.fixed_share, found_wrong=fix.found_wrong,
-                        depthfix_seconds=fix.seconds, rerender_seconds=fix.render_seconds, disparity=fix.fixed)
+                        edge_disagreement=fix.disagreement, edges_ran=fix.edges_ran, depthfix_seconds=fix.seconds,
+                        rerender_seconds=fix.render_seconds, disparity=fix.fixed)
     render_time = fix.render_seconds if first else 0.0
     if not fix.found_wrong:  # as far as the correction can tell the map is right: the level's render, untouched
         stats.tiles_total = -(-disparity.shape[0] // options.tile) * -(-disparity.shape[1] // options.tile)
@@ -329,6 +342,8 @@ class _DepthFix:
     edge_field: _EdgeField | None = None  # the depth edges of the map the correction ended on, when it computed them
     fixed_share: float | None = None  # the share of the edge band its local passes moved (None: it did not run)
     found_wrong: bool = True  # at least options.min_fixed_share of it (or the correction did not run)
+    disagreement: float | None = None  # the gate's mean over the corrected map's band, when measured
+    edges_ran: bool = False
 
 
 @dataclass
@@ -360,10 +375,11 @@ def corrected_disparity(image: np.ndarray, disparity: np.ndarray, blur: BlurPara
 
 def _corrected(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, options: RefineOptions,
                edge_model: EdgeNet | None, focus_srgb: np.ndarray | None,
-               ) -> tuple[np.ndarray, np.ndarray, _EdgeField | None, float | None, bool]:
+               ) -> tuple[np.ndarray, np.ndarray, _EdgeField | None, float | None, bool, float | None, bool]:
     """:func:`corrected_disparity`, the edge field of the map it ends on when it computed one (the edge network's
-    band; refine's gate needs the same), the share of the band the depth correction moved (None: it did not run)
-    and whether that found the map wrong (True where it did not run)."""
+    band; refine's gate needs the same), the share of the band the depth correction moved (None: it did not run),
+    whether that found the map wrong (True where it did not run), the disagreement left on the corrected map (None:
+    not measured) and whether the edge network ran."""
     from scipy import ndimage
 
     focus_srgb = linear_to_srgb(np.clip(image[..., :3], 0.0, 1.0)) if focus_srgb is None else focus_srgb
@@ -387,18 +403,38 @@ def _corrected(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, optio
         share = fixed_share(local, band)
         if not map_found_wrong(local, band, options.min_fixed_share):  # their few moves are not evidence
             if not (sy or sx):
-                return disparity, np.zeros(disparity.shape, bool), None, share, False
-            return shifted, shifted != np.asarray(disparity, np.float32), None, share, False  # the shift stays
-    if options.edges and (band is not None or options.min_fixed_share == 0):
-        model = load_edge_net() if edge_model is None else edge_model
-        if band is None:  # no correction ran: the given map's band
-            d_new = np.asarray(d_new, np.float32)
-            edge_field, band = field_and_band(d_new)
-        placed = place_edges(model, focus_srgb, d_new, blur, band, options.edge_threshold, keep=lights,
-                             colour_margin=options.edge_colour_margin)
-        changed = changed | (placed != d_new)
-        d_new, edge_field = placed, None
-    return d_new, changed, edge_field, share, True
+                return disparity, np.zeros(disparity.shape, bool), None, share, False, None, False
+            return (shifted, shifted != np.asarray(disparity, np.float32), None, share, False, None,  # the shift stays
+                    False)
+    if not options.edges or (band is None and options.min_fixed_share > 0):
+        return d_new, changed, edge_field, share, True, None, False
+    if band is None:  # no correction ran: the given map's band
+        d_new = np.asarray(d_new, np.float32)
+        edge_field, band = field_and_band(d_new)
+    left = None
+    if options.edge_min_disagreement > 0:
+        left = disagreement(image, focus_srgb, edge_field.disparity, edge_field.coc, band, edge_field.nearest, options)
+        if left < options.edge_min_disagreement:
+            return d_new, changed, edge_field, share, True, left, False
+    model = load_edge_net() if edge_model is None else edge_model
+    placed = place_edges(model, focus_srgb, d_new, blur, band, options.edge_threshold, keep=lights,
+                         colour_margin=options.edge_colour_margin)
+    changed = changed | (placed != d_new)
+    return placed, changed, None, share, True, left, True
+
+
+def disagreement(image: np.ndarray, focus_srgb: np.ndarray, disparity: np.ndarray, coc: np.ndarray,
+                 band: np.ndarray, nearest=None, options: RefineOptions = RefineOptions()) -> float:
+    """How much of the edge band the confidence gate's colour/depth agreement leaves open on ``disparity`` (its
+    mean over ``band > 0``; no highlight guard, which needs a render): near 0 where every depth edge sits on a
+    colour edge of the photo. ``nearest``: :func:`nearest_edge` of the map's edge reach, when computed."""
+    inside = band > 0
+    if not inside.any():
+        return 0.0
+    gate = refine_gate(image, focus_srgb, disparity, image, coc, options.min_jump_px,
+                       replace(options.gate, enabled=True, highlight=False),
+                       nearest=None if nearest is None else nearest[1])
+    return float(gate[inside].mean())
 
 
 def fixed_share(fixed: np.ndarray, band: np.ndarray) -> float:
@@ -422,11 +458,12 @@ def _correct_depth(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, c
     """Stage 1: the depth correction (:func:`corrected_disparity`), then the level on the corrected map (or on the
     given map when nothing was rendered yet)."""
     fixed_px, t_fix, t_re, d_fixed, focus_srgb, edge_field = 0, 0.0, 0.0, None, None, None
-    share, wrong = None, True
+    share, wrong, left, ran = None, True, None, False
     if rerender is not None and (options.depthfix.enabled or options.edges):
         t1 = time.perf_counter()
         focus_srgb = linear_to_srgb(np.clip(image[..., :3], 0.0, 1.0))
-        d_new, changed, edge_field, share, wrong = _corrected(image, disparity, blur, options, edge_model, focus_srgb)
+        d_new, changed, edge_field, share, wrong, left, ran = _corrected(image, disparity, blur, options, edge_model,
+                                                                          focus_srgb)
         t_fix = time.perf_counter() - t1
         if changed.any():
             t1 = time.perf_counter()
@@ -437,7 +474,8 @@ def _correct_depth(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, c
         t1 = time.perf_counter()
         classical = np.asarray(rerender(disparity), np.float32)
         t_re = time.perf_counter() - t1
-    return _DepthFix(classical, disparity, d_fixed, fixed_px, t_fix, t_re, focus_srgb, edge_field, share, wrong)
+    return _DepthFix(classical, disparity, d_fixed, fixed_px, t_fix, t_re, focus_srgb, edge_field, share, wrong, left,
+                     ran)
 
 
 def blend_weight(image: np.ndarray, focus_srgb: np.ndarray, disparity: np.ndarray, classical: np.ndarray,

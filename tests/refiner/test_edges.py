@@ -225,7 +225,8 @@ def test_the_share_of_the_band_the_depth_fix_moved_counts_band_pixels_only():
 
 def test_a_map_whose_edges_sit_on_the_photos_is_left_to_the_depth_fix():
     """A red square on blue with its exact map: the depth fix moves nothing, so a network sure that every pixel is
-    far is not run (it would punch out the square's rim); with the gate at 0 it is."""
+    far is not run (it would punch out the square's rim); with the map-level gate at 0 the square's edges still sit
+    on its colour edges, so it is not run either; with both gates at 0 it is."""
     from bokehray_refiner.refine import RefineOptions, corrected_disparity
 
     h, w = 64, 64
@@ -242,14 +243,20 @@ def test_a_map_whose_edges_sit_on_the_photos_is_left_to_the_depth_fix():
     kept, changed = corrected_disparity(image, exact, blur, RefineOptions(edges=True), edge_model=m)
     np.testing.assert_array_equal(kept, exact)
     assert not changed.any()
-    punched, changed = corrected_disparity(image, exact, blur, RefineOptions(edges=True, min_fixed_share=0.0),
-                                           edge_model=m)
+    # the map-level gate open: the edges still sit on the photo's (no disagreement left), so the network stays off
+    kept, changed = corrected_disparity(image, exact, blur, RefineOptions(edges=True, min_fixed_share=0.0),
+                                        edge_model=m)
+    np.testing.assert_array_equal(kept, exact)
+    both_open = RefineOptions(edges=True, min_fixed_share=0.0, edge_min_disagreement=0.0)
+    punched, changed = corrected_disparity(image, exact, blur, both_open, edge_model=m)
     assert changed.any() and np.all(punched[changed] < exact[changed])
 
 
 @pytest.mark.parametrize("field,value", [("edge_threshold", 0.49), ("edge_threshold", 1.01),
                                          ("edge_threshold", float("nan")), ("edge_colour_margin", -0.1),
                                          ("edge_colour_margin", float("nan")), ("edge_colour_margin", 2.0),
+                                         ("edge_min_disagreement", -0.01), ("edge_min_disagreement", 1.5),
+                                         ("edge_min_disagreement", float("nan")),
                                          ("min_fixed_share", -0.01), ("min_fixed_share", 1.5),
                                          ("min_fixed_share", float("nan"))])
 def test_edge_options_out_of_range_are_refused(field, value):
@@ -297,3 +304,35 @@ def test_refine_reuses_the_corrections_edge_field_without_changing_a_pixel(monke
     assert len(searches) == 3  # found again
     np.testing.assert_array_equal(reused, fresh)
     assert (st1.band_pixels, st1.gate_open, st1.tiles_refined) == (st2.band_pixels, st2.gate_open, st2.tiles_refined)
+
+
+def test_the_disagreement_left_is_small_where_depth_edges_sit_on_colour_edges():
+    """:func:`disagreement`: the mean confidence gate over the band is near 0 for a square's exact map and large
+    where the map's square is shrunk by 5 px (its edges 5 px off the colour edges; the gate opens on the far side of
+    an edge only, ``GateOptions.open_dilated``); refine reports it and whether the edge network ran."""
+    from bokehray_refiner.data import corrupt_disparity
+    from bokehray_refiner.refine import RefineOptions, disagreement, edge_band, edge_reach, nearest_edge, refine
+
+    h, w = 64, 64
+    image = np.zeros((h, w, 3), np.float32)
+    image[..., 2] = 0.6
+    image[16:48, 16:48] = (0.8, 0.05, 0.05)
+    exact = np.full((h, w), 0.2, np.float32)
+    exact[16:48, 16:48] = 0.8
+    blur = br.BlurParams(12.0, 0.8)
+    focus = image ** (1 / 2.2)
+
+    def left(d):
+        coc = blur.signed_coc(d).astype(np.float32)
+        reach = edge_reach(coc, 1.0)
+        return disagreement(image, focus, d, coc, edge_band(reach, 6.0, 4.0), nearest_edge(reach))
+
+    shrunk = np.clip(corrupt_disparity(exact, "erode", 5), 0, 1).astype(np.float32)
+    assert left(exact) < 0.02 and left(shrunk) > 0.5
+    assert disagreement(image, focus, exact, blur.signed_coc(exact), np.zeros((h, w), np.float32)) == 0.0
+    m = EdgeNet(SMALL).eval()
+    _, st = refine(image, exact, blur, None, options=RefineOptions(min_fixed_share=0.0, neural=False), edge_model=m,
+                   rerender=lambda dd: br.render(image, dd, blur))
+    assert st.found_wrong and st.edge_disagreement is not None and st.edge_disagreement < 0.02 and not st.edges_ran
+    d = st.as_dict()
+    assert d["edges_ran"] is False and d["edge_disagreement"] == st.edge_disagreement
