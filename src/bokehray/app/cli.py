@@ -178,8 +178,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "default: the shipped weights, or WEIGHTS from bokehray train-refiner")
     o.add_argument("--refine-everywhere", action="store_true",
                    help="with --refine: also where the depth fix finds the map right (it moved under 1%% of the edge "
-                   "band), which --refine leaves as rendered; for a painted or estimated map that misses what the "
-                   "colour does not show, such as hair. On a right map it costs about 3 dB (docs/refiner.md)")
+                   "band), which --refine leaves as rendered, and the edge network wherever the map is found wrong; "
+                   "for a painted or estimated map that misses what the colour does not show, such as hair. On a "
+                   "right map it costs about 3 dB (docs/refiner.md)")
     _add_device_args(r)
     add_batch_args(r)  # folders, globs, manifests, sweeps: bokehray.app.batch
 

@@ -50,13 +50,13 @@ def layer_options_of(args: argparse.Namespace):
 
 
 def refine_options_of(args: argparse.Namespace):
-    """``--refine-everywhere``: refine also a map the depth fix finds right (``RefineOptions(min_fixed_share=0)``);
-    None: the refiner's defaults."""
+    """``--refine-everywhere``: refine also a map the depth fix finds right, and run the edge network wherever it is
+    found wrong (``RefineOptions(min_fixed_share=0, edge_min_disagreement=0)``); None: the refiner's defaults."""
     if not getattr(args, "refine_everywhere", False):
         return None
     from ..levels.refine import refine_options
 
-    return refine_options(min_fixed_share=0.0)
+    return refine_options(min_fixed_share=0.0, edge_min_disagreement=0.0)
 
 
 class _Progress:
