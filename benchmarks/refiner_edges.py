@@ -192,17 +192,21 @@ def _map_wrong(entries: list[dict], exact_weight: float, config) -> float:
     return wrong / max(total, 1.0)
 
 
-def network_runs(image, focus, blur, used, band, fixed, opts) -> bool:
-    """Whether refine runs the edge network on the depth fix's map ``used``: the fix found the map wrong (moved at
-    least ``min_fixed_share`` of the band) and left disagreement (``edge_min_disagreement``)."""
-    from bokehray_refiner.refine import disagreement, map_found_wrong
+def network_runs(image, focus, d, blur, opts) -> tuple[bool, float | None]:
+    """Whether refine runs the edge network on the corrupted map ``d``, decided as refine does: the depth fix's local
+    passes moved at least ``min_fixed_share`` of the band (a global shift not counted) and left disagreement
+    (``edge_min_disagreement``); and that share (None: the fix did not run)."""
+    from bokehray_refiner.refine import _corrected, disagreement, edge_band, edge_reach
 
-    if not map_found_wrong(fixed, band, opts.min_fixed_share):
-        return False
+    fixed, _, _, share, wrong, _, _ = _corrected(image, d, blur, replace(opts, edges=False), None, focus)
+    if not wrong or (share is None and opts.min_fixed_share > 0):
+        return False, share
     if opts.edge_min_disagreement <= 0:
-        return True
-    coc = blur.signed_coc(used).astype(np.float32)
-    return disagreement(image, focus, used, coc, band, None, opts) >= opts.edge_min_disagreement
+        return True, share
+    fixed = np.asarray(fixed, np.float32)
+    coc = blur.signed_coc(fixed).astype(np.float32)
+    band = edge_band(edge_reach(coc, opts.min_jump_px), opts.band_margin_px, opts.band_feather_px)
+    return disagreement(image, focus, fixed, coc, band, None, opts) >= opts.edge_min_disagreement, share
 
 
 def score(model, samples, opts, thresholds, gate: bool = False, min_region: int = 0, attached: bool = False,
@@ -223,11 +227,11 @@ def score(model, samples, opts, thresholds, gate: bool = False, min_region: int 
         band_psnr = partial(_band_psnr, image, blur, _srgb(target), np.asarray(score_band, bool))
         for kind, amount in NET_CONDITIONS:
             d = np.clip(corrupt_disparity(disparity, kind, amount), 0.0, 1.0)
-            used, band, fixed = used_map(image, d, blur, opts)
-            runs = network_runs(image, focus, blur, used, band, fixed, opts)  # else refine leaves the map as it is
+            used, band, _ = used_map(image, d, blur, opts)
+            runs, share = network_runs(image, focus, d, blur, opts)  # else refine leaves the map as it is
             render = br.render(image, used, blur)
             row = {"pair": name, "corruption": kind, "px": amount, "fix": band_psnr(used, render), "runs": runs,
-                   "fixed_share": float((fixed & (band > 0)).sum() / max((band > 0).sum(), 1)),
+                   "fixed_share": share,
                    "oracle": band_psnr(oracle_map(used, disparity, band, config))}
             feats = edge_features(focus, used, blur, band, config) if margins else None
             for margin in margins:

@@ -89,7 +89,7 @@ class RefineOptions:
             the photo's has nothing to repair, and there the correction's and the networks' few confident wrong
             moves cost more than they gain (docs/refiner.md, "Round 10"). 0: every map. Where the correction does
             not run (off, or :func:`refine` without ``rerender``) there is no evidence either way: the residual
-            network runs on every map, and the edge network only with this at 0.
+            network runs on every map, and the edge network only with this at 0 (and a ``rerender``).
     """
 
     tile: int = 64
@@ -138,7 +138,8 @@ class RefineStats:
     depth_fixed_px: int = 0  #: pixels whose disparity the depth correction changed (then the level ran again)
     fixed_share: float | None = None  #: the share of the edge band the depth correction's local passes moved (a
     #: global shift not counted; None: the correction did not run)
-    found_wrong: bool = True  #: at least ``min_fixed_share`` of it: else no network ran and only a shift was kept
+    found_wrong: bool = True  #: at least ``min_fixed_share`` of it: else no network ran, only a shift was kept, and the
+    #: tile, band and gate counts above stay 0
     edge_disagreement: float | None = None  #: the gate's mean over the band of the corrected map (None: not measured)
     edges_ran: bool = False  #: the edge network ran (``edge_min_disagreement``)
     depthfix_seconds: float = 0.0  #: the correction itself (with ``options.edges``, the edge network's too)
@@ -369,7 +370,8 @@ def corrected_disparity(image: np.ndarray, disparity: np.ndarray, blur: BlurPara
     """The map refine renders: the colour-guided depth correction (``bokehray.depthfix``), then, with
     ``options.edges``, the learned edge placement (:mod:`.edges`) on its result; and which pixels moved. Clipped
     lights (dilated by 2 px) never move and never vote. A map the correction does not find wrong
-    (``options.min_fixed_share``) comes back as it is, with nothing moved."""
+    (``options.min_fixed_share``) comes back as it is, with nothing moved, or only shifted back where the correction
+    found the whole map misregistered."""
     return _corrected(image, disparity, blur, options, edge_model, focus_srgb)[:2]
 
 
@@ -395,8 +397,11 @@ def _corrected(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, optio
         return field, edge_band(reach, options.band_margin_px, options.band_feather_px, field.nearest)
 
     band = None
+    steps = None
     if options.depthfix.enabled:
-        (sy, sx), shifted, d_new = correction_steps(focus_srgb, disparity, blur.k_px, options.depthfix, keep=lights)
+        steps = correction_steps(focus_srgb, disparity, blur.k_px, options.depthfix, keep=lights)
+    if steps is not None and steps[0] is not None:  # it ran (not on a map of noise): its moves are the evidence
+        (sy, sx), shifted, d_new = steps
         changed = d_new != np.asarray(disparity, np.float32)
         edge_field, band = field_and_band(d_new)  # float32, as the network's map is
         local = d_new != shifted  # the local passes' moves: a global shift moves every pixel and says nothing here

@@ -475,20 +475,23 @@ def correct_disparity(focus_srgb: np.ndarray, disparity: np.ndarray, k_px: float
     Every output value is one of the input's values within ``radius_px`` (a median of trusted neighbours),
     so the correction never invents a disparity outside the local range.
     """
-    _shift, _shifted, out = correction_steps(focus_srgb, disparity, k_px, options, active, keep)
+    shift, _shifted, out = correction_steps(focus_srgb, disparity, k_px, options, active, keep)
+    if shift is None:  # it did not run: nothing moved (NaN pixels included)
+        return out, np.zeros(out.shape, bool)
     return out, out != np.asarray(disparity, np.float32)  # moved by the passes or by the shift, and not back
 
 
 def correction_steps(focus_srgb: np.ndarray, disparity: np.ndarray, k_px: float,
                      options: DepthFixOptions = DepthFixOptions(), active: np.ndarray | None = None,
-                     keep: np.ndarray | None = None) -> tuple[tuple[int, int], np.ndarray, np.ndarray]:
-    """:func:`correct_disparity` in its two steps: the global shift found (``(0, 0)``: none), the map shifted back
-    by it, and that map after the local passes (the corrected disparity). Those who weigh the local passes' moves
-    (``refine``'s map-level gate) need them apart from the shift, which moves every pixel."""
+                     keep: np.ndarray | None = None) -> tuple[tuple[int, int] | None, np.ndarray, np.ndarray]:
+    """:func:`correct_disparity` in its two steps: the global shift found (``(0, 0)``: none; None: the correction
+    did not run, being off, or the map being noise rather than misplaced edges), the map shifted back by it, and that
+    map after the local passes (the corrected disparity). Those who weigh the local passes' moves (``refine``'s
+    map-level gate) need them apart from the shift, which moves every pixel."""
     d = np.asarray(disparity, np.float32)
     out = d.copy()
     if not options.enabled or k_px <= 0:
-        return (0, 0), out, out
+        return None, out, out
     from scipy import ndimage
 
     img = np.ascontiguousarray(focus_srgb[..., :3], np.float32)
@@ -497,7 +500,7 @@ def correction_steps(focus_srgb: np.ndarray, disparity: np.ndarray, k_px: float,
     h, w = d.shape
     coc = d * np.float32(k_px)
     if depth_edges(coc, options.jump_px).mean() > options.max_edge_share and step_flips(coc, options.jump_px) > 0.5:
-        return (0, 0), out, out  # noise in the map, not misplaced edges
+        return None, out, out  # noise in the map, not misplaced edges
     snap = options.snap_px / float(k_px)
     sy, sx = global_shift(img, d, k_px, options) if active is None else (0, 0)  # a shift moves every pixel
     if sy or sx:  # a misregistered map: shifted back first, all of it (lights too: the whole map was off)

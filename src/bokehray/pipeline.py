@@ -17,7 +17,7 @@ from . import scene, tiling
 from .errors import InputError, NumericalError
 from .lens import Aperture, BlurParams
 from .levels import LEVELS, RenderContext, get_level
-from .levels.refine import REFINABLE, refine_render
+from .levels.refine import REFINABLE, check_refine_options, refine_render
 from .options import LayerOptions, MemoryOptions, PreviewOptions, RaytraceOptions
 from .stats import RenderStats
 from .validate import (
@@ -130,6 +130,7 @@ def _check_refine(refine: object, quality: str, refine_options: object = None) -
     if quality not in REFINABLE:
         raise InputError("refine: the refiner corrects preview renders (it was trained on them); "
                          "use quality='preview' with refine")
+    check_refine_options(refine_options)
     return True
 
 

@@ -659,3 +659,23 @@ def test_a_map_shifted_back_as_a_whole_is_rendered_shifted_without_the_networks(
     assert not st.found_wrong and st.fixed_share == 0.0 and not runs
     assert len(seen) == 1 and np.array_equal(seen[0], d) and st.depth_fixed_px == int((d != given).sum())
     np.testing.assert_array_equal(out, br.render(img, d, blur))
+
+
+def test_a_map_the_depth_fix_takes_for_noise_is_refined_as_without_the_fix():
+    """On a map of noise the depth fix does not run (``correction_steps`` says so with no shift), so there is no
+    evidence either way: the residual network runs, as with the fix off, and nothing counts as moved."""
+    from bokehray.colour import linear_to_srgb
+    from bokehray.depthfix import correct_disparity, correction_steps
+
+    img, d = _edge_scene(5)
+    noisy = np.clip(d + np.random.default_rng(5).normal(0.0, 0.15, d.shape), 0, 1).astype(np.float32)
+    blur = br.BlurParams(12.0, 0.9)
+    focus = linear_to_srgb(np.clip(img, 0, 1))
+    shift, _, out = correction_steps(focus, noisy, blur.k_px)
+    assert shift is None and np.array_equal(out, noisy)
+    nan_map = noisy.copy()
+    nan_map[0, 0] = np.nan
+    assert not correct_disparity(focus, nan_map, 0.0)[1].any()  # not run: nothing moved, NaN or not
+    _, st = refine(img, noisy, blur, None, model=BokehRefiner().eval(), rerender=lambda dd: br.render(img, dd, blur),
+                   options=RefineOptions(gate=GateOptions(enabled=False)))
+    assert st.found_wrong and st.fixed_share is None and st.depth_fixed_px == 0 and st.tiles_refined > 0

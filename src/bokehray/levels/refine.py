@@ -13,7 +13,7 @@ import numpy as np
 from ..errors import InputError
 from ..lens import BlurParams
 
-__all__ = ["REFINABLE", "refine_options", "refine_render"]
+__all__ = ["REFINABLE", "check_refine_options", "refine_options", "refine_render"]
 
 REFINABLE = ("preview",)
 """Levels whose renders the refiner corrects (it was trained on preview renders)."""
@@ -32,6 +32,13 @@ def refine_options(**overrides):
     return _refiner_module().RefineOptions(**overrides)
 
 
+def check_refine_options(options) -> None:
+    """``options`` is a ``bokehray_refiner.refine.RefineOptions`` (or None): checked before any work is done."""
+    if options is not None and not isinstance(options, _refiner_module().RefineOptions):
+        raise InputError(f"refine_options: expected a bokehray_refiner.refine.RefineOptions, got "
+                         f"{type(options).__name__}")
+
+
 def refine_render(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, classical: np.ndarray | None,
                   weights: bool | str | os.PathLike, device: str, rerender=None, options=None):
     """Run the refiner on ``classical`` (the level's RGB render); returns (refined RGB, the refiner's stats).
@@ -43,11 +50,8 @@ def refine_render(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, cl
     module = _refiner_module()
     import torch
 
-    if options is None:
-        options = module.RefineOptions()
-    elif not isinstance(options, module.RefineOptions):
-        raise InputError(f"refine_options: expected a bokehray_refiner.refine.RefineOptions, got "
-                         f"{type(options).__name__}")
+    check_refine_options(options)
+    options = module.RefineOptions() if options is None else options
 
     tdev = "cuda" if device.startswith("cuda") and torch.cuda.is_available() else "cpu"
     model = module.load_refiner(None if weights is True else weights, tdev)
