@@ -389,13 +389,6 @@ def _corrected(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, optio
     if lights.any():
         lights = ndimage.binary_dilation(lights, iterations=2)
     d_new, changed, edge_field, share = disparity, np.zeros(disparity.shape, bool), None, None
-
-    def field_and_band(d: np.ndarray) -> tuple[_EdgeField, np.ndarray]:
-        coc = blur.signed_coc(d).astype(np.float32)
-        reach = edge_reach(coc, options.min_jump_px)
-        field = _EdgeField(d, coc, reach, nearest_edge(reach))
-        return field, edge_band(reach, options.band_margin_px, options.band_feather_px, field.nearest)
-
     band = None
     steps = None
     if options.depthfix.enabled:
@@ -403,7 +396,7 @@ def _corrected(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, optio
     if steps is not None and steps[0] is not None:  # it ran (not on a map of noise): its moves are the evidence
         (sy, sx), shifted, d_new = steps
         changed = d_new != np.asarray(disparity, np.float32)
-        edge_field, band = field_and_band(d_new)  # float32, as the network's map is
+        edge_field, band = _field_and_band(d_new, blur, options)  # float32, as the network's map is
         local = d_new != shifted  # the local passes' moves: a global shift moves every pixel and says nothing here
         share = fixed_share(local, band)
         if not map_found_wrong(local, band, options.min_fixed_share):  # their few moves are not evidence
@@ -415,17 +408,32 @@ def _corrected(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, optio
         return d_new, changed, edge_field, share, True, None, False
     if band is None:  # no correction ran: the given map's band
         d_new = np.asarray(d_new, np.float32)
-        edge_field, band = field_and_band(d_new)
+        edge_field, band = _field_and_band(d_new, blur, options)
+    d_new, changed, edge_field, left, ran = _edge_stage(image, focus_srgb, blur, options, edge_model, lights, d_new,
+                                                        changed, edge_field, band)
+    return d_new, changed, edge_field, share, True, left, ran
+
+
+def _field_and_band(d: np.ndarray, blur: BlurParams, options: RefineOptions) -> tuple[_EdgeField, np.ndarray]:
+    """The edge field of ``d`` and its edge band."""
+    coc = blur.signed_coc(d).astype(np.float32)
+    reach = edge_reach(coc, options.min_jump_px)
+    field = _EdgeField(d, coc, reach, nearest_edge(reach))
+    return field, edge_band(reach, options.band_margin_px, options.band_feather_px, field.nearest)
+
+
+def _edge_stage(image, focus_srgb, blur, options, edge_model, lights, d_new, changed, edge_field, band):
+    """The edge network on a map found wrong, where the correction left disagreement: the map, the pixels changed,
+    the edge field (None once the network moved the map), the disagreement (None: not measured) and whether it ran."""
     left = None
     if options.edge_min_disagreement > 0:
         left = disagreement(image, focus_srgb, edge_field.disparity, edge_field.coc, band, edge_field.nearest, options)
         if left < options.edge_min_disagreement:
-            return d_new, changed, edge_field, share, True, left, False
+            return d_new, changed, edge_field, left, False
     model = load_edge_net() if edge_model is None else edge_model
     placed = place_edges(model, focus_srgb, d_new, blur, band, options.edge_threshold, keep=lights,
                          colour_margin=options.edge_colour_margin)
-    changed = changed | (placed != d_new)
-    return placed, changed, None, share, True, left, True
+    return placed, changed | (placed != d_new), None, left, True
 
 
 def disagreement(image: np.ndarray, focus_srgb: np.ndarray, disparity: np.ndarray, coc: np.ndarray,
