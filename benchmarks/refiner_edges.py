@@ -198,15 +198,15 @@ def network_runs(image, focus, d, blur, opts) -> tuple[bool, float | None]:
     (``edge_min_disagreement``); and that share (None: the fix did not run)."""
     from bokehray_refiner.refine import _corrected, disagreement, edge_band, edge_reach
 
-    fixed, _, _, share, wrong, _, _ = _corrected(image, d, blur, replace(opts, edges=False), None, focus)
-    if not wrong or (share is None and opts.min_fixed_share > 0):
-        return False, share
+    c = _corrected(image, d, blur, replace(opts, edges=False), None, focus)
+    if not c.found_wrong or (c.share is None and opts.min_fixed_share > 0):
+        return False, c.share
     if opts.edge_min_disagreement <= 0:
-        return True, share
-    fixed = np.asarray(fixed, np.float32)
+        return True, c.share
+    fixed = np.asarray(c.disparity, np.float32)
     coc = blur.signed_coc(fixed).astype(np.float32)
     band = edge_band(edge_reach(coc, opts.min_jump_px), opts.band_margin_px, opts.band_feather_px)
-    return disagreement(image, focus, fixed, coc, band, None, opts) >= opts.edge_min_disagreement, share
+    return disagreement(focus, fixed, coc, band, None, opts) >= opts.edge_min_disagreement, c.share
 
 
 def score(model, samples, opts, thresholds, gate: bool = False, min_region: int = 0, attached: bool = False,

@@ -32,7 +32,7 @@ import numpy as np
 
 from bokehray.depthfix import edge_pairs
 
-__all__ = ["GateOptions", "edge_agreement", "highlight_guard", "refine_gate"]
+__all__ = ["GateOptions", "edge_agreement", "edge_gate", "highlight_guard", "refine_gate"]
 
 
 @dataclass(frozen=True)
@@ -186,15 +186,12 @@ def highlight_guard(image: np.ndarray, classical: np.ndarray, coc: np.ndarray, m
     return guard
 
 
-def refine_gate(image: np.ndarray, focus_srgb: np.ndarray, disparity: np.ndarray, classical: np.ndarray,
-                coc: np.ndarray, min_jump_px: float, options: GateOptions = GateOptions(),
-                nearest: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
-    """The gate in [0, 1] per pixel: how much of the refiner's correction is let through.
-
-    Each pixel takes the gate of its nearest depth-edge pixel (edges where the CoC jumps by more than
-    ``min_jump_px``), times the highlight guard. Without depth edges the gate is 0 everywhere. ``nearest``: the
-    indices ``(iy, ix)`` of every pixel's nearest edge pixel when the caller has them (the refiner's edge band).
-    """
+def edge_gate(focus_srgb: np.ndarray, disparity: np.ndarray, coc: np.ndarray, min_jump_px: float,
+              options: GateOptions = GateOptions(), nearest: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """The colour/depth agreement part of :func:`refine_gate`, per pixel: the gate of its nearest depth-edge pixel
+    (edges where the CoC jumps by more than ``min_jump_px``), before the highlight guard and the floor; 0 everywhere
+    without depth edges, 1 with the gate disabled. ``nearest``: the indices ``(iy, ix)`` of every pixel's nearest
+    edge pixel when the caller has them (the refiner's edge band)."""
     from scipy import ndimage
 
     h, w = coc.shape
@@ -217,7 +214,24 @@ def refine_gate(image: np.ndarray, focus_srgb: np.ndarray, disparity: np.ndarray
         _, (iy, ix) = ndimage.distance_transform_edt(~mark, return_indices=True)
     else:
         iy, ix = nearest
-    gate = open_[iy, ix]
+    return open_[iy, ix]
+
+
+def refine_gate(image: np.ndarray, focus_srgb: np.ndarray, disparity: np.ndarray, classical: np.ndarray,
+                coc: np.ndarray, min_jump_px: float, options: GateOptions = GateOptions(),
+                nearest: tuple[np.ndarray, np.ndarray] | None = None,
+                agreement: np.ndarray | None = None) -> np.ndarray:
+    """The gate in [0, 1] per pixel: how much of the refiner's correction is let through.
+
+    Each pixel takes the gate of its nearest depth-edge pixel (:func:`edge_gate`; ``agreement``: it, when already
+    computed for this map and these options), times the highlight guard. Without depth edges the gate is 0
+    everywhere. ``nearest``: the indices ``(iy, ix)`` of every pixel's nearest edge pixel when the caller has them (the
+    refiner's edge band).
+    """
+    if not options.enabled:
+        return np.ones(coc.shape, np.float32)
+    gate = (edge_gate(focus_srgb, disparity, coc, min_jump_px, options, nearest) if agreement is None
+            else agreement.copy())
     if options.highlight:
         gate *= highlight_guard(image, classical, coc, options.highlight_margin_px)
     gate[gate < options.floor] = 0.0

@@ -37,7 +37,7 @@ from bokehray.lens import BlurParams
 from bokehray_refiner.pisa import PisaMaskOptions
 
 from .edges import EdgeNet, load_edge_net, place_edges
-from .gate import GateOptions, channel_max, refine_gate
+from .gate import GateOptions, channel_max, edge_gate, refine_gate
 from .masks import PisaMaskProvider
 from .model import BokehRefiner, RefinerConfig
 from .saved import load_saved
@@ -281,15 +281,16 @@ def refine(
         raise InputError("refine: without a classical render it needs the rerender callback that renders the level")
     fix = _correct_depth(image, disparity, blur, classical, options, rerender, edge_model)
     classical, disparity = fix.classical, fix.disparity
-    stats = RefineStats(depth_fixed_px=fix.fixed_px, fixed_share=fix.fixed_share, found_wrong=fix.found_wrong,
-                        edge_disagreement=fix.disagreement, edges_ran=fix.edges_ran, depthfix_seconds=fix.seconds,
+    c = fix.correction
+    stats = RefineStats(depth_fixed_px=fix.fixed_px, fixed_share=c.share, found_wrong=c.found_wrong,
+                        edge_disagreement=c.disagreement, edges_ran=c.edges_ran, depthfix_seconds=fix.seconds,
                         rerender_seconds=fix.render_seconds, disparity=fix.fixed)
     render_time = fix.render_seconds if first else 0.0
-    if not fix.found_wrong:  # as far as the correction can tell the map is right: the level's render, untouched
+    if not c.found_wrong:  # as far as the correction can tell the map is right: the level's render, untouched
         stats.tiles_total = -(-disparity.shape[0] // options.tile) * -(-disparity.shape[1] // options.tile)
         stats.seconds = time.perf_counter() - t0 - render_time
         return classical.astype(np.float32, copy=True), stats
-    edge_field = fix.edge_field
+    edge_field = c.edge_field
     if edge_field is None or not _same_map(edge_field.disparity, disparity):
         coc = blur.signed_coc(disparity).astype(np.float32)
         edge_field = _EdgeField(disparity, coc, edge_reach(coc, options.min_jump_px))
@@ -305,8 +306,7 @@ def refine(
     if need.any():
         if focus_srgb is None:
             focus_srgb = linear_to_srgb(np.clip(image[..., :3], 0.0, 1.0))
-        band = _gated_band(image, focus_srgb, disparity, classical, coc, reach, need, options, stats,
-                           edge_field.nearest)
+        band = _gated_band(image, focus_srgb, disparity, classical, coc, reach, need, options, stats, edge_field)
     stats.tiles_refined = int(need.sum())
     stats.gate_seconds = time.perf_counter() - t1
     if not need.any():
@@ -340,10 +340,22 @@ class _DepthFix:
     seconds: float  # the correction's own time
     render_seconds: float  # the level's render on the corrected (or given) map, 0 when none was needed
     focus_srgb: np.ndarray | None  # the photo in sRGB, when the correction computed it
-    edge_field: _EdgeField | None = None  # the depth edges of the map the correction ended on, when it computed them
-    fixed_share: float | None = None  # the share of the edge band its local passes moved (None: it did not run)
-    found_wrong: bool = True  # at least options.min_fixed_share of it (or the correction did not run)
-    disagreement: float | None = None  # the gate's mean over the corrected map's band, when measured
+    correction: _Correction  # what the correction found and did (an empty one where it did not run)
+
+
+@dataclass
+class _Correction:
+    """What :func:`corrected_disparity` found: the map refine renders and the pixels moved, the edge field of that map
+    when computed (the edge network's band; refine's gate needs the same), the share of the band the depth
+    correction's local passes moved (None: it did not run), whether that found the map wrong (True where it did not
+    run), the disagreement left on the corrected map (None: not measured) and whether the edge network ran."""
+
+    disparity: np.ndarray
+    changed: np.ndarray
+    edge_field: _EdgeField | None = None
+    share: float | None = None
+    found_wrong: bool = True
+    disagreement: float | None = None
     edges_ran: bool = False
 
 
@@ -357,6 +369,7 @@ class _EdgeField:
     coc: np.ndarray
     reach: np.ndarray
     nearest: tuple | None = None
+    agreement: np.ndarray | None = None  #: :func:`.gate.edge_gate` of the map, when computed (the disagreement's)
 
 
 def _same_map(a: np.ndarray, b: np.ndarray) -> bool:
@@ -372,16 +385,14 @@ def corrected_disparity(image: np.ndarray, disparity: np.ndarray, blur: BlurPara
     lights (dilated by 2 px) never move and never vote. A map the correction does not find wrong
     (``options.min_fixed_share``) comes back as it is, with nothing moved, or only shifted back where the correction
     found the whole map misregistered."""
-    return _corrected(image, disparity, blur, options, edge_model, focus_srgb)[:2]
+    c = _corrected(image, disparity, blur, options, edge_model, focus_srgb)
+    return c.disparity, c.changed
 
 
 def _corrected(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, options: RefineOptions,
                edge_model: EdgeNet | None, focus_srgb: np.ndarray | None,
-               ) -> tuple[np.ndarray, np.ndarray, _EdgeField | None, float | None, bool, float | None, bool]:
-    """:func:`corrected_disparity`, the edge field of the map it ends on when it computed one (the edge network's
-    band; refine's gate needs the same), the share of the band the depth correction moved (None: it did not run),
-    whether that found the map wrong (True where it did not run), the disagreement left on the corrected map (None:
-    not measured) and whether the edge network ran."""
+               ) -> _Correction:
+    """:func:`corrected_disparity`, with what it found (:class:`_Correction`)."""
     from scipy import ndimage
 
     focus_srgb = linear_to_srgb(np.clip(image[..., :3], 0.0, 1.0)) if focus_srgb is None else focus_srgb
@@ -395,23 +406,22 @@ def _corrected(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, optio
         steps = correction_steps(focus_srgb, disparity, blur.k_px, options.depthfix, keep=lights)
     if steps is not None and steps[0] is not None:  # it ran (not on a map of noise): its moves are the evidence
         (sy, sx), shifted, d_new = steps
-        changed = d_new != np.asarray(disparity, np.float32)
+        d32 = np.asarray(disparity, np.float32)
+        changed = d_new != d32
         edge_field, band = _field_and_band(d_new, blur, options)  # float32, as the network's map is
         local = d_new != shifted  # the local passes' moves: a global shift moves every pixel and says nothing here
         share = fixed_share(local, band)
         if not map_found_wrong(local, band, options.min_fixed_share):  # their few moves are not evidence
             if not (sy or sx):
-                return disparity, np.zeros(disparity.shape, bool), None, share, False, None, False
-            return (shifted, shifted != np.asarray(disparity, np.float32), None, share, False, None,  # the shift stays
-                    False)
+                return _Correction(disparity, np.zeros(disparity.shape, bool), share=share, found_wrong=False)
+            return _Correction(shifted, shifted != d32, share=share, found_wrong=False)  # the shift stays
     if not options.edges or (band is None and options.min_fixed_share > 0):
-        return d_new, changed, edge_field, share, True, None, False
+        return _Correction(d_new, changed, edge_field, share)
     if band is None:  # no correction ran: the given map's band
         d_new = np.asarray(d_new, np.float32)
         edge_field, band = _field_and_band(d_new, blur, options)
-    d_new, changed, edge_field, left, ran = _edge_stage(image, focus_srgb, blur, options, edge_model, lights, d_new,
-                                                        changed, edge_field, band)
-    return d_new, changed, edge_field, share, True, left, ran
+    return _edge_stage(image, focus_srgb, blur, options, edge_model, lights,
+                       _Correction(d_new, changed, edge_field, share), band)
 
 
 def _field_and_band(d: np.ndarray, blur: BlurParams, options: RefineOptions) -> tuple[_EdgeField, np.ndarray]:
@@ -422,32 +432,47 @@ def _field_and_band(d: np.ndarray, blur: BlurParams, options: RefineOptions) -> 
     return field, edge_band(reach, options.band_margin_px, options.band_feather_px, field.nearest)
 
 
-def _edge_stage(image, focus_srgb, blur, options, edge_model, lights, d_new, changed, edge_field, band):
-    """The edge network on a map found wrong, where the correction left disagreement: the map, the pixels changed,
-    the edge field (None once the network moved the map), the disagreement (None: not measured) and whether it ran."""
-    left = None
+def _edge_stage(image, focus_srgb, blur, options, edge_model, lights, c: _Correction, band) -> _Correction:
+    """The edge network on the map ``c`` found wrong, where the correction left disagreement (else ``c`` with the
+    disagreement measured, its edge field keeping the agreement for refine's gate)."""
+    field = c.edge_field
     if options.edge_min_disagreement > 0:
-        left = disagreement(image, focus_srgb, edge_field.disparity, edge_field.coc, band, edge_field.nearest, options)
-        if left < options.edge_min_disagreement:
-            return d_new, changed, edge_field, left, False
+        field.agreement = edge_gate(focus_srgb, field.disparity, field.coc, options.min_jump_px,
+                                    replace(options.gate, enabled=True), _indices(field.nearest))
+        c.disagreement = _open_share(field.agreement, band, options.gate.floor)
+        if c.disagreement < options.edge_min_disagreement:
+            return c
     model = load_edge_net() if edge_model is None else edge_model
-    placed = place_edges(model, focus_srgb, d_new, blur, band, options.edge_threshold, keep=lights,
+    placed = place_edges(model, focus_srgb, c.disparity, blur, band, options.edge_threshold, keep=lights,
                          colour_margin=options.edge_colour_margin)
-    return placed, changed | (placed != d_new), None, left, True
+    return _Correction(placed, c.changed | (placed != c.disparity), None, c.share, True, c.disagreement, True)
 
 
-def disagreement(image: np.ndarray, focus_srgb: np.ndarray, disparity: np.ndarray, coc: np.ndarray,
-                 band: np.ndarray, nearest=None, options: RefineOptions = RefineOptions()) -> float:
+def disagreement(focus_srgb: np.ndarray, disparity: np.ndarray, coc: np.ndarray, band: np.ndarray, nearest=None,
+                 options: RefineOptions = RefineOptions()) -> float:
     """How much of the edge band the confidence gate's colour/depth agreement leaves open on ``disparity`` (its
     mean over ``band > 0``; no highlight guard, which needs a render): near 0 where every depth edge sits on a
     colour edge of the photo. ``nearest``: :func:`nearest_edge` of the map's edge reach, when computed."""
+    if not (band > 0).any():
+        return 0.0
+    gate = edge_gate(focus_srgb, disparity, coc, options.min_jump_px, replace(options.gate, enabled=True),
+                     _indices(nearest))
+    return _open_share(gate, band, options.gate.floor)
+
+
+def _indices(nearest):
+    """The nearest edge pixel's indices ``(iy, ix)`` of :func:`nearest_edge`'s result (None: none)."""
+    return None if nearest is None else nearest[1]
+
+
+def _open_share(agreement: np.ndarray, band: np.ndarray, floor: float) -> float:
+    """The mean over ``band > 0`` of the agreement gate, below ``floor`` counted as shut (as :func:`.gate.refine_gate`
+    shuts it); 0 without a band."""
     inside = band > 0
     if not inside.any():
         return 0.0
-    gate = refine_gate(image, focus_srgb, disparity, image, coc, options.min_jump_px,
-                       replace(options.gate, enabled=True, highlight=False),
-                       nearest=None if nearest is None else nearest[1])
-    return float(gate[inside].mean())
+    gate = agreement[inside]
+    return float(np.where(gate < floor, np.float32(0.0), gate).mean())
 
 
 def fixed_share(fixed: np.ndarray, band: np.ndarray) -> float:
@@ -470,13 +495,13 @@ def _correct_depth(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, c
                    edge_model: EdgeNet | None = None) -> _DepthFix:
     """Stage 1: the depth correction (:func:`corrected_disparity`), then the level on the corrected map (or on the
     given map when nothing was rendered yet)."""
-    fixed_px, t_fix, t_re, d_fixed, focus_srgb, edge_field = 0, 0.0, 0.0, None, None, None
-    share, wrong, left, ran = None, True, None, False
+    fixed_px, t_fix, t_re, d_fixed, focus_srgb = 0, 0.0, 0.0, None, None
+    c = _Correction(disparity, np.zeros(disparity.shape, bool))
     if rerender is not None and (options.depthfix.enabled or options.edges):
         t1 = time.perf_counter()
         focus_srgb = linear_to_srgb(np.clip(image[..., :3], 0.0, 1.0))
-        d_new, changed, edge_field, share, wrong, left, ran = _corrected(image, disparity, blur, options, edge_model,
-                                                                          focus_srgb)
+        c = _corrected(image, disparity, blur, options, edge_model, focus_srgb)
+        d_new, changed = c.disparity, c.changed
         t_fix = time.perf_counter() - t1
         if changed.any():
             t1 = time.perf_counter()
@@ -487,34 +512,36 @@ def _correct_depth(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, c
         t1 = time.perf_counter()
         classical = np.asarray(rerender(disparity), np.float32)
         t_re = time.perf_counter() - t1
-    return _DepthFix(classical, disparity, d_fixed, fixed_px, t_fix, t_re, focus_srgb, edge_field, share, wrong, left,
-                     ran)
+    return _DepthFix(classical, disparity, d_fixed, fixed_px, t_fix, t_re, focus_srgb, c)
 
 
 def blend_weight(image: np.ndarray, focus_srgb: np.ndarray, disparity: np.ndarray, classical: np.ndarray,
                  coc: np.ndarray, options: RefineOptions = RefineOptions(),
-                 reach: np.ndarray | None = None, nearest=None) -> tuple[np.ndarray, np.ndarray]:
+                 reach: np.ndarray | None = None, nearest=None,
+                 agreement: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The edge band (:func:`edge_band`) and the weight :func:`refine` blends the network's output in by: the band
     times the confidence gate. ``classical`` is the level's render on ``disparity`` (scene-linear), ``coc`` its
-    signed CoC; ``reach``: :func:`edge_reach` of ``coc`` and ``nearest``: :func:`nearest_edge` of ``reach``, when
-    already computed. Training counts its loss where this weight is (``PairBank(gated=True)``)."""
+    signed CoC; ``reach``: :func:`edge_reach` of ``coc``, ``nearest``: :func:`nearest_edge` of ``reach`` and
+    ``agreement``: :func:`.gate.edge_gate` of the map, when already computed. Training counts its loss where this
+    weight is (``PairBank(gated=True)``)."""
     reach = edge_reach(coc, options.min_jump_px) if reach is None else reach
     if nearest is None:  # the gate's edge pixels are the band's: one distance transform for both
         nearest = nearest_edge(reach)
     full_band = edge_band(reach, options.band_margin_px, options.band_feather_px, nearest)
     gate = refine_gate(image, focus_srgb, disparity, classical, coc, options.min_jump_px, options.gate,
-                       nearest=None if nearest is None else nearest[1])
+                       nearest=_indices(nearest), agreement=agreement)
     return full_band, full_band * gate
 
 
 def _gated_band(image: np.ndarray, focus_srgb: np.ndarray, disparity: np.ndarray, classical: np.ndarray,
                 coc: np.ndarray, reach: np.ndarray, need: np.ndarray, options: RefineOptions,
-                stats: RefineStats, nearest=None) -> np.ndarray:
+                stats: RefineStats, field: _EdgeField | None = None) -> np.ndarray:
     """Stage 2: the blend weight of the correction, the band near depth edges times the confidence gate; tiles the
-    gate closes are dropped from ``need`` (in place)."""
+    gate closes are dropped from ``need`` (in place). ``field``: the map's edge field, with what it already holds."""
     h, w = disparity.shape
     t = options.tile
-    full_band, band = blend_weight(image, focus_srgb, disparity, classical, coc, options, reach, nearest)
+    full_band, band = blend_weight(image, focus_srgb, disparity, classical, coc, options, reach,
+                                   None if field is None else field.nearest, None if field is None else field.agreement)
     stats.band_pixels = int((full_band > 0).sum())
     stats.gate_open = float(band.sum() / full_band.sum()) if full_band.sum() > 0 else 0.0
     ty, tx = need.shape

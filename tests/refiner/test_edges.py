@@ -37,6 +37,16 @@ def _scene(h=80, w=120, seed=0):
     return focus, d, br.BlurParams(12.0, 0.2)
 
 
+def _red_square():
+    """A red square on blue (scene-linear), its exact map and a blur: its depth edges sit on its colour edges."""
+    image = np.zeros((64, 64, 3), np.float32)
+    image[..., 2] = 0.6
+    image[16:48, 16:48] = (0.8, 0.05, 0.05)
+    exact = np.full((64, 64), 0.2, np.float32)
+    exact[16:48, 16:48] = 0.8
+    return image, exact, br.BlurParams(12.0, 0.8)
+
+
 def _mover(config=SMALL, seed=0) -> EdgeNet:
     """A random network (it does move pixels at a low threshold)."""
     torch.manual_seed(seed)
@@ -229,13 +239,7 @@ def test_a_map_whose_edges_sit_on_the_photos_is_left_to_the_depth_fix():
     on its colour edges, so it is not run either; with both gates at 0 it is."""
     from bokehray_refiner.refine import RefineOptions, corrected_disparity
 
-    h, w = 64, 64
-    image = np.zeros((h, w, 3), np.float32)
-    image[..., 2] = 0.6
-    image[16:48, 16:48] = (0.8, 0.05, 0.05)
-    exact = np.full((h, w), 0.2, np.float32)
-    exact[16:48, 16:48] = 0.8
-    blur = br.BlurParams(12.0, 0.8)
+    image, exact, blur = _red_square()
     m = EdgeNet(SMALL).eval()
     with torch.no_grad():
         m.net[-1].weight.zero_()
@@ -299,7 +303,7 @@ def test_refine_reuses_the_corrections_edge_field_without_changing_a_pixel(monke
     reused, st1 = refine_module.refine(image, given, blur, None, model=model, rerender=rer, options=opts)
     assert len(searches) == 1 and st1.band_pixels > 0  # one distance transform for the band and the gate
     corrected = refine_module._corrected
-    monkeypatch.setattr(refine_module, "_corrected", lambda *a: (r := corrected(*a))[:2] + (None,) + r[3:])
+    monkeypatch.setattr(refine_module, "_corrected", lambda *a: replace(corrected(*a), edge_field=None))
     fresh, st2 = refine_module.refine(image, given, blur, None, model=model, rerender=rer, options=opts)
     assert len(searches) == 3  # found again
     np.testing.assert_array_equal(reused, fresh)
@@ -313,26 +317,51 @@ def test_the_disagreement_left_is_small_where_depth_edges_sit_on_colour_edges():
     from bokehray_refiner.data import corrupt_disparity
     from bokehray_refiner.refine import RefineOptions, disagreement, edge_band, edge_reach, nearest_edge, refine
 
-    h, w = 64, 64
-    image = np.zeros((h, w, 3), np.float32)
-    image[..., 2] = 0.6
-    image[16:48, 16:48] = (0.8, 0.05, 0.05)
-    exact = np.full((h, w), 0.2, np.float32)
-    exact[16:48, 16:48] = 0.8
-    blur = br.BlurParams(12.0, 0.8)
+    image, exact, blur = _red_square()
     focus = image ** (1 / 2.2)
 
     def left(d):
         coc = blur.signed_coc(d).astype(np.float32)
         reach = edge_reach(coc, 1.0)
-        return disagreement(image, focus, d, coc, edge_band(reach, 6.0, 4.0), nearest_edge(reach))
+        return disagreement(focus, d, coc, edge_band(reach, 6.0, 4.0), nearest_edge(reach))
 
     shrunk = np.clip(corrupt_disparity(exact, "erode", 5), 0, 1).astype(np.float32)
     assert left(exact) < 0.02 and left(shrunk) > 0.5
-    assert disagreement(image, focus, exact, blur.signed_coc(exact), np.zeros((h, w), np.float32)) == 0.0
+    assert disagreement(focus, exact, blur.signed_coc(exact), np.zeros_like(exact)) == 0.0
     m = EdgeNet(SMALL).eval()
     _, st = refine(image, exact, blur, None, options=RefineOptions(min_fixed_share=0.0, neural=False), edge_model=m,
                    rerender=lambda dd: br.render(image, dd, blur))
     assert st.found_wrong and st.edge_disagreement is not None and st.edge_disagreement < 0.02 and not st.edges_ran
     d = st.as_dict()
     assert d["edges_ran"] is False and d["edge_disagreement"] == st.edge_disagreement
+
+
+def test_the_gate_reuses_the_agreement_the_disagreement_measured(monkeypatch):
+    """Where the edge network is held back by the disagreement rule, the agreement it measured on the map is the
+    confidence gate's too: computed once instead of twice, with the same render and stats."""
+    import bokehray_refiner.gate as gate_module
+    import bokehray_refiner.refine as refine_module
+    from bokehray_refiner.data import corrupt_disparity
+    from bokehray_refiner.model import BokehRefiner
+    from bokehray_refiner.refine import RefineOptions
+
+    focus, d, blur = _scene(96, 128)
+    image = focus ** 2.2
+    given = np.clip(corrupt_disparity(d, "erode", 3), 0, 1).astype(np.float32)
+    rer = lambda dd: br.render(image, dd, blur)  # noqa: E731
+    torch.manual_seed(0)
+    model = BokehRefiner().eval()
+    opts = RefineOptions(min_fixed_share=0.0, edge_min_disagreement=1.0)  # measured, and never enough
+    calls = []
+    edge_gate = refine_module.edge_gate
+    monkeypatch.setattr(refine_module, "edge_gate", lambda *a: calls.append(1) or edge_gate(*a))
+    monkeypatch.setattr(gate_module, "edge_gate", lambda *a: calls.append(1) or edge_gate(*a))
+    reused, st1 = refine_module.refine(image, given, blur, None, model=model, rerender=rer, options=opts)
+    assert len(calls) == 1 and not st1.edges_ran and st1.edge_disagreement is not None and st1.band_pixels > 0
+    corrected = refine_module._corrected
+    monkeypatch.setattr(refine_module, "_corrected", lambda *a: replace(
+        (c := corrected(*a)), edge_field=replace(c.edge_field, agreement=None)))
+    fresh, st2 = refine_module.refine(image, given, blur, None, model=model, rerender=rer, options=opts)
+    assert len(calls) == 3  # measured again for the gate
+    np.testing.assert_array_equal(reused, fresh)
+    assert (st1.band_pixels, st1.gate_open, st1.tiles_refined) == (st2.band_pixels, st2.gate_open, st2.tiles_refined)

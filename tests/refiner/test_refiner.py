@@ -211,17 +211,22 @@ def test_render_api_refines_and_reports(weights):
     assert st_flat.refine["tiles_refined"] == 0 and np.array_equal(same, br.render(img, flat, br.BlurParams(10.0, 0.5)))
 
 
-def test_cli_refine(weights, tmp_path, capsys):
-    from bokehray.app.cli import main
-
+def _noise_square_command(tmp_path) -> list[str]:
+    """``bokehray render`` of a noise photo with a square's exact map (files in ``tmp_path``), with ``--stats``."""
     rng = np.random.default_rng(3)
     img = rng.uniform(0, 1, (64, 64, 3)).astype(np.float32)
     d = np.full((64, 64), 0.1, np.float32)
     d[20:44, 20:44] = 0.8
     br.write_image(tmp_path / "img.exr", img)
     np.save(tmp_path / "d.npy", d)
-    base = ["render", str(tmp_path / "img.exr"), "--disparity", str(tmp_path / "d.npy"), "--blur", "12",
+    return ["render", str(tmp_path / "img.exr"), "--disparity", str(tmp_path / "d.npy"), "--blur", "12",
             "--focus", "0.8", "--stats"]
+
+
+def test_cli_refine(weights, tmp_path, capsys):
+    from bokehray.app.cli import main
+
+    base = _noise_square_command(tmp_path)
     assert main(base + ["-o", str(tmp_path / "out.exr"), "--refine", str(weights)]) == 0
     text = capsys.readouterr().out
     assert "refined" in text and '"tiles_refined"' in text
@@ -234,14 +239,7 @@ def test_refine_everywhere_refines_a_map_the_depth_fix_finds_right(weights, tmp_
     ``--refine-everywhere`` (``RefineOptions(min_fixed_share=0)``) runs the networks anyway."""
     from bokehray.app.cli import main
 
-    rng = np.random.default_rng(3)
-    img = rng.uniform(0, 1, (64, 64, 3)).astype(np.float32)
-    d = np.full((64, 64), 0.1, np.float32)
-    d[20:44, 20:44] = 0.8
-    br.write_image(tmp_path / "img.exr", img)
-    np.save(tmp_path / "d.npy", d)
-    base = ["render", str(tmp_path / "img.exr"), "--disparity", str(tmp_path / "d.npy"), "--blur", "12",
-            "--focus", "0.8", "--stats", "--refine", str(weights), "-o"]
+    base = _noise_square_command(tmp_path) + ["--refine", str(weights), "-o"]
     stats = lambda text: json.loads(text[text.index("{"):])["refine"]  # noqa: E731
     assert main(base + [str(tmp_path / "kept.exr")]) == 0
     kept = stats(capsys.readouterr().out)

@@ -50,8 +50,7 @@ def refine_render(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, cl
     module = _refiner_module()
     import torch
 
-    check_refine_options(options)
-    options = module.RefineOptions() if options is None else options
+    options = module.RefineOptions() if options is None else options  # its type checked by the pipeline already
 
     tdev = "cuda" if device.startswith("cuda") and torch.cuda.is_available() else "cpu"
     model = module.load_refiner(None if weights is True else weights, tdev)
