@@ -124,7 +124,7 @@ class Pair:
     focus_disparity: float
 
 
-BANK_VERSION = 2
+BANK_VERSION = 3
 """Bumped when the way inputs are made changes; a cached bank of another version is rebuilt."""
 
 
@@ -132,8 +132,9 @@ class PairBank:
     """Pairs of a BLB-layout folder, each with ``variants`` corrupted-depth inputs, held in memory.
 
     For each scene, blur level ``K`` and variant, one corruption is drawn (kind with the shares ``probs``, amount
-    from :data:`AMOUNTS`), corrected by the depth fix (which depends on ``K``, not on the focus) and rendered at
-    each focus of the scene, as ``render --refine`` would. Deterministic for a seed, so a resumed training run
+    from :data:`AMOUNTS`), then at each focus of the scene corrected and rendered as ``render --refine`` would
+    (:func:`bokehray_refiner.refine.correct_and_render`: the depth fix depends on ``K`` alone, but the map-level
+    gate's disagreement and the edge network read the CoC, which depends on the focus). Deterministic for a seed, so a resumed training run
     rebuilds the same bank; :meth:`cached` keeps it on disk.
 
     Each input's weight (``bands``) is the edge band where refine keeps the network's output; with ``gated`` it is
@@ -167,22 +168,16 @@ class PairBank:
                 focus16 = focus_full.astype(np.float16)
             if (scene, float(s.k_px)) != key_of:  # the corrupted maps of this scene and K, for every focus
                 key_of = (scene, float(s.k_px))
-                variants_of = []  # [kind, corrupted map, corrected map (None until the first focus corrects it)]
+                variants_of = []  # (kind, corrupted map)
                 for _ in range(variants):
                     kind = str(rng.choice(CORRUPTIONS, p=list(probs)))
                     lo, hi = AMOUNTS[kind]
                     amount = int(rng.integers(lo, hi + 1))
-                    variants_of.append([kind, np.clip(corrupt_disparity(s.disparity, kind, amount, rng), 0.0, 1.0), None])
+                    variants_of.append((kind, np.clip(corrupt_disparity(s.disparity, kind, amount, rng), 0.0, 1.0)))
             renders, disps, bands, kinds = [], [], [], []
             blur = BlurParams(s.k_px, s.focus_disparity)
-            for entry in variants_of:
-                kind, dc, dfix = entry
-                rerender = lambda d, s=s, blur=blur: render(s.image, d, blur)  # noqa: E731
-                if dfix is None:  # the correction depends on K, not on the focus: once per scene, K and variant
-                    r, dfix = correct_and_render(s.image, dc, blur, rerender, opts)
-                    entry[2] = dfix
-                else:
-                    r = rerender(dfix)
+            for kind, dc in variants_of:
+                r, dfix = correct_and_render(s.image, dc, blur, lambda d, s=s, blur=blur: render(s.image, d, blur), opts)
                 coc = blur.signed_coc(dfix).astype(np.float32)
                 band = blend_weight(s.image, focus_full, dfix, r, coc, weight_opts)[1]
                 renders.append(linear_to_srgb(np.clip(r[..., :3], 0.0, 1.0)).astype(np.float16))

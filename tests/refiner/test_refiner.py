@@ -536,6 +536,29 @@ def test_pair_bank_makes_the_input_refine_makes_and_caches_it(pairs, tmp_path):
                                                                              first.pairs[0].renders[0])
 
 
+def test_pair_bank_corrects_each_map_at_each_focus(pairs, monkeypatch):
+    """The map-level gate and the edge network read the CoC, which depends on the focus: a scene's corrupted map is
+    corrected anew for each of its foci, not once per scene and K."""
+    import bokehray_refiner.refine as refine_module
+
+    from bokehray.data.datasets import BLBDataset
+
+    seen = []
+    real = refine_module.correct_and_render
+
+    def recording(image, disparity, blur, rerender, options):
+        seen.append((blur.k_px, blur.focus_disparity, disparity.copy()))
+        return real(image, disparity, blur, rerender, options)
+
+    monkeypatch.setattr(refine_module, "correct_and_render", recording)
+    bank = PairBank(str(pairs), variants=2, seed=3, limit=2, progress=False)
+    ds = BLBDataset(str(pairs))
+    assert ds[0].name.split("/")[0] == ds[1].name.split("/")[0] and ds[0].focus_disparity != ds[1].focus_disparity
+    assert [(k, f) for k, f, _ in seen] == [(ds[i].k_px, ds[i].focus_disparity) for i in range(2) for _ in range(2)]
+    assert all(np.array_equal(seen[j][2], seen[2 + j][2]) for j in range(2))  # the same corrupted maps at both foci
+    assert len(bank.pairs) == 2
+
+
 def test_a_gated_bank_weighs_each_input_as_refine_blends_it(pairs):
     """Training behind the gate: the loss weight is the band times the confidence gate, as refine() blends."""
     from bokehray_refiner.refine import RefineOptions, blend_weight
