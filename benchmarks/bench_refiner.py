@@ -102,6 +102,8 @@ def main() -> None:  # noqa: C901
     ap.add_argument("--reuse-raytrace", default=None,
                     help="take the raytrace rows from this earlier JSON of the same data instead of rendering them "
                          "(the ray tracer does not depend on the refiner)")
+    ap.add_argument("--edge-threshold", type=float, default=None,
+                    help="RefineOptions.edge_threshold (the edge network's move threshold); default: the option's default")
     ap.add_argument("--no-agreement", action="store_true",
                     help="refine with the gate's colour/depth agreement off (highlight guard only)")
     ap.add_argument("--no-nofix", action="store_true", help="skip refine_nofix (the refiner without the depth fix)")
@@ -130,6 +132,8 @@ def main() -> None:  # noqa: C901
     ropts = RefineOptions() if args.band_margin is None else RefineOptions(band_margin_px=args.band_margin)
     if args.no_agreement:
         ropts = replace(ropts, gate=replace(ropts.gate, agreement=False))
+    if args.edge_threshold is not None:
+        ropts = replace(ropts, edge_threshold=args.edge_threshold)
 
     model = load_refiner(args.weights)
     edge_model = None
