@@ -104,6 +104,8 @@ def main() -> None:  # noqa: C901
                          "(the ray tracer does not depend on the refiner)")
     ap.add_argument("--edge-threshold", type=float, default=None,
                     help="RefineOptions.edge_threshold (the edge network's move threshold); default: the option's default")
+    ap.add_argument("--edge-passes", type=int, default=None,
+                    help="RefineOptions.edge_passes (the edge network's passes); default: the option's default")
     ap.add_argument("--no-agreement", action="store_true",
                     help="refine with the gate's colour/depth agreement off (highlight guard only)")
     ap.add_argument("--no-nofix", action="store_true", help="skip refine_nofix (the refiner without the depth fix)")
@@ -134,6 +136,8 @@ def main() -> None:  # noqa: C901
         ropts = replace(ropts, gate=replace(ropts.gate, agreement=False))
     if args.edge_threshold is not None:
         ropts = replace(ropts, edge_threshold=args.edge_threshold)
+    if args.edge_passes is not None:
+        ropts = replace(ropts, edge_passes=args.edge_passes)
 
     model = load_refiner(args.weights)
     edge_model = None

@@ -210,10 +210,11 @@ def network_runs(image, focus, d, blur, opts) -> tuple[bool, float | None]:
 
 
 def score(model, samples, opts, thresholds, gate: bool = False, min_region: int = 0, attached: bool = False,
-          margins: tuple[float, ...] = ()) -> tuple[list[dict], list[dict]]:
+          margins: tuple[float, ...] = (), passes: int = 1) -> tuple[list[dict], list[dict]]:
     """Band PSNR of the depth fix's render and of the level on the edge network's map (``edges``; with ``gate``
     also behind refine's confidence gate, ``gated``), per render and condition; each also with the colour veto at
-    each of ``margins`` (``_v<margin>``, ``place_edges(colour_margin=)``), the oracle too."""
+    each of ``margins`` (``_v<margin>``, ``place_edges(colour_margin=)``), the oracle too; the network makes
+    ``passes`` passes (``place_edges(passes=)``)."""
     from bokehray_refiner.data import corrupt_disparity
     from bokehray_refiner.edges import edge_features, place_edges
 
@@ -252,7 +253,8 @@ def score(model, samples, opts, thresholds, gate: bool = False, min_region: int 
                             row[key], row[key.replace("_", "_moved_", 1)] = row["fix"], 0
                             continue
                         moved = place_edges(model, focus, used, blur, band, th, keep=hold,
-                                            min_region_px=min_region, attached=attached, colour_margin=margin)
+                                            min_region_px=min_region, attached=attached, colour_margin=margin,
+                                            passes=passes)
                         row[key] = band_psnr(moved)
                         row[key.replace("_", "_moved_", 1)] = int((moved != used).sum())
             rows.append(row)
@@ -323,6 +325,8 @@ def main() -> None:
     ap.add_argument("--thresholds", default="0.7,0.8,0.9")
     ap.add_argument("--gate", action="store_true", help="score behind refine's confidence gate as well")
     ap.add_argument("--min-region", type=int, default=0, help="place_edges' min_region_px")
+    ap.add_argument("--passes", type=int, default=None,
+                    help="place_edges' passes (default: refine's edge_passes)")
     ap.add_argument("--attached", action="store_true", help="place_edges' attached: no islands, no holes")
     ap.add_argument("--min-fixed-share", type=float, default=None,
                     help="the network runs only on maps the depth fix moved at least this share of the band of "
@@ -375,7 +379,8 @@ def main() -> None:
                            ("heldout", synth_samples(args.heldout, args.pairs) if args.heldout else None)):
         if samples is None:
             continue
-        rows, summary = score(model, samples, opts, thresholds, args.gate, args.min_region, args.attached, margins)
+        rows, summary = score(model, samples, opts, thresholds, args.gate, args.min_region, args.attached, margins,
+                              opts.edge_passes if args.passes is None else args.passes)
         result[split] = {"rows": rows, "summary": summary}
         print(f"{split}: band PSNR dB, mean over renders (gain over the depth fix; worst render)")
         for s in summary:

@@ -32,7 +32,8 @@ from .saved import load_saved
 from .tiles import refine_boxes
 
 __all__ = ["DEFAULT_EDGE_WEIGHTS", "EdgeConfig", "EdgeNet", "candidates", "colour_allows", "colour_features",
-           "edge_features", "load_edge_net", "map_sides", "place_edges", "save_edge_net"]
+           "edge_features", "load_edge_net", "map_sides", "place_edges", "place_edges_once",
+           "save_edge_net"]
 
 DEFAULT_EDGE_WEIGHTS = Path(__file__).parent / "weights" / "edges.safetensors"
 
@@ -156,7 +157,28 @@ def map_sides(disparity: np.ndarray, near: np.ndarray, far: np.ndarray) -> tuple
 def place_edges(model: EdgeNet, focus_srgb: np.ndarray, disparity: np.ndarray, blur: BlurParams,
                 band: np.ndarray, threshold: float = 0.9, keep: np.ndarray | None = None,
                 tile: int = 64, min_region_px: int = 0, attached: bool = False,
-                colour_margin: float | None = None) -> np.ndarray:
+                colour_margin: float | None = None, passes: int = 1) -> np.ndarray:
+    """The map with the network's segmentation applied where the band is open and the network is sure (one
+    :func:`place_edges_once`), then again on the map it made, up to ``passes`` times in all (fewer where a pass moves
+    nothing). Each pass reads the candidates and the sides' colour means of the map the last one made: a misplaced
+    strip contaminates both until it is moved, so a second look finds what the first could not (docs/refiner.md,
+    "Round 11"). The band stays the one given."""
+    if passes < 1:
+        raise ValueError(f"passes must be >= 1, got {passes}")
+    out = disparity
+    for _ in range(passes):
+        moved = place_edges_once(model, focus_srgb, out, blur, band, threshold, keep, tile, min_region_px, attached,
+                                 colour_margin)
+        if moved is out or np.array_equal(moved, out):
+            break
+        out = moved
+    return out
+
+
+def place_edges_once(model: EdgeNet, focus_srgb: np.ndarray, disparity: np.ndarray, blur: BlurParams,
+                     band: np.ndarray, threshold: float = 0.9, keep: np.ndarray | None = None,
+                     tile: int = 64, min_region_px: int = 0, attached: bool = False,
+                     colour_margin: float | None = None) -> np.ndarray:
     """The map with the network's segmentation applied where the band is open and the network is sure: a pixel the
     map puts on the far side takes the near value where the near side's probability is at least ``threshold``, and
     the other way round; ``keep`` marks pixels never moved (clipped lights). Moves in connected regions (8-connected)

@@ -79,6 +79,9 @@ class RefineOptions:
             "Round 10"). 0: whenever the map was found wrong.
         edge_threshold: the edge network moves a pixel across an edge only where it gives the other side at least
             this probability.
+        edge_passes: the edge network runs again on the map it made, up to this many passes in all (fewer where a
+            pass moves nothing): a misplaced strip contaminates the sides' colour means it reads until it is moved
+            (:func:`.edges.place_edges`; docs/refiner.md, "Round 11").
         edge_colour_margin: and only where the pixel's colour is nearer the local mean colour of the side it joins,
             by this much (sRGB; :func:`.edges.colour_allows`); None: no colour veto.
         min_fixed_share: refine changes only a map the depth correction found wrong: where its local passes moved at
@@ -105,6 +108,7 @@ class RefineOptions:
     merge_tiles: bool = True
     edges: bool = True
     edge_threshold: float = 0.7
+    edge_passes: int = 1
     edge_colour_margin: float | None = None
     min_fixed_share: float = 0.01
     edge_min_disagreement: float = 0.04
@@ -117,6 +121,9 @@ class RefineOptions:
             raise InputError("refine: min_jump_px must be > 0 and batch >= 1")
         if not 0.5 <= self.edge_threshold <= 1.0:  # below 0.5 a pixel would be sure of both sides
             raise InputError(f"refine: edge_threshold must be in [0.5, 1], got {self.edge_threshold}")
+        if isinstance(self.edge_passes, bool) or not isinstance(self.edge_passes, int | np.integer) \
+                or not 1 <= self.edge_passes <= 16:
+            raise InputError(f"refine: edge_passes must be an integer in [1, 16], got {self.edge_passes!r}")
         if self.edge_colour_margin is not None and not 0.0 <= self.edge_colour_margin < 2.0:
             raise InputError(f"refine: edge_colour_margin must be None or in [0, 2), got {self.edge_colour_margin}")
         if not 0.0 <= self.edge_min_disagreement <= 1.0:
@@ -444,7 +451,7 @@ def _edge_stage(image, focus_srgb, blur, options, edge_model, lights, c: _Correc
             return c
     model = load_edge_net() if edge_model is None else edge_model
     placed = place_edges(model, focus_srgb, c.disparity, blur, band, options.edge_threshold, keep=lights,
-                         colour_margin=options.edge_colour_margin)
+                         colour_margin=options.edge_colour_margin, passes=options.edge_passes)
     return _Correction(placed, c.changed | (placed != c.disparity), None, c.share, True, c.disagreement, True)
 
 

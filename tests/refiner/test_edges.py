@@ -53,6 +53,28 @@ def _mover(config=SMALL, seed=0) -> EdgeNet:
     return EdgeNet(config).eval()
 
 
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 2**16), threshold=st.floats(0.5, 0.9), passes=st.integers(1, 4), keep_lights=st.booleans())
+def test_passes_apply_the_network_again_to_the_map_it_made_until_nothing_moves(seed, threshold, passes, keep_lights):
+    from bokehray_refiner.edges import place_edges_once
+
+    focus, d, blur = _scene(48, 64, seed)
+    rng = np.random.default_rng(seed)
+    band = (rng.random(d.shape) < 0.6).astype(np.float32)
+    keep = rng.random(d.shape) < 0.2 if keep_lights else None
+    m = _mover(seed=seed % 7)
+    out = place_edges(m, focus, d, blur, band, threshold, keep=keep, tile=16, passes=passes)
+    expect = d
+    for _ in range(passes):
+        expect = place_edges_once(m, focus, expect, blur, band, threshold, keep=keep, tile=16)
+    np.testing.assert_array_equal(out, expect)  # each pass reads the last one's map; a pass that moves nothing ends it
+    changed = out != d
+    assert not (changed & (band <= 0)).any() and (keep is None or not (changed & keep).any())
+    assert set(np.unique(out)) <= set(np.unique(d))  # every value is one the map had: edges move, no new depths
+    with pytest.raises(ValueError, match="passes"):
+        place_edges(m, focus, d, blur, band, threshold, passes=0)
+
+
 def test_the_candidates_are_the_local_extremes_of_the_map_and_the_sides_split_between_them():
     _, d, _blur = _scene()
     near, far = candidates(d, 6)
@@ -262,7 +284,8 @@ def test_a_map_whose_edges_sit_on_the_photos_is_left_to_the_depth_fix():
                                          ("edge_min_disagreement", -0.01), ("edge_min_disagreement", 1.5),
                                          ("edge_min_disagreement", float("nan")),
                                          ("min_fixed_share", -0.01), ("min_fixed_share", 1.5),
-                                         ("min_fixed_share", float("nan"))])
+                                         ("min_fixed_share", float("nan")), ("edge_passes", 0), ("edge_passes", 17),
+                                         ("edge_passes", 1.5), ("edge_passes", True)])
 def test_edge_options_out_of_range_are_refused(field, value):
     from bokehray_refiner.refine import RefineOptions
 
