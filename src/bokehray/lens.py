@@ -217,14 +217,53 @@ class DepthNormalization:
             return np.where(inv > 0, 1.0 / np.maximum(inv, 1e-300), np.inf)
 
 
+DEPTH_RANGE_TOLERANCE = 1e-6
+"""Relative slack of the check that a depth map lies within a given normalisation: a float32 map whose nearest
+value is 1.4 holds 1.39999998, which ``--z-near 1.4`` must accept (the normalisation clips that rounding)."""
+
+
+def check_depth_range(depth_m: np.ndarray, norm: DepthNormalization, source: str,
+                      names: tuple[str, str] = ("z_near", "z_far")) -> None:
+    """Refuse a normalisation narrower than the map's finite depths (> 0): clipping them would render the depths
+    beyond it at the wrong blur, silently. ``names``: what to call the two ends (the CLI's flags)."""
+    z = np.asarray(depth_m, np.float64)
+    finite = z[np.isfinite(z) & (z > 0)]
+    if not finite.size:
+        return
+    lo, hi = float(finite.min()), float(finite.max())
+    if lo < norm.z_near_m * (1.0 - DEPTH_RANGE_TOLERANCE):
+        raise InputError(f"{source}: depth reaches {lo:.4g} m, nearer than {names[0]} {norm.z_near_m:g} m; lower "
+                         f"{names[0]} or leave it out (default: the map's nearest depth)")
+    if hi > norm.z_far_m * (1.0 + DEPTH_RANGE_TOLERANCE):
+        raise InputError(f"{source}: depth reaches {hi:.4g} m, farther than {names[1]} {norm.z_far_m:g} m; raise "
+                         f"{names[1]} (inf allowed) or leave it out (default: the map's farthest depth)")
+
+
+def check_focus_in_range(focus_m: float, norm: DepthNormalization, what: str = "focus_distance_m",
+                         names: tuple[str, str] = ("z_near", "z_far")) -> None:
+    """Refuse a focus distance outside ``norm``'s depth range (disparity [0, 1] cannot place it), saying how to
+    widen the range; ``what`` and ``names``: what to call the distance and the range's ends (the CLI's flags)."""
+    raw = (1.0 / focus_m - 1.0 / norm.z_far_m) / norm.inv_span
+    if 0.0 <= raw <= 1.0:
+        return
+    span = f"the depth range [{norm.z_near_m:g}, {norm.z_far_m:g}] m of the disparity normalisation"
+    if raw < 0.0:
+        raise InputError(f"{what}: {focus_m:g} m lies beyond {span}; widen it with {names[1]} inf (or a "
+                         f"{names[1]} of at least {focus_m:g})")
+    raise InputError(f"{what}: {focus_m:g} m lies nearer than {span}; widen it with a {names[0]} of at most "
+                     f"{focus_m:g}")
+
+
 def disparity_from_depth(depth_m: np.ndarray, norm: DepthNormalization | None = None, *,
-                         source: str = "depth") -> tuple[np.ndarray, DepthNormalization]:
+                         source: str = "depth", names: tuple[str, str] = ("z_near", "z_far"),
+                         ) -> tuple[np.ndarray, DepthNormalization]:
     """Convert a metric depth map to normalised disparity; returns ``(d, norm)``.
 
     The one converter of the API and the CLI. Missing depth, <= 0 (no measurement: depth cameras write 0) and
-    +/-inf (sky), is infinitely far: disparity 0. NaN is refused, and so is a map with no depth at all; messages
-    start with ``source``. Without ``norm`` the map's own nearest and farthest finite depths span [0, 1] (the far
-    end at infinity when any pixel is missing).
+    +/-inf (sky), is infinitely far: disparity 0 (with a finite ``z_far``, the far end of ``norm``). NaN is refused,
+    and so is a map with no depth at all; messages start with ``source``. Without ``norm`` the map's own nearest and
+    farthest finite depths span [0, 1] (the far end at infinity when any pixel is missing); a ``norm`` narrower than
+    the map's finite depths is refused, naming its ends as ``names`` (clipping would blur them wrongly).
     """
     if np.ndim(depth_m) == 2:  # from the shape, before the float64 copy and its temporaries are made
         fits_in_memory(np.shape(depth_m), DEPTH_BYTES_PER_PX, f"{source}: the conversion to disparity")
@@ -241,6 +280,8 @@ def disparity_from_depth(depth_m: np.ndarray, norm: DepthNormalization | None = 
     if norm is not None and not isinstance(norm, DepthNormalization):
         raise InputError(f"{source}: expected a bokehray.DepthNormalization, got {type(norm).__name__}")
     z = np.where(missing, np.inf, z)
+    if norm is not None:
+        check_depth_range(z, norm, source, names)
     if norm is None:
         finite = z[~missing]
         zf = math.inf if missing.any() else float(finite.max())
@@ -293,13 +334,8 @@ class ThinLens:
 
     def blur_params(self, norm: DepthNormalization, width_px: int) -> BlurParams:
         """``(K, d_f)`` for disparities normalised by ``norm`` in an image ``width_px`` wide."""
+        check_focus_in_range(self.focus_distance_m, norm)
         d_f = float(norm.disparity(self.focus_distance_m))
-        raw = (1.0 / self.focus_distance_m - 1.0 / norm.z_far_m) / norm.inv_span
-        if not 0.0 <= raw <= 1.0:
-            raise InputError(
-                f"focus_distance_m: {self.focus_distance_m:g} m lies outside the depth range "
-                f"[{norm.z_near_m:g}, {norm.z_far_m:g}] m of the disparity normalisation"
-            )
         return BlurParams(self.k_abs(width_px) * norm.inv_span, d_f)
 
     @classmethod

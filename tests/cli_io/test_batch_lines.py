@@ -83,6 +83,7 @@ def test_train_refiner_draws_its_bars_only_on_a_terminal(tmp_path, monkeypatch, 
             return tmp_path / "w.safetensors"
 
     monkeypatch.setattr(cli, "_refiner_module", lambda name: _Train)
+    monkeypatch.setattr(cli, "_check_train_args", lambda args: None)  # the bars, not the checks (a fake trainer)
     if terminal:
         monkeypatch.setattr(sys, "stderr", _Terminal())
     assert main(["train-refiner", "--data", str(tmp_path), "--out", str(tmp_path / "run")]) == 0

@@ -175,7 +175,8 @@ def test_resizing_a_map_of_the_other_orientation_is_refused(tmp_path, capsys):
     code = main([str(a) for a in ("render", tmp_path / "phone.jpg", "--disparity", tmp_path / "d.png", "-o",
                                   tmp_path / "o.png", "--resize-disparity", "--blur", 2, "--focus", 0.5)])
     err = capsys.readouterr().err
-    assert code == 2 and "d.png" in err and "aspect ratio" in err and "rotated" in err
+    assert code == 2 and "d.png" in err and "EXIF orientation 6" in err and "turn the map" in err
+    assert "--resize-disparity" not in err  # resizing cannot fix a map in the unturned orientation
     assert not (tmp_path / "o.png").exists()
 
 

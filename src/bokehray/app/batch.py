@@ -168,6 +168,18 @@ def _manifest(path: Path, kind: str) -> dict[str, Path]:
     return out
 
 
+def _check_one_map_file(images: str, mp: Path, files: list[Path], kind: str, suffix: str) -> None:
+    """One map file for a folder or glob of photos pairs with the photo of its name at most: refused up front (the
+    others would each fail in the summary, after the output folder was made)."""
+    if Path(images).is_file() or not mp.is_file():
+        return
+    others = [f for f in files if f.stem + suffix != mp.stem]
+    if others:
+        raise InputError(f"--{kind} {mp}: one map file for the {len(files)} photos of {images}; give a folder or a "
+                         f"glob of maps named after the photos (or a manifest CSV of pairs), or render one photo "
+                         f"with it")
+
+
 def find_pairs(images: str, maps: str, *, kind: str = "disparity", suffix: str = "") -> list[Pair]:  # noqa: C901
     """The photos named by ``images`` and their maps from ``maps`` (module docstring: the pairing rule)."""
     mp = Path(maps)
@@ -198,6 +210,7 @@ def find_pairs(images: str, maps: str, *, kind: str = "disparity", suffix: str =
         if shared:
             raise InputError(f"{maps}: the maps are among the images ({shared[0]}); name them with a suffix and "
                              "pass --map-suffix (e.g. IMG_01.jpg and IMG_01_disp.png with --map-suffix _disp)")
+    _check_one_map_file(images, mp, files, kind, suffix)
     pairs = []
     for f in files:
         cands = [m for m in by_stem.get(f.stem + suffix, []) if m.resolve() != f.resolve()]

@@ -398,8 +398,28 @@ def _refiner_module(name: str):
         raise InputError(f"the neural refiner needs its extra: pip install 'bokehray[refiner]' ({e})") from None
 
 
+def _check_train_args(args: argparse.Namespace) -> None:
+    """The counts, the crop and the training folder, each named with its flag and value, before the run folder
+    (--out) is made: a refused run leaves nothing behind."""
+    from ..data.datasets import BLBDataset
+
+    for flag, value in (("--steps", args.steps), ("--batch", args.batch), ("--checkpoint-every", args.checkpoint_every),
+                        ("--variants", args.variants)):
+        if value < 1:
+            raise InputError(f"{flag}: expected >= 1, got {value}")
+    factor = _refiner_module("model").RefinerConfig().latent_factor
+    if args.crop < factor or args.crop % factor:
+        raise InputError(f"--crop: expected a positive multiple of {factor} (the refiner's latent grid), got "
+                         f"{args.crop}")
+    try:
+        BLBDataset(args.data)
+    except InputError as e:
+        raise InputError(f"--data {args.data}: expected a BLB-layout training folder (from bokehray synth): {e}") from None
+
+
 def cmd_train_refiner(args: argparse.Namespace) -> int:
     train = _refiner_module("train")
+    _check_train_args(args)
     start_warp(args)
     if args.threads is not None:
         if args.threads < 1:

@@ -192,9 +192,9 @@ def _disparity_path(output: str) -> Path:
 
 def _read_map(args: argparse.Namespace, h: int, w: int, image: np.ndarray | None = None, stage=None):  # noqa: C901
     """The disparity map by the conventions the flags state; ``(d, DepthNormalization or None)``."""
-    from ..lens import DepthNormalization, disparity_from_depth
+    from ..lens import DepthNormalization, check_focus_in_range, disparity_from_depth
     from ..output.write import write_disparity
-    from ..photo.depth import NORMALIZE_PERCENTILES, looks_reversed, missing_depth_share, normalize_relative, read_depth
+    from ..photo.depth import looks_reversed, missing_depth_share, normalize_bounds, normalize_relative, read_depth
     from ..photo.read import read_disparity
 
     norm = None
@@ -218,7 +218,9 @@ def _read_map(args: argparse.Namespace, h: int, w: int, image: np.ndarray | None
             zf = args.z_far if args.z_far is not None else float(finite.max()) if finite.size else np.inf
             norm = DepthNormalization(zn, zf)
         # resize after the conversion: disparity interpolates where depth cannot (inf for sky)
-        disparity, norm = disparity_from_depth(depth, norm, source=args.depth)
+        disparity, norm = disparity_from_depth(depth, norm, source=args.depth, names=("--z-near", "--z-far"))
+        if getattr(args, "focus_distance", None) is not None:  # refused before any line is printed
+            check_focus_in_range(args.focus_distance, norm, "--focus-distance", ("--z-near", "--z-far"))
         finite = depth[np.isfinite(depth) & (depth > 0)]
         if finite.size:
             _say(args, f"depth: read {args.depth}: {float(finite.min()):.3g} .. {float(finite.max()):.3g} m (nearest .. "
@@ -233,8 +235,8 @@ def _read_map(args: argparse.Namespace, h: int, w: int, image: np.ndarray | None
         raw = read_disparity(source)
         if args.normalize:
             disparity = normalize_relative(raw, invert=args.invert, source=source)
-            lo, hi = np.percentile(raw, NORMALIZE_PERCENTILES)
-            _say(args, f"disparity: {source} normalised from [{lo:.4g}, {hi:.4g}] (0.5th..99.5th percentiles) "
+            lo, hi, how = normalize_bounds(raw, source)
+            _say(args, f"disparity: {source} normalised from [{lo:.4g}, {hi:.4g}] ({how}) "
                  f"to [0, 1]{', inverted' if args.invert else ''}")
         else:
             if raw.size and (raw.min() < 0.0 or raw.max() > 1.0):
@@ -256,11 +258,7 @@ def _read_map(args: argparse.Namespace, h: int, w: int, image: np.ndarray | None
     _say_embedded(args, source)
     if disparity.shape != (h, w):
         mh, mw = disparity.shape
-        if not args.resize_disparity:
-            raise InputError(f"{source}: map is {mw}x{mh}, image is {w}x{h}; pass --resize-disparity to resize it")
-        if abs(math.log((mw / mh) / (w / h))) > 0.02:
-            raise InputError(f"{source}: map is {mw}x{mh}, image is {w}x{h}: a different aspect ratio, so resizing "
-                             "would stretch it (was one of them rotated? the image's EXIF orientation is applied)")
+        _check_map_size(args, source, (mh, mw), (h, w))
         disparity = _resize(disparity, (h, w))
     return np.ascontiguousarray(disparity, np.float32), norm
 
@@ -271,7 +269,7 @@ def read_map(image: np.ndarray, *, disparity: str | None = None, depth: str | No
     the others): ``(d, DepthNormalization or None)``. Used by ``bokehray view``."""
     if sum(v is not None for v in (disparity, depth, depth_model)) != 1:
         raise InputError("give exactly one of --disparity D, --depth D or --depth-model DIR")
-    args = argparse.Namespace(disparity=disparity, depth=depth, depth_model=depth_model, depth_scale=None,
+    args = argparse.Namespace(image=None, disparity=disparity, depth=depth, depth_model=depth_model, depth_scale=None,
                               normalize=False, invert=False, z_near=None, z_far=None, resize_disparity=resize_disparity,
                               save_depth=False, output="", device=device, quiet=True)
     return _read_map(args, image.shape[0], image.shape[1], image)
@@ -293,6 +291,36 @@ def _say_embedded(args: argparse.Namespace, path: str):
     return meta
 
 
+def _turned_by_exif(path: str) -> int | None:
+    """The EXIF orientation (5 to 8) that turns the photo a quarter as it is read, else None."""
+    from ..formats import FORMATS
+    from ..photo.embedded import embedded
+
+    orientation = embedded(Path(path), FORMATS.get(Path(path).suffix.lower(), "")).orientation
+    return orientation if orientation in (5, 6, 7, 8) else None
+
+
+def _check_map_size(args: argparse.Namespace, source: str, map_hw: tuple[int, int], hw: tuple[int, int]) -> None:
+    """A map of another size than the photo (as read: EXIF orientation applied) is resized only when asked, and
+    only at the same aspect ratio; a map in the stored orientation of a photo its EXIF turns a quarter is named as
+    that, since resizing cannot fix it."""
+    from ..photo.embedded import orientation_words
+
+    (mh, mw), (h, w) = map_hw, hw
+    sizes = f"{source}: map is {mw}x{mh}, image is {w}x{h}"
+    image = getattr(args, "image", None)  # bokehray view reads a map without the photo's path
+    turned = _turned_by_exif(image) if image is not None and (mh, mw) != (h, w) else None
+    if turned is not None and abs(math.log((mw / mh) / (h / w))) <= 0.02:
+        raise InputError(f"{sizes} as displayed: the image's EXIF orientation {turned} "
+                         f"({orientation_words(turned)}) is applied when it is read, and the map matches the image "
+                         "as stored, unturned; turn the map the same way (or save the photo without its EXIF "
+                         "orientation)")
+    if not args.resize_disparity:
+        raise InputError(f"{sizes}; pass --resize-disparity to resize it")
+    if abs(math.log((mw / mh) / (w / h))) > 0.02:
+        raise InputError(f"{sizes}: a different aspect ratio, so resizing would stretch it")
+
+
 def _check_sizes_from_headers(args: argparse.Namespace) -> None:
     """Refuse an image and map of different sizes from their headers, before decoding either (a 64 MP PNG takes
     seconds to decode); the readers still check each file in full afterwards."""
@@ -303,7 +331,7 @@ def _check_sizes_from_headers(args: argparse.Namespace) -> None:
         return
     (h, w), (mh, mw) = read_size(args.image), read_size(source)
     if (mh, mw) != (h, w):
-        raise InputError(f"{source}: map is {mw}x{mh}, image is {w}x{h}; pass --resize-disparity to resize it")
+        _check_map_size(args, source, (mh, mw), (h, w))
 
 
 def render_one(args: argparse.Namespace) -> dict:
@@ -329,6 +357,19 @@ def max_coc_px(blur, disparity: np.ndarray) -> float:
     return float(blur.coc_radius(np.array([disparity.min(), disparity.max()])).max())
 
 
+def _alpha_for_output(args: argparse.Namespace, image: np.ndarray) -> np.ndarray:
+    """A photo with alpha rendered into a JPEG, which stores none: an alpha of 1 everywhere (an RGBA PNG saved
+    opaque) says nothing, so it is dropped; real transparency is refused now, not after the render."""
+    from ..formats import FORMATS
+
+    if image.shape[2] != 4 or FORMATS.get(Path(args.output).suffix.lower()) != "JPEG":
+        return image
+    if (image[..., 3] == 1.0).all():
+        return np.ascontiguousarray(image[..., :3])
+    raise InputError(f"{args.image}: has transparent pixels (alpha below 1), which a JPEG output ({args.output}) "
+                     "cannot store; write .png, .tif or .exr, or flatten the photo first")
+
+
 def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:  # noqa: C901
     from ..lens import BlurParams, ThinLens
     from ..output.write import write_image
@@ -340,7 +381,7 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:  
 
     t0 = time.perf_counter()
     bar.stage("read")
-    image = read_image(args.image)
+    image = _alpha_for_output(args, read_image(args.image))
     check_radiance(image, str(args.image))  # the limit every level has, with the file named
     h, w = image.shape[:2]
     meta = _say_embedded(args, args.image)
@@ -361,9 +402,9 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:  
         if focus_m is None:
             raise InputError("a physical lens needs --focus-distance or --focus-at X,Y")
         lens = ThinLens(args.focal_length, args.f_number, focus_m, args.sensor_width)
+        blur = lens.blur_params(norm, w)
         _say(args, f"focus: at {focus_m:.3g} m ({'--focus-at' if args.focus_at is not None else '--focus-distance'}); "
              f"{args.focal_length:g} mm f/{args.f_number:g}")
-        blur = lens.blur_params(norm, w)
     else:
         if args.blur is not None:
             k = args.blur

@@ -23,7 +23,7 @@ from ..formats import first_index, format_of
 from ..validate import check_path
 
 __all__ = ["BORDER_NEAR", "NORMALIZE_PERCENTILES", "REVERSED_MARGIN", "looks_reversed", "missing_depth_share",
-           "normalize_relative", "read_depth", "subsample"]
+           "normalize_bounds", "normalize_relative", "read_depth", "subsample"]
 
 NORMALIZE_PERCENTILES = (0.5, 99.5)
 """The robust min and max of ``--normalize``, in percent."""
@@ -69,6 +69,23 @@ def looks_reversed(disparity: np.ndarray) -> tuple[bool, str]:
     return False, ""
 
 
+def normalize_bounds(values: np.ndarray, source: str = "disparity") -> tuple[float, float, str]:
+    """The values :func:`normalize_relative` maps to 0 and 1, and how they were found: the 0.5th and 99.5th
+    percentiles, or the min and max where those two are equal (a map mostly at one value). Non-finite values and a
+    constant map are refused."""
+    v = np.asarray(values, np.float64)
+    if not np.isfinite(v).all():
+        raise InputError(f"{source}: --normalize needs finite values; NaN or Inf found")
+    lo, hi = (float(x) for x in np.percentile(v, NORMALIZE_PERCENTILES))
+    how = f"{NORMALIZE_PERCENTILES[0]:g}th..{NORMALIZE_PERCENTILES[1]:g}th percentiles"
+    if not hi > lo:
+        lo, hi = float(v.min()), float(v.max())
+        how = "min..max: the percentiles are equal"
+    if not hi > lo:
+        raise InputError(f"{source}: the map is constant ({lo:g}): nothing to normalise, every pixel is at one depth")
+    return lo, hi, how
+
+
 def normalize_relative(values: np.ndarray, *, invert: bool = False, source: str = "disparity") -> np.ndarray:
     """A relative map of any range (e.g. a monocular model's inverse depth) to disparity in [0, 1].
 
@@ -76,13 +93,7 @@ def normalize_relative(values: np.ndarray, *, invert: bool = False, source: str 
     do not squash the rest; ``invert`` flips it for near-is-dark maps. Non-finite values are refused.
     """
     v = np.asarray(values, np.float64)
-    if not np.isfinite(v).all():
-        raise InputError(f"{source}: --normalize needs finite values; NaN or Inf found")
-    lo, hi = np.percentile(v, NORMALIZE_PERCENTILES)
-    if not hi > lo:
-        lo, hi = float(v.min()), float(v.max())
-    if not hi > lo:
-        raise InputError(f"{source}: the map is constant ({lo:g}): nothing to normalise, every pixel is at one depth")
+    lo, hi, _ = normalize_bounds(v, source)
     d = np.clip((v - lo) / (hi - lo), 0.0, 1.0)
     return (1.0 - d if invert else d).astype(np.float32)
 
@@ -98,7 +109,8 @@ def missing_depth_share(depth_m: np.ndarray) -> float:
 def read_depth(path: str | os.PathLike[str], *, scale: float | None = None) -> np.ndarray:
     """Read a metric depth map in metres (float64 ``H x W``), the one depth reader of the CLI and the API.
 
-    Float EXR (channel ``Z``, ``Y`` or ``R``, else the only channel), float TIFF and float ``.npy`` hold metres
+    Float EXR (channel ``Z``, the standard depth channel, whatever other channels the file holds; without ``Z``
+    its only channel, or several only if they are all equal), float TIFF and float ``.npy`` hold metres
     (times ``scale`` if given). Integer maps (16-bit PNG or TIFF from depth cameras and phones, integer NPY) hold
     codes and need ``scale``: metres per code, e.g. 0.001 for millimetres. Missing depth (0, negative, +/-inf) is
     kept (-inf as +inf): ``bokehray.lens.disparity_from_depth`` renders it infinitely far. NaN is refused, naming
@@ -112,7 +124,7 @@ def read_depth(path: str | os.PathLike[str], *, scale: float | None = None) -> n
                               or not (math.isfinite(scale) and scale > 0)):
         raise InputError(f"--depth-scale: expected metres per code > 0 (0.001 for millimetres), got {scale!r}")
     p, fmt = format_of(p, ("PNG", "TIFF", "EXR", "NPY"), "depth")
-    a = single_channel(p, load_samples(p, fmt, (("Z",), ("Y",), ("R",))), fmt, "depth")
+    a = single_channel(p, load_samples(p, fmt, (("Z",),), map_of="depth"), fmt, "depth")
     if a.dtype.kind in "iu":
         if scale is None:
             raise InputError(f"{p}: holds integer codes ({a.dtype}), not metres: give --depth-scale, metres per "

@@ -196,7 +196,7 @@ def _exr_windows(path: Path) -> tuple[tuple[int, int, int, int], tuple[int, int,
                 if display is not None:
                     (x0, y0), (x1, y1) = display
                     display = int(x0), int(y0), int(x1), int(y1)
-        except Exception as exc:  # noqa: BLE001 - as in _load_exr
+        except Exception as exc:  # noqa: BLE001 - as in _exr_channels
             failure = exc
     if failure is not None or said:
         why = (said[0] if said else str(failure)).removeprefix(f"{path}: ")
@@ -225,7 +225,40 @@ def _exr_size(path: Path, *, check: bool = False) -> tuple[int, int]:
     return h, w
 
 
-def _load_exr(path: Path, choices: tuple[tuple[str, ...], ...]) -> np.ndarray:
+_EXR_NOT_RGB = (({"RY", "BY"}, "luminance/chroma channels (Y, RY, BY)"), ({"X", "Y", "Z"}, "CIE X, Y, Z channels"))
+"""Channel sets of EXR colour that is not RGB: their Y is only the luminance, so reading it as a grey image would
+drop the colour silently."""
+
+
+def _exr_map_channel(path: Path, chans: dict[str, np.ndarray], preferred: tuple[tuple[str, ...], ...],
+                     what: str) -> str:
+    """The channel a disparity or depth map is read from: the first ``preferred`` one the file holds (depth: ``Z``,
+    the standard depth channel, whatever else is there), else its only channel, or any of its channels when they
+    are all equal. Channels that differ are refused, named: taking the first would be a guess."""
+    for (name,) in preferred:
+        if name in chans:
+            return name
+    names = sorted(chans)
+    first = chans[names[0]]
+    if any(chans[n].shape != first.shape or not np.array_equal(chans[n], first) for n in names[1:]):
+        hint = f" (or name the map's channel {preferred[0][0]})" if preferred else ""
+        raise InputError(f"{path}: expected a single-channel {what} map, got {len(names)} EXR channels "
+                         f"({','.join(names)}) that differ; save the map as one channel{hint}")
+    return names[0]
+
+
+def _check_exr_colour(path: Path, chans: dict[str, np.ndarray], picked: tuple[str, ...]) -> None:
+    if picked[0] != "Y":
+        return
+    for needs, words in _EXR_NOT_RGB:
+        if needs <= set(chans):
+            raise InputError(f"{path}: holds {words}, not R, G, B; bokehray reads RGB or greyscale EXR images, and "
+                             "its Y alone would render the photo as grey: convert it to an RGB EXR first")
+
+
+def _exr_channels(path: Path) -> dict[str, np.ndarray]:
+    """Every channel of the EXR's first part by name (packed ones split), after its size and windows are checked;
+    a file the binding cannot read, or warns about, is an InputError naming it."""
     _exr_size(path, check=True)  # the magic number, the windows, the size
     chans: dict[str, np.ndarray] = {}
     failure = None
@@ -246,15 +279,26 @@ def _load_exr(path: Path, choices: tuple[tuple[str, ...], ...]) -> np.ndarray:
     if failure is not None or said:
         why = (said[0] if said else str(failure)).removeprefix(f"{path}: ")
         raise InputError(f"cannot read {path} as EXR: file is truncated or corrupt ({why})")
+    return chans
+
+
+def _load_exr(path: Path, choices: tuple[tuple[str, ...], ...], map_of: str | None = None) -> np.ndarray:
+    """The file's channels in ``choices`` (the first set it holds all of), or for a map (``map_of``: what it is)
+    its one channel (:func:`_exr_map_channel`, ``choices`` the channels preferred)."""
+    chans = _exr_channels(path)
     only = tuple(chans) if len(chans) == 1 else None
+    wanted = " or ".join(",".join(c) for c in choices) or "one channel of values"
     if only is not None and (only[0] == "A" or only[0].endswith(".A")):
         # coverage, not values: reading it as grey would turn a matte into a disparity map or an image
         raise InputError(f"{path}: holds only the alpha channel {only[0]!r} (coverage, not values); expected EXR "
-                         f"channels {' or '.join(','.join(c) for c in choices)}")
-    picked = next((c for c in choices if all(n in chans for n in c)), only)
+                         f"channels {wanted}")
+    if map_of is not None and chans:
+        picked = (_exr_map_channel(path, chans, choices, map_of),)
+    else:
+        picked = next((c for c in choices if all(n in chans for n in c)), only)
     if picked is None:
-        wanted = " or ".join(",".join(c) for c in choices)
         raise InputError(f"{path}: expected EXR channels {wanted}, got {','.join(sorted(chans))}")
+    _check_exr_colour(path, chans, picked)
     for n in picked:
         if chans[n].dtype.kind != "f" or chans[n].shape != chans[picked[0]].shape:
             raise InputError(f"{path}: expected full-resolution HALF or FLOAT channels, got {n!r} {chans[n].dtype}")
@@ -292,8 +336,9 @@ def _load_npy(path: Path, *, size_only: bool = False):
 
 
 def load_samples(path: Path, fmt: str, exr_channels: tuple[tuple[str, ...], ...], *,
-                 with_bits: bool = False) -> np.ndarray | tuple[np.ndarray, int]:
-    """Decode ``path`` to its stored samples: H x W or H x W x C, integer codes or floats.
+                 with_bits: bool = False, map_of: str | None = None) -> np.ndarray | tuple[np.ndarray, int]:
+    """Decode ``path`` to its stored samples: H x W or H x W x C, integer codes or floats. ``map_of`` (``"depth"``,
+    ``"disparity"``): an EXR is a map, read from one channel (``exr_channels``: the ones preferred).
 
     With ``with_bits``, ``(samples, bits)``: their bit depth as the file declares it, the dtype's except for TIFFs
     of other depths, which decode into the next wider dtype (12-bit: uint16 codes up to 4095; 4-bit: uint8 up to
@@ -307,7 +352,7 @@ def load_samples(path: Path, fmt: str, exr_channels: tuple[tuple[str, ...], ...]
         elif fmt == "TIFF":
             a, bits = _load_tiff(path)
         elif fmt == "EXR":
-            a = _load_exr(path, exr_channels)
+            a = _load_exr(path, exr_channels, map_of)
         else:
             a = _load_npy(path)
     if fmt in ("PNG", "JPEG", "TIFF") and a.ndim in (2, 3):
@@ -393,8 +438,8 @@ def read_image(path: str | os.PathLike[str]) -> np.ndarray:
 
     PNG, JPEG and TIFF (8- or 16-bit integer; TIFF also 2 to 15 bits, scaled by its
     own largest code) are scaled to [0, 1] and decoded from sRGB; float TIFF and
-    OpenEXR (HALF or FLOAT; channels ``R,G,B[,A]`` or ``Y[,A]``; the data window must
-    be the display window) are linear already. Grey images are expanded to three
+    OpenEXR (HALF or FLOAT; channels ``R,G,B[,A]`` or ``Y[,A]``, but not luminance/chroma
+    ``Y,RY,BY`` or CIE ``X,Y,Z``; the data window must be the display window) are linear already. Grey images are expanded to three
     channels.
 
     Args:
@@ -442,8 +487,8 @@ def read_disparity(path: str | os.PathLike[str], *, check_range: bool = False) -
 
     PNG and integer TIFF codes are divided by their largest code (255, 65535; a TIFF of
     another bit depth by its own, 4095 for 12 bits) with
-    no sRGB decoding; float TIFF and OpenEXR (channel ``Y``, else ``R``, else the only
-    channel) are taken as they are; ``.npy`` holds a 2-D (or ``H x W x 1``) float or
+    no sRGB decoding; float TIFF and OpenEXR (its only channel, of any name, or several
+    channels only if they are all equal) are taken as they are; ``.npy`` holds a 2-D (or ``H x W x 1``) float or
     integer array of the values themselves. A three-channel PNG/TIFF is accepted
     only if its channels are equal. Values are range-checked only with
     ``check_range=True`` (the renderer checks them anyway; the reader's message
@@ -455,7 +500,7 @@ def read_disparity(path: str | os.PathLike[str], *, check_range: bool = False) -
     """
     check_path(path)
     p, fmt = format_of(path, ("PNG", "TIFF", "EXR", "NPY"), "disparity")
-    a, bits = load_samples(p, fmt, (("Y",), ("R",)), with_bits=True)
+    a, bits = load_samples(p, fmt, (), with_bits=True, map_of="disparity")
     a = single_channel(p, a, fmt, "disparity")
     if a.dtype.kind == "u" and fmt != "NPY":  # uint8 / uint16 over a float32 is float32 already: no second copy
         return (a / np.float32((1 << bits) - 1)).astype(np.float32, copy=False)  # a 12-bit TIFF's white: 4095

@@ -1,0 +1,248 @@
+"""An adversarial pass over depth ranges, map channels and early refusals (docs/robustness.md, "Reliability: depth
+ranges, map channels, early refusals"): each case is refused in one line naming the file and the flag, before any
+output or folder is made, or handled as documented there."""
+
+from __future__ import annotations
+
+import numpy as np
+import OpenEXR
+import pytest
+from PIL import Image
+
+import bokehray as br
+from bokehray.app.cli import main
+
+
+def run(capsys, *args):
+    code = main([str(a) for a in args])
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def _one_line(err: str) -> str:
+    lines = err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("bokehray: error: "), err
+    return lines[0]
+
+
+def _write_exr(path, channels: dict[str, np.ndarray]):
+    channels = {k: np.ascontiguousarray(v, np.float32) for k, v in channels.items()}
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, channels) as f:
+        f.write(str(path))
+    return path
+
+
+@pytest.fixture
+def photo(tmp_path):
+    rng = np.random.default_rng(5)
+    img = (rng.random((24, 32, 3)) * 0.8).astype(np.float32)
+    z = np.tile(np.linspace(1.0, 10.0, 32), (24, 1))  # metres: 1 .. 10
+    np.save(tmp_path / "z.npy", z)
+    return br.write_image(tmp_path / "p.png", img), tmp_path / "z.npy", z
+
+
+LENS = ("--focal-length", 50, "--f-number", 1.4)
+
+
+# --------------------------------------------------------------------------- 1. --z-near / --z-far
+
+
+@pytest.mark.parametrize("flags,said", [
+    (("--z-near", 1.4), "depth reaches 1 m, nearer than --z-near 1.4 m; lower --z-near or leave it out"),
+    (("--z-far", 5), "depth reaches 10 m, farther than --z-far 5 m; raise --z-far (inf allowed) or leave it out"),
+])
+def test_a_normalisation_narrower_than_the_depth_map_is_refused(photo, tmp_path, capsys, flags, said):
+    """--z-near 1.4 on a 1..10 m map clipped the 1..1.4 m pixels to 1.4 m (rendered 7x too sharp), exit 0."""
+    p, z, _ = photo
+    code, out, err = run(capsys, "render", p, "--depth", z, "-o", tmp_path / "o.png", *LENS,
+                         "--focus-distance", 1.5, *flags)
+    assert code == 2 and out == ""
+    assert f"{z}: {said}" in _one_line(err)
+    assert not (tmp_path / "o.png").exists()
+
+
+def test_a_normalisation_as_wide_as_the_map_or_wider_is_taken(photo, tmp_path, capsys):
+    p, z, _ = photo
+    for flags in (("--z-near", 0.5, "--z-far", "inf"), ("--z-near", 1, "--z-far", 10)):
+        code, _, err = run(capsys, "render", p, "--depth", z, "-o", tmp_path / "o.png", *LENS, "--focus-distance", 2,
+                           *flags)
+        assert code == 0, err
+    # a float32 map's 1.4 is 1.39999998: --z-near 1.4 must take it
+    d, _ = br.disparity_from_depth(np.float32([[1.4, 3.0]]), br.DepthNormalization(1.4, 3.0))
+    assert d.tolist() == [[1.0, 0.0]]
+
+
+def test_the_api_refuses_a_normalisation_narrower_than_the_map(photo):
+    _, _, z = photo
+    with pytest.raises(br.InputError, match=r"z\.npy: depth reaches 1 m, nearer than z_near 1\.4 m"):
+        br.disparity_from_depth(z, br.DepthNormalization(1.4, 10.0), source="z.npy")
+    with pytest.raises(br.InputError, match=r"depth reaches 10 m, farther than z_far 5 m"):
+        br.disparity_from_depth(z, br.DepthNormalization(1.0, 5.0))
+    # no depth (0, inf) is infinitely far: the far end, whatever z_far is
+    d, _ = br.disparity_from_depth(np.array([[0.0, 1.0, np.inf, 5.0]]), br.DepthNormalization(1.0, 5.0))
+    assert d.tolist() == [[0.0, 1.0, 0.0, 0.0]]
+
+
+# --------------------------------------------------------------------------- 2. multi-channel EXR maps
+
+
+def test_an_exr_map_of_channels_that_differ_is_refused_naming_them(tmp_path, capsys):
+    """dRGB_diff.exr (R = d, G = 1 - d) rendered from its R channel, silently."""
+    d = np.tile(np.linspace(0, 1, 32, dtype=np.float32), (24, 1))
+    diff = _write_exr(tmp_path / "diff.exr", {"R": d, "G": 1 - d, "B": d})
+    for read, what in ((br.read_disparity, "disparity"), (br.read_depth, "depth")):
+        with pytest.raises(br.InputError, match=rf"diff\.exr: expected a single-channel {what} map, got 3 EXR "
+                                                r"channels \(B,G,R\) that differ"):
+            read(diff)
+    p = br.write_image(tmp_path / "p.png", np.full((24, 32, 3), 0.5, np.float32))
+    code, out, err = run(capsys, "render", p, "--disparity", diff, "-o", tmp_path / "o.png", "--blur", 4, "--focus", 0.5)
+    assert code == 2 and out == "" and "got 3 EXR channels (B,G,R) that differ" in _one_line(err)
+    # equal channels are one map; a lone channel of any name is the map
+    same = _write_exr(tmp_path / "same.exr", {"R": d, "G": d, "B": d})
+    np.testing.assert_array_equal(br.read_disparity(same), d)
+    np.testing.assert_array_equal(br.read_disparity(_write_exr(tmp_path / "foo.exr", {"foo": d})), d)
+
+
+def test_an_exr_depth_map_is_read_from_its_z_channel_whatever_else_it_holds(tmp_path):
+    rgb = np.random.default_rng(1).random((3, 24, 32)).astype(np.float32)
+    z = np.tile(np.linspace(1, 10, 32, dtype=np.float32), (24, 1))
+    f = _write_exr(tmp_path / "rgbaz.exr", {"R": rgb[0], "G": rgb[1], "B": rgb[2], "A": np.ones_like(z), "Z": z})
+    np.testing.assert_array_equal(br.read_depth(f), z)
+    with pytest.raises(br.InputError, match=r"got 5 EXR channels \(A,B,G,R,Z\) that differ"):
+        br.read_disparity(f)  # a disparity map has no standard channel
+
+
+# --------------------------------------------------------------------------- 3. EXR colour that is not RGB
+
+
+@pytest.mark.parametrize("names,words", [
+    (("Y", "RY", "BY"), r"luminance/chroma channels \(Y, RY, BY\)"),
+    (("X", "Y", "Z"), "CIE X, Y, Z channels"),
+])
+def test_an_exr_photo_of_luminance_chroma_or_xyz_is_refused(tmp_path, capsys, names, words):
+    """Read as the grey of its Y channel: a colour photo rendered grey, exit 0."""
+    a = np.random.default_rng(2).random((3, 24, 32)).astype(np.float32)
+    f = _write_exr(tmp_path / "c.exr", dict(zip(names, a)))
+    with pytest.raises(br.InputError, match=rf"c\.exr: holds {words}, not R, G, B"):
+        br.read_image(f)
+    d = br.write_disparity(tmp_path / "d.png", np.full((24, 32), 0.5, np.float32))
+    code, out, err = run(capsys, "render", f, "--disparity", d, "-o", tmp_path / "o.exr", "--blur", 4, "--focus", 0.5)
+    assert code == 2 and out == "" and "not R, G, B" in _one_line(err)
+    assert br.read_image(_write_exr(tmp_path / "ya.exr", {"Y": a[0], "A": np.ones_like(a[0])})).shape == (24, 32, 4)
+
+
+# --------------------------------------------------------------------------- 4. --focus-distance beyond the range
+
+
+def test_a_focus_distance_beyond_the_depth_range_names_the_flag_and_the_way_out(photo, tmp_path, capsys):
+    p, z, _ = photo
+    code, out, err = run(capsys, "render", p, "--depth", z, "-o", tmp_path / "o.png", *LENS, "--focus-distance", 100)
+    line = _one_line(err)
+    assert code == 2 and out == "", out  # no "depth:" or "focus:" line before the refusal
+    assert "--focus-distance: 100 m lies beyond the depth range [1, 10] m" in line and "--z-far inf" in line
+    code, out, err = run(capsys, "render", p, "--depth", z, "-o", tmp_path / "o.png", *LENS, "--focus-distance", 0.5)
+    assert code == 2 and out == "" and "a --z-near of at most 0.5" in _one_line(err)
+    code, _, err = run(capsys, "render", p, "--depth", z, "-o", tmp_path / "o.png", *LENS, "--focus-distance", 100,
+                       "--z-far", "inf")
+    assert code == 0, err
+    with pytest.raises(br.InputError, match="focus_distance_m: 100 m lies beyond .* z_far inf"):
+        br.ThinLens(50, 1.4, 100).blur_params(br.DepthNormalization(1, 10), 100)
+
+
+# --------------------------------------------------------------------------- 5. alpha and a JPEG output
+
+
+def test_a_transparent_photo_into_a_jpeg_is_refused_before_the_render(tmp_path, capsys, monkeypatch):
+    """Refused by the writer, after the whole render ("expected an image without alpha for JPEG")."""
+    import bokehray.pipeline as pipeline
+
+    rgba = np.full((24, 32, 4), 200, np.uint8)
+    rgba[0, 0, 3] = 10
+    Image.fromarray(rgba).save(tmp_path / "t.png")
+    d = br.write_disparity(tmp_path / "d.png", np.full((24, 32), 0.5, np.float32))
+    monkeypatch.setattr(pipeline, "render_handed_over", lambda *a, **k: pytest.fail("rendered before refusing"))
+    code, out, err = run(capsys, "render", tmp_path / "t.png", "--disparity", d, "-o", tmp_path / "o.jpg",
+                         "--blur", 4, "--focus", 0.5)
+    assert code == 2 and out == ""
+    assert f"{tmp_path / 't.png'}: has transparent pixels (alpha below 1)" in _one_line(err)
+    assert not (tmp_path / "o.jpg").exists()
+
+
+def test_an_opaque_alpha_is_dropped_for_a_jpeg(tmp_path, capsys):
+    rgba = np.full((24, 32, 4), 255, np.uint8)
+    rgba[..., :3] = np.random.default_rng(4).integers(0, 256, (24, 32, 3))
+    Image.fromarray(rgba).save(tmp_path / "o4.png")
+    Image.fromarray(np.stack([rgba[..., 0], rgba[..., 3]], -1)).save(tmp_path / "la.png")
+    d = br.write_disparity(tmp_path / "d.png", np.full((24, 32), 0.5, np.float32))
+    for name in ("o4.png", "la.png"):
+        code, _, err = run(capsys, "render", tmp_path / name, "--disparity", d, "-o", tmp_path / f"{name}.jpg",
+                           "--blur", 4, "--focus", 0.5)
+        assert code == 0, err
+        assert br.read_image(tmp_path / f"{name}.jpg").shape == (24, 32, 3)
+
+
+# --------------------------------------------------------------------------- 6. train-refiner's arguments
+
+
+@pytest.mark.parametrize("args,said", [
+    (("--data", "nope"), "--data nope: expected a BLB-layout training folder"),
+    (("--data", "{empty}"), "no BLB scenes under"),
+    (("--data", "{empty}", "--crop", 60), "--crop: expected a positive multiple of 8 (the refiner's latent grid), got 60"),
+    (("--data", "{empty}", "--steps", -1), "--steps: expected >= 1, got -1"),
+])
+def test_train_refiner_refuses_before_making_its_folder(tmp_path, capsys, args, said):
+    """--data nope left an empty --out folder; --crop 60 / --steps -1 named neither flag nor value."""
+    pytest.importorskip("torch")
+    (tmp_path / "empty").mkdir()
+    args = [str(a).format(empty=tmp_path / "empty") for a in args]
+    code, _, err = run(capsys, "train-refiner", *args, "--out", tmp_path / "run")
+    assert code == 2 and said in _one_line(err)
+    assert not (tmp_path / "run").exists()
+
+
+# --------------------------------------------------------------------------- 7. EXIF-turned photo, stored map
+
+
+@pytest.mark.parametrize("resize", [(), ("--resize-disparity",)])
+def test_a_map_of_an_exif_turned_photo_is_named_as_that(tmp_path, capsys, resize):
+    """The advice was --resize-disparity, which then refused for the aspect ratio."""
+    im = Image.fromarray(np.full((24, 32, 3), 128, np.uint8))
+    exif = im.getexif()
+    exif[0x0112] = 6
+    im.save(tmp_path / "rot6.jpg", exif=exif)
+    d = br.write_disparity(tmp_path / "d.png", np.full((24, 32), 0.5, np.float32))  # the stored 32 x 24
+    code, _, err = run(capsys, "render", tmp_path / "rot6.jpg", "--disparity", d, "-o", tmp_path / "o.png",
+                         "--blur", 4, "--focus", 0.5, *resize)
+    line = _one_line(err)
+    assert code == 2 and "map is 32x24, image is 24x32 as displayed" in line
+    assert "EXIF orientation 6" in line and "--resize-disparity" not in line
+
+
+# --------------------------------------------------------------------------- 8. --normalize says what it used
+
+
+def test_normalize_says_the_bounds_it_used(tmp_path, capsys):
+    """A map mostly at 3 fell back to min..max [3, 10], but the line said "[3, 3] (0.5th..99.5th percentiles)"."""
+    raw = np.full((24, 32), 3.0, np.float32)
+    raw[0, 0] = 10.0
+    np.save(tmp_path / "d.npy", raw)
+    p = br.write_image(tmp_path / "p.png", np.full((24, 32, 3), 0.5, np.float32))
+    code, out, err = run(capsys, "render", p, "--disparity", tmp_path / "d.npy", "--normalize", "-o",
+                         tmp_path / "o.png", "--blur", 4, "--focus", 0.5)
+    assert code == 0, err
+    assert "normalised from [3, 10] (min..max: the percentiles are equal)" in out
+
+
+# --------------------------------------------------------------------------- 9. one map file for a folder
+
+
+def test_a_folder_of_photos_with_one_map_file_is_refused_before_the_batch(tmp_path, capsys):
+    (tmp_path / "ci").mkdir()
+    for name in ("a.png", "b.png"):
+        br.write_image(tmp_path / "ci" / name, np.full((24, 32, 3), 0.5, np.float32))
+    d = br.write_disparity(tmp_path / "d.png", np.full((24, 32), 0.5, np.float32))
+    code, out, err = run(capsys, "render", tmp_path / "ci", "--disparity", d, "-o", tmp_path / "co", "--blur", 4,
+                         "--focus", 0.5)
+    assert code == 2 and out == ""
+    assert f"--disparity {d}: one map file for the 2 photos of {tmp_path / 'ci'}" in _one_line(err)
+    assert not (tmp_path / "co").exists()
