@@ -246,3 +246,14 @@ def test_a_folder_of_photos_with_one_map_file_is_refused_before_the_batch(tmp_pa
     assert code == 2 and out == ""
     assert f"--disparity {d}: one map file for the 2 photos of {tmp_path / 'ci'}" in _one_line(err)
     assert not (tmp_path / "co").exists()
+
+
+def test_a_photo_taken_by_refine_as_its_weights_is_named(tmp_path, capsys):
+    """``--refine`` has an optional WEIGHTS value: ``... --refine p.png`` takes the photo as the weights."""
+    with pytest.raises(SystemExit) as e:
+        main(["render", "--disparity", "d.png", "-o", str(tmp_path / "o.png"), "--blur", "8", "--focus", "0.5",
+              "--refine", "p.png"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err.count("\n") == 1
+    assert "required: image" in err and "--refine took p.png as its WEIGHTS" in err
+    assert not (tmp_path / "o.png").exists()

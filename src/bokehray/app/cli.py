@@ -94,8 +94,23 @@ class _Parser(argparse.ArgumentParser):
         super().__init__(*args, **kwargs)
         self._negative_number_matcher = re.compile(r"^-\d+$|^-\d*\.\d+$|^-\d+(,-?\d+)+$")
 
+    argv: Sequence[str] = ()  # the command line being parsed (set by :func:`main`), for the hint below
+
     def error(self, message: str) -> None:  # type: ignore[override]
-        self.exit(EXIT_INPUT, f"bokehray: error: {message} (see {self.prog} --help)\n")
+        self.exit(EXIT_INPUT, f"bokehray: error: {message}{_swallowed_hint(message, _Parser.argv)} "
+                              f"(see {self.prog} --help)\n")
+
+
+def _swallowed_hint(message: str, argv: Sequence[str]) -> str:
+    """``--refine`` takes an optional WEIGHTS value: ``--refine photo.png`` at the end of the options takes the photo
+    as the weights, and argparse then says only that the image is missing."""
+    if "required: image" not in message:
+        return ""
+    argv = list(argv)
+    for i, tok in enumerate(argv[:-1]):
+        if tok == "--refine" and not argv[i + 1].startswith("-"):
+            return f"; --refine took {argv[i + 1]} as its WEIGHTS: give the photo before --refine"
+    return ""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -495,6 +510,7 @@ def main(argv: Sequence[str] | None = None) -> int:  # noqa: C901
     with _sigterm_raises():
         try:
             parser = build_parser()
+            _Parser.argv = sys.argv[1:] if argv is None else list(argv)
             args = parser.parse_args(argv)
         except KeyboardInterrupt as e:  # before any work: nothing to clean up
             return e.exit_code if isinstance(e, Terminated) else EXIT_INTERRUPTED
