@@ -257,3 +257,27 @@ def test_a_photo_taken_by_refine_as_its_weights_is_named(tmp_path, capsys):
     assert e.value.code == 2 and err.count("\n") == 1
     assert "required: image" in err and "--refine took p.png as its WEIGHTS" in err
     assert not (tmp_path / "o.png").exists()
+
+
+@pytest.mark.parametrize("flags,named", [(["--blades", "5"], "--blades shapes a polygonal aperture"),
+                                         (["--curvature", "0.5", "--rotation", "10"], "--rotation/--curvature shape"),
+                                         (["--sensor-width", "10"], "--sensor-width sizes the sensor")])
+def test_flags_that_would_change_nothing_are_refused(tmp_path, capsys, flags, named):
+    """Polygon flags with the default disc aperture, a sensor width without a physical lens: they used to be
+    ignored (the output byte for byte the same), as other flags without effect are not."""
+    Image.fromarray(np.zeros((16, 16, 3), np.uint8)).save(tmp_path / "p.png")
+    br.write_disparity(tmp_path / "d.png", np.zeros((16, 16), np.float32))
+    code = main(["render", str(tmp_path / "p.png"), "--disparity", str(tmp_path / "d.png"), "-o",
+                 str(tmp_path / "o.png"), "--blur", "4", "--focus", "0.5", *flags])
+    err = capsys.readouterr().err
+    assert code == 2 and named in err and err.count("\n") == 1
+    assert not (tmp_path / "o.png").exists()
+
+
+def test_polygon_flags_with_a_polygon_aperture_take_their_defaults_when_left_out():
+    import argparse
+
+    from bokehray.app.render_job import aperture_of
+
+    a = aperture_of(argparse.Namespace(aperture="polygon", blades=None, rotation=None, curvature=0.3))
+    assert (a.blades, a.rotation_deg, a.curvature) == (6, 0.0, 0.3)

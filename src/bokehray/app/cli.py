@@ -67,9 +67,9 @@ def _parse_xy(text: str) -> tuple[int, int]:
 def _add_lens_args(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("aperture")
     g.add_argument("--aperture", choices=("disc", "polygon"), default="disc", help="aperture shape (default: disc)")
-    g.add_argument("--blades", type=int, default=6, help="polygon: number of blades (3..32, default 6)")
-    g.add_argument("--rotation", type=float, default=0.0, help="polygon: rotation in degrees")
-    g.add_argument("--curvature", type=float, default=0.0,
+    g.add_argument("--blades", type=int, default=None, help="polygon: number of blades (3..32, default 6)")
+    g.add_argument("--rotation", type=float, default=None, help="polygon: rotation in degrees (default 0)")
+    g.add_argument("--curvature", type=float, default=None,
                    help="polygon: blade curvature, 0 = straight blades .. 1 = circle (default 0)")
 
 
@@ -167,7 +167,8 @@ def build_parser() -> argparse.ArgumentParser:
     lens.add_argument("--focal-length", type=float, metavar="MM", help="focal length in millimetres")
     lens.add_argument("--f-number", type=float, metavar="N", help="f-number (aperture diameter = f / N)")
     lens.add_argument("--focus-distance", type=float, metavar="M", help="focus distance in metres")
-    lens.add_argument("--sensor-width", type=float, default=36.0, metavar="MM", help="sensor width (default 36)")
+    lens.add_argument("--sensor-width", type=float, default=None, metavar="MM",
+                      help="sensor width of the physical lens (default 36)")
     lens.add_argument("--z-near", type=float, help="depth normalisation: nearest depth (default: depth map min)")
     lens.add_argument("--z-far", type=float, help="depth normalisation: farthest depth, inf allowed (default: max)")
     _add_lens_args(r)

@@ -31,9 +31,16 @@ def start_warp(args: argparse.Namespace) -> None:
 def aperture_of(args: argparse.Namespace):
     from ..lens import Aperture
 
+    shape = {"--blades": args.blades, "--rotation": args.rotation, "--curvature": args.curvature}
     if args.aperture == "disc":
+        given = [flag for flag, value in shape.items() if value is not None]
+        if given:
+            raise InputError(f"{'/'.join(given)} shape{'s' if len(given) == 1 else ''} a polygonal aperture; "
+                             "add --aperture polygon (the default aperture is a disc)")
         return Aperture()
-    return Aperture(blades=args.blades, rotation_deg=args.rotation, curvature=args.curvature)
+    return Aperture(blades=6 if args.blades is None else args.blades,
+                    rotation_deg=0.0 if args.rotation is None else args.rotation,
+                    curvature=0.0 if args.curvature is None else args.curvature)
 
 
 def layer_options_of(args: argparse.Namespace):
@@ -167,6 +174,9 @@ def check_render_flags(args: argparse.Namespace) -> bool:  # noqa: C901
     if args.depth is not None and (args.normalize or args.invert):
         raise InputError("--normalize and --invert describe a relative --disparity map; a --depth map is metric "
                          "(near = small), and is converted to disparity with the thin-lens normalisation")
+    if args.sensor_width is not None and not physical:
+        raise InputError("--sensor-width sizes the sensor of a physical lens; it needs --focal-length and --f-number "
+                         "(with --depth)")
     if args.depth_scale is not None and args.depth is None:
         raise InputError("--depth-scale converts the codes of an integer --depth map to metres; it needs --depth")
     if getattr(args, "refine_everywhere", False) and not args.refine:
@@ -182,6 +192,7 @@ def check_render_flags(args: argparse.Namespace) -> bool:  # noqa: C901
         from ..photo.subject import k_from_amount
 
         k_from_amount(args.amount, 1, 1)  # the range check
+    aperture_of(args)  # polygon flags without --aperture polygon, refused before any work
     return physical
 
 
@@ -401,7 +412,7 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:  
                                  "needs --focus-distance, or click on a surface")
         if focus_m is None:
             raise InputError("a physical lens needs --focus-distance or --focus-at X,Y")
-        lens = ThinLens(args.focal_length, args.f_number, focus_m, args.sensor_width)
+        lens = ThinLens(args.focal_length, args.f_number, focus_m, 36.0 if args.sensor_width is None else args.sensor_width)
         blur = lens.blur_params(norm, w)
         _say(args, f"focus: at {focus_m:.3g} m ({'--focus-at' if args.focus_at is not None else '--focus-distance'}); "
              f"{args.focal_length:g} mm f/{args.f_number:g}")
