@@ -234,11 +234,12 @@ def _exr_map_channel(path: Path, chans: dict[str, np.ndarray], preferred: tuple[
                      what: str) -> str:
     """The channel a disparity or depth map is read from: the first ``preferred`` one the file holds (depth: ``Z``,
     the standard depth channel, whatever else is there), else its only channel, or any of its channels when they
-    are all equal. Channels that differ are refused, named: taking the first would be a guess."""
+    are all equal (an alpha channel aside: a grey map saved as RGBA). Channels that differ are refused, named:
+    taking the first would be a guess."""
     for (name,) in preferred:
         if name in chans:
             return name
-    names = sorted(chans)
+    names = sorted(n for n in chans if not (n == "A" or n.endswith(".A"))) or sorted(chans)  # coverage is no value
     first = chans[names[0]]
     if any(chans[n].shape != first.shape or not np.array_equal(chans[n], first) for n in names[1:]):
         hint = f" (or name the map's channel {preferred[0][0]})" if preferred else ""
