@@ -283,3 +283,15 @@ def test_polygon_flags_with_a_polygon_aperture_take_their_defaults_when_left_out
 
     a = aperture_of(argparse.Namespace(aperture="polygon", blades=None, rotation=None, curvature=0.3))
     assert (a.blades, a.rotation_deg, a.curvature) == (6, 0.0, 0.3)
+
+
+def test_a_jpeg_quality_for_an_output_that_is_not_a_jpeg_is_refused(tmp_path, capsys):
+    """``--jpeg-quality 10`` with a PNG output was ignored (the file byte for byte the default's)."""
+    Image.fromarray(np.zeros((16, 16, 3), np.uint8)).save(tmp_path / "p.png")
+    br.write_disparity(tmp_path / "d.png", np.zeros((16, 16), np.float32))
+    base = ["render", str(tmp_path / "p.png"), "--disparity", str(tmp_path / "d.png"), "--blur", "4", "--focus", "0.5"]
+    assert main([*base, "-o", str(tmp_path / "o.png"), "--jpeg-quality", "10"]) == 2
+    err = capsys.readouterr().err
+    assert "--jpeg-quality sets the quality of a JPEG output" in err and err.count("\n") == 1
+    assert not (tmp_path / "o.png").exists()
+    assert main([*base, "-o", str(tmp_path / "o.jpg"), "--jpeg-quality", "10"]) == 0 and (tmp_path / "o.jpg").is_file()

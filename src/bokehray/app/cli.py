@@ -177,7 +177,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "(same aspect ratio)")
     o.add_argument("--bit-depth", type=int, choices=(8, 16, 32), help="PNG 8/16, TIFF 16/32 (float)")
     o.add_argument("--half", action="store_true", help="EXR: write half floats")
-    o.add_argument("--jpeg-quality", type=int, default=95, metavar="Q", help="JPEG output quality 1..100 (default 95)")
+    o.add_argument("--jpeg-quality", type=int, default=None, metavar="Q",
+                   help="quality of a JPEG output 1..100 (default 95)")
     o.add_argument("--no-highlight-reconstruction", action="store_true",
                    help="keep the clipped highlights of a PNG/JPEG/integer TIFF as they are (by default they are "
                    "re-inflated so that lamps give bright bokeh; never done for EXR/float TIFF)")
@@ -295,6 +296,9 @@ def cmd_render(args: argparse.Namespace) -> int:
     if fmt is not None and FORMATS.get(Path(args.output).suffix.lower()) != FORMATS["." + fmt]:
         raise InputError(f"--output-format {args.output_format} sets the format of a batch's outputs; one render is "
                          f"written in the format its -o name says ({args.output}): name it .{args.output_format}")
+    if args.jpeg_quality is not None and FORMATS.get(Path(args.output).suffix.lower()) != "JPEG":
+        raise InputError(f"--jpeg-quality sets the quality of a JPEG output; {args.output} is not one (name it .jpg, "
+                         "or leave --jpeg-quality out)")
     render_one(args)
     return 0
 

@@ -22,6 +22,10 @@ from ..photo.subject import AMOUNT_DEFAULT, AMOUNT_K_FRACTION
 __all__ = ["aperture_of", "check_render_flags", "layer_options_of", "read_map", "render_one", "start_warp"]
 
 
+JPEG_QUALITY = 95
+"""The quality of a JPEG output without ``--jpeg-quality``."""
+
+
 def start_warp(args: argparse.Namespace) -> None:
     """Initialise Warp (a slow import, then its module cache) only once a command is about to compute, so that
     ``--help`` and argument errors return at once."""
@@ -186,7 +190,7 @@ def check_render_flags(args: argparse.Namespace) -> bool:  # noqa: C901
     if args.z_near is not None or args.z_far is not None:
         if args.depth is None:
             raise InputError("--z-near/--z-far normalise a metric --depth map; they need --depth")
-    if not 1 <= args.jpeg_quality <= 100:
+    if args.jpeg_quality is not None and not 1 <= args.jpeg_quality <= 100:
         raise InputError(f"--jpeg-quality: expected 1..100, got {args.jpeg_quality}")
     if args.amount is not None:
         from ..photo.subject import k_from_amount
@@ -464,7 +468,8 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:  
                                     refine_options=refine_options_of(args))
     t1 = time.perf_counter()
     bar.stage("write")
-    path = write_image(args.output, out, bit_depth=args.bit_depth, half=args.half, quality=args.jpeg_quality,
+    quality = JPEG_QUALITY if args.jpeg_quality is None else args.jpeg_quality
+    path = write_image(args.output, out, bit_depth=args.bit_depth, half=args.half, quality=quality,
                        exif=exif_for_output(meta))  # JPEG keeps the photo's EXIF, orientation reset
     t_write = time.perf_counter() - t1
     if not args.quiet:

@@ -35,8 +35,6 @@ MAX_BODY_BYTES = 4096
 EXPORT_FORMATS = {"png": (8, 16), "jpg": (8,), "tif": (8, 16, 32), "exr": (16, 32)}
 """Export formats (what ``bokehray render`` writes) and their bit depths; EXR 16 is half float."""
 
-JPEG_QUALITY = 95
-"""``render``'s default ``--jpeg-quality``: a JPEG export is the file the shown command writes."""
 EXPORT_NAME_TRIES = 100
 """Names an export tries when other exports keep taking the next free one first."""
 
@@ -561,6 +559,7 @@ class ViewSession:
         bits, half = bit_depth, False  # EXR at 16 bits is half float, as `--bit-depth 16` gives
         path = self.export_path(fmt)
         from ...output.write import check_output_path  # the same check as `bokehray render -o`, before rendering
+        from ..render_job import JPEG_QUALITY  # render's default: the export is the file the shown command writes
 
         check_output_path(path, bit_depth=bits, half=half)
         out = self.render_full(p, check)
