@@ -134,8 +134,8 @@ class PairBank:
     For each scene, blur level ``K`` and variant, one corruption is drawn (kind with the shares ``probs``, amount
     from :data:`AMOUNTS`), then at each focus of the scene corrected and rendered as ``render --refine`` would
     (:func:`bokehray_refiner.refine.correct_and_render`: the depth fix depends on ``K`` alone, but the map-level
-    gate's disagreement and the edge network read the CoC, which depends on the focus). Deterministic for a seed, so a resumed training run
-    rebuilds the same bank; :meth:`cached` keeps it on disk.
+    gate's disagreement and the edge network read the CoC, which depends on the focus). Deterministic for a seed,
+    so a resumed training run rebuilds the same bank; :meth:`cached` keeps it on disk.
 
     Each input's weight (``bands``) is the edge band where refine keeps the network's output; with ``gated`` it is
     also multiplied by the confidence gate, exactly the weight refine blends by

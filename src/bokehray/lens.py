@@ -222,15 +222,11 @@ DEPTH_RANGE_TOLERANCE = 1e-6
 value is 1.4 holds 1.39999998, which ``--z-near 1.4`` must accept (the normalisation clips that rounding)."""
 
 
-def check_depth_range(depth_m: np.ndarray, norm: DepthNormalization, source: str,
+def check_depth_range(lo: float, hi: float, norm: DepthNormalization, source: str,
                       names: tuple[str, str] = ("z_near", "z_far")) -> None:
-    """Refuse a normalisation narrower than the map's finite depths (> 0): clipping them would render the depths
-    beyond it at the wrong blur, silently. ``names``: what to call the two ends (the CLI's flags)."""
-    z = np.asarray(depth_m, np.float64)
-    finite = z[np.isfinite(z) & (z > 0)]
-    if not finite.size:
-        return
-    lo, hi = float(finite.min()), float(finite.max())
+    """Refuse a normalisation narrower than the map's nearest and farthest finite depths ``lo``, ``hi`` (metres):
+    clipping them would render the depths beyond it at the wrong blur, silently. ``names``: what to call the two
+    ends (the CLI's flags)."""
     if lo < norm.z_near_m * (1.0 - DEPTH_RANGE_TOLERANCE):
         raise InputError(f"{source}: depth reaches {lo:.4g} m, nearer than {names[0]} {norm.z_near_m:g} m; lower "
                          f"{names[0]} or leave it out (default: the map's nearest depth)")
@@ -280,12 +276,13 @@ def disparity_from_depth(depth_m: np.ndarray, norm: DepthNormalization | None = 
     if norm is not None and not isinstance(norm, DepthNormalization):
         raise InputError(f"{source}: expected a bokehray.DepthNormalization, got {type(norm).__name__}")
     z = np.where(missing, np.inf, z)
+    finite = z[~missing]
+    lo, hi = float(finite.min()), float(finite.max())
     if norm is not None:
-        check_depth_range(z, norm, source, names)
-    if norm is None:
-        finite = z[~missing]
-        zf = math.inf if missing.any() else float(finite.max())
-        norm = DepthNormalization(float(finite.min()), zf if zf > float(finite.min()) else math.inf)
+        check_depth_range(lo, hi, norm, source, names)
+    else:
+        zf = math.inf if missing.any() else hi
+        norm = DepthNormalization(lo, zf if zf > lo else math.inf)
     return norm.disparity(z), norm
 
 

@@ -304,20 +304,26 @@ def test_the_shipped_edge_weights_load_and_fit_their_recorded_config():
     assert sum(p.numel() for p in m.parameters()) == recorded["parameters"]
 
 
-def test_refine_reuses_the_corrections_edge_field_without_changing_a_pixel(monkeypatch):
-    """The depth edges the correction found for its band are the gate's too: handed on instead of found again, with
-    the same render and stats."""
-    import bokehray_refiner.refine as refine_module
+def _eroded_scene_and_refiner():
+    """(image, its map eroded by 3 px, blur, the level's rerender, a seeded untrained refiner): a map the correction
+    works on, for the tests of what refine reuses."""
     from bokehray_refiner.data import corrupt_disparity
     from bokehray_refiner.model import BokehRefiner
-    from bokehray_refiner.refine import RefineOptions
 
     focus, d, blur = _scene(96, 128)
     image = focus ** 2.2
     given = np.clip(corrupt_disparity(d, "erode", 3), 0, 1).astype(np.float32)
-    rer = lambda dd: br.render(image, dd, blur)  # noqa: E731
     torch.manual_seed(0)
-    model = BokehRefiner().eval()
+    return image, given, blur, lambda dd: br.render(image, dd, blur), BokehRefiner().eval()
+
+
+def test_refine_reuses_the_corrections_edge_field_without_changing_a_pixel(monkeypatch):
+    """The depth edges the correction found for its band are the gate's too: handed on instead of found again, with
+    the same render and stats."""
+    import bokehray_refiner.refine as refine_module
+    from bokehray_refiner.refine import RefineOptions
+
+    image, given, blur, rer, model = _eroded_scene_and_refiner()
     searches = []
     nearest_edge = refine_module.nearest_edge
     monkeypatch.setattr(refine_module, "nearest_edge", lambda reach: searches.append(1) or nearest_edge(reach))
@@ -364,16 +370,9 @@ def test_the_gate_reuses_the_agreement_the_disagreement_measured(monkeypatch):
     confidence gate's too: computed once instead of twice, with the same render and stats."""
     import bokehray_refiner.gate as gate_module
     import bokehray_refiner.refine as refine_module
-    from bokehray_refiner.data import corrupt_disparity
-    from bokehray_refiner.model import BokehRefiner
     from bokehray_refiner.refine import RefineOptions
 
-    focus, d, blur = _scene(96, 128)
-    image = focus ** 2.2
-    given = np.clip(corrupt_disparity(d, "erode", 3), 0, 1).astype(np.float32)
-    rer = lambda dd: br.render(image, dd, blur)  # noqa: E731
-    torch.manual_seed(0)
-    model = BokehRefiner().eval()
+    image, given, blur, rer, model = _eroded_scene_and_refiner()
     opts = RefineOptions(min_fixed_share=0.0, edge_min_disagreement=1.0)  # measured, and never enough
     calls = []
     edge_gate = refine_module.edge_gate

@@ -230,6 +230,11 @@ _EXR_NOT_RGB = (({"RY", "BY"}, "luminance/chroma channels (Y, RY, BY)"), ({"X", 
 drop the colour silently."""
 
 
+def _is_alpha(name: str) -> bool:
+    """An EXR channel of coverage (``A``, or a layer's ``*.A``), not of values."""
+    return name == "A" or name.endswith(".A")
+
+
 def _exr_map_channel(path: Path, chans: dict[str, np.ndarray], preferred: tuple[tuple[str, ...], ...],
                      what: str) -> str:
     """The channel a disparity or depth map is read from: the first ``preferred`` one the file holds (depth: ``Z``,
@@ -239,7 +244,7 @@ def _exr_map_channel(path: Path, chans: dict[str, np.ndarray], preferred: tuple[
     for (name,) in preferred:
         if name in chans:
             return name
-    names = sorted(n for n in chans if not (n == "A" or n.endswith(".A"))) or sorted(chans)  # coverage is no value
+    names = sorted(n for n in chans if not _is_alpha(n)) or sorted(chans)  # coverage is no value
     first = chans[names[0]]
     if any(chans[n].shape != first.shape or not np.array_equal(chans[n], first) for n in names[1:]):
         hint = f" (or name the map's channel {preferred[0][0]})" if preferred else ""
@@ -289,7 +294,7 @@ def _load_exr(path: Path, choices: tuple[tuple[str, ...], ...], map_of: str | No
     chans = _exr_channels(path)
     only = tuple(chans) if len(chans) == 1 else None
     wanted = " or ".join(",".join(c) for c in choices) or "one channel of values"
-    if only is not None and (only[0] == "A" or only[0].endswith(".A")):
+    if only is not None and _is_alpha(only[0]):
         # coverage, not values: reading it as grey would turn a matte into a disparity map or an image
         raise InputError(f"{path}: holds only the alpha channel {only[0]!r} (coverage, not values); expected EXR "
                          f"channels {wanted}")
