@@ -5,7 +5,8 @@ colour edge of the object it belongs to (an eroded, dilated, smeared, shifted or
 classical preview is exact where the disparity is right, so correcting the *disparity* near depth
 edges and rendering again can be worth more than a learned residual on the image.
 
-:func:`correct_disparity` works in three steps, NumPy/SciPy over the edge band only:
+:func:`correct_disparity` works in three steps over the edge band only, NumPy/SciPy but for the vote (a Warp
+kernel on the CPU, ``bokehray_kernels.vote``):
 
 1. **Suspect pixels, per hypothesis.** Along the normal of every depth-edge pair (CoC jump >
    ``jump_px``) the colour step of the all-in-focus image is sampled on each side
@@ -34,15 +35,18 @@ move keep their input values bit for bit. The slow obvious reference is
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
+import bokehray_kernels.vote as bk_vote
 import numpy as np
 
-from .edge_estimate import depth_edges, ramp_width
+from .edge_estimate import PIXELS_PER_THREAD, depth_edges, ramp_width
 
 __all__ = ["DepthFixOptions", "colour_edge_offsets", "correct_disparity", "correction_steps", "edge_pairs",
            "global_shift", "has_ramps", "pass_reach", "shift_map", "smeared", "step_flips", "untrusted", "vote",
-           "weighted_median"]
+           "vote_sides"]
 
 
 @dataclass(frozen=True)
@@ -115,20 +119,6 @@ class DepthFixOptions:
     sigma_edge_px: float = 3.0
     ramps_only: bool = True
     max_ramp_px: int = 6
-
-
-def weighted_median(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """Row-wise weighted median: the smallest value whose cumulative weight reaches half the row's total.
-
-    ``values`` and ``weights`` are ``N x M``; rows whose weights are all 0 give ``nan``.
-    """
-    order = np.argsort(values, axis=1, kind="stable")
-    v = np.take_along_axis(values, order, axis=1)
-    c = np.cumsum(np.take_along_axis(weights, order, axis=1), axis=1)
-    total = c[:, -1:]
-    idx = np.argmax(c >= 0.5 * total, axis=1)
-    out = v[np.arange(v.shape[0]), idx]
-    return np.where(total[:, 0] > 0, out, np.nan)
 
 
 def _offsets(options: DepthFixOptions) -> np.ndarray:
@@ -296,52 +286,57 @@ def smeared(disparity: np.ndarray, k_px: float, options: DepthFixOptions = Depth
 
 def vote(img, cur, sus, offs, space, snap, options, new, keep=None, one_sided=False, targets=None):
     """Colour-weighted vote of the trusted pixels (not ``sus``, not ``keep``) for every pixel of ``sus``
-    (not ``keep``; only those of ``targets`` when given); writes ``new``."""
-    w = cur.shape[1]
+    (not ``keep``; only those of ``targets`` when given); writes ``new``. Which side each pixel joins is
+    ``bokehray_kernels.vote.vote_kernel``'s (:func:`vote_sides`), and so is the value it takes there, the weighted
+    median of that side's voters."""
     trusted = ~sus if keep is None else ~(sus | keep)
     voters = sus if keep is None else sus & ~keep
     ys, xs = np.nonzero(voters if targets is None else voters & targets)
     if ys.size == 0:
         return
-    # flat gathers from arrays padded by the window's radius: the padding is never trusted (weight 0), so it
-    # counts for nothing, as the pixels outside the image did before
-    r = int(np.abs(offs).max()) if offs.size else 0
-    wp_ = w + 2 * r
-    img_f = np.pad(img, ((r, r), (r, r), (0, 0))).reshape(-1, 3)
-    cur_f = np.pad(cur, r).ravel()
-    tru_f = np.pad(trusted, r).ravel()
-    off_f = offs[:, 0] * wp_ + offs[:, 1]
-    space32 = space.astype(np.float32)
-    snap = np.float32(snap)
-    for i in range(0, ys.size, 4096):  # chunks bound the memory: 4096 x len(offs) per array
-        py, px = ys[i:i + 4096], xs[i:i + 4096]
-        p_f = (py + r) * wp_ + (px + r)
-        q = p_f[:, None] + off_f[None, :]
-        diff = img_f[q] - img[py, px][:, None, :]  # float32 colour distances: the vote's weights need no more
-        dc2 = np.einsum("ijk,ijk->ij", diff, diff)
-        sp = np.where(tru_f[q], space32[None, :], np.float32(0.0))
-        wt = sp * np.exp(dc2 * np.float32(-1.0 / (2.0 * options.sigma_colour ** 2)))
-        vals = cur_f[q]
-        rel = vals - cur[py, px][:, None]
-        cls = [rel < -snap, np.abs(rel) <= snap, rel > snap]  # the far side, the pixel's own layer, the near side
-        seen = np.stack([(sp * c).sum(1) for c in cls], 1)  # how much of each class the window holds
-        aff = np.stack([(wt * c).sum(1) for c in cls], 1) / np.maximum(seen, np.float32(1e-30))  # mean similarity
-        known = seen >= options.min_class
-        aff = np.where(known, aff, 0.0)
-        best = np.where(aff[:, 0] >= aff[:, 2], 0, 2)
-        n = np.arange(aff.shape[0])
-        a_best = aff[n, best]
-        a_rest = np.maximum(aff[:, 1], aff[n, 2 - best])
-        # evidence on both sides: the pixel's own layer, or (a pixel inside a smeared edge) both other layers
-        two_sided = known[:, 1] | (known[:, 0] & known[:, 2]) | one_sided
-        ok = two_sided & known[n, best] & (a_best >= options.contrast * a_rest) & (a_best >= options.min_affinity)
-        if not ok.any():
-            continue
-        sel = np.nonzero(ok)[0]  # the median (a sort) only where the vote moves the pixel
-        mine = np.where(best[sel, None] == 0, cls[0][sel], cls[2][sel])
-        med = weighted_median(vals[sel], np.where(mine, wt[sel], 0.0))
-        fin = np.isfinite(med)
-        new[py[sel][fin], px[sel][fin]] = med[fin]
+    side, value = vote_sides(img, cur, trusted, ys, xs, offs, space, snap, options, one_sided)
+    moves = side != bk_vote.VOTE_NONE
+    new[ys[moves], xs[moves]] = value[moves]
+
+
+def vote_sides(img, cur, trusted, ys, xs, offs, space, snap, options, one_sided=False,
+               threads=None) -> tuple[np.ndarray, np.ndarray]:
+    """Per pixel ``(ys, xs)``, the side the vote moves it to (``bokehray_kernels.vote``: ``VOTE_FAR``,
+    ``VOTE_NEAR``, or ``VOTE_NONE``) and the disparity it takes (its own where it stays), on the CPU in ``threads``
+    parts (Warp CPU launches release the GIL)."""
+    import warp as wp
+
+    dev = wp.get_device("cpu")
+    image = wp.array(np.ascontiguousarray(img, np.float32), dtype=wp.vec3, device=dev, copy=False)
+    disp = wp.array(np.ascontiguousarray(cur, np.float32), dtype=float, device=dev, copy=False)
+    tru = wp.array(np.ascontiguousarray(trusted, bool).view(np.uint8), dtype=wp.uint8, device=dev, copy=False)
+    oy = wp.array(offs[:, 0].astype(np.int32), dtype=wp.int32, device=dev)
+    ox = wp.array(offs[:, 1].astype(np.int32), dtype=wp.int32, device=dev)
+    sp = wp.array(np.asarray(space, np.float32), dtype=float, device=dev)
+    n = ys.size
+    parts = max(1, min(int(threads or os.cpu_count() or 1), -(-n // PIXELS_PER_THREAD)))
+    cuts = np.linspace(0, n, parts + 1).astype(np.int64)
+    sides, values = np.empty(n, np.int32), np.empty(n, np.float32)
+
+    def launch(j: int) -> None:
+        a, b = int(cuts[j]), int(cuts[j + 1])
+        if b == a:
+            return
+        side, value = wp.empty(b - a, dtype=wp.int32, device=dev), wp.empty(b - a, dtype=float, device=dev)
+        wp.launch(bk_vote.vote_kernel, dim=b - a,
+                  inputs=[image, disp, tru, wp.array(ys[a:b].astype(np.int32), dtype=wp.int32, device=dev),
+                          wp.array(xs[a:b].astype(np.int32), dtype=wp.int32, device=dev), oy, ox, sp, float(snap),
+                          float(-1.0 / (2.0 * options.sigma_colour ** 2)), float(options.min_class),
+                          float(options.contrast), float(options.min_affinity), int(bool(one_sided))],
+                  outputs=[side, value], device=dev)
+        sides[a:b], values[a:b] = side.numpy(), value.numpy()
+
+    if parts == 1:
+        launch(0)
+    else:
+        with ThreadPoolExecutor(max_workers=parts) as pool:
+            list(pool.map(launch, range(parts)))
+    return sides, values
 
 
 def step_flips(coc: np.ndarray, jump_px: float) -> float:
@@ -413,7 +408,6 @@ def global_shift(focus_srgb: np.ndarray, disparity: np.ndarray, k_px: float,  # 
         if abs(int(peak) - int((by, bx)[ax])) > 1:
             return 0, 0
     return int(by - m), int(bx - m)
-
 
 
 def shift_map(disparity: np.ndarray, sy: int, sx: int) -> np.ndarray:

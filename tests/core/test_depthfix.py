@@ -11,7 +11,6 @@ from reference.depthfix_ref import (
     global_shift_ref,
     smeared_ref,
     untrusted_ref,
-    weighted_median_ref,
 )
 from scipy import ndimage
 
@@ -25,7 +24,6 @@ from bokehray.depthfix import (
     shift_map,
     smeared,
     untrusted,
-    weighted_median,
 )
 
 
@@ -39,17 +37,6 @@ def _scene(seed=0, size=48, box=(12, 36, 10, 30), near_rgb=(0.8, 0.3, 0.2), far_
     img = np.where(inside[..., None], np.array(near_rgb), np.array(far_rgb)) + tex
     d = np.where(inside, 0.85, 0.2).astype(np.float32)
     return np.clip(img, 0, 1).astype(np.float32), d
-
-
-def test_weighted_median_matches_the_reference():
-    rng = np.random.default_rng(3)
-    v = rng.choice(np.linspace(0, 1, 7), (200, 15)).astype(np.float32)  # ties on purpose
-    w = rng.uniform(0, 1, (200, 15)) * (rng.uniform(size=(200, 15)) < 0.7)
-    w[0] = 0.0
-    got = weighted_median(v, w)
-    ref = np.array([weighted_median_ref(list(a), list(b)) for a, b in zip(v, w)])
-    assert np.isnan(got[0]) and np.isnan(ref[0])
-    np.testing.assert_array_equal(got[1:], ref[1:])
 
 
 @pytest.mark.parametrize("kind", ["erode", "dilate", "blur"])

@@ -1,0 +1,232 @@
+"""The colour-weighted vote of the depth correction (``bokehray.depthfix.vote``): which side a suspect pixel joins.
+
+One thread a suspect pixel, over its window (``offset_y``, ``offset_x``; spatial weight ``space``). Every trusted
+window pixel inside the image votes with weight ``space * exp(-|colour step|^2 / (2 sigma_colour^2))`` for one of
+three classes by its disparity relative to the pixel's own: the far side (less by more than ``snap``), the pixel's
+own layer, the near side (more by more than ``snap``). A class is known where its spatial weights sum to
+``min_class``; its affinity is its colour weight over its spatial weight. The pixel joins the side of the higher
+affinity (far on ties) where that side is known and its affinity beats the rest by ``contrast`` and reaches
+``min_affinity``, and where there is evidence on both sides of it (its own layer known, or both sides known, or
+``one_sided``). It then takes the weighted median of that side's voters' disparities (:func:`side_median`).
+
+Oracle: ``tests/reference/depthfix_ref.py`` (``vote_ref``).
+"""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+VOTE_NONE = wp.constant(-1)
+"""``side`` of a pixel the vote leaves where it is."""
+VOTE_FAR = wp.constant(0)
+VOTE_NEAR = wp.constant(2)
+
+
+@wp.kernel
+def vote_kernel(  # noqa: C901
+    image: wp.array2d(dtype=wp.vec3),
+    disparity: wp.array2d(dtype=float),
+    trusted: wp.array2d(dtype=wp.uint8),
+    pixel_y: wp.array(dtype=wp.int32),
+    pixel_x: wp.array(dtype=wp.int32),
+    offset_y: wp.array(dtype=wp.int32),
+    offset_x: wp.array(dtype=wp.int32),
+    space: wp.array(dtype=float),
+    snap: float,
+    colour_scale: float,
+    min_class: float,
+    contrast: float,
+    min_affinity: float,
+    one_sided: int,
+    side: wp.array(dtype=wp.int32),
+    value: wp.array(dtype=float),
+):
+    """``side[i]``: ``VOTE_FAR`` or ``VOTE_NEAR`` where suspect pixel ``i`` joins that side, else ``VOTE_NONE``;
+    ``value[i]``: the disparity it takes there (else its own). ``colour_scale`` is ``-1 / (2 sigma_colour^2)``."""
+    i = wp.tid()
+    h = disparity.shape[0]
+    w = disparity.shape[1]
+    y = pixel_y[i]
+    x = pixel_x[i]
+    c = image[y, x]
+    own = disparity[y, x]
+    seen_far = float(0.0)
+    seen_own = float(0.0)
+    seen_near = float(0.0)
+    sim_far = float(0.0)
+    sim_own = float(0.0)
+    sim_near = float(0.0)
+    for k in range(offset_y.shape[0]):
+        qy = y + offset_y[k]
+        qx = x + offset_x[k]
+        if qy >= 0 and qy < h and qx >= 0 and qx < w:
+            if trusted[qy, qx] != wp.uint8(0):
+                sp = space[k]
+                diff = image[qy, qx] - c
+                wt = sp * wp.exp(wp.dot(diff, diff) * colour_scale)
+                rel = disparity[qy, qx] - own
+                if rel < -snap:
+                    seen_far += sp
+                    sim_far += wt
+                elif rel > snap:
+                    seen_near += sp
+                    sim_near += wt
+                else:
+                    seen_own += sp
+                    sim_own += wt
+    known_far = seen_far >= min_class
+    known_own = seen_own >= min_class
+    known_near = seen_near >= min_class
+    aff_far = float(0.0)
+    aff_own = float(0.0)
+    aff_near = float(0.0)
+    if known_far:
+        aff_far = sim_far / seen_far
+    if known_own:
+        aff_own = sim_own / seen_own
+    if known_near:
+        aff_near = sim_near / seen_near
+    result = VOTE_NONE
+    two_sided = known_own or (known_far and known_near) or one_sided != 0
+    if aff_far >= aff_near:
+        if two_sided and known_far and aff_far >= contrast * wp.max(aff_own, aff_near) and aff_far >= min_affinity:
+            result = VOTE_FAR
+    else:
+        if two_sided and known_near and aff_near >= contrast * wp.max(aff_own, aff_far) \
+                and aff_near >= min_affinity:
+            result = VOTE_NEAR
+    med = own
+    if result != VOTE_NONE:
+        med = side_median(image, disparity, trusted, y, x, offset_y, offset_x, space, snap, colour_scale,
+                          result == VOTE_NEAR)
+        if wp.isnan(med):
+            result = VOTE_NONE
+            med = own
+    side[i] = result
+    value[i] = med
+
+
+@wp.func
+def _voter_weight(image: wp.array2d(dtype=wp.vec3), disparity: wp.array2d(dtype=float),
+                  trusted: wp.array2d(dtype=wp.uint8), y: int, x: int, qy: int, qx: int, sp: float, snap: float,
+                  colour_scale: float, near: bool) -> float:
+    """The vote's weight of window pixel ``(qy, qx)`` for the side ``near`` (or far) of pixel ``(y, x)``: 0 outside
+    the image, where not trusted, and where its disparity is not on that side by more than ``snap``."""
+    if qy < 0 or qy >= disparity.shape[0] or qx < 0 or qx >= disparity.shape[1]:
+        return 0.0
+    if trusted[qy, qx] == wp.uint8(0):
+        return 0.0
+    rel = disparity[qy, qx] - disparity[y, x]
+    if near:
+        if not (rel > snap):
+            return 0.0
+    else:
+        if not (rel < -snap):
+            return 0.0
+    diff = image[qy, qx] - image[y, x]
+    return sp * wp.exp(wp.dot(diff, diff) * colour_scale)
+
+
+@wp.func
+def _side_range(image: wp.array2d(dtype=wp.vec3), disparity: wp.array2d(dtype=float),
+                trusted: wp.array2d(dtype=wp.uint8), y: int, x: int, offset_y: wp.array(dtype=wp.int32),
+                offset_x: wp.array(dtype=wp.int32), space: wp.array(dtype=float), snap: float,
+                colour_scale: float, near: bool) -> wp.vec3:
+    """The side's total weight, and its voters' smallest and largest value (total 0: no voter)."""
+    total = float(0.0)
+    lo = float(0.0)
+    hi = float(0.0)
+    for k in range(offset_y.shape[0]):
+        qy = y + offset_y[k]
+        qx = x + offset_x[k]
+        wt = _voter_weight(image, disparity, trusted, y, x, qy, qx, space[k], snap, colour_scale, near)
+        if wt > 0.0:
+            v = disparity[qy, qx]
+            if total == 0.0:
+                lo = v
+                hi = v
+            lo = wp.min(lo, v)
+            hi = wp.max(hi, v)
+            total += wt
+    return wp.vec3(total, lo, hi)
+
+
+@wp.func
+def _split(image: wp.array2d(dtype=wp.vec3), disparity: wp.array2d(dtype=float),
+           trusted: wp.array2d(dtype=wp.uint8), y: int, x: int, offset_y: wp.array(dtype=wp.int32),
+           offset_x: wp.array(dtype=wp.int32), space: wp.array(dtype=float), snap: float, colour_scale: float,
+           near: bool, lo: float, hi: float, lo_open: int, mid: float) -> wp.vec3:
+    """One scan of the side at ``mid``: the weight of the values at most ``mid``, the largest such value (``lo``
+    if none), and 1 if a value lies inside the interval ``(lo, hi)`` (``[lo, hi)`` while ``lo_open``), else 0."""
+    below = float(0.0)
+    top = lo
+    inside = float(0.0)
+    for k in range(offset_y.shape[0]):
+        qy = y + offset_y[k]
+        qx = x + offset_x[k]
+        wt = _voter_weight(image, disparity, trusted, y, x, qy, qx, space[k], snap, colour_scale, near)
+        if wt > 0.0:
+            v = disparity[qy, qx]
+            if v <= mid:
+                below += wt
+                top = wp.max(top, v)
+            if v < hi and (v > lo or (lo_open == 1 and v == lo)):
+                inside = 1.0
+    return wp.vec3(below, top, inside)
+
+
+@wp.func
+def _smallest_reaching(image: wp.array2d(dtype=wp.vec3), disparity: wp.array2d(dtype=float),
+                       trusted: wp.array2d(dtype=wp.uint8), y: int, x: int, offset_y: wp.array(dtype=wp.int32),
+                       offset_x: wp.array(dtype=wp.int32), space: wp.array(dtype=float), snap: float,
+                       colour_scale: float, near: bool, lo: float, hi: float, lo_open: int, half: float) -> float:
+    """By brute force, the smallest voter's value in ``(lo, hi]`` (``[lo, hi]`` while ``lo_open``) whose weight up
+    to it reaches ``half``."""
+    best = hi
+    for k in range(offset_y.shape[0]):
+        qy = y + offset_y[k]
+        qx = x + offset_x[k]
+        if _voter_weight(image, disparity, trusted, y, x, qy, qx, space[k], snap, colour_scale, near) > 0.0:
+            v = disparity[qy, qx]
+            if (v > lo or (lo_open == 1 and v == lo)) and v < best:
+                upto = _split(image, disparity, trusted, y, x, offset_y, offset_x, space, snap, colour_scale, near,
+                              lo, hi, 0, v)[0]
+                if upto >= half:
+                    best = v
+    return best
+
+
+@wp.func
+def side_median(image: wp.array2d(dtype=wp.vec3), disparity: wp.array2d(dtype=float),
+                trusted: wp.array2d(dtype=wp.uint8), y: int, x: int, offset_y: wp.array(dtype=wp.int32),
+                offset_x: wp.array(dtype=wp.int32), space: wp.array(dtype=float), snap: float,
+                colour_scale: float, near: bool) -> float:
+    """The weighted median of the disparities of the side's voters: the smallest value whose weight, with that of
+    all smaller values, reaches half the total (NaN where the total is 0). Found by halving a value interval that
+    holds it, ``[lo, hi]`` at first, ``(lo, hi]`` once ``lo`` has moved, each step snapping ``hi`` down to a
+    voter's value, until no voter's value lies strictly inside: no sort, no storage, a few scans of the window."""
+    r = _side_range(image, disparity, trusted, y, x, offset_y, offset_x, space, snap, colour_scale, near)
+    if r[0] <= 0.0:
+        return wp.nan
+    half = 0.5 * r[0]
+    lo = r[1]
+    hi = r[2]
+    lo_open = int(1)
+    for _step in range(64):
+        mid = lo + 0.5 * (hi - lo)
+        if mid >= hi:  # lo and hi are neighbouring floats: the halfway point rounds up to hi; test lo itself
+            mid = lo
+        s = _split(image, disparity, trusted, y, x, offset_y, offset_x, space, snap, colour_scale, near, lo, hi,
+                   lo_open, mid)
+        if s[2] == 0.0:
+            return hi
+        if s[0] >= half:
+            hi = s[1]  # the largest value at most mid: the weight up to it is the weight up to mid
+            if lo_open == 1 and hi == lo:
+                return hi
+        else:
+            lo = mid
+            lo_open = 0
+    # values that 64 halvings of the range could not part (powers of two apart, say): brute force
+    return _smallest_reaching(image, disparity, trusted, y, x, offset_y, offset_x, space, snap, colour_scale, near,
+                              lo, hi, lo_open, half)
