@@ -107,24 +107,28 @@ def vote_kernel(  # noqa: C901
 
 
 @wp.func
-def _voter_weight(image: wp.array2d(dtype=wp.vec3), disparity: wp.array2d(dtype=float),
-                  trusted: wp.array2d(dtype=wp.uint8), y: int, x: int, qy: int, qx: int, sp: float, snap: float,
-                  colour_scale: float, near: bool) -> float:
-    """The vote's weight of window pixel ``(qy, qx)`` for the side ``near`` (or far) of pixel ``(y, x)``: 0 outside
-    the image, where not trusted, and where its disparity is not on that side by more than ``snap``."""
+def _voter(image: wp.array2d(dtype=wp.vec3), disparity: wp.array2d(dtype=float), trusted: wp.array2d(dtype=wp.uint8),
+           y: int, x: int, offset_y: wp.array(dtype=wp.int32), offset_x: wp.array(dtype=wp.int32),
+           space: wp.array(dtype=float), k: int, snap: float, colour_scale: float, near: bool) -> wp.vec2:
+    """Window pixel ``k`` of pixel ``(y, x)`` as a voter for the side ``near`` (or far): its weight and its
+    disparity. The weight is 0 outside the image, where not trusted, and where the disparity is not on that side by
+    more than ``snap``."""
+    qy = y + offset_y[k]
+    qx = x + offset_x[k]
     if qy < 0 or qy >= disparity.shape[0] or qx < 0 or qx >= disparity.shape[1]:
-        return 0.0
+        return wp.vec2(0.0, 0.0)
     if trusted[qy, qx] == wp.uint8(0):
-        return 0.0
-    rel = disparity[qy, qx] - disparity[y, x]
+        return wp.vec2(0.0, 0.0)
+    v = disparity[qy, qx]
+    rel = v - disparity[y, x]
     if near:
         if not (rel > snap):
-            return 0.0
+            return wp.vec2(0.0, 0.0)
     else:
         if not (rel < -snap):
-            return 0.0
+            return wp.vec2(0.0, 0.0)
     diff = image[qy, qx] - image[y, x]
-    return sp * wp.exp(wp.dot(diff, diff) * colour_scale)
+    return wp.vec2(space[k] * wp.exp(wp.dot(diff, diff) * colour_scale), v)
 
 
 @wp.func
@@ -137,17 +141,14 @@ def _side_range(image: wp.array2d(dtype=wp.vec3), disparity: wp.array2d(dtype=fl
     lo = float(0.0)
     hi = float(0.0)
     for k in range(offset_y.shape[0]):
-        qy = y + offset_y[k]
-        qx = x + offset_x[k]
-        wt = _voter_weight(image, disparity, trusted, y, x, qy, qx, space[k], snap, colour_scale, near)
-        if wt > 0.0:
-            v = disparity[qy, qx]
+        p = _voter(image, disparity, trusted, y, x, offset_y, offset_x, space, k, snap, colour_scale, near)
+        if p[0] > 0.0:
             if total == 0.0:
-                lo = v
-                hi = v
-            lo = wp.min(lo, v)
-            hi = wp.max(hi, v)
-            total += wt
+                lo = p[1]
+                hi = p[1]
+            lo = wp.min(lo, p[1])
+            hi = wp.max(hi, p[1])
+            total += p[0]
     return wp.vec3(total, lo, hi)
 
 
@@ -162,15 +163,12 @@ def _split(image: wp.array2d(dtype=wp.vec3), disparity: wp.array2d(dtype=float),
     top = lo
     inside = float(0.0)
     for k in range(offset_y.shape[0]):
-        qy = y + offset_y[k]
-        qx = x + offset_x[k]
-        wt = _voter_weight(image, disparity, trusted, y, x, qy, qx, space[k], snap, colour_scale, near)
-        if wt > 0.0:
-            v = disparity[qy, qx]
-            if v <= mid:
-                below += wt
-                top = wp.max(top, v)
-            if v < hi and (v > lo or (lo_open == 1 and v == lo)):
+        p = _voter(image, disparity, trusted, y, x, offset_y, offset_x, space, k, snap, colour_scale, near)
+        if p[0] > 0.0:
+            if p[1] <= mid:
+                below += p[0]
+                top = wp.max(top, p[1])
+            if p[1] < hi and (p[1] > lo or (lo_open == 1 and p[1] == lo)):
                 inside = 1.0
     return wp.vec3(below, top, inside)
 
@@ -184,15 +182,12 @@ def _smallest_reaching(image: wp.array2d(dtype=wp.vec3), disparity: wp.array2d(d
     to it reaches ``half``."""
     best = hi
     for k in range(offset_y.shape[0]):
-        qy = y + offset_y[k]
-        qx = x + offset_x[k]
-        if _voter_weight(image, disparity, trusted, y, x, qy, qx, space[k], snap, colour_scale, near) > 0.0:
-            v = disparity[qy, qx]
-            if (v > lo or (lo_open == 1 and v == lo)) and v < best:
-                upto = _split(image, disparity, trusted, y, x, offset_y, offset_x, space, snap, colour_scale, near,
-                              lo, hi, 0, v)[0]
-                if upto >= half:
-                    best = v
+        p = _voter(image, disparity, trusted, y, x, offset_y, offset_x, space, k, snap, colour_scale, near)
+        if p[0] > 0.0 and (p[1] > lo or (lo_open == 1 and p[1] == lo)) and p[1] < best:
+            upto = _split(image, disparity, trusted, y, x, offset_y, offset_x, space, snap, colour_scale, near,
+                          lo, hi, 0, p[1])[0]
+            if upto >= half:
+                best = p[1]
     return best
 
 
