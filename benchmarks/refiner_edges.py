@@ -7,7 +7,8 @@ shrunk by 2-6 px), each with its own random draw, then put through the colour-gu
 The network learns, per pixel of the edge band, which side of the edge the pixel is on: the side (near or far
 candidate) whose CoC is nearer the true map's. Its loss is the binary cross-entropy against that side, each pixel
 weighted by the band, by the CoC span between the candidates (0 to 1 at 4 px) and ``--exact-weight`` on the exact
-maps.
+maps; with ``--price``, also by what a wrong side costs the render (:func:`render_price`; measured in round 12 and
+not used by the shipped weights, docs/refiner.md).
 
 Scored on the path-traced dev set and a held-out synthetic split in the true depth's band, per corruption of
 ``bench_refiner.NET_CONDITIONS``, as ``bench_refiner.py --network-conditions``: ``fix`` is the depth fix's render
@@ -110,10 +111,11 @@ def bank(root: str, variants: int, seed: int, opts, config) -> list[dict]:
 
 
 def train(entries: list[dict], config, steps: int, batch: int, crop: int, seed: int, exact_weight: float,
-          checkpoint: str | None, checkpoint_every: int = 500, log_every: int = 100):
+          checkpoint: str | None, checkpoint_every: int = 500, log_every: int = 100, price: float = 0.0):
     """AdamW on the binary cross-entropy against the true side (:func:`side_labels`), on random crops on the band
     (flipped and transposed at random), each pixel weighted by the band, the candidates' CoC span and
-    ``exact_weight`` on exact maps. With ``checkpoint``, resumable bit for bit (as ``refiner_choice.train``)."""
+    ``exact_weight`` on exact maps; with ``price`` (sRGB), also by :func:`render_price`. With ``checkpoint``,
+    resumable bit for bit (as ``refiner_choice.train``)."""
     import torch
     import torch.nn.functional as F
     from bokehray_refiner.edges import EdgeNet
@@ -164,9 +166,10 @@ def train(entries: list[dict], config, steps: int, batch: int, crop: int, seed: 
         logit = model(x)[:, 0]
         label, span = side_labels(cost, x, config)
         weight = weight * span
-        loss = (F.binary_cross_entropy_with_logits(logit, label, reduction="none") * weight).sum() \
-            / weight.sum().clamp_min(1.0)
-        with torch.no_grad():  # the share of counted pixels put on the wrong side at 0.5
+        priced = weight * render_price(x, price) if price > 0 else weight
+        loss = (F.binary_cross_entropy_with_logits(logit, label, reduction="none") * priced).sum() \
+            / priced.sum().clamp_min(1.0)
+        with torch.no_grad():  # the share of counted pixels put on the wrong side at 0.5 (unpriced, as the map's)
             wrong_seen.append(float((((logit > 0).float() != label).float() * weight).sum()
                                     / weight.sum().clamp_min(1.0)))
         _optimise(loss, step, parts, losses, rng, steps, seed, checkpoint, checkpoint_every)
@@ -174,6 +177,19 @@ def train(entries: list[dict], config, steps: int, batch: int, crop: int, seed: 
             print(f"step {step + 1}: loss {np.mean(losses[-log_every:]):.4f}, wrong side "
                   f"{np.mean(wrong_seen[-log_every:]):.3f} (the map's: {map_wrong:.3f})", flush=True)
     return model, losses
+
+
+def render_price(x, scale: float):
+    """What putting a pixel on the wrong side costs the render, relative (torch, ``B x H x W`` from the inputs
+    ``B x N_INPUTS x H x W``): the squared colour step between the two sides' local means over ``scale`` squared,
+    clamped to [1/20, 4]. The pixel's light lands on the wrong disc, so its error is its side's colour less the
+    other's, and PSNR counts it squared; an edge with no colour step costs the render nothing whichever side a pixel
+    takes."""
+    from bokehray_refiner.edges import N_BASE
+
+    # the two sides' local means differ by (photo - far mean) - (photo - near mean)
+    step = (x[:, N_BASE + 3:N_BASE + 6] - x[:, N_BASE:N_BASE + 3]).square().sum(1)
+    return (step / scale ** 2).clamp(0.05, 4.0)
 
 
 def _map_wrong(entries: list[dict], exact_weight: float, config) -> float:
@@ -314,6 +330,9 @@ def main() -> None:
                     help="side of the crop the loss counts (the network sees its receptive field around it too)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--exact-weight", type=float, default=2.0, help="loss weight of the exact maps")
+    ap.add_argument("--price", type=float, default=0.0,
+                    help="weight the loss by the render price of a wrong side: the squared colour step across the "
+                         "edge over this squared (sRGB; 0: off)")
     ap.add_argument("--width", type=int, default=32)
     ap.add_argument("--dilations", default="2,4,8,1", help="the hidden 3 x 3 convolutions' dilations")
     ap.add_argument("--bank", default=None, help="cache of the training inputs (.npz): read if present, else written")
@@ -366,7 +385,7 @@ def main() -> None:
         print(f"bank: {len(entries)} maps in {result['bank_s']:.0f} s", flush=True)
         t = time.perf_counter()
         model, losses = train(entries, config, args.steps, args.batch, args.crop, args.seed, args.exact_weight,
-                              args.checkpoint, args.checkpoint_every)
+                              args.checkpoint, args.checkpoint_every, price=args.price)
         del entries
         result |= {"train_s": time.perf_counter() - t, "loss": losses}
         model.eval()

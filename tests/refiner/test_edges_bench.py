@@ -70,3 +70,18 @@ def test_a_few_training_steps_run_and_count_only_the_crop(bench):
     _model, losses = bench.train([entry], SMALL, steps=3, batch=2, crop=16, seed=0, exact_weight=2.0,
                                 checkpoint=None)
     assert len(losses) == 3 and all(np.isfinite(losses))
+
+
+def test_the_render_price_is_the_squared_colour_step_between_the_sides(bench):
+    """Two flat sides: the network's colour inputs hold photo - near mean and photo - far mean, so the price is the
+    squared distance between the means over the scale squared, clamped to [1/20, 4] (no step: the floor)."""
+    from bokehray_refiner.edges import N_BASE, N_INPUTS
+
+    x = torch.zeros(3, N_INPUTS, 2, 2)
+    for b, step in enumerate((0.0, 0.1, 1.0)):  # far mean - near mean, along red
+        x[b, N_BASE] = 0.0
+        x[b, N_BASE + 3] = -step
+    price = bench.render_price(x, 0.2)
+    assert price.shape == (3, 2, 2)
+    assert torch.allclose(price[0], torch.tensor(0.05)) and torch.allclose(price[1], torch.tensor(0.25))
+    assert torch.allclose(price[2], torch.tensor(4.0))
