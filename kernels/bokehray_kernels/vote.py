@@ -71,7 +71,7 @@ def vote_kernel(  # noqa: C901
                 elif rel > snap:
                     seen_near += sp
                     sim_near += wt
-                else:
+                elif wp.abs(rel) <= snap:  # not NaN: a pixel without a disparity is of no class
                     seen_own += sp
                     sim_own += wt
     known_far = seen_far >= min_class

@@ -30,8 +30,9 @@ def _both(img, cur, sus, snap, keep=None, one_sided=False, options=OPTIONS):
 
 
 @given(seed=st.integers(0, 2**16), h=st.integers(4, 28), w=st.integers(4, 28), levels=st.integers(2, 5),
-       shift=st.integers(0, 3), noisy=st.booleans(), with_keep=st.booleans(), one_sided=st.booleans())
-def test_the_vote_matches_the_oracle(seed, h, w, levels, shift, noisy, with_keep, one_sided):
+       shift=st.integers(0, 3), noisy=st.booleans(), with_keep=st.booleans(), one_sided=st.booleans(),
+       holes=st.booleans())
+def test_the_vote_matches_the_oracle(seed, h, w, levels, shift, noisy, with_keep, one_sided, holes):
     rng = np.random.default_rng(seed)
     # blocky layers of a few disparities, each with its own colour and texture; the map's layers lie ``shift`` px
     # off the colour's, and the pixels near its depth edges are suspect: pixels to move, and pixels to leave
@@ -41,6 +42,8 @@ def test_the_vote_matches_the_oracle(seed, h, w, levels, shift, noisy, with_keep
     cur = depth[np.roll(lab, (shift, -shift), (0, 1))]
     if noisy:  # distinct values: no ties in the medians
         cur = cur + rng.normal(0, 0.005, (h, w)).astype(np.float32)
+    if holes:  # pixels without a disparity: of no class, never a median
+        cur = np.where(rng.uniform(size=(h, w)) < 0.05, np.float32(np.nan), cur)
     img = np.clip(colour[lab] + rng.normal(0, 0.05, (h, w, 3)), 0, 1).astype(np.float32)
     edges = (np.abs(np.diff(cur, axis=0, prepend=cur[:1])) > 0.05) | (np.abs(np.diff(cur, axis=1, prepend=cur[:, :1])) > 0.05)
     sus = ndimage.binary_dilation(edges, iterations=3) & (rng.uniform(size=(h, w)) < 0.8)

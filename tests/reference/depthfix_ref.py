@@ -155,30 +155,40 @@ def weighted_median_ref(values, weights):
     return pairs[-1][0]
 
 
-def vote_ref(img, cur, sus, snap, options, new, keep=None, one_sided=False):
+def _classes_ref(img, cur, sus, keep, y, x, snap, options):
+    """The window of pixel ``(y, x)``: per class (far, own, near), the trusted voters' spatial weight, colour weight
+    and ``(value, colour weight)`` pairs."""
     h, w = cur.shape
     r = int(math.floor(options.radius_px))
     s = max(1, int(options.step_px))
+    seen, simil, vals = [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [[], [], []]
+    for dy in range(-(r // s) * s, r + 1, s):
+        for dx in range(-(r // s) * s, r + 1, s):
+            qy, qx = y + dy, x + dx
+            if dy * dy + dx * dx > options.radius_px ** 2 or not (0 <= qy < h and 0 <= qx < w):
+                continue
+            if sus[qy, qx] or (keep is not None and keep[qy, qx]):
+                continue
+            rel = float(cur[qy, qx]) - float(cur[y, x])
+            if math.isnan(rel):  # a pixel without a disparity is of no class
+                continue
+            sp = math.exp(-(dy * dy + dx * dx) / (2 * options.sigma_space_px ** 2))
+            dc2 = sum((float(img[qy, qx, c]) - float(img[y, x, c])) ** 2 for c in range(3))
+            wt = sp * math.exp(-dc2 / (2 * options.sigma_colour ** 2))
+            c = 0 if rel < -snap else (2 if rel > snap else 1)
+            seen[c] += sp
+            simil[c] += wt
+            vals[c].append((float(cur[qy, qx]), wt))
+    return seen, simil, vals
+
+
+def vote_ref(img, cur, sus, snap, options, new, keep=None, one_sided=False):
+    h, w = cur.shape
     for y in range(h):
         for x in range(w):
             if not sus[y, x] or (keep is not None and keep[y, x]):
                 continue
-            seen, simil, vals = [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [[], [], []]
-            for dy in range(-(r // s) * s, r + 1, s):
-                for dx in range(-(r // s) * s, r + 1, s):
-                    qy, qx = y + dy, x + dx
-                    if dy * dy + dx * dx > options.radius_px ** 2 or not (0 <= qy < h and 0 <= qx < w):
-                        continue
-                    if sus[qy, qx] or (keep is not None and keep[qy, qx]):
-                        continue
-                    sp = math.exp(-(dy * dy + dx * dx) / (2 * options.sigma_space_px ** 2))
-                    dc2 = sum((float(img[qy, qx, c]) - float(img[y, x, c])) ** 2 for c in range(3))
-                    wt = sp * math.exp(-dc2 / (2 * options.sigma_colour ** 2))
-                    rel = float(cur[qy, qx]) - float(cur[y, x])
-                    c = 0 if rel < -snap else (2 if rel > snap else 1)
-                    seen[c] += sp
-                    simil[c] += wt
-                    vals[c].append((float(cur[qy, qx]), wt))
+            seen, simil, vals = _classes_ref(img, cur, sus, keep, y, x, snap, options)
             known = [sv >= options.min_class for sv in seen]
             aff = [simil[c] / max(seen[c], 1e-300) if known[c] else 0.0 for c in range(3)]
             best = 0 if aff[0] >= aff[2] else 2
