@@ -80,12 +80,12 @@ def vote_kernel(  # noqa: C901
     aff_far = float(0.0)
     aff_own = float(0.0)
     aff_near = float(0.0)
-    if known_far:
-        aff_far = sim_far / seen_far
+    if known_far:  # a class known with nothing seen (min_class <= 0) has affinity 0, not 0 / 0
+        aff_far = sim_far / wp.max(seen_far, 1.0e-30)
     if known_own:
-        aff_own = sim_own / seen_own
+        aff_own = sim_own / wp.max(seen_own, 1.0e-30)
     if known_near:
-        aff_near = sim_near / seen_near
+        aff_near = sim_near / wp.max(seen_near, 1.0e-30)
     result = VOTE_NONE
     two_sided = known_own or (known_far and known_near) or one_sided != 0
     if aff_far >= aff_near:
@@ -209,7 +209,9 @@ def side_median(image: wp.array2d(dtype=wp.vec3), disparity: wp.array2d(dtype=fl
     lo_open = int(1)
     for _step in range(64):
         mid = lo + 0.5 * (hi - lo)
-        if mid >= hi:  # lo and hi are neighbouring floats: the halfway point rounds up to hi; test lo itself
+        # lo and hi neighbouring floats (the halfway point rounds up to hi), or either infinite (it is NaN or
+        # infinite): test lo itself
+        if not wp.isfinite(mid) or mid >= hi:
             mid = lo
         s = _split(image, disparity, trusted, y, x, offset_y, offset_x, space, snap, colour_scale, near, lo, hi,
                    lo_open, mid)

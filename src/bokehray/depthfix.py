@@ -303,8 +303,13 @@ def vote_sides(img, cur, trusted, ys, xs, offs, space, snap, options, one_sided=
                threads=None) -> tuple[np.ndarray, np.ndarray]:
     """Per pixel ``(ys, xs)``, the side the vote moves it to (``bokehray_kernels.vote``: ``VOTE_FAR``,
     ``VOTE_NEAR``, or ``VOTE_NONE``) and the disparity it takes (its own where it stays), on the CPU in ``threads``
-    parts (Warp CPU launches release the GIL)."""
+    parts (Warp CPU launches release the GIL). ``img`` is ``H x W x 3``, ``cur`` and ``trusted`` ``H x W``, ``cur``
+    float32 (the kernel reads them unchecked)."""
     import warp as wp
+
+    if img.shape != cur.shape + (3,) or trusted.shape != cur.shape or cur.dtype != np.float32:
+        raise ValueError(f"vote: image {img.shape}, map {cur.shape} {cur.dtype} and trusted pixels {trusted.shape} "
+                         "must be H x W x 3, H x W float32 and H x W")
 
     dev = wp.get_device("cpu")
     image = wp.array(np.ascontiguousarray(img, np.float32), dtype=wp.vec3, device=dev, copy=False)

@@ -76,6 +76,8 @@ def test_the_vote_moves_a_misplaced_strip():
     np.full(6, 0.2, np.float32),  # one value
     # neighbouring floats, the smaller heavier: the halfway point between them rounds to the larger
     np.float32([np.nextafter(np.float32(0.5), np.float32(0))] * 3 + [0.5] * 2),
+    np.float32([-np.inf, 0.1, 0.1, 0.1, 0.2]),  # an infinite end: the halfway point is NaN
+    np.float32([-np.inf] * 4 + [0.1]),
 ])
 def test_the_side_median_is_the_weighted_median(values):
     """The far side of one suspect pixel holds ``values`` (nearest first around it, its own disparity 0.9); the
@@ -120,3 +122,27 @@ def test_an_exact_tie_takes_the_smaller_value():
                              one_sided=True)
     assert side[0] == bk_vote.VOTE_FAR
     assert value[0] == np.float32(0.1) == np.float32(weighted_median_ref([0.2, 0.1], [1.0, 1.0]))
+
+
+def test_a_class_known_with_nothing_seen_has_no_affinity():
+    """``min_class = 0`` makes every class known, an empty one too: its affinity is 0 (not 0 / 0), as the
+    oracle's. One suspect pixel among pixels of another layer of its colour moves to them."""
+    from dataclasses import replace
+
+    options = replace(OPTIONS, min_class=0.0)
+    cur = np.full((5, 5), 0.1, np.float32)
+    cur[2, 2] = 0.9
+    img = np.full((5, 5, 3), 0.5, np.float32)
+    sus = np.zeros((5, 5), bool)
+    sus[2, 2] = True
+    got, want = _both(img, cur, sus, 1.0 / 16.0, options=options)
+    assert got[2, 2] == want[2, 2] == np.float32(0.1)
+
+
+def test_arrays_that_do_not_fit_are_refused():
+    """The kernel reads its arrays unchecked: shapes and the map's dtype are checked before the launch."""
+    offs, space = _window()
+    img, cur, trusted = np.zeros((6, 8, 3), np.float32), np.zeros((6, 8), np.float32), np.ones((6, 8), bool)
+    for args in ((img[:4], cur, trusted), (img, cur, trusted[:, :4]), (img, cur.astype(np.float64), trusted)):
+        with pytest.raises(ValueError, match="must be H x W x 3"):
+            vote_sides(*args, np.array([1]), np.array([1]), offs, space, 0.1, OPTIONS)
