@@ -295,3 +295,81 @@ def test_a_jpeg_quality_for_an_output_that_is_not_a_jpeg_is_refused(tmp_path, ca
     assert "--jpeg-quality sets the quality of a JPEG output" in err and err.count("\n") == 1
     assert not (tmp_path / "o.png").exists()
     assert main([*base, "-o", str(tmp_path / "o.jpg"), "--jpeg-quality", "10"]) == 0 and (tmp_path / "o.jpg").is_file()
+
+
+# --------------------------------------------------------------------------- 13. a batch's options on one render
+
+
+_A_BATCH = "a batch (a folder, a glob or a manifest of photos, or a focal sweep)"
+_A_SWEEP = "a focal sweep (--focus or --blur with a list A,B,C or a range START:STOP:COUNT)"
+
+
+@pytest.mark.parametrize("flags,said", [
+    (["--workers", 2], f"--workers sets the number of processes of {_A_BATCH}"),
+    (["--executor", "local"], f"--executor chooses where the renders of {_A_BATCH} run"),
+    (["--executor", "dask", "--scheduler", "tcp://127.0.0.1:8786"],
+     f"--executor chooses where the renders of {_A_BATCH} run"),
+    (["--map-suffix", "_disp"], "--map-suffix pairs the photos of a batch (a folder or a glob of photos) with their "
+                                "maps by name"),
+    (["--overwrite"], f"--overwrite renders again the outputs that {_A_BATCH} would skip as done"),
+    (["--gif-width", 320], f"--gif-width sets the width of the animated preview of {_A_SWEEP}"),
+    (["--fps", 12], f"--fps sets the frame rate of the animated preview of {_A_SWEEP}"),
+])
+def test_a_batch_option_on_a_single_render_is_refused(tmp_path, capsys, flags, said):
+    """``--workers``, ``--fps``, ``--gif-width``, ``--map-suffix``, ``--scheduler`` (and ``--executor``,
+    ``--overwrite``) on one photo with one focus were accepted and changed nothing, exit 0."""
+    p = br.write_image(tmp_path / "p.png", np.full((16, 16, 3), 0.5, np.float32))
+    d = br.write_disparity(tmp_path / "d.png", np.zeros((16, 16), np.float32))
+    code, out, err = run(capsys, "render", p, "--disparity", d, "-o", tmp_path / "o.png", "--blur", 4,
+                         "--focus", 0.5, *flags)
+    assert code == 2 and out == ""
+    line = _one_line(err)
+    flag = flags[0]
+    assert line == f"bokehray: error: {said}; this is a single render (one photo, one focus)" + (
+        ", which replaces its -o file whether it exists or not" if flag == "--overwrite" else "") + \
+        f": leave {flag} out", line
+    assert not (tmp_path / "o.png").exists()
+
+
+def test_a_focal_sweep_of_one_photo_takes_the_batch_options(tmp_path, capsys):
+    """The same flags on a sweep of the same photo are its own: taken, and used (an 8 px wide GIF)."""
+    rng = np.random.default_rng(3)
+    p = br.write_image(tmp_path / "p.png", rng.random((16, 16, 3)).astype(np.float32))
+    d = br.write_disparity(tmp_path / "d.png", np.tile(np.linspace(0, 1, 16, dtype=np.float32), (16, 1)))
+    code, _, err = run(capsys, "render", p, "--disparity", d, "-o", tmp_path / "out", "--blur", 4,
+                       "--focus", "0.2,0.8", "--workers", 1, "--executor", "local", "--map-suffix", "",
+                       "--overwrite", "--gif-width", 8, "--fps", 10, "--quiet")
+    assert code == 0, err
+    with Image.open(tmp_path / "out" / "p_focus_sweep.gif") as gif:
+        assert gif.width == 8 and gif.n_frames == 2 and gif.info["duration"] == 100
+
+
+# --------------------------------------------------------------------------- 14. an animated PNG
+
+
+@pytest.mark.parametrize("as_map", [False, True])
+@pytest.mark.parametrize("bits", [8, 16])
+def test_an_animated_png_is_refused_as_a_multi_page_tiff_is(tmp_path, capsys, as_map, bits):
+    """An APNG rendered its first frame, silently (Pillow and libpng decode only that one)."""
+    if bits == 8:
+        frames = [Image.fromarray(np.full((16, 16, 3), v, np.uint8)) for v in (20, 200, 90)]
+    else:
+        frames = [Image.fromarray(np.full((16, 16), v, np.uint16)) for v in (2000, 60000, 9000)]
+    apng = tmp_path / "anim.png"
+    frames[0].save(apng, save_all=True, append_images=frames[1:])
+    with Image.open(apng) as im:
+        assert im.is_animated and im.n_frames == 3
+    p = br.write_image(tmp_path / "p.png", np.full((16, 16, 3), 0.5, np.float32))
+    d = br.write_disparity(tmp_path / "d.png", np.zeros((16, 16), np.float32))
+    photo, disparity = (p, apng) if as_map else (apng, d)
+    code, out, err = run(capsys, "render", photo, "--disparity", disparity, "-o", tmp_path / "o.png", "--blur", 4,
+                         "--focus", 0.5)
+    assert code == 2 and out == ""
+    assert _one_line(err) == (f"bokehray: error: {apng}: expected one image, got an animated PNG (APNG) with 3 frames; "
+                              "save the frame to use as its own file")
+    assert not (tmp_path / "o.png").exists()
+    with pytest.raises(br.InputError, match="animated PNG"):
+        (br.read_disparity if as_map else br.read_image)(apng)
+    # a one-frame APNG is one picture: read as before
+    frames[0].save(apng, save_all=True, append_images=[])
+    assert (br.read_disparity if as_map else br.read_image)(apng).shape[:2] == (16, 16)

@@ -44,6 +44,10 @@ MAP_EXTS = (".png", ".tif", ".tiff", ".exr", ".npy")
 OUTPUT_FORMATS = ("png", "jpg", "tif", "exr")
 STATE_FILE = "bokehray-batch.json"
 MAX_SWEEP = 1000
+GIF_WIDTH = 640
+"""Width of a sweep's animated preview without ``--gif-width``."""
+FPS = 6.0
+"""Frame rate of a sweep's animated preview without ``--fps``."""
 
 
 # --------------------------------------------------------------------------- the command line
@@ -82,14 +86,17 @@ def add_batch_args(r: argparse.ArgumentParser) -> None:
         "IMAGE may be a folder or a glob ('shoot/*.jpg'), --disparity/--depth a folder, a glob or a manifest CSV "
         "(columns image,disparity); -o is then a folder. --focus/--blur also take a list (0.2,0.4) or a range "
         "(START:STOP:COUNT): a focal stack and an animated GIF per image.")
-    g.add_argument("--map-suffix", default="", metavar="SUFFIX",
+    # the batch's options default to None (resolved in run_batch): a single render refuses them when given
+    g.add_argument("--map-suffix", default=None, metavar="SUFFIX",
                    help="a map's stem is the image's stem plus SUFFIX (e.g. _disp; default: the same stem)")
     g.add_argument("--output-format", choices=OUTPUT_FORMATS, help="format of the outputs (default: the input's)")
     g.add_argument("--overwrite", action="store_true",
                    help="render everything again (default: skip outputs that exist, made with the same settings)")
-    g.add_argument("--gif-width", type=int, default=640, help="width of the animated sweep preview (default 640)")
-    g.add_argument("--fps", type=float, default=6.0, help="frames per second of the sweep preview (default 6)")
+    g.add_argument("--gif-width", type=int, default=None,
+                   help=f"width of the animated sweep preview (default {GIF_WIDTH})")
+    g.add_argument("--fps", type=float, default=None, help=f"frames per second of the sweep preview (default {FPS:g})")
     add_executor_args(r, workers_help="worker processes (default: all cores, at most one per render)")
+    r.set_defaults(executor=None)  # local, unless given
 
 
 def _is_glob(text: str) -> bool:
@@ -424,13 +431,17 @@ def run_batch(args: argparse.Namespace) -> int:  # noqa: C901
     from ..executor import check_executor_args, make_executor
     from ..output.atomic import remove_stale_outputs
 
-    check_executor_args(args.executor, workers=args.workers, scheduler=args.scheduler)  # before any file is made
-    if args.map_suffix and "/" in args.map_suffix:
-        raise InputError(f"--map-suffix: expected a file-name suffix, got {args.map_suffix!r}")
-    if args.gif_width < 8:
-        raise InputError(f"--gif-width: expected at least 8 px, got {args.gif_width}")
-    if not 0.1 <= args.fps <= 50:
-        raise InputError(f"--fps: expected 0.1..50, got {args.fps:g}")
+    # the batch's own options, None when not given (a single render refuses them given: cli._check_single_render)
+    executor, suffix = args.executor or "local", args.map_suffix or ""
+    gif_width = GIF_WIDTH if args.gif_width is None else args.gif_width
+    fps = FPS if args.fps is None else args.fps
+    check_executor_args(executor, workers=args.workers, scheduler=args.scheduler)  # before any file is made
+    if "/" in suffix:
+        raise InputError(f"--map-suffix: expected a file-name suffix, got {suffix!r}")
+    if gif_width < 8:
+        raise InputError(f"--gif-width: expected at least 8 px, got {gif_width}")
+    if not 0.1 <= fps <= 50:
+        raise InputError(f"--fps: expected 0.1..50, got {fps:g}")
     if args.stats:
         raise InputError("--stats: single-file renders only (a batch prints its throughput at the end)")
     name, values = sweep_values(args)
@@ -446,7 +457,7 @@ def run_batch(args: argparse.Namespace) -> int:  # noqa: C901
         raise InputError(f"{out}: many outputs go into a folder, got an existing file")
     if out.suffix.lower() in (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr") and not out.exists():
         raise InputError(f"{out}: many outputs go into a folder, got a file name; give a folder with -o")
-    pairs = find_pairs(args.image, args.disparity or args.depth, kind=settings.kind, suffix=args.map_suffix)
+    pairs = find_pairs(args.image, args.disparity or args.depth, kind=settings.kind, suffix=suffix)
     if not pairs:
         raise InputError(f"{args.image}: no images found ({', '.join(IMAGE_EXTS)})")
     ext = "." + args.output_format if args.output_format else None
@@ -490,7 +501,7 @@ def run_batch(args: argparse.Namespace) -> int:  # noqa: C901
     before = {t.output: _stamp(t.output) for t in todo}  # what is there now (with --overwrite: the old renders)
     try:
         if todo:
-            with make_executor(args.executor, workers=args.workers, scheduler=args.scheduler,
+            with make_executor(executor, workers=args.workers, scheduler=args.scheduler,
                                tasks=len(todo)) as ex:
                 if ex.workers > 1 and not args.scheduler:  # the workers share this machine's cores
                     share = max(1, (os.cpu_count() or 1) // ex.workers)
@@ -527,7 +538,7 @@ def run_batch(args: argparse.Namespace) -> int:  # noqa: C901
             continue
         if args.overwrite or not gif.exists() or any(f.stat().st_mtime > gif.stat().st_mtime for f in frames):
             try:
-                _gif(frames, gif, args.gif_width, args.fps)
+                _gif(frames, gif, gif_width, fps)
                 gifs += 1
             except Exception as e:  # noqa: BLE001 - a preview that fails is reported like a render
                 failures.append((str(gif), f"{type(e).__name__}: {e}".splitlines()[0]))

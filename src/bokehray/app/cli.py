@@ -287,11 +287,28 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def cmd_render(args: argparse.Namespace) -> int:
-    from .batch import is_batch, run_batch
+_A_BATCH = "a batch (a folder, a glob or a manifest of photos, or a focal sweep)"
+_A_SWEEP = "a focal sweep (--focus or --blur with a list A,B,C or a range START:STOP:COUNT)"
+_BATCH_ONLY = (  # (dest, what it does); given on a single render they would change nothing
+    ("workers", f"--workers sets the number of processes of {_A_BATCH}"),
+    ("executor", f"--executor chooses where the renders of {_A_BATCH} run"),
+    ("scheduler", f"--scheduler names the Dask scheduler of {_A_BATCH}"),
+    ("map_suffix", "--map-suffix pairs the photos of a batch (a folder or a glob of photos) with their maps by name"),
+    ("overwrite", f"--overwrite renders again the outputs that {_A_BATCH} would skip as done"),
+    ("gif_width", f"--gif-width sets the width of the animated preview of {_A_SWEEP}"),
+    ("fps", f"--fps sets the frame rate of the animated preview of {_A_SWEEP}"),
+)
+"""The options of many renders that ``bokehray render`` with one photo and one focus refuses, as it refuses other
+flags that would change nothing (docs/robustness.md)."""
 
-    if is_batch(args):  # folders, globs, manifests or a focal sweep (docs/scale.md)
-        return run_batch(args)
+
+def _check_single_render(args: argparse.Namespace) -> None:
+    """Flags of a batch, a sweep or another output format, given to a single render: refused before any work."""
+    for dest, what in _BATCH_ONLY:
+        if getattr(args, dest) not in (None, False):
+            replaces = ", which replaces its -o file whether it exists or not" if dest == "overwrite" else ""
+            raise InputError(f"{what}; this is a single render (one photo, one focus){replaces}: leave "
+                             f"--{dest.replace('_', '-')} out")
     fmt = args.output_format  # a batch's option; one render's format is its -o name's (FORMATS: .jpeg is jpg)
     if fmt is not None and FORMATS.get(Path(args.output).suffix.lower()) != FORMATS["." + fmt]:
         raise InputError(f"--output-format {args.output_format} sets the format of a batch's outputs; one render is "
@@ -299,6 +316,14 @@ def cmd_render(args: argparse.Namespace) -> int:
     if args.jpeg_quality is not None and FORMATS.get(Path(args.output).suffix.lower()) != "JPEG":
         raise InputError(f"--jpeg-quality sets the quality of a JPEG output; {args.output} is not one (name it .jpg, "
                          "or leave --jpeg-quality out)")
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from .batch import is_batch, run_batch
+
+    if is_batch(args):  # folders, globs, manifests or a focal sweep (docs/scale.md)
+        return run_batch(args)
+    _check_single_render(args)
     render_one(args)
     return 0
 

@@ -76,9 +76,20 @@ def _png_header(path: Path) -> tuple[int, int, int]:
     return w, h, depth
 
 
+def _png_images(path: Path) -> int:
+    """How many images a PNG holds: 1, or an animated PNG's (APNG) frames, as Pillow counts them from the chunks
+    before the image data (no pixel is decoded)."""
+    with Image.open(path, formats=["PNG"]) as im:
+        return int(getattr(im, "n_frames", 1))
+
+
 def _load_png(path: Path) -> np.ndarray:
     w, h, depth = _png_header(path)
     _check_dims(path, h, w)
+    images = _png_images(path)
+    if images > 1:  # both decoders return the first frame alone, silently
+        raise InputError(f"{path}: expected one image, got an animated PNG (APNG) with {images} frames; save the "
+                         "frame to use as its own file")
     if depth != 16:
         return decode_pil(path, "PNG")
     # Pillow truncates 16-bit colour PNGs to 8 bits; imagecodecs (libpng) keeps all 16.
