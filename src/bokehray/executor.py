@@ -262,7 +262,7 @@ def add_executor_args(p: argparse.ArgumentParser, *, workers_help: str = "worker
                       workers: bool = True) -> None:
     """``--executor``, ``--scheduler`` (and ``--workers``) of every command that runs batch work."""
     g = p.add_argument_group("executor (docs/scale.md)")
-    g.add_argument("--executor", choices=EXECUTORS, default="local",
+    g.add_argument("--executor", choices=EXECUTORS, default=None,  # None: local (a command can tell it was given)
                    help="local: a process pool on this machine (default); dask: Dask distributed (extra "
                    "'distributed'), a local cluster on 127.0.0.1 unless --scheduler is given")
     g.add_argument("--scheduler", metavar="ADDRESS", help="dask: an existing scheduler, e.g. tcp://10.0.0.5:8786")
@@ -288,8 +288,10 @@ def check_scheduler(address: object) -> str:
     return text
 
 
-def check_executor_args(kind: str = "local", *, workers: int | None = None, scheduler: str | None = None) -> None:
+def check_executor_args(kind: str | None = None, *, workers: int | None = None,
+                        scheduler: str | None = None) -> None:
     """The checks of :func:`make_executor`'s flags, which a command runs before it writes anything."""
+    kind = kind or "local"
     if kind not in EXECUTORS:
         raise InputError(f"--executor: expected one of {', '.join(EXECUTORS)}, got {kind!r}")
     if workers is not None and workers < 1:
@@ -300,9 +302,9 @@ def check_executor_args(kind: str = "local", *, workers: int | None = None, sche
             raise InputError("--scheduler needs --executor dask")
 
 
-def make_executor(kind: str = "local", *, workers: int | None = None, scheduler: str | None = None,
+def make_executor(kind: str | None = None, *, workers: int | None = None, scheduler: str | None = None,
                   retries: int = DEFAULT_RETRIES, tasks: int | None = None) -> Executor:
-    """The executor ``kind`` (``local`` or ``dask``) with ``workers`` processes (default: all cores).
+    """The executor ``kind`` (``local``, the default, or ``dask``) with ``workers`` processes (default: all cores).
 
     ``tasks``: how many tasks will run (a pool is never larger). ``scheduler``: the address of an existing Dask
     scheduler (``dask`` only). ``retries``: how often a task whose worker died is run again.

@@ -306,6 +306,7 @@ _A_SWEEP = "a focal sweep (--focus or --blur with a list A,B,C or a range START:
 
 @pytest.mark.parametrize("flags,said", [
     (["--workers", 2], f"--workers sets the number of processes of {_A_BATCH}"),
+    (["--workers", 0], f"--workers sets the number of processes of {_A_BATCH}"),  # 0 == False: still given
     (["--executor", "local"], f"--executor chooses where the renders of {_A_BATCH} run"),
     (["--executor", "dask", "--scheduler", "tcp://127.0.0.1:8786"],
      f"--executor chooses where the renders of {_A_BATCH} run"),

@@ -96,7 +96,6 @@ def add_batch_args(r: argparse.ArgumentParser) -> None:
                    help=f"width of the animated sweep preview (default {GIF_WIDTH})")
     g.add_argument("--fps", type=float, default=None, help=f"frames per second of the sweep preview (default {FPS:g})")
     add_executor_args(r, workers_help="worker processes (default: all cores, at most one per render)")
-    r.set_defaults(executor=None)  # local, unless given
 
 
 def _is_glob(text: str) -> bool:
@@ -432,10 +431,10 @@ def run_batch(args: argparse.Namespace) -> int:  # noqa: C901
     from ..output.atomic import remove_stale_outputs
 
     # the batch's own options, None when not given (a single render refuses them given: cli._check_single_render)
-    executor, suffix = args.executor or "local", args.map_suffix or ""
+    suffix = args.map_suffix or ""
     gif_width = GIF_WIDTH if args.gif_width is None else args.gif_width
     fps = FPS if args.fps is None else args.fps
-    check_executor_args(executor, workers=args.workers, scheduler=args.scheduler)  # before any file is made
+    check_executor_args(args.executor, workers=args.workers, scheduler=args.scheduler)  # before any file is made
     if "/" in suffix:
         raise InputError(f"--map-suffix: expected a file-name suffix, got {suffix!r}")
     if gif_width < 8:
@@ -501,7 +500,7 @@ def run_batch(args: argparse.Namespace) -> int:  # noqa: C901
     before = {t.output: _stamp(t.output) for t in todo}  # what is there now (with --overwrite: the old renders)
     try:
         if todo:
-            with make_executor(executor, workers=args.workers, scheduler=args.scheduler,
+            with make_executor(args.executor, workers=args.workers, scheduler=args.scheduler,
                                tasks=len(todo)) as ex:
                 if ex.workers > 1 and not args.scheduler:  # the workers share this machine's cores
                     share = max(1, (os.cpu_count() or 1) // ex.workers)

@@ -305,7 +305,8 @@ flags that would change nothing (docs/robustness.md)."""
 def _check_single_render(args: argparse.Namespace) -> None:
     """Flags of a batch, a sweep or another output format, given to a single render: refused before any work."""
     for dest, what in _BATCH_ONLY:
-        if getattr(args, dest) not in (None, False):
+        value = getattr(args, dest)
+        if value is not None and value is not False:  # given (0 too: 0 == False)
             replaces = ", which replaces its -o file whether it exists or not" if dest == "overwrite" else ""
             raise InputError(f"{what}; this is a single render (one photo, one focus){replaces}: leave "
                              f"--{dest.replace('_', '-')} out")

@@ -370,7 +370,7 @@ def generate_one(args: tuple[SynthConfig, int, int, str, bool]) -> str:
 
 
 def generate(config: SynthConfig, n: int, out: str | os.PathLike, *, seed: int = 0, workers: int | None = None,
-             progress: bool = True, overwrite: bool = False, executor: str = "local",
+             progress: bool = True, overwrite: bool = False, executor: str | None = "local",
              scheduler: str | None = None) -> list[str]:
     """Generate ``n`` scenes into ``out`` (BLB layout), in parallel on ``executor`` (:mod:`bokehray.executor`).
 

@@ -104,7 +104,7 @@ def default_cache() -> Path:
 
 
 def synth_cases(split: SynthSplit, cache: Path, *, workers: int | None = None, progress: bool = True,
-                log: Callable[[str], None] = print, executor: str = "local",
+                log: Callable[[str], None] = print, executor: str | None = "local",
                 scheduler: str | None = None) -> tuple[list[Case], Path]:
     """The synthetic test split, generated once into ``cache`` (BLB layout) and read back."""
     from ...data.datasets import BLBDataset
