@@ -209,7 +209,7 @@ def _read_map(args: argparse.Namespace, h: int, w: int, image: np.ndarray | None
     """The disparity map by the conventions the flags state; ``(d, DepthNormalization or None)``."""
     from ..lens import DepthNormalization, check_focus_in_range, disparity_from_depth
     from ..output.write import write_disparity
-    from ..photo.depth import looks_reversed, missing_depth_share, normalize_bounds, normalize_relative, read_depth
+    from ..photo.depth import looks_reversed, missing_depth_share, normalize_relative, read_depth
     from ..photo.read import read_disparity
 
     norm = None
@@ -249,8 +249,7 @@ def _read_map(args: argparse.Namespace, h: int, w: int, image: np.ndarray | None
         source = args.disparity
         raw = read_disparity(source)
         if args.normalize:
-            disparity = normalize_relative(raw, invert=args.invert, source=source)
-            lo, hi, how = normalize_bounds(raw, source)
+            disparity, (lo, hi, how) = normalize_relative(raw, invert=args.invert, source=source, with_bounds=True)
             _say(args, f"disparity: {source} normalised from [{lo:.4g}, {hi:.4g}] ({how}) "
                  f"to [0, 1]{', inverted' if args.invert else ''}")
         else:
@@ -416,7 +415,8 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:  
                                  "needs --focus-distance, or click on a surface")
         if focus_m is None:
             raise InputError("a physical lens needs --focus-distance or --focus-at X,Y")
-        lens = ThinLens(args.focal_length, args.f_number, focus_m, 36.0 if args.sensor_width is None else args.sensor_width)
+        sensor = {} if args.sensor_width is None else {"sensor_width_mm": args.sensor_width}  # else ThinLens's
+        lens = ThinLens(args.focal_length, args.f_number, focus_m, **sensor)
         blur = lens.blur_params(norm, w)
         _say(args, f"focus: at {focus_m:.3g} m ({'--focus-at' if args.focus_at is not None else '--focus-distance'}); "
              f"{args.focal_length:g} mm f/{args.f_number:g}")

@@ -86,16 +86,20 @@ def normalize_bounds(values: np.ndarray, source: str = "disparity") -> tuple[flo
     return lo, hi, how
 
 
-def normalize_relative(values: np.ndarray, *, invert: bool = False, source: str = "disparity") -> np.ndarray:
+def normalize_relative(values: np.ndarray, *, invert: bool = False, source: str = "disparity",
+                       with_bounds: bool = False) -> np.ndarray | tuple[np.ndarray, tuple[float, float, str]]:
     """A relative map of any range (e.g. a monocular model's inverse depth) to disparity in [0, 1].
 
     Min-max between the 0.5th and 99.5th percentiles of the finite values, clipped to [0, 1], so a few outliers
-    do not squash the rest; ``invert`` flips it for near-is-dark maps. Non-finite values are refused.
+    do not squash the rest; ``invert`` flips it for near-is-dark maps. Non-finite values are refused. With
+    ``with_bounds``, ``(d, (lo, hi, how))``: the bounds it used and how they were found (:func:`normalize_bounds`).
     """
     v = np.asarray(values, np.float64)
-    lo, hi, _ = normalize_bounds(v, source)
+    bounds = normalize_bounds(v, source)
+    lo, hi, _ = bounds
     d = np.clip((v - lo) / (hi - lo), 0.0, 1.0)
-    return (1.0 - d if invert else d).astype(np.float32)
+    d = (1.0 - d if invert else d).astype(np.float32)
+    return (d, bounds) if with_bounds else d
 
 
 
