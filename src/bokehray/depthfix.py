@@ -35,14 +35,12 @@ move keep their input values bit for bit. The slow obvious reference is
 
 from __future__ import annotations
 
-import os
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import bokehray_kernels.vote as bk_vote
 import numpy as np
 
-from .edge_estimate import PIXELS_PER_THREAD, depth_edges, ramp_width
+from .edge_estimate import depth_edges, in_parts, ramp_width
 
 __all__ = ["DepthFixOptions", "colour_edge_offsets", "correct_disparity", "correction_steps", "edge_pairs",
            "global_shift", "has_ramps", "pass_reach", "shift_map", "smeared", "step_flips", "untrusted", "vote",
@@ -318,30 +316,20 @@ def vote_sides(img, cur, trusted, ys, xs, offs, space, snap, options, one_sided=
     oy = wp.array(offs[:, 0].astype(np.int32), dtype=wp.int32, device=dev)
     ox = wp.array(offs[:, 1].astype(np.int32), dtype=wp.int32, device=dev)
     sp = wp.array(np.asarray(space, np.float32), dtype=float, device=dev)
-    n = ys.size
-    parts = max(1, min(int(threads or os.cpu_count() or 1), -(-n // PIXELS_PER_THREAD)))
-    cuts = np.linspace(0, n, parts + 1).astype(np.int64)
-    sides, values = np.empty(n, np.int32), np.empty(n, np.float32)
 
-    def launch(j: int) -> None:
-        a, b = int(cuts[j]), int(cuts[j + 1])
-        if b == a:
-            return
+    def launch(a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
         side, value = wp.empty(b - a, dtype=wp.int32, device=dev), wp.empty(b - a, dtype=float, device=dev)
-        wp.launch(bk_vote.vote_kernel, dim=b - a,
-                  inputs=[image, disp, tru, wp.array(ys[a:b].astype(np.int32), dtype=wp.int32, device=dev),
-                          wp.array(xs[a:b].astype(np.int32), dtype=wp.int32, device=dev), oy, ox, sp, float(snap),
-                          float(-1.0 / (2.0 * options.sigma_colour ** 2)), float(options.min_class),
-                          float(options.contrast), float(options.min_affinity), int(bool(one_sided))],
-                  outputs=[side, value], device=dev)
-        sides[a:b], values[a:b] = side.numpy(), value.numpy()
+        if b > a:
+            wp.launch(bk_vote.vote_kernel, dim=b - a,
+                      inputs=[image, disp, tru, wp.array(ys[a:b].astype(np.int32), dtype=wp.int32, device=dev),
+                              wp.array(xs[a:b].astype(np.int32), dtype=wp.int32, device=dev), oy, ox, sp,
+                              float(snap), float(-1.0 / (2.0 * options.sigma_colour ** 2)), float(options.min_class),
+                              float(options.contrast), float(options.min_affinity), int(bool(one_sided))],
+                      outputs=[side, value], device=dev)
+        return side.numpy(), value.numpy()
 
-    if parts == 1:
-        launch(0)
-    else:
-        with ThreadPoolExecutor(max_workers=parts) as pool:
-            list(pool.map(launch, range(parts)))
-    return sides, values
+    parts = in_parts(ys.size, launch, threads=threads)
+    return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
 
 
 def step_flips(coc: np.ndarray, jump_px: float) -> float:

@@ -28,10 +28,23 @@ import numpy as np
 from ._memory import row_bands
 
 __all__ = ["PIXELS_PER_THREAD", "EdgeEstimate", "Steps", "depth_edges", "dilate", "edges_of_steps", "estimate_edges",
-           "isolated_share", "launch_band_kernel", "map_steps", "ramp_of_steps", "ramp_width", "window_offsets"]
+           "in_parts", "isolated_share", "launch_band_kernel", "map_steps", "ramp_of_steps", "ramp_width", "window_offsets"]
 
 PIXELS_PER_THREAD = 4096
-"""Fewest band pixels a CPU thread of the kernel gets (fewer are not worth a thread)."""
+"""Fewest pixels a CPU thread of a per-pixel kernel gets (fewer are not worth a thread)."""
+
+
+def in_parts(n: int, run, *, threads: int | None = None, cpu: bool = True) -> list:
+    """``run(a, b)`` over ``[0, n)`` cut into parts, their results in order: on the CPU as many parts as ``threads``
+    (default: the cores) with at least ``PIXELS_PER_THREAD`` items each, run in a thread pool (Warp CPU launches
+    release the GIL); one part elsewhere. Always at least one part (``run(0, 0)`` for nothing)."""
+    parts = 1 if not cpu else max(1, min(int(threads or os.cpu_count() or 1), -(-n // PIXELS_PER_THREAD)))
+    cuts = np.linspace(0, n, parts + 1).astype(np.int64)
+    spans = [(int(cuts[j]), int(cuts[j + 1])) for j in range(parts)]
+    if parts == 1:
+        return [run(*spans[0])]
+    with ThreadPoolExecutor(max_workers=parts) as pool:
+        return list(pool.map(lambda span: run(*span), spans))
 
 
 Steps = tuple[np.ndarray, np.ndarray]
@@ -168,12 +181,8 @@ def launch_band_kernel(img, s, band, by, bx, radius, jump_px, unknown_weight, ri
     sigma = 0.5 * radius
     og = wp.array(np.exp(-(dist.astype(np.float64) ** 2) / (2.0 * sigma * sigma)).astype(np.float32), dtype=float,
                   device=dev)
-    parts = 1 if dev.is_cuda else max(1, min(int(threads or os.cpu_count() or 1), -(-n // PIXELS_PER_THREAD)))
-    cuts = np.linspace(0, n, parts + 1).astype(np.int64)
-    outs = [None] * parts
 
-    def launch(j: int) -> None:
-        a, b = int(cuts[j]), int(cuts[j + 1])
+    def launch(a: int, b: int) -> list[np.ndarray]:
         m = b - a
         res = [wp.empty(m, dtype=float, device=dev)] + [wp.empty(m, dtype=wp.vec3, device=dev) for _ in range(4)] \
             + [wp.empty(m, dtype=float, device=dev), wp.empty(m, dtype=float, device=dev),
@@ -184,13 +193,9 @@ def launch_band_kernel(img, s, band, by, bx, radius, jump_px, unknown_weight, ri
                               wp.array(bx[a:b].astype(np.int32), dtype=wp.int32, device=dev), oy, ox, og,
                               float(jump_px), float(unknown_weight), float(ridge), float(purity)],
                       outputs=res, device=dev)
-        outs[j] = [r.numpy() for r in res]
+        return [r.numpy() for r in res]
 
-    if parts == 1:
-        launch(0)
-    else:
-        with ThreadPoolExecutor(max_workers=parts) as pool:
-            list(pool.map(launch, range(parts)))
+    outs = in_parts(n, launch, threads=threads, cpu=dev.is_cpu)
     return tuple(np.concatenate([o[k] for o in outs]) for k in range(8))
 
 
