@@ -30,6 +30,7 @@ Writes ``benchmarks/results/refiner_edges.json``.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from dataclasses import replace
@@ -80,18 +81,16 @@ def side_labels(cost, x, config):
     return near_side, span
 
 
-def bank(root: str, variants: int, seed: int, opts, config) -> list[dict]:
-    """``variants`` corrupted maps per training pair: the exact one, then the other kinds in turn (a random
-    amount each), as the network's inputs (float16) and each choice's cost."""
+def _bank_maps(root: str, variants: int, seed: int):
+    """The bank's corrupted maps in order: per training pair ``variants`` of them, the exact one, then the other
+    kinds in turn (a random amount each), as (sample, its blur, the sRGB photo, the kind, the corrupted map)."""
     from bokehray_refiner.data import corrupt_disparity
-    from bokehray_refiner.edges import N_BASE, edge_features
 
     import bokehray as br
     from bokehray.data.datasets import BLBDataset
 
     rng = np.random.default_rng(seed)
     ds = BLBDataset(root)
-    out = []
     for i in range(len(ds)):
         s = ds[i]
         blur = br.BlurParams(s.k_px, s.focus_disparity)
@@ -100,22 +99,40 @@ def bank(root: str, variants: int, seed: int, opts, config) -> list[dict]:
                                           for j in range(variants - 1)]
         for kind, lo, hi in kinds:
             amount = int(rng.integers(lo, hi + 1))
-            d = np.clip(corrupt_disparity(s.disparity, kind, amount, rng), 0.0, 1.0)
-            used, band, _ = used_map(s.image, d, blur, opts)
-            out.append({"x": edge_features(focus, used, blur, band, config)[:N_BASE].astype(np.float16),
-                        "cost": side_costs(used, s.disparity, blur, config).astype(np.float16),
-                        "exact": kind == "none"})
+            yield s, blur, focus, kind, np.clip(corrupt_disparity(s.disparity, kind, amount, rng), 0.0, 1.0)
         if (i + 1) % 50 == 0:
             print(f"bank: {i + 1}/{len(ds)} pairs", flush=True)
+
+
+def bank(root: str, variants: int, seed: int, opts, config) -> list[dict]:
+    """The bank (:func:`_bank_maps`): per map the network's inputs (float16), each choice's cost, whether the map is
+    exact and whether refine would run the network on it (:func:`network_runs`)."""
+    from bokehray_refiner.edges import N_BASE, edge_features
+
+    out = []
+    for s, blur, focus, kind, d in _bank_maps(root, variants, seed):
+        used, band, _ = used_map(s.image, d, blur, opts)
+        out.append({"x": edge_features(focus, used, blur, band, config)[:N_BASE].astype(np.float16),
+                    "cost": side_costs(used, s.disparity, blur, config).astype(np.float16),
+                    "exact": kind == "none", "runs": network_runs(s.image, focus, d, blur, opts)[0]})
     return out
 
 
+def run_flags(root: str, variants: int, seed: int, opts) -> np.ndarray:
+    """Whether refine would run the network on each of the bank's maps, for a bank written before it kept this
+    (the maps are drawn again, as :func:`bank` drew them)."""
+    return np.array([network_runs(s.image, focus, d, blur, opts)[0]
+                     for s, blur, focus, _, d in _bank_maps(root, variants, seed)])
+
+
 def train(entries: list[dict], config, steps: int, batch: int, crop: int, seed: int, exact_weight: float,
-          checkpoint: str | None, checkpoint_every: int = 500, log_every: int = 100, price: float = 0.0):
+          checkpoint: str | None, checkpoint_every: int = 500, log_every: int = 100, price: float = 0.0,
+          lr: float = 2e-3, init=None):
     """AdamW on the binary cross-entropy against the true side (:func:`side_labels`), on random crops on the band
     (flipped and transposed at random), each pixel weighted by the band, the candidates' CoC span and
-    ``exact_weight`` on exact maps; with ``price`` (sRGB), also by :func:`render_price`. With ``checkpoint``,
-    resumable bit for bit (as ``refiner_choice.train``)."""
+    ``exact_weight`` on exact maps; with ``price`` (sRGB), also by :func:`render_price`. The learning rate rises to
+    ``lr`` and falls (one cycle); ``init``: an :class:`EdgeNet` of ``config`` to start from, else a fresh one.
+    With ``checkpoint``, resumable bit for bit (as ``refiner_choice.train``)."""
     import torch
     import torch.nn.functional as F
     from bokehray_refiner.edges import EdgeNet
@@ -123,8 +140,10 @@ def train(entries: list[dict], config, steps: int, batch: int, crop: int, seed: 
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     model = EdgeNet(config)
-    opt = torch.optim.AdamW(model.parameters(), lr=2e-3, weight_decay=1e-4)
-    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=2e-3, total_steps=steps,
+    if init is not None:
+        model.load_state_dict(init.state_dict())
+    opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=lr, total_steps=steps,
                                                 pct_start=min(0.3, max(0.05, 10 / steps)))
     parts = {"model": model, "opt": opt, "sched": sched}
     losses, start = _resume(checkpoint, steps, seed, parts, rng) if checkpoint else ([], 0)
@@ -317,6 +336,32 @@ def summarise(rows: list[dict]) -> list[dict]:
     return summary
 
 
+def _entries(args, opts, config) -> list[dict]:
+    """The training maps: the bank ``--bank`` if written, else made (and written there); with ``--runs-only``, only
+    the maps refine would run the network on."""
+    if args.bank and Path(args.bank).is_file():
+        with np.load(args.bank) as z:
+            entries = [{k: z[f"{i}_{k}"] for k in ("x", "cost", "exact", "runs") if f"{i}_{k}" in z}
+                       for i in range(int(z["n"]))]
+        if args.runs_only and "runs" not in entries[0]:  # a bank written before it kept the flag
+            for e, runs in zip(entries, run_flags(args.train, args.variants, args.seed, opts), strict=True):
+                e["runs"] = runs
+            _save_bank(args.bank, entries)
+    else:
+        entries = bank(args.train, args.variants, args.seed, opts, config)
+        if args.bank:
+            _save_bank(args.bank, entries)
+    return [e for e in entries if e["runs"]] if args.runs_only else entries
+
+
+def _save_bank(path: str, entries: list[dict]) -> None:
+    """Write the bank whole or not at all (a stopped write leaves the one before)."""
+    tmp = f"{path}.partial"
+    with open(tmp, "wb") as f:
+        np.savez(f, n=len(entries), **{f"{i}_{k}": v for i, e in enumerate(entries) for k, v in e.items()})
+    os.replace(tmp, path)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--train", help="BLB folder to train on (bokehray synth)")
@@ -330,9 +375,14 @@ def main() -> None:
                     help="side of the crop the loss counts (the network sees its receptive field around it too)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--exact-weight", type=float, default=2.0, help="loss weight of the exact maps")
+    ap.add_argument("--runs-only", action="store_true",
+                    help="train only on the maps refine would run the network on (network_runs), as at inference")
     ap.add_argument("--price", type=float, default=0.0,
                     help="weight the loss by the render price of a wrong side: the squared colour step across the "
                          "edge over this squared (sRGB; 0: off)")
+    ap.add_argument("--lr", type=float, default=2e-3, help="the learning rate's peak (one cycle)")
+    ap.add_argument("--init", default=None,
+                    help="start from these weights (safetensors; their config, not --width/--dilations)")
     ap.add_argument("--width", type=int, default=32)
     ap.add_argument("--dilations", default="2,4,8,1", help="the hidden 3 x 3 convolutions' dilations")
     ap.add_argument("--bank", default=None, help="cache of the training inputs (.npz): read if present, else written")
@@ -368,24 +418,19 @@ def main() -> None:
     if args.load:
         model = load_edge_net(args.load)
     else:
-        config = EdgeConfig(width=args.width, dilations=tuple(int(v) for v in args.dilations.split(",")))
+        init = load_edge_net(args.init) if args.init else None
+        config = init.config if init else EdgeConfig(width=args.width,
+                                                     dilations=tuple(int(v) for v in args.dilations.split(",")))
         t = time.perf_counter()
-        if args.bank and Path(args.bank).is_file():
-            with np.load(args.bank) as z:
-                entries = [{"x": z[f"{i}_x"], "cost": z[f"{i}_cost"], "exact": bool(z[f"{i}_exact"])}
-                           for i in range(int(z["n"]))]
-        else:
-            entries = bank(args.train, args.variants, args.seed, opts, config)
-            if args.bank:
-                np.savez(args.bank, n=len(entries), **{f"{i}_{k}": v for i, e in enumerate(entries)
-                                                       for k, v in e.items()})
+        entries = _entries(args, opts, config)
         for e in entries:  # the bank keeps the first channels; the colour models are made from them
             e["x"] = np.concatenate([e["x"], colour_features(e["x"].astype(np.float32)).astype(np.float16)])
         result["bank_s"] = time.perf_counter() - t
         print(f"bank: {len(entries)} maps in {result['bank_s']:.0f} s", flush=True)
         t = time.perf_counter()
         model, losses = train(entries, config, args.steps, args.batch, args.crop, args.seed, args.exact_weight,
-                              args.checkpoint, args.checkpoint_every, price=args.price)
+                              args.checkpoint, args.checkpoint_every, price=args.price, lr=args.lr,
+                              init=init)
         del entries
         result |= {"train_s": time.perf_counter() - t, "loss": losses}
         model.eval()

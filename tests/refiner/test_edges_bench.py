@@ -85,3 +85,57 @@ def test_the_render_price_is_the_squared_colour_step_between_the_sides(bench):
     assert price.shape == (3, 2, 2)
     assert torch.allclose(price[0], torch.tensor(0.05)) and torch.allclose(price[1], torch.tensor(0.25))
     assert torch.allclose(price[2], torch.tensor(4.0))
+
+
+def _entry(bench, seed=1):
+    truth, shrunk, blur = _maps()
+    focus = np.random.default_rng(seed).random(truth.shape + (3,), dtype=np.float32)
+    band = np.ones(truth.shape, np.float32)
+    return {"x": edge_features(focus, shrunk, blur, band, SMALL).astype(np.float16),
+            "cost": bench.side_costs(shrunk, truth, blur, SMALL).astype(np.float16), "exact": False}
+
+
+def test_training_from_given_weights_starts_where_they_are(bench):
+    from bokehray_refiner.edges import EdgeNet
+
+    torch.manual_seed(7)
+    start = EdgeNet(SMALL)
+    still, _ = bench.train([_entry(bench)], SMALL, steps=2, batch=1, crop=16, seed=0, exact_weight=1.0,
+                           checkpoint=None, lr=1e-12, init=start)
+    fresh, _ = bench.train([_entry(bench)], SMALL, steps=2, batch=1, crop=16, seed=0, exact_weight=1.0,
+                           checkpoint=None, lr=1e-12)
+    for (name, a), b, c in zip(still.state_dict().items(), start.state_dict().values(), fresh.state_dict().values()):
+        torch.testing.assert_close(a, b, rtol=0, atol=1e-6, msg=name)
+        assert not torch.allclose(a, c), name  # a fresh start is another network
+
+
+@pytest.fixture(scope="module")
+def pairs(tmp_path_factory):
+    from bokehray.data.synth import SynthConfig, generate
+
+    root = tmp_path_factory.mktemp("synth")
+    generate(SynthConfig(size=64, blur_levels=(6.0,), max_spp=16), 1, root, seed=7, workers=1, progress=False)
+    return root
+
+
+def test_the_run_flags_of_an_old_bank_are_the_ones_a_new_bank_records(bench, pairs, tmp_path):
+    """A bank written before it kept whether refine runs the network on each map gets the flags by drawing the maps
+    again; they are those of a bank made whole, and --runs-only trains on those maps alone."""
+    import argparse
+
+    from bokehray_refiner.refine import RefineOptions
+
+    opts = RefineOptions()
+    made = bench.bank(str(pairs), 4, 3, opts, SMALL)
+    assert len(made) == 2 * 4 and [e["exact"] for e in made[:4]] == [True, False, False, False]
+    flags = [bool(e["runs"]) for e in made]
+    assert 0 < sum(flags) < len(flags)  # this scene's maps are some of each
+    assert list(bench.run_flags(str(pairs), 4, 3, opts)) == flags
+    path = str(tmp_path / "bank.npz")
+    bench._save_bank(path, [{k: v for k, v in e.items() if k != "runs"} for e in made])  # an old bank
+    args = argparse.Namespace(bank=path, train=str(pairs), variants=4, seed=3, runs_only=True)
+    kept = bench._entries(args, opts, SMALL)
+    assert len(kept) == sum(flags)
+    with np.load(path) as z:  # the flags were written back
+        assert [bool(z[f"{i}_runs"]) for i in range(int(z["n"]))] == flags
+    assert len(bench._entries(argparse.Namespace(**(vars(args) | {"runs_only": False})), opts, SMALL)) == len(made)
