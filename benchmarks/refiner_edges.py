@@ -8,7 +8,9 @@ The network learns, per pixel of the edge band, which side of the edge the pixel
 candidate) whose CoC is nearer the true map's. Its loss is the binary cross-entropy against that side, each pixel
 weighted by the band, by the CoC span between the candidates (0 to 1 at 4 px) and ``--exact-weight`` on the exact
 maps; with ``--price``, also by what a wrong side costs the render (:func:`render_price`; measured in round 12 and
-not used by the shipped weights, docs/refiner.md).
+not used by the shipped weights, docs/refiner.md). ``--runs-only`` trains only on the maps refine would run the
+network on, ``--keep-margin`` labels a third layer between the candidates with the map's own side, ``--init``
+fine-tunes given weights (measured in round 13, not used by the shipped weights).
 
 Scored on the path-traced dev set and a held-out synthetic split in the true depth's band, per corruption of
 ``bench_refiner.NET_CONDITIONS``, as ``bench_refiner.py --network-conditions``: ``fix`` is the depth fix's render
@@ -72,11 +74,20 @@ def side_costs(used: np.ndarray, truth: np.ndarray, blur, config, cap_px: float 
     return np.minimum(np.stack([np.abs(blur.signed_coc(m) - t) for m in (used, near, far)]), cap_px)
 
 
-def side_labels(cost, x, config):
+def side_labels(cost, x, config, keep_margin: float | None = None):
     """From a bank entry's costs and inputs (torch, ``B x 3 x H x W`` and ``B x N_INPUTS x H x W``): the true side
     (1: near, the near candidate is nearer the true CoC than the far one) and how much it counts: the CoC span
-    between the candidates, 0 to 1 at 4 px (none where no edge is in reach)."""
+    between the candidates, 0 to 1 at 4 px (none where no edge is in reach).
+
+    With ``keep_margin`` (CoC px), the true side is the map's own wherever keeping the map's value is nearer the true
+    CoC than either candidate by that much: a pixel of a third layer between the two (a card between a leaf and the
+    background) belongs to neither candidate, and the network's one way to leave it alone is to agree with the map.
+    """
     near_side = (cost[:, 1] < cost[:, 2]).float()
+    if keep_margin is not None:
+        on_near = (-x[:, 5] > x[:, 4]).float()  # c - far > near - c (the inputs hold near - c and far - c)
+        keep = cost[:, 0] + keep_margin < cost[:, 1].minimum(cost[:, 2])
+        near_side = near_side.where(~keep, on_near)
     span = ((x[:, 4] - x[:, 5]) * config.coc_scale_px / 4.0).clamp(0.0, 1.0)
     return near_side, span
 
@@ -127,11 +138,12 @@ def run_flags(root: str, variants: int, seed: int, opts) -> np.ndarray:
 
 def train(entries: list[dict], config, steps: int, batch: int, crop: int, seed: int, exact_weight: float,
           checkpoint: str | None, checkpoint_every: int = 500, log_every: int = 100, price: float = 0.0,
-          lr: float = 2e-3, init=None):
+          lr: float = 2e-3, init=None, keep_margin: float | None = None):
     """AdamW on the binary cross-entropy against the true side (:func:`side_labels`), on random crops on the band
     (flipped and transposed at random), each pixel weighted by the band, the candidates' CoC span and
     ``exact_weight`` on exact maps; with ``price`` (sRGB), also by :func:`render_price`. The learning rate rises to
-    ``lr`` and falls (one cycle); ``init``: an :class:`EdgeNet` of ``config`` to start from, else a fresh one.
+    ``lr`` and falls (one cycle); ``init``: an :class:`EdgeNet` of ``config`` to start from, else a fresh one;
+    ``keep_margin``: :func:`side_labels`'.
     With ``checkpoint``, resumable bit for bit (as ``refiner_choice.train``)."""
     import torch
     import torch.nn.functional as F
@@ -148,7 +160,7 @@ def train(entries: list[dict], config, steps: int, batch: int, crop: int, seed: 
     parts = {"model": model, "opt": opt, "sched": sched}
     losses, start = _resume(checkpoint, steps, seed, parts, rng) if checkpoint else ([], 0)
     wrong_seen: list[float] = []
-    map_wrong = _map_wrong(entries, exact_weight, config)
+    map_wrong = _map_wrong(entries, exact_weight, config, keep_margin)
     reach = config.reach_px
     for step in range(start, steps):
         xs, costs, ws = [], [], []
@@ -183,7 +195,7 @@ def train(entries: list[dict], config, steps: int, batch: int, crop: int, seed: 
         cost, counted = cost[:, :3], cost[:, 3]
         weight = x[:, 6] * counted * torch.tensor(ws)[:, None, None]
         logit = model(x)[:, 0]
-        label, span = side_labels(cost, x, config)
+        label, span = side_labels(cost, x, config, keep_margin)
         weight = weight * span
         priced = weight * render_price(x, price) if price > 0 else weight
         loss = (F.binary_cross_entropy_with_logits(logit, label, reduction="none") * priced).sum() \
@@ -211,7 +223,7 @@ def render_price(x, scale: float):
     return (step / scale ** 2).clamp(0.05, 4.0)
 
 
-def _map_wrong(entries: list[dict], exact_weight: float, config) -> float:
+def _map_wrong(entries: list[dict], exact_weight: float, config, keep_margin: float | None = None) -> float:
     """The share of counted pixels the given maps themselves put on the wrong side (what a network that keeps every
     map scores)."""
     import torch
@@ -219,7 +231,7 @@ def _map_wrong(entries: list[dict], exact_weight: float, config) -> float:
     wrong = total = 0.0
     for e in entries:
         x, cost = torch.from_numpy(e["x"][None].astype(np.float32)), torch.from_numpy(e["cost"][None].astype(np.float32))
-        label, span = side_labels(cost, x, config)
+        label, span = side_labels(cost, x, config, keep_margin)
         on_near = (-x[:, 5] > x[:, 4]).float()  # c - far > near - c (the inputs hold near - c and far - c)
         w = x[:, 6] * span * (exact_weight if e["exact"] else 1.0)
         wrong += float(((on_near != label).float() * w).sum())
@@ -338,7 +350,7 @@ def summarise(rows: list[dict]) -> list[dict]:
 
 def _entries(args, opts, config) -> list[dict]:
     """The training maps: the bank ``--bank`` if written, else made (and written there); with ``--runs-only``, only
-    the maps refine would run the network on."""
+    the maps refine would run the network on (and with ``--with-exact`` every exact map too)."""
     if args.bank and Path(args.bank).is_file():
         with np.load(args.bank) as z:
             entries = [{k: z[f"{i}_{k}"] for k in ("x", "cost", "exact", "runs") if f"{i}_{k}" in z}
@@ -351,7 +363,9 @@ def _entries(args, opts, config) -> list[dict]:
         entries = bank(args.train, args.variants, args.seed, opts, config)
         if args.bank:
             _save_bank(args.bank, entries)
-    return [e for e in entries if e["runs"]] if args.runs_only else entries
+    if not args.runs_only:
+        return entries
+    return [e for e in entries if e["runs"] or (args.with_exact and e["exact"])]
 
 
 def _save_bank(path: str, entries: list[dict]) -> None:
@@ -380,6 +394,11 @@ def main() -> None:
     ap.add_argument("--price", type=float, default=0.0,
                     help="weight the loss by the render price of a wrong side: the squared colour step across the "
                          "edge over this squared (sRGB; 0: off)")
+    ap.add_argument("--with-exact", action="store_true",
+                    help="with --runs-only, train on every exact map too (to learn to leave right edges alone)")
+    ap.add_argument("--keep-margin", type=float, default=None,
+                    help="label a pixel with the map's own side where keeping its value is nearer the true CoC than "
+                         "either candidate by this much (CoC px; default: the nearer candidate's side everywhere)")
     ap.add_argument("--lr", type=float, default=2e-3, help="the learning rate's peak (one cycle)")
     ap.add_argument("--init", default=None,
                     help="start from these weights (safetensors; their config, not --width/--dilations)")
@@ -430,7 +449,7 @@ def main() -> None:
         t = time.perf_counter()
         model, losses = train(entries, config, args.steps, args.batch, args.crop, args.seed, args.exact_weight,
                               args.checkpoint, args.checkpoint_every, price=args.price, lr=args.lr,
-                              init=init)
+                              init=init, keep_margin=args.keep_margin)
         del entries
         result |= {"train_s": time.perf_counter() - t, "loss": losses}
         model.eval()

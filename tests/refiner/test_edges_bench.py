@@ -133,9 +133,32 @@ def test_the_run_flags_of_an_old_bank_are_the_ones_a_new_bank_records(bench, pai
     assert list(bench.run_flags(str(pairs), 4, 3, opts)) == flags
     path = str(tmp_path / "bank.npz")
     bench._save_bank(path, [{k: v for k, v in e.items() if k != "runs"} for e in made])  # an old bank
-    args = argparse.Namespace(bank=path, train=str(pairs), variants=4, seed=3, runs_only=True)
+    args = argparse.Namespace(bank=path, train=str(pairs), variants=4, seed=3, runs_only=True, with_exact=False)
     kept = bench._entries(args, opts, SMALL)
     assert len(kept) == sum(flags)
     with np.load(path) as z:  # the flags were written back
         assert [bool(z[f"{i}_runs"]) for i in range(int(z["n"]))] == flags
     assert len(bench._entries(argparse.Namespace(**(vars(args) | {"runs_only": False})), opts, SMALL)) == len(made)
+    exact = [e["exact"] for e in made]
+    with_exact = bench._entries(argparse.Namespace(**(vars(args) | {"with_exact": True})), opts, SMALL)
+    assert len(with_exact) == sum(f or x for f, x in zip(flags, exact)) > len(kept)
+
+
+def test_a_third_layer_the_map_has_nearly_right_is_labelled_to_stay(bench):
+    """A strip between the near square and the background: the map has it a little too near (0.55, on the near
+    side), the truth at 0.45 (nearer the far candidate). Moving it to either candidate costs more than keeping it, so
+    with keep_margin its label is the map's own side; without, the far candidate's."""
+    truth, _, blur = _maps()
+    truth[10:30, 40:44] = 0.45
+    used = truth.copy()
+    used[10:30, 40:44] = 0.55
+    x = torch.from_numpy(edge_features(np.zeros(truth.shape + (3,), np.float32), used, blur,
+                                       np.ones(truth.shape, np.float32), SMALL))[None]
+    cost = torch.from_numpy(bench.side_costs(used, truth, blur, SMALL).astype(np.float32))[None]
+    plain, _ = bench.side_labels(cost, x, SMALL)
+    kept, _ = bench.side_labels(cost, x, SMALL, keep_margin=0.5)
+    assert torch.all(plain[0, 10:30, 40:44] == 0) and torch.all(kept[0, 10:30, 40:44] == 1)
+    outside = torch.ones_like(plain[0], dtype=torch.bool)
+    outside[10:30, 40:44] = False
+    assert torch.equal(plain[0][outside], kept[0][outside])  # two-layer edges keep their labels
+    assert torch.all(bench.side_labels(cost, x, SMALL, keep_margin=2.0)[0][0, 10:30, 40:44] == 0)  # 1.5 px < 2
