@@ -143,8 +143,8 @@ def train(entries: list[dict], config, steps: int, batch: int, crop: int, seed: 
     (flipped and transposed at random), each pixel weighted by the band, the candidates' CoC span and
     ``exact_weight`` on exact maps; with ``price`` (sRGB), also by :func:`render_price`. The learning rate rises to
     ``lr`` and falls (one cycle); ``init``: an :class:`EdgeNet` of ``config`` to start from, else a fresh one;
-    ``keep_margin``: :func:`side_labels`'.
-    With ``checkpoint``, resumable bit for bit (as ``refiner_choice.train``)."""
+    ``keep_margin``: as in :func:`side_labels`. With ``checkpoint``, resumable bit for bit (as
+    ``refiner_choice.train``)."""
     import torch
     import torch.nn.functional as F
     from bokehray_refiner.edges import EdgeNet
@@ -424,6 +424,8 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--out", default=str(REPO / "benchmarks/results/refiner_edges.json"))
     args = ap.parse_args()
+    if args.with_exact and not args.runs_only:
+        ap.error("--with-exact adds the exact maps to --runs-only's; without --runs-only every map is used anyway")
 
     import torch
     from bokehray_refiner.edges import EdgeConfig, colour_features, load_edge_net, save_edge_net
