@@ -52,16 +52,24 @@ TRAIN_CORRUPTIONS = (("none", 0, 0), ("local", 5, 20), ("estimator", 3, 8), ("mi
 """(kind, smallest amount, largest amount) of each corruption a training map may get."""
 
 
-def used_map(image, disparity, blur, opts):
-    """The depth fix's map (what the edge network is given), the band refine would open on it, and the pixels the
-    fix moved. Every map is corrected (``min_fixed_share=0``): the bank the shipped weights were trained on was made
-    so, before refine held back the maps the fix finds right; the caller decides which maps the network runs on."""
-    from bokehray_refiner.refine import corrected_disparity, edge_band, edge_reach
+def fix(image, disparity, blur, opts, focus=None):
+    """The depth fix as refine runs it before the edge network, on every map (``min_fixed_share=0``): the one
+    correction :func:`used_map` and :func:`network_runs` both read. ``focus``: the sRGB photo, when made."""
+    from bokehray_refiner.refine import _corrected
 
-    used, changed = corrected_disparity(image, disparity, blur, replace(opts, edges=False, min_fixed_share=0.0))
-    used = np.asarray(used, np.float32)
+    return _corrected(image, disparity, blur, replace(opts, edges=False, min_fixed_share=0.0), None, focus)
+
+
+def used_map(c, blur, opts):
+    """The depth fix's map (what the edge network is given), the band refine would open on it, and the pixels the
+    fix moved, from its correction ``c`` (:func:`fix`). Every map is corrected: the bank the shipped weights were
+    trained on was made so, before refine held back the maps the fix finds right; the caller decides which maps the
+    network runs on (:func:`network_runs`)."""
+    from bokehray_refiner.refine import edge_band, edge_reach
+
+    used = np.asarray(c.disparity, np.float32)
     reach = edge_reach(blur.signed_coc(used).astype(np.float32), opts.min_jump_px)
-    return used, edge_band(reach, opts.band_margin_px, opts.band_feather_px), changed
+    return used, edge_band(reach, opts.band_margin_px, opts.band_feather_px), c.changed
 
 
 def side_costs(used: np.ndarray, truth: np.ndarray, blur, config, cap_px: float = 8.0) -> np.ndarray:
@@ -122,17 +130,18 @@ def bank(root: str, variants: int, seed: int, opts, config) -> list[dict]:
 
     out = []
     for s, blur, focus, kind, d in _bank_maps(root, variants, seed):
-        used, band, _ = used_map(s.image, d, blur, opts)
+        c = fix(s.image, d, blur, opts, focus)
+        used, band, _ = used_map(c, blur, opts)
         out.append({"x": edge_features(focus, used, blur, band, config)[:N_BASE].astype(np.float16),
                     "cost": side_costs(used, s.disparity, blur, config).astype(np.float16),
-                    "exact": kind == "none", "runs": network_runs(s.image, focus, d, blur, opts)[0]})
+                    "exact": kind == "none", "runs": network_runs(c, focus, blur, opts, used, band)[0]})
     return out
 
 
 def run_flags(root: str, variants: int, seed: int, opts) -> np.ndarray:
     """Whether refine would run the network on each of the bank's maps, for a bank written before it kept this
     (the maps are drawn again, as :func:`bank` drew them)."""
-    return np.array([network_runs(s.image, focus, d, blur, opts)[0]
+    return np.array([network_runs(fix(s.image, d, blur, opts, focus), focus, blur, opts)[0]
                      for s, blur, focus, _, d in _bank_maps(root, variants, seed)])
 
 
@@ -239,21 +248,22 @@ def _map_wrong(entries: list[dict], exact_weight: float, config, keep_margin: fl
     return wrong / max(total, 1.0)
 
 
-def network_runs(image, focus, d, blur, opts) -> tuple[bool, float | None]:
-    """Whether refine runs the edge network on the corrupted map ``d``, decided as refine does: the depth fix's local
-    passes moved at least ``min_fixed_share`` of the band (a global shift not counted) and left disagreement
-    (``edge_min_disagreement``); and that share (None: the fix did not run)."""
-    from bokehray_refiner.refine import _corrected, disagreement, edge_band, edge_reach
+def network_runs(c, focus, blur, opts, used=None, band=None) -> tuple[bool, float | None]:
+    """Whether refine runs the edge network on the map the depth fix made of a corrupted one (``c``, :func:`fix`),
+    decided as refine does: its local passes moved at least ``min_fixed_share`` of the band (a global shift not
+    counted) and left disagreement (``edge_min_disagreement``); and that share (None: the fix did not run).
+    ``used``, ``band``: :func:`used_map` of ``c``, when made. On every map ``c`` is the map refine's own correction
+    makes where it finds the map wrong, so the share decides as refine's ``min_fixed_share`` does."""
+    from bokehray_refiner.refine import disagreement
 
-    c = _corrected(image, d, blur, replace(opts, edges=False), None, focus)
-    if not c.found_wrong or (c.share is None and opts.min_fixed_share > 0):
+    if not c.found_wrong or (opts.min_fixed_share > 0 and (c.share is None or c.share < opts.min_fixed_share)):
         return False, c.share
     if opts.edge_min_disagreement <= 0:
         return True, c.share
-    fixed = np.asarray(c.disparity, np.float32)
-    coc = blur.signed_coc(fixed).astype(np.float32)
-    band = edge_band(edge_reach(coc, opts.min_jump_px), opts.band_margin_px, opts.band_feather_px)
-    return disagreement(focus, fixed, coc, band, None, opts) >= opts.edge_min_disagreement, c.share
+    if used is None:
+        used, band, _ = used_map(c, blur, opts)
+    coc = blur.signed_coc(used).astype(np.float32)
+    return disagreement(focus, used, coc, band, None, opts) >= opts.edge_min_disagreement, c.share
 
 
 def score(model, samples, opts, thresholds, gate: bool = False, min_region: int = 0, attached: bool = False,
@@ -275,8 +285,9 @@ def score(model, samples, opts, thresholds, gate: bool = False, min_region: int 
         band_psnr = partial(_band_psnr, image, blur, _srgb(target), np.asarray(score_band, bool))
         for kind, amount in NET_CONDITIONS:
             d = np.clip(corrupt_disparity(disparity, kind, amount), 0.0, 1.0)
-            used, band, _ = used_map(image, d, blur, opts)
-            runs, share = network_runs(image, focus, d, blur, opts)  # else refine leaves the map as it is
+            c = fix(image, d, blur, opts, focus)
+            used, band, _ = used_map(c, blur, opts)
+            runs, share = network_runs(c, focus, blur, opts, used, band)  # else refine leaves the map as it is
             render = br.render(image, used, blur)
             row = {"pair": name, "corruption": kind, "px": amount, "fix": band_psnr(used, render), "runs": runs,
                    "fixed_share": share,
