@@ -57,11 +57,14 @@ def check_whole_image(h: int, w: int, per_px: int, memory: MemoryOptions) -> Non
 
 
 def choose_tile(h: int, w: int, memory: MemoryOptions, *, untiled_bytes: int, margin: int,
-                window_bytes: Callable[[int, int], int], what: str) -> tuple[int | None, int]:
+                window_bytes: Callable[[int, int], int], what: str,
+                frame: tuple[int, int] | None = None) -> tuple[int | None, int]:
     """(tile side, or None to render untiled; estimated peak bytes) under the memory budget.
 
     ``margin``: how much larger than its tile a window can be, in all (both halos and the alignment slack);
-    ``window_bytes(hy, wx)``: the peak of a render on a window of that size. Raises ResourceError if nothing fits.
+    ``window_bytes(hy, wx)``: the peak of a render on a window of that size; ``frame``: the image's own ``(h, w)``
+    where ``h x w`` is it padded by the blur's reach beyond its borders (a refusal names both). Raises ResourceError
+    if nothing fits.
     """
     budget = budget_bytes(memory)
     if memory.tile_size is None and untiled_bytes <= budget:
@@ -73,7 +76,9 @@ def choose_tile(h: int, w: int, memory: MemoryOptions, *, untiled_bytes: int, ma
         if memory.tile_size is not None:
             raise _refuse(f"{what} in {tile} px tiles", need, budget,
                           "choose a smaller tile_size or leave it to the automatic choice")
-    raise _refuse(f"{what} of {w} x {h} px", untiled_bytes, budget,
+    size = f"{w} x {h} px" if frame is None or frame == (h, w) else \
+        f"the {frame[1]} x {frame[0]} px image ({w} x {h} px with the blur's reach beyond its borders)"
+    raise _refuse(f"{what} of {size}", untiled_bytes, budget,
                   f"even {TILE_CANDIDATES[-1]} px tiles do not fit; lower the blur or the image size")
 
 

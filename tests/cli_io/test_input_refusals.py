@@ -297,6 +297,25 @@ def test_a_jpeg_quality_for_an_output_that_is_not_a_jpeg_is_refused(tmp_path, ca
     assert main([*base, "-o", str(tmp_path / "o.jpg"), "--jpeg-quality", "10"]) == 0 and (tmp_path / "o.jpg").is_file()
 
 
+@pytest.mark.parametrize("out,flags,said", [
+    ("o.png", ["--half"], "o.png: --half writes half floats, which only EXR stores, and this is a PNG file (name it "
+                          ".exr, or leave --half out)"),
+    ("o.exr", ["--half", "--bit-depth", "32"], "o.exr: --half writes 16-bit half floats, and --bit-depth 32 asks for "
+                                               "32-bit ones (leave one of them out)"),
+    ("o.jpg", ["--bit-depth", "16"], "o.jpg: JPEG takes --bit-depth 8, not 16"),
+])
+def test_output_options_that_do_not_fit_the_output_are_refused_by_their_flags(tmp_path, capsys, out, flags, said):
+    """``--half`` with a PNG output was refused in the API's words (``half=True needs an .exr path and bit_depth None
+    or 16, got PNG with None``); the command line names its own flags, before any work."""
+    Image.fromarray(np.zeros((16, 16, 3), np.uint8)).save(tmp_path / "p.png")
+    br.write_disparity(tmp_path / "d.png", np.zeros((16, 16), np.float32))
+    args = ["render", str(tmp_path / "p.png"), "--disparity", str(tmp_path / "d.png"), "--blur", "4", "--focus", "0.5"]
+    assert main([*args, "-o", str(tmp_path / out), *flags]) == 2
+    captured = capsys.readouterr()
+    assert said in captured.err and captured.err.count("\n") == 1 and "half=True" not in captured.err
+    assert captured.out == "" and not (tmp_path / out).exists()
+
+
 # --------------------------------------------------------------------------- 13. a batch's options on one render
 
 

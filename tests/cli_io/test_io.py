@@ -397,11 +397,13 @@ def test_write_rejects_nan(tmp_path):
     "name,kwargs,fragment",
     [
         ("o.bmp", {}, "unsupported extension '.bmp' for writing images"),
-        ("o.jpg", {"bit_depth": 16}, "expected bit_depth in .8,. for JPEG"),
-        ("o.png", {"bit_depth": 32}, "expected bit_depth in .8, 16. for PNG"),
-        ("o.png", {"half": True}, "half=True needs an .exr path"),
-        ("o.exr", {"half": True, "bit_depth": 32}, "half=True needs an .exr path"),
-        ("o.tif", {"half": True}, "half=True needs an .exr path"),
+        ("o.jpg", {"bit_depth": 16}, "JPEG takes bit_depth 8, not 16"),
+        ("o.png", {"bit_depth": 32}, "PNG takes bit_depth 8 or 16, not 32"),
+        ("o.png", {"half": True}, r"half=True writes half floats, which only EXR stores, and this is a PNG file "
+                                  r"\(name it .exr, or leave half=True out\)"),
+        ("o.exr", {"half": True, "bit_depth": 32}, "half=True writes 16-bit half floats, and bit_depth 32 asks for "
+                                                   "32-bit ones"),
+        ("o.tif", {"half": True}, "only EXR stores, and this is a TIFF file"),
         ("o.jpg", {"quality": 0}, r"JPEG quality in \[1, 100\]"),
     ],
 )

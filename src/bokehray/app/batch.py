@@ -485,10 +485,10 @@ def run_batch(args: argparse.Namespace) -> int:  # noqa: C901
             frames.append(frame)
             tasks.append(RenderTask(str(pair.image), str(pair.map), str(frame), settings.with_values(**{name: v})))
         stacks[out / f"{stem}_{name}_sweep.gif"] = frames
-    from ..output.write import check_output_path
+    from ..output.write import CLI_NAMES, check_output_path
 
     for t in {Path(t.output).suffix: t for t in tasks}.values():  # one output of each format
-        check_output_path(t.output, bit_depth=settings.get("bit_depth"), half=settings.get("half"))
+        check_output_path(t.output, bit_depth=settings.get("bit_depth"), half=settings.get("half"), names=CLI_NAMES)
     out.mkdir(parents=True, exist_ok=True)
     names = [Path(t.output).name for t in tasks] + [g.name for g in stacks]
     _state(out, settings.fingerprint(), names, args.overwrite)

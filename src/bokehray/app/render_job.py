@@ -119,9 +119,10 @@ def _resize(a: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 
 
 def _check_output(path: str, args: argparse.Namespace) -> None:
-    from ..output.write import check_output_path
+    from ..output.write import CLI_NAMES, check_output_path
 
-    check_output_path(path, bit_depth=getattr(args, "bit_depth", None), half=getattr(args, "half", False))
+    check_output_path(path, bit_depth=getattr(args, "bit_depth", None), half=getattr(args, "half", False),
+                      names=CLI_NAMES)
     out = Path(path)
     for what, source in (("photo", args.image), ("map", getattr(args, "disparity", None) or
                                                   getattr(args, "depth", None))):

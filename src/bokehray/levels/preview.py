@@ -325,7 +325,7 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
         h, w, ctx.memory, untiled_bytes=whole + _region_bytes(h * w, footprints, threads), margin=margin,
         window_bytes=lambda hy, wx: whole + tiled + _region_bytes(hy * wx, [(min(px, hy * wx), rate)
                                                                             for px, rate in footprints], threads),
-        what=f"preview render at a largest CoC of {stats.max_coc_px:.0f} px",
+        what=f"preview render at a largest CoC of {stats.max_coc_px:.0f} px", frame=(h0, w0),
     )
     stats.memory_estimate_mb = need / tiling.MB
     if tile is None:

@@ -25,7 +25,7 @@ from ..formats import HALF_MAX, check_finite, first_index, format_of, to_float32
 from ..validate import check_path, fits_in_memory
 from .atomic import atomic_write
 
-__all__ = ["PNG_COMPRESS_LEVEL", "WRITE_BYTES_PER_SAMPLE", "check_output_path", "write_disparity", "write_image"]
+__all__ = ["API_NAMES", "CLI_NAMES", "PNG_COMPRESS_LEVEL", "WRITE_BYTES_PER_SAMPLE", "check_output_path", "write_disparity", "write_image"]
 
 PNG_COMPRESS_LEVEL = 3
 """zlib level of 8-bit PNG outputs: lossless at any level; a low one writes much faster for slightly larger files
@@ -85,15 +85,23 @@ def srgb_codes(img: np.ndarray, bits: int) -> np.ndarray:
     return quantize(img, bits)
 
 
-def check_output_path(path: str | os.PathLike[str], *, bit_depth: int | None = None, half: bool = False) -> Path:
+API_NAMES = {"bit_depth": "bit_depth", "half": "half=True"}
+"""How :func:`check_output_path`'s refusals name the options by default (the API's keywords)."""
+CLI_NAMES = {"bit_depth": "--bit-depth", "half": "--half"}
+"""... and on the command line."""
+
+
+def check_output_path(path: str | os.PathLike[str], *, bit_depth: int | None = None, half: bool = False,
+                      names: dict[str, str] = API_NAMES) -> Path:
     """Validate an output path and its options before rendering (so a long render cannot fail at the end).
 
     Checks the extension, the bit depth for that format, and that the target is
-    not a directory. Raises :class:`InputError`; returns the path.
+    not a directory. Raises :class:`InputError` naming the options as ``names`` says (:data:`API_NAMES`,
+    :data:`CLI_NAMES`); returns the path.
     """
     check_path(path)
     p, fmt = format_of(path, ("PNG", "JPEG", "TIFF", "EXR"), "images", read=False)
-    _output_bits(p, fmt, bit_depth, half)
+    _output_bits(p, fmt, bit_depth, half, names)
     parent = p.resolve().parent
     while not parent.exists():
         parent = parent.parent
@@ -102,13 +110,18 @@ def check_output_path(path: str | os.PathLike[str], *, bit_depth: int | None = N
     return p
 
 
-def _output_bits(p: Path, fmt: str, bit_depth: int | None, half: bool) -> int:
+def _output_bits(p: Path, fmt: str, bit_depth: int | None, half: bool, names: dict[str, str] = API_NAMES) -> int:
     depths = {"PNG": (8, 16), "JPEG": (8,), "TIFF": (8, 16, 32), "EXR": (16, 32)}[fmt]
     bits = bit_depth if bit_depth is not None else {"PNG": 8, "JPEG": 8, "TIFF": 16, "EXR": 16 if half else 32}[fmt]
+    bd, hf = names["bit_depth"], names["half"]
+    if half and fmt != "EXR":
+        raise InputError(f"{p}: {hf} writes half floats, which only EXR stores, and this is a {fmt} file "
+                         f"(name it .exr, or leave {hf} out)")
     if bits not in depths:
-        raise InputError(f"{p}: expected bit_depth in {depths} for {fmt}, got {bit_depth!r}")
-    if half and (fmt != "EXR" or bits != 16):
-        raise InputError(f"{p}: half=True needs an .exr path and bit_depth None or 16, got {fmt} with {bit_depth!r}")
+        raise InputError(f"{p}: {fmt} takes {bd} {' or '.join(map(str, depths))}, not {bit_depth!r}")
+    if half and bits != 16:
+        raise InputError(f"{p}: {hf} writes 16-bit half floats, and {bd} {bit_depth} asks for 32-bit ones "
+                         f"(leave one of them out)")
     return bits
 
 
