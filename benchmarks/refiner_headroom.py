@@ -32,8 +32,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_refiner import NET_CONDITIONS, devset_samples, synth_samples
-from common import REPO, machine_info, write_json
+from bench_refiner import NET_CONDITIONS, add_split_args, split_samples
+from common import machine_info, write_json
 from refiner_choice import blend, candidate_maps, oracle_pick, other_renders
 
 
@@ -54,16 +54,11 @@ def _best_choice(image, used, blur, render, t_srgb, band, m) -> float:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    src = ap.add_mutually_exclusive_group(required=True)
-    src.add_argument("--data", help="held-out BLB-layout folder (never used for training)")
-    src.add_argument("--devset", help="the path-traced dev set folder (with score.py)")
-    ap.add_argument("--pairs", type=int, default=24, help="--data: pairs to score (every k-th pair of the folder)")
+    add_split_args(ap, "refiner_headroom")
     ap.add_argument("--choices", action="store_true",
                     help="also: a perfect per-pixel choice (smoothed over 5 x 5 px) within the band among the level "
                     "rendered on the map and on it with near regions grown and shrunk by 3, 6 and 12 px (6 renders more)")
-    ap.add_argument("--out", default=None, help="JSON (default: benchmarks/results/refiner_headroom_{devset,synth}.json)")
     args = ap.parse_args()
-    args.out = args.out or str(REPO / f"benchmarks/results/refiner_headroom_{'devset' if args.devset else 'synth'}.json")
 
     from bokehray_refiner.data import corrupt_disparity
     from bokehray_refiner.refine import RefineOptions, blend_weight, correct_and_render
@@ -72,7 +67,7 @@ def main() -> None:
     from bokehray.colour import linear_to_srgb
 
     opts = RefineOptions()
-    samples = devset_samples(Path(args.devset)) if args.devset else synth_samples(args.data, args.pairs)
+    samples = split_samples(args)
     rows = []
     for name, image, disparity, blur, target, score_band in samples:
         t_srgb = linear_to_srgb(np.clip(target[..., :3], 0.0, 1.0))

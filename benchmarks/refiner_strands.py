@@ -34,8 +34,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_refiner import devset_samples, synth_samples
-from common import REPO, machine_info, write_json
+from bench_refiner import add_split_args, split_samples
+from common import machine_info, write_json
 
 RADII = (3, 6, 12, 24, 48)
 LOST_MIN = 0.02
@@ -66,14 +66,9 @@ def strand_candidates(given: np.ndarray, true: np.ndarray, focus: float, radii=R
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    src = ap.add_mutually_exclusive_group(required=True)
-    src.add_argument("--data", help="held-out BLB-layout folder (never used for training)")
-    src.add_argument("--devset", help="the path-traced dev set folder (with score.py)")
-    ap.add_argument("--pairs", type=int, default=24, help="--data: pairs to score (every k-th pair of the folder)")
+    add_split_args(ap, "refiner_strands")
     ap.add_argument("--amount", type=int, default=2, help="the missing corruption's disc radius (px)")
-    ap.add_argument("--out", default=None, help="JSON (default: benchmarks/results/refiner_strands_{devset,synth}.json)")
     args = ap.parse_args()
-    args.out = args.out or str(REPO / f"benchmarks/results/refiner_strands_{'devset' if args.devset else 'synth'}.json")
 
     from bokehray_refiner.data import corrupt_disparity
     from bokehray_refiner.refine import RefineOptions, correct_and_render
@@ -82,7 +77,7 @@ def main() -> None:
     from bokehray.data.metrics import score
 
     opts = RefineOptions()
-    samples = devset_samples(Path(args.devset)) if args.devset else synth_samples(args.data, args.pairs)
+    samples = split_samples(args)
     rows = []
     for name, image, disparity, blur, target, band in samples:
         d = np.clip(corrupt_disparity(disparity, "missing", args.amount), 0.0, 1.0)
