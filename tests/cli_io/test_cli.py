@@ -132,7 +132,7 @@ def test_resize_disparity(tmp_path, scene, capsys):
         (["--disparity", "{bad_disp}", "--blur", 4, "--focus", 0.5], r"\[0, 1\]"),
         (["--disparity", "{nan_disp}", "--blur", 4, "--focus", 0.5], "NaN"),
         (["--disparity", "{disp_png}", "--blur", 4, "--focus", 0.5, "--device", "cuda:7"], "device"),
-        (["--disparity", "{disp_png}", "--blur", 4, "--focus", 0.5, "--bit-depth", 32], "bit_depth"),
+        (["--disparity", "{disp_png}", "--blur", 4, "--focus", 0.5, "--bit-depth", 32], "PNG takes --bit-depth 8 or 16, not 32"),
     ],
 )
 def test_bad_input_exits_2_with_one_line_and_no_output(scene, tmp_path, capsys, args, message):
