@@ -25,7 +25,8 @@ from ..formats import HALF_MAX, check_finite, first_index, format_of, to_float32
 from ..validate import check_path, fits_in_memory
 from .atomic import atomic_write
 
-__all__ = ["API_NAMES", "CLI_NAMES", "PNG_COMPRESS_LEVEL", "WRITE_BYTES_PER_SAMPLE", "check_output_path", "write_disparity", "write_image"]
+__all__ = ["API_NAMES", "CLI_NAMES", "PNG_COMPRESS_LEVEL", "WRITE_BYTES_PER_SAMPLE", "check_output_path",
+           "write_disparity", "write_image"]
 
 PNG_COMPRESS_LEVEL = 3
 """zlib level of 8-bit PNG outputs: lossless at any level; a low one writes much faster for slightly larger files
