@@ -81,20 +81,22 @@ def synth_samples(root: str, pairs: int):
 
 
 def add_split_args(ap: argparse.ArgumentParser, stem: str) -> None:
-    """The options of a script that scores one split: ``--data`` or ``--devset``, ``--pairs`` and ``--out`` (default
-    ``benchmarks/results/<stem>_{devset,synth}.json``, set by :func:`split_samples`)."""
+    """The options of a script that scores one split: ``--data`` or ``--devset``, ``--pairs`` and ``--out`` (its
+    default: :func:`split_out`)."""
     src = ap.add_mutually_exclusive_group(required=True)
     src.add_argument("--data", help="held-out BLB-layout folder (never used for training)")
     src.add_argument("--devset", help="the path-traced dev set folder (with score.py)")
     ap.add_argument("--pairs", type=int, default=24, help="--data: pairs to score (every k-th pair of the folder)")
     ap.add_argument("--out", default=None, help=f"JSON (default: benchmarks/results/{stem}_{{devset,synth}}.json)")
-    ap.set_defaults(results_stem=stem)
+
+
+def split_out(args: argparse.Namespace, stem: str) -> str:
+    """``--out``, or ``benchmarks/results/<stem>_devset.json`` (``_synth.json`` for ``--data``)."""
+    return args.out or str(REPO / f"benchmarks/results/{stem}_{'devset' if args.devset else 'synth'}.json")
 
 
 def split_samples(args: argparse.Namespace):
-    """The samples of the split :func:`add_split_args` parsed (and ``args.out`` set to its default if not given)."""
-    args.out = args.out or str(REPO / f"benchmarks/results/{args.results_stem}_"
-                                      f"{'devset' if args.devset else 'synth'}.json")
+    """The samples of the split :func:`add_split_args` parsed."""
     return devset_samples(Path(args.devset)) if args.devset else synth_samples(args.data, args.pairs)
 
 

@@ -82,6 +82,12 @@ def side_costs(used: np.ndarray, truth: np.ndarray, blur, config, cap_px: float 
     return np.minimum(np.stack([np.abs(blur.signed_coc(m) - t) for m in (used, near, far)]), cap_px)
 
 
+def map_on_near(x):
+    """Where the map puts each pixel on the near side (torch, from the inputs ``B x N_INPUTS x H x W``, which hold
+    near - c and far - c): c - far > near - c, as ``bokehray_refiner.edges.map_sides`` decides it."""
+    return (-x[:, 5] > x[:, 4]).float()
+
+
 def side_labels(cost, x, config, keep_margin: float | None = None):
     """From a bank entry's costs and inputs (torch, ``B x 3 x H x W`` and ``B x N_INPUTS x H x W``): the true side
     (1: near, the near candidate is nearer the true CoC than the far one) and how much it counts: the CoC span
@@ -93,9 +99,8 @@ def side_labels(cost, x, config, keep_margin: float | None = None):
     """
     near_side = (cost[:, 1] < cost[:, 2]).float()
     if keep_margin is not None:
-        on_near = (-x[:, 5] > x[:, 4]).float()  # c - far > near - c (the inputs hold near - c and far - c)
         keep = cost[:, 0] + keep_margin < cost[:, 1].minimum(cost[:, 2])
-        near_side = near_side.where(~keep, on_near)
+        near_side = near_side.where(~keep, map_on_near(x))
     span = ((x[:, 4] - x[:, 5]) * config.coc_scale_px / 4.0).clamp(0.0, 1.0)
     return near_side, span
 
@@ -241,7 +246,7 @@ def _map_wrong(entries: list[dict], exact_weight: float, config, keep_margin: fl
     for e in entries:
         x, cost = torch.from_numpy(e["x"][None].astype(np.float32)), torch.from_numpy(e["cost"][None].astype(np.float32))
         label, span = side_labels(cost, x, config, keep_margin)
-        on_near = (-x[:, 5] > x[:, 4]).float()  # c - far > near - c (the inputs hold near - c and far - c)
+        on_near = map_on_near(x)
         w = x[:, 6] * span * (exact_weight if e["exact"] else 1.0)
         wrong += float(((on_near != label).float() * w).sum())
         total += float(w.sum())

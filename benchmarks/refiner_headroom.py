@@ -32,7 +32,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_refiner import NET_CONDITIONS, add_split_args, split_samples
+from bench_refiner import NET_CONDITIONS, add_split_args, split_out, split_samples
 from common import machine_info, write_json
 from refiner_choice import blend, candidate_maps, oracle_pick, other_renders
 
@@ -59,6 +59,7 @@ def main() -> None:
                     help="also: a perfect per-pixel choice (smoothed over 5 x 5 px) within the band among the level "
                     "rendered on the map and on it with near regions grown and shrunk by 3, 6 and 12 px (6 renders more)")
     args = ap.parse_args()
+    args.out = split_out(args, "refiner_headroom")
 
     from bokehray_refiner.data import corrupt_disparity
     from bokehray_refiner.refine import RefineOptions, blend_weight, correct_and_render

@@ -34,7 +34,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_refiner import add_split_args, split_samples
+from bench_refiner import add_split_args, split_out, split_samples
 from common import machine_info, write_json
 
 RADII = (3, 6, 12, 24, 48)
@@ -69,6 +69,7 @@ def main() -> None:
     add_split_args(ap, "refiner_strands")
     ap.add_argument("--amount", type=int, default=2, help="the missing corruption's disc radius (px)")
     args = ap.parse_args()
+    args.out = split_out(args, "refiner_strands")
 
     from bokehray_refiner.data import corrupt_disparity
     from bokehray_refiner.refine import RefineOptions, correct_and_render

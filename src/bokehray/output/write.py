@@ -9,7 +9,7 @@ from __future__ import annotations
 import io
 import os
 import struct
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import imagecodecs
@@ -93,7 +93,7 @@ CLI_NAMES = {"bit_depth": "--bit-depth", "half": "--half"}
 
 
 def check_output_path(path: str | os.PathLike[str], *, bit_depth: int | None = None, half: bool = False,
-                      names: dict[str, str] = API_NAMES) -> Path:
+                      names: Mapping[str, str] = API_NAMES) -> Path:
     """Validate an output path and its options before rendering (so a long render cannot fail at the end).
 
     Checks the extension, the bit depth for that format, and that the target is
@@ -111,7 +111,7 @@ def check_output_path(path: str | os.PathLike[str], *, bit_depth: int | None = N
     return p
 
 
-def _output_bits(p: Path, fmt: str, bit_depth: int | None, half: bool, names: dict[str, str] = API_NAMES) -> int:
+def _output_bits(p: Path, fmt: str, bit_depth: int | None, half: bool, names: Mapping[str, str] = API_NAMES) -> int:
     depths = {"PNG": (8, 16), "JPEG": (8,), "TIFF": (8, 16, 32), "EXR": (16, 32)}[fmt]
     bits = bit_depth if bit_depth is not None else {"PNG": 8, "JPEG": 8, "TIFF": 16, "EXR": 16 if half else 32}[fmt]
     bd, hf = names["bit_depth"], names["half"]
