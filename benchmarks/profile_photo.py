@@ -115,7 +115,7 @@ STAGES = [
     ("bokehray.pipeline", "check_image", "check image"),
     ("bokehray.pipeline", "check_radiance", "check radiance"),
     ("bokehray.pipeline", "check_disparity", "check disparity"),
-    ("bokehray.pipeline", "_soft_edges", "soft-edge matting"),
+    ("bokehray.pipeline", "_soft_scene", "soft maps and soft-edge matting"),
     ("bokehray.levels.preview", "border_pad", "border pad"),
     ("bokehray.scene", "copy_tiles", "copy tiles"),
     ("bokehray.scene", "split_scene", "split scene (layers)"),

@@ -34,6 +34,9 @@ class LayerOptions:
             at the near depth) and a far part (background colour, at the far depth) by matting
             (``bokehray.matting.split_mixed_pixels``), so that neither share takes the other's blur; False gives
             every pixel one depth and one colour.
+        soft_maps: read a ramp in the map between two depths as an edge (``bokehray.ramps.snap_ramps``): each pixel
+            strictly inside it takes the depth of the side its colour belongs to, so no pixel is rendered at a
+            depth no surface has; slopes that do not end within 40 px (floors, walls) stay. With ``soft_edges``.
     """
 
     max_layers: int = 8
@@ -42,13 +45,14 @@ class LayerOptions:
     fill: bool = True
     tile_px: int = 16
     soft_edges: bool = True
+    soft_maps: bool = True
 
     def __post_init__(self) -> None:
         check_int(self.max_layers, "max_layers", lo=1)
         check_int(self.tile_px, "tile_px", lo=1)
         check_number(self.max_layer_px, "max_layer_px", 0.0, lo_open=True)
         check_number(self.min_layer_px, "min_layer_px", 0.0, lo_open=True)
-        for name in ("fill", "soft_edges"):
+        for name in ("fill", "soft_edges", "soft_maps"):
             if not isinstance(getattr(self, name), bool):
                 raise InputError(f"{name}: expected True or False, got {getattr(self, name)!r}")
 

@@ -99,17 +99,22 @@ def _check_device(device: str) -> str:
     return str(dev)
 
 
-def _soft_edges(image: np.ndarray, signed_coc: np.ndarray, layers: LayerOptions, finite_checked: bool = False):
-    """The mixed pixels at depth edges split by matting (``LayerOptions.soft_edges``), a ``scene.SoftEdges``
-    checked against the image; None when off. ``finite_checked``: both arrays are known finite (the context's
-    checked photo and the CoC of its checked map), so the matting does not scan them again."""
+def _soft_scene(image: np.ndarray, signed_coc: np.ndarray, layers: LayerOptions, device: str,
+                finite_checked: bool = False):
+    """The scene's map and its split pixels: ramps in the map snapped to their plateaus (``LayerOptions.soft_maps``,
+    ``bokehray.ramps``), then the mixed pixels at its depth edges split by matting (``LayerOptions.soft_edges``),
+    a ``scene.SoftEdges`` checked against the image (None when off). ``finite_checked``: both arrays are known finite
+    (the context's checked photo and the CoC of its checked map), so the matting does not scan them again."""
     if not layers.soft_edges:
-        return None
+        return signed_coc, None
     from .matting import split_mixed_pixels
+    from .ramps import snap_ramps
 
+    if layers.soft_maps:
+        signed_coc, _ = snap_ramps(image, signed_coc, device=device)
     soft = split_mixed_pixels(image, signed_coc, finite_checked=finite_checked)
     scene.check_soft_edges(soft, signed_coc.shape)
-    return soft
+    return signed_coc, soft
 
 
 def _check_shape_fits(image: object, level_whole_image_b: int, memory: MemoryOptions) -> None:
@@ -261,8 +266,8 @@ def _context(inputs: Handover, blur: BlurParams, aperture: Aperture, layers: Lay
     raw_max = max(float(s.max()), -float(s.min())) if s.size else 0.0
     rgb, capped = np.ascontiguousarray(work[..., :3]), scene.cap_coc(s)
     disposable = not keep_pixels and img.shape[2] != 4
-    ctx = RenderContext(rgb, d, capped, blur, aperture, layers, memory, options, device, progress,
-                        _soft_edges(rgb, capped, layers, finite_checked=True), disposable)
+    capped, soft = _soft_scene(rgb, capped, layers, device, finite_checked=True)
+    ctx = RenderContext(rgb, d, capped, blur, aperture, layers, memory, options, device, progress, soft, disposable)
     return ctx, None if disposable else work, raw_max, img.shape[2], float(img.min())
 
 
@@ -277,8 +282,8 @@ def _render_refined(level, ctx: RenderContext, work: np.ndarray, refine: bool | 
         if dd is d:
             c = ctx
         else:  # a corrected depth moves the depth edges: split its mixed pixels anew
-            sc = scene.cap_coc(blur.signed_coc(dd))
-            c = replace(ctx, disparity=dd, signed_coc=sc, soft=_soft_edges(ctx.image, sc, layers))
+            sc, soft = _soft_scene(ctx.image, scene.cap_coc(blur.signed_coc(dd)), layers, ctx.device)
+            c = replace(ctx, disparity=dd, signed_coc=sc, soft=soft)
         rgb, rendered["stats"] = level.render(c)
         rendered["ctx"] = c
         return rgb
