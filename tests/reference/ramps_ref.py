@@ -25,48 +25,55 @@ def snap_ramps_ref(image: np.ndarray, s: np.ndarray, rule) -> tuple[np.ndarray, 
     s = s.astype(np.float64)
     img = image.astype(np.float64)
     grad = np.array([[math.hypot(*sobel_ref(s, y, x)) for x in range(w)] for y in range(h)])
-
-    def at(v: float, n: int) -> int:
-        return min(max(math.floor(v + 0.5), 0), n - 1)
-
-    def walk(y, x, ny, nx):
-        for k in range(1, rule.max_walk + 1):
-            if grad[at(y + k * ny, h), at(x + k * nx, w)] <= rule.grad_min:
-                return k
-        return 0
-
-    def colour(y, x, ny, nx, k0):
-        return np.mean([img[at(y + (k0 + j) * ny, h), at(x + (k0 + j) * nx, w)] for j in range(rule.samples)], 0)
-
     out = s.copy()
     moved = np.zeros((h, w), bool)
     for y in range(h):
         for x in range(w):
-            if grad[y, x] <= rule.grad_min:
-                continue
-            gy, gx = sobel_ref(s, y, x)
-            g = math.hypot(gy, gx)
-            ny, nx = gy / g, gx / g
-            kn, kf = walk(y, x, ny, nx), walk(y, x, -ny, -nx)
-            if kn == 0 or kf == 0 or kn + kf < rule.min_len:
-                continue
-            vn, vf = s[at(y + kn * ny, h), at(x + kn * nx, w)], s[at(y - kf * ny, h), at(x - kf * nx, w)]
-            span = vn - vf
-            if span <= rule.min_range:
-                continue
-            own = s[y, x]
-            up, down = s[at(y + ny, h), at(x + nx, w)] - own, own - s[at(y - ny, h), at(x - nx, w)]
-            if min(up, down) <= 0.02 * span or max(up, down) >= 0.5 * span:
-                continue
-            t = (own - vf) / span
-            if not rule.place < t < 1 - rule.place:
-                continue
-            cn, cf = colour(y, x, ny, nx, kn), colour(y, x, -ny, -nx, kf)
-            d = cn - cf
-            den = d @ d
-            score = rule.place_weight * (t - 0.5)
-            if den > rule.min_contrast ** 2 * max(cn @ cn, cf @ cf) and den > 1e-20:
-                score += min(max((img[y, x] - cf) @ d / den, -0.5), 1.5) - 0.5
-            out[y, x] = vn if score > 0 else vf
-            moved[y, x] = True
+            if grad[y, x] > rule.grad_min:
+                v = _snapped(img, s, grad, y, x, rule)
+                if v is not None:
+                    out[y, x], moved[y, x] = v, True
     return out, moved
+
+
+def _at(v: float, n: int) -> int:
+    return min(max(math.floor(v + 0.5), 0), n - 1)
+
+
+def _walk(grad, y, x, ny, nx, rule) -> int:
+    h, w = grad.shape
+    for k in range(1, rule.max_walk + 1):
+        if grad[_at(y + k * ny, h), _at(x + k * nx, w)] <= rule.grad_min:
+            return k
+    return 0
+
+
+def _colour(img, y, x, ny, nx, k0, rule) -> np.ndarray:
+    h, w = img.shape[:2]
+    return np.mean([img[_at(y + (k0 + j) * ny, h), _at(x + (k0 + j) * nx, w)] for j in range(rule.samples)], 0)
+
+
+def _snapped(img, s, grad, y, x, rule) -> float | None:
+    """The plateau value pixel (y, x) takes, or None where it stays."""
+    h, w = s.shape
+    gy, gx = sobel_ref(s, y, x)
+    g = math.hypot(gy, gx)
+    ny, nx = gy / g, gx / g
+    kn, kf = _walk(grad, y, x, ny, nx, rule), _walk(grad, y, x, -ny, -nx, rule)
+    if kn == 0 or kf == 0 or kn + kf < rule.min_len:
+        return None
+    vn, vf = s[_at(y + kn * ny, h), _at(x + kn * nx, w)], s[_at(y - kf * ny, h), _at(x - kf * nx, w)]
+    span = vn - vf
+    own = s[y, x]
+    up, down = s[_at(y + ny, h), _at(x + nx, w)] - own, own - s[_at(y - ny, h), _at(x - nx, w)]
+    t = (own - vf) / span if span > 0 else 0.0
+    if span <= rule.min_range or min(up, down) <= 0.02 * span or max(up, down) >= 0.5 * span \
+            or not rule.place < t < 1 - rule.place:
+        return None
+    cn, cf = _colour(img, y, x, ny, nx, kn, rule), _colour(img, y, x, -ny, -nx, kf, rule)
+    d = cn - cf
+    den = d @ d
+    score = rule.place_weight * (t - 0.5)
+    if den > rule.min_contrast ** 2 * max(cn @ cn, cf @ cf) and den > 1e-20:
+        score += min(max((img[y, x] - cf) @ d / den, -0.5), 1.5) - 0.5
+    return vn if score > 0 else vf
