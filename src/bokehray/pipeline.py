@@ -19,7 +19,7 @@ from .lens import Aperture, BlurParams
 from .levels import LEVELS, RenderContext, get_level
 from .levels.refine import REFINABLE, check_refine_options, refine_render
 from .options import LayerOptions, MemoryOptions, PreviewOptions, RaytraceOptions
-from .stats import RenderStats
+from .stats import Clock, RenderStats
 from .validate import (
     MAX_RADIANCE,
     check_disparity,
@@ -100,11 +100,13 @@ def _check_device(device: str) -> str:
 
 
 def _soft_scene(image: np.ndarray, signed_coc: np.ndarray, layers: LayerOptions, device: str,
-                finite_checked: bool = False):
+                finite_checked: bool = False, clock: Clock | None = None):
     """The scene's map and its split pixels: ramps in the map snapped to their plateaus (``LayerOptions.soft_maps``,
     ``bokehray.ramps``), then the mixed pixels at its depth edges split by matting (``LayerOptions.soft_edges``),
     a ``scene.SoftEdges`` checked against the image (None when off). ``finite_checked``: both arrays are known finite
-    (the context's checked photo and the CoC of its checked map), so the matting does not scan them again."""
+    (the context's checked photo and the CoC of its checked map), so the matting does not scan them again.
+    ``clock``: laps "soft maps" and "edges" on it."""
+    clock = clock or Clock()
     if not layers.soft_edges:
         return signed_coc, None
     from .matting import split_mixed_pixels
@@ -112,8 +114,10 @@ def _soft_scene(image: np.ndarray, signed_coc: np.ndarray, layers: LayerOptions,
 
     if layers.soft_maps:
         signed_coc, _ = snap_ramps(image, signed_coc, device=device)
+        clock.lap("soft maps")
     soft = split_mixed_pixels(image, signed_coc, finite_checked=finite_checked)
     scene.check_soft_edges(soft, signed_coc.shape)
+    clock.lap("edges")
     return signed_coc, soft
 
 
@@ -205,6 +209,7 @@ def _render_with_stats(inputs: Handover, blur: BlurParams, aperture: Aperture | 
                        highlight_boost: float = 0.0, progress: Progress | None = None,
                        refine: bool | str | os.PathLike = False,
                        refine_options: object | None = None) -> tuple[np.ndarray, RenderStats]:
+    clock = Clock()
     level = get_level(quality)
     layers, memory, options, aperture, device = _checked_arguments(
         level, blur, aperture, device, options, layers, memory, highlight_boost, progress)
@@ -212,13 +217,29 @@ def _render_with_stats(inputs: Handover, blur: BlurParams, aperture: Aperture | 
     _check_shape_fits(inputs.image, level.whole_image_bytes(), memory)
     # the context takes the arrays out of the holder: from here only the context (and the caller) holds them
     ctx, work, raw_max, channels, lowest = _context(inputs, blur, aperture, layers, memory, options, device,
-                                                    progress, highlight_boost, keep_pixels=refining)
+                                                    progress, highlight_boost, keep_pixels=refining, clock=clock)
     if refining:
         out_rgb, stats, ctx = _render_refined(level, ctx, work, refine, refine_options)
     else:
         out_rgb, stats = level.render(ctx)
+    _time_level(clock, stats)
     stats.max_coc_px = raw_max
-    return _output(level, ctx, work, out_rgb, quality, channels, lowest), stats
+    out = _output(level, ctx, work, out_rgb, quality, channels, lowest)
+    clock.lap("output")
+    stats.stage_seconds = {**clock.laps, "total": clock.total()}
+    return out, stats
+
+
+def _time_level(clock: Clock, stats: RenderStats) -> None:
+    """The level's own stages on the render's clock; what the level's call took beyond them (its crop, the refiner's
+    second scene) goes to "level (other)"."""
+    stages = {k: v for k, v in stats.stage_seconds.items() if k != "total"}
+    wall = clock.lap("level")
+    del clock.laps["level"]
+    clock.add(stages)
+    rest = wall - sum(stages.values())
+    if rest > 0.0:
+        clock.add({"level (other)": rest})
 
 
 def _checked_arguments(level, blur: object, aperture: object, device: object, options: object, layers: object,
@@ -248,7 +269,7 @@ def _checked_arguments(level, blur: object, aperture: object, device: object, op
 
 def _context(inputs: Handover, blur: BlurParams, aperture: Aperture, layers: LayerOptions, memory: MemoryOptions,
              options: object, device: str, progress: Progress | None, highlight_boost: float,
-             keep_pixels: bool) -> tuple[RenderContext, np.ndarray | None, float, int, float]:
+             keep_pixels: bool, clock: Clock) -> tuple[RenderContext, np.ndarray | None, float, int, float]:
     """The validated pixels as one render's context, the working image (RGB or RGBA, boosted; None when nothing
     after the level reads it), the largest CoC before the cap, the input's channels and its smallest value.
 
@@ -266,7 +287,8 @@ def _context(inputs: Handover, blur: BlurParams, aperture: Aperture, layers: Lay
     raw_max = max(float(s.max()), -float(s.min())) if s.size else 0.0
     rgb, capped = np.ascontiguousarray(work[..., :3]), scene.cap_coc(s)
     disposable = not keep_pixels and img.shape[2] != 4
-    capped, soft = _soft_scene(rgb, capped, layers, device, finite_checked=True)
+    clock.lap("checks")
+    capped, soft = _soft_scene(rgb, capped, layers, device, finite_checked=True, clock=clock)
     ctx = RenderContext(rgb, d, capped, blur, aperture, layers, memory, options, device, progress, soft, disposable)
     return ctx, None if disposable else work, raw_max, img.shape[2], float(img.min())
 
@@ -292,8 +314,6 @@ def _render_refined(level, ctx: RenderContext, work: np.ndarray, refine: bool | 
     stats = rendered["stats"]
     stats.refine = rstats.as_dict()
     stats.stage_seconds["refine"] = rstats.seconds
-    if "total" in stats.stage_seconds:
-        stats.stage_seconds["total"] += rstats.seconds
     return out_rgb, stats, rendered["ctx"]  # alpha blurs with the corrected depth too
 
 

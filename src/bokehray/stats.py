@@ -8,9 +8,36 @@ printing), and is what ``bokehray render --stats`` prints.
 from __future__ import annotations
 
 import dataclasses
+import time
 from dataclasses import dataclass, field
 
-__all__ = ["PreviewStats", "RaytraceStats", "RenderStats"]
+__all__ = ["Clock", "PreviewStats", "RaytraceStats", "RenderStats"]
+
+
+class Clock:
+    """The stages of a command or a render on one clock, in the order they ran: :meth:`lap` closes the stage that
+    ran since the last lap (or the start), so the laps sum to the time since the start (:meth:`total`)."""
+
+    def __init__(self, start: float | None = None) -> None:
+        self.start = time.perf_counter() if start is None else start
+        self.last = self.start
+        self.laps: dict[str, float] = {}
+
+    def lap(self, name: str) -> float:
+        """Close the stage ``name`` (added to an earlier one of that name); returns its length."""
+        now = time.perf_counter()
+        dt = now - self.last
+        self.laps[name] = self.laps.get(name, 0.0) + dt
+        self.last = now
+        return dt
+
+    def add(self, stages: dict[str, float]) -> None:
+        """Stages timed elsewhere, within the time since the last lap (a level's own stages)."""
+        for name, dt in stages.items():
+            self.laps[name] = self.laps.get(name, 0.0) + dt
+
+    def total(self) -> float:
+        return time.perf_counter() - self.start
 
 
 def _rounded(value):

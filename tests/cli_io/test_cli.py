@@ -63,8 +63,22 @@ def test_focus_at_and_stats(scene, tmp_path, capsys):
     assert code == 0, err
     stats = json.loads(out[out.index("{"):])
     assert stats["blur"]["focus_disparity"] == pytest.approx(float(np.median(d[6:15, 28:37])), abs=1e-4)
-    assert {"read", "plan", "layers", "total", "write"} <= set(stats["stage_seconds"])
+    stages = stats["stage_seconds"]
+    assert {"read", "depth", "focus", "warp start", "checks", "soft maps", "edges", "plan", "layers", "output",
+            "write", "total"} <= set(stages)
+    # every stage of the command is on the clock: they sum to its total (laps of one clock; no bound on the time)
+    assert sum(v for k, v in stages.items() if k != "total") == pytest.approx(stages["total"], rel=0.05, abs=0.01)
     assert stats["tiles_total"] > 0 and "max_coc_px" in stats
+
+
+def test_the_printed_time_is_the_stats_total(scene, tmp_path, capsys):
+    p, _, _ = scene
+    code, out, err = run(capsys, "render", p["png"], "--disparity", p["disp_png"], "-o", tmp_path / "o.png",
+                         "--blur", 6, "--stats")
+    assert code == 0, err
+    total = json.loads(out[out.index("{"):])["stage_seconds"]["total"]
+    printed = float(out.split(" s)")[0].rsplit(", ", 1)[1])
+    assert printed == pytest.approx(total, abs=0.006)
 
 
 @pytest.mark.parametrize("blur", [("--blur", "-0"), ("--amount", "-0")])

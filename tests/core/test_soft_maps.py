@@ -109,3 +109,14 @@ def test_a_soft_map_of_two_planes_renders_within_1_5_db_of_the_hard_map(two_plan
     p_surface = _band_psnr(br.render(photo, soft, blur, layers=br.LayerOptions(soft_maps=False)), ref, band)
     assert p_soft >= p_hard - 1.5, (p_hard, p_soft)
     assert p_surface < p_soft - 1.0, (p_surface, p_soft)
+
+
+def test_the_render_s_stages_sum_to_its_total():
+    """Every stage of a render is on its clock: the checks, the soft maps, the edges, the level's own stages and
+    the output checks are laps of one clock (a consistency check, no bound on the time)."""
+    img, s = _soft_disc(64, 3.0, 24.0, 0.5, 3)
+    d = (s / 24.0 + 0.5).clip(0, 1).astype(np.float32)
+    _, stats = br.render_with_stats(img, d, br.BlurParams(24.0, 0.5))
+    st = stats.stage_seconds
+    assert {"checks", "soft maps", "edges", "plan", "layers", "output", "total"} <= set(st)
+    assert sum(v for k, v in st.items() if k != "total") == pytest.approx(st["total"], rel=0.02, abs=0.002)

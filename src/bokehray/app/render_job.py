@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -18,6 +19,7 @@ import numpy as np
 from .._quiet import init_warp_quietly
 from ..errors import InputError
 from ..photo.subject import AMOUNT_DEFAULT, AMOUNT_K_FRACTION
+from ..stats import Clock
 
 __all__ = ["aperture_of", "check_render_flags", "layer_options_of", "read_map", "render_one", "start_warp"]
 
@@ -385,6 +387,35 @@ def _alpha_for_output(args: argparse.Namespace, image: np.ndarray) -> np.ndarray
                      "cannot store; write .png, .tif or .exr, or flatten the photo first")
 
 
+_STARTED = {"counted": False}
+
+
+def _process_age() -> float:
+    """Seconds since this process started, from the kernel's clock ticks since boot (``/proc``: 10 ms steps; a
+    process's creation time in epoch seconds is off by up to the boot time's whole second); 0 where ``/proc`` is
+    not there."""
+    try:
+        with open("/proc/self/stat") as f:
+            start_ticks = int(f.read().rsplit(")", 1)[1].split()[19])  # field 22, after the command's name
+        with open("/proc/uptime") as f:
+            uptime = float(f.read().split()[0])
+        return max(0.0, uptime - start_ticks / os.sysconf("SC_CLK_TCK"))
+    except (OSError, ValueError, IndexError):
+        return 0.0
+
+
+def command_clock() -> Clock:
+    """The clock of one render command. The first render of a process starts it at the process's start, so the
+    interpreter's start-up and the imports are its "start" stage; a batch worker's later renders start it now."""
+    now = time.perf_counter()
+    if _STARTED["counted"]:
+        return Clock(now)
+    _STARTED["counted"] = True
+    clock = Clock(now - _process_age())
+    clock.lap("start")
+    return clock
+
+
 def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:  # noqa: C901
     from ..lens import BlurParams, ThinLens
     from ..output.write import write_image
@@ -394,13 +425,15 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:  
     from ..photo.subject import k_from_amount, subject_focus
     from ..validate import check_radiance
 
-    t0 = time.perf_counter()
+    clock = command_clock()
     bar.stage("read")
     image = _alpha_for_output(args, read_image(args.image))
     check_radiance(image, str(args.image))  # the limit every level has, with the file named
     h, w = image.shape[:2]
     meta = _say_embedded(args, args.image)
+    clock.lap("read")
     disparity, norm = _read_map(args, h, w, image, bar.stage("depth") if args.depth_model else None)
+    clock.lap("depth")
 
     amount = None
     if physical:
@@ -445,17 +478,19 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:  
             d_f, focus_how = subject.d_f, f"the subject around pixel ({subject.x}, {subject.y})"
             _say(args, f"focus: {subject.describe()}{_metres(norm, d_f)}; --focus-at X,Y to choose")
         blur = BlurParams(k, d_f)
+    clock.lap("focus")
     if is_display_referred(args.image) and not args.no_highlight_reconstruction and args.highlight_boost == 0:
         image, found = reconstruct_highlights(image, overwrite=True)  # the photo as read is ours: no copy
         if found:
             _say(args, f"highlights: {found} clipped highlight{'s' * (found > 1)} reconstructed (display-referred "
                  "input; --no-highlight-reconstruction keeps them clipped)")
-    t_read = time.perf_counter() - t0
+        clock.lap("highlights")
 
     start_warp(args)
     from ..options import PreviewOptions
     from ..pipeline import Handover, render_handed_over
 
+    clock.lap("warp start")
     max_coc = max_coc_px(blur, disparity)  # said after the render
     # a batch's worker processes share the machine's cores (``threads``; the output does not depend on it)
     level_options = PreviewOptions(threads=getattr(args, "threads", None))
@@ -467,22 +502,25 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:  
                                     layers=layer_options_of(args), highlight_boost=args.highlight_boost,
                                     progress=bar.layers(), refine=args.refine,
                                     refine_options=refine_options_of(args))
-    t1 = time.perf_counter()
+    render_s = clock.lap("render")
+    del clock.laps["render"]
+    stages = {k: v for k, v in stats.stage_seconds.items() if k != "total"}
+    clock.add({**stages, "render (other)": max(0.0, render_s - sum(stages.values()))})
     bar.stage("write")
     quality = JPEG_QUALITY if args.jpeg_quality is None else args.jpeg_quality
     path = write_image(args.output, out, bit_depth=args.bit_depth, half=args.half, quality=quality,
                        exif=exif_for_output(meta))  # JPEG keeps the photo's EXIF, orientation reset
-    t_write = time.perf_counter() - t1
+    clock.lap("write")
+    stats.stage_seconds = {**clock.laps, "total": clock.total()}  # the whole command, start-up to the file
     if not args.quiet:
         refined = (f", refined {stats.refine['tiles_refined']}/{stats.refine['tiles_total']} tiles"
                    if stats.refine else "")
         print(f"wrote {path}  (K = {blur.k_px:.3f} px, d_f = {blur.focus_disparity:.4f}, "
-              f"max CoC {max_coc:.1f} px, {stats.stage_seconds.get('total', 0.0):.2f} s{refined})")
+              f"max CoC {max_coc:.1f} px, {stats.stage_seconds['total']:.2f} s{refined})")
     if args.stats:
         info = stats.as_dict()
-        info["stage_seconds"] = {"read": round(t_read, 4), **info["stage_seconds"], "write": round(t_write, 4)}
         info["blur"] = {"K_px": blur.k_px, "focus_disparity": blur.focus_disparity}
         print(json.dumps(info, indent=2))
-    return {"output": str(path), "pixels": h * w, "seconds": time.perf_counter() - t0, "k_px": blur.k_px,
+    return {"output": str(path), "pixels": h * w, "seconds": stats.stage_seconds["total"], "k_px": blur.k_px,
             "focus_disparity": blur.focus_disparity, "focus": focus_how, "amount": amount,
             "focus_m": None if norm is None else float(norm.depth(blur.focus_disparity))}
