@@ -581,10 +581,6 @@ def main(argv: Sequence[str] | None = None) -> int:  # noqa: C901
         return code
 
 
-if __name__ == "__main__":
-    sys.exit(main())
-
-
 def run() -> None:
     """The ``bokehray`` command: :func:`main`, then the exit handlers, and the process ends without the
     interpreter's teardown (unloading Warp's native libraries alone took 0.17-0.25 s a command on the 2-core
@@ -597,3 +593,7 @@ def run() -> None:
         with contextlib.suppress(OSError, ValueError, AttributeError):  # closed, or None after a broken pipe
             stream.flush()
     os._exit(code)
+
+
+if __name__ == "__main__":
+    run()
