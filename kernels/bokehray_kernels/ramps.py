@@ -111,8 +111,10 @@ def snap_ramps_kernel(
     y = float(py)
     x = float(px)
     k_near = _plateau(grad, y, x, ny, nx, params)
+    if k_near == 0:  # a slope (most candidates of a steep floor): the other side is not walked
+        return
     k_far = _plateau(grad, y, x, -ny, -nx, params)
-    if k_near == 0 or k_far == 0 or k_near + k_far < params.min_len:
+    if k_far == 0 or k_near + k_far < params.min_len:
         return
     v_near = coc[_clamp_at(y + float(k_near) * ny, h), _clamp_at(x + float(k_near) * nx, w)]
     v_far = coc[_clamp_at(y - float(k_far) * ny, h), _clamp_at(x - float(k_far) * nx, w)]

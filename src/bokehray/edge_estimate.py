@@ -34,17 +34,36 @@ PIXELS_PER_THREAD = 4096
 """Fewest pixels a CPU thread of a per-pixel kernel gets (fewer are not worth a thread)."""
 
 
-def in_parts(n: int, run, *, threads: int | None = None, cpu: bool = True) -> list:
-    """``run(a, b)`` over ``[0, n)`` cut into parts, their results in order: on the CPU as many parts as ``threads``
-    (default: the cores) with at least ``PIXELS_PER_THREAD`` items each, run in a thread pool (Warp CPU launches
-    release the GIL); one part elsewhere. Always at least one part (``run(0, 0)`` for nothing)."""
-    parts = 1 if not cpu else max(1, min(int(threads or os.cpu_count() or 1), -(-n // PIXELS_PER_THREAD)))
+CHECK_ITEMS = 1 << 17
+"""With a ``check``, :func:`in_parts` runs at most this many items a thread between two checks (a fraction of a
+second of the matting's kernel on one core)."""
+
+
+def in_parts(n: int, run, *, threads: int | None = None, cpu: bool = True, check=None) -> list:
+    """``run(a, b)`` over ``[0, n)`` cut into parts, their results in order: on the CPU as many parts at a time as
+    ``threads`` (default: the cores) with at least ``PIXELS_PER_THREAD`` items each, run in a thread pool (Warp CPU
+    launches release the GIL); one part at a time elsewhere. Always at least one part (``run(0, 0)`` for nothing).
+    ``check()``: called before each round of parts (at most ``CHECK_ITEMS`` items a part), so that a render can be
+    stopped there (it raises); None: one round."""
+    workers = 1 if not cpu else max(1, min(int(threads or os.cpu_count() or 1), -(-n // PIXELS_PER_THREAD)))
+    parts = workers if check is None else max(workers, -(-n // CHECK_ITEMS))
+    parts = -(-parts // workers) * workers  # whole rounds
     cuts = np.linspace(0, n, parts + 1).astype(np.int64)
     spans = [(int(cuts[j]), int(cuts[j + 1])) for j in range(parts)]
-    if parts == 1:
-        return [run(*spans[0])]
-    with ThreadPoolExecutor(max_workers=parts) as pool:
-        return list(pool.map(lambda span: run(*span), spans))
+    if workers == 1:
+        out = []
+        for span in spans:
+            if check is not None:
+                check()
+            out.append(run(*span))
+        return out
+    out = []
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        for r in range(0, parts, workers):
+            if check is not None:
+                check()
+            out.extend(pool.map(lambda span: run(*span), spans[r : r + workers]))
+    return out
 
 
 Steps = tuple[np.ndarray, np.ndarray]
@@ -163,7 +182,8 @@ def edges_of_steps(steps: Steps) -> np.ndarray:
     return e
 
 
-def launch_band_kernel(img, s, band, by, bx, radius, jump_px, unknown_weight, ridge, purity, device, threads):
+def launch_band_kernel(img, s, band, by, bx, radius, jump_px, unknown_weight, ridge, purity, device, threads,
+                       check=None):
     """Launch ``bokehray_kernels.matting.matting_band_kernel`` over the band pixels (in ``threads`` row bands on
     the CPU: Warp CPU launches release the GIL). Returns NumPy arrays: alpha, F, B, their variances, the near and
     far CoC and the flags."""
@@ -195,7 +215,7 @@ def launch_band_kernel(img, s, band, by, bx, radius, jump_px, unknown_weight, ri
                       outputs=res, device=dev)
         return [r.numpy() for r in res]
 
-    outs = in_parts(n, launch, threads=threads, cpu=dev.is_cpu)
+    outs = in_parts(n, launch, threads=threads, cpu=dev.is_cpu, check=check)
     return tuple(np.concatenate([o[k] for o in outs]) for k in range(8))
 
 
@@ -249,16 +269,18 @@ class EdgeEstimate:
 def estimate_edges(image: np.ndarray, signed_coc: np.ndarray, *, jump_px: float = 1.0, band_px: int = 0,
                    max_ramp_px: int = 6, unknown_weight: float = 0.3, ridge: float = 0.03, purity: float = 12.0,
                    max_isolated_share: float = 0.25, device: str = "cpu",
-                   threads: int | None = None) -> EdgeEstimate | None:
+                   threads: int | None = None, check=None) -> EdgeEstimate | None:
     """The edge estimate of a checked ``H x W x 3`` float32 linear image and its ``H x W`` float32 signed CoC
     (parameters: ``bokehray.matting.split_mixed_pixels``). None where the map has no depth edge or its edges
-    are noise."""
+    are noise. ``check()``: called between the steps and the kernel's rounds (a render stops there: it raises)."""
+    check = check or (lambda: None)
     s = signed_coc
     h, w = s.shape
     if h < 2 and w < 2:
         return None
     steps = map_steps(s, float(jump_px))  # the depth edges and the ramp width both read them
     edges = edges_of_steps(steps)
+    check()
     if not edges.any():
         return None
     # isolated pixels are edge pixels: only a map with more edge pixels than the share allows can be noise
@@ -268,6 +290,7 @@ def estimate_edges(image: np.ndarray, signed_coc: np.ndarray, *, jump_px: float 
     scale = max(float(image.max()), -float(image.min())) or 1.0
     ramp = ramp_of_steps(s, steps, int(max_ramp_px))
     del steps
+    check()
     b = int(band_px) + (ramp + 1) // 2
     radius = ramp + 2 * b + 2
     # work on the box of the edges, padded by everything a band pixel's window reaches
@@ -279,6 +302,7 @@ def estimate_edges(image: np.ndarray, signed_coc: np.ndarray, *, jump_px: float 
     by, bx = np.nonzero(band)
     # every threshold is relative: the result does not depend on the exposure (the box only: nothing reads more)
     box_img = image[y0:y1, x0:x1] / np.float32(scale)
+    check()
     out = launch_band_kernel(box_img, s[y0:y1, x0:x1], band, by, bx, radius, jump_px, unknown_weight, ridge,
-                             purity, device, threads)
+                             purity, device, threads, check)
     return EdgeEstimate((h, w), (y0, y1, x0, x1), by, bx, ramp, scale, box_img, *out)

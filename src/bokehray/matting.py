@@ -92,6 +92,7 @@ def split_mixed_pixels(
     device: str = "cpu",
     threads: int | None = None,
     finite_checked: bool = False,
+    check=None,
 ) -> SoftEdges:
     """Split the mixed pixels at the depth edges of ``signed_coc`` into a near and a far part.
 
@@ -122,6 +123,8 @@ def split_mixed_pixels(
         threads: CPU threads of the kernel (None: all cores); the result does not depend on it.
         finite_checked: the caller has already refused NaN and Inf in both arrays (the render pipeline: a checked
             photo, a CoC computed from a checked map): the scans for them (a pass over the frame each) are skipped.
+        check: called between the steps and between rounds of the band's kernel; it raises to stop the split (a
+            render superseded or interrupted). None: no checks.
 
     Returns:
         The split pixels (:class:`~bokehray.scene.SoftEdges`); ``SoftEdges.empty()`` when the map has no edge.
@@ -136,7 +139,7 @@ def split_mixed_pixels(
     photo = img
     est = estimate_edges(img, s, jump_px=jump_px, band_px=band_px, max_ramp_px=max_ramp_px,
                          unknown_weight=unknown_weight, ridge=ridge, purity=purity,
-                         max_isolated_share=max_isolated_share, device=device, threads=threads)
+                         max_isolated_share=max_isolated_share, device=device, threads=threads, check=check)
     if est is None:
         return SoftEdges.empty()
     w = s.shape[1]

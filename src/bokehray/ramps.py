@@ -59,10 +59,11 @@ class RampRule:
 
 
 def snap_ramps(image: np.ndarray, signed_coc: np.ndarray, rule: RampRule | None = None, *, device: str = "cpu",
-               threads: int | None = None) -> tuple[np.ndarray, int]:
+               threads: int | None = None, check=None) -> tuple[np.ndarray, int]:
     """The signed CoC map with every pixel strictly inside an edge's ramp set to one of the ramp's plateaus, and
     how many pixels changed. ``image``: ``H x W x 3`` float32 linear RGB; ``signed_coc``: ``H x W`` float32, both
-    finite (checked by the caller). The map is returned as given (not copied) when nothing changes."""
+    finite (checked by the caller). The map is returned as given (not copied) when nothing changes. ``check()``:
+    called between rounds of the kernel (it raises to stop)."""
     import warp as wp
 
     rule = rule or RampRule()
@@ -94,7 +95,7 @@ def snap_ramps(image: np.ndarray, signed_coc: np.ndarray, rule: RampRule | None 
                       outputs=[value, snapped], device=dev)
         return value.numpy(), snapped.numpy()
 
-    parts = in_parts(cand.size, launch, threads=threads, cpu=dev.is_cpu)
+    parts = in_parts(cand.size, launch, threads=threads, cpu=dev.is_cpu, check=check)
     value = np.concatenate([p[0] for p in parts])
     moved = np.concatenate([p[1] for p in parts]).astype(bool)
     n = int(moved.sum())

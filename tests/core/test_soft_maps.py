@@ -120,3 +120,37 @@ def test_the_render_s_stages_sum_to_its_total():
     st = stats.stage_seconds
     assert {"checks", "soft maps", "edges", "plan", "layers", "output", "total"} <= set(st)
     assert sum(v for k, v in st.items() if k != "total") == pytest.approx(st["total"], rel=0.02, abs=0.002)
+
+
+class _Stop(Exception):
+    pass
+
+
+def test_a_render_stops_in_its_scene_step_when_its_callback_says_so():
+    """The soft maps, the edge estimate and the planning call ``progress(0, 1)`` between their parts: a callback
+    that raises there stops the render before any layer is rendered (the page's superseded previews, a stopping
+    server's export)."""
+    img, s = _soft_disc(96, 3.0, 24.0, 0.5, 5)
+    d = (s / 24.0 + 0.5).clip(0, 1).astype(np.float32)
+    calls = []
+
+    def stop(done, total):
+        calls.append((done, total))
+        raise _Stop
+
+    with pytest.raises(_Stop):
+        br.render(img, d, br.BlurParams(24.0, 0.5), progress=stop)
+    assert calls == [(0, 1)]
+
+
+@settings(max_examples=20, deadline=None)
+@given(n=st.integers(0, 700_000), threads=st.integers(1, 3))
+def test_in_parts_with_checks_covers_the_items_in_order(n, threads):
+    from bokehray import edge_estimate as ee
+
+    checks = []
+    spans = ee.in_parts(n, lambda a, b: (a, b), threads=threads, check=lambda: checks.append(1))
+    assert spans[0][0] == 0 and spans[-1][1] == n
+    assert all(spans[i][1] == spans[i + 1][0] for i in range(len(spans) - 1))
+    assert all(b - a <= ee.CHECK_ITEMS for a, b in spans)
+    assert len(checks) == -(-len(spans) // min(threads, max(1, -(-n // ee.PIXELS_PER_THREAD))))

@@ -286,6 +286,8 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
     if soft is not None and (h, w) != (h0, w0):  # the split pixels in the padded frame
         soft = sc.pad_soft_edges(soft, (h0, w0), (pt, pb, pl, pr))
 
+    check = (lambda: ctx.progress(0, 1)) if ctx.progress is not None else (lambda: None)  # a stop, before a layer
+    check()
     copy = sc.copy_tiles(sc.soft_radius(s, soft), grid)
     frame_tiles = copy[pt // grid : pt // grid + -(-h0 // grid), pl // grid : pl // grid + -(-w0 // grid)]
     stats.tiles_total, stats.tiles_copied = int(frame_tiles.size), int(frame_tiles.sum())  # the frame's tiles
@@ -301,6 +303,7 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
     image, s, scene = sc.split_scene(image, s, soft, active, ctx.layers, options.level_radius_px,
                                      overwrite=(h, w) != (h0, w0))
     del active, soft
+    check()
     ctx.release_pixels()  # the scene holds what the layers read (a disposable context's pixels are freed here)
     stats.layers = len(scene.layers)
     stats.sources_scattered = int((scene.ids >= 0).sum()) + len(scene.near)
