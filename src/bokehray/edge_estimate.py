@@ -27,7 +27,8 @@ import numpy as np
 
 from ._memory import row_bands
 
-__all__ = ["PIXELS_PER_THREAD", "EdgeEstimate", "Steps", "depth_edges", "dilate", "edges_of_steps", "estimate_edges",
+__all__ = ["PIXELS_PER_THREAD", "EdgeBand", "EdgeEstimate", "Steps", "depth_edges", "dilate", "edge_band",
+           "edges_of_steps", "estimate_edges",
            "in_parts", "isolated_share", "launch_band_kernel", "map_steps", "ramp_of_steps", "ramp_width", "window_offsets"]
 
 PIXELS_PER_THREAD = 4096
@@ -266,13 +267,44 @@ class EdgeEstimate:
         return (den > np.float32(min_contrast) ** 2 * bright) & (den > 1e-20)
 
 
-def estimate_edges(image: np.ndarray, signed_coc: np.ndarray, *, jump_px: float = 1.0, band_px: int = 0,
-                   max_ramp_px: int = 6, unknown_weight: float = 0.3, ridge: float = 0.03, purity: float = 12.0,
-                   max_isolated_share: float = 0.25, device: str = "cpu",
-                   threads: int | None = None, check=None) -> EdgeEstimate | None:
-    """The edge estimate of a checked ``H x W x 3`` float32 linear image and its ``H x W`` float32 signed CoC
-    (parameters: ``bokehray.matting.split_mixed_pixels``). None where the map has no depth edge or its edges
-    are noise. ``check()``: called between the steps and the kernel's rounds (a render stops there: it raises)."""
+@dataclass(frozen=True, eq=False)
+class EdgeBand:
+    """The unknown band around a map's depth edges, before its matting: band pixel ``k`` lies at
+    ``(y0 + by[k], x0 + bx[k])`` of the box ``(y0, y1, x0, x1)`` (the edges padded by what a band pixel's window
+    reaches); ``image`` is the box of the image divided by ``scale`` (its largest value), ``coc`` the box of the map,
+    ``band`` the box's band mask, ``radius`` the window's, ``ramp`` the map's measured ramp width.
+    :meth:`estimate` runs the matting kernel on a slice of the band pixels."""
+
+    shape: tuple[int, int]
+    box: tuple[int, int, int, int]
+    by: np.ndarray
+    bx: np.ndarray
+    ramp: int
+    scale: float
+    image: np.ndarray
+    coc: np.ndarray
+    band: np.ndarray
+    radius: int
+    jump_px: float
+
+    @property
+    def size(self) -> int:
+        return int(self.by.size)
+
+    def estimate(self, a: int, b: int, *, unknown_weight: float = 0.3, ridge: float = 0.03, purity: float = 12.0,
+                 device: str = "cpu", threads: int | None = None, check=None) -> EdgeEstimate:
+        """The edge estimate of band pixels ``a`` to ``b`` (its arrays that long; ``box``, ``image`` the band's)."""
+        by, bx = self.by[a:b], self.bx[a:b]
+        out = launch_band_kernel(self.image, self.coc, self.band, by, bx, self.radius, self.jump_px, unknown_weight,
+                                 ridge, purity, device, threads, check)
+        return EdgeEstimate(self.shape, self.box, by, bx, self.ramp, self.scale, self.image, *out)
+
+
+def edge_band(image: np.ndarray, signed_coc: np.ndarray, *, jump_px: float = 1.0, band_px: int = 0,
+              max_ramp_px: int = 6, max_isolated_share: float = 0.25, check=None) -> EdgeBand | None:
+    """The band around the depth edges of a checked ``H x W x 3`` float32 linear image's ``H x W`` float32 signed
+    CoC (parameters: ``bokehray.matting.split_mixed_pixels``). None where the map has no depth edge or its edges
+    are noise. ``check()``: called between the steps (a render stops there: it raises)."""
     check = check or (lambda: None)
     s = signed_coc
     h, w = s.shape
@@ -299,10 +331,23 @@ def estimate_edges(image: np.ndarray, signed_coc: np.ndarray, *, jump_px: float 
     y0, y1 = max(0, int(ey.min()) - pad), min(h, int(ey.max()) + pad + 1)
     x0, x1 = max(0, int(ex.min()) - pad), min(w, int(ex.max()) + pad + 1)
     band = dilate(edges[y0:y1, x0:x1], b)
-    by, bx = np.nonzero(band)
+    by, bx = (v.astype(np.int32) for v in np.nonzero(band))
     # every threshold is relative: the result does not depend on the exposure (the box only: nothing reads more)
     box_img = image[y0:y1, x0:x1] / np.float32(scale)
     check()
-    out = launch_band_kernel(box_img, s[y0:y1, x0:x1], band, by, bx, radius, jump_px, unknown_weight, ridge,
-                             purity, device, threads, check)
-    return EdgeEstimate((h, w), (y0, y1, x0, x1), by, bx, ramp, scale, box_img, *out)
+    return EdgeBand((h, w), (y0, y1, x0, x1), by, bx, ramp, scale, box_img, s[y0:y1, x0:x1], band, radius,
+                    float(jump_px))
+
+
+def estimate_edges(image: np.ndarray, signed_coc: np.ndarray, *, jump_px: float = 1.0, band_px: int = 0,
+                   max_ramp_px: int = 6, unknown_weight: float = 0.3, ridge: float = 0.03, purity: float = 12.0,
+                   max_isolated_share: float = 0.25, device: str = "cpu",
+                   threads: int | None = None, check=None) -> EdgeEstimate | None:
+    """The edge estimate of every pixel of :func:`edge_band` (parameters: ``bokehray.matting.split_mixed_pixels``).
+    None where the map has no depth edge or its edges are noise."""
+    band = edge_band(image, signed_coc, jump_px=jump_px, band_px=band_px, max_ramp_px=max_ramp_px,
+                     max_isolated_share=max_isolated_share, check=check)
+    if band is None:
+        return None
+    return band.estimate(0, band.size, unknown_weight=unknown_weight, ridge=ridge, purity=purity, device=device,
+                         threads=threads, check=check)

@@ -46,12 +46,19 @@ from __future__ import annotations
 
 import numpy as np
 
-from .edge_estimate import estimate_edges
-from .errors import InputError
+from .edge_estimate import CHECK_ITEMS, edge_band
+from .errors import InputError, ResourceError
 from .scene import SoftEdges
 from .validate import check_finite
 
-__all__ = ["fuse_alpha", "split_mixed_pixels"]
+__all__ = ["SPLIT_B", "check_split_fits", "fuse_alpha", "split_mixed_pixels"]
+
+SPLIT_B = 44
+"""Bytes a split pixel holds (``SoftEdges``: its flat index, alpha, F, B and the two CoC) from the split on."""
+SPLIT_CHUNK = CHECK_ITEMS
+"""Band pixels matted at a time: the kernel's outputs and the split's float64 temporaries are a chunk's."""
+CHUNK_B = 900
+"""Bytes a band pixel of the chunk in work takes at most (kernel outputs 64, the split's float64 temporaries)."""
 
 def _check(image: np.ndarray, signed_coc: np.ndarray, finite: bool = True) -> tuple[np.ndarray, np.ndarray]:
     img = np.asarray(image)
@@ -93,6 +100,7 @@ def split_mixed_pixels(
     threads: int | None = None,
     finite_checked: bool = False,
     check=None,
+    budget_bytes: int | None = None,
 ) -> SoftEdges:
     """Split the mixed pixels at the depth edges of ``signed_coc`` into a near and a far part.
 
@@ -125,6 +133,8 @@ def split_mixed_pixels(
             photo, a CoC computed from a checked map): the scans for them (a pass over the frame each) are skipped.
         check: called between the steps and between rounds of the band's kernel; it raises to stop the split (a
             render superseded or interrupted). None: no checks.
+        budget_bytes: refuse (``ResourceError``) a band whose split cannot fit this many bytes, before the matting
+            (:func:`check_split_fits`); None: no check.
 
     Returns:
         The split pixels (:class:`~bokehray.scene.SoftEdges`); ``SoftEdges.empty()`` when the map has no edge.
@@ -136,13 +146,38 @@ def split_mixed_pixels(
         InputError: mismatched shapes, non-numeric or non-finite input.
     """
     img, s = _check(image, signed_coc, finite=not finite_checked)
-    photo = img
-    est = estimate_edges(img, s, jump_px=jump_px, band_px=band_px, max_ramp_px=max_ramp_px,
-                         unknown_weight=unknown_weight, ridge=ridge, purity=purity,
-                         max_isolated_share=max_isolated_share, device=device, threads=threads, check=check)
-    if est is None:
+    band = edge_band(img, s, jump_px=jump_px, band_px=band_px, max_ramp_px=max_ramp_px,
+                     max_isolated_share=max_isolated_share, check=check)
+    if band is None:
         return SoftEdges.empty()
-    w = s.shape[1]
+    if budget_bytes is not None:
+        check_split_fits(band.size, s.shape, budget_bytes)
+    part = dict(min_contrast=min_contrast, min_alpha=min_alpha, max_alpha=max_alpha, model_sd=model_sd)
+    pieces = []
+    for a in range(0, band.size, SPLIT_CHUNK):  # the work of a chunk at a time (its float64 temporaries)
+        est = band.estimate(a, min(band.size, a + SPLIT_CHUNK), unknown_weight=unknown_weight, ridge=ridge,
+                            purity=purity, device=device, threads=threads, check=check)
+        pieces.append(_split_estimate(img, est, **part))
+    return pieces[0] if len(pieces) == 1 else SoftEdges(*(np.concatenate([getattr(p, f) for p in pieces])
+                                                          for f in ("index", "alpha", "foreground", "background",
+                                                                    "near_coc", "far_coc")))
+
+
+def check_split_fits(band_pixels: int, shape: tuple[int, int], budget_bytes: int) -> None:
+    """Refuse a split whose band cannot fit ``budget_bytes`` (its result at worst: every band pixel split, and one
+    chunk's work), before the matting allocates it."""
+    need = SPLIT_B * band_pixels + CHUNK_B * min(band_pixels, SPLIT_CHUNK)
+    if need > budget_bytes:
+        h, w = shape
+        raise ResourceError(f"soft edges of the {w} x {h} px image: its {band_pixels} pixels at depth edges need up "
+                            f"to {need / 2**20:.0f} MB, over the memory budget of {budget_bytes / 2**20:.0f} MB "
+                            "(a map that is edges everywhere; give more memory, or LayerOptions(soft_edges=False))")
+
+
+def _split_estimate(photo: np.ndarray, est, *, min_contrast: float, min_alpha: float, max_alpha: float,
+                    model_sd: float | None) -> SoftEdges:
+    """The split pixels among the band pixels of one edge estimate (``bokehray.edge_estimate.EdgeEstimate``)."""
+    w = est.shape[1]
     y0, y1, x0, x1 = est.box
     by, bx, ramp, scale = est.by, est.bx, est.ramp, est.scale
     alpha, F, B, vF, vB, near, far = est.alpha, est.fg, est.bg, est.fg_var, est.bg_var, est.near, est.far

@@ -37,6 +37,10 @@ QUALITIES = tuple(LEVELS)
 
 Progress = Callable[[int, int], None]
 
+HELD_DURING_SPLIT_B = 24
+"""Bytes a pixel of the frame held while the mixed pixels are split: the photo (12), its disparity and its signed CoC
+(4 each), the snapped CoC (4)."""
+
 
 def focus_at(disparity: np.ndarray, x: int, y: int, window: int = 9) -> float:
     """Focus disparity from a clicked pixel: the median disparity in a ``window`` x ``window`` box.
@@ -100,13 +104,16 @@ def _check_device(device: str) -> str:
 
 
 def _soft_scene(image: np.ndarray, signed_coc: np.ndarray, layers: LayerOptions, device: str,
-                finite_checked: bool = False, clock: Clock | None = None, progress: Progress | None = None):
+                finite_checked: bool = False, clock: Clock | None = None, progress: Progress | None = None,
+                memory: MemoryOptions | None = None):
     """The scene's map and its split pixels: ramps in the map snapped to their plateaus (``LayerOptions.soft_maps``,
     ``bokehray.ramps``), then the mixed pixels at its depth edges split by matting (``LayerOptions.soft_edges``),
     a ``scene.SoftEdges`` checked against the image (None when off). ``finite_checked``: both arrays are known finite
     (the context's checked photo and the CoC of its checked map), so the matting does not scan them again.
     ``clock``: laps "soft maps" and "edges" on it. ``progress``: called as ``progress(0, 1)`` (no layer done yet)
-    between the steps' parts, so that a render abandoned by its callback stops within a fraction of a second."""
+    between the steps' parts, so that a render abandoned by its callback stops within a fraction of a second.
+    ``memory``: the split is refused before the matting when its band cannot fit the budget beside the photo, its
+    map and its CoC (``matting.check_split_fits``)."""
     clock = clock or Clock()
     check = None if progress is None else (lambda: progress(0, 1))
     if not layers.soft_edges:
@@ -119,7 +126,9 @@ def _soft_scene(image: np.ndarray, signed_coc: np.ndarray, layers: LayerOptions,
         signed_coc, _ = snap_ramps(image, signed_coc, device=device, check=check)
         clock.lap("soft maps")
         ramp_px = 0  # the ramps are steps now: the band of a hard map (docs/design/soft-maps.md: 10x less work)
-    soft = split_mixed_pixels(image, signed_coc, max_ramp_px=ramp_px, finite_checked=finite_checked, check=check)
+    budget = None if memory is None else tiling.budget_bytes(memory) - HELD_DURING_SPLIT_B * signed_coc.size
+    soft = split_mixed_pixels(image, signed_coc, max_ramp_px=ramp_px, finite_checked=finite_checked, check=check,
+                              budget_bytes=budget)
     scene.check_soft_edges(soft, signed_coc.shape)
     clock.lap("edges")
     return signed_coc, soft
@@ -292,7 +301,8 @@ def _context(inputs: Handover, blur: BlurParams, aperture: Aperture, layers: Lay
     rgb, capped = np.ascontiguousarray(work[..., :3]), scene.cap_coc(s)
     disposable = not keep_pixels and img.shape[2] != 4
     clock.lap("checks")
-    capped, soft = _soft_scene(rgb, capped, layers, device, finite_checked=True, clock=clock, progress=progress)
+    capped, soft = _soft_scene(rgb, capped, layers, device, finite_checked=True, clock=clock, progress=progress,
+                               memory=memory)
     ctx = RenderContext(rgb, d, capped, blur, aperture, layers, memory, options, device, progress, soft, disposable)
     return ctx, None if disposable else work, raw_max, img.shape[2], float(img.min())
 
@@ -309,7 +319,7 @@ def _render_refined(level, ctx: RenderContext, work: np.ndarray, refine: bool | 
             c = ctx
         else:  # a corrected depth moves the depth edges: split its mixed pixels anew
             sc, soft = _soft_scene(ctx.image, scene.cap_coc(blur.signed_coc(dd)), layers, ctx.device,
-                                   progress=ctx.progress)
+                                   progress=ctx.progress, memory=ctx.memory)
             c = replace(ctx, disparity=dd, signed_coc=sc, soft=soft)
         rgb, rendered["stats"] = level.render(c)
         rendered["ctx"] = c

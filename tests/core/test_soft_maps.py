@@ -154,3 +154,27 @@ def test_in_parts_with_checks_covers_the_items_in_order(n, threads):
     assert all(spans[i][1] == spans[i + 1][0] for i in range(len(spans) - 1))
     assert all(b - a <= ee.CHECK_ITEMS for a, b in spans)
     assert len(checks) == -(-len(spans) // min(threads, max(1, -(-n // ee.PIXELS_PER_THREAD))))
+
+
+def test_the_split_in_chunks_is_the_split_whole(monkeypatch):
+    """The matting works a chunk of band pixels at a time (bounded temporaries): the same split pixels, the same
+    values, whatever the chunk."""
+    from bokehray import matting
+
+    img, s = _soft_disc(128, 0.0 + 1e-3, 30.0, 0.3, 11)
+    whole = matting.split_mixed_pixels(img, s)
+    monkeypatch.setattr(matting, "SPLIT_CHUNK", 37)
+    parts = matting.split_mixed_pixels(img, s)
+    assert len(whole) > 37
+    for f in ("index", "alpha", "foreground", "background", "near_coc", "far_coc"):
+        np.testing.assert_array_equal(getattr(parts, f), getattr(whole, f))
+
+
+def test_a_split_that_cannot_fit_the_budget_is_refused_before_the_matting():
+    from bokehray.errors import ResourceError
+
+    rng = np.random.default_rng(0)
+    img = rng.uniform(0, 1, (256, 256, 3)).astype(np.float32)
+    d = (np.indices((256, 256)).sum(0) % 2).astype(np.float32)  # a 1 px checkerboard: every pixel an edge pixel
+    with pytest.raises(ResourceError, match="soft edges of the 256 x 256 px image"):
+        br.render(img, d, br.BlurParams(8.0, 0.5), memory=br.MemoryOptions(memory_limit_mb=4))

@@ -75,6 +75,8 @@ TILED_B = 12
 """Per pixel of the frame in a tiled render: the output the tiles' cores are copied into (``_render_tiled``); 12 more
 where the frame is not padded, for the photo it keeps for the copied tiles (padded, that photo is the scene's colour,
 ``split_scene`` writing into it)."""
+SOFT_B = 76
+"""Per split pixel (``SoftEdges``, 44, and its near part in the scene, ``NearParts``, 32), through the layers."""
 RESULT_B = 16
 """Per pixel of a finished layer's lit area (its box's on a GPU) waiting to be composited (premultiplied RGB and
 coverage): while the next layer to composite is in work, at most ``threads - 1`` others' results wait beside the
@@ -302,6 +304,7 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
     # tiled path reads ``photo`` on copied tiles only, where no pixel is split)
     image, s, scene = sc.split_scene(image, s, soft, active, ctx.layers, options.level_radius_px,
                                      overwrite=(h, w) != (h0, w0))
+    n_split = 0 if soft is None else len(soft)
     del active, soft
     check()
     ctx.release_pixels()  # the scene holds what the layers read (a disposable context's pixels are freed here)
@@ -310,7 +313,7 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
     stats.pyramid_levels = max(sc.pyramid_levels(lyr.max_radius, options.level_radius_px) for lyr in scene.layers)
     threads = 1 if wp.get_device(ctx.device).is_cuda else max(1, options.threads or os.cpu_count() or 1)
 
-    whole = (WHOLE_IMAGE_B + (0 if ctx.disposable else KEPT_CONTEXT_B)) * h * w
+    whole = (WHOLE_IMAGE_B + (0 if ctx.disposable else KEPT_CONTEXT_B)) * h * w + SOFT_B * n_split
     # a layer's arrays take pages where its light lies on the CPU (lazily zeroed), its whole box on a GPU
     on_cpu = wp.get_device(ctx.device).is_cpu
     footprints = [_layer_footprint(lyr, options.level_radius_px, on_cpu) for lyr in scene.layers]
