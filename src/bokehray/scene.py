@@ -37,6 +37,7 @@ from .options import LayerOptions
 __all__ = [
     "FILL_MIN_REACH_PX", "LayerRecord", "LayerSources", "LayeredScene", "NearParts", "SoftEdges", "build_layer_sources",
     "build_scene", "cap_coc", "check_soft_edges", "copy_tiles", "fill_halo", "layer_edges", "pad_soft_edges",
+    "soft_replicas",
     "pyramid_levels", "scatter_halo", "soft_radius", "split_scene", "tile_max", "tile_reduce",
 ]  # fmt: skip
 
@@ -115,6 +116,27 @@ class NearParts:
                          self.coc[k], self.layer[k])
 
 
+def _border_replicas(soft: SoftEdges, shape: tuple[int, int], pads: tuple[int, int, int, int]):
+    """Per split pixel on the frame's border: its index among the split pixels, and how many rows and columns of
+    the padded frame it stands in (itself and its replicas)."""
+    h0, w0 = shape
+    pt, pb, pl, pr = pads
+    y, x = soft.index // w0, soft.index % w0
+    on = np.flatnonzero((y == 0) | (y == h0 - 1) | (x == 0) | (x == w0 - 1))
+    yb, xb = y[on], x[on]
+    top, bottom = np.where(yb == 0, pt, 0), np.where(yb == h0 - 1, pb, 0)
+    left, right = np.where(xb == 0, pl, 0), np.where(xb == w0 - 1, pr, 0)
+    return on, yb, xb, top, 1 + top + bottom, left, 1 + left + right
+
+
+def soft_replicas(soft: SoftEdges, shape: tuple[int, int], pads: tuple[int, int, int, int]) -> int:
+    """How many replicas :func:`pad_soft_edges` adds (counted before anything is allocated)."""
+    if len(soft) == 0 or not any(pads):
+        return 0
+    _, _, _, _, nr, _, nc = _border_replicas(soft, shape, pads)
+    return int((nr.astype(np.int64) * nc - 1).sum())
+
+
 def pad_soft_edges(soft: SoftEdges, shape: tuple[int, int], pads: tuple[int, int, int, int]) -> SoftEdges:
     """``soft`` on the frame of ``shape`` edge-replicated by ``pads`` (top, bottom, left, right), as
     ``np.pad(mode="edge")`` replicates the image: a split pixel on the border is split alike in its replicas."""
@@ -123,21 +145,22 @@ def pad_soft_edges(soft: SoftEdges, shape: tuple[int, int], pads: tuple[int, int
     w = w0 + pl + pr
     if len(soft) == 0:
         return soft
+    on, yb, xb, top, nr, left, nc = _border_replicas(soft, shape, pads)
+    count = nr.astype(np.int64) * nc - 1  # every (row, column) of the pixel's but its own
+    g = np.repeat(np.arange(on.size), count)
+    j = np.arange(g.size) - np.repeat(np.cumsum(count) - count, count) + 1  # 1 .. nr * nc - 1 within a pixel
+    k, m = j // nc[g], j % nc[g]  # the k-th of its rows, the m-th of its columns (0: its own)
+
+    def place(own, n_before, k, start_after):  # own, then the pads before, then those after
+        return np.where(k == 0, own, np.where(k <= n_before, k - 1, start_after + (k - 1 - n_before)))
+
+    rows = place(yb[g] + pt, top[g], k, h0 + pt)
+    cols = place(xb[g] + pl, left[g], m, w0 + pl)
     y, x = soft.index // w0, soft.index % w0
-    rows, cols, src = [y + pt], [x + pl], [np.arange(len(soft))]
-    for i in np.flatnonzero((y == 0) | (y == h0 - 1) | (x == 0) | (x == w0 - 1)):  # the border's: few
-        ys = [y[i] + pt] + (list(range(pt)) if y[i] == 0 else []) + (list(range(h0 + pt, h0 + pt + pb))
-                                                                      if y[i] == h0 - 1 else [])
-        xs = [x[i] + pl] + (list(range(pl)) if x[i] == 0 else []) + (list(range(w0 + pl, w0 + pl + pr))
-                                                                      if x[i] == w0 - 1 else [])
-        yy, xx = np.meshgrid(ys, xs, indexing="ij")
-        keep = (yy != y[i] + pt) | (xx != x[i] + pl)  # its replicas (itself is in already)
-        rows.append(yy[keep])
-        cols.append(xx[keep])
-        src.append(np.full(int(keep.sum()), i))
-    index = np.concatenate(rows).astype(np.int64) * w + np.concatenate(cols).astype(np.int64)
+    index = np.concatenate([(y + pt) * w + (x + pl), rows.astype(np.int64) * w + cols])
+    src = np.concatenate([np.arange(len(soft)), on[g]])
     order = np.argsort(index, kind="stable")
-    k = np.concatenate(src).astype(np.int64)[order]
+    k = src[order]
     return SoftEdges(index[order], soft.alpha[k], soft.foreground[k], soft.background[k], soft.near_coc[k],
                      soft.far_coc[k])
 

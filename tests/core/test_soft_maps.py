@@ -178,3 +178,19 @@ def test_a_split_that_cannot_fit_the_budget_is_refused_before_the_matting():
     d = (np.indices((256, 256)).sum(0) % 2).astype(np.float32)  # a 1 px checkerboard: every pixel an edge pixel
     with pytest.raises(ResourceError, match="soft edges of the 256 x 256 px image"):
         br.render(img, d, br.BlurParams(8.0, 0.5), memory=br.MemoryOptions(memory_limit_mb=4))
+
+
+@settings(max_examples=30, deadline=None)
+@given(h=st.integers(1, 6), w=st.integers(1, 6), pads=st.tuples(*[st.integers(0, 3)] * 4), seed=st.integers(0, 999))
+def test_the_replicas_are_counted_before_they_are_made(h, w, pads, seed):
+    from bokehray import scene as sc
+
+    rng = np.random.default_rng(seed)
+    index = np.flatnonzero(rng.random(h * w) < 0.6).astype(np.int64)
+    n = index.size
+    soft = sc.SoftEdges(index, np.full(n, 0.5, np.float32), np.ones((n, 3), np.float32), np.zeros((n, 3), np.float32),
+                        np.full(n, 2.0, np.float32), np.zeros(n, np.float32))
+    padded = sc.pad_soft_edges(soft, (h, w), pads)
+    assert len(padded) == n + sc.soft_replicas(soft, (h, w), pads)
+    assert (np.diff(padded.index) > 0).all()
+

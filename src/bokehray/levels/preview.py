@@ -279,7 +279,10 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
     pt, pb, pl, pr = border_pad(s if soft is None else sc.soft_radius(s, soft), grid) if options.clamp_border \
         else (0, 0, 0, 0)
     h, w = h0 + pt + pb, w0 + pl + pr
-    if (h, w) != (h0, w0) and WHOLE_IMAGE_B * h * w > tiling.budget_bytes(ctx.memory):
+    n_soft = 0 if soft is None else len(soft) + sc.soft_replicas(soft, (h0, w0), (pt, pb, pl, pr))
+    # the least any render of the padded frame holds (its whole-image arrays and a tiled render's output), counted
+    # before the padding allocates anything
+    if (h, w) != (h0, w0) and (WHOLE_IMAGE_B + TILED_B) * h * w + SOFT_B * n_soft > tiling.budget_bytes(ctx.memory):
         (pt, pb, pl, pr), h, w = (0, 0, 0, 0), h0, w0  # the clamped border does not fit: the frame alone
     if (h, w) != (h0, w0):
         image = np.pad(image, ((pt, pb), (pl, pr), (0, 0)), mode="edge")
