@@ -37,8 +37,7 @@ from .options import LayerOptions
 __all__ = [
     "FILL_MIN_REACH_PX", "LayerRecord", "LayerSources", "LayeredScene", "NearParts", "SoftEdges", "build_layer_sources",
     "build_scene", "cap_coc", "check_soft_edges", "copy_tiles", "fill_halo", "layer_edges", "pad_soft_edges",
-    "soft_replicas",
-    "pyramid_levels", "scatter_halo", "soft_radius", "split_scene", "tile_max", "tile_reduce",
+    "pyramid_levels", "scatter_halo", "soft_radius", "soft_replicas", "split_scene", "tile_max", "tile_reduce",
 ]  # fmt: skip
 
 FILL_MIN_REACH_PX = 0.5
