@@ -104,7 +104,7 @@ def test_single_fronto_parallel_layer_is_the_exact_disc_convolution_at_defaults(
 @pytest.mark.parametrize("aperture", APERTURES)
 @pytest.mark.parametrize("radius", [16, 64])
 def test_point_light_spread_is_the_exact_aperture(aperture, radius):
-    """Issue 13: a point light's spread within 4 % L1 of the exact aperture (R = 256: benchmarks/bench_raytrace.py)."""
+    """Issue 13: a point light's spread within 4 % L1 of the exact aperture (R = 256: benchmarks/renderer/bench_raytrace.py)."""
     n = 2 * radius + 9
     c = n // 2
     tex = np.zeros((n, n, 4), np.float32)
