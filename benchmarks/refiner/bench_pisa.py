@@ -84,7 +84,7 @@ def pipeline_times() -> dict:
     from bokehray_refiner.masks import PisaMaskProvider
     from bokehray_refiner.model import BokehRefiner
     from bokehray_refiner.onestep import OneStepOptions, load_one_step
-    from bokehray_refiner.testing import write_tiny_sdxl
+    from bokehray_refiner.onestep.testing import write_tiny_sdxl
 
     from bokehray.lens import BlurParams
 

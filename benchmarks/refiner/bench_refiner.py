@@ -1,7 +1,7 @@
 """Does the refiner fix what wrong depth breaks? Preview, raytrace and refine on the dev set or a synthetic split.
 
 The disparity handed to every method is the true one, or it eroded / dilated by 1-5 px (paper
-fig. 7), blurred, shifted, or a depth estimator's kind of map (``bokehray_refiner.data.corrupt_disparity``);
+fig. 7), blurred, shifted, or a depth estimator's kind of map (``bokehray_refiner.training.data.corrupt_disparity``);
 the target is the exact render of the true scene. Scores are PSNR/SSIM in sRGB after clipping
 (``bokehray.data.metrics``), over the whole image and within 8 px of a depth discontinuity of the
 *true* disparity. Every case is scored with the refiner gated (the default) and ungated
@@ -144,9 +144,9 @@ def main() -> None:  # noqa: C901
 
     if args.threads:
         torch.set_num_threads(args.threads)
-    from bokehray_refiner.data import corrupt_disparity
     from bokehray_refiner.edges import load_edge_net
     from bokehray_refiner.refine import RefineOptions, load_refiner, refine
+    from bokehray_refiner.training.data import corrupt_disparity
 
     import bokehray as br
     from bokehray.data.metrics import score
@@ -238,8 +238,8 @@ def main() -> None:  # noqa: C901
 
 def timing(args, model, ropts, edge_model=None) -> None:
     """Preview vs preview + refine at 1536 x 1024, medians of warm runs, with the tiles refined."""
-    from bokehray_refiner.data import corrupt_disparity
     from bokehray_refiner.refine import refine
+    from bokehray_refiner.training.data import corrupt_disparity
     from scipy import ndimage
 
     import bokehray as br

@@ -1,7 +1,7 @@
 """``render --refine``: the shipped refiner applied where depth errors show, blended into the classical render.
 
 First (with a ``rerender`` callback, which the pipeline always passes) the colour-guided depth correction
-(``bokehray.depthfix``) moves depth edges that sit off the photo's colour edges back onto them, and the classical
+(``bokehray_refiner.depthfix``) moves depth edges that sit off the photo's colour edges back onto them, and the classical
 level renders again on the corrected map; the steps below then work on that render and that map.
 
 Depth errors only change the image where a depth discontinuity meets a
@@ -31,9 +31,9 @@ import numpy as np
 import torch
 
 from bokehray.colour import linear_to_srgb, srgb_to_linear
-from bokehray.depthfix import DepthFixOptions, correction_steps
 from bokehray.errors import InputError
 from bokehray.lens import BlurParams
+from bokehray_refiner.depthfix import DepthFixOptions, correction_steps
 from bokehray_refiner.pisa import PisaMaskOptions
 
 from .edges import EdgeNet, load_edge_net, place_edges
@@ -64,7 +64,7 @@ class RefineOptions:
         band_margin_px, band_feather_px: the correction is kept only within (the edge's CoC + margin) of a
             depth edge, fading out over the feather: farther away a depth error cannot change the image.
         gate: the confidence gate (``GateOptions(enabled=False)`` lets the whole band through).
-        depthfix: the colour-guided depth correction run first (``bokehray.depthfix``); it needs a ``rerender``
+        depthfix: the colour-guided depth correction run first (``bokehray_refiner.depthfix``); it needs a ``rerender``
             callback in :func:`refine` (the classical level again, on the corrected disparity).
         neural: False stops after the depth correction (the neural residual is not run).
         merge_tiles: neighbouring tiles to refine run as one box with one halo (:func:`refine_boxes`), blended
@@ -262,7 +262,7 @@ def refine(
 ) -> tuple[np.ndarray, RefineStats]:
     """Refine a classical render where depth discontinuities meet blur.
 
-    First, with ``rerender``, the colour-guided depth correction (``bokehray.depthfix``): where a depth edge
+    First, with ``rerender``, the colour-guided depth correction (``bokehray_refiner.depthfix``): where a depth edge
     sits off the photo's colour edge, the disparity there is corrected and ``rerender(corrected)`` renders
     the classical level again; the neural residual (behind its gate) then corrects that render, seeing the
     corrected disparity. Without ``rerender``, or where nothing is corrected, the render is the given one.
@@ -387,7 +387,7 @@ def _same_map(a: np.ndarray, b: np.ndarray) -> bool:
 def corrected_disparity(image: np.ndarray, disparity: np.ndarray, blur: BlurParams,
                         options: RefineOptions = RefineOptions(), edge_model: EdgeNet | None = None,
                         focus_srgb: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """The map refine renders: the colour-guided depth correction (``bokehray.depthfix``), then, with
+    """The map refine renders: the colour-guided depth correction (``bokehray_refiner.depthfix``), then, with
     ``options.edges``, the learned edge placement (:mod:`.edges`) on its result; and which pixels moved. Clipped
     lights (dilated by 2 px) never move and never vote. A map the correction does not find wrong
     (``options.min_fixed_share``) comes back as it is, with nothing moved, or only shifted back where the correction

@@ -111,8 +111,8 @@ def blend(base, weight, pick):
 
 def bank_entry(image, disparity, blur, target, kind: str, amount: int, opts) -> dict:
     """What the chooser sees for one corrupted map, and the exact render it is scored against (sRGB)."""
-    from bokehray_refiner.data import corrupt_disparity
     from bokehray_refiner.refine import blend_weight, correct_and_render
+    from bokehray_refiner.training.data import corrupt_disparity
 
     import bokehray as br
 

@@ -27,9 +27,9 @@ def main() -> None:
     ap.add_argument("--devset", default=str(REPO.parent / "shared/data/pathtraced-dev"))
     ap.add_argument("--out", default=str(REPO / "docs/img/refiner_gate_crops.png"))
     args = ap.parse_args()
-    from bokehray_refiner.data import corrupt_disparity
     from bokehray_refiner.gate import GateOptions
     from bokehray_refiner.refine import RefineOptions, refine
+    from bokehray_refiner.training.data import corrupt_disparity
     from PIL import Image
 
     import bokehray as br

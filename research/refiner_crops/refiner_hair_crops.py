@@ -71,9 +71,9 @@ def main() -> None:
     import torch
 
     torch.set_num_threads(args.threads)
-    from bokehray_refiner.data import corrupt_disparity
     from bokehray_refiner.edges import load_edge_net
     from bokehray_refiner.refine import RefineOptions, load_refiner, refine
+    from bokehray_refiner.training.data import corrupt_disparity
     from PIL import Image
 
     import bokehray as br

@@ -30,8 +30,8 @@ def main() -> None:
     ap.add_argument("--devset", default=str(REPO.parent / "shared/data/pathtraced-dev"))
     ap.add_argument("--out", default=str(REPO / "docs/img/refiner_shift_crops.png"))
     args = ap.parse_args()
-    from bokehray_refiner.data import corrupt_disparity
     from bokehray_refiner.refine import load_refiner, refine
+    from bokehray_refiner.training.data import corrupt_disparity
     from PIL import Image
 
     import bokehray as br

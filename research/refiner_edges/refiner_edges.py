@@ -110,7 +110,7 @@ def side_labels(cost, x, config, keep_margin: float | None = None):
 def _bank_maps(root: str, variants: int, seed: int):
     """The bank's corrupted maps in order: per training pair ``variants`` of them, the exact one, then the other
     kinds in turn (a random amount each), as (sample, its blur, the sRGB photo, the kind, the corrupted map)."""
-    from bokehray_refiner.data import corrupt_disparity
+    from bokehray_refiner.training.data import corrupt_disparity
 
     import bokehray as br
     from bokehray.data.datasets import BLBDataset
@@ -279,8 +279,8 @@ def score(model, samples, opts, thresholds, gate: bool = False, min_region: int 
     also behind refine's confidence gate, ``gated``), per render and condition; each also with the colour veto at
     each of ``margins`` (``_v<margin>``, ``place_edges(colour_margin=)``), the oracle too; the network makes
     ``passes`` passes (``place_edges(passes=)``)."""
-    from bokehray_refiner.data import corrupt_disparity
     from bokehray_refiner.edges import edge_features, place_edges
+    from bokehray_refiner.training.data import corrupt_disparity
 
     import bokehray as br
 

@@ -63,8 +63,8 @@ def main() -> None:
     args = ap.parse_args()
     args.out = split_out(args, "research/refiner_headroom/results/refiner_headroom")
 
-    from bokehray_refiner.data import corrupt_disparity
     from bokehray_refiner.refine import RefineOptions, blend_weight, correct_and_render
+    from bokehray_refiner.training.data import corrupt_disparity
 
     import bokehray as br
     from bokehray.colour import linear_to_srgb

@@ -1,6 +1,6 @@
 """Strands missing from the map: how much of their error could any depth taken from the map undo?
 
-The ``missing`` corruption (``bokehray_refiner.data.corrupt_disparity``) erases near structures narrower than
+The ``missing`` corruption (``bokehray_refiner.training.data.corrupt_disparity``) erases near structures narrower than
 ``2 amount + 1`` px: strands, wires, stems and writing take the depth of what is behind them. Undoing it takes two
 things, *where* (which pixels lost a strand) and *what depth* (the strand's). This script gives the first for free
 (an oracle: the pixels whose disparity the corruption lowered) and measures the second: the level rendered on the
@@ -73,8 +73,8 @@ def main() -> None:
     args = ap.parse_args()
     args.out = split_out(args, "research/refiner_strands/results/refiner_strands")
 
-    from bokehray_refiner.data import corrupt_disparity
     from bokehray_refiner.refine import RefineOptions, correct_and_render
+    from bokehray_refiner.training.data import corrupt_disparity
 
     import bokehray as br
     from bokehray.data.metrics import score

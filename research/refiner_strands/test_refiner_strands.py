@@ -10,7 +10,7 @@ from scripts import load_script
 
 pytest.importorskip("torch")
 
-from bokehray_refiner.data import corrupt_disparity
+from bokehray_refiner.training.data import corrupt_disparity
 
 
 @pytest.fixture(scope="module")

@@ -464,7 +464,7 @@ def _check_train_args(args: argparse.Namespace) -> None:
 
 
 def cmd_train_refiner(args: argparse.Namespace) -> int:
-    train = _refiner_module("train")
+    train = _refiner_module("training.residual")
     _check_train_args(args)
     start_warp(args)
     if args.threads is not None:
@@ -475,7 +475,7 @@ def cmd_train_refiner(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     extra = {}
     if args.corruptions:
-        CORRUPTIONS = _refiner_module("data").CORRUPTIONS
+        CORRUPTIONS = _refiner_module("training.data").CORRUPTIONS
         shares = dict(_name_values(args.corruptions, "--corruptions", "KIND=SHARE"))
         unknown = sorted(set(shares) - set(CORRUPTIONS))
         total = sum(shares.values())

@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import bokehray_kernels.vote as bk_vote
 import numpy as np
 
-from .edge_estimate import depth_edges, in_parts, ramp_width
+from bokehray.edge_estimate import depth_edges, in_parts, ramp_width
 
 __all__ = ["DepthFixOptions", "colour_edge_offsets", "correct_disparity", "correction_steps", "edge_pairs",
            "global_shift", "has_ramps", "pass_reach", "shift_map", "smeared", "step_flips", "untrusted", "vote",

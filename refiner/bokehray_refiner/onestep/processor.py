@@ -20,9 +20,8 @@ import torch
 from diffusers.models.attention_processor import Attention, AttnProcessor2_0
 
 from bokehray.errors import InputError
-
-from .attention import pisa_attention
-from .masks import PisaMaskProvider
+from bokehray_refiner.attention import pisa_attention
+from bokehray_refiner.masks import PisaMaskProvider
 
 __all__ = ["PISAAttnProcessor", "PassThroughAttnProcessor", "install_pisa", "pisa_layer_names"]
 

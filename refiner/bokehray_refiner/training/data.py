@@ -5,7 +5,7 @@ imitates them: a monocular estimator's map (low resolution, upsampled: smooth ed
 misplaced by 5-20 px *locally* (each stretch of edge in its own direction), thin structures missing from the map
 entirely (hair, whiskers, stems narrower than a few pixels), near regions too fat or too thin, and the exact map
 (to learn to leave a right render alone). The refiner's input is then made the way ``render --refine`` makes it:
-the colour-guided depth correction (``bokehray.depthfix``) on the corrupted map, then the classical level (with
+the colour-guided depth correction (``bokehray_refiner.depthfix``) on the corrupted map, then the classical level (with
 the soft scene) on the corrected map (:func:`bokehray_refiner.refine.correct_and_render`). The target stays the
 exact ray-traced render of the true scene, and the loss counts only the edge band where ``refine`` keeps the
 network's output (:func:`bokehray_refiner.refine.edge_band`).
@@ -144,8 +144,8 @@ class PairBank:
 
     def __init__(self, root: str, variants: int = 2, seed: int = 0, limit: int | None = None,
                  progress: bool = True, probs: tuple[float, ...] = CORRUPTION_PROBS, gated: bool = False):
-        from .gate import GateOptions
-        from .refine import RefineOptions, blend_weight, correct_and_render
+        from bokehray_refiner.gate import GateOptions
+        from bokehray_refiner.refine import RefineOptions, blend_weight, correct_and_render
 
         if len(probs) != len(CORRUPTIONS) or min(probs) < 0 or abs(sum(probs) - 1.0) > 1e-6:
             raise InputError(f"corruption probabilities: expected {len(CORRUPTIONS)} shares summing to 1, got {probs}")

@@ -1,7 +1,17 @@
-"""The colour-guided depth correction (``bokehray.depthfix``) against its slow reference, and its invariants."""
+"""The colour-guided depth correction (``bokehray_refiner.depthfix``) against its slow reference, and its invariants."""
 
 import numpy as np
 import pytest
+from bokehray_refiner.depthfix import (
+    DepthFixOptions,
+    colour_edge_offsets,
+    correct_disparity,
+    edge_pairs,
+    global_shift,
+    shift_map,
+    smeared,
+    untrusted,
+)
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from reference.depthfix_ref import (
@@ -15,16 +25,6 @@ from reference.depthfix_ref import (
 from scipy import ndimage
 
 from bokehray.data.datasets import perturb_disparity
-from bokehray.depthfix import (
-    DepthFixOptions,
-    colour_edge_offsets,
-    correct_disparity,
-    edge_pairs,
-    global_shift,
-    shift_map,
-    smeared,
-    untrusted,
-)
 
 
 def _scene(seed=0, size=48, box=(12, 36, 10, 30), near_rgb=(0.8, 0.3, 0.2), far_rgb=(0.2, 0.5, 0.7)):
@@ -149,7 +149,7 @@ def test_a_step_edge_on_the_colour_edge_is_left_alone(seed, k, y0, x0, hh, ww, n
 def test_a_noisy_map_is_left_alone_at_once(monkeypatch):
     """Noise in the disparity is no misplaced edge: the correction returns the map unchanged without voting (an
     adversarial test found 10-40x the preview's time spent there for no change)."""
-    import bokehray.depthfix as depthfix
+    import bokehray_refiner.depthfix as depthfix
 
     def no_vote(*args, **kwargs):
         raise AssertionError("voted on a noisy map")
@@ -250,7 +250,8 @@ def test_the_shift_search_matches_the_reference(case):
 def test_a_dense_blurred_map_is_corrected_not_taken_for_noise(monkeypatch):
     """Steps on more than ``max_edge_share`` of the pixels are noise only when they flip sign: a blurred dense mesh
     (the dev set's wire mesh at K = 32 has steps on 42-47 % of its pixels) is still corrected."""
-    import bokehray.depthfix as depthfix
+    import bokehray_refiner.depthfix as depthfix
+
     from bokehray import edge_estimate
 
     calls = []
@@ -274,7 +275,7 @@ def test_a_third_surface_between_two_steps_is_not_taken_for_a_ramp():
     """A 2 px strip at a middle depth between a near block and the far plane, each edge a step (an exact map): the
     shared edge estimate measures no ramp, so the smeared-edge hypothesis does not snap the strip to a plateau
     (with it, the strip, coloured like the near block, moved to the near depth)."""
-    from bokehray.depthfix import has_ramps
+    from bokehray_refiner.depthfix import has_ramps
 
     img, d = _scene(3, size=48, box=(12, 36, 10, 30))
     d = d.copy()

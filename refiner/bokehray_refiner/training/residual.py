@@ -29,11 +29,11 @@ from tqdm import tqdm
 
 from bokehray.errors import InputError
 from bokehray.output.atomic import atomic_write
+from bokehray_refiner.masks import PisaMaskProvider
+from bokehray_refiner.model import BokehRefiner, RefinerConfig, fingerprint
 from bokehray_refiner.pisa import K_MAX, PisaMaskOptions
 
 from .data import CORRUPTION_PROBS, PairBank
-from .masks import PisaMaskProvider
-from .model import BokehRefiner, RefinerConfig, fingerprint
 
 __all__ = ["TrainConfig", "edge_loss", "hardness_at", "train"]
 

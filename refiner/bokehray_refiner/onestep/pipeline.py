@@ -33,11 +33,11 @@ from safetensors.torch import load_file
 from bokehray.colour import linear_to_srgb, srgb_to_linear
 from bokehray.errors import InputError
 from bokehray.lens import BlurParams
+from bokehray_refiner.masks import PisaMaskProvider
 from bokehray_refiner.pisa import PisaMaskOptions
+from bokehray_refiner.tiles import blend_tiles, tile_grid
 
-from .masks import PisaMaskProvider
 from .processor import install_pisa
-from .tiles import blend_tiles, tile_grid
 
 __all__ = ["OneStepBokeh", "OneStepOptions", "load_one_step"]
 
