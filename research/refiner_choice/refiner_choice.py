@@ -44,6 +44,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks" / "ref
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 
 from bench_refiner import NET_CONDITIONS, devset_samples, synth_samples
+from bokehray_refiner.training.common import optimise as _optimise
+from bokehray_refiner.training.common import region as _region
+from bokehray_refiner.training.common import resume as _resume
+from bokehray_refiner.training.common import srgb_photo as _srgb
 from common import REPO, machine_info, write_json
 
 RADII = (3, 6, 12)
@@ -51,12 +55,6 @@ RADII = (3, 6, 12)
 N_CAND = 1 + 2 * len(RADII)
 KEEP_LOGIT = 3.0
 """The chooser's initial preference for the render as it is (its logit's bias over the others')."""
-
-
-def _srgb(x: np.ndarray) -> np.ndarray:
-    from bokehray.colour import linear_to_srgb
-
-    return linear_to_srgb(np.clip(x[..., :3], 0.0, 1.0)).astype(np.float32)
 
 
 def candidate_maps(used: np.ndarray) -> list[np.ndarray]:
@@ -271,59 +269,6 @@ def train(entries: list[dict], steps: int, batch: int, crop: int, seed: int, exa
         if (step + 1) % log_every == 0:
             print(f"step {step + 1}: band loss {np.mean(losses[-log_every:]):.5f}", flush=True)
     return model, losses
-
-
-def _optimise(loss, step: int, parts: dict, losses: list[float], rng, steps: int, seed: int,
-              checkpoint: str | None, checkpoint_every: int) -> None:
-    """One training step's end: the optimiser and the schedule of ``parts`` step on ``loss``, which joins
-    ``losses``; then, with ``checkpoint``, the whole state is written when one is due (:func:`_resume` reads it)."""
-    parts["opt"].zero_grad()
-    loss.backward()
-    parts["opt"].step()
-    parts["sched"].step()
-    losses.append(loss.item())
-    if checkpoint and ((step + 1) % checkpoint_every == 0 or step + 1 == steps):
-        _save(checkpoint, {"steps": steps, "seed": seed, "step": step + 1, "losses": losses,
-                           "rng": rng.bit_generator.state, **{k: v.state_dict() for k, v in parts.items()}})
-
-
-def _region(a: np.ndarray, y0: int, x0: int, size: int, lead: int = 0) -> np.ndarray:
-    """The ``size`` x ``size`` window at (``y0``, ``x0``) of ``a``'s spatial axes (after ``lead`` leading axes),
-    zeros where it leaves ``a``."""
-    h, w = a.shape[lead:lead + 2]
-    out = np.zeros(a.shape[:lead] + (size, size) + a.shape[lead + 2:], a.dtype)
-    sy, sx, ey, ex = max(y0, 0), max(x0, 0), min(y0 + size, h), min(x0 + size, w)
-    pre = (slice(None),) * lead
-    out[pre + (slice(sy - y0, ey - y0), slice(sx - x0, ex - x0))] = a[pre + (slice(sy, ey), slice(sx, ex))]
-    return out
-
-
-def _save(checkpoint: str, state: dict) -> None:
-    """Write a training state atomically (a run killed while writing keeps the previous one)."""
-    import torch
-
-    tmp = f"{checkpoint}.tmp"
-    torch.save({**state, "torch_rng": torch.get_rng_state()}, tmp)
-    Path(tmp).replace(checkpoint)
-
-
-def _resume(checkpoint: str, steps: int, seed: int, parts: dict, rng) -> tuple[list[float], int]:
-    """Load ``checkpoint`` (if it exists) into the model, optimiser and schedule of ``parts`` and the generators;
-    the losses so far and the step to go on from."""
-    import torch
-
-    if not Path(checkpoint).is_file():
-        return [], 0
-    state = torch.load(checkpoint, weights_only=False)
-    if state["steps"] != steps or state["seed"] != seed:
-        raise SystemExit(f"{checkpoint}: a run of {state['steps']} steps with seed {state['seed']}, not {steps} with "
-                         f"{seed}: the schedule would differ")
-    for key, part in parts.items():
-        part.load_state_dict(state[key])
-    rng.bit_generator.state = state["rng"]
-    torch.set_rng_state(state["torch_rng"])
-    print(f"resumed {checkpoint} at step {state['step']}", flush=True)
-    return state["losses"], state["step"]
 
 
 def _psnr(err2: np.ndarray) -> float:

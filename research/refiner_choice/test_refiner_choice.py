@@ -90,14 +90,16 @@ def _resume_bit_for_bit(choice, tmp_path, monkeypatch):
     class Killed(Exception):
         pass
 
-    real_save = choice._save
+    import bokehray_refiner.training.common as loop
+
+    real_save = loop.save_state
 
     def save_then_die(path, state):
         real_save(path, state)
         raise Killed
 
     ckpt = str(tmp_path / "run.pt")
-    monkeypatch.setattr(choice, "_save", save_then_die)
+    monkeypatch.setattr(loop, "save_state", save_then_die)
     with pytest.raises(Killed):
         choice.train(entries, 6, checkpoint=ckpt, checkpoint_every=3, **kw)
     monkeypatch.undo()
