@@ -93,6 +93,10 @@ class RefineOptions:
             moves cost more than they gain (docs/refiner.md, "Round 10"). 0: every map. Where the correction does
             not run (off, or :func:`refine` without ``rerender``) there is no evidence either way: the residual
             network runs on every map, and the edge network only with this at 0 (and a ``rerender``).
+        model: a local folder holding a one-step diffusion checkpoint in the diffusers layout (docs/refiner.md, "A
+            one-step diffusion checkpoint"): it renders the whole frame with PISA attention instead of this pass
+            (``bokehray_refiner.onestep.refine_one_step``), on the render's device; its weights must fit its
+            config. None: the shipped CPU networks above.
     """
 
     tile: int = 64
@@ -112,6 +116,7 @@ class RefineOptions:
     edge_colour_margin: float | None = None
     min_fixed_share: float = 0.01
     edge_min_disagreement: float = 0.04
+    model: str | os.PathLike | None = None
 
     def __post_init__(self) -> None:
         if self.tile < 8 or self.tile % 8 or self.halo < 0 or self.halo % 8:

@@ -8,6 +8,6 @@
 See docs/refiner.md, "A one-step diffusion checkpoint".
 """
 
-from .pipeline import OneStepOptions, load_one_step
+from .pipeline import OneStepOptions, load_one_step, refine_one_step
 
-__all__ = ["OneStepOptions", "load_one_step"]
+__all__ = ["OneStepOptions", "load_one_step", "refine_one_step"]

@@ -23,7 +23,9 @@ top. Nothing is downloaded: every ``from_pretrained`` runs with
 from __future__ import annotations
 
 import os
+import time
 from dataclasses import dataclass
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -39,7 +41,7 @@ from bokehray_refiner.tiles import blend_tiles, tile_grid
 
 from .processor import install_pisa
 
-__all__ = ["OneStepBokeh", "OneStepOptions", "load_one_step"]
+__all__ = ["OneStepBokeh", "OneStepOptions", "load_one_step", "refine_one_step"]
 
 TIMESTEP = 499
 
@@ -180,6 +182,26 @@ def _encode_prompt(path: Path, unet, vae, scheduler, prompt: str, device) -> tup
     return embeds, pooled
 
 
+def _first_line(e: BaseException) -> str:
+    return (str(e).strip().splitlines() or [type(e).__name__])[0][:300]
+
+
+def _load_checked(cls, path: Path, sub: str):
+    """``path/sub`` loaded as ``cls``, refused (one line naming the folder) where its weights do not fit its
+    ``config.json``: a tensor of another shape, one missing or one left over. diffusers would otherwise start the
+    missing ones from random values."""
+    try:
+        model, info = cls.from_pretrained(path / sub, local_files_only=True, output_loading_info=True)
+    except (OSError, ValueError, RuntimeError) as e:
+        raise InputError(f"{path}: the weights in {sub}/ do not fit {sub}/config.json ({_first_line(e)})") from None
+    for key in ("missing_keys", "unexpected_keys", "mismatched_keys"):
+        if info.get(key):
+            names = ", ".join(str(k) for k in list(info[key])[:3])
+            raise InputError(f"{path}: the weights in {sub}/ do not fit {sub}/config.json ({key.replace('_', ' ')}: "
+                             f"{names}{', ...' if len(info[key]) > 3 else ''})")
+    return model
+
+
 def load_one_step(
     model_dir: str | os.PathLike,
     lora: str | os.PathLike | None = None,
@@ -204,9 +226,12 @@ def load_one_step(
         if not (path / sub).is_dir():
             raise InputError(f"{path}: not a diffusers model directory (no {sub}/)")
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
-    unet = UNet2DConditionModel.from_pretrained(path / "unet", local_files_only=True)
-    vae = AutoencoderKL.from_pretrained(path / "vae", local_files_only=True)
-    scheduler = DDPMScheduler.from_pretrained(path / "scheduler", local_files_only=True)
+    unet = _load_checked(UNet2DConditionModel, path, "unet")
+    vae = _load_checked(AutoencoderKL, path, "vae")
+    try:
+        scheduler = DDPMScheduler.from_pretrained(path / "scheduler", local_files_only=True)
+    except (OSError, ValueError) as e:
+        raise InputError(f"{path}: scheduler/ does not load ({_first_line(e)})") from None
     if not 0 <= options.timestep < len(scheduler.alphas_cumprod):
         raise InputError(f"timestep {options.timestep} is outside the scheduler's {len(scheduler.alphas_cumprod)} steps")
     if encoder_weights is not None:
@@ -230,3 +255,29 @@ def load_one_step(
         raise InputError(f"{path}: this U-Net needs pooled prompt embeddings (pooled_prompt_embeds)")
     model = OneStepBokeh(unet, vae, scheduler, embeds, pooled, options).to(device, dtype)
     return model.eval()
+
+
+@lru_cache(maxsize=2)
+def _cached(model_dir: str, modified: float, device: str) -> OneStepBokeh:
+    return load_one_step(model_dir, device=device)
+
+
+def refine_one_step(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, model_dir: str | os.PathLike,
+                    device: str = "cpu", classical: np.ndarray | None = None, rerender=None):
+    """``render(refine=True, refine_options=RefineOptions(model=DIR))`` and ``--refiner-model DIR``: the one-step
+    model in ``DIR`` renders the whole frame from the all-in-focus photo (PISA attention, tile by tile); the
+    classical level still renders once (``rerender``, when ``classical`` is None) for its statistics and alpha.
+    Returns (scene-linear RGB, a ``RefineStats`` counting the model's tiles). The model is loaded once per folder,
+    modification time and device."""
+    from bokehray_refiner.refine import RefineStats
+
+    path = Path(model_dir)
+    if not path.is_dir():
+        raise InputError(f"{path}: not a folder (a one-step model is a diffusers-layout folder)")
+    if classical is None and rerender is not None:
+        rerender(np.asarray(disparity, np.float32))
+    t = time.perf_counter()
+    model = _cached(str(path.resolve()), (path / "unet").stat().st_mtime if (path / "unet").is_dir() else 0.0, device)
+    out = model.render(image, disparity, blur)
+    n = len(tile_grid(np.shape(image)[:2], model.options.tile, model.options.overlap, model.size_multiple))
+    return out, RefineStats(tiles_total=n, tiles_refined=n, seconds=time.perf_counter() - t)
