@@ -99,3 +99,14 @@ def test_refiner_model_refusals_are_one_line(tiny, tmp_path, capsys, extra, word
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and words in err[0], err
     assert not (tmp_path / "o.exr").exists()
+
+
+def test_lora_and_encoder_weights_in_the_folder_load_on_top(tmp_path):
+    """A folder holding lora/ and encoder.safetensors (BokehDiff's fine-tuning) renders with both; they change it."""
+    full = write_tiny_sdxl(tmp_path / "full", lora=True, encoder_weights=True)
+    img, d = _scene(32, 32)
+    blur = br.BlurParams(8.0, 0.9)
+    out = br.render(img, d, blur, refine=True, refine_options=RefineOptions(model=str(full)))
+    want = load_one_step(full, lora=full / "lora", encoder_weights=full / "encoder.safetensors").render(img, d, blur)
+    np.testing.assert_array_equal(out, want)
+    assert not np.array_equal(out, load_one_step(full).render(img, d, blur))

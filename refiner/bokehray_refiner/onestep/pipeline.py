@@ -259,13 +259,18 @@ def load_one_step(
 
 @lru_cache(maxsize=2)
 def _cached(model_dir: str, modified: float, device: str) -> OneStepBokeh:
-    return load_one_step(model_dir, device=device)
+    """The folder's model, with ``lora/`` (BokehDiff-style LoRA weights) and ``encoder.safetensors`` (fine-tuned
+    VAE-encoder weights) on top where the folder holds them."""
+    path = Path(model_dir)
+    lora = path / "lora" if (path / "lora").is_dir() else None
+    encoder = path / "encoder.safetensors" if (path / "encoder.safetensors").is_file() else None
+    return load_one_step(path, lora=lora, encoder_weights=encoder, device=device)
 
 
 def refine_one_step(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, model_dir: str | os.PathLike,
                     device: str = "cpu", classical: np.ndarray | None = None, rerender=None):
     """``render(refine=True, refine_options=RefineOptions(model=DIR))`` and ``--refiner-model DIR``: the one-step
-    model in ``DIR`` renders the whole frame from the all-in-focus photo (PISA attention, tile by tile); the
+    model in ``DIR`` (with ``DIR/lora/`` and ``DIR/encoder.safetensors`` where present) renders the whole frame from the all-in-focus photo (PISA attention, tile by tile); the
     classical level still renders once (``rerender``, when ``classical`` is None) for its statistics and alpha.
     Returns (scene-linear RGB, a ``RefineStats`` counting the model's tiles). The model is loaded once per folder,
     modification time and device."""
