@@ -120,7 +120,7 @@ def fuzz_one(fmt: str, seconds: int, corpus: Path, artifacts: Path) -> int:
 
     def one_input(data: bytes) -> None:
         path.write_bytes(data)
-        try:  # the header-only size (issue 18): must agree with every reader that decodes the file
+        try:  # the header-only size: must agree with every reader that decodes the file
             size = rd.read_size(path)
         except (InputError, ResourceError) as e:
             if str(path) not in str(e):

@@ -9,7 +9,7 @@ float32 rounding of 1e-5 of the brightest value is allowed), energy conservation
 constant-disparity cases with a zero border, and that the tiled render equals the untiled one.
 A failure prints a one-line reproducer (seed and case index).
 
-``--io N`` (issue 18) runs N command-line cases instead, each in a fresh process, on the paths
+``--io N`` runs N command-line cases instead, each in a fresh process, on the paths
 where the CLI meets the operating system: a SIGTERM or SIGINT at a random moment of a real
 render and write (PNG 8/16-bit, TIFF, EXR, JPEG); a disk that fills during the write (a tmpfs
 of random size below the output's, root only; skipped otherwise); and extreme values (radiance
@@ -33,7 +33,7 @@ Usage (from the repository root)::
     python benchmarks/robustness/soak.py --cases 5000          # long soak
     python benchmarks/robustness/soak.py --cases 200 --seed 1  # the short version CI runs
     python benchmarks/robustness/soak.py --io 60 --seed 1      # signals, full disks, extreme values via the CLI
-    python benchmarks/robustness/soak.py --io 60 --seed 1 --kinds batch,dask,depth-model  # round three's cases only
+    python benchmarks/robustness/soak.py --io 60 --seed 1 --kinds batch,dask,depth-model  # the reliability pass's cases only
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@ preview render end to end (read PNG + 16-bit disparity PNG, render, write PNG) w
 Every figure is the median of ``--runs`` warm runs of a fresh ``python`` process (after one untimed warm-up that
 fills the OS file cache and Warp's kernel cache), next to ``python -c pass`` measured in the same run, interleaved
 with the others, so that a busy machine shows as a larger baseline rather than as a slower bokehray.
-Targets (issue 15): ``--help`` and argument errors <= 0.5 s, the 1 MP preview <= 1.5 s.
+Targets: ``--help`` and argument errors <= 0.5 s, the 1 MP preview <= 1.5 s.
 
 Usage (from the repository root)::
 

@@ -162,7 +162,7 @@ def place_edges(model: EdgeNet, focus_srgb: np.ndarray, disparity: np.ndarray, b
     :func:`place_edges_once`), then again on the map it made, up to ``passes`` times in all (fewer where a pass moves
     nothing). Each pass reads the candidates and the sides' colour means of the map the last one made: a misplaced
     strip contaminates both until it is moved, so a second look finds what the first could not (docs/refiner.md,
-    "Round 11"). The band stays the one given."""
+    docs/design/edge-gate.md). The band stays the one given."""
     if passes < 1:
         raise ValueError(f"passes must be >= 1, got {passes}")
     out = disparity

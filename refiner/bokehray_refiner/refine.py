@@ -75,13 +75,12 @@ class RefineOptions:
         edge_min_disagreement: the edge network runs only where, on the corrected map, the confidence gate's
             colour/depth agreement (:func:`.gate.refine_gate`, no highlight guard) is open over at least this mean share
             of the edge band: where the correction put nearly every depth edge on a colour edge (a map grown by
-            1 px, say) little is left for it, and its moves there cost more than they gain (docs/refiner.md,
-            "Round 10"). 0: whenever the map was found wrong.
+            1 px, say) little is left for it, and its moves there cost more than they gain (docs/design/edge-gate.md). 0: whenever the map was found wrong.
         edge_threshold: the edge network moves a pixel across an edge only where it gives the other side at least
             this probability.
         edge_passes: the edge network runs again on the map it made, up to this many passes in all (fewer where a
             pass moves nothing): a misplaced strip contaminates the sides' colour means it reads until it is moved
-            (:func:`.edges.place_edges`; docs/refiner.md, "Round 11").
+            (:func:`.edges.place_edges`; measured: research/refiner_edges/README.md).
         edge_colour_margin: and only where the pixel's colour is nearer the local mean colour of the side it joins,
             by this much (sRGB; :func:`.edges.colour_allows`); None: no colour veto.
         min_fixed_share: refine changes only a map the depth correction found wrong: where its local passes moved at
@@ -90,7 +89,7 @@ class RefineOptions:
             back, where the correction found the whole map misregistered: a shift moves every pixel and is not
             counted). A map whose edges sit on
             the photo's has nothing to repair, and there the correction's and the networks' few confident wrong
-            moves cost more than they gain (docs/refiner.md, "Round 10"). 0: every map. Where the correction does
+            moves cost more than they gain (docs/design/edge-gate.md). 0: every map. Where the correction does
             not run (off, or :func:`refine` without ``rerender``) there is no evidence either way: the residual
             network runs on every map, and the edge network only with this at 0 (and a ``rerender``).
         model: a local folder holding a one-step diffusion checkpoint in the diffusers layout (docs/refiner.md, "A

@@ -7,10 +7,10 @@ shrunk by 2-6 px), each with its own random draw, then put through the colour-gu
 The network learns, per pixel of the edge band, which side of the edge the pixel is on: the side (near or far
 candidate) whose CoC is nearer the true map's. Its loss is the binary cross-entropy against that side, each pixel
 weighted by the band, by the CoC span between the candidates (0 to 1 at 4 px) and ``--exact-weight`` on the exact
-maps; with ``--price``, also by what a wrong side costs the render (:func:`render_price`; measured in round 12 and
-not used by the shipped weights, docs/refiner.md). ``--runs-only`` trains only on the maps refine would run the
+maps; with ``--price``, also by what a wrong side costs the render (:func:`render_price`; measured and not used by the
+shipped weights, README.md here). ``--runs-only`` trains only on the maps refine would run the
 network on, ``--keep-margin`` labels a third layer between the candidates with the map's own side, ``--init``
-fine-tunes given weights (measured in round 13, not used by the shipped weights).
+fine-tunes given weights (measured, not used by the shipped weights).
 
 Scored on the path-traced dev set and a held-out synthetic split in the true depth's band, per corruption of
 ``bench_refiner.NET_CONDITIONS``, as ``bench_refiner.py --network-conditions``: ``fix`` is the depth fix's render

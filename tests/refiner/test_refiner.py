@@ -283,7 +283,7 @@ def test_refine_needs_the_preview_quality(weights):
 
 
 def test_tile_search_is_bounded_by_the_grid_not_the_blur():
-    """Issue 18: the tile search looped over a window growing with the uncapped CoC (K = 1e5: 125 s on 256 x 256).
+    """Regression: the tile search looped over a window growing with the uncapped CoC (K = 1e5: 125 s on 256 x 256).
     A reach far beyond the image marks every tile, exactly as a reach of the image's size does."""
     from bokehray_refiner.refine import tiles_near
 
