@@ -37,7 +37,7 @@ class PassThroughAttnProcessor(AttnProcessor2_0):
 class PISAAttnProcessor(PassThroughAttnProcessor):
     """Self-attention with PISA weights (eq. 8) on the layer's token grid."""
 
-    def __call__(self, attn: Attention, hidden_states: torch.Tensor, encoder_hidden_states=None,  # noqa: C901
+    def __call__(self, attn: Attention, hidden_states: torch.Tensor, encoder_hidden_states=None,
                  attention_mask=None, temb=None, pisa: PisaMaskProvider | None = None) -> torch.Tensor:
         if pisa is None or encoder_hidden_states is not None:
             return super().__call__(attn, hidden_states, encoder_hidden_states, attention_mask, temb)
@@ -46,16 +46,26 @@ class PISAAttnProcessor(PassThroughAttnProcessor):
         residual = hidden_states
         if attn.spatial_norm is not None:
             hidden_states = attn.spatial_norm(hidden_states, temb)
-        input_ndim = hidden_states.ndim
-        if input_ndim == 4:
-            b, ch, hh, ww = hidden_states.shape
+        shape = hidden_states.shape
+        if hidden_states.ndim == 4:
+            b, ch, hh, ww = shape
             hidden_states = hidden_states.view(b, ch, hh * ww).transpose(1, 2)
-        b, n, _ = hidden_states.shape
         if attn.group_norm is not None:
             hidden_states = attn.group_norm(hidden_states.transpose(1, 2)).transpose(1, 2)
+        hidden_states = attn.to_out[1](attn.to_out[0](self._attend(attn, hidden_states, pisa)))
+        if len(shape) == 4:
+            hidden_states = hidden_states.transpose(-1, -2).reshape(shape)
+        if attn.residual_connection:
+            hidden_states = hidden_states + residual
+        return hidden_states / attn.rescale_output_factor
+
+    @staticmethod
+    def _attend(attn: Attention, hidden_states: torch.Tensor, pisa: PisaMaskProvider) -> torch.Tensor:
+        """PISA attention of the tokens ``(B, N, C)`` on their grid; returns ``(B, N, heads * d)`` before the output
+        projection."""
+        b, n, _ = hidden_states.shape
         masks = pisa.for_tokens(n)
         gh, gw = masks.shape
-
         query, key, value = attn.to_q(hidden_states), attn.to_k(hidden_states), attn.to_v(hidden_states)
         head_dim = key.shape[-1] // attn.heads
 
@@ -69,14 +79,7 @@ class PISAAttnProcessor(PassThroughAttnProcessor):
             key = attn.norm_k(key)
         out = pisa_attention(query, key, value, masks.coc.to(query.device), masks.visibility.to(query.device),
                              masks.window, scale=attn.scale)
-        hidden_states = out.permute(0, 2, 3, 1, 4).reshape(b, n, attn.heads * head_dim).to(query.dtype)
-        hidden_states = attn.to_out[0](hidden_states)
-        hidden_states = attn.to_out[1](hidden_states)
-        if input_ndim == 4:
-            hidden_states = hidden_states.transpose(-1, -2).reshape(b, ch, hh, ww)
-        if attn.residual_connection:
-            hidden_states = hidden_states + residual
-        return hidden_states / attn.rescale_output_factor
+        return out.permute(0, 2, 3, 1, 4).reshape(b, n, attn.heads * head_dim).to(query.dtype)
 
 
 def pisa_layer_names(unet: torch.nn.Module, pattern: str = r"^down_blocks\..*\.attn1\.processor$") -> list[str]:
