@@ -184,7 +184,125 @@ def export_weights(model: BokehRefiner, path: Path, meta: dict) -> None:
     atomic_write(path.with_suffix(".json"), lambda tmp: Path(tmp).write_text(json.dumps(meta, indent=2)))
 
 
-def train(cfg: TrainConfig, resume: bool = True, progress: bool = True, bank: PairBank | None = None,  # noqa: C901
+@dataclass
+class _Run:
+    """One training run's state: what a checkpoint holds, and where it goes."""
+
+    cfg: TrainConfig
+    out: Path
+    device: torch.device
+    model: BokehRefiner
+    opt: torch.optim.Optimizer
+    sched: torch.optim.lr_scheduler.LRScheduler
+    rng: np.random.Generator
+    disc: nn.Module | None = None
+    d_opt: torch.optim.Optimizer | None = None
+    lpips: torch.nn.Module | None = None
+    step: int = 0
+    rows: list = field(default_factory=list)
+
+    @property
+    def checkpoint(self) -> Path:
+        return self.out / "checkpoint.pt"
+
+
+def _new_run(cfg: TrainConfig, out: Path) -> _Run:
+    """A fresh run: seeded model, optimiser, schedule, the optional discriminator and LPIPS, the crop generator."""
+    device = _device(cfg.device)
+    torch.manual_seed(cfg.seed)
+    model = BokehRefiner(RefinerConfig(**cfg.model)).to(device)
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, _lr_lambda(cfg))
+    run = _Run(cfg, out, device, model, opt, sched, rng=None)
+    if cfg.adv_weight > 0:
+        run.disc = _PatchDiscriminator().to(device)
+        run.d_opt = torch.optim.AdamW(run.disc.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    run.lpips = torch.jit.load(cfg.lpips_model, map_location=device).eval() if cfg.lpips_weight > 0 else None
+    run.rng = np.random.default_rng(cfg.seed)
+    return run
+
+
+def _resume(run: _Run, stop_at: int | None) -> None:
+    """Load the run's checkpoint into it (written by the same configuration, at or before ``stop_at``)."""
+    ckpt = run.checkpoint
+    state = torch.load(ckpt, map_location=run.device, weights_only=False)
+    if state["config"] != asdict(run.cfg):
+        raise InputError(f"{ckpt}: written by a different configuration; use a new --out or --no-resume")
+    run.model.load_state_dict(state["model"])
+    run.opt.load_state_dict(state["opt"])
+    run.sched.load_state_dict(state["sched"])
+    if run.disc is not None:
+        run.disc.load_state_dict(state["disc"])
+        run.d_opt.load_state_dict(state["d_opt"])
+    run.rng.bit_generator.state = state["rng"]
+    torch.set_rng_state(state["torch_rng"])
+    run.step, run.rows = state["step"], state["rows"]
+    if stop_at is not None and run.step > stop_at:
+        raise InputError(f"{ckpt}: the checkpoint is at step {run.step}, past --stop-at {stop_at}")
+
+
+def _losses(run: _Run, batch: dict) -> tuple[torch.Tensor, dict, float, torch.Tensor,
+                                            tuple[torch.Tensor, torch.Tensor]]:
+    """The step's loss on ``batch`` and its parts; also the PISA hardness, the prediction and the focus image."""
+    cfg, device = run.cfg, run.device
+    focus, render, target, coc = _to_tensors(batch, device)
+    opts = PisaMaskOptions(hardness=hardness_at(run.step, cfg))
+    pisa = PisaMaskProvider(batch["disparity"], batch["focus_disparity"], batch["k_px"], opts, torch_device=device)
+    # what refine keeps: the network's output within the edge band (times the gate, with behind_gate), the
+    # classical render elsewhere
+    band = torch.from_numpy(batch["band"])[:, None].to(device)
+    pred = render + band * (run.model(focus, render, coc, pisa) - render)
+    inside = (band > 0).to(pred.dtype)  # the MSE over the band only: outside it the error is not the model's
+    if cfg.exact_weight != 1.0:  # a change to a render of the exact map is harm: weighted up (or down)
+        exact = torch.from_numpy(batch["exact"]).to(device)
+        inside = inside * torch.where(exact, cfg.exact_weight, 1.0).to(pred.dtype)[:, None, None, None]
+    parts = {"mse": ((pred - target) ** 2 * inside).sum() / (3 * inside.sum()).clamp(min=1.0),
+             "edge": edge_loss(pred, target, focus)}
+    loss = cfg.mse_weight * parts["mse"] + cfg.edge_weight * parts["edge"]
+    if run.lpips is not None:
+        parts["lpips"] = run.lpips(pred.clamp(0, 1) * 2 - 1, target * 2 - 1).mean()
+        loss = loss + cfg.lpips_weight * parts["lpips"]
+    if run.disc is not None:
+        parts["adv"] = F.softplus(-run.disc(pred, focus)).mean()  # -log D(pred)
+        loss = loss + cfg.adv_weight * parts["adv"]
+    return loss, parts, opts.hardness, pred, (focus, target)
+
+
+def _step(run: _Run, bank: PairBank) -> None:
+    """One optimiser step (and the discriminator's), its row appended to the run's."""
+    cfg = run.cfg
+    t0 = time.perf_counter()
+    batch = bank.batch(run.rng, cfg.batch, cfg.crop, edge_share=cfg.edge_share)
+    loss, parts, hardness, pred, (focus, target) = _losses(run, batch)
+    run.opt.zero_grad(set_to_none=True)
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(run.model.parameters(), 1.0)
+    run.opt.step()
+    run.sched.step()
+    if run.disc is not None:  # L_D = -log D(target) - log(1 - D(pred))
+        d_loss = F.softplus(-run.disc(target, focus)).mean() + F.softplus(run.disc(pred.detach(), focus)).mean()
+        run.d_opt.zero_grad(set_to_none=True)
+        d_loss.backward()
+        run.d_opt.step()
+    run.step += 1
+    run.rows.append({"step": run.step, "loss": loss.item(), "mse": parts["mse"].item(), "edge": parts["edge"].item(),
+                     "lr": run.sched.get_last_lr()[0], "hardness": hardness, "sec": time.perf_counter() - t0}
+                    | {k: v.item() for k, v in parts.items() if k in ("lpips", "adv")})
+
+
+def _save_checkpoint(run: _Run) -> None:
+    """The whole state, the loss table and its plot, each written atomically."""
+    state = {"model": run.model.state_dict(), "opt": run.opt.state_dict(), "sched": run.sched.state_dict(),
+             "rng": run.rng.bit_generator.state, "torch_rng": torch.get_rng_state(), "step": run.step,
+             "rows": run.rows, "config": asdict(run.cfg)}
+    if run.disc is not None:
+        state |= {"disc": run.disc.state_dict(), "d_opt": run.d_opt.state_dict()}
+    atomic_write(run.checkpoint, lambda tmp: torch.save(state, tmp))
+    atomic_write(run.out / "loss.csv", lambda tmp: _write_csv(run.rows, tmp))
+    _save_plot(run.rows, run.out / "loss.png")
+
+
+def train(cfg: TrainConfig, resume: bool = True, progress: bool = True, bank: PairBank | None = None,
           stop_at: int | None = None) -> Path | None:
     """Run (or resume) a training run; returns the path of the exported weights.
 
@@ -196,95 +314,27 @@ def train(cfg: TrainConfig, resume: bool = True, progress: bool = True, bank: Pa
         raise InputError(f"stop_at: expected >= 1, got {stop_at}")
     out = Path(cfg.out)
     out.mkdir(parents=True, exist_ok=True)
-    device = _device(cfg.device)
-    torch.manual_seed(cfg.seed)
-    model = BokehRefiner(RefinerConfig(**cfg.model)).to(device)
-    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, _lr_lambda(cfg))
-    disc = d_opt = None
-    if cfg.adv_weight > 0:
-        disc = _PatchDiscriminator().to(device)
-        d_opt = torch.optim.AdamW(disc.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    lpips = torch.jit.load(cfg.lpips_model, map_location=device).eval() if cfg.lpips_weight > 0 else None
-    rng = np.random.default_rng(cfg.seed)
-    step, rows = 0, []
-    ckpt = out / "checkpoint.pt"
-    if resume and ckpt.is_file():
-        state = torch.load(ckpt, map_location=device, weights_only=False)
-        if state["config"] != asdict(cfg):
-            raise InputError(f"{ckpt}: written by a different configuration; use a new --out or --no-resume")
-        model.load_state_dict(state["model"])
-        opt.load_state_dict(state["opt"])
-        sched.load_state_dict(state["sched"])
-        if disc is not None:
-            disc.load_state_dict(state["disc"])
-            d_opt.load_state_dict(state["d_opt"])
-        rng.bit_generator.state = state["rng"]
-        torch.set_rng_state(state["torch_rng"])
-        step, rows = state["step"], state["rows"]
-        if stop_at is not None and step > stop_at:
-            raise InputError(f"{ckpt}: the checkpoint is at step {step}, past --stop-at {stop_at}")
+    run = _new_run(cfg, out)
+    if resume and run.checkpoint.is_file():
+        _resume(run, stop_at)
     if bank is None:  # kept in the run folder: a resumed run reads it instead of rendering it again
         bank = PairBank.cached(out / "bank.npz", cfg.data, progress=progress, variants=cfg.variants, seed=cfg.seed,
                                limit=cfg.limit, probs=tuple(cfg.corruption_probs), gated=cfg.behind_gate)
-    model.train()
-    bar = tqdm(total=cfg.steps, initial=step, desc="training refiner", disable=not progress, unit="step")
-    while step < cfg.steps and (stop_at is None or step < stop_at):
-        t0 = time.perf_counter()
-        batch = bank.batch(rng, cfg.batch, cfg.crop, edge_share=cfg.edge_share)
-        focus, render, target, coc = _to_tensors(batch, device)
-        opts = PisaMaskOptions(hardness=hardness_at(step, cfg))
-        pisa = PisaMaskProvider(batch["disparity"], batch["focus_disparity"], batch["k_px"], opts,
-                                torch_device=device)
-        # what refine keeps: the network's output within the edge band (times the gate, with behind_gate), the
-        # classical render elsewhere
-        band = torch.from_numpy(batch["band"])[:, None].to(device)
-        pred = render + band * (model(focus, render, coc, pisa) - render)
-        inside = (band > 0).to(pred.dtype)  # the MSE over the band only: outside it the error is not the model's
-        if cfg.exact_weight != 1.0:  # a change to a render of the exact map is harm: weighted up (or down)
-            exact = torch.from_numpy(batch["exact"]).to(device)
-            inside = inside * torch.where(exact, cfg.exact_weight, 1.0).to(pred.dtype)[:, None, None, None]
-        mse = ((pred - target) ** 2 * inside).sum() / (3 * inside.sum()).clamp(min=1.0)
-        edge = edge_loss(pred, target, focus)
-        loss = cfg.mse_weight * mse + cfg.edge_weight * edge
-        extra = {}
-        if lpips is not None:
-            extra["lpips"] = lpips(pred.clamp(0, 1) * 2 - 1, target * 2 - 1).mean()
-            loss = loss + cfg.lpips_weight * extra["lpips"]
-        if disc is not None:
-            extra["adv"] = F.softplus(-disc(pred, focus)).mean()  # -log D(pred)
-            loss = loss + cfg.adv_weight * extra["adv"]
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
-        opt.step()
-        sched.step()
-        if disc is not None:  # L_D = -log D(target) - log(1 - D(pred))
-            d_loss = F.softplus(-disc(target, focus)).mean() + F.softplus(disc(pred.detach(), focus)).mean()
-            d_opt.zero_grad(set_to_none=True)
-            d_loss.backward()
-            d_opt.step()
-        step += 1
-        rows.append({"step": step, "loss": loss.item(), "mse": mse.item(), "edge": edge.item(),
-                     "lr": sched.get_last_lr()[0], "hardness": opts.hardness, "sec": time.perf_counter() - t0}
-                    | {k: v.item() for k, v in extra.items()})
+    run.model.train()
+    bar = tqdm(total=cfg.steps, initial=run.step, desc="training refiner", disable=not progress, unit="step")
+    while run.step < cfg.steps and (stop_at is None or run.step < stop_at):
+        _step(run, bank)
         bar.update(1)
-        bar.set_postfix(loss=f"{loss.item():.4g}")
-        if step % cfg.checkpoint_every == 0 or step == cfg.steps or step == stop_at:
-            state = {"model": model.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(),
-                     "rng": rng.bit_generator.state, "torch_rng": torch.get_rng_state(), "step": step,
-                     "rows": rows, "config": asdict(cfg)}
-            if disc is not None:
-                state |= {"disc": disc.state_dict(), "d_opt": d_opt.state_dict()}
-            atomic_write(ckpt, lambda tmp, state=state: torch.save(state, tmp))
-            atomic_write(out / "loss.csv", lambda tmp: _write_csv(rows, tmp))
-            _save_plot(rows, out / "loss.png")
-        if stop_at is not None and step >= stop_at:
+        bar.set_postfix(loss=f"{run.rows[-1]['loss']:.4g}")
+        if run.step % cfg.checkpoint_every == 0 or run.step == cfg.steps or run.step == stop_at:
+            _save_checkpoint(run)
+        if stop_at is not None and run.step >= stop_at:
             break
     bar.close()
     weights = out / "refiner.safetensors"
-    export_weights(model, weights, {"model": model.config.as_dict(), "train": asdict(cfg), "steps": step,
-                                    "fingerprint": fingerprint(model), "stopped_at": stop_at,
-                                    "final_loss": rows[-1]["loss"] if rows else None,
-                                    "train_seconds": float(sum(r["sec"] for r in rows))})
+    rows = run.rows
+    export_weights(run.model, weights, {"model": run.model.config.as_dict(), "train": asdict(cfg), "steps": run.step,
+                                        "fingerprint": fingerprint(run.model), "stopped_at": stop_at,
+                                        "final_loss": rows[-1]["loss"] if rows else None,
+                                        "train_seconds": float(sum(r["sec"] for r in rows))})
     return weights
