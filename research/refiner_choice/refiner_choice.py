@@ -44,6 +44,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks" / "ref
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 
 from bench_refiner import NET_CONDITIONS, devset_samples, synth_samples
+from bokehray_refiner.training.common import Checkpoints
 from bokehray_refiner.training.common import optimise as _optimise
 from bokehray_refiner.training.common import region as _region
 from bokehray_refiner.training.common import resume as _resume
@@ -232,7 +233,8 @@ def train(entries: list[dict], steps: int, batch: int, crop: int, seed: int, exa
     sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=2e-3, total_steps=steps,
                                                 pct_start=min(0.3, max(0.05, 10 / steps)))
     parts = {"model": model, "opt": opt, "sched": sched}
-    losses, start = _resume(checkpoint, steps, seed, parts, rng) if checkpoint else ([], 0)
+    checkpoints = Checkpoints(checkpoint, steps, seed, checkpoint_every)
+    losses, start = _resume(checkpoints, parts, rng)
     for step in range(start, steps):
         crops = []
         for i in rng.integers(0, len(entries), batch):
@@ -265,7 +267,7 @@ def train(entries: list[dict], steps: int, batch: int, crop: int, seed: int, exa
             labels = torch.from_numpy(np.stack([c["choice"] for c in crops]))
             ce = F.cross_entropy(logits, labels, reduction="none")[:, None]
             loss = loss + choice_weight * (ce * band_w).sum() / band_w.sum().clamp_min(1.0)
-        _optimise(loss, step, parts, losses, rng, steps, seed, checkpoint, checkpoint_every)
+        _optimise(loss, step, parts, losses, rng, checkpoints)
         if (step + 1) % log_every == 0:
             print(f"step {step + 1}: band loss {np.mean(losses[-log_every:]):.5f}", flush=True)
     return model, losses

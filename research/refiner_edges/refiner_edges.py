@@ -46,6 +46,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 from bench_refiner import NET_CONDITIONS, devset_samples, synth_samples
 from bokehray_refiner.training.common import srgb_photo as _srgb
 from bokehray_refiner.training.edges import (
+    EdgeRecipe,
     _bank_maps,
     _save_bank,
     bank,
@@ -251,9 +252,9 @@ def main() -> None:
         result["bank_s"] = time.perf_counter() - t
         print(f"bank: {len(entries)} maps in {result['bank_s']:.0f} s", flush=True)
         t = time.perf_counter()
-        model, losses = train(entries, config, args.steps, args.batch, args.crop, args.seed, args.exact_weight,
-                              args.checkpoint, args.checkpoint_every, price=args.price, lr=args.lr,
-                              init=init, keep_margin=args.keep_margin)
+        recipe = EdgeRecipe(steps=args.steps, batch=args.batch, crop=args.crop, seed=args.seed,
+                            exact_weight=args.exact_weight, lr=args.lr, price=args.price, keep_margin=args.keep_margin)
+        model, losses = train(entries, config, recipe, args.checkpoint, args.checkpoint_every, init=init)
         del entries
         result |= {"train_s": time.perf_counter() - t, "loss": losses}
         model.eval()

@@ -9,6 +9,7 @@ torch = pytest.importorskip("torch")
 from bokehray_refiner.edges import EdgeConfig, edge_features  # noqa: E402
 from bokehray_refiner.training import edges as recipe  # noqa: E402
 from bokehray_refiner.training.common import region  # noqa: E402
+from bokehray_refiner.training.edges import EdgeRecipe  # noqa: E402
 
 import bokehray as br  # noqa: E402
 
@@ -53,8 +54,7 @@ def test_a_few_training_steps_run_and_count_only_the_crop():
     band = np.ones(truth.shape, np.float32)
     entry = {"x": edge_features(focus, shrunk, blur, band, SMALL).astype(np.float16),
              "cost": recipe.side_costs(shrunk, truth, blur, SMALL).astype(np.float16), "exact": False}
-    _model, losses = recipe.train([entry], SMALL, steps=3, batch=2, crop=16, seed=0, exact_weight=2.0,
-                                checkpoint=None)
+    _model, losses = recipe.train([entry], SMALL, EdgeRecipe(steps=3, batch=2, crop=16, seed=0, exact_weight=2.0))
     assert len(losses) == 3 and all(np.isfinite(losses))
 
 
@@ -86,10 +86,9 @@ def test_training_from_given_weights_starts_where_they_are():
 
     torch.manual_seed(7)
     start = EdgeNet(SMALL)
-    still, _ = recipe.train([_entry()], SMALL, steps=2, batch=1, crop=16, seed=0, exact_weight=1.0,
-                           checkpoint=None, lr=1e-12, init=start)
-    fresh, _ = recipe.train([_entry()], SMALL, steps=2, batch=1, crop=16, seed=0, exact_weight=1.0,
-                           checkpoint=None, lr=1e-12)
+    tiny_lr = EdgeRecipe(steps=2, batch=1, crop=16, seed=0, exact_weight=1.0, lr=1e-12)
+    still, _ = recipe.train([_entry()], SMALL, tiny_lr, init=start)
+    fresh, _ = recipe.train([_entry()], SMALL, tiny_lr)
     for (name, a), b, c in zip(still.state_dict().items(), start.state_dict().values(), fresh.state_dict().values()):
         torch.testing.assert_close(a, b, rtol=0, atol=1e-6, msg=name)
         assert not torch.allclose(a, c), name  # a fresh start is another network
@@ -126,8 +125,8 @@ def test_a_third_layer_the_map_has_nearly_right_is_labelled_to_stay():
 
 def test_a_stopped_run_resumed_from_its_checkpoint_is_the_same_run_bit_for_bit(tmp_path, monkeypatch):
     def run(checkpoint=None):
-        return recipe.train([_entry()], SMALL, steps=4, batch=2, crop=16, seed=3, exact_weight=2.0,
-                            checkpoint=checkpoint, checkpoint_every=2)
+        return recipe.train([_entry()], SMALL, EdgeRecipe(steps=4, batch=2, crop=16, seed=3, exact_weight=2.0),
+                            checkpoint, checkpoint_every=2)
 
     whole, whole_losses = run()
     step_and_save = recipe.optimise

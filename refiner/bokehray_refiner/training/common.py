@@ -8,11 +8,12 @@ stopped, bit for bit the run it would have been.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["optimise", "region", "resume", "save_state", "srgb_photo"]
+__all__ = ["Checkpoints", "optimise", "region", "resume", "save_state", "srgb_photo"]
 
 
 def srgb_photo(x: np.ndarray) -> np.ndarray:
@@ -21,18 +22,29 @@ def srgb_photo(x: np.ndarray) -> np.ndarray:
     return linear_to_srgb(np.clip(x[..., :3], 0.0, 1.0)).astype(np.float32)
 
 
-def optimise(loss, step: int, parts: dict, losses: list[float], rng, steps: int, seed: int,
-              checkpoint: str | None, checkpoint_every: int) -> None:
+@dataclass(frozen=True)
+class Checkpoints:
+    """A run's checkpoints: the file (None: none are written), how often, and the run they belong to (its length and
+    seed: a checkpoint of another run is refused)."""
+
+    path: str | None
+    steps: int
+    seed: int
+    every: int = 500
+
+
+def optimise(loss, step: int, parts: dict, losses: list[float], rng, checkpoints: Checkpoints) -> None:
     """One training step's end: the optimiser and the schedule of ``parts`` step on ``loss``, which joins
-    ``losses``; then, with ``checkpoint``, the whole state is written when one is due (:func:`resume` reads it)."""
+    ``losses``; then the whole state is written when a checkpoint is due (:func:`resume` reads it)."""
     parts["opt"].zero_grad()
     loss.backward()
     parts["opt"].step()
     parts["sched"].step()
     losses.append(loss.item())
-    if checkpoint and ((step + 1) % checkpoint_every == 0 or step + 1 == steps):
-        save_state(checkpoint, {"steps": steps, "seed": seed, "step": step + 1, "losses": losses,
-                           "rng": rng.bit_generator.state, **{k: v.state_dict() for k, v in parts.items()}})
+    c = checkpoints
+    if c.path and ((step + 1) % c.every == 0 or step + 1 == c.steps):
+        save_state(c.path, {"steps": c.steps, "seed": c.seed, "step": step + 1, "losses": losses,
+                            "rng": rng.bit_generator.state, **{k: v.state_dict() for k, v in parts.items()}})
 
 
 def region(a: np.ndarray, y0: int, x0: int, size: int, lead: int = 0) -> np.ndarray:
@@ -55,12 +67,13 @@ def save_state(checkpoint: str, state: dict) -> None:
     Path(tmp).replace(checkpoint)
 
 
-def resume(checkpoint: str, steps: int, seed: int, parts: dict, rng) -> tuple[list[float], int]:
-    """Load ``checkpoint`` (if it exists) into the model, optimiser and schedule of ``parts`` and the generators;
+def resume(checkpoints: Checkpoints, parts: dict, rng) -> tuple[list[float], int]:
+    """Load the checkpoint (if there is one) into the model, optimiser and schedule of ``parts`` and the generators;
     the losses so far and the step to go on from."""
     import torch
 
-    if not Path(checkpoint).is_file():
+    checkpoint, steps, seed = checkpoints.path, checkpoints.steps, checkpoints.seed
+    if not checkpoint or not Path(checkpoint).is_file():
         return [], 0
     state = torch.load(checkpoint, weights_only=False)
     if state["steps"] != steps or state["seed"] != seed:

@@ -26,14 +26,14 @@ import argparse
 import os
 import sys
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
-from .common import optimise, region, resume, srgb_photo
+from .common import Checkpoints, optimise, region, resume, srgb_photo
 
-__all__ = ["TRAIN_CORRUPTIONS", "bank", "load_bank", "main", "network_runs", "side_costs", "side_labels", "train",
+__all__ = ["TRAIN_CORRUPTIONS", "EdgeRecipe", "bank", "load_bank", "main", "network_runs", "side_costs", "side_labels", "train",
            "used_map"]
 
 
@@ -132,79 +132,116 @@ def bank(root: str, variants: int, seed: int, opts, config) -> list[dict]:
     return out
 
 
-def train(entries: list[dict], config, steps: int, batch: int, crop: int, seed: int, exact_weight: float,
-          checkpoint: str | None, checkpoint_every: int = 500, log_every: int = 100, price: float = 0.0,
-          lr: float = 2e-3, init=None, keep_margin: float | None = None):
-    """AdamW on the binary cross-entropy against the true side (:func:`side_labels`), on random crops on the band
-    (flipped and transposed at random), each pixel weighted by the band, the candidates' CoC span and
-    ``exact_weight`` on exact maps; with ``price`` (sRGB), also by :func:`render_price`. The learning rate rises to
-    ``lr`` and falls (one cycle); ``init``: an :class:`EdgeNet` of ``config`` to start from, else a fresh one;
-    ``keep_margin``: as in :func:`side_labels`. With ``checkpoint``, resumable bit for bit (as
-    the training loop of ``bokehray_refiner.training.common``)."""
+@dataclass(frozen=True)
+class EdgeRecipe:
+    """The training loop's settings; the defaults are the shipped weights' (``weights/edges.json``).
+
+    Args:
+        steps, batch, crop, seed: AdamW steps of ``batch`` crops of ``crop`` px (the loss counts the crop; the network
+            sees its receptive field around it too), drawn with ``seed``.
+        exact_weight: the loss weight of the exact maps (where any move is harm).
+        lr: the learning rate's peak (one cycle).
+        price: with ``price`` > 0 (sRGB), each pixel also weighted by :func:`render_price` (measured, not shipped).
+        keep_margin: as in :func:`side_labels` (measured, not shipped).
+        log_every: steps between printed loss lines.
+    """
+
+    steps: int = 4000
+    batch: int = 8
+    crop: int = 64
+    seed: int = 0
+    exact_weight: float = 2.0
+    lr: float = 2e-3
+    price: float = 0.0
+    keep_margin: float | None = None
+    log_every: int = 100
+
+
+def _training_crop(e: dict, rng, crop: int, reach: int) -> tuple[np.ndarray, np.ndarray]:
+    """A random crop of the bank entry ``e`` (on the band 9 times in 10) with its receptive field around it, flipped
+    and transposed at random: the inputs and (the costs, then where they count)."""
+    band = e["x"][6]
+    h, w = band.shape
+    ys, xx = np.nonzero(band > 0)
+    if len(ys) and rng.random() < 0.9:
+        j = rng.integers(len(ys))
+        y0, x0 = int(np.clip(ys[j] - crop // 2, 0, h - crop)), int(np.clip(xx[j] - crop // 2, 0, w - crop))
+    else:
+        y0, x0 = int(rng.integers(0, h - crop + 1)), int(rng.integers(0, w - crop + 1))
+    # the loss counts the crop; the network sees its receptive field around it too, as on a whole frame
+    # (zeros beyond the frame's edges, as there): no output it is trained on sees padding a frame lacks
+    x = region(e["x"], y0 - reach, x0 - reach, crop + 2 * reach, lead=1)
+    c = np.zeros((4, crop + 2 * reach, crop + 2 * reach), np.float16)  # the costs, then where they count
+    c[:3, reach:reach + crop, reach:reach + crop] = e["cost"][:, y0:y0 + crop, x0:x0 + crop]
+    c[3, reach:reach + crop, reach:reach + crop] = 1.0
+    flip = rng.integers(0, 8)
+    if flip & 1:
+        x, c = x[:, ::-1], c[:, ::-1]
+    if flip & 2:
+        x, c = x[:, :, ::-1], c[:, :, ::-1]
+    if flip & 4:
+        x, c = x.transpose(0, 2, 1), c.transpose(0, 2, 1)
+    return np.ascontiguousarray(x, np.float32), np.ascontiguousarray(c, np.float32)
+
+
+def _model(config, recipe: EdgeRecipe, init):
+    """A fresh :class:`EdgeNet` of ``config`` (seeded; ``init``'s weights, if given), AdamW and its one cycle."""
     import torch
-    import torch.nn.functional as F
 
     from bokehray_refiner.edges import EdgeNet
 
-    torch.manual_seed(seed)
-    rng = np.random.default_rng(seed)
+    torch.manual_seed(recipe.seed)
+    rng = np.random.default_rng(recipe.seed)
     model = EdgeNet(config)
     if init is not None:
         model.load_state_dict(init.state_dict())
-    opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=1e-4)
-    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=lr, total_steps=steps,
-                                                pct_start=min(0.3, max(0.05, 10 / steps)))
-    parts = {"model": model, "opt": opt, "sched": sched}
-    losses, start = resume(checkpoint, steps, seed, parts, rng) if checkpoint else ([], 0)
+    opt = torch.optim.AdamW(model.parameters(), lr=recipe.lr, weight_decay=1e-4)
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=recipe.lr, total_steps=recipe.steps,
+                                                pct_start=min(0.3, max(0.05, 10 / recipe.steps)))
+    return {"model": model, "opt": opt, "sched": sched}, rng
+
+
+def train(entries: list[dict], config, recipe: EdgeRecipe = EdgeRecipe(), checkpoint: str | None = None,
+          checkpoint_every: int = 500, init=None):
+    """AdamW on the binary cross-entropy against the true side (:func:`side_labels`), on random crops on the band
+    (:func:`_training_crop`), each pixel weighted by the band, the candidates' CoC span and ``recipe.exact_weight``
+    on exact maps; the learning rate rises to ``recipe.lr`` and falls (one cycle); ``init``: an :class:`EdgeNet` of
+    ``config`` to start from, else a fresh one. With ``checkpoint``, written every ``checkpoint_every`` steps and
+    resumed bit for bit (:mod:`.common`). Returns the model and the losses."""
+    import torch
+    import torch.nn.functional as F
+
+    r = recipe
+    parts, rng = _model(config, r, init)
+    checkpoints = Checkpoints(checkpoint, r.steps, r.seed, checkpoint_every)
+    losses, start = resume(checkpoints, parts, rng)
     wrong_seen: list[float] = []
-    map_wrong = _map_wrong(entries, exact_weight, config, keep_margin)
-    reach = config.reach_px
-    for step in range(start, steps):
+    map_wrong = _map_wrong(entries, r.exact_weight, config, r.keep_margin)
+    for step in range(start, r.steps):
         xs, costs, ws = [], [], []
-        for i in rng.integers(0, len(entries), batch):
-            e = entries[i]
-            band = e["x"][6]
-            h, w = band.shape
-            ys, xx = np.nonzero(band > 0)
-            if len(ys) and rng.random() < 0.9:
-                j = rng.integers(len(ys))
-                y0, x0 = int(np.clip(ys[j] - crop // 2, 0, h - crop)), int(np.clip(xx[j] - crop // 2, 0, w - crop))
-            else:
-                y0, x0 = int(rng.integers(0, h - crop + 1)), int(rng.integers(0, w - crop + 1))
-            # the loss counts the crop; the network sees its receptive field around it too, as on a whole frame
-            # (zeros beyond the frame's edges, as there): no output it is trained on sees padding a frame lacks
-            x = region(e["x"], y0 - reach, x0 - reach, crop + 2 * reach, lead=1)
-            c = np.zeros((4, crop + 2 * reach, crop + 2 * reach), np.float16)  # the costs, then where they count
-            c[:3, reach:reach + crop, reach:reach + crop] = e["cost"][:, y0:y0 + crop, x0:x0 + crop]
-            c[3, reach:reach + crop, reach:reach + crop] = 1.0
-            flip = rng.integers(0, 8)
-            if flip & 1:
-                x, c = x[:, ::-1], c[:, ::-1]
-            if flip & 2:
-                x, c = x[:, :, ::-1], c[:, :, ::-1]
-            if flip & 4:
-                x, c = x.transpose(0, 2, 1), c.transpose(0, 2, 1)
-            xs.append(np.ascontiguousarray(x, np.float32))
-            costs.append(np.ascontiguousarray(c, np.float32))
-            ws.append(exact_weight if e["exact"] else 1.0)
+        for i in rng.integers(0, len(entries), r.batch):
+            x, c = _training_crop(entries[i], rng, r.crop, config.reach_px)
+            xs.append(x)
+            costs.append(c)
+            ws.append(r.exact_weight if entries[i]["exact"] else 1.0)
         x = torch.from_numpy(np.stack(xs))
         cost = torch.from_numpy(np.stack(costs))
         cost, counted = cost[:, :3], cost[:, 3]
         weight = x[:, 6] * counted * torch.tensor(ws)[:, None, None]
-        logit = model(x)[:, 0]
-        label, span = side_labels(cost, x, config, keep_margin)
+        logit = parts["model"](x)[:, 0]
+        label, span = side_labels(cost, x, config, r.keep_margin)
         weight = weight * span
-        priced = weight * render_price(x, price) if price > 0 else weight
+        priced = weight * render_price(x, r.price) if r.price > 0 else weight
         loss = (F.binary_cross_entropy_with_logits(logit, label, reduction="none") * priced).sum() \
             / priced.sum().clamp_min(1.0)
         with torch.no_grad():  # the share of counted pixels put on the wrong side at 0.5 (unpriced, as the map's)
             wrong_seen.append(float((((logit > 0).float() != label).float() * weight).sum()
                                     / weight.sum().clamp_min(1.0)))
-        optimise(loss, step, parts, losses, rng, steps, seed, checkpoint, checkpoint_every)
-        if (step + 1) % log_every == 0:
-            print(f"step {step + 1}: loss {np.mean(losses[-log_every:]):.4f}, wrong side "
-                  f"{np.mean(wrong_seen[-log_every:]):.3f} (the map's: {map_wrong:.3f})", flush=True)
-    return model, losses
+        optimise(loss, step, parts, losses, rng, checkpoints)
+        if (step + 1) % r.log_every == 0:
+            print(f"step {step + 1}: loss {np.mean(losses[-r.log_every:]):.4f}, wrong side "
+                  f"{np.mean(wrong_seen[-r.log_every:]):.3f} (the map's: {map_wrong:.3f})", flush=True)
+    return parts["model"], losses
 
 
 def render_price(x, scale: float):
@@ -324,8 +361,9 @@ def main(argv: list[str] | None = None) -> int:
         e["x"] = np.concatenate([e["x"], colour_features(e["x"].astype(np.float32)).astype(np.float16)])
     print(f"bank: {len(entries)} maps in {time.perf_counter() - t:.0f} s", flush=True)
     t = time.perf_counter()
-    model, _ = train(entries, config, args.steps, args.batch, args.crop, args.seed, args.exact_weight,
-                     args.checkpoint, args.checkpoint_every, lr=args.lr)
+    recipe = EdgeRecipe(steps=args.steps, batch=args.batch, crop=args.crop, seed=args.seed,
+                        exact_weight=args.exact_weight, lr=args.lr)
+    model, _ = train(entries, config, recipe, args.checkpoint, args.checkpoint_every)
     model.eval()
     save_edge_net(model, args.export, steps=str(args.steps), seed=str(args.seed))
     print(f"trained {args.steps} steps in {time.perf_counter() - t:.0f} s; wrote {args.export}", flush=True)
