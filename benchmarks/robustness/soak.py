@@ -284,65 +284,82 @@ def _check_batch(rc: int, err: str, out: Path, allowed: set[int], frames: int | 
     return None
 
 
-def _round_three_case(kind: str, rng: np.random.Generator, f: dict, out: Path, models: dict | None,  # noqa: C901
-                      startup: float) -> tuple[dict, tuple[int, str], str | None] | None:
-    """One batch, dask or depth-model case: (case, (exit, stderr), problem), or None when it cannot run here."""
+def _sweep_case(case: dict, rng: np.random.Generator, f: dict, out: Path, common: list):
+    """A focal sweep whose values lie closer than a frame's name can tell apart: it must still write them all."""
+    flag, values = [("--focus", "0.1,0.1004"), ("--focus", f"0.1:0.9:{int(rng.integers(2, 40))}"),
+                    ("--blur", "24,24.0000001"), ("--focus", "0.25,0.2500001,0.25000001")][int(rng.integers(4))]
+    other = ["--blur", 4] if flag == "--focus" else ["--focus", 0.5]
+    case.update(sweep=f"{flag}={values}")
+    n = len(values.split(",")) if ":" not in values else int(values.split(":")[2])
+    rc, err = _run_cli(["render", f["small"], "--disparity", f["small_d"], "-o", out, f"{flag}={values}", *other,
+                        *common])
+    return case, (rc, err), _check_batch(rc, err, out, {0}, n)
+
+
+def _refused_batch_case(case: dict, what: str, rng: np.random.Generator, f: dict, out: Path, common: list):
+    """A sweep out of range or a bad manifest: refused in one line, nothing written."""
+    if what == "out of range":
+        sweep = str(rng.choice(["--focus=0:2:3", "--focus=-0.5,0.5", "--blur=-1,4", "--blur=4,1e6"]))
+        other = ["--blur", 4] if sweep.startswith("--focus") else ["--focus", 0.5]
+        case.update(sweep=sweep)
+        rc, err = _run_cli(["render", f["small"], "--disparity", f["small_d"], "-o", out, sweep, *other, *common])
+        return case, (rc, err), _check_batch(rc, err, out, {2}, None)
+    name = str(rng.choice(sorted(_BAD_MANIFESTS)))
+    manifest = out.parent / f"{out.name}.csv"
+    manifest.write_text(_BAD_MANIFESTS[name], errors="surrogateescape")
+    case.update(manifest=name)
+    rc, err = _run_cli(["render", f["small"].parent / "photos", "--disparity", manifest, "-o", out,
+                        "--blur", 4, "--focus", 0.5, *common])
+    return case, (rc, err), _check_batch(rc, err, out, {2}, None)
+
+
+def _signalled_batch_case(case: dict, rng: np.random.Generator, f: dict, out: Path, startup: float):
+    """A sweep stopped by SIGTERM or SIGINT at a random moment: its exit code and line, its frames on disk."""
+    sig = int(rng.choice([signal.SIGTERM, signal.SIGINT]))
+    delay = float(1.5 * startup + rng.uniform(0.0, 6.0))
+    case.update(signal=signal.Signals(sig).name, delay=round(delay, 2))
+    rc, err = _run_cli(["render", f["big"], "--disparity", f["big_d"], "-o", out, "--blur", 8,
+                        "--focus", "0.1:0.9:6", "--workers", 2, "--quiet"], sig, delay)
+    code = 143 if sig == signal.SIGTERM else 130
+    if rc == -sig:  # before main() installed its handlers: Python's default, as the single-file cases count it
+        return case, (rc, ""), None
+    return case, (rc, err), _check_batch(rc, err, out, {0, code}, 6 if rc == 0 else None)
+
+
+def _batch_case(rng: np.random.Generator, f: dict, out: Path, startup: float):
     common = ["--workers", 1, "--quiet"]
-    if kind == "batch":
-        what = str(rng.choice(["close sweep", "close sweep", "out of range", "manifest", "signal"]))
-        case = {"kind": kind, "what": what}
-        if what == "close sweep":
-            flag, values = [("--focus", "0.1,0.1004"), ("--focus", f"0.1:0.9:{int(rng.integers(2, 40))}"),
-                            ("--blur", "24,24.0000001"), ("--focus", "0.25,0.2500001,0.25000001")][int(rng.integers(4))]
-            other = ["--blur", 4] if flag == "--focus" else ["--focus", 0.5]
-            case.update(sweep=f"{flag}={values}")
-            n = len(values.split(",")) if ":" not in values else int(values.split(":")[2])
-            rc, err = _run_cli(["render", f["small"], "--disparity", f["small_d"], "-o", out, f"{flag}={values}",
-                                *other, *common])
-            return case, (rc, err), _check_batch(rc, err, out, {0}, n)
-        if what == "out of range":
-            sweep = str(rng.choice(["--focus=0:2:3", "--focus=-0.5,0.5", "--blur=-1,4", "--blur=4,1e6"]))
-            other = ["--blur", 4] if sweep.startswith("--focus") else ["--focus", 0.5]
-            case.update(sweep=sweep)
-            rc, err = _run_cli(["render", f["small"], "--disparity", f["small_d"], "-o", out, sweep, *other, *common])
-            return case, (rc, err), _check_batch(rc, err, out, {2}, None)
-        if what == "manifest":
-            name = str(rng.choice(sorted(_BAD_MANIFESTS)))
-            manifest = out.parent / f"{out.name}.csv"
-            manifest.write_text(_BAD_MANIFESTS[name], errors="surrogateescape")
-            case.update(manifest=name)
-            rc, err = _run_cli(["render", f["small"].parent / "photos", "--disparity", manifest, "-o", out,
-                                "--blur", 4, "--focus", 0.5, *common])
-            return case, (rc, err), _check_batch(rc, err, out, {2}, None)
-        sig = int(rng.choice([signal.SIGTERM, signal.SIGINT]))
-        delay = float(1.5 * startup + rng.uniform(0.0, 6.0))
-        case.update(signal=signal.Signals(sig).name, delay=round(delay, 2))
-        rc, err = _run_cli(["render", f["big"], "--disparity", f["big_d"], "-o", out, "--blur", 8,
-                            "--focus", "0.1:0.9:6", "--workers", 2, "--quiet"], sig, delay)
-        code = 143 if sig == signal.SIGTERM else 130
-        if rc == -sig:  # before main() installed its handlers: Python's default, as the single-file cases count it
-            return case, (rc, ""), None
-        return case, (rc, err), _check_batch(rc, err, out, {0, code}, 6 if rc == 0 else None)
-    if kind == "dask":
-        try:
-            import distributed  # noqa: F401
-        except ImportError:
-            return None
-        if rng.random() < 0.15:
-            case = {"kind": kind, "what": "local cluster"}
-            rc, err = _run_cli(["render", f["small"], "--disparity", f["small_d"], "-o", out, "--blur", 4,
-                                "--focus", "0.3,0.6", "--executor", "dask", "--workers", 2, "--quiet"])
-            return case, (rc, err), _check_batch(rc, err, out, {0}, 2)
-        address = str(rng.choice(_BAD_SCHEDULERS))
-        case = {"kind": kind, "scheduler": address}
-        rc, err = _run_cli(["render", f["small"], "--disparity", f["small_d"], "-o", out, "--blur", 4,
-                            "--focus", "0.3,0.6", "--executor", "dask", f"--scheduler={address}", "--quiet"])
-        problem = _check_batch(rc, err, out, {2}, None) or (f"{out} was created" if out.exists() else None)
-        return case, (rc, err), problem
-    if models is None:
+    what = str(rng.choice(["close sweep", "close sweep", "out of range", "manifest", "signal"]))
+    case = {"kind": "batch", "what": what}
+    if what == "close sweep":
+        return _sweep_case(case, rng, f, out, common)
+    if what in ("out of range", "manifest"):
+        return _refused_batch_case(case, what, rng, f, out, common)
+    return _signalled_batch_case(case, rng, f, out, startup)
+
+
+def _dask_case(rng: np.random.Generator, f: dict, out: Path):
+    """A local Dask cluster (it must render), or a scheduler address that is wrong (refused, nothing made)."""
+    try:
+        import distributed  # noqa: F401
+    except ImportError:
         return None
+    if rng.random() < 0.15:
+        case = {"kind": "dask", "what": "local cluster"}
+        rc, err = _run_cli(["render", f["small"], "--disparity", f["small_d"], "-o", out, "--blur", 4,
+                            "--focus", "0.3,0.6", "--executor", "dask", "--workers", 2, "--quiet"])
+        return case, (rc, err), _check_batch(rc, err, out, {0}, 2)
+    address = str(rng.choice(_BAD_SCHEDULERS))
+    case = {"kind": "dask", "scheduler": address}
+    rc, err = _run_cli(["render", f["small"], "--disparity", f["small_d"], "-o", out, "--blur", 4,
+                        "--focus", "0.3,0.6", "--executor", "dask", f"--scheduler={address}", "--quiet"])
+    problem = _check_batch(rc, err, out, {2}, None) or (f"{out} was created" if out.exists() else None)
+    return case, (rc, err), problem
+
+
+def _depth_model_case(rng: np.random.Generator, f: dict, out: Path, models: dict):
+    """A depth-model checkpoint, good or broken: rendered, or refused naming its folder."""
     name = str(rng.choice(sorted(models)))
-    case = {"kind": kind, "checkpoint": name}
+    case = {"kind": "depth-model", "checkpoint": name}
     target = out / "o.png"
     out.mkdir()
     rc, err = _run_cli(["render", f["small"], "--depth-model", models[name], "-o", target, "--blur", 4,
@@ -352,6 +369,16 @@ def _round_three_case(kind: str, rng: np.random.Generator, f: dict, out: Path, m
     if problem is None and not good and str(models[name]) not in err:
         problem = f"the error does not name the checkpoint folder: {err.strip()!r}"
     return case, (rc, err), problem
+
+
+def _extras_case(kind: str, rng: np.random.Generator, f: dict, out: Path, models: dict | None,
+                 startup: float) -> tuple[dict, tuple[int, str], str | None] | None:
+    """One batch, dask or depth-model case: (case, (exit, stderr), problem), or None when it cannot run here."""
+    if kind == "batch":
+        return _batch_case(rng, f, out, startup)
+    if kind == "dask":
+        return _dask_case(rng, f, out)
+    return None if models is None else _depth_model_case(rng, f, out, models)
 
 
 def run_io(n: int, seed: int, kinds: tuple[str, ...] = IO_KINDS) -> int:  # noqa: C901
@@ -374,7 +401,7 @@ def run_io(n: int, seed: int, kinds: tuple[str, ...] = IO_KINDS) -> int:  # noqa
     for i in range(n):
         kind = str(rng.choice(draw))
         if kind in ("batch", "dask", "depth-model"):
-            ran = _round_three_case(kind, rng, f, work / f"case{i}", models, startup)
+            ran = _extras_case(kind, rng, f, work / f"case{i}", models, startup)
             if ran is None:
                 counts[f"{kind} (skipped: needs its extra)"] = counts.get(f"{kind} (skipped: needs its extra)", 0) + 1
                 continue
