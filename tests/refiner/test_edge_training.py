@@ -154,7 +154,10 @@ def test_the_command_makes_the_bank_trains_and_exports_weights_refine_loads(pair
     out, bank = tmp_path / "edges.safetensors", tmp_path / "bank.npz"
     argv = [str(pairs), "--export", str(out), "--bank", str(bank), "--variants", "3", "--steps", "2", "--batch", "1",
             "--crop", "16", "--width", "8", "--dilations", "2,1", "--threads", "1"]
+    threads = torch.get_num_threads()
     assert recipe.main(argv) == 0
+    assert torch.get_num_threads() == threads  # the recipe's torch settings do not outlive it
+    assert np.finfo(np.float32).smallest_subnormal > 0 and torch.tensor(1e-40).item() != 0.0
     net = load_edge_net(str(out))
     assert net.config.width == 8 and net.config.dilations == (2, 1)
     with np.load(bank) as z:

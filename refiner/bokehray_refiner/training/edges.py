@@ -26,6 +26,7 @@ import argparse
 import os
 import sys
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -334,22 +335,29 @@ def _parser() -> argparse.ArgumentParser:
     return ap
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Make the bank, train, export: the shipped weights with the defaults."""
-    args = _parser().parse_args(argv)
+@contextmanager
+def _torch_settings(threads: int | None):
+    """The recipe's torch settings (denormals flushed to zero, as the shipped weights were trained; ``threads``),
+    restored afterwards: the process may go on (a test, a notebook)."""
     import torch
 
+    before = torch.get_num_threads()
+    if threads:
+        torch.set_num_threads(threads)
+    torch.set_flush_denormal(True)
+    try:
+        yield
+    finally:
+        torch.set_flush_denormal(False)
+        torch.set_num_threads(before)
+
+
+def _make(args: argparse.Namespace) -> int:
+    """The bank, the training and the export, as :func:`main` parsed them."""
     from bokehray.errors import InputError
     from bokehray_refiner.edges import EdgeConfig, colour_features, save_edge_net
     from bokehray_refiner.refine import RefineOptions
 
-    if not Path(args.train).is_dir():
-        print(f"error: {args.train}: no such training folder (make it with the bokehray synth command of --help)",
-              file=sys.stderr)
-        return 2
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    torch.set_flush_denormal(True)
     config = EdgeConfig(width=args.width, dilations=tuple(int(v) for v in args.dilations.split(",")))
     t = time.perf_counter()
     try:
@@ -368,6 +376,17 @@ def main(argv: list[str] | None = None) -> int:
     save_edge_net(model, args.export, steps=str(args.steps), seed=str(args.seed))
     print(f"trained {args.steps} steps in {time.perf_counter() - t:.0f} s; wrote {args.export}", flush=True)
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Make the bank, train, export: the shipped weights with the defaults."""
+    args = _parser().parse_args(argv)
+    if not Path(args.train).is_dir():
+        print(f"error: {args.train}: no such training folder (make it with the bokehray synth command of --help)",
+              file=sys.stderr)
+        return 2
+    with _torch_settings(args.threads):
+        return _make(args)
 
 
 if __name__ == "__main__":
