@@ -20,13 +20,13 @@ test: $(STAMP)
 
 # the structure of docs/architecture.md (import direction, no cycles, kernels pure) and a lint pass
 lint: $(STAMP)
-	$(BIN)/ruff check src kernels refiner benchmarks tests
+	$(BIN)/ruff check src kernels refiner benchmarks research tests
 	$(BIN)/lint-imports
 	@! git grep -nE '^(<<<<<<<|>>>>>>>)( |$$)' -- . || { echo "lint: unresolved merge-conflict markers (above)"; exit 1; }
 
 bench-quick: $(STAMP)
-	$(BIN)/python benchmarks/bench_preview.py --quick
-	$(BIN)/python benchmarks/bench_bokeh_shape.py --quick
+	$(BIN)/python benchmarks/renderer/bench_preview.py --quick
+	$(BIN)/python benchmarks/renderer/bench_bokeh_shape.py --quick
 
 # run time against error, bokehray levels and peers side by side (docs/benchmarks.md); peers that
 # are not installed are skipped with a one-line message
@@ -35,13 +35,13 @@ bench-compare-quick: $(STAMP)
 
 # live-preview latency of bokehray view (docs/view.md); the full run writes benchmarks/results and docs/img
 bench-view-quick: $(STAMP)
-	$(BIN)/python benchmarks/bench_view.py --quick --out out/bench-view
+	$(BIN)/python benchmarks/page/bench_view.py --quick --out out/bench-view
 # local pool vs Dask with 2 workers: engine cost per task, scenes/min, MP/s (docs/scale.md)
 bench-scale-quick: $(STAMP)
-	$(BIN)/python benchmarks/bench_scale.py --quick --out out/bench-scale --plots out/bench-scale
+	$(BIN)/python benchmarks/scale/bench_scale.py --quick --out out/bench-scale --plots out/bench-scale
 
 soak-quick: $(STAMP)
-	$(BIN)/python benchmarks/soak.py --cases 300 --seed 1
+	$(BIN)/python benchmarks/robustness/soak.py --cases 300 --seed 1
 
 clean:
 	rm -rf $(VENV) bokehray-demo .pytest_cache .hypothesis

@@ -30,5 +30,5 @@ IDENTITY_ATOL = 0.0
 
 # A wall-clock bound that only a hang exceeds: tests check that an interrupt or a refusal *happens* (exit code,
 # no output, the exception), never how fast; a loaded CI machine (load average 7 on 2 cores) stretches seconds into
-# tens of them. How fast they happen is measured by the benchmarks (benchmarks/soak.py, docs/robustness.md).
+# tens of them. How fast they happen is measured by the benchmarks (benchmarks/robustness/soak.py, docs/robustness.md).
 HANG_S = 90.0

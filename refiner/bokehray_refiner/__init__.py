@@ -1,14 +1,17 @@
 """bokehray's neural refiner (torch): PISA attention, the one-step diffusion wrapper, the small shipped model.
 
 Dependency direction is one way: ``bokehray_kernels`` <- ``bokehray`` <- ``bokehray_refiner``. ``bokehray``
-imports this package only lazily, behind ``render(refine=...)`` / ``--refine``. Modules:
+imports this package only lazily, behind ``render(refine=...)`` / ``--refine``. The run-time path (``render(refine=True)``) is at the top:
 
-* ``attention``: windowed, energy-conserving PISA attention and its dense reference;
-* ``masks``: PISA masks per attention grid (Warp kernels, handed to torch without a copy);
-* ``processor``: the diffusers attention processor (``install_pisa``);
-* ``onestep``: the one-step SDXL wrapper (``load_one_step``) and ``tiles`` for tiled inference;
-* ``model``, ``data``, ``train``, ``refine``: the shipped CPU refiner, its training and ``refine()``;
-* ``testing``: a tiny SDXL-layout checkpoint written locally, for tests and install checks.
+* ``refine``: ``refine()`` and ``RefineOptions``, the pass over a preview render;
+* ``depthfix``: the colour-guided correction of misplaced depth edges, run first;
+* ``gate``: where the network may act (the edge band, the confidence gate);
+* ``edges``: the edge network, which places depth edges in the corrected map;
+* ``model``, ``attention``, ``masks``, ``pisa``: the shipped residual network and its PISA attention;
+* ``saved``, ``tiles``: loading checked weights, tiling.
+
+``training/`` holds how the shipped weights are made (the residual and the edge networks' recipes);
+``onestep/`` the one-step diffusion model with PISA attention, loaded from a local checkpoint folder.
 
 See docs/refiner.md.
 """

@@ -10,7 +10,7 @@ side's value. The level renders once on the moved map, exactly, with the soft sc
 It sees the photo (sRGB), the map's CoC and the near and far candidates' (as differences from it), the band, and the
 photo less the local mean colour of either side (:func:`colour_features`); dilated 3 x 3 convolutions (receptive
 field ``2 * reach_px + 1``) and a 1 x 1 layer give one logit. Trained on ``bokehray synth`` pairs with their maps
-corrupted as real ones are (``benchmarks/refiner_edges.py``), against the side the true map puts each pixel on.
+corrupted as real ones are (``bokehray_refiner.training.edges``), against the side the true map puts each pixel on.
 """
 
 from __future__ import annotations
@@ -162,7 +162,7 @@ def place_edges(model: EdgeNet, focus_srgb: np.ndarray, disparity: np.ndarray, b
     :func:`place_edges_once`), then again on the map it made, up to ``passes`` times in all (fewer where a pass moves
     nothing). Each pass reads the candidates and the sides' colour means of the map the last one made: a misplaced
     strip contaminates both until it is moved, so a second look finds what the first could not (docs/refiner.md,
-    "Round 11"). The band stays the one given."""
+    docs/design/edge-gate.md). The band stays the one given."""
     if passes < 1:
         raise ValueError(f"passes must be >= 1, got {passes}")
     out = disparity
@@ -265,7 +265,7 @@ def save_edge_net(model: EdgeNet, path: str | os.PathLike, **metadata: str) -> N
 def load_edge_net(path: str | os.PathLike | None = None, device: str = "cpu") -> EdgeNet:
     """Load edge-network weights (default: the shipped ones); cached per file, modification time and device."""
     return load_saved(path, DEFAULT_EDGE_WEIGHTS, device, _build_edge_net, what="edge-network weights",
-                      made_by="bokehray", how_to_make="train them with benchmarks/refiner_edges.py",
+                      made_by="bokehray", how_to_make="train them with python -m bokehray_refiner.training.edges",
                       kind="bokehray-edges")
 
 

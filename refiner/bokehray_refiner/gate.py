@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bokehray.depthfix import edge_pairs
+from bokehray_refiner.depthfix import edge_pairs
 
 __all__ = ["GateOptions", "edge_agreement", "edge_gate", "highlight_guard", "refine_gate"]
 

@@ -1,7 +1,7 @@
 """``render --refine``: the shipped refiner applied where depth errors show, blended into the classical render.
 
 First (with a ``rerender`` callback, which the pipeline always passes) the colour-guided depth correction
-(``bokehray.depthfix``) moves depth edges that sit off the photo's colour edges back onto them, and the classical
+(``bokehray_refiner.depthfix``) moves depth edges that sit off the photo's colour edges back onto them, and the classical
 level renders again on the corrected map; the steps below then work on that render and that map.
 
 Depth errors only change the image where a depth discontinuity meets a
@@ -31,9 +31,9 @@ import numpy as np
 import torch
 
 from bokehray.colour import linear_to_srgb, srgb_to_linear
-from bokehray.depthfix import DepthFixOptions, correction_steps
 from bokehray.errors import InputError
 from bokehray.lens import BlurParams
+from bokehray_refiner.depthfix import DepthFixOptions, correction_steps
 from bokehray_refiner.pisa import PisaMaskOptions
 
 from .edges import EdgeNet, load_edge_net, place_edges
@@ -64,7 +64,7 @@ class RefineOptions:
         band_margin_px, band_feather_px: the correction is kept only within (the edge's CoC + margin) of a
             depth edge, fading out over the feather: farther away a depth error cannot change the image.
         gate: the confidence gate (``GateOptions(enabled=False)`` lets the whole band through).
-        depthfix: the colour-guided depth correction run first (``bokehray.depthfix``); it needs a ``rerender``
+        depthfix: the colour-guided depth correction run first (``bokehray_refiner.depthfix``); it needs a ``rerender``
             callback in :func:`refine` (the classical level again, on the corrected disparity).
         neural: False stops after the depth correction (the neural residual is not run).
         merge_tiles: neighbouring tiles to refine run as one box with one halo (:func:`refine_boxes`), blended
@@ -75,13 +75,12 @@ class RefineOptions:
         edge_min_disagreement: the edge network runs only where, on the corrected map, the confidence gate's
             colour/depth agreement (:func:`.gate.refine_gate`, no highlight guard) is open over at least this mean share
             of the edge band: where the correction put nearly every depth edge on a colour edge (a map grown by
-            1 px, say) little is left for it, and its moves there cost more than they gain (docs/refiner.md,
-            "Round 10"). 0: whenever the map was found wrong.
+            1 px, say) little is left for it, and its moves there cost more than they gain (docs/design/edge-gate.md). 0: whenever the map was found wrong.
         edge_threshold: the edge network moves a pixel across an edge only where it gives the other side at least
             this probability.
         edge_passes: the edge network runs again on the map it made, up to this many passes in all (fewer where a
             pass moves nothing): a misplaced strip contaminates the sides' colour means it reads until it is moved
-            (:func:`.edges.place_edges`; docs/refiner.md, "Round 11").
+            (:func:`.edges.place_edges`; measured: research/refiner_edges/README.md).
         edge_colour_margin: and only where the pixel's colour is nearer the local mean colour of the side it joins,
             by this much (sRGB; :func:`.edges.colour_allows`); None: no colour veto.
         min_fixed_share: refine changes only a map the depth correction found wrong: where its local passes moved at
@@ -90,9 +89,13 @@ class RefineOptions:
             back, where the correction found the whole map misregistered: a shift moves every pixel and is not
             counted). A map whose edges sit on
             the photo's has nothing to repair, and there the correction's and the networks' few confident wrong
-            moves cost more than they gain (docs/refiner.md, "Round 10"). 0: every map. Where the correction does
+            moves cost more than they gain (docs/design/edge-gate.md). 0: every map. Where the correction does
             not run (off, or :func:`refine` without ``rerender``) there is no evidence either way: the residual
             network runs on every map, and the edge network only with this at 0 (and a ``rerender``).
+        model: a local folder holding a one-step diffusion checkpoint in the diffusers layout (docs/refiner.md, "A
+            one-step diffusion checkpoint"): it renders the whole frame with PISA attention instead of this pass
+            (``bokehray_refiner.onestep.refine_one_step``), on the render's device; its weights must fit its
+            config. None: the shipped CPU networks above.
     """
 
     tile: int = 64
@@ -112,6 +115,7 @@ class RefineOptions:
     edge_colour_margin: float | None = None
     min_fixed_share: float = 0.01
     edge_min_disagreement: float = 0.04
+    model: str | os.PathLike | None = None
 
     def __post_init__(self) -> None:
         if self.tile < 8 or self.tile % 8 or self.halo < 0 or self.halo % 8:
@@ -262,7 +266,7 @@ def refine(
 ) -> tuple[np.ndarray, RefineStats]:
     """Refine a classical render where depth discontinuities meet blur.
 
-    First, with ``rerender``, the colour-guided depth correction (``bokehray.depthfix``): where a depth edge
+    First, with ``rerender``, the colour-guided depth correction (``bokehray_refiner.depthfix``): where a depth edge
     sits off the photo's colour edge, the disparity there is corrected and ``rerender(corrected)`` renders
     the classical level again; the neural residual (behind its gate) then corrects that render, seeing the
     corrected disparity. Without ``rerender``, or where nothing is corrected, the render is the given one.
@@ -387,7 +391,7 @@ def _same_map(a: np.ndarray, b: np.ndarray) -> bool:
 def corrected_disparity(image: np.ndarray, disparity: np.ndarray, blur: BlurParams,
                         options: RefineOptions = RefineOptions(), edge_model: EdgeNet | None = None,
                         focus_srgb: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """The map refine renders: the colour-guided depth correction (``bokehray.depthfix``), then, with
+    """The map refine renders: the colour-guided depth correction (``bokehray_refiner.depthfix``), then, with
     ``options.edges``, the learned edge placement (:mod:`.edges`) on its result; and which pixels moved. Clipped
     lights (dilated by 2 px) never move and never vote. A map the correction does not find wrong
     (``options.min_fixed_share``) comes back as it is, with nothing moved, or only shifted back where the correction

@@ -41,7 +41,7 @@ class _Terminal(io.StringIO):
 
 
 def test_a_batch_draws_no_bar_frames_when_stderr_is_no_terminal(tmp_path, capsys, monkeypatch):
-    """Round 8: the batch's tqdm bar redrew itself with carriage returns into a stderr redirected to a file or a CI
+    """Regression: the batch's tqdm bar redrew itself with carriage returns into a stderr redirected to a file or a CI
     log. Off a terminal there is no bar now (the per-photo lines on stdout say the progress); on one it is drawn."""
     rng = np.random.default_rng(8)
     for i in range(3):

@@ -267,7 +267,7 @@ def test_usage_errors_are_one_line_with_exit_2(argv, capsys):
     ],
 )
 def test_negative_number_pairs_are_values_not_options(scene, tmp_path, capsys, argv, message):
-    """issue 18: argparse took ``--focus-at -1,0`` for an option ("expected one argument")."""
+    """Regression: argparse took ``--focus-at -1,0`` for an option ("expected one argument")."""
     p, _, _ = scene
     argv = [a.format(png=p["png"], disp=p["disp_png"], out=tmp_path / "o.png") for a in argv]
     code, _, err = run(capsys, *argv)

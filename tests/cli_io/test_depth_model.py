@@ -166,7 +166,7 @@ def _variant(models, tmp_path, name, edit=None, pre=None):
     return folder
 
 
-_BAD_CHECKPOINTS = {  # reliability round three, items 2, 9 and 10: (checkpoint, config edit, preprocessor, message)
+_BAD_CHECKPOINTS = {  # reliability findings: (checkpoint, config edit, preprocessor, message)
     "weights of another model_type": ("da", lambda c: c.update(model_type="dpt"), None,
                                       "the weights do not fit the DPT model its config.json describes: 14 missing"),
     "a processor config that is a list": ("da", None, [56, 56], "expected a JSON object"),

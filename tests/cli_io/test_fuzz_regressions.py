@@ -1,7 +1,7 @@
 """Replay the fuzzer's files (tests/data/fuzz/) through every reader of their format; no atheris needed.
 
 ``seeds/`` holds small valid files of every variant the writers produce (what the fuzzer
-starts from): each must be read. ``found/`` holds inputs the fuzzer (benchmarks/fuzz_readers.py)
+starts from): each must be read. ``found/`` holds inputs the fuzzer (benchmarks/robustness/fuzz_readers.py)
 turned up, each once a failure: each must now be read, or refused with one InputError or
 ResourceError naming the file, and nothing else may be printed. docs/robustness.md lists
 what each found input was.

@@ -477,7 +477,7 @@ def test_failed_write_to_new_path_leaves_nothing(tmp_path, monkeypatch):
     assert os.listdir(tmp_path) == []
 
 
-# --------------------------------------------------------------------------- issue 18: writer errors, stale temporaries
+# --------------------------------------------------------------------------- writer errors, stale temporaries
 
 
 @pytest.mark.parametrize("name,patch", [
@@ -584,7 +584,7 @@ def test_temporary_names_carry_host_and_pid(tmp_path, monkeypatch):
     assert name.startswith(".o.png.tmp-") and f"-{os.getpid()}-" in name and name.endswith(".png")
 
 
-# --------------------------------------------------------------------------- issue 18: values as the file holds them
+# --------------------------------------------------------------------------- values as the file holds them
 
 
 def test_float64_beyond_float32_is_reported_as_the_file_holds_it(tmp_path):
@@ -632,7 +632,7 @@ def test_writers_refuse_float64_beyond_float32_without_warnings(tmp_path):
     assert os.listdir(tmp_path) == []
 
 
-# --------------------------------------------------------------------------- issue 18: questionable inputs decided
+# --------------------------------------------------------------------------- questionable inputs decided
 
 
 def test_alpha_only_exr_is_neither_an_image_nor_a_map(tmp_path):

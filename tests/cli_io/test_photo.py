@@ -475,7 +475,7 @@ def test_edge_distance_is_scipys_distance_transform_capped(mask, cap):
 
 @pytest.mark.slow
 def test_the_highlight_reconstruction_does_not_import_scipy_ndimage():
-    """A render's start-up budget (issue 15): scipy.ndimage alone costs about 0.2 s to import."""
+    """A render's start-up budget: scipy.ndimage alone costs about 0.2 s to import."""
     import subprocess
     import sys
 

@@ -1,5 +1,5 @@
-"""A fast start (issue 15): the sRGB transfer without colour-science, lazy package exports, Warp quiet and
-imported only when a render starts. The timings themselves are measured by benchmarks/bench_startup.py."""
+"""A fast start: the sRGB transfer without colour-science, lazy package exports, Warp quiet and
+imported only when a render starts. The timings themselves are measured by benchmarks/scale/bench_startup.py."""
 
 import subprocess
 import sys

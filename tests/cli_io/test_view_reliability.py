@@ -172,7 +172,7 @@ def _response(s: socket.socket) -> bytes:
 
 
 def test_connections_that_never_finish_their_headers_are_closed_and_the_server_answers_again(server, monkeypatch):
-    """Round 7 left this open: a connection that sent nothing, or half of its request headers, was never timed out;
+    """Regression: a connection that sent nothing, or half of its request headers, was never timed out;
     64 of them (uvicorn's concurrency limit) and every other request was answered 503 until they closed. Each has
     HEADER_TIMEOUT_S now: half a request is answered 408, a silent connection closed; so is a kept-alive connection
     that starts its next request and stops. Outcomes only; HANG_S is a hang detector."""

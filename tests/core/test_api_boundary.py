@@ -1,4 +1,4 @@
-"""Reliability, round three (items 13 and 14): the public API answers wrong types and huge shapes with the project's
+"""Reliability: the public API answers wrong types and huge shapes with the project's
 errors, from the arguments alone, before any allocation; each case failed before its fix (a TypeError,
 OverflowError or NumPy's raw MemoryError)."""
 

@@ -85,7 +85,7 @@ def test_one_strip_is_one_box_of_the_apertures_area_on_its_centroid(aperture):
 
 
 def test_single_fronto_parallel_layer_is_the_exact_disc_convolution_at_defaults(device):
-    """Issue 13: a random texture at r = 10 px >= 45 dB against the exact disc convolution (no noise)."""
+    """A random texture at r = 10 px >= 45 dB against the exact disc convolution (no noise)."""
     rng = np.random.default_rng(1)
     h = w = 48
     tex = np.concatenate([rng.random((h, w, 3)), np.ones((h, w, 1))], 2).astype(np.float32)
@@ -104,7 +104,7 @@ def test_single_fronto_parallel_layer_is_the_exact_disc_convolution_at_defaults(
 @pytest.mark.parametrize("aperture", APERTURES)
 @pytest.mark.parametrize("radius", [16, 64])
 def test_point_light_spread_is_the_exact_aperture(aperture, radius):
-    """Issue 13: a point light's spread within 4 % L1 of the exact aperture (R = 256: benchmarks/bench_raytrace.py)."""
+    """A point light's spread within 4 % L1 of the exact aperture (R = 256: benchmarks/renderer/bench_raytrace.py)."""
     n = 2 * radius + 9
     c = n // 2
     tex = np.zeros((n, n, 4), np.float32)

@@ -277,7 +277,7 @@ def test_highlight_boost_inflates_only_clipped_pixels():
 
 
 def test_bright_sources_never_give_negative_output():
-    """Soak regression (benchmarks/soak.py seed 0 case 114): float32 row sums next to radiance 1e4."""
+    """Soak regression (benchmarks/robustness/soak.py seed 0 case 114): float32 row sums next to radiance 1e4."""
     rng = np.random.default_rng(980325484)
     image = (rng.random((33, 64, 3)) * 1e4).astype(np.float32)
     margin = 6
@@ -381,7 +381,7 @@ def test_lights_leave_a_constant_channel_constant(seed, k, level):
 
 
 def test_tiles_gather_extended_lights_like_the_whole_frame():
-    """Regression (found by benchmarks/soak.py): gathered light sources at arbitrary centroids were cut into other
+    """Regression (found by benchmarks/robustness/soak.py): gathered light sources at arbitrary centroids were cut into other
     sub-rows in a tile's window than in the whole frame (float32 rounding of y - yc), 1.2e-4 apart; centroids now
     lie on a 1/256 px grid."""
     rng = np.random.default_rng(2026998898)

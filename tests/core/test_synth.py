@@ -70,7 +70,7 @@ def test_cli_synth_and_bad_input(tmp_path, capsys):
 
 
 def test_synth_progress_off_a_terminal_is_plain_lines(tmp_path, capsys, monkeypatch):
-    """Round 8: ``synth``'s tqdm bar wrote carriage-return frames into a stderr that was a file or a CI log. Off a
+    """Regression: ``synth``'s tqdm bar wrote carriage-return frames into a stderr that was a file or a CI log. Off a
     terminal it prints a plain line now and then (here every time: the interval is set to 0), never a frame."""
     import bokehray._quiet
 

@@ -349,7 +349,7 @@ def test_an_extended_light_keeps_its_energy_and_round_shape(device):
 def test_a_small_lamp_keeps_its_outline(device):
     """A lamp of radius 3 px at R = 33 (its clusters gathered per 2 px block): against the pyramid-free render its
     largest error stays below 8.5 % of the peak (10 % with the pyramid levels' sharp spans for the cluster
-    sources, which this round tried and dropped)."""
+    sources, which was tried and dropped: docs/design/radius-pyramid.md)."""
     size = 121
     yy, xx = np.mgrid[:size, :size]
     image = np.full((size, size, 3), 0.05, np.float32)

@@ -1,16 +1,15 @@
-"""``bokehray_kernels.vote.vote_kernel`` (through ``bokehray.depthfix.vote``) against its float64 oracle
+"""``bokehray_kernels.vote.vote_kernel`` (through ``bokehray_refiner.depthfix.vote``) against its float64 oracle
 (``reference.depthfix_ref.vote_ref``): random layered maps with texture, suspect and kept pixels, both vote modes;
 and the weighted median where the side's values are ties, and where they lie closer than the halving can part."""
 
 import bokehray_kernels.vote as bk_vote
 import numpy as np
 import pytest
+from bokehray_refiner.depthfix import DepthFixOptions, _offsets, vote, vote_sides
 from hypothesis import given
 from hypothesis import strategies as st
 from reference.depthfix_ref import vote_ref, weighted_median_ref
 from scipy import ndimage
-
-from bokehray.depthfix import DepthFixOptions, _offsets, vote, vote_sides
 
 OPTIONS = DepthFixOptions()
 

@@ -1,4 +1,4 @@
-"""Slow obvious reference of ``bokehray.depthfix``: pair by pair, pixel by pixel, in float64.
+"""Slow obvious reference of ``bokehray_refiner.depthfix``: pair by pair, pixel by pixel, in float64.
 
 Only the smoothing filters come from SciPy (the disparity's Gaussian and Sobel for the edge normal, the
 Gaussian of the normalised convolution along the edge); sampling, colour steps, scores, painting, the
@@ -10,9 +10,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from bokehray_refiner.depthfix import DepthFixOptions
 from scipy import ndimage
-
-from bokehray.depthfix import DepthFixOptions
 
 from .matting_ref import ramp_width_ref
 

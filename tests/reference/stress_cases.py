@@ -8,7 +8,7 @@ deposit of weight 1e-6 is below float32's smallest subnormal (1.4e-45) and
 becomes 0, and the subnormal grid itself carries absolute rounding of that size
 (a relative error of 1e-3 or more at 1e-42). Used by
 tests/test_stress_numerics.py (few cases, asserted) and by
-benchmarks/stress_reference.py (many cases, worst error recorded).
+benchmarks/robustness/stress_reference.py (many cases, worst error recorded).
 """
 
 from __future__ import annotations

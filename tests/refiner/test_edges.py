@@ -203,9 +203,8 @@ def test_weights_round_trip_and_load_only_when_they_fit(tmp_path):
 def test_refine_renders_once_on_the_map_the_edge_network_moved():
     """With ``RefineOptions(edges=True)`` the edge network runs after the depth fix, and the level renders once, on
     its map; pixels it moved count as corrected."""
+    from bokehray_refiner.depthfix import DepthFixOptions
     from bokehray_refiner.refine import RefineOptions, corrected_disparity, refine
-
-    from bokehray.depthfix import DepthFixOptions
 
     focus, d, blur = _scene()
     image = focus ** 2.2
@@ -231,9 +230,8 @@ def test_refine_renders_once_on_the_map_the_edge_network_moved():
 
 
 def test_a_float64_map_counts_only_the_pixels_the_network_moved():
+    from bokehray_refiner.depthfix import DepthFixOptions
     from bokehray_refiner.refine import RefineOptions, corrected_disparity
-
-    from bokehray.depthfix import DepthFixOptions
 
     focus, d, blur = _scene()
     opts = RefineOptions(edges=True, depthfix=DepthFixOptions(enabled=False), min_fixed_share=0.0)
@@ -307,8 +305,8 @@ def test_the_shipped_edge_weights_load_and_fit_their_recorded_config():
 def _eroded_scene_and_refiner():
     """(image, its map eroded by 3 px, blur, the level's rerender, a seeded untrained refiner): a map the correction
     works on, for the tests of what refine reuses."""
-    from bokehray_refiner.data import corrupt_disparity
     from bokehray_refiner.model import BokehRefiner
+    from bokehray_refiner.training.data import corrupt_disparity
 
     focus, d, blur = _scene(96, 128)
     image = focus ** 2.2
@@ -343,8 +341,8 @@ def test_the_disagreement_left_is_small_where_depth_edges_sit_on_colour_edges():
     """:func:`disagreement`: the mean confidence gate over the band is near 0 for a square's exact map and large
     where the map's square is shrunk by 5 px (its edges 5 px off the colour edges; the gate opens on the far side of
     an edge only, ``GateOptions.open_dilated``); refine reports it and whether the edge network ran."""
-    from bokehray_refiner.data import corrupt_disparity
     from bokehray_refiner.refine import RefineOptions, disagreement, edge_band, edge_reach, nearest_edge, refine
+    from bokehray_refiner.training.data import corrupt_disparity
 
     image, exact, blur = _red_square()
     focus = image ** (1 / 2.2)

@@ -8,8 +8,8 @@ pytest.importorskip("diffusers")
 
 from bokehray_refiner.masks import PisaMaskProvider  # noqa: E402
 from bokehray_refiner.onestep import OneStepOptions, load_one_step  # noqa: E402
-from bokehray_refiner.processor import PassThroughAttnProcessor, PISAAttnProcessor  # noqa: E402
-from bokehray_refiner.testing import write_tiny_sdxl  # noqa: E402
+from bokehray_refiner.onestep.processor import PassThroughAttnProcessor, PISAAttnProcessor  # noqa: E402
+from bokehray_refiner.onestep.testing import write_tiny_sdxl  # noqa: E402
 from bokehray_refiner.tiles import blend_tiles, tile_grid  # noqa: E402
 
 from bokehray.errors import InputError  # noqa: E402

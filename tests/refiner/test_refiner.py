@@ -10,7 +10,6 @@ from hypothesis import strategies as st
 
 torch = pytest.importorskip("torch")
 
-from bokehray_refiner.data import PairBank, corrupt_disparity  # noqa: E402
 from bokehray_refiner.gate import GateOptions  # noqa: E402
 from bokehray_refiner.masks import PisaMaskProvider  # noqa: E402
 from bokehray_refiner.model import BokehRefiner, fingerprint  # noqa: E402
@@ -22,7 +21,8 @@ from bokehray_refiner.refine import (  # noqa: E402
     refine,
     tiles_to_refine,
 )
-from bokehray_refiner.train import TrainConfig, edge_loss, hardness_at, train  # noqa: E402
+from bokehray_refiner.training.data import PairBank, corrupt_disparity  # noqa: E402
+from bokehray_refiner.training.residual import TrainConfig, edge_loss, hardness_at, train  # noqa: E402
 
 import bokehray as br  # noqa: E402
 from bokehray.data.synth import SynthConfig, generate  # noqa: E402
@@ -180,7 +180,7 @@ def test_full_frame_and_tiled_refinement_blend_the_same_way():
 def weights(tmp_path_factory):
     from pathlib import Path
 
-    from bokehray_refiner.train import export_weights
+    from bokehray_refiner.training.residual import export_weights
 
     model = BokehRefiner()
     with torch.no_grad():
@@ -283,7 +283,7 @@ def test_refine_needs_the_preview_quality(weights):
 
 
 def test_tile_search_is_bounded_by_the_grid_not_the_blur():
-    """Issue 18: the tile search looped over a window growing with the uncapped CoC (K = 1e5: 125 s on 256 x 256).
+    """Regression: the tile search looped over a window growing with the uncapped CoC (K = 1e5: 125 s on 256 x 256).
     A reach far beyond the image marks every tile, exactly as a reach of the image's size does."""
     from bokehray_refiner.refine import tiles_near
 
@@ -663,8 +663,7 @@ def test_a_map_shifted_back_as_a_whole_is_rendered_shifted_without_the_networks(
     local passes then move under ``min_fixed_share`` of the band, the shifted map is rendered and no network runs (the
     edge network on a map the shift made right punched holes in it: -2.9 dB on the dev set's 2 px shift)."""
     import bokehray_refiner.refine as refine_module
-
-    from bokehray.depthfix import shift_map
+    from bokehray_refiner.depthfix import shift_map
 
     img, d = _edge_scene(4)
     blur = br.BlurParams(12.0, 0.9)
@@ -685,8 +684,9 @@ def test_a_map_shifted_back_as_a_whole_is_rendered_shifted_without_the_networks(
 def test_a_map_the_depth_fix_takes_for_noise_is_refined_as_without_the_fix():
     """On a map of noise the depth fix does not run (``correction_steps`` says so with no shift), so there is no
     evidence either way: the residual network runs, as with the fix off, and nothing counts as moved."""
+    from bokehray_refiner.depthfix import correct_disparity, correction_steps
+
     from bokehray.colour import linear_to_srgb
-    from bokehray.depthfix import correct_disparity, correction_steps
 
     img, d = _edge_scene(5)
     noisy = np.clip(d + np.random.default_rng(5).normal(0.0, 0.15, d.shape), 0, 1).astype(np.float32)

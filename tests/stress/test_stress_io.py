@@ -193,7 +193,7 @@ def test_exr_whose_unpremultiplied_colour_overflows_is_refused(tmp_path):
     np.testing.assert_allclose(br.read_image(p)[0, 0], [5e21, 5e21, 2.5e21, 1e-22], rtol=1e-6)  # finite: kept
 
 
-# --------------------------------------------------------------------------- issue 18: the CLI in a real process
+# --------------------------------------------------------------------------- the CLI in a real process
 # (a traceback, a warning or a native library's line reaches the real stderr only outside pytest's capture)
 
 
@@ -266,7 +266,7 @@ def test_disk_full_while_writing_is_one_line_naming_the_output(inputs, full_disk
 
 @pytest.mark.slow
 def test_a_demo_on_a_full_disk_leaves_no_folder(full_disk):
-    """Round 8: ``bokehray demo`` on a full disk said so in one line but left its (empty) output folder behind."""
+    """Regression: ``bokehray demo`` on a full disk said so in one line but left its (empty) output folder behind."""
     folder, mounted = full_disk
     out = folder / "demo"
     proc = _cli(["demo", "-o", out, "--size", "96,64", "--quiet"], prelude="" if mounted else _ENOSPC_WRITERS)
@@ -306,7 +306,7 @@ def _start_and_signal(args, sig):
                                             (signal.SIGHUP, 129, "terminated (SIGHUP)")])
 def test_a_signal_while_writing_removes_the_temporary_file(inputs, tmp_path, sig, code, words):
     """issue 18.6: SIGTERM used to kill the process mid-write, leaving ``.o.png.XXXX.png`` beside the output; SIGHUP
-    (the terminal closed) did until round 7."""
+    (the terminal closed) did before."""
     img, disp = inputs
     out = tmp_path / "o.png"
     rc, err = _start_and_signal(["render", img, "--disparity", disp, "-o", out, "--blur", 4, "--focus", 0.5], sig)

@@ -2,12 +2,12 @@
 
 What tests/test_render_api.py already covers is not repeated here (finite and in-range output
 for moderate random scenes, constant images, K = 0 and in-focus identity of RGB previews,
-energy of fronto-parallel scenes). This file adds the extremes of issue 7: K huge relative to
+energy of fronto-parallel scenes). This file adds the extremes: K huge relative to
 the image, d_f exactly 0 and 1, disparity exactly 0 or 1 everywhere, 1 x 1, 1 x N and N x 1
 images, grey and RGBA inputs, radiance 0, 1e-8, 1e4 and float32 denormals, both quality
 levels; the kernels against their float64 references on such cases; and the ray tracer's
 degenerate geometry (grazing planes, layers at one depth, alpha exactly 0 and 1, one ray).
-The long version is benchmarks/stress_reference.py and benchmarks/soak.py (docs/robustness.md).
+The long version is benchmarks/robustness/stress_reference.py and benchmarks/robustness/soak.py (docs/robustness.md).
 """
 
 import numpy as np

@@ -194,6 +194,11 @@ def build_parser() -> argparse.ArgumentParser:
     o.add_argument("--refine", nargs="?", const=True, default=False, metavar="WEIGHTS",
                    help="then run the neural refiner near depth edges (preview quality; needs the 'refiner' extra); "
                    "default: the shipped weights, or WEIGHTS from bokehray train-refiner")
+    o.add_argument("--refiner-model", metavar="DIR", default=None,
+                   help="instead of the shipped networks, a one-step diffusion checkpoint with PISA attention from "
+                   "the local folder DIR (diffusers layout: unet/ vae/ scheduler/ and text encoders or "
+                   "prompt_embeds.safetensors) renders the frame, on --device; implies --refine; nothing is "
+                   "downloaded (docs/refiner.md)")
     o.add_argument("--refine-everywhere", action="store_true",
                    help="with --refine: also where the depth fix finds the map right (it moved under 1%% of the edge "
                    "band), which --refine leaves as rendered, and the edge network wherever the map is found wrong; "
@@ -465,7 +470,7 @@ def _check_train_args(args: argparse.Namespace) -> None:
 
 
 def cmd_train_refiner(args: argparse.Namespace) -> int:
-    train = _refiner_module("train")
+    train = _refiner_module("training.residual")
     _check_train_args(args)
     start_warp(args)
     if args.threads is not None:
@@ -476,7 +481,7 @@ def cmd_train_refiner(args: argparse.Namespace) -> int:
         torch.set_num_threads(args.threads)
     extra = {}
     if args.corruptions:
-        CORRUPTIONS = _refiner_module("data").CORRUPTIONS
+        CORRUPTIONS = _refiner_module("training.data").CORRUPTIONS
         shares = dict(_name_values(args.corruptions, "--corruptions", "KIND=SHARE"))
         unknown = sorted(set(shares) - set(CORRUPTIONS))
         total = sum(shares.values())

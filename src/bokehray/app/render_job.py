@@ -62,14 +62,36 @@ def layer_options_of(args: argparse.Namespace):
     return LayerOptions(**kw)
 
 
+def _check_refiner_model(args: argparse.Namespace) -> None:
+    """``--refiner-model DIR`` implies ``--refine``; it replaces the shipped networks, so it takes no --refine
+    WEIGHTS and no --refine-everywhere; DIR must be a folder."""
+    model = getattr(args, "refiner_model", None)
+    if model is None:
+        return
+    if args.refine not in (False, True):
+        raise InputError(f"--refiner-model {model} replaces the shipped networks; it takes no --refine WEIGHTS "
+                         f"({args.refine})")
+    if getattr(args, "refine_everywhere", False):
+        raise InputError("--refine-everywhere tunes the shipped networks; --refiner-model replaces them")
+    if not Path(model).is_dir():
+        raise InputError(f"--refiner-model {model}: not a folder (a one-step model is a diffusers-layout folder)")
+    args.refine = True
+
+
 def refine_options_of(args: argparse.Namespace):
     """``--refine-everywhere``: refine also a map the depth fix finds right, and run the edge network wherever it is
-    found wrong (``RefineOptions(min_fixed_share=0, edge_min_disagreement=0)``); None: the refiner's defaults."""
-    if not getattr(args, "refine_everywhere", False):
+    found wrong (``RefineOptions(min_fixed_share=0, edge_min_disagreement=0)``); ``--refiner-model DIR``: the
+    one-step model in DIR instead (``RefineOptions(model=DIR)``); None: the refiner's defaults."""
+    kw = {}
+    if getattr(args, "refine_everywhere", False):
+        kw |= {"min_fixed_share": 0.0, "edge_min_disagreement": 0.0}
+    if getattr(args, "refiner_model", None) is not None:
+        kw["model"] = args.refiner_model
+    if not kw:
         return None
     from ..levels.refine import refine_options
 
-    return refine_options(min_fixed_share=0.0, edge_min_disagreement=0.0)
+    return refine_options(**kw)
 
 
 class _Progress:
@@ -186,6 +208,7 @@ def check_render_flags(args: argparse.Namespace) -> bool:  # noqa: C901
                          "(with --depth)")
     if args.depth_scale is not None and args.depth is None:
         raise InputError("--depth-scale converts the codes of an integer --depth map to metres; it needs --depth")
+    _check_refiner_model(args)
     if getattr(args, "refine_everywhere", False) and not args.refine:
         raise InputError("--refine-everywhere changes what --refine does; it needs --refine")
     if args.blur is not None and args.blur < 0:

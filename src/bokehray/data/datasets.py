@@ -89,7 +89,7 @@ def _json_default(o: Any) -> Any:
 # --------------------------------------------------------------------------- writer
 
 
-def write_blb_scene(  # noqa: C901
+def write_blb_scene(
     folder: str | os.PathLike[str],
     image: np.ndarray,
     disparity: np.ndarray,
@@ -136,6 +136,25 @@ def write_blb_scene(  # noqa: C901
     if d.shape != (h, w) or d.dtype.kind not in "fiu":
         raise InputError(f"disparity: expected a real {h} x {w} (H x W) array like the image, got shape {d.shape}")
     d = check_disparity(d, (h, w))
+    ks, dfs, text = _checked_info(info)
+    outs = _checked_renders(renders, len(ks), len(dfs), (h, w))
+
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=folder.parent, prefix=f".{folder.name}.tmp-{os.getpid()}-"))
+    try:
+        _write_scene_files(tmp, img, d, outs, text, previews)
+        _swap_in(tmp, folder)
+    except OutputError as e:  # name the scene's folder, not the hidden one it is written in (removed below)
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise OutputError(str(e).replace(str(tmp), str(folder))) from None
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return folder
+
+
+def _checked_info(info: Any) -> tuple[list[float], list[float], str]:
+    """``info``'s blur levels and focus disparities, checked, and its JSON with ``focus_distances`` added."""
     if not isinstance(info, Mapping):
         raise InputError(f"info: expected a dict, got {type(info).__name__}")
     ks = _floats(info, "blur_parameters", "info")
@@ -149,6 +168,12 @@ def write_blb_scene(  # noqa: C901
         text = json.dumps(meta, indent=2, allow_nan=False, default=_json_default)
     except (TypeError, ValueError) as exc:
         raise InputError(f"info: expected JSON-serialisable finite values, got an error: {exc}") from None
+    return ks, dfs, text
+
+
+def _checked_renders(renders: Sequence[Mapping[str, Any]], n_k: int, n_f: int,
+                     hw: tuple[int, int]) -> dict[tuple[int, int], np.ndarray]:
+    """The renders by (k_index, f_index), each index, duplicate and image checked."""
     outs: dict[tuple[int, int], np.ndarray] = {}
     for i, r in enumerate(renders):
         if not isinstance(r, Mapping):
@@ -156,38 +181,32 @@ def write_blb_scene(  # noqa: C901
         k, f = r.get("k_index"), r.get("f_index")
         if not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in (k, f)):
             raise InputError(f"renders[{i}]: expected integer k_index and f_index, got {k!r}, {f!r}")
-        if not (0 <= k < len(ks) and 0 <= f < len(dfs)):
-            raise InputError(f"renders[{i}]: k_index {k} / f_index {f} out of range for {len(ks)} blur levels "
-                             f"and {len(dfs)} focus disparities")  # fmt: skip
+        if not (0 <= k < n_k and 0 <= f < n_f):
+            raise InputError(f"renders[{i}]: k_index {k} / f_index {f} out of range for {n_k} blur levels "
+                             f"and {n_f} focus disparities")  # fmt: skip
         if (int(k), int(f)) in outs:
             raise InputError(f"renders[{i}]: duplicate render for k_index {k}, f_index {f}")
-        outs[int(k), int(f)] = _check_image(r.get("image"), f"renders[{i}] image", (h, w))
+        outs[int(k), int(f)] = _check_image(r.get("image"), f"renders[{i}] image", hw)
+    return outs
 
-    folder.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=folder.parent, prefix=f".{folder.name}.tmp-{os.getpid()}-"))
-    try:
-        umask = os.umask(0o022)
-        os.umask(umask)
-        os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes 0700
-        write_image(tmp / "image.exr", img)
-        with np.errstate(divide="ignore"):
-            write_image(tmp / "depth.exr", np.where(d > 0, 1.0 / d.astype(np.float64), FAR_DEPTH).astype(np.float32))
+
+def _write_scene_files(tmp: Path, img: np.ndarray, d: np.ndarray, outs: dict[tuple[int, int], np.ndarray],
+                       text: str, previews: bool) -> None:
+    """Every file of the scene into the temporary folder ``tmp`` (made readable as a folder mkdir would make)."""
+    umask = os.umask(0o022)
+    os.umask(umask)
+    os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes 0700
+    write_image(tmp / "image.exr", img)
+    with np.errstate(divide="ignore"):
+        write_image(tmp / "depth.exr", np.where(d > 0, 1.0 / d.astype(np.float64), FAR_DEPTH).astype(np.float32))
+    if previews:
+        write_image(tmp / "image.png", img)
+        write_disparity(tmp / "disparity.png", d)
+    for (k, f), out in sorted(outs.items()):
+        write_image(tmp / f"bokeh_{k}_{f}.exr", out)
         if previews:
-            write_image(tmp / "image.png", img)
-            write_disparity(tmp / "disparity.png", d)
-        for (k, f), out in sorted(outs.items()):
-            write_image(tmp / f"bokeh_{k}_{f}.exr", out)
-            if previews:
-                write_image(tmp / f"bokeh_{k}_{f}.png", out)
-        (tmp / "info.json").write_text(text + "\n")
-        _swap_in(tmp, folder)
-    except OutputError as e:  # name the scene's folder, not the hidden one it is written in (removed below)
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise OutputError(str(e).replace(str(tmp), str(folder))) from None
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return folder
+            write_image(tmp / f"bokeh_{k}_{f}.png", out)
+    (tmp / "info.json").write_text(text + "\n")
 
 
 def _check_image(a: Any, what: str, hw: tuple[int, int] | None = None) -> np.ndarray:

@@ -46,7 +46,7 @@ __all__ = ["aperture_shape", "border_pad", "no_routing", "prefix_rows", "pyramid
 
 # Bytes per pixel, from the arrays each stage allocates (float32 = 4 bytes), calibrated on measured peaks (the
 # growth of the process during renders of 1.5 to 24 MP, within 15 %: docs/renderer.md, "The memory model");
-# benchmarks/bench_memory.py prints the estimate beside the peak (docs/robustness.md).
+# benchmarks/photo/bench_memory.py prints the estimate beside the peak (docs/robustness.md).
 WHOLE_IMAGE_B = 24
 """Whole-image arrays kept through the layers: the scene's colour (its split pixels hold their far part, 12), its
 signed CoC (4), layer ids (4), tile masks; the plan's transients (sort keys) are gone by then, and so are the

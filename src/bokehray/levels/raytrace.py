@@ -30,7 +30,7 @@ from .raytrace_launch import choose_levels, strip_range, summed_area, trace_band
 
 __all__ = ["Layer", "raytrace_layers", "render_raytrace"]
 
-# Bytes per pixel (float32 = 4 bytes), checked against measured peaks by benchmarks/bench_memory.py.
+# Bytes per pixel (float32 = 4 bytes), checked against measured peaks by benchmarks/photo/bench_memory.py.
 WHOLE_IMAGE_B = 48
 """Whole-image arrays: signed CoC, layer ids, the plan's sort keys, output."""
 LAYER_B = 56

@@ -53,5 +53,12 @@ def refine_render(image: np.ndarray, disparity: np.ndarray, blur: BlurParams, cl
     options = module.RefineOptions() if options is None else options  # its type checked by the pipeline already
 
     tdev = "cuda" if device.startswith("cuda") and torch.cuda.is_available() else "cpu"
+    if options.model is not None:
+        if weights is not True:
+            raise InputError("refine: a one-step model (refine_options.model) replaces the shipped network; give no "
+                             "refiner weights with it")
+        import bokehray_refiner.onestep as onestep
+
+        return onestep.refine_one_step(image, disparity, blur, options.model, tdev, classical, rerender)
     model = module.load_refiner(None if weights is True else weights, tdev)
     return module.refine(image, disparity, blur, classical, model=model, rerender=rerender, options=options)

@@ -79,11 +79,8 @@ def _positive_int(value: object, where: Path, key: str) -> int:
     return value
 
 
-def _preprocessor(folder: Path) -> dict:  # noqa: C901
-    """``preprocessor_config.json`` (if any), each key this module reads checked for its type."""
-    path = folder / "preprocessor_config.json"
-    if not path.exists():
-        return {}
+def _read_preprocessor(path: Path) -> dict:
+    """The JSON object in ``path``, or one line naming the file."""
     try:
         pre = json.loads(path.read_text())
     except (OSError, ValueError) as e:
@@ -91,6 +88,11 @@ def _preprocessor(folder: Path) -> dict:  # noqa: C901
     if not isinstance(pre, dict):
         raise InputError(f"{path}: expected a JSON object (the image processor's settings), got a "
                          f"{type(pre).__name__}")
+    return pre
+
+
+def _check_size(pre: dict, path: Path) -> None:
+    """``size`` (one positive integer, or ``height``/``width``) and ``ensure_multiple_of``."""
     size = pre.get("size")
     if isinstance(size, dict):
         for key in ("height", "width"):
@@ -98,10 +100,12 @@ def _preprocessor(folder: Path) -> dict:  # noqa: C901
                 _positive_int(size[key], path, f"size.{key}")
     elif size is not None:
         _positive_int(size, path, "size")
-    if "keep_aspect_ratio" in pre and not isinstance(pre["keep_aspect_ratio"], bool):
-        raise InputError(f"{path}: keep_aspect_ratio: expected true or false, got {pre['keep_aspect_ratio']!r}")
     if pre.get("ensure_multiple_of") is not None:
         _positive_int(pre["ensure_multiple_of"], path, "ensure_multiple_of")
+
+
+def _check_mean_std(pre: dict, path: Path) -> None:
+    """``image_mean`` and ``image_std``: three finite numbers each, the standard deviations > 0."""
     for key, positive in (("image_mean", False), ("image_std", True)):
         v = pre.get(key)
         if v is None:
@@ -112,6 +116,18 @@ def _preprocessor(folder: Path) -> dict:  # noqa: C901
         if not ok:
             what = "three finite numbers > 0 (one per RGB channel)" if positive else "three finite numbers (RGB)"
             raise InputError(f"{path}: {key}: expected {what}, got {v!r}")
+
+
+def _preprocessor(folder: Path) -> dict:
+    """``preprocessor_config.json`` (if any), each key this module reads checked for its type."""
+    path = folder / "preprocessor_config.json"
+    if not path.exists():
+        return {}
+    pre = _read_preprocessor(path)
+    _check_size(pre, path)
+    if "keep_aspect_ratio" in pre and not isinstance(pre["keep_aspect_ratio"], bool):
+        raise InputError(f"{path}: keep_aspect_ratio: expected true or false, got {pre['keep_aspect_ratio']!r}")
+    _check_mean_std(pre, path)
     return pre
 
 

@@ -41,7 +41,7 @@ def is_display_referred(path: str | os.PathLike[str]) -> bool:
 
 
 # The three image operations of the highlight reconstruction, in NumPy: scipy.ndimage would do them, but importing
-# its import would lengthen every render's start-up (benchmarks/bench_startup.py); highlights are
+# its import would lengthen every render's start-up (benchmarks/scale/bench_startup.py); highlights are
 # small, so these stay cheap. Each is tested against scipy.ndimage (tests/cli_io/test_photo.py).
 
 
@@ -147,7 +147,7 @@ def reconstruct_highlights(image: np.ndarray, *, overwrite: bool = False) -> tup
        ``HIGHLIGHT_GAIN`` at ``HIGHLIGHT_RAMP_PX`` inside; unclipped channels keep their (exact) values.
 
     Alpha, if present, is not touched. The rule and its measured effect are in docs/usage.md and
-    benchmarks/bench_highlights.py.
+    benchmarks/renderer/bench_highlights.py.
 
     ``overwrite=True`` writes the highlights into ``image`` itself when it is float32 (a caller that no longer
     needs the clipped photo, the command line: no frame-sized copy, 144 MB at 12 MP); by default ``image`` is

@@ -164,7 +164,7 @@ class RenderWorker:
         """Give the freed pages of past renders back to the system (glibc only; when no job waits).
 
         Without it the allocator keeps the freed buffers of renders of varying sizes and RSS creeps up
-        with the number of renders (benchmarks/soak_view.py: docs/view.md); with it RSS is flat.
+        with the number of renders (benchmarks/page/soak_view.py: docs/view.md); with it RSS is flat.
         """
         if _malloc_trim is None:
             return
