@@ -140,7 +140,7 @@ def pad_soft_edges(soft: SoftEdges, shape: tuple[int, int], pads: tuple[int, int
     """``soft`` on the frame of ``shape`` edge-replicated by ``pads`` (top, bottom, left, right), as
     ``np.pad(mode="edge")`` replicates the image: a split pixel on the border is split alike in its replicas."""
     h0, w0 = shape
-    pt, pb, pl, pr = pads
+    pt, _, pl, pr = pads
     w = w0 + pl + pr
     if len(soft) == 0:
         return soft
