@@ -24,7 +24,10 @@ lint: $(STAMP)
 	$(BIN)/lint-imports
 	@! git grep -nE '^(<<<<<<<|>>>>>>>)( |$$)' -- . || { echo "lint: unresolved merge-conflict markers (above)"; exit 1; }
 
+# the preview's speed beside the committed baseline (benchmarks/results/baseline.json): REGRESSION marks a figure
+# 15 % worse; a print, never a failure (CI may run on a busy machine)
 bench-quick: $(STAMP)
+	$(BIN)/python benchmarks/renderer/bench_guard.py
 	$(BIN)/python benchmarks/renderer/bench_preview.py --quick
 	$(BIN)/python benchmarks/renderer/bench_bokeh_shape.py --quick
 
