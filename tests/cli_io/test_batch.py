@@ -135,6 +135,29 @@ def test_failures_are_summarised_and_never_stop_the_batch(shoot, capsys):
     assert _files(shoot / "out") == ["bokehray-batch.json", "p0.png", "p1.png", "p2.png"]  # nothing partial
 
 
+def test_photos_that_are_no_regular_files_are_listed_as_failed(shoot, capsys):
+    """A FIFO, a dangling symbolic link and a link loop named as photos were neither rendered nor listed as failed."""
+    import os
+
+    photos, maps = shoot / "photos", shoot / "maps"
+    os.mkfifo(photos / "pipe.png")
+    (photos / "gone.png").symlink_to(photos / "nowhere.png")
+    (photos / "loop.png").symlink_to(photos / "loop.png")
+    for name in ("pipe.png", "gone.png", "loop.png"):
+        br.write_disparity(maps / name, _photo(0)[1])
+    code, out, err = run(capsys, "render", photos, "--disparity", maps, "-o", shoot / "out", "--blur", 6, "--focus",
+                         0.5, "--workers", 1)
+    assert code == 2 and "3 rendered, 0 skipped (complete), 3 failed" in out, out + err
+    lines = err.strip().splitlines()
+    assert lines[-4] == "bokehray: 3 inputs failed:", err
+    assert any("pipe.png: expected a regular file, got a named pipe (FIFO)" in x for x in lines), err
+    assert any("gone.png: a dangling symbolic link (to " in x for x in lines), err
+    assert any("loop.png: a loop of symbolic links" in x for x in lines), err
+    pairs = {p.image.name: p for p in find_pairs(str(photos / "*.png"), str(maps))}  # a glob lists them too
+    assert pairs["pipe.png"].map is None and "FIFO" in pairs["pipe.png"].problem
+    assert pairs["gone.png"].map is None and pairs["loop.png"].map is None
+
+
 def test_resume_skips_complete_outputs_and_refuses_other_settings(shoot, capsys):
     args = ["render", shoot / "photos", "--disparity", shoot / "maps", "-o", shoot / "out", "--blur", 6,
             "--focus", 0.5, "--workers", 1]

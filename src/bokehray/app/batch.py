@@ -133,15 +133,45 @@ def _listing(spec: str, exts: tuple[str, ...], what: str) -> tuple[list[Path], P
     """Files named by a folder, a glob or one file; and the folder they are relative to."""
     p = Path(spec)
     if p.is_dir():
-        files = [f for f in p.iterdir() if f.is_file() and not f.name.startswith(".") and f.suffix.lower() in exts]
+        # not only regular files: a FIFO, a dangling link or a link loop named as a photo is listed, to be reported
+        # as a failure (not_a_file), not dropped silently
+        files = [f for f in p.iterdir() if not f.is_dir() and not f.name.startswith(".") and f.suffix.lower() in exts]
         return sorted(files, key=natural_key), p
     if p.is_file():
         return [p], p.parent
     if _is_glob(spec):
         files = [Path(f) for f in glob.glob(spec, recursive=True)]
-        files = [f for f in files if f.is_file() and f.suffix.lower() in exts]
+        files = [f for f in files if not f.is_dir() and f.suffix.lower() in exts]
         return sorted(files, key=natural_key), None
     raise InputError(f"{spec}: no such {what} file or folder")
+
+
+def _real(f: Path) -> Path:
+    """``f`` resolved; a link loop (which ``resolve`` refuses) as it is named."""
+    try:
+        return f.resolve()
+    except (OSError, RuntimeError):
+        return f.absolute()
+
+
+def not_a_file(f: Path) -> str | None:
+    """Why ``f`` cannot be read as a photo's file (a dangling symbolic link, a link loop, a named pipe, a socket, a
+    device), or None for a regular file."""
+    import errno
+    import stat
+
+    try:
+        mode = os.stat(f).st_mode
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            return "a loop of symbolic links"
+        if e.errno == errno.ENOENT and os.path.islink(f):
+            return f"a dangling symbolic link (to {os.readlink(f)})"
+        return f"cannot be read ({e.strerror or e})"
+    if stat.S_ISREG(mode):
+        return None
+    kind = "a named pipe (FIFO)" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode) else "a device"
+    return f"expected a regular file, got {kind}"
 
 
 def _manifest(path: Path, kind: str) -> dict[str, Path]:
@@ -186,17 +216,23 @@ def _check_one_map_file(images: str, mp: Path, files: list[Path], kind: str, suf
                          f"with it")
 
 
-def find_pairs(images: str, maps: str, *, kind: str = "disparity", suffix: str = "") -> list[Pair]:  # noqa: C901
-    """The photos named by ``images`` and their maps from ``maps`` (module docstring: the pairing rule)."""
+def find_pairs(images: str, maps: str, *, kind: str = "disparity", suffix: str = "") -> list[Pair]:
+    """The photos named by ``images`` and their maps from ``maps`` (module docstring: the pairing rule). A photo that
+    is no regular file is a pair without a map, its problem said (:func:`not_a_file`): the batch lists it as failed."""
+    pairs = _pair(images, maps, kind=kind, suffix=suffix)
+    return [Pair(p.image, None, why) if (why := not_a_file(p.image)) else p for p in pairs]
+
+
+def _pair(images: str, maps: str, *, kind: str, suffix: str) -> list[Pair]:  # noqa: C901
     mp = Path(maps)
     if mp.suffix.lower() == ".csv" and mp.is_file():
         table = _manifest(mp, kind)
         files, root = _listing(images, IMAGE_EXTS, "image")
         pairs = []
-        by_path = {(mp.parent / k).resolve(): m for k, m in table.items()}
+        by_path = {_real(mp.parent / k): m for k, m in table.items()}
         for f in files:
             keys = [f.name] + ([str(f.relative_to(root))] if root is not None else [])
-            m = by_path.get(f.resolve()) or next((table[k] for k in keys if k in table), None)
+            m = by_path.get(_real(f)) or next((table[k] for k in keys if k in table), None)
             pairs.append(Pair(f, m) if m is not None else Pair(f, None, f"no {kind} map listed in {mp}"))
         return pairs
     if mp.suffix.lower() == ".csv":
@@ -206,20 +242,20 @@ def find_pairs(images: str, maps: str, *, kind: str = "disparity", suffix: str =
     for m in map_files:
         by_stem.setdefault(m.stem, []).append(m)
     files, _ = _listing(images, IMAGE_EXTS, "image")
-    map_set = {m.resolve() for m in map_files}
+    map_set = {_real(m) for m in map_files}
     if suffix:
         files = [f for f in files if not f.stem.endswith(suffix)]
     elif Path(images).is_file() and mp.is_file():
         return [Pair(Path(images), mp)]
     else:
-        shared = [f for f in files if f.resolve() in map_set]
+        shared = [f for f in files if _real(f) in map_set]
         if shared:
             raise InputError(f"{maps}: the maps are among the images ({shared[0]}); name them with a suffix and "
                              "pass --map-suffix (e.g. IMG_01.jpg and IMG_01_disp.png with --map-suffix _disp)")
     _check_one_map_file(images, mp, files, kind, suffix)
     pairs = []
     for f in files:
-        cands = [m for m in by_stem.get(f.stem + suffix, []) if m.resolve() != f.resolve()]
+        cands = [m for m in by_stem.get(f.stem + suffix, []) if _real(m) != _real(f)]
         if len(cands) == 1:
             pairs.append(Pair(f, cands[0]))
         elif not cands:
