@@ -94,6 +94,8 @@ def test_manifest_csv_pairing(shoot, capsys):
     ("image,disparity\n\np0.png,maps/p0.png\np1.png,maps/p1.png,x,y\n", "line 4: expected at most 2 fields"),
     ("image,disparity\np0.png\n", "line 2: expected an image and a disparity path"),
     ("image,disparity\n", "the manifest CSV has no rows"),
+    ("image,disparity\np0.png,maps/p0\0.png\n", "line 2: a path holds a NUL byte"),
+    ("image,disparity\np\x000.png,maps/p0.png\n", "line 2: a path holds a NUL byte"),
     ("", "the manifest CSV has no rows"),
 ])
 def test_malformed_manifest_rows_are_one_line_errors(shoot, capsys, text, message):

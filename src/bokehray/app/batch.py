@@ -199,6 +199,8 @@ def _manifest(path: Path, kind: str) -> dict[str, Path]:
         row = dict(zip(header, (f.strip() for f in fields)))
         if not row.get("image") or not row.get(col):
             raise InputError(f"{path}: line {n}: expected an image and a {kind} path")
+        if "\0" in row["image"] + row[col]:  # no file system takes it: os calls raised "embedded null byte"
+            raise InputError(f"{path}: line {n}: a path holds a NUL byte")
         m = Path(row[col])
         out[row["image"]] = m if m.is_absolute() else path.parent / m
     return out
