@@ -30,6 +30,7 @@ __all__ = [
     "check_type",
     "first_bad_index",
     "fits_in_memory",
+    "number_text",
     "real",
     "shown",
 ]  # fmt: skip
@@ -105,6 +106,13 @@ def shown(value: object) -> str:
         if digits == "4000+" or digits > 40:
             return f"an integer of {digits} digits"
     return repr(value)
+
+
+def number_text(value: float) -> str:
+    """A refused number as it was given, not rounded: the shortest text that reads back as the same float
+    (``1.0000001``, not ``:g``'s ``1``; ``1e-05``; a whole number without ``.0``)."""
+    v = float(value)
+    return str(int(v)) if v.is_integer() and abs(v) < 1e16 else repr(v)
 
 
 def real(value: object, name: str, *, inf: bool = False) -> float:

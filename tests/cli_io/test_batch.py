@@ -256,6 +256,13 @@ def test_frame_labels_are_distinct_or_refused(values):
     (["--blur", 4, "--focus", "0.1,0.1"], "--focus: the values repeat"),
     (["--blur", 4, "--focus", "0.1:0.5:1"], "a range needs 2..1000 values"),
     (["--blur", 4, "--focus", "a,b"], "expected a number, a list A,B,C or a range"),
+    # round four: empty items were dropped (a one-frame "sweep" with a GIF for 0.5,), values were rounded
+    (["--blur", 4, "--focus", "0,,1"], "a list A,B,C has an empty value in '0,,1'"),
+    (["--blur", 4, "--focus", "0,1,"], "a list A,B,C has an empty value in '0,1,'"),
+    (["--blur", 4, "--focus", "0.5,"], "a list A,B,C has an empty value in '0.5,'"),
+    (["--blur", 4, "--focus", "0:inf:3"], "a range needs finite ends, got '0:inf:3'"),
+    (["--blur", 4, "--focus", "0,1.0000001"], "got 1.0000001 (value 2 of 2)"),
+    (["--blur", 4, "--focus", "0.3,0.30000000001,0.3"], "the values repeat (0.3, 0.30000000001, 0.3)"),
     (["--blur", 4, "--focus", "0.1,0.5", "--stats"], "--stats: single-file renders only"),
     (["--blur", 4, "--focus", "0.1,0.5", "--executor", "local", "--scheduler", "tcp://127.0.0.1:1"],
      "--scheduler needs --executor dask"),
@@ -300,7 +307,9 @@ def test_a_range_has_its_count_and_ends(start, stop, count):
 
 def test_sweep_lists_and_single_values():
     assert parse_sweep("0.5") == 0.5
-    assert parse_sweep("0.2,0.4,") == (0.2, 0.4)
+    assert parse_sweep("0.2,0.4") == (0.2, 0.4)
+    with pytest.raises(argparse.ArgumentTypeError, match="empty value"):  # decided: no item is dropped silently
+        parse_sweep("0.2,0.4,")
     with pytest.raises(argparse.ArgumentTypeError):
         parse_sweep("1:2")
 

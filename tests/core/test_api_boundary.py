@@ -65,6 +65,9 @@ _WRONG_TYPES = {
                                     "exclusive: expected True or False, got 'no'"),
     "write_image(bit_depth=16.0)": (lambda t: br.write_image("x.png", _IMG, bit_depth=16.0),
                                     "bit_depth expects None or an integer, got 16.0"),
+    "BlurParams(4, 1.0000001)": (lambda t: br.BlurParams(4, 1.0000001), "expected a value in [0, 1] (1 = nearest), "
+                                 "got 1.0000001"),
+    "BlurParams(-1e-9, 0.5)": (lambda t: br.BlurParams(-1e-9, 0.5), "expected a value >= 0, got -1e-09"),
     "LayerOptions(tile_px=10**9)": (lambda t: br.LayerOptions(tile_px=10**9),
                                     "tile_px: expected an integer in [1, 1024], got 1000000000"),
 }

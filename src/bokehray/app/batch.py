@@ -27,6 +27,7 @@ import csv
 import glob
 import hashlib
 import json
+import math
 import os
 import sys
 import time
@@ -35,6 +36,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from ..errors import EXIT_INTERRUPTED, InputError, Terminated
+from ..validate import number_text
 
 __all__ = ["Pair", "RenderSettings", "RenderTask", "add_batch_args", "find_pairs", "frame_labels", "is_batch",
            "parse_sweep", "render_file", "run_batch", "sweep_values"]
@@ -54,27 +56,37 @@ FPS = 6.0
 
 
 def parse_sweep(text: str) -> float | tuple[float, ...]:
-    """``0.5`` -> 0.5; ``0.2,0.4,0.6`` -> a list; ``START:STOP:COUNT`` -> COUNT values from START to STOP.
-    ``-0`` is read as 0 (``+ 0.0``): a negative zero would print as ``-0.000`` in every line and JSON after it."""
+    """``0.5`` -> 0.5; ``0.2,0.4,0.6`` -> a list (2 values or more: no empty item, so ``0.5,`` is no one-frame sweep);
+    ``START:STOP:COUNT`` -> COUNT values from START to STOP (finite ends). ``-0`` is read as 0 (``+ 0.0``): a negative
+    zero would print as ``-0.000`` in every line and JSON after it."""
     try:
         if ":" in text:
-            parts = text.split(":")
-            if len(parts) != 3:
-                raise ValueError
-            start, stop, count = float(parts[0]), float(parts[1]), int(parts[2])
-            if not 2 <= count <= MAX_SWEEP:
-                raise argparse.ArgumentTypeError(f"a range needs 2..{MAX_SWEEP} values, got {count} in {text!r}")
-            values = tuple(start + (stop - start) * i / (count - 1) for i in range(count))
+            values = _sweep_range(text)
         elif "," in text:
-            values = tuple(float(v) for v in text.split(",") if v.strip())
-            if not 1 <= len(values) <= MAX_SWEEP:
-                raise ValueError
+            items = text.split(",")
+            if any(not v.strip() for v in items):
+                raise argparse.ArgumentTypeError(f"a list A,B,C has an empty value in {text!r}")
+            values = tuple(float(v) for v in items)
+            if len(values) > MAX_SWEEP:
+                raise argparse.ArgumentTypeError(f"a list takes at most {MAX_SWEEP} values, got {len(values)}")
         else:
             return float(text) + 0.0
         return tuple(v + 0.0 for v in values)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a number, a list A,B,C or a range START:STOP:COUNT, "
                                          f"got {text!r}") from None
+
+
+def _sweep_range(text: str) -> tuple[float, ...]:
+    parts = text.split(":")
+    if len(parts) != 3:
+        raise ValueError
+    start, stop, count = float(parts[0]), float(parts[1]), int(parts[2])
+    if not (math.isfinite(start) and math.isfinite(stop)):
+        raise argparse.ArgumentTypeError(f"a range needs finite ends, got {text!r}")
+    if not 2 <= count <= MAX_SWEEP:
+        raise argparse.ArgumentTypeError(f"a range needs 2..{MAX_SWEEP} values, got {count} in {text!r}")
+    return tuple(start + (stop - start) * i / (count - 1) for i in range(count))
 
 
 def add_batch_args(r: argparse.ArgumentParser) -> None:
@@ -342,16 +354,16 @@ def sweep_values(args: argparse.Namespace) -> tuple[str | None, tuple[float, ...
     name = "focus" if f else "blur"
     values = args.focus if f else args.blur  # parse_sweep read -0 as 0: one name, one render
     if len(set(values)) != len(values):
-        raise InputError(f"--{name}: the values repeat ({', '.join(f'{v:g}' for v in values)})")
+        raise InputError(f"--{name}: the values repeat ({', '.join(map(number_text, values))})"[:300])
     # every value is checked as a single one is, before any frame is written (not frame by frame, half a stack later)
     from ..lens import MAX_K_PX
 
     for i, v in enumerate(values):
         if name == "focus" and not 0.0 <= v <= 1.0:
-            raise InputError(f"--focus: expected every value of the sweep in [0, 1] (1 = nearest), got {v:g} "
+            raise InputError(f"--focus: expected every value of the sweep in [0, 1] (1 = nearest), got {number_text(v)} "
                              f"(value {i + 1} of {len(values)})")
         if name == "blur" and not 0.0 <= v <= MAX_K_PX:
-            raise InputError(f"--blur: expected every value of the sweep as K in [0, {MAX_K_PX:g}], got {v:g} "
+            raise InputError(f"--blur: expected every value of the sweep as K in [0, {MAX_K_PX:g}], got {number_text(v)} "
                              f"(value {i + 1} of {len(values)})")
     return name, values
 
