@@ -18,7 +18,7 @@ the exit status is one of those promised (0; 2 with exactly one ``bokehray: erro
 130/143 after a signal with one line), nothing else reaches stderr (no traceback, no warning,
 no native library line), no temporary file is left, and an output that exists is complete.
 
-Reliability round three adds three kinds of ``--io`` case (docs/robustness.md, "Reliability, round three"):
+Three kinds of ``--io`` case cover batches, Dask and depth models (docs/robustness.md, "Batches, sweeps and Dask"):
 **batch** (focal sweeps whose values %.3f or %g would not tell apart, sweeps with a value out of range,
 malformed manifest rows, SIGTERM or SIGINT in the middle of a ``--workers 2`` batch), **dask** (malformed
 ``--scheduler`` addresses; with ``distributed`` installed, one real local cluster now and then) and
@@ -41,7 +41,7 @@ Usage (from the repository root)::
     python benchmarks/soak.py --cases 5000          # long soak
     python benchmarks/soak.py --cases 200 --seed 1  # the short version CI runs
     python benchmarks/soak.py --io 60 --seed 1      # signals, full disks, extreme values via the CLI
-    python benchmarks/soak.py --io 60 --seed 1 --kinds batch,dask,depth-model  # round three's cases only
+    python benchmarks/soak.py --io 60 --seed 1 --kinds batch,dask,depth-model  # batches, Dask, depth models
     python benchmarks/soak.py --io 30 --seed 4 --kinds periodic,strip,page      # periodic maps, strips, the page
 """
 

@@ -216,7 +216,7 @@ def _exr_windows(path: Path) -> tuple[tuple[int, int, int, int], tuple[int, int,
 
 
 def _exr_size(path: Path, *, check: bool = False) -> tuple[int, int]:
-    """``(height, width)`` of the EXR's data window, which must be its display window (docs/robustness.md, round 8):
+    """``(height, width)`` of the EXR's data window, which must be its display window (docs/robustness.md, "Reading files"):
     a data window inside a larger frame (a crop or border render) or beyond it (overscan) is refused, naming both,
     rather than read as a smaller or larger picture that has lost its place in the frame. ``check``: the pixel and
     memory limits as well (the reader's)."""
