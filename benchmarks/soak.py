@@ -3,7 +3,8 @@
 Each case draws an image size (1 x 1 upwards), radiance scale (0 to 1e4, denormals included),
 a disparity pattern (constant 0 or 1, random, one-pixel steps, a step edge), K (0 to 1e4),
 d_f in [0, 1], an aperture, a quality level, the channel count (grey, RGB, RGBA with alpha
-exactly 0 and 1) and, for one case in eight, a forced tile size, and checks: no exception,
+exactly 0 and 1), for one case in eight a forced tile size and for one in eight a single depth layer
+(``max_layers=1``: near and far pixels in one layer), and checks: no exception,
 finite output, output within the input's range (every pixel is an average of input radiances;
 float32 rounding of 1e-5 of the brightest value is allowed), energy conservation for
 constant-disparity cases with a zero border, and that the tiled render equals the untiled one.
@@ -74,7 +75,8 @@ def draw_case(rng: np.random.Generator) -> dict:
     return {"h": h, "w": w, "scale": scale, "pattern": pattern, "k": k, "d_f": float(rng.choice([0.0, 0.5, 1.0,
             rng.random()])), "blades": int(rng.choice([0, 0, 5, 6])), "curv": float(rng.random()),
             "quality": quality, "border": bool(rng.random() < 0.3), "img_seed": int(rng.integers(1 << 31)),
-            "channels": int(rng.choice([3, 3, 1, 4])), "tile": int(rng.choice([16, 24, 40])) if rng.random() < 0.125 else 0}
+            "channels": int(rng.choice([3, 3, 1, 4])), "tile": int(rng.choice([16, 24, 40])) if rng.random() < 0.125 else 0,
+            "max_layers": 1 if rng.random() < 0.125 else 8}
 
 
 def run_case(c: dict) -> str | None:
@@ -94,10 +96,12 @@ def run_case(c: dict) -> str | None:
         image[:, :margin] = image[:, -margin:] = 0
     ap = br.Aperture(blades=c["blades"], curvature=c["curv"]) if c["blades"] else br.Aperture()
     opts = br.RaytraceOptions(max_spp=16) if c["quality"] == "raytrace" else None
+    layers = br.LayerOptions(max_layers=c.get("max_layers", 8))  # 1: near and far pixels in one layer
     try:
-        out = br.render(image, d, br.BlurParams(c["k"], c["d_f"]), ap, quality=c["quality"], options=opts)
+        out = br.render(image, d, br.BlurParams(c["k"], c["d_f"]), ap, quality=c["quality"], options=opts,
+                        layers=layers)
         tiled = None if not c.get("tile") else br.render(image, d, br.BlurParams(c["k"], c["d_f"]), ap,
-                                                           quality=c["quality"], options=opts,
+                                                           quality=c["quality"], options=opts, layers=layers,
                                                            memory=br.MemoryOptions(tile_size=c["tile"]))
     except Exception as e:  # noqa: BLE001 - a soak reports every failure
         return f"exception {type(e).__name__}: {e}"
