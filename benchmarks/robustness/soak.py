@@ -3,7 +3,8 @@
 Each case draws an image size (1 x 1 upwards), radiance scale (0 to 1e4, denormals included),
 a disparity pattern (constant 0 or 1, random, one-pixel steps, a step edge), K (0 to 1e4),
 d_f in [0, 1], an aperture, a quality level, the channel count (grey, RGB, RGBA with alpha
-exactly 0 and 1) and, for one case in eight, a forced tile size, and checks: no exception,
+exactly 0 and 1), for one case in eight a forced tile size and for one in eight a single depth layer
+(``max_layers=1``: near and far pixels in one layer), and checks: no exception,
 finite output, output within the input's range (every pixel is an average of input radiances;
 float32 rounding of 1e-5 of the brightest value is allowed), energy conservation for
 constant-disparity cases with a zero border, and that the tiled render equals the untiled one.
@@ -18,7 +19,7 @@ the exit status is one of those promised (0; 2 with exactly one ``bokehray: erro
 130/143 after a signal with one line), nothing else reaches stderr (no traceback, no warning,
 no native library line), no temporary file is left, and an output that exists is complete.
 
-Reliability round three adds three kinds of ``--io`` case (docs/robustness.md, "Reliability, round three"):
+Three kinds of ``--io`` case cover batches, Dask and depth models (docs/robustness.md, "Batches, sweeps and Dask"):
 **batch** (focal sweeps whose values %.3f or %g would not tell apart, sweeps with a value out of range,
 malformed manifest rows, SIGTERM or SIGINT in the middle of a ``--workers 2`` batch), **dask** (malformed
 ``--scheduler`` addresses; with ``distributed`` installed, one real local cluster now and then) and
@@ -28,12 +29,21 @@ layers; skipped without torch and transformers). Checked: exit 0 with one frame 
 many frames, or exit 2 with one ``bokehray: error:`` line and nothing written, or after a signal 143/130 with
 one line whose count is the frames on disk.
 
+Three more kinds: **periodic** (the default focus of 513-2500 px maps of 1-4 px stripes or checkerboards, half of
+them nearest: d 1 holding about half the frame), **strip** (20 000 and 60 000 x 2 px strips at the default amount,
+maps of 1-px edges everywhere or of noise: exit 0 with a complete output where the budget holds the render, or exit
+2, one line, nothing written, and a peak RSS below ``STRIP_RSS_LIMIT_MB``, measured with ``wait4``; the child's address space is capped at 8 GB to protect the machine)
+and **page** (``bokehray view`` exporting a 1.5 MP render at amount 100, then Ctrl-C, SIGTERM or SIGHUP 0-4 s later:
+exit 0, the one line ``bokehray view: stopped``, the export answered 503, or 200 when it finished first, nothing
+half-written; the seconds from the signal to the exit are printed).
+
 Usage (from the repository root)::
 
     python benchmarks/robustness/soak.py --cases 5000          # long soak
     python benchmarks/robustness/soak.py --cases 200 --seed 1  # the short version CI runs
     python benchmarks/robustness/soak.py --io 60 --seed 1      # signals, full disks, extreme values via the CLI
-    python benchmarks/robustness/soak.py --io 60 --seed 1 --kinds batch,dask,depth-model  # the reliability pass's cases only
+    python benchmarks/robustness/soak.py --io 60 --seed 1 --kinds batch,dask,depth-model  # batches, Dask, depth models
+    python benchmarks/robustness/soak.py --io 30 --seed 4 --kinds periodic,strip,page      # periodic maps, strips, the page
 """
 
 from __future__ import annotations
@@ -65,7 +75,8 @@ def draw_case(rng: np.random.Generator) -> dict:
     return {"h": h, "w": w, "scale": scale, "pattern": pattern, "k": k, "d_f": float(rng.choice([0.0, 0.5, 1.0,
             rng.random()])), "blades": int(rng.choice([0, 0, 5, 6])), "curv": float(rng.random()),
             "quality": quality, "border": bool(rng.random() < 0.3), "img_seed": int(rng.integers(1 << 31)),
-            "channels": int(rng.choice([3, 3, 1, 4])), "tile": int(rng.choice([16, 24, 40])) if rng.random() < 0.125 else 0}
+            "channels": int(rng.choice([3, 3, 1, 4])), "tile": int(rng.choice([16, 24, 40])) if rng.random() < 0.125 else 0,
+            "max_layers": 1 if rng.random() < 0.125 else 8}
 
 
 def run_case(c: dict) -> str | None:
@@ -85,10 +96,12 @@ def run_case(c: dict) -> str | None:
         image[:, :margin] = image[:, -margin:] = 0
     ap = br.Aperture(blades=c["blades"], curvature=c["curv"]) if c["blades"] else br.Aperture()
     opts = br.RaytraceOptions(max_spp=16) if c["quality"] == "raytrace" else None
+    layers = br.LayerOptions(max_layers=c.get("max_layers", 8))  # 1: near and far pixels in one layer
     try:
-        out = br.render(image, d, br.BlurParams(c["k"], c["d_f"]), ap, quality=c["quality"], options=opts)
+        out = br.render(image, d, br.BlurParams(c["k"], c["d_f"]), ap, quality=c["quality"], options=opts,
+                        layers=layers)
         tiled = None if not c.get("tile") else br.render(image, d, br.BlurParams(c["k"], c["d_f"]), ap,
-                                                           quality=c["quality"], options=opts,
+                                                           quality=c["quality"], options=opts, layers=layers,
                                                            memory=br.MemoryOptions(tile_size=c["tile"]))
     except Exception as e:  # noqa: BLE001 - a soak reports every failure
         return f"exception {type(e).__name__}: {e}"
@@ -196,7 +209,7 @@ def _tmpfs(folder: Path, kb: int) -> bool:
                                                 capture_output=True, check=False).returncode == 0
 
 
-IO_KINDS = ("signal", "disk", "values", "batch", "dask", "depth-model")
+IO_KINDS = ("signal", "disk", "values", "batch", "dask", "depth-model", "periodic", "strip", "page")
 _BAD_SCHEDULERS = ("notaurl", "inproc://x", "tls://127.0.0.1:1", "ucx://127.0.0.1:1", "tcp://127.0.0.1:8786/../x", "",
                    "tcp://127.0.0.1:0", "tcp://[::1:8786")
 _BAD_MANIFESTS = {"extra field": "image,disparity\nsmall.png,small_d.png,extra\n",
@@ -381,12 +394,163 @@ def _extras_case(kind: str, rng: np.random.Generator, f: dict, out: Path, models
     return None if models is None else _depth_model_case(rng, f, out, models)
 
 
+# --------------------------------------------------------------------------- --io: periodic maps, strips, the page
+
+STRIP_RSS_LIMIT_MB = 1024
+"""A strip the budget cannot hold is refused before this much is allocated (docs/robustness.md)."""
+PAGE_EXIT_S = 2.0
+"""The page stops this soon after Ctrl-C, SIGTERM or SIGHUP, whatever stage its export is in (reported; a case
+fails only past HANG_S, a busy machine's hang detector)."""
+HANG_S = 90.0
+_VIEW_STOPPED = "bokehray view: stopped"
+
+
+def _periodic_case(rng: np.random.Generator) -> tuple[dict, str | None]:
+    """The default focus of a map of 1-4 px stripes or a checkerboard above 512 px, half of it nearest: it must see
+    both halves (a regular subsampling grid saw one phase: "100 % at d 0")."""
+    from bokehray.photo.subject import subject_focus
+
+    side, period = int(rng.integers(513, 2500)), int(rng.integers(1, 5))
+    pattern = str(rng.choice(["columns", "rows", "checker"]))
+    yy, xx = np.mgrid[:side, :side]
+    phase = {"columns": xx, "rows": yy, "checker": xx + yy}[pattern]
+    d = ((phase // period) % 2).astype(np.float32)
+    s = subject_focus(d)
+    case = {"kind": "periodic", "side": side, "period": period, "pattern": pattern}
+    if s.d_f != 1.0 or not 0.4 < s.share < 0.6:
+        return case, f"default focus d_f {s.d_f:g} holding {s.share:.0%} of the frame (expected d 1, about half)"
+    return case, None
+
+
+def _run_measured(args: list, limit_gb: float = 8.0) -> tuple[int, str, float]:
+    """The CLI in a child whose address space is capped (a safety net for this machine), and its peak RSS in MB."""
+    import resource
+
+    def cap() -> None:
+        resource.setrlimit(resource.RLIMIT_AS, (int(limit_gb * 2**30),) * 2)
+
+    proc = subprocess.Popen([*_CLI, *map(str, args)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            env=_ENV, preexec_fn=cap)
+    deadline = time.monotonic() + 300
+    while True:  # reaped here, not by Popen: wait4 gives the child's peak RSS
+        pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
+        if pid:
+            break
+        if time.monotonic() > deadline:
+            proc.kill()
+        time.sleep(0.05)
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    return proc.returncode, proc.stderr.read(), usage.ru_maxrss / 1024
+
+
+def _strip_case(rng: np.random.Generator, folder: Path) -> tuple[dict, tuple[int, str], str | None]:
+    """A W x 2 strip at the default amount (a CoC of thousands of px), with a map of 1-px edges everywhere or of
+    noise: rendered (exit 0, where the budget holds it) or refused in one line (exit 2) before STRIP_RSS_LIMIT_MB is
+    allocated."""
+    w = int(rng.choice([20000, 60000]))
+    kind = str(rng.choice(["checker", "noise"]))
+    img, d = folder / f"strip{w}.png", folder / f"strip{w}_{kind}.png"
+    if not img.exists():
+        br.write_image(img, np.random.default_rng(w).random((2, w, 3)).astype(np.float32))
+    if not d.exists():
+        x = np.indices((2, w)).sum(0)
+        br.write_disparity(d, ((x % 2) if kind == "checker" else np.random.default_rng(1).random((2, w))).astype(np.float32))
+    out = folder / "strip-out.png"
+    rc, err, peak = _run_measured(["render", img, "--disparity", d, "-o", out])
+    case = {"kind": "strip", "width": w, "map": kind, "peak_rss_mb": round(peak)}
+    problem = _check(rc, err, out, {0, 2}, False)
+    if problem is None and rc == 2 and peak > STRIP_RSS_LIMIT_MB:
+        problem = f"refused after a peak of {peak:.0f} MB (more than {STRIP_RSS_LIMIT_MB} MB)"
+    out.unlink(missing_ok=True)
+    return case, (rc, err), problem
+
+
+def _page_export(url: str, answers: dict) -> None:
+    import urllib.error
+    import urllib.request
+
+    body = json.dumps({"params": {"amount": 100}, "format": "exr"}).encode()
+    req = urllib.request.Request(url + "api/export", data=body, headers={"Content-Type": "application/json"})
+    try:
+        with urllib.request.urlopen(req, timeout=HANG_S) as r:
+            answers["export"] = r.status
+    except urllib.error.HTTPError as e:
+        answers["export"] = e.code
+    except OSError as e:  # the server went before it answered
+        answers["export"] = f"no answer ({e})"
+
+
+def _page_case(rng: np.random.Generator, f: dict, out: Path) -> tuple[dict, tuple[int, str], str | None]:
+    """``bokehray view`` exporting a 1.5 MP render at amount 100; Ctrl-C, SIGTERM or SIGHUP at a random moment of the
+    export (its edge estimate, matting, planning or layers). Checked: exit 0, the one line ``bokehray view: stopped``,
+    the export answered 503 (or 200 when it finished first), no file half-written; the seconds from the signal to
+    the exit are reported."""
+    import threading
+
+    out.mkdir()
+    sig = int(rng.choice([signal.SIGINT, signal.SIGTERM, signal.SIGHUP]))
+    delay = float(rng.uniform(0.0, 4.0))
+    edges = bool(rng.random() < 0.5)  # a patch of 1-px depth edges: seconds of edge estimate and matting
+    if edges and "big_edges_d" not in f:
+        d = np.tile(np.linspace(0, 1, 1500, dtype=np.float32), (1000, 1))
+        d[300:700, 500:1000] = np.random.default_rng(2).random((400, 500)) > 0.5
+        f["big_edges_d"] = br.write_disparity(out.parent / "big_edges_d.png", d)
+    proc = subprocess.Popen([*_CLI, "view", str(f["big"]), "--disparity", str(f["big_edges_d" if edges else "big_d"]),
+                             "--export-dir", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=_ENV)
+    case: dict = {"kind": "page", "signal": signal.Signals(sig).name, "delay": round(delay, 2), "edges": edges}
+    answers: dict = {}
+    try:
+        line = proc.stdout.readline()
+        if not line.startswith("bokehray view: http://"):
+            proc.kill()
+            return case, (proc.wait(), proc.stderr.read()), f"no URL printed: {line!r}"
+        t = threading.Thread(target=_page_export, args=(line.split()[2], answers), daemon=True)
+        t.start()
+        time.sleep(delay)
+        t_sig = time.monotonic()
+        proc.send_signal(sig)
+        try:
+            _, err = proc.communicate(timeout=HANG_S)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            _, err = proc.communicate()
+            return case, (-999, err), f"still running {HANG_S:g} s after {case['signal']}"
+        case["exit_s"] = round(time.monotonic() - t_sig, 2)
+        t.join(HANG_S)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    case["export"] = answers.get("export")
+    problem = None
+    if proc.returncode != 0 or err.strip() != _VIEW_STOPPED:
+        problem = f"exit {proc.returncode}, stderr {err.strip()[:300]!r} (expected 0 and {_VIEW_STOPPED!r})"
+    elif answers.get("export") not in (200, 503):
+        problem = f"the export was answered {answers.get('export')!r} (expected 503, or 200 when done first)"
+    elif answers.get("export") == 503 and list(out.iterdir()):
+        problem = f"files left by an abandoned export: {sorted(p.name for p in out.iterdir())}"
+    return case, (proc.returncode, err), problem
+
+
+def _map_or_page_case(kind: str, rng: np.random.Generator, f: dict, out: Path
+                     ) -> tuple[dict, tuple[int, str], str | None]:
+    """One periodic, strip or page case: (case, (exit, stderr), problem)."""
+    if kind == "periodic":
+        case, problem = _periodic_case(rng)
+        return case, (0, ""), problem
+    if kind == "strip":
+        return _strip_case(rng, out.parent)
+    return _page_case(rng, f, out)
+
+
 def run_io(n: int, seed: int, kinds: tuple[str, ...] = IO_KINDS) -> int:  # noqa: C901
     rng = np.random.default_rng(seed)
     work = Path(tempfile.mkdtemp(prefix="bokehray-soak-io-"))
     f = _inputs(work)
     models = _depth_models(work / "models") if "depth-model" in kinds else None
-    draw = [k for k in ("signal", "signal", "disk", "values", "batch", "batch", "dask", "depth-model") if k in kinds]
+    draw = [k for k in ("signal", "signal", "disk", "values", "batch", "batch", "dask", "depth-model", "periodic",
+                        "strip", "page", "page") if k in kinds]
     t0 = time.perf_counter()
     starts = []
     for _ in range(3):
@@ -397,9 +561,20 @@ def run_io(n: int, seed: int, kinds: tuple[str, ...] = IO_KINDS) -> int:  # noqa
     # interpreter, imports, Warp: a signal before main() meets Python's defaults (allowed, counted apart)
     startup = max(starts)
     counts: dict[str, int] = {}
+    page_exits: list[float] = []
     failures = known = 0
     for i in range(n):
         kind = str(rng.choice(draw))
+        if kind in ("periodic", "strip", "page"):
+            case, (rc, err), problem = _map_or_page_case(kind, rng, f, work / f"case{i}")
+            outcome = f"{kind}: exit {rc}" + (f" ({case['export']})" if kind == "page" else "")
+            counts[outcome] = counts.get(outcome, 0) + 1
+            if "exit_s" in case:
+                page_exits.append(case["exit_s"])
+            if problem:
+                failures += 1
+                print(f"FAIL case {i} (seed {seed}): {problem}\n  case: {json.dumps(case)}")
+            continue
         if kind in ("batch", "dask", "depth-model"):
             ran = _extras_case(kind, rng, f, work / f"case{i}", models, startup)
             if ran is None:
@@ -468,6 +643,10 @@ def run_io(n: int, seed: int, kinds: tuple[str, ...] = IO_KINDS) -> int:  # noqa
                 subprocess.run(["umount", str(out_dir)], check=False)
     shutil.rmtree(work, ignore_errors=True)
     print("outcomes: " + ", ".join(f"{k} x{v}" for k, v in sorted(counts.items())))
+    if page_exits:
+        print(f"page: exit after the signal in {min(page_exits):.2f}..{max(page_exits):.2f} s (median "
+              f"{float(np.median(page_exits)):.2f} s, {sum(t > PAGE_EXIT_S for t in page_exits)} of {len(page_exits)} "
+              f"over {PAGE_EXIT_S:g} s)")
     print(f"soak --io: {n} cases, {failures} failed, {known} known (issue 18.3), startup {startup:.1f} s "
           f"({time.perf_counter() - t0:.1f} s)")
     return 1 if failures else 0

@@ -239,11 +239,11 @@ def route_cells_kernel(  # noqa: C901
                 e = _raw_excess(v, mean)
                 if e > 0.0:
                     e_all += wp.float64(e)
-                    ps_all += wp.float64(e * coc[y, x])
+                    ps_all += wp.float64(e * r)
                     if _excess(v, r, mean, visible, floor) > 0.0:
                         n += 1
                         e_sal += wp.float64(e)
-                        ps_sal += wp.float64(e * coc[y, x])
+                        ps_sal += wp.float64(e * r)
     if e_all == wp.float64(0.0):
         return
     if n <= per_cell:
@@ -282,7 +282,7 @@ def route_cells_kernel(  # noqa: C901
             exact[iy, ix] = wp.uint8(1)
             e = _raw_excess(src[iy, ix], mean)
             e_sal += wp.float64(e)
-            ps_sal += wp.float64(e * coc[iy, ix])
+            ps_sal += wp.float64(e * wp.abs(coc[iy, ix]))
             bound = best
             by = iy
             bx = ix
@@ -304,6 +304,7 @@ def route_cells_kernel(  # noqa: C901
             b_x = float(0.0)
             b_y = float(0.0)
             b_s = float(0.0)
+            b_sign = float(0.0)
             for y in range(by * bs, wp.min(by * bs + bs, y1)):
                 for x in range(bx * bs, wp.min(bx * bs + bs, x1)):
                     v = src[y, x]
@@ -314,7 +315,8 @@ def route_cells_kernel(  # noqa: C901
                         b_e += e
                         b_x += e * (float(x - bx * bs) + 0.5)  # relative to the block: the same sums
                         b_y += e * (float(y - by * bs) + 0.5)  # in a tile's window as in the whole box
-                        b_s += e * coc[y, x]
+                        b_s += e * wp.abs(coc[y, x])
+                        b_sign += e * coc[y, x]
                         exact[y, x] = wp.uint8(2)
             if b_e > 0.0:
                 # the centroid on a 1/256 px grid: exact in float32 in a window's coordinates and in the box's,
@@ -322,8 +324,11 @@ def route_cells_kernel(  # noqa: C901
                 cx_rel = wp.floor(b_x / b_e * 256.0 + 0.5) / 256.0
                 cy_rel = wp.floor(b_y / b_e * 256.0 + 0.5) / 256.0
                 cluster_light[lev - 1, by, bx] = wp.vec4(b_light[0], b_light[1], b_light[2], b_e)
+                s_block = b_s / b_e
+                if b_sign < 0.0:
+                    s_block = -s_block
                 cluster_shape[lev - 1, by, bx] = wp.vec4(float(bx * bs) + cx_rel, float(by * bs) + cy_rel,
-                                                         b_s / b_e, 1.0)
+                                                         s_block, 1.0)
 
 
 def cluster_grid(h: int, w: int, lev: int) -> tuple[int, int]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 from pathlib import Path
 
@@ -24,13 +25,14 @@ def format_of(
     """Check that ``path`` exists and is a regular file (when reading) and that its extension is one of the
     ``allowed`` formats."""
     p = Path(path)
-    if read and not p.exists():
-        raise InputError(f"{p}: file does not exist")
-    if p.is_dir():
-        raise InputError(f"{p}: expected a file, got a directory")
-    if read and not p.is_file():  # opening a FIFO waits for a writer forever; a device never ends
-        kind = "a named pipe (FIFO)" if p.is_fifo() else "a socket" if p.is_socket() else "a device"
-        raise InputError(f"{p}: expected a regular file, got {kind}")
+    try:
+        _check_file_kind(p, read)
+    except OSError as e:
+        if e.errno != errno.ENAMETOOLONG:
+            raise
+        longest = max(p.parts, key=lambda part: len(os.fsencode(part)))
+        raise InputError(f"{p}: {'the file name' if longest == p.name else 'a folder name in it'} is "
+                         f"{len(os.fsencode(longest))} bytes long, more than the file system takes (shorten it)") from None
     fmt = FORMATS.get(p.suffix.lower())
     if fmt not in allowed:
         exts = ", ".join(e for e, f in FORMATS.items() if f in allowed)
@@ -38,6 +40,15 @@ def format_of(
         raise InputError(f"{p}: unsupported extension {p.suffix!r} for {action} {what}; expected one of {exts}")
     return p, fmt
 
+
+def _check_file_kind(p: Path, read: bool) -> None:
+    if read and not p.exists():
+        raise InputError(f"{p}: file does not exist")
+    if p.is_dir():
+        raise InputError(f"{p}: expected a file, got a directory")
+    if read and not p.is_file():  # opening a FIFO waits for a writer forever; a device never ends
+        kind = "a named pipe (FIFO)" if p.is_fifo() else "a socket" if p.is_socket() else "a device"
+        raise InputError(f"{p}: expected a regular file, got {kind}")
 
 
 def first_index(mask: np.ndarray) -> tuple[int, ...]:

@@ -24,7 +24,7 @@ import numpy as np
 
 from .errors import InputError
 from .formats import first_index
-from .validate import fits_in_memory, real, shown
+from .validate import fits_in_memory, number_text, real, shown
 
 MAX_K_PX = 1.0e5
 """Largest K accepted: a CoC of 100 000 px is beyond any image; larger values only exhaust memory."""
@@ -40,7 +40,7 @@ def _finite(name: str, value: float, *, lo: float | None = None, lo_open: bool =
     # a real number only: True, "4" or None are mistakes, not 1.0, 4.0 or an error from float(); 10**400 too
     v = real(value, name)
     if lo is not None and (v < lo or (lo_open and v == lo)):
-        raise InputError(f"{name}: expected a value {'>' if lo_open else '>='} {lo:g}, got {v:g}")
+        raise InputError(f"{name}: expected a value {'>' if lo_open else '>='} {lo:g}, got {number_text(v)}")
     return v
 
 
@@ -57,10 +57,10 @@ class BlurParams:
     def __post_init__(self) -> None:
         k = _finite("K (blur)", self.k_px, lo=0.0)
         if k > MAX_K_PX:
-            raise InputError(f"K (blur): expected at most {MAX_K_PX:g} px per unit disparity, got {k:g}")
+            raise InputError(f"K (blur): expected at most {MAX_K_PX:g} px per unit disparity, got {number_text(k)}")
         f = _finite("focus disparity", self.focus_disparity)
         if not 0.0 <= f <= 1.0:
-            raise InputError(f"focus disparity: expected a value in [0, 1] (1 = nearest), got {f:g}")
+            raise InputError(f"focus disparity: expected a value in [0, 1] (1 = nearest), got {number_text(f)}")
         # + 0.0: a negative zero (-0 given for either) is 0, not "-0.000" in every line, stats and JSON after it
         object.__setattr__(self, "k_px", k + 0.0)
         object.__setattr__(self, "focus_disparity", f + 0.0)
@@ -104,7 +104,7 @@ class Aperture:
         _finite("aperture rotation", self.rotation_deg)
         c = _finite("aperture curvature", self.curvature)
         if not 0.0 <= c <= 1.0:
-            raise InputError(f"aperture curvature: expected a value in [0, 1], got {c:g}")
+            raise InputError(f"aperture curvature: expected a value in [0, 1], got {number_text(c)}")
         object.__setattr__(self, "blades", int(self.blades))
 
     @property
@@ -187,7 +187,7 @@ class DepthNormalization:
         zn = _finite("z_near", self.z_near_m, lo=0.0, lo_open=True)
         zf = real(self.z_far_m, "z_far", inf=True)
         if zf <= zn:
-            raise InputError(f"z_far: expected a value > z_near = {zn:g} (inf allowed), got {zf:g}")
+            raise InputError(f"z_far: expected a value > z_near = {zn:g} (inf allowed), got {number_text(zf)}")
         object.__setattr__(self, "z_near_m", zn)
         object.__setattr__(self, "z_far_m", zf)
 

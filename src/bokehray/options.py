@@ -17,7 +17,12 @@ from dataclasses import dataclass
 from .errors import InputError
 from .validate import check_int, check_number, shown
 
-__all__ = ["LayerOptions", "MemoryOptions", "PreviewOptions", "RaytraceOptions"]
+__all__ = ["MAX_TILE_PX", "LayerOptions", "MemoryOptions", "PreviewOptions", "RaytraceOptions"]
+
+
+MAX_TILE_PX = 1024
+"""Largest ``LayerOptions.tile_px``: the preview pads the frame by whole tiles and expands its tile grid to pixels, so
+a tile far larger than any photo only costs memory (the default is 16)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -29,7 +34,8 @@ class LayerOptions:
         max_layer_px: widest layer (in CoC pixels) on a gap-free depth range.
         min_layer_px: a CoC range narrower than this is one layer.
         fill: extend layers behind nearer ones by pull-push (see bokehray_kernels.fill).
-        tile_px: side of the grid on which in-focus tiles are skipped and layers' boxes are planned.
+        tile_px: side of the grid on which in-focus tiles are skipped and layers' boxes are planned, at most
+            :data:`MAX_TILE_PX` (the frame is padded by whole tiles, so a huge one only exhausts memory).
         soft_edges: split the mixed pixels at depth edges into a near part (foreground colour with its coverage,
             at the near depth) and a far part (background colour, at the far depth) by matting
             (``bokehray.matting.split_mixed_pixels``), so that neither share takes the other's blur; False gives
@@ -49,7 +55,7 @@ class LayerOptions:
 
     def __post_init__(self) -> None:
         check_int(self.max_layers, "max_layers", lo=1)
-        check_int(self.tile_px, "tile_px", lo=1)
+        check_int(self.tile_px, "tile_px", lo=1, hi=MAX_TILE_PX)
         check_number(self.max_layer_px, "max_layer_px", 0.0, lo_open=True)
         check_number(self.min_layer_px, "min_layer_px", 0.0, lo_open=True)
         for name in ("fill", "soft_edges", "soft_maps"):

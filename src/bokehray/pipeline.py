@@ -22,6 +22,7 @@ from .options import LayerOptions, MemoryOptions, PreviewOptions, RaytraceOption
 from .stats import Clock, RenderStats
 from .validate import (
     MAX_RADIANCE,
+    array_shape,
     check_disparity,
     check_image,
     check_number,
@@ -137,7 +138,7 @@ def _soft_scene(image: np.ndarray, signed_coc: np.ndarray, layers: LayerOptions,
 def _check_shape_fits(image: object, level_whole_image_b: int, memory: MemoryOptions) -> None:
     """Refuse a render from the input's shape alone, before anything is copied (a broadcast view of 1e10
     pixels must not be turned into a 112 GiB array first)."""
-    shape = np.shape(image)
+    shape = array_shape(image, "image")
     if len(shape) >= 2 and all(isinstance(v, Integral) for v in shape[:2]):
         tiling.check_whole_image(int(shape[0]), int(shape[1]), level_whole_image_b, memory)
 
@@ -166,17 +167,18 @@ class Handover:
     serves one render.
     """
 
-    __slots__ = ("disparity", "image")
+    __slots__ = ("disparity", "image", "taken")
 
     def __init__(self, image: np.ndarray, disparity: np.ndarray) -> None:
-        self.image, self.disparity = image, disparity
+        self.image, self.disparity, self.taken = image, disparity, False
 
     def take(self) -> tuple[np.ndarray, np.ndarray]:
-        """The arrays, once: the holder keeps no reference to them."""
-        if self.image is None:
+        """The arrays, once: the holder keeps no reference to them (the arrays' own checks come after)."""
+        if self.taken:
             raise InputError("inputs: this Handover was already rendered (a holder serves one render)")
         arrays = self.image, self.disparity
         self.image = self.disparity = None
+        self.taken = True
         return arrays
 
 

@@ -18,6 +18,8 @@ from .errors import InputError, ResourceError
 
 __all__ = [
     "MAX_RADIANCE",
+    "array_shape",
+    "check_bool",
     "check_disparity",
     "check_finite",
     "check_image",
@@ -28,6 +30,7 @@ __all__ = [
     "check_type",
     "first_bad_index",
     "fits_in_memory",
+    "number_text",
     "real",
     "shown",
 ]  # fmt: skip
@@ -53,6 +56,23 @@ def check_type(value: object, types: type | tuple[type, ...], name: str, what: s
     """Raise unless ``value`` is an instance of ``types``; ``what`` names the expected type for the message."""
     if not isinstance(value, types):
         raise InputError(f"{name}: expected {what}, got {type(value).__name__}")
+
+
+def check_bool(value: object, name: str) -> bool:
+    """``True`` or ``False`` (NumPy's too), nothing else: ``"yes"``, ``1`` or ``None`` would each be taken for one."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise InputError(f"{name}: expected True or False, got {shown(value)}"[:200])
+    return bool(value)
+
+
+def array_shape(value: object, name: str) -> tuple:
+    """``np.shape(value)``; a ragged nested list (rows of different lengths), which NumPy refuses with a ValueError,
+    is an :class:`InputError` naming ``name``."""
+    try:
+        return np.shape(value)
+    except ValueError:
+        raise InputError(f"{name}: expected an array, got a ragged {type(value).__name__} (its rows differ in "
+                         "length)") from None
 
 
 def check_path(value: object, name: str = "path") -> None:
@@ -86,6 +106,13 @@ def shown(value: object) -> str:
         if digits == "4000+" or digits > 40:
             return f"an integer of {digits} digits"
     return repr(value)
+
+
+def number_text(value: float) -> str:
+    """A refused number as it was given, not rounded: the shortest text that reads back as the same float
+    (``1.0000001``, not ``:g``'s ``1``; ``1e-05``; a whole number without ``.0``)."""
+    v = float(value)
+    return str(int(v)) if v.is_integer() and abs(v) < 1e16 else repr(v)
 
 
 def real(value: object, name: str, *, inf: bool = False) -> float:

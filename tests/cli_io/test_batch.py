@@ -94,6 +94,8 @@ def test_manifest_csv_pairing(shoot, capsys):
     ("image,disparity\n\np0.png,maps/p0.png\np1.png,maps/p1.png,x,y\n", "line 4: expected at most 2 fields"),
     ("image,disparity\np0.png\n", "line 2: expected an image and a disparity path"),
     ("image,disparity\n", "the manifest CSV has no rows"),
+    ("image,disparity\np0.png,maps/p0\0.png\n", "line 2: a path holds a NUL byte"),
+    ("image,disparity\np\x000.png,maps/p0.png\n", "line 2: a path holds a NUL byte"),
     ("", "the manifest CSV has no rows"),
 ])
 def test_malformed_manifest_rows_are_one_line_errors(shoot, capsys, text, message):
@@ -133,6 +135,29 @@ def test_failures_are_summarised_and_never_stop_the_batch(shoot, capsys):
     assert any("small.png: map is 56x40" in x and "--resize-disparity" in x for x in lines)
     assert "Traceback" not in err
     assert _files(shoot / "out") == ["bokehray-batch.json", "p0.png", "p1.png", "p2.png"]  # nothing partial
+
+
+def test_photos_that_are_no_regular_files_are_listed_as_failed(shoot, capsys):
+    """A FIFO, a dangling symbolic link and a link loop named as photos were neither rendered nor listed as failed."""
+    import os
+
+    photos, maps = shoot / "photos", shoot / "maps"
+    os.mkfifo(photos / "pipe.png")
+    (photos / "gone.png").symlink_to(photos / "nowhere.png")
+    (photos / "loop.png").symlink_to(photos / "loop.png")
+    for name in ("pipe.png", "gone.png", "loop.png"):
+        br.write_disparity(maps / name, _photo(0)[1])
+    code, out, err = run(capsys, "render", photos, "--disparity", maps, "-o", shoot / "out", "--blur", 6, "--focus",
+                         0.5, "--workers", 1)
+    assert code == 2 and "3 rendered, 0 skipped (complete), 3 failed" in out, out + err
+    lines = err.strip().splitlines()
+    assert lines[-4] == "bokehray: 3 inputs failed:", err
+    assert any("pipe.png: expected a regular file, got a named pipe (FIFO)" in x for x in lines), err
+    assert any("gone.png: a dangling symbolic link (to " in x for x in lines), err
+    assert any("loop.png: a loop of symbolic links" in x for x in lines), err
+    pairs = {p.image.name: p for p in find_pairs(str(photos / "*.png"), str(maps))}  # a glob lists them too
+    assert pairs["pipe.png"].map is None and "FIFO" in pairs["pipe.png"].problem
+    assert pairs["gone.png"].map is None and pairs["loop.png"].map is None
 
 
 def test_resume_skips_complete_outputs_and_refuses_other_settings(shoot, capsys):
@@ -231,6 +256,13 @@ def test_frame_labels_are_distinct_or_refused(values):
     (["--blur", 4, "--focus", "0.1,0.1"], "--focus: the values repeat"),
     (["--blur", 4, "--focus", "0.1:0.5:1"], "a range needs 2..1000 values"),
     (["--blur", 4, "--focus", "a,b"], "expected a number, a list A,B,C or a range"),
+    # round four: empty items were dropped (a one-frame "sweep" with a GIF for 0.5,), values were rounded
+    (["--blur", 4, "--focus", "0,,1"], "a list A,B,C has an empty value in '0,,1'"),
+    (["--blur", 4, "--focus", "0,1,"], "a list A,B,C has an empty value in '0,1,'"),
+    (["--blur", 4, "--focus", "0.5,"], "a list A,B,C has an empty value in '0.5,'"),
+    (["--blur", 4, "--focus", "0:inf:3"], "a range needs finite ends, got '0:inf:3'"),
+    (["--blur", 4, "--focus", "0,1.0000001"], "got 1.0000001 (value 2 of 2)"),
+    (["--blur", 4, "--focus", "0.3,0.30000000001,0.3"], "the values repeat (0.3, 0.30000000001, 0.3)"),
     (["--blur", 4, "--focus", "0.1,0.5", "--stats"], "--stats: single-file renders only"),
     (["--blur", 4, "--focus", "0.1,0.5", "--executor", "local", "--scheduler", "tcp://127.0.0.1:1"],
      "--scheduler needs --executor dask"),
@@ -275,7 +307,9 @@ def test_a_range_has_its_count_and_ends(start, stop, count):
 
 def test_sweep_lists_and_single_values():
     assert parse_sweep("0.5") == 0.5
-    assert parse_sweep("0.2,0.4,") == (0.2, 0.4)
+    assert parse_sweep("0.2,0.4") == (0.2, 0.4)
+    with pytest.raises(argparse.ArgumentTypeError, match="empty value"):  # decided: no item is dropped silently
+        parse_sweep("0.2,0.4,")
     with pytest.raises(argparse.ArgumentTypeError):
         parse_sweep("1:2")
 

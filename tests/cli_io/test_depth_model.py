@@ -181,6 +181,9 @@ _BAD_CHECKPOINTS = {  # reliability findings: (checkpoint, config edit, preproce
     "100000 DPT layers": ("dpt", lambda c: c.update(num_hidden_layers=100000), None, "declares 100000 layers"),
     "layers as a string": ("dpt", lambda c: c.update(num_hidden_layers="4"), None,
                            "num_hidden_layers: expected a positive integer, got '4'"),
+    # round four, item 13: the library's two-line message was embedded
+    "max_depth NaN": ("metric", lambda c: c.update(max_depth=float("nan")), None,
+                      "config.json: max_depth: expected a positive integer, got nan"),
 }
 
 
@@ -212,3 +215,16 @@ def test_cli_refuses_mismatched_weights_in_one_line(models, photo, tmp_path, cap
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and err.startswith(f"bokehray: error: {folder}: the weights do not fit")
     assert not (tmp_path / "o.png").exists()
+
+
+def test_a_multi_line_loading_error_is_one_line(models, photo, monkeypatch):
+    """The library's validation messages span lines (``Validation error for field ...:\\n    TypeError: ...``): they
+    are joined, so the command line's refusal stays one line."""
+
+    def failing(*args, **kwargs):
+        raise ValueError("Validation error for field 'x':\n    TypeError: Field 'x' with value nan doesn't match")
+
+    monkeypatch.setattr(transformers.DepthAnythingForDepthEstimation, "from_pretrained", failing)
+    with pytest.raises(br.InputError) as e:
+        depth_model.estimate_disparity(photo, models["da"])
+    assert "\n" not in str(e.value) and "Validation error for field 'x': TypeError: Field 'x'" in str(e.value)

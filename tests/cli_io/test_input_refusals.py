@@ -1,5 +1,5 @@
-"""An adversarial pass over depth ranges, map channels and early refusals (docs/robustness.md, "Reliability: depth
-ranges, map channels, early refusals"): each case is refused in one line naming the file and the flag, before any
+"""An adversarial pass over depth ranges, map channels and early refusals (docs/robustness.md, "Reading files"
+and "The command line"): each case is refused in one line naming the file and the flag, before any
 output or folder is made, or handled as documented there."""
 
 from __future__ import annotations

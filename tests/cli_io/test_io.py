@@ -584,6 +584,32 @@ def test_temporary_names_carry_host_and_pid(tmp_path, monkeypatch):
     assert name.startswith(".o.png.tmp-") and f"-{os.getpid()}-" in name and name.endswith(".png")
 
 
+@pytest.mark.parametrize("size", [230, 251, 255])
+def test_a_name_near_the_file_systems_limit_is_written_and_its_stale_temporary_found(tmp_path, size):
+    """Output names of 230-255 bytes failed with "File name too long" after the whole render: the hidden temporary's
+    name (the name plus about 60 bytes) passed the file system's limit. A long name is shortened in the temporary."""
+    name = "\u00e9" * ((size - 4) // 2) + "a" * ((size - 4) % 2) + ".png"  # two bytes a character in UTF-8
+    assert len(os.fsencode(name)) == size
+    target = tmp_path / name
+    host_part = at.temporary_prefix(target).rsplit("-", 2)[0]
+    assert len(os.fsencode(host_part)) < 200
+    stale = tmp_path / f"{host_part}-{_dead_pid()}-abc123.png"
+    stale.write_bytes(b"partial")
+    assert br.write_image(target, _image()) == target
+    assert sorted(f.name for f in tmp_path.iterdir()) == [name]
+    stale.write_bytes(b"partial")  # a batch's clean-up finds it by the output's name too
+    assert at.remove_stale_outputs(tmp_path, [name]) == 1 and not stale.exists()
+
+
+def test_a_name_beyond_the_file_systems_limit_is_refused_before_the_render(tmp_path):
+    from bokehray.output.write import check_output_path
+
+    name = "a" * 252 + ".png"
+    with _raises(tmp_path / name, "the file name is 256 bytes long, more than the file system takes"):
+        check_output_path(tmp_path / name)
+    assert check_output_path(tmp_path / name[1:]) == tmp_path / name[1:]
+
+
 # --------------------------------------------------------------------------- values as the file holds them
 
 

@@ -160,6 +160,20 @@ def test_default_focus_is_the_same_through_every_reader(tmp_path):
         assert abs(s.d_f - want.d_f) <= 1.5 / 255 and person[s.y, s.x], name
 
 
+@pytest.mark.parametrize("side", [513, 1024, 2000])
+@pytest.mark.parametrize("pattern", ["columns", "rows", "checker", "period 4"])
+def test_default_focus_sees_every_phase_of_a_periodic_map(side, pattern):
+    """The default focus subsampled maps above 512 px with a regular step, which saw one phase of a map of period 1-2
+    px: a map half at 1 and half at 0 read as "100 % at d 0". The samples' offsets vary now: each half holds about
+    half of the frame, and the nearer one is chosen."""
+    from bokehray.photo.subject import subject_focus
+
+    yy, xx = np.mgrid[:side, :side]
+    d = {"columns": xx % 2, "rows": yy % 2, "checker": (xx + yy) % 2, "period 4": xx % 4 < 2}[pattern]
+    s = subject_focus(d.astype(np.float32))
+    assert s.d_f == 1.0 and 0.42 < s.share < 0.58, s
+
+
 def test_render_says_the_painted_subject_it_chose(tmp_path, capsys):
     _, soft, _person = painted_scene(120, 160, brush=3.0)
     img, disp = tmp_path / "p.png", tmp_path / "d.png"

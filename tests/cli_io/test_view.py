@@ -317,6 +317,18 @@ def test_export_writes_what_the_shown_command_writes(server, session, tmp_path, 
     assert st == 200 and json.loads(body)["path"] != path
 
 
+@pytest.mark.parametrize("rotation", [-1e-05, -1e16, -12.5, 3e-07, 0.0])
+def test_the_shown_command_parses_back_to_its_rotation(session, rotation):
+    """A rotation of -1e-05 (or -1e16) was shown as ``--rotation -1e-05``, which argparse takes for an option: the
+    shown command did not run."""
+    from bokehray.app.cli import build_parser
+
+    p = parse_params({"blur": 10.0, "focus": 0.5, "aperture": "polygon", "rotation": rotation}, session.disparity)
+    argv = shlex.split(session.command(p, "out.png"))
+    args = build_parser().parse_args(argv[1:])
+    assert args.rotation == rotation and args.blades == p.blades
+
+
 def rss_mb() -> float:
     from bokehray.app.bench.machine import status_kb
 

@@ -48,6 +48,28 @@ _WRONG_TYPES = {
                                                "memory_limit_mb"),
     "Aperture(blades=10**400)": (lambda t: br.Aperture(blades=10**400), "got an integer of 401 digits"),
     "RaytraceOptions(max_spp=10**400)": (lambda t: br.RaytraceOptions(max_spp=10**400), "max_spp"),
+    # round four (item 12 and the questionable half="yes"): each was a wrong message, a raw NumPy/Python error or a
+    # silent reading
+    "render(None, d)": (lambda t: br.render(None, _IMG[..., 0], br.BlurParams(4, 0.5)),
+                        "image: expected a NumPy array, got NoneType"),
+    "render(ragged, d)": (lambda t: br.render([[0.5, 0.5], [0.5]], _IMG[..., 0], br.BlurParams(4, 0.5)),
+                          "image: expected an array, got a ragged list"),
+    "write_image(ragged)": (lambda t: br.write_image("x.png", [[0.5, 0.5], [0.5]]), "image: expected an array, got a "
+                            "ragged list"),
+    "write_image(quality='95')": (lambda t: br.write_image("x.jpg", _IMG, quality="95"),
+                                  "expected JPEG quality in [1, 100] (an integer), got '95'"),
+    "write_image(quality=95.0)": (lambda t: br.write_image("x.jpg", _IMG, quality=95.0), "got 95.0"),
+    "write_image(half='yes')": (lambda t: br.write_image("x.exr", _IMG, half="yes"),
+                                "half: expected True or False, got 'yes'"),
+    "write_image(exclusive='no')": (lambda t: br.write_image("x.png", _IMG, exclusive="no"),
+                                    "exclusive: expected True or False, got 'no'"),
+    "write_image(bit_depth=16.0)": (lambda t: br.write_image("x.png", _IMG, bit_depth=16.0),
+                                    "bit_depth expects None or an integer, got 16.0"),
+    "BlurParams(4, 1.0000001)": (lambda t: br.BlurParams(4, 1.0000001), "expected a value in [0, 1] (1 = nearest), "
+                                 "got 1.0000001"),
+    "BlurParams(-1e-9, 0.5)": (lambda t: br.BlurParams(-1e-9, 0.5), "expected a value >= 0, got -1e-09"),
+    "LayerOptions(tile_px=10**9)": (lambda t: br.LayerOptions(tile_px=10**9),
+                                    "tile_px: expected an integer in [1, 1024], got 1000000000"),
 }
 
 
@@ -66,6 +88,12 @@ def test_the_right_types_still_work(tmp_path):
     assert br.read_image(str(p)).shape == (4, 4, 3)
     assert br.BlurParams(4, 1).k_px == 4.0 and br.DepthNormalization(1, float("inf")).z_far_m == float("inf")
     assert br.Aperture(blades=5, rotation_deg=10**300).blades == 5  # a large but finite angle is a number
+    assert br.write_image(tmp_path / "b.exr", _IMG, half=np.True_, exclusive=False).exists()
+    assert br.write_image(tmp_path / "c.jpg", _IMG, quality=np.int64(90)).exists()
+    inputs = br.pipeline.Handover(_IMG, _IMG[..., 0])
+    br.pipeline.render_handed_over(inputs, br.BlurParams(2, 0.5))
+    with pytest.raises(InputError, match="this Handover was already rendered"):
+        br.pipeline.render_handed_over(inputs, br.BlurParams(2, 0.5))
 
 
 def test_huge_broadcast_views_are_refused_from_their_shape():

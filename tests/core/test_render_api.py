@@ -5,7 +5,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
-from tolerances import IDENTITY_ATOL, IMAGE_ENERGY_RTOL
+from tolerances import IDENTITY_ATOL, IMAGE_ENERGY_RTOL, PYRAMID_ENERGY_RTOL
 
 import bokehray as br
 from bokehray import LayerOptions, PreviewOptions
@@ -103,6 +103,21 @@ def test_energy_conserved_for_fronto_parallel_scene(r, value, seed):
     d = np.full((size, size), 0.25, np.float32)
     out = br.render(image, d, br.BlurParams(r / 0.5, 0.75))
     np.testing.assert_allclose(out.sum(axis=(0, 1)), image.sum(axis=(0, 1)), rtol=IMAGE_ENERGY_RTOL)
+
+
+@pytest.mark.parametrize("r", [40, 48, 64, 400])
+def test_energy_of_a_fronto_parallel_plane_at_pyramid_radii(r):
+    """The promise docs/robustness.md states (the hypothesis test above stops at r = 12): the light a plane loses
+    stays within PYRAMID_ENERGY_RTOL (r <= 64, and up to r = 400), with a black border wider than the blur."""
+    rng = np.random.default_rng(r)
+    c, m = 32, r + 3
+    image = np.zeros((c + 2 * m, c + 2 * m, 3), np.float32)
+    image[m:m + c, m:m + c] = rng.random((c, c, 3))
+    d = np.full(image.shape[:2], 0.25, np.float32)
+    out = br.render(image, d, br.BlurParams(r / 0.5, 0.75))
+    rtol = PYRAMID_ENERGY_RTOL[64 if r <= 64 else 400]
+    np.testing.assert_allclose(out.sum(axis=(0, 1), dtype=np.float64), image.sum(axis=(0, 1), dtype=np.float64),
+                               rtol=rtol)
 
 
 def test_energy_conserved_on_pyramid_levels(device):

@@ -303,8 +303,11 @@ def test_salient_routing_matches_reference(device, rng):
     np.testing.assert_array_equal(exact.numpy() == 1, want)
 
 
-def test_extended_lights_are_gathered_like_the_reference(device, rng):
-    """cluster_cells_kernel: blobs of lights, each pixel too faint alone to be routed, are gathered per block."""
+@pytest.mark.parametrize("depths", ["halves", "stripes"])
+def test_extended_lights_are_gathered_like_the_reference(device, rng, depths):
+    """cluster_cells_kernel: blobs of lights, each pixel too faint alone to be routed, are gathered per block.
+    ``stripes``: near and far columns in one layer (``max_layers=1``): a block's signed CoC averaged to about 0, and
+    its light went to a point (NaN or 1.8x the brightest input); its radius is the members' mean radius now."""
     from bokehray.levels.preview import SALIENT_FLOOR, SALIENT_VISIBLE, route_salient
 
     h, w = 40, 52
@@ -314,7 +317,10 @@ def test_extended_lights_are_gathered_like_the_reference(device, rng):
     for y, x in ((9, 11), (25, 30), (30, 8)):  # 5 x 5 lamps of many dim-ish pixels
         src[y:y + 5, x:x + 5, :3] += rng.uniform(0.5, 3.0, 3).astype(np.float32)
     coc = np.full((h, w), -30.0, np.float32)
-    coc[:, w // 2:] = 20.0
+    if depths == "halves":
+        coc[:, w // 2:] = 20.0
+    else:
+        coc[:, ::2] = 30.0
     routing = route_salient(wp.array(src, dtype=wp.vec4, device=device), wp.array(coc, device=device), 3, 8.0, device)
     exact = routing.exact.numpy()
     members, sources = scatter_ref.clusters(src.astype(np.float64), coc, exact == 1, 8.0, 3, SALIENT_VISIBLE,
@@ -325,6 +331,8 @@ def test_extended_lights_are_gathered_like_the_reference(device, rng):
     got = [(s[:3].astype(np.float64), li[:3]) for s, li in zip(shape.reshape(-1, 4), light.reshape(-1, 4))
            if s[3] == 1.0]
     assert len(got) == len(sources)
+    if depths == "stripes":
+        assert all(abs(c) > 29.9 for _, _, c, _ in sources)
     for x, y, c, rgb in sources:  # each reference source has its twin in the kernel's output
         pos, lit = min(got, key=lambda g: np.hypot(g[0][0] - x, g[0][1] - y))
         # positions lie on a 1/256 px grid: a float32 sum may round to the grid point next to the reference's

@@ -343,9 +343,10 @@ def clusters(src: np.ndarray, coc: np.ndarray, routed: np.ndarray, r0: float, n_
 
     In each level-l cell (l >= 1), the sources of level l not ``routed`` alone whose excess over the 3 x 3
     cells' mean, e = q - a m / a_m, is positive are the cluster. When their summed excess E beats
-    visible max(m, floor) pi s^2 (s: the e-weighted mean signed CoC), each member's light beyond its coverage
+    visible max(m, floor) pi s^2 (s: the e-weighted mean CoC radius), each member's light beyond its coverage
     of the other sources' local colour goes into the source of its block of 2^b px, b = max(1, l - 2): at the
-    members' e-weighted centroid (pixel centres) rounded to 1/256 px, with their e-weighted mean signed CoC.
+    members' e-weighted centroid (pixel centres) rounded to 1/256 px, with their e-weighted mean CoC radius,
+    signed as their e-weighted mean signed CoC (near and far members in one layer keep their radius).
     Returns the members and the sources as (x, y, signed CoC, RGB).
     """
     h, w = coc.shape
@@ -375,7 +376,7 @@ def clusters(src: np.ndarray, coc: np.ndarray, routed: np.ndarray, r0: float, n_
                 if not cell:
                     continue
                 e_sum = sum(c[2] for c in cell)
-                s_mean = sum(c[2] * coc[c[0], c[1]] for c in cell) / e_sum
+                s_mean = sum(c[2] * abs(coc[c[0], c[1]]) for c in cell) / e_sum
                 if e_sum - visible * max(m, floor) * math.pi * s_mean ** 2 <= 0:
                     continue
                 b = 2 ** max(1, lv - 2)
@@ -387,6 +388,8 @@ def clusters(src: np.ndarray, coc: np.ndarray, routed: np.ndarray, r0: float, n_
                     pe = sum(c[2] for c in part)
                     fx = sum(c[2] * (c[1] - bx * b + 0.5) for c in part) / pe  # within the block,
                     fy = sum(c[2] * (c[0] - by * b + 0.5) for c in part) / pe  # rounded to 1/256 px
+                    radius = sum(c[2] * abs(coc[c[0], c[1]]) for c in part) / pe
+                    sign = -1.0 if sum(c[2] * coc[c[0], c[1]] for c in part) < 0 else 1.0
                     sources.append((bx * b + math.floor(fx * 256 + 0.5) / 256, by * b + math.floor(fy * 256 + 0.5) / 256,
-                                    sum(c[2] * coc[c[0], c[1]] for c in part) / pe, sum(c[3] for c in part)))
+                                    sign * radius, sum(c[3] for c in part)))
     return members, sources

@@ -1,5 +1,5 @@
-"""Reliability: the command line's stderr holds bokehray's own lines only, and a batch stops on SIGTERM
-as a single render does (items 7, 11 and 12 of the adversarial run; docs/robustness.md, "Reliability, round three").
+"""The command line's stderr holds bokehray's own lines only, and a batch stops on SIGTERM
+as a single render does (items 7, 11 and 12 of the adversarial run; docs/robustness.md, "Batches, sweeps and Dask").
 
 Each test failed before its fix. The readers' half (tifffile's log, libpng's warnings) is checked in-process with
 ``capfd``, which sees file descriptor 2; the CLI's guard for every command needs a real process.

@@ -262,3 +262,19 @@ def test_check_radiance_peak_is_the_largest_magnitude(dtype):
             bad[4, 4, 2] = np.nan  # |image|.max() is NaN: not refused here (the finite check says what is wrong)
             check_radiance(bad)
     assert float(np.abs(image).max()) <= MAX_RADIANCE
+
+
+@pytest.mark.parametrize("depths", ["rows", "checker", "noise"])
+@pytest.mark.parametrize("photo", ["stripes", "noise"])
+def test_one_layer_holding_near_and_far_stays_finite_and_in_range(depths, photo):
+    """``max_layers=1`` puts near and far pixels in one layer: the extended-light clusters averaged their signed CoC
+    to about 0 and sent their light to a point (NaN/Inf, "preview renderer produced NaN/Inf", or up to 1.8 x the
+    brightest input). Each block keeps its members' mean radius now."""
+    rng = np.random.default_rng(3)
+    yy, xx = np.mgrid[:64, :64]
+    d = {"rows": yy % 2, "checker": (yy + xx) % 2, "noise": rng.random((64, 64)) > 0.5}[depths].astype(np.float32)
+    img = (np.repeat(((xx % 2) * 0.8 + 0.1)[..., None], 3, 2) if photo == "stripes"
+           else rng.random((64, 64, 3))).astype(np.float32)
+    out = br.render(img, d, br.BlurParams(30.0, 0.5), layers=br.LayerOptions(max_layers=1))
+    assert np.isfinite(out).all()
+    assert out.min() >= img.min() - 1e-5 and out.max() <= img.max() * (1 + 1e-5)

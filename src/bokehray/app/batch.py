@@ -27,6 +27,7 @@ import csv
 import glob
 import hashlib
 import json
+import math
 import os
 import sys
 import time
@@ -35,6 +36,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from ..errors import EXIT_INTERRUPTED, InputError, Terminated
+from ..validate import number_text
 
 __all__ = ["Pair", "RenderSettings", "RenderTask", "add_batch_args", "find_pairs", "frame_labels", "is_batch",
            "parse_sweep", "render_file", "run_batch", "sweep_values"]
@@ -54,27 +56,37 @@ FPS = 6.0
 
 
 def parse_sweep(text: str) -> float | tuple[float, ...]:
-    """``0.5`` -> 0.5; ``0.2,0.4,0.6`` -> a list; ``START:STOP:COUNT`` -> COUNT values from START to STOP.
-    ``-0`` is read as 0 (``+ 0.0``): a negative zero would print as ``-0.000`` in every line and JSON after it."""
+    """``0.5`` -> 0.5; ``0.2,0.4,0.6`` -> a list (2 values or more: no empty item, so ``0.5,`` is no one-frame sweep);
+    ``START:STOP:COUNT`` -> COUNT values from START to STOP (finite ends). ``-0`` is read as 0 (``+ 0.0``): a negative
+    zero would print as ``-0.000`` in every line and JSON after it."""
     try:
         if ":" in text:
-            parts = text.split(":")
-            if len(parts) != 3:
-                raise ValueError
-            start, stop, count = float(parts[0]), float(parts[1]), int(parts[2])
-            if not 2 <= count <= MAX_SWEEP:
-                raise argparse.ArgumentTypeError(f"a range needs 2..{MAX_SWEEP} values, got {count} in {text!r}")
-            values = tuple(start + (stop - start) * i / (count - 1) for i in range(count))
+            values = _sweep_range(text)
         elif "," in text:
-            values = tuple(float(v) for v in text.split(",") if v.strip())
-            if not 1 <= len(values) <= MAX_SWEEP:
-                raise ValueError
+            items = text.split(",")
+            if any(not v.strip() for v in items):
+                raise argparse.ArgumentTypeError(f"a list A,B,C has an empty value in {text!r}")
+            values = tuple(float(v) for v in items)
+            if len(values) > MAX_SWEEP:
+                raise argparse.ArgumentTypeError(f"a list takes at most {MAX_SWEEP} values, got {len(values)}")
         else:
             return float(text) + 0.0
         return tuple(v + 0.0 for v in values)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a number, a list A,B,C or a range START:STOP:COUNT, "
                                          f"got {text!r}") from None
+
+
+def _sweep_range(text: str) -> tuple[float, ...]:
+    parts = text.split(":")
+    if len(parts) != 3:
+        raise ValueError
+    start, stop, count = float(parts[0]), float(parts[1]), int(parts[2])
+    if not (math.isfinite(start) and math.isfinite(stop)):
+        raise argparse.ArgumentTypeError(f"a range needs finite ends, got {text!r}")
+    if not 2 <= count <= MAX_SWEEP:
+        raise argparse.ArgumentTypeError(f"a range needs 2..{MAX_SWEEP} values, got {count} in {text!r}")
+    return tuple(start + (stop - start) * i / (count - 1) for i in range(count))
 
 
 def add_batch_args(r: argparse.ArgumentParser) -> None:
@@ -133,15 +145,45 @@ def _listing(spec: str, exts: tuple[str, ...], what: str) -> tuple[list[Path], P
     """Files named by a folder, a glob or one file; and the folder they are relative to."""
     p = Path(spec)
     if p.is_dir():
-        files = [f for f in p.iterdir() if f.is_file() and not f.name.startswith(".") and f.suffix.lower() in exts]
+        # not only regular files: a FIFO, a dangling link or a link loop named as a photo is listed, to be reported
+        # as a failure (not_a_file), not dropped silently
+        files = [f for f in p.iterdir() if not f.is_dir() and not f.name.startswith(".") and f.suffix.lower() in exts]
         return sorted(files, key=natural_key), p
     if p.is_file():
         return [p], p.parent
     if _is_glob(spec):
         files = [Path(f) for f in glob.glob(spec, recursive=True)]
-        files = [f for f in files if f.is_file() and f.suffix.lower() in exts]
+        files = [f for f in files if not f.is_dir() and f.suffix.lower() in exts]
         return sorted(files, key=natural_key), None
     raise InputError(f"{spec}: no such {what} file or folder")
+
+
+def _real(f: Path) -> Path:
+    """``f`` resolved; a link loop (which ``resolve`` refuses) as it is named."""
+    try:
+        return f.resolve()
+    except (OSError, RuntimeError):
+        return f.absolute()
+
+
+def not_a_file(f: Path) -> str | None:
+    """Why ``f`` cannot be read as a photo's file (a dangling symbolic link, a link loop, a named pipe, a socket, a
+    device), or None for a regular file."""
+    import errno
+    import stat
+
+    try:
+        mode = os.stat(f).st_mode
+    except OSError as e:
+        if e.errno == errno.ELOOP:
+            return "a loop of symbolic links"
+        if e.errno == errno.ENOENT and os.path.islink(f):
+            return f"a dangling symbolic link (to {os.readlink(f)})"
+        return f"cannot be read ({e.strerror or e})"
+    if stat.S_ISREG(mode):
+        return None
+    kind = "a named pipe (FIFO)" if stat.S_ISFIFO(mode) else "a socket" if stat.S_ISSOCK(mode) else "a device"
+    return f"expected a regular file, got {kind}"
 
 
 def _manifest(path: Path, kind: str) -> dict[str, Path]:
@@ -169,6 +211,8 @@ def _manifest(path: Path, kind: str) -> dict[str, Path]:
         row = dict(zip(header, (f.strip() for f in fields)))
         if not row.get("image") or not row.get(col):
             raise InputError(f"{path}: line {n}: expected an image and a {kind} path")
+        if "\0" in row["image"] + row[col]:  # no file system takes it: os calls raised "embedded null byte"
+            raise InputError(f"{path}: line {n}: a path holds a NUL byte")
         m = Path(row[col])
         out[row["image"]] = m if m.is_absolute() else path.parent / m
     return out
@@ -186,17 +230,23 @@ def _check_one_map_file(images: str, mp: Path, files: list[Path], kind: str, suf
                          f"with it")
 
 
-def find_pairs(images: str, maps: str, *, kind: str = "disparity", suffix: str = "") -> list[Pair]:  # noqa: C901
-    """The photos named by ``images`` and their maps from ``maps`` (module docstring: the pairing rule)."""
+def find_pairs(images: str, maps: str, *, kind: str = "disparity", suffix: str = "") -> list[Pair]:
+    """The photos named by ``images`` and their maps from ``maps`` (module docstring: the pairing rule). A photo that
+    is no regular file is a pair without a map, its problem said (:func:`not_a_file`): the batch lists it as failed."""
+    pairs = _pair(images, maps, kind=kind, suffix=suffix)
+    return [Pair(p.image, None, why) if (why := not_a_file(p.image)) else p for p in pairs]
+
+
+def _pair(images: str, maps: str, *, kind: str, suffix: str) -> list[Pair]:  # noqa: C901
     mp = Path(maps)
     if mp.suffix.lower() == ".csv" and mp.is_file():
         table = _manifest(mp, kind)
         files, root = _listing(images, IMAGE_EXTS, "image")
         pairs = []
-        by_path = {(mp.parent / k).resolve(): m for k, m in table.items()}
+        by_path = {_real(mp.parent / k): m for k, m in table.items()}
         for f in files:
             keys = [f.name] + ([str(f.relative_to(root))] if root is not None else [])
-            m = by_path.get(f.resolve()) or next((table[k] for k in keys if k in table), None)
+            m = by_path.get(_real(f)) or next((table[k] for k in keys if k in table), None)
             pairs.append(Pair(f, m) if m is not None else Pair(f, None, f"no {kind} map listed in {mp}"))
         return pairs
     if mp.suffix.lower() == ".csv":
@@ -206,20 +256,20 @@ def find_pairs(images: str, maps: str, *, kind: str = "disparity", suffix: str =
     for m in map_files:
         by_stem.setdefault(m.stem, []).append(m)
     files, _ = _listing(images, IMAGE_EXTS, "image")
-    map_set = {m.resolve() for m in map_files}
+    map_set = {_real(m) for m in map_files}
     if suffix:
         files = [f for f in files if not f.stem.endswith(suffix)]
     elif Path(images).is_file() and mp.is_file():
         return [Pair(Path(images), mp)]
     else:
-        shared = [f for f in files if f.resolve() in map_set]
+        shared = [f for f in files if _real(f) in map_set]
         if shared:
             raise InputError(f"{maps}: the maps are among the images ({shared[0]}); name them with a suffix and "
                              "pass --map-suffix (e.g. IMG_01.jpg and IMG_01_disp.png with --map-suffix _disp)")
     _check_one_map_file(images, mp, files, kind, suffix)
     pairs = []
     for f in files:
-        cands = [m for m in by_stem.get(f.stem + suffix, []) if m.resolve() != f.resolve()]
+        cands = [m for m in by_stem.get(f.stem + suffix, []) if _real(m) != _real(f)]
         if len(cands) == 1:
             pairs.append(Pair(f, cands[0]))
         elif not cands:
@@ -304,16 +354,16 @@ def sweep_values(args: argparse.Namespace) -> tuple[str | None, tuple[float, ...
     name = "focus" if f else "blur"
     values = args.focus if f else args.blur  # parse_sweep read -0 as 0: one name, one render
     if len(set(values)) != len(values):
-        raise InputError(f"--{name}: the values repeat ({', '.join(f'{v:g}' for v in values)})")
+        raise InputError(f"--{name}: the values repeat ({', '.join(map(number_text, values))})"[:300])
     # every value is checked as a single one is, before any frame is written (not frame by frame, half a stack later)
     from ..lens import MAX_K_PX
 
     for i, v in enumerate(values):
         if name == "focus" and not 0.0 <= v <= 1.0:
-            raise InputError(f"--focus: expected every value of the sweep in [0, 1] (1 = nearest), got {v:g} "
+            raise InputError(f"--focus: expected every value of the sweep in [0, 1] (1 = nearest), got {number_text(v)} "
                              f"(value {i + 1} of {len(values)})")
         if name == "blur" and not 0.0 <= v <= MAX_K_PX:
-            raise InputError(f"--blur: expected every value of the sweep as K in [0, {MAX_K_PX:g}], got {v:g} "
+            raise InputError(f"--blur: expected every value of the sweep as K in [0, {MAX_K_PX:g}], got {number_text(v)} "
                              f"(value {i + 1} of {len(values)})")
     return name, values
 

@@ -20,6 +20,7 @@ from .._quiet import init_warp_quietly
 from ..errors import InputError
 from ..photo.subject import AMOUNT_DEFAULT, AMOUNT_K_FRACTION
 from ..stats import Clock
+from ..validate import number_text
 
 __all__ = ["aperture_of", "check_render_flags", "layer_options_of", "read_map", "render_one", "start_warp"]
 
@@ -212,7 +213,7 @@ def check_render_flags(args: argparse.Namespace) -> bool:  # noqa: C901
     if getattr(args, "refine_everywhere", False) and not args.refine:
         raise InputError("--refine-everywhere changes what --refine does; it needs --refine")
     if args.blur is not None and args.blur < 0:
-        raise InputError(f"--blur: expected K >= 0, got {args.blur:g}")
+        raise InputError(f"--blur: expected K >= 0, got {number_text(args.blur)}")
     if args.z_near is not None or args.z_far is not None:
         if args.depth is None:
             raise InputError("--z-near/--z-far normalise a metric --depth map; they need --depth")

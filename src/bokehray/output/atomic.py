@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import hashlib
 import os
 import shutil
 import signal
@@ -22,17 +23,33 @@ import psutil
 from ..errors import BokehrayError, OutputError, OutputExistsError, ResourceError
 
 __all__ = ["atomic_write", "is_zombie", "remove_made_folder_on_failure", "remove_stale_outputs",
-           "remove_stale_temporaries", "temporary_prefix", "writer_alive"]
+           "remove_stale_temporaries", "temporary_prefix", "temporary_stem", "writer_alive"]
 
 _TMP_TAG = ".tmp-"
-"""Temporary siblings are named ``.<name>.tmp-<host>-<pid>-<random><suffix>``: hidden, never read by
-any reader here, and recognisable as a dead writer's leftovers by the next write to ``<name>``."""
+"""Temporary siblings are named ``.<name>.tmp-<host>-<pid>-<random><suffix>`` (a long ``<name>`` shortened:
+:func:`temporary_stem`): hidden, never read by any reader here, and recognisable as a dead writer's leftovers by the
+next write to ``<name>``."""
+
+
+_LONG_NAME_BYTES = 128
+"""A target name longer than this (in bytes) is shortened in its temporary's name (:func:`temporary_stem`): the tag,
+host, process id and random part add up to 60 bytes, and a 230-255 byte name's temporary passed the file system's
+255-byte limit ("File name too long" after the whole render)."""
+
+
+def temporary_stem(name: str) -> str:
+    """How a temporary sibling names its target ``name``: the name itself, or, beyond :data:`_LONG_NAME_BYTES`, its
+    first 100 bytes, ``~`` and 12 hex digits of its SHA-256 (the same for every writer of that name)."""
+    raw = os.fsencode(name)
+    if len(raw) <= _LONG_NAME_BYTES:
+        return name
+    return f"{os.fsdecode(raw[:100])}~{hashlib.sha256(raw).hexdigest()[:12]}"
 
 
 def temporary_prefix(path: Path) -> str:
     """The name a write to ``path`` by this process gives its temporary sibling, up to its random part."""
     host = "".join(c if c.isalnum() else "_" for c in socket.gethostname())[:32] or "host"
-    return f".{path.name}{_TMP_TAG}{host}-{os.getpid()}-"
+    return f".{temporary_stem(path.name)}{_TMP_TAG}{host}-{os.getpid()}-"
 
 
 def writer_alive(pid: int) -> bool:
@@ -239,19 +256,19 @@ def _unblock_signals(previous: set[int] | None) -> None:
 def remove_stale_outputs(folder: Path, names: Iterable[str]) -> int:
     """Remove what a worker killed mid-write left next to the outputs ``names`` of ``folder``.
 
-    :func:`atomic_write` writes ``.<name>.<random><ext>`` and the BLB writer ``.<name>.tmp-<pid>-...``
+    :func:`atomic_write` writes ``.<name>.tmp-...<ext>`` (a long name shortened: :func:`temporary_stem`) and the BLB writer ``.<name>.tmp-<pid>-...``
     before renaming onto ``<name>``; a killed process leaves them. Call this when no task of the run is in flight.
     Returns how many were removed.
     """
     if not folder.is_dir():
         return 0
-    wanted = set(names)
+    wanted = {temporary_stem(n): n for n in names} | {n: n for n in names}
     removed = 0
     for entry in folder.iterdir():
         if not entry.name.startswith("."):
             continue
         parts = entry.name[1:].split(".")  # ".<name>.<rest>": <name> may hold dots itself
-        name = next((n for n in (".".join(parts[:k]) for k in range(1, len(parts))) if n in wanted), None)
+        name = next((wanted[n] for n in (".".join(parts[:k]) for k in range(1, len(parts))) if n in wanted), None)
         if name is not None:
             if ".old-" in entry.name and not (folder / name).exists():
                 continue  # the previous version, moved aside by an overwrite that did not finish: keep it

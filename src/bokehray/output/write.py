@@ -10,6 +10,7 @@ import io
 import os
 import struct
 from collections.abc import Callable, Mapping
+from numbers import Integral
 from pathlib import Path
 
 import imagecodecs
@@ -22,7 +23,7 @@ from PIL import Image
 from ..colour import SRGB_CHROMATICITIES, quantize, srgb_icc
 from ..errors import InputError
 from ..formats import HALF_MAX, check_finite, first_index, format_of, to_float32
-from ..validate import check_path, fits_in_memory
+from ..validate import array_shape, check_bool, check_path, fits_in_memory, shown
 from .atomic import atomic_write
 
 __all__ = ["API_NAMES", "CLI_NAMES", "PNG_COMPRESS_LEVEL", "WRITE_BYTES_PER_SAMPLE", "check_output_path",
@@ -111,7 +112,19 @@ def check_output_path(path: str | os.PathLike[str], *, bit_depth: int | None = N
     return p
 
 
+def _check_write_options(p: Path, bit_depth: object, half: object, quality: object, exclusive: object) -> int:
+    """The types of :func:`write_image`'s options (``half="yes"`` was taken as True, ``quality="95"`` a TypeError)
+    and the JPEG quality's range (checked for every format: it is an argument all the same)."""
+    check_bool(half, "half")
+    check_bool(exclusive, "exclusive")
+    if isinstance(quality, bool) or not isinstance(quality, Integral) or not 1 <= quality <= 100:
+        raise InputError(f"{p}: expected JPEG quality in [1, 100] (an integer), got {shown(quality)}"[:300])
+    return int(quality)  # Pillow refuses NumPy's integers
+
+
 def _output_bits(p: Path, fmt: str, bit_depth: int | None, half: bool, names: Mapping[str, str] = API_NAMES) -> int:
+    if bit_depth is not None and (isinstance(bit_depth, bool) or not isinstance(bit_depth, Integral)):
+        raise InputError(f"{p}: {names['bit_depth']} expects None or an integer, got {shown(bit_depth)}"[:300])
     depths = {"PNG": (8, 16), "JPEG": (8,), "TIFF": (8, 16, 32), "EXR": (16, 32)}[fmt]
     bits = bit_depth if bit_depth is not None else {"PNG": 8, "JPEG": 8, "TIFF": 16, "EXR": 16 if half else 32}[fmt]
     bd, hf = names["bit_depth"], names["half"]
@@ -126,7 +139,7 @@ def _output_bits(p: Path, fmt: str, bit_depth: int | None, half: bool, names: Ma
     return bits
 
 
-def write_image(  # noqa: C901
+def write_image(
     path: str | os.PathLike[str],
     image: npt.ArrayLike,
     *,
@@ -170,7 +183,8 @@ def write_image(  # noqa: C901
     """
     check_path(path)
     p, fmt = format_of(path, ("PNG", "JPEG", "TIFF", "EXR"), "images", read=False)
-    shape = np.shape(image)
+    quality = _check_write_options(p, bit_depth, half, quality, exclusive)
+    shape = array_shape(image, f"refusing to write {p}: image")
     channels = shape[2] if len(shape) == 3 and isinstance(shape[2], int) else 1
     fits_in_memory(shape, WRITE_BYTES_PER_SAMPLE * channels, f"refusing to write {p}")  # before any copy
     img = np.asarray(image)
@@ -199,8 +213,6 @@ def write_image(  # noqa: C901
         return atomic_write(p, lambda tmp: _write_tiff(tmp, data, icc), exclusive, next_name)
     if fmt == "JPEG" and img.shape[2] == 4:
         raise InputError(f"{p}: expected an image without alpha for JPEG, got 4 channels")
-    if fmt == "JPEG" and not 1 <= quality <= 100:
-        raise InputError(f"{p}: expected JPEG quality in [1, 100], got {quality!r}")
     codes = srgb_codes(img, bits)
     icc = srgb_icc() if img.shape[2] >= 3 else None
     if fmt == "JPEG":

@@ -34,10 +34,21 @@ REVERSED_MARGIN = 0.2
 BORDER_NEAR = 0.85
 """A frame border whose median disparity is at least this sits on the nearest values."""
 
-def subsample(d: np.ndarray, most: int = 512) -> tuple[np.ndarray, int]:
-    """``d`` on a grid of at most ``most`` samples along its longer side, and the step taken."""
+def subsample(d: np.ndarray, most: int = 512) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``d`` on a grid of at most ``most`` samples along its longer side: ``(samples, rows, cols)``, the samples
+    ``d[rows][:, cols]``. Each sample is a pixel of its ``step x step`` block at an offset drawn per row and per
+    column (a fixed seed: the same map gives the same samples); a regular grid (``d[::step, ::step]``) saw one phase
+    of a map with a period dividing the step (1-2 px stripes or a checkerboard above 512 px read as all at one
+    depth). Maps of at most ``most`` px a side are taken whole."""
     step = max(1, int(math.ceil(max(d.shape) / most)))
-    return d[::step, ::step], step
+    rng = np.random.default_rng(0x5EED)
+
+    def picks(n: int) -> np.ndarray:
+        starts = np.arange(0, n, step)
+        return starts + (rng.random(len(starts)) * np.minimum(step, n - starts)).astype(np.int64)
+
+    rows, cols = picks(d.shape[0]), picks(d.shape[1])
+    return d[np.ix_(rows, cols)], rows, cols
 
 
 def looks_reversed(disparity: np.ndarray) -> tuple[bool, str]:
@@ -54,7 +65,7 @@ def looks_reversed(disparity: np.ndarray) -> tuple[bool, str]:
     a close frame (a window, foliage all round) can trip it, which is why this is a warning, not an error.
     """
     d = np.asarray(disparity, np.float32)
-    s, _ = subsample(d)
+    s, _, _ = subsample(d)
     h, w = s.shape
     by, bx = max(1, h // 20), max(1, w // 20)
     border = np.concatenate([s[:by].ravel(), s[-by:].ravel(), s[by:-by, :bx].ravel(), s[by:-by, -bx:].ravel()])

@@ -56,6 +56,8 @@ def _config(folder: Path) -> dict:
     if kind not in SUPPORTED:
         names = ", ".join(f"{k} ({v})" for k, v in SUPPORTED.items())
         raise InputError(f"{cfg_path}: model_type {kind!r} is not a supported depth model; expected one of {names}")
+    if cfg.get("max_depth") is not None:  # a metric model's range (the library's own check is a multi-line message)
+        _positive_int(cfg["max_depth"], cfg_path, "max_depth")
     return cfg
 
 
@@ -299,7 +301,8 @@ def estimate_disparity(
         model, loading = cls.from_pretrained(str(folder), local_files_only=True, output_loading_info=True)
         model = model.eval().to(device)
     except Exception as e:  # noqa: BLE001 - transformers raises OSError, ValueError, RuntimeError, safetensors errors
-        raise InputError(f"{folder}: cannot load the {SUPPORTED[cfg['model_type']]} checkpoint ({e})") from None
+        why = " ".join(str(e).split())[:300]  # one line: the library's messages span several
+        raise InputError(f"{folder}: cannot load the {SUPPORTED[cfg['model_type']]} checkpoint ({why})") from None
     _check_loading(folder, cfg, loading)
     if progress:
         progress(0.3)

@@ -216,8 +216,8 @@ def _exr_windows(path: Path) -> tuple[tuple[int, int, int, int], tuple[int, int,
 
 
 def _exr_size(path: Path, *, check: bool = False) -> tuple[int, int]:
-    """``(height, width)`` of the EXR's data window, which must be its display window (docs/robustness.md, the
-    data-window case): a data window inside a larger frame (a crop or border render) or beyond it (overscan) is refused, naming both,
+    """``(height, width)`` of the EXR's data window, which must be its display window (docs/robustness.md, "Reading files"):
+    a data window inside a larger frame (a crop or border render) or beyond it (overscan) is refused, naming both,
     rather than read as a smaller or larger picture that has lost its place in the frame. ``check``: the pixel and
     memory limits as well (the reader's)."""
     if not OpenEXR.isOpenExrFile(str(path)):

@@ -121,7 +121,8 @@ def depth_regions(hist: np.ndarray) -> list[tuple[int, int]]:
 def subject_focus(disparity: np.ndarray) -> Subject:
     """The default focus: the nearest depth region holding >= ``SUBJECT_MASS`` of the centre-weighted frame.
 
-    On a grid of at most 512 samples a side, the centre-weighted histogram (256 bins over the map's own 0.1st..99.9th
+    On a grid of at most 512 samples a side (one pixel of each block, at offsets that vary: :func:`subsample`), the
+    centre-weighted histogram (256 bins over the map's own 0.1st..99.9th
     percentile range, so the encoding's range and bit depth do not matter; weights a Gaussian of ``CENTRE_SIGMA``
     frame sizes around the centre) is split into depth regions at its troughs (:func:`depth_regions`). Walking from
     the nearest region, the first that holds at least ``SUBJECT_MASS`` of the weight is the subject; the focus is the
@@ -132,7 +133,7 @@ def subject_focus(disparity: np.ndarray) -> Subject:
     d = np.asarray(disparity, np.float32)
     if d.ndim != 2 or d.size == 0:
         raise InputError(f"disparity: expected a non-empty H x W map, got shape {d.shape}")
-    s, step = subsample(d)
+    s, rows, cols = subsample(d)
     h, w = s.shape
     yy = (np.arange(h) + 0.5) / h - 0.5
     xx = (np.arange(w) + 0.5) / w - 0.5
@@ -163,7 +164,7 @@ def subject_focus(disparity: np.ndarray) -> Subject:
     cum = np.cumsum(wts[order])
     d_f = float(vals[order][int(np.searchsorted(cum, 0.5 * cum[-1]))])
     iy, ix = np.nonzero(inside)
-    cy = float(np.average(iy, weights=wts)) * step
-    cx = float(np.average(ix, weights=wts)) * step
+    cy = float(np.average(rows[iy], weights=wts))
+    cx = float(np.average(cols[ix], weights=wts))
     return Subject(d_f, int(round(cx)), int(round(cy)), (float(vals.min()), float(vals.max())), float(cum[-1]),
                    len(regions), skipped)

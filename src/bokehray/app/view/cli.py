@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 
 from ...errors import InputError
@@ -75,7 +76,7 @@ def cmd_view(args: argparse.Namespace) -> int:  # noqa: C901
     if args.host not in ("127.0.0.1", "localhost", "::1") and not args.quiet:
         print(f"bokehray view: listening on {args.host}, not only this machine: anyone who can reach it can "
               "render and export", file=sys.stderr)
-    # from the printed URL on the server is up: Ctrl-C and SIGTERM only ask it to stop, wherever they land
+    # from the printed URL on the server is up: Ctrl-C, SIGTERM and SIGHUP only ask it to stop, wherever they land
     # (ViewServer.stopping_on_signals); a KeyboardInterrupt raised otherwise is still the normal stop
     try:
         with server.stopping_on_signals():
@@ -101,5 +102,6 @@ def cmd_view(args: argparse.Namespace) -> int:  # noqa: C901
     finally:
         server.close()
     if not args.quiet:
-        print("bokehray view: stopped", file=sys.stderr)
+        with contextlib.suppress(OSError):  # after SIGHUP the terminal may be gone
+            print("bokehray view: stopped", file=sys.stderr)
     return 0

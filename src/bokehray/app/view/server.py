@@ -118,98 +118,158 @@ def _static(name: str) -> bytes:
     return resources.files("bokehray.app.view").joinpath("static", name).read_bytes()
 
 
-def create_app(session: ViewSession, worker: RenderWorker | None = None, allowed_hosts: tuple[str, ...] = (),  # noqa: C901
-               any_address: bool = False):
-    """The Starlette app over ``session``; ``worker`` defaults to a new :class:`RenderWorker`. With ``allowed_hosts``
-    only requests whose ``Host`` is one of them (or, with ``any_address``, an IP address) are answered."""
-    from starlette.applications import Starlette
-    from starlette.requests import ClientDisconnect, Request
-    from starlette.responses import JSONResponse, Response
-    from starlette.routing import Route
+def _blob(data: bytes, media: str, headers: dict | None = None):
+    from starlette.responses import Response
 
-    worker = worker or RenderWorker()
-    stats = {"requests": 0, "rejected": 0}
+    return Response(data, media_type=media, headers={**_SECURITY_HEADERS, **(headers or {})})
 
-    def error(status: int, message: str) -> JSONResponse:
-        stats["rejected"] += status >= 400 and status != 409
+
+def _json(content, status: int = 200, headers: dict | None = None):
+    from starlette.responses import JSONResponse
+
+    return JSONResponse(content, status_code=status, headers=headers or _SECURITY_HEADERS)
+
+
+def _check_json_request(request) -> None:
+    """A page of another site can make the browser POST here ("simple" requests need no CORS preflight), but not with
+    a JSON content type, and the browser names its origin: both are checked, and the declared size."""
+    if request.headers.get("content-type", "").split(";")[0].strip().lower() != "application/json":
+        raise _Refused(415, "request body: expected Content-Type: application/json")
+    origin = request.headers.get("origin")
+    if origin is not None and origin != f"{request.url.scheme}://{request.headers.get('host', '')}":
+        raise _Refused(403, f"request from another origin ({origin}) refused")
+    declared = request.headers.get("content-length")
+    if declared is not None and (not declared.isdigit() or int(declared) > MAX_BODY_BYTES):
+        raise _TooLarge()
+
+
+async def _read_body(request) -> bytes:
+    """The request's body, at most :data:`MAX_BODY_BYTES`. A body that stops half-way held a connection slot for good
+    and held up Ctrl-C until uvicorn cancelled the handler (a traceback): it has :data:`BODY_TIMEOUT_S` to arrive."""
+    from starlette.requests import ClientDisconnect
+
+    body = b""
+    try:
+        async with asyncio.timeout(BODY_TIMEOUT_S):
+            async for chunk in request.stream():
+                body += chunk
+                if len(body) > MAX_BODY_BYTES:
+                    raise _TooLarge()
+    except ClientDisconnect:  # the answer goes nowhere, but it is an answer: no traceback on the console
+        raise _Refused(400, "request body: the client disconnected before sending all of it") from None
+    except TimeoutError:
+        raise _Refused(408, f"request body: not all of it arrived within {BODY_TIMEOUT_S:g} s") from None
+    return body
+
+
+async def _read_json(request):
+    _check_json_request(request)
+    body = await _read_body(request)
+    try:
+        return json.loads(body)
+    except (ValueError, UnicodeDecodeError) as e:
+        raise InputError(f"request body: expected JSON ({e})") from None
+    except RecursionError:  # nested deeper than Python's parser goes (1000 levels fit in the 4096 bytes)
+        raise InputError("request body: JSON nested too deeply") from None
+
+
+def _render_request(session: ViewSession, body) -> tuple:
+    """The parameters, stage and long side of a ``/api/render`` body (:class:`InputError` for a bad one)."""
+    p = session.parse(body)
+    stage = body.get("stage", "preview")
+    if not isinstance(stage, str) or stage not in ("preview", "full"):
+        raise InputError(f"stage: expected 'preview' or 'full', got {stage!r}"[:200])
+    long_side = body.get("long_side")
+    if long_side is not None:
+        long_side = json_integer(long_side, "long_side")
+        if long_side < 16:
+            raise InputError(f"long_side: expected at least 16 pixels, got {long_side}")
+    return p, stage, long_side
+
+
+def _export_request(session: ViewSession, body) -> tuple:
+    """The parameters, format and bit depth of an ``/api/export`` body (:class:`InputError` for a bad one)."""
+    if not isinstance(body, dict) or set(body) - {"params", "format", "bit_depth"}:
+        raise InputError("export: expected {\"params\": {...}, \"format\": ..., \"bit_depth\": ...}")
+    p = session.parse(body.get("params", {}))
+    fmt = body.get("format", "png")
+    if not isinstance(fmt, str) or fmt not in EXPORT_FORMATS:
+        raise InputError(f"export format: expected one of {', '.join(EXPORT_FORMATS)}, got {fmt!r}"[:200])
+    bits = body.get("bit_depth")
+    if bits is not None and (isinstance(bits, bool) or not isinstance(bits, int) or bits not in EXPORT_FORMATS[fmt]):
+        raise InputError(f"argument --bit-depth: {fmt} takes {', '.join(map(str, EXPORT_FORMATS[fmt]))}, "
+                         f"got {bits!r}"[:200])
+    return p, fmt, bits
+
+
+def _render_headers(session: ViewSession, p, stage: str, meta: dict, seconds: float, t0: float) -> dict:
+    return {
+        "X-Bokehray-Stage": stage, "X-Bokehray-Factor": str(meta["factor"]),
+        "X-Bokehray-Proxy-Level": str(meta.get("level", "")),
+        "X-Bokehray-Focus-Disparity": repr(p.blur.focus_disparity), "X-Bokehray-K": repr(p.blur.k_px),
+        "X-Bokehray-Render-Seconds": f"{seconds:.4f}",
+        "X-Bokehray-Seconds": f"{time.perf_counter() - t0:.4f}",
+        "X-Bokehray-Command": quote(session.command(p, "OUTPUT.png"), safe=""),
+        "X-Bokehray-Amount": "" if p.amount is None else repr(p.amount),
+        "X-Bokehray-Focus-M": "" if session.norm is None else repr(float(session.norm.depth(p.blur.focus_disparity))),
+    }
+
+
+class _Api:
+    """The page's routes over one session and its render worker; ``stats`` counts requests and refusals."""
+
+    def __init__(self, session: ViewSession, worker: RenderWorker) -> None:
+        self.session, self.worker = session, worker
+        self.stats = {"requests": 0, "rejected": 0}
+
+    def error(self, status: int, message: str):
+        self.stats["rejected"] += status >= 400 and status != 409
         headers = {**_SECURITY_HEADERS, "Connection": "close"} if status == 408 else _SECURITY_HEADERS
-        return JSONResponse({"error": message}, status_code=status, headers=headers)
+        return _json({"error": message}, status, headers)
 
-    def blob(data: bytes, media: str, headers: dict | None = None) -> Response:
-        return Response(data, media_type=media, headers={**_SECURITY_HEADERS, **(headers or {})})
+    def refusal(self, e: Exception):
+        """The answer to a request refused before its work started (``None``: not a refusal)."""
+        if isinstance(e, _TooLarge):
+            return self.error(413, f"request body: larger than {MAX_BODY_BYTES} bytes")
+        if isinstance(e, _Refused):
+            return self.error(e.status, str(e))
+        if isinstance(e, Busy):
+            return self.error(429, str(e))
+        if isinstance(e, Stopped):
+            return self.error(503, "the server is stopping")
+        if isinstance(e, BokehrayError):
+            return self.error(400, str(e))
+        return None
 
-    async def read_json(request: Request):
-        # A page of another site can make the browser POST here ("simple" requests need no CORS preflight),
-        # but not with a JSON content type, and the browser names its origin: both are checked.
-        if request.headers.get("content-type", "").split(";")[0].strip().lower() != "application/json":
-            raise _Refused(415, "request body: expected Content-Type: application/json")
-        origin = request.headers.get("origin")
-        if origin is not None and origin != f"{request.url.scheme}://{request.headers.get('host', '')}":
-            raise _Refused(403, f"request from another origin ({origin}) refused")
-        declared = request.headers.get("content-length")
-        if declared is not None and (not declared.isdigit() or int(declared) > MAX_BODY_BYTES):
-            raise _TooLarge()
-        body = b""
-        try:
-            # a body that stops half-way held a connection slot for good, and held up Ctrl-C until uvicorn cancelled
-            # the handler (a traceback): it has BODY_TIMEOUT_S to arrive
-            async with asyncio.timeout(BODY_TIMEOUT_S):
-                async for chunk in request.stream():
-                    body += chunk
-                    if len(body) > MAX_BODY_BYTES:
-                        raise _TooLarge()
-        except ClientDisconnect:  # the answer goes nowhere, but it is an answer: no traceback on the console
-            raise _Refused(400, "request body: the client disconnected before sending all of it") from None
-        except TimeoutError:
-            raise _Refused(408, f"request body: not all of it arrived within {BODY_TIMEOUT_S:g} s") from None
-        try:
-            return json.loads(body)
-        except (ValueError, UnicodeDecodeError) as e:
-            raise InputError(f"request body: expected JSON ({e})") from None
-        except RecursionError:  # nested deeper than Python's parser goes (1000 levels fit in the 4096 bytes)
-            raise InputError("request body: JSON nested too deeply") from None
+    async def page(self, request):
+        return _blob(_static("index.html"), _STATIC["index.html"])
 
-    async def page(request: Request) -> Response:
-        return blob(_static("index.html"), _STATIC["index.html"])
-
-    async def static(request: Request) -> Response:
+    async def static(self, request):
         name = request.path_params["name"]
         if name not in _STATIC:  # a fixed list: no path from the client reaches the file system
-            return error(404, f"no such file: {name!r}")
-        return blob(_static(name), _STATIC[name])
+            return self.error(404, f"no such file: {name!r}")
+        return _blob(_static(name), _STATIC[name])
 
-    async def info(request: Request) -> Response:
-        return JSONResponse(session.info(), headers=_SECURITY_HEADERS)
+    async def info(self, request):
+        return _json(self.session.info())
 
-    async def photo(request: Request) -> Response:
-        return blob(await asyncio.to_thread(session.photo_jpeg), "image/jpeg")
+    async def photo(self, request):
+        return _blob(await asyncio.to_thread(self.session.photo_jpeg), "image/jpeg")
 
-    async def depth(request: Request) -> Response:
-        return blob(await asyncio.to_thread(session.depth_png), "image/png")
+    async def depth(self, request):
+        return _blob(await asyncio.to_thread(self.session.depth_png), "image/png")
 
-    async def disparity16(request: Request) -> Response:
-        return blob(await asyncio.to_thread(session.disparity16_png), "image/png")
+    async def disparity16(self, request):
+        return _blob(await asyncio.to_thread(self.session.disparity16_png), "image/png")
 
-    async def render(request: Request) -> Response:  # noqa: C901
-        stats["requests"] += 1
+    async def render(self, request):
+        self.stats["requests"] += 1
         try:
-            body = await read_json(request)
-            p = session.parse(body)
-            stage = body.get("stage", "preview")
-            if not isinstance(stage, str) or stage not in ("preview", "full"):
-                raise InputError(f"stage: expected 'preview' or 'full', got {stage!r}"[:200])
-            long_side = body.get("long_side")
-            if long_side is not None:
-                long_side = json_integer(long_side, "long_side")
-                if long_side < 16:
-                    raise InputError(f"long_side: expected at least 16 pixels, got {long_side}")
-        except _TooLarge:
-            return error(413, f"request body: larger than {MAX_BODY_BYTES} bytes")
-        except _Refused as e:
-            return error(e.status, str(e))
-        except BokehrayError as e:
-            return error(400, str(e))
+            p, stage, long_side = _render_request(self.session, await _read_json(request))
+        except (_TooLarge, _Refused, BokehrayError) as e:
+            return self.refusal(e)
         t0 = time.perf_counter()
+        session = self.session
 
         def job(check):
             t_start = time.perf_counter()
@@ -220,99 +280,109 @@ def create_app(session: ViewSession, worker: RenderWorker | None = None, allowed
             return data, meta, time.perf_counter() - t_start
 
         try:
-            data, meta, seconds = await asyncio.wrap_future(worker.submit(job, stage))
+            data, meta, seconds = await asyncio.wrap_future(self.worker.submit(job, stage))
         except Superseded:
-            return JSONResponse({"superseded": True}, status_code=409, headers=_SECURITY_HEADERS)
-        except Stopped:
-            return error(503, "the server is stopping")
-        except BokehrayError as e:
-            return error(400, str(e))
-        headers = {
-            "X-Bokehray-Stage": stage, "X-Bokehray-Factor": str(meta["factor"]),
-            "X-Bokehray-Proxy-Level": str(meta.get("level", "")),
-            "X-Bokehray-Focus-Disparity": repr(p.blur.focus_disparity), "X-Bokehray-K": repr(p.blur.k_px),
-            "X-Bokehray-Render-Seconds": f"{seconds:.4f}",
-            "X-Bokehray-Seconds": f"{time.perf_counter() - t0:.4f}",
-            "X-Bokehray-Command": quote(session.command(p, "OUTPUT.png"), safe=""),
-            "X-Bokehray-Amount": "" if p.amount is None else repr(p.amount),
-            "X-Bokehray-Focus-M": "" if session.norm is None else repr(float(session.norm.depth(p.blur.focus_disparity))),
-        }
-        return blob(data, "image/jpeg", headers)
+            return _json({"superseded": True}, 409)
+        except (Stopped, BokehrayError) as e:
+            return self.refusal(e)
+        return _blob(data, "image/jpeg", _render_headers(session, p, stage, meta, seconds, t0))
 
-    async def export(request: Request) -> Response:  # noqa: C901
+    async def export(self, request):
         try:
-            body = await read_json(request)
-            if not isinstance(body, dict) or set(body) - {"params", "format", "bit_depth"}:
-                raise InputError("export: expected {\"params\": {...}, \"format\": ..., \"bit_depth\": ...}")
-            p = session.parse(body.get("params", {}))
-            fmt = body.get("format", "png")
-            if not isinstance(fmt, str) or fmt not in EXPORT_FORMATS:
-                raise InputError(f"export format: expected one of {', '.join(EXPORT_FORMATS)}, got {fmt!r}"[:200])
-            bits = body.get("bit_depth")
-            if bits is not None and (isinstance(bits, bool) or not isinstance(bits, int)
-                                     or bits not in EXPORT_FORMATS[fmt]):
-                raise InputError(f"argument --bit-depth: {fmt} takes {', '.join(map(str, EXPORT_FORMATS[fmt]))}, "
-                                 f"got {bits!r}"[:200])
-            fut = worker.submit_export(lambda check: session.export(p, fmt, bits, check))
-        except _TooLarge:
-            return error(413, f"request body: larger than {MAX_BODY_BYTES} bytes")
-        except _Refused as e:
-            return error(e.status, str(e))
-        except Busy as e:
-            return error(429, str(e))
-        except Stopped:
-            return error(503, "the server is stopping")
-        except BokehrayError as e:
-            return error(400, str(e))
+            p, fmt, bits = _export_request(self.session, await _read_json(request))
+            fut = self.worker.submit_export(lambda check: self.session.export(p, fmt, bits, check))
+        except (_TooLarge, _Refused, Busy, Stopped, BokehrayError) as e:
+            return self.refusal(e)
         t0 = time.perf_counter()
         try:
             path, command = await asyncio.wrap_future(fut)
         except Stopped:
-            return error(503, "export abandoned: the server is stopping")
+            return self.error(503, "export abandoned: the server is stopping")
         except BokehrayError as e:
-            return error(400, str(e))
+            return self.error(400, str(e))
         except OSError as e:
-            return error(500, f"export: {e}")
-        return JSONResponse({"path": str(path), "command": command, "seconds": round(time.perf_counter() - t0, 3)},
-                            headers=_SECURITY_HEADERS)
+            return self.error(500, f"export: {e}")
+        return _json({"path": str(path), "command": command, "seconds": round(time.perf_counter() - t0, 3)})
 
-    async def progress(request: Request) -> Response:
-        return JSONResponse(worker.progress(), headers=_SECURITY_HEADERS)
+    async def progress(self, request):
+        return _json(self.worker.progress())
 
-    async def status(request: Request) -> Response:
-        return JSONResponse({"worker": dict(worker.counts), "queued": worker.queued(), **stats},
-                            headers=_SECURITY_HEADERS)
+    async def status(self, request):
+        return _json({"worker": dict(self.worker.counts), "queued": self.worker.queued(), **self.stats})
 
-    routes = [
-        Route("/", page), Route("/static/{name}", static), Route("/api/info", info),
-        Route("/api/photo.jpg", photo), Route("/api/depth.png", depth), Route("/api/disparity16.png", disparity16),
-        Route("/api/render", render, methods=["POST"]), Route("/api/export", export, methods=["POST"]),
-        Route("/api/status", status), Route("/api/progress", progress),
-    ]
-    middleware = []
+    def routes(self) -> list:
+        from starlette.routing import Route
+
+        return [
+            Route("/", self.page), Route("/static/{name}", self.static), Route("/api/info", self.info),
+            Route("/api/photo.jpg", self.photo), Route("/api/depth.png", self.depth),
+            Route("/api/disparity16.png", self.disparity16),
+            Route("/api/render", self.render, methods=["POST"]), Route("/api/export", self.export, methods=["POST"]),
+            Route("/api/status", self.status), Route("/api/progress", self.progress),
+        ]
+
+
+def create_app(session: ViewSession, worker: RenderWorker | None = None, allowed_hosts: tuple[str, ...] = (),
+               any_address: bool = False):
+    """The Starlette app over ``session``; ``worker`` defaults to a new :class:`RenderWorker`. With ``allowed_hosts``
+    only requests whose ``Host`` is one of them (or, with ``any_address``, an IP address) are answered."""
+    from starlette.applications import Starlette
+    from starlette.middleware import Middleware
+
+    api = _Api(session, worker or RenderWorker())
+    middleware = [Middleware(_HeaderSize)]
     if allowed_hosts:
         # a page on another site cannot reach this server through DNS rebinding: the Host must be ours
-        from starlette.middleware import Middleware
-
         middleware.append(Middleware(_HostCheck, names=allowed_hosts, addresses=any_address))
-    app = Starlette(routes=routes, middleware=middleware)
-    app.state.worker = worker
-    app.state.stats = stats
+    app = Starlette(routes=api.routes(), middleware=middleware)
+    app.state.worker = api.worker
+    app.state.stats = api.stats
     return app
 
 
+MAX_HEADER_BYTES = 16384
+"""The most bytes a request's line and headers may hold (uvicorn's ``h11_max_incomplete_event_size`` is the same
+figure, but h11 applies it only to headers still arriving: 100 kB of them in one packet were taken)."""
+
+
 def _host_name(host: str) -> str:
-    """The name or address of a ``Host`` header: lower case, without the port or an IPv6 address's brackets."""
+    """The name or address of a ``Host`` header: lower case, without the port or an IPv6 address's brackets (``''``
+    for an empty header or one that is only a port)."""
     host = host.strip().lower()
     return host[1:].partition("]")[0] if host.startswith("[") else host.partition(":")[0]
 
 
+def _listed_name(name: str) -> str:
+    """A name or address of this server as listed (no port): lower case, an IPv6 address without brackets."""
+    name = name.strip().lower()
+    return name[1:].partition("]")[0] if name.startswith("[") else name
+
+
+class _HeaderSize:
+    """Answers 431 to a request whose line and headers hold more than :data:`MAX_HEADER_BYTES`."""
+
+    def __init__(self, app) -> None:
+        self.app = app
+
+    async def __call__(self, scope, receive, send) -> None:
+        if scope["type"] == "http":
+            size = len(scope.get("raw_path") or b"") + len(scope.get("query_string") or b"")
+            size += sum(len(k) + len(v) + 4 for k, v in scope["headers"])
+            if size > MAX_HEADER_BYTES:
+                await _json({"error": f"request line and headers: {size} bytes, more than the {MAX_HEADER_BYTES} "
+                                      "taken"}, 431, {**_SECURITY_HEADERS, "Connection": "close"})(scope, receive, send)
+                return
+        await self.app(scope, receive, send)
+
+
 class _HostCheck:
     """Answers only requests whose ``Host`` is one of ``names`` or, with ``addresses``, an IP address: a page of another
-    site reaches this server through DNS rebinding only under a name of its own, and an address cannot be rebound."""
+    site reaches this server through DNS rebinding only under a name of its own, and an address cannot be rebound. A
+    request without a Host name (none, empty, only a port) is refused."""
 
     def __init__(self, app, names: tuple[str, ...], addresses: bool = False) -> None:
-        self.app, self.names, self.addresses = app, {_host_name(n) for n in names}, addresses
+        self.app, self.addresses = app, addresses
+        self.names = {_listed_name(n) for n in names} - {""}
 
     def allowed(self, host: str) -> bool:
         name = _host_name(host)
@@ -330,11 +400,8 @@ class _HostCheck:
         if scope["type"] == "http":
             host = dict(scope["headers"]).get(b"host", b"").decode("latin-1")
             if not self.allowed(host):
-                from starlette.responses import JSONResponse
-
-                answer = JSONResponse({"error": f"Host {host[:100]!r} refused: not a name of this server"},
-                                      status_code=400, headers=_SECURITY_HEADERS)
-                await answer(scope, receive, send)
+                await _json({"error": f"Host {host[:100]!r} refused: not a name of this server"},
+                            400)(scope, receive, send)
                 return
         await self.app(scope, receive, send)
 
@@ -405,14 +472,18 @@ class ViewServer:
 
     @contextlib.contextmanager
     def stopping_on_signals(self):
-        """From here on Ctrl-C and SIGTERM ask the server to stop (uvicorn's own handler, installed early), instead
-        of raising wherever they land: one landing before uvicorn's loop has started (under load, inside the event
-        loop's constructor, which then failed in its ``__del__``) is then the normal stop too. The previous handlers
-        come back on exit. Main thread only (signals are delivered there)."""
+        """From here on Ctrl-C, SIGTERM and SIGHUP (the terminal closed) ask the server to stop (uvicorn's own
+        handler, installed early), instead of raising wherever they land: one landing before uvicorn's loop has
+        started (under load, inside the event loop's constructor, which then failed in its ``__del__``) is then the
+        normal stop too, and a SIGHUP landing inside a request's handler no longer raises there (a traceback, and
+        the server served on). An ignored SIGHUP (``nohup``) stays ignored. The previous handlers come back on exit.
+        Main thread only (signals are delivered there)."""
         if threading.current_thread() is not threading.main_thread():
             yield
             return
-        sigs = (signal.SIGINT, signal.SIGTERM)
+        sigs = [signal.SIGINT, signal.SIGTERM]
+        if signal.getsignal(signal.SIGHUP) is not signal.SIG_IGN:
+            sigs.append(signal.SIGHUP)
         previous = {sig: signal.signal(sig, self.server.handle_exit) for sig in sigs}
         try:
             yield

@@ -289,6 +289,13 @@ def _fmt(v: float) -> str:
     return repr(float(v))
 
 
+def _signed_option(flag: str, v: float) -> list[str]:
+    """``flag`` and a value that may be negative: ``--rotation=-1e-05`` joined by ``=``, since argparse takes a
+    separate ``-1e-05`` (or ``-1e+16``: not its plain negative-number pattern) for an option."""
+    text = _fmt(v)
+    return [f"{flag}={text}"] if text.startswith("-") else [flag, text]
+
+
 class ViewSession:
     """One photo and its disparity, loaded once, with everything the page needs that does not change.
 
@@ -610,7 +617,7 @@ class ViewSession:
         elif p.focus is not None:
             args += ["--focus", _fmt(p.focus)]
         if p.aperture == "polygon":
-            args += ["--aperture", "polygon", "--blades", str(p.blades), "--rotation", _fmt(p.rotation),
+            args += ["--aperture", "polygon", "--blades", str(p.blades), *_signed_option("--rotation", p.rotation),
                      "--curvature", _fmt(p.curvature)]
         if p.highlight_boost:
             args += ["--highlight-boost", _fmt(p.highlight_boost)]
