@@ -34,7 +34,7 @@ them nearest: d 1 holding about half the frame), **strip** (20 000 and 60 000 x 
 maps of 1-px edges everywhere or of noise: exit 0 with a complete output where the budget holds the render, or exit
 2, one line, nothing written, and a peak RSS below ``STRIP_RSS_LIMIT_MB``, measured with ``wait4``; the child's address space is capped at 8 GB to protect the machine)
 and **page** (``bokehray view`` exporting a 1.5 MP render at amount 100, then Ctrl-C, SIGTERM or SIGHUP 0-4 s later:
-exit 0, the one line ``bokehray view: stopped``, the export answered 503, or 200 when it finished first, nothing
+exit 128 + the signal's number, the one line ``bokehray view: stopped``, the export answered 503, or 200 when it finished first, nothing
 half-written; the seconds from the signal to the exit are printed).
 
 Usage (from the repository root)::
@@ -482,7 +482,7 @@ def _page_export(url: str, answers: dict) -> None:
 
 def _page_case(rng: np.random.Generator, f: dict, out: Path) -> tuple[dict, tuple[int, str], str | None]:
     """``bokehray view`` exporting a 1.5 MP render at amount 100; Ctrl-C, SIGTERM or SIGHUP at a random moment of the
-    export (its edge estimate, matting, planning or layers). Checked: exit 0, the one line ``bokehray view: stopped``,
+    export (its edge estimate, matting, planning or layers). Checked: exit 128 + the signal's number, the one line ``bokehray view: stopped``,
     the export answered 503 (or 200 when it finished first), no file half-written; the seconds from the signal to
     the exit are reported."""
     import threading
@@ -524,8 +524,9 @@ def _page_case(rng: np.random.Generator, f: dict, out: Path) -> tuple[dict, tupl
             proc.wait()
     case["export"] = answers.get("export")
     problem = None
-    if proc.returncode != 0 or err.strip() != _VIEW_STOPPED:
-        problem = f"exit {proc.returncode}, stderr {err.strip()[:300]!r} (expected 0 and {_VIEW_STOPPED!r})"
+    if proc.returncode != 128 + int(sig) or err.strip() != _VIEW_STOPPED:
+        problem = (f"exit {proc.returncode}, stderr {err.strip()[:300]!r} (expected {128 + int(sig)} and "
+                   f"{_VIEW_STOPPED!r})")
     elif answers.get("export") not in (200, 503):
         problem = f"the export was answered {answers.get('export')!r} (expected 503, or 200 when done first)"
     elif answers.get("export") == 503 and list(out.iterdir()):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import signal
 import sys
 
 from ...errors import InputError
@@ -98,10 +99,11 @@ def cmd_view(args: argparse.Namespace) -> int:  # noqa: C901
                 webbrowser.open(server.url)
             server.run()
     except KeyboardInterrupt:
-        pass
+        server.stop_signal = server.stop_signal or signal.SIGINT
     finally:
         server.close()
     if not args.quiet:
         with contextlib.suppress(OSError):  # after SIGHUP the terminal may be gone
             print("bokehray view: stopped", file=sys.stderr)
-    return 0
+    # stopped by a signal: 128 + its number, as `render` and batches exit (130 Ctrl-C, 143 SIGTERM, 129 SIGHUP)
+    return 0 if server.stop_signal is None else 128 + int(server.stop_signal)

@@ -454,11 +454,15 @@ class ViewServer:
                                 lifespan="off", limit_concurrency=64, timeout_keep_alive=5,
                                 h11_max_incomplete_event_size=16384, timeout_graceful_shutdown=10)
         worker = self.worker
+        view = self
+        self.stop_signal: int | None = None
+        """The signal that stopped the server (None: none did): the command exits with 128 plus its number."""
 
         class _Server(uvicorn.Server):
             def handle_exit(self, sig, frame) -> None:
                 # Ctrl-C / SIGTERM: the running render (an export too) stops at its next check and every waiting
                 # request is answered, so uvicorn's graceful shutdown has nothing left to wait for
+                view.stop_signal = view.stop_signal or int(sig)
                 worker.stop_soon()
                 super().handle_exit(sig, frame)
 
