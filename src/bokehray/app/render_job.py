@@ -363,6 +363,15 @@ def render_one(args: argparse.Namespace) -> dict:
         bar.close()
 
 
+def focus_words(focus) -> str:
+    """How a default focus was chosen, as a batch line and ``render_one``'s result say it."""
+    from ..photo.faces import EyesFocus
+
+    if isinstance(focus, EyesFocus):
+        return f"{focus.words()} at ({focus.x}, {focus.y})"
+    return f"the subject around pixel ({focus.x}, {focus.y})"
+
+
 def max_coc_px(blur, disparity: np.ndarray) -> float:
     """``blur.coc_radius(disparity).max()`` from the map's nearest and farthest values alone: the float32
     ``K (d - d_f)`` is monotonic in ``d`` (each rounding is), so its magnitude peaks at an end of the range (no
@@ -391,7 +400,7 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:  
     from ..photo.embedded import exif_for_output
     from ..photo.highlights import is_display_referred, reconstruct_highlights
     from ..photo.read import read_image
-    from ..photo.subject import k_from_amount, subject_focus
+    from ..photo.subject import default_focus, k_from_amount
     from ..validate import check_radiance
 
     t0 = time.perf_counter()
@@ -441,8 +450,8 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:  
                 _say(args, f"focus: d_f = {d_f:.4g} at pixel ({args.focus_at[0]}, {args.focus_at[1]}) "
                      f"(--focus-at){_metres(norm, d_f)}")
         else:
-            subject = subject_focus(disparity)
-            d_f, focus_how = subject.d_f, f"the subject around pixel ({subject.x}, {subject.y})"
+            subject = default_focus(image, disparity)  # the eyes of the nearest face, else the subject
+            d_f, focus_how = subject.d_f, focus_words(subject)
             _say(args, f"focus: {subject.describe()}{_metres(norm, d_f)}; --focus-at X,Y to choose")
         blur = BlurParams(k, d_f)
     if is_display_referred(args.image) and not args.no_highlight_reconstruction and args.highlight_boost == 0:
