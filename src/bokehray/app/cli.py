@@ -182,6 +182,10 @@ def build_parser() -> argparse.ArgumentParser:
     o.add_argument("--no-highlight-reconstruction", action="store_true",
                    help="keep the clipped highlights of a PNG/JPEG/integer TIFF as they are (by default they are "
                    "re-inflated so that lamps give bright bokeh; never done for EXR/float TIFF)")
+    o.add_argument("--no-grain", action="store_true",
+                   help="keep the blur clean: by default a PNG/JPEG/integer TIFF photo's grain, measured where it is "
+                   "flat and in focus, is restored where the blur removed it, and an 8-bit output is dithered "
+                   "(seeded: the same command writes the same file; never for EXR/float TIFF)")
     o.add_argument("--highlight-boost", type=float, default=0.0,
                    help="instead of the reconstruction: the older uniform boost of every pixel near 1.0 "
                    "(1 + S t^2; 0 = off)")

@@ -372,6 +372,17 @@ def focus_words(focus) -> str:
     return f"the subject around pixel ({focus.x}, {focus.y})"
 
 
+def _plan_grain(args: argparse.Namespace, image: np.ndarray, disparity: np.ndarray, blur):
+    """The grain to restore after the render (a display-referred photo without ``--no-grain``), else None."""
+    from ..photo.highlights import is_display_referred
+
+    if getattr(args, "no_grain", False) or not is_display_referred(args.image):
+        return None
+    from ..photo.grain import plan_grain
+
+    return plan_grain(image, blur.coc_radius(disparity))
+
+
 def max_coc_px(blur, disparity: np.ndarray) -> float:
     """``blur.coc_radius(disparity).max()`` from the map's nearest and farthest values alone: the float32
     ``K (d - d_f)`` is monotonic in ``d`` (each rounding is), so its magnitude peaks at an end of the range (no
@@ -459,6 +470,7 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:  
         if found:
             _say(args, f"highlights: {found} clipped highlight{'s' * (found > 1)} reconstructed (display-referred "
                  "input; --no-highlight-reconstruction keeps them clipped)")
+    grain = _plan_grain(args, image, disparity, blur)
     t_read = time.perf_counter() - t0
 
     start_warp(args)
@@ -477,11 +489,18 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:  
                                     progress=bar.layers(), refine=args.refine,
                                     refine_options=refine_options_of(args))
     t1 = time.perf_counter()
+    if grain is not None:
+        from ..photo.grain import output_bits, restore_grain
+
+        out = restore_grain(out, grain.grain, grain.removed, dither_bits=output_bits(args.output, args.bit_depth))
     bar.stage("write")
     quality = JPEG_QUALITY if args.jpeg_quality is None else args.jpeg_quality
     path = write_image(args.output, out, bit_depth=args.bit_depth, half=args.half, quality=quality,
                        exif=exif_for_output(meta))  # JPEG keeps the photo's EXIF, orientation reset
     t_write = time.perf_counter() - t1
+    if grain is not None:  # said once the file is written, as a render with --blur and --focus says nothing before
+        _say(args, f"grain: {grain.describe()} (--no-grain keeps the blur clean)")
+        del grain
     if not args.quiet:
         refined = (f", refined {stats.refine['tiles_refined']}/{stats.refine['tiles_total']} tiles"
                    if stats.refine else "")

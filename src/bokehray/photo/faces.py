@@ -81,12 +81,14 @@ def _grey8(image: np.ndarray, side: int) -> tuple[np.ndarray, float]:
     histogram-equalised; and the factor from its pixels to the photo's."""
     import cv2
 
-    rgb = np.asarray(image[..., :3] if image.ndim == 3 else image, np.float32)
-    h, w = rgb.shape[:2]
+    a = np.asarray(image, np.float32)
+    if a.ndim == 3:  # the luma first (linear: the same as the luma of the average), one plane to resize
+        a = a[..., 0] if a.shape[2] < 3 else a[..., :3] @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+    h, w = a.shape
     f = max(h, w) / side if max(h, w) > side else 1.0
+    lum = np.ascontiguousarray(a)
     if f > 1.0:
-        rgb = cv2.resize(rgb, (max(1, round(w / f)), max(1, round(h / f))), interpolation=cv2.INTER_AREA)
-    lum = rgb if rgb.ndim == 2 else rgb @ np.array([0.2126, 0.7152, 0.0722], np.float32)
+        lum = cv2.resize(lum, (max(1, round(w / f)), max(1, round(h / f))), interpolation=cv2.INTER_AREA)
     codes = np.round(linear_to_srgb(np.clip(lum, 0.0, 1.0)) * 255.0).astype(np.uint8)
     return cv2.equalizeHist(codes), f
 

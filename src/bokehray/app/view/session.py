@@ -332,11 +332,12 @@ class ViewSession:
         self.norm = norm
         self.export_dir = Path(export_dir).resolve()
         from ...photo.highlights import is_display_referred
-        from ...photo.subject import AMOUNT_DEFAULT, k_from_amount, subject_focus
+        from ...photo.subject import AMOUNT_DEFAULT, default_focus, k_from_amount
 
         self.display_referred = bool(image_path) and is_display_referred(image_path)
         self.reconstruct_default = self.display_referred if reconstruct is None else bool(reconstruct)
-        self.subject = subject_focus(self.disparity)  # the default focus, as `render` chooses it
+        # the default focus, as `render` chooses it: the eyes of the nearest face, else the subject
+        self.subject = default_focus(self.raw_image, self.disparity)
         self.default_k = k_from_amount(AMOUNT_DEFAULT, self.h, self.w)
         self.proxy_long_side = proxy_long_side
         self.display_factor = box_factor(self.h, self.w, display_long_side)
@@ -551,6 +552,16 @@ class ViewSession:
 
         return exif_for_output(embedded(Path(self.image_path), FORMATS.get(Path(self.image_path).suffix.lower(), "")))
 
+    def _with_grain(self, out: np.ndarray, p: RenderParams, path: Path, bits: int | None) -> np.ndarray:
+        """The export's finishing step, as ``render`` does it for a display-referred photo: the photo's grain
+        restored where the blur removed it (on a copy: the full render stays cached as rendered)."""
+        if not self.display_referred:
+            return out
+        from ...photo.grain import output_bits, plan_grain, restore_grain
+
+        plan = plan_grain(self._variant(p.reconstructs)[0], p.blur.coc_radius(self.disparity))
+        return restore_grain(out.copy(), plan.grain, plan.removed, dither_bits=output_bits(str(path), bits))
+
     def export(self, p: RenderParams, fmt: str, bit_depth: int | None, check=None) -> tuple[Path, str]:
         if not isinstance(fmt, str) or fmt not in EXPORT_FORMATS:
             raise InputError(f"export format: expected one of {', '.join(EXPORT_FORMATS)}, got {fmt!r}"[:200])
@@ -562,7 +573,7 @@ class ViewSession:
         from ..render_job import JPEG_QUALITY  # render's default: the export is the file the shown command writes
 
         check_output_path(path, bit_depth=bits, half=half)
-        out = self.render_full(p, check)
+        out = self._with_grain(self.render_full(p, check), p, path, bits)
         exif = self._exif()
         tries = iter(range(EXPORT_NAME_TRIES - 1))
 
