@@ -128,8 +128,9 @@ def build_parser() -> argparse.ArgumentParser:
         "render",
         help="render one image with a disparity (or depth) map",
         description="CoC radius in pixels = K * |d - d_f| (d: disparity in [0, 1], 1 = nearest). With only an image "
-        "and a map it picks the blur (--amount 50) and focuses on the subject (the nearest depth region, split at the "
-        "troughs of the map's histogram, holding 3% of the centre-weighted frame) and says so, with the depth range "
+        "and a map it picks the blur (--amount 50) and focuses on the eyes of the nearest face, or without a face on "
+        "the subject (the nearest depth region, split at the troughs of the map's histogram, holding 3% of the "
+        "centre-weighted frame) and says so, with the depth range "
         "it read. Or give --amount/--blur K with --focus D_F or --focus-at X,Y, or a "
         "physical lens (--focal-length, --f-number, --focus-distance, --sensor-width) with a metric --depth map. "
         "docs/usage.md walks through it.",
