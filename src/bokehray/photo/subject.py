@@ -74,7 +74,7 @@ class Subject:
 
     def words(self) -> str:
         """The choice said shortest, for the page."""
-        return "the subject (the nearest sizeable depth region near the centre)"
+        return "the subject"
 
     def describe(self) -> str:
         """What was chosen and why, in one line (``bokehray render`` prints it)."""

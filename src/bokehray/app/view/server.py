@@ -196,8 +196,9 @@ def create_app(session: ViewSession, worker: RenderWorker | None = None, allowed
             body = await read_json(request)
             p = session.parse(body)
             stage = body.get("stage", "preview")
-            if not isinstance(stage, str) or stage not in ("preview", "full"):
-                raise InputError(f"stage: expected 'preview' or 'full', got {stage!r}"[:200])
+            if not isinstance(stage, str) or stage not in ("preview", "focus", "full"):
+                raise InputError(f"stage: expected 'preview', 'focus' or 'full', got {stage!r}"[:200])
+            command = session.shown_command(p, body)  # -o OUTPUT.<the export's format>
             long_side = body.get("long_side")
             if long_side is not None:
                 long_side = json_integer(long_side, "long_side")
@@ -215,12 +216,14 @@ def create_app(session: ViewSession, worker: RenderWorker | None = None, allowed
             t_start = time.perf_counter()
             if stage == "preview":
                 data, meta = session.render_preview(p, check)
+            elif stage == "focus":  # the focused region at screen size, before the whole frame
+                data, meta = session.focus_crop(p, check, long_side)
             else:
                 data, meta = session.full_display(p, check, long_side)
             return data, meta, time.perf_counter() - t_start
 
         try:
-            data, meta, seconds = await asyncio.wrap_future(worker.submit(job, stage))
+            data, meta, seconds = await asyncio.wrap_future(worker.submit(job, "preview" if stage == "preview" else "full"))
         except Superseded:
             return JSONResponse({"superseded": True}, status_code=409, headers=_SECURITY_HEADERS)
         except Stopped:
@@ -233,7 +236,9 @@ def create_app(session: ViewSession, worker: RenderWorker | None = None, allowed
             "X-Bokehray-Focus-Disparity": repr(p.blur.focus_disparity), "X-Bokehray-K": repr(p.blur.k_px),
             "X-Bokehray-Render-Seconds": f"{seconds:.4f}",
             "X-Bokehray-Seconds": f"{time.perf_counter() - t0:.4f}",
-            "X-Bokehray-Command": quote(session.command(p, "OUTPUT.png"), safe=""),
+            "X-Bokehray-Command": quote(command, safe=""),
+            "X-Bokehray-Focus-Words": quote(session.focus_words(p), safe=""),
+            "X-Bokehray-Crop": ",".join(map(str, meta.get("crop", ()))),
             "X-Bokehray-Amount": "" if p.amount is None else repr(p.amount),
             "X-Bokehray-Focus-M": "" if session.norm is None else repr(float(session.norm.depth(p.blur.focus_disparity))),
         }

@@ -35,6 +35,9 @@ MAX_BODY_BYTES = 4096
 EXPORT_FORMATS = {"png": (8, 16), "jpg": (8,), "tif": (8, 16, 32), "exr": (16, 32)}
 """Export formats (what ``bokehray render`` writes) and their bit depths; EXR 16 is half float."""
 
+FOCUS_CROP_HALF = 160
+"""Half the side of the focus crop (:meth:`ViewSession.focus_crop`), in the pixels the screen shows."""
+
 EXPORT_NAME_TRIES = 100
 """Names an export tries when other exports keep taking the next free one first."""
 
@@ -227,7 +230,7 @@ def parse_params(body: object, disparity: np.ndarray, *, subject_d_f: float | No
     """
     if not isinstance(body, dict):
         raise InputError(f"parameters: expected a JSON object, got {type(body).__name__}")
-    unknown = sorted(set(body) - _PARAM_KEYS - {"stage", "long_side"})
+    unknown = sorted(set(body) - _PARAM_KEYS - {"stage", "long_side", "format", "bit_depth"})
     if unknown:
         raise InputError(f"parameters: unknown {', '.join(map(repr, unknown))}"[:300])
     from ...photo.subject import AMOUNT_DEFAULT, k_from_amount, subject_focus
@@ -439,7 +442,7 @@ class ViewSession:
             "display": {"factor": self.display_factor, "width": -(-self.w // self.display_factor),
                         "height": -(-self.h // self.display_factor)},
             "defaults": {"amount": AMOUNT_DEFAULT, "k_px": self.default_k, "focus": s.d_f,
-                         "subject": {"x": s.x, "y": s.y, "why": s.describe()},
+                         "subject": {"x": s.x, "y": s.y, "why": s.describe(), "words": s.words()},
                          "reconstruct": self.reconstruct_default},
             "display_referred": self.display_referred, "metric": metric,
             "max_blur": float(max(8, round(self.w / 8))),
@@ -473,6 +476,85 @@ class ViewSession:
             check()
         return encode_jpeg(to_srgb8(out), 88), {"factor": f, "layers": stats.layers, "level": level,
                                                 "render_s": seconds}
+
+    def focus_point(self, p: RenderParams) -> tuple[int, int]:
+        """Where the focus is, in photo pixels: the clicked point, the default focus's point (the eyes, the subject),
+        or for a focus set by disparity (the slider, a focus distance) the in-focus pixel nearest the frame's
+        centre on the coarsest proxy."""
+        if p.focus_at:
+            return int(p.focus_at[0]), int(p.focus_at[1])
+        if p.focus_default:
+            return self.subject.x, self.subject.y
+        f, _, d = self.proxies[-1]
+        off = np.abs(d - np.float32(p.blur.focus_disparity))
+        yy, xx = np.mgrid[: d.shape[0], : d.shape[1]]
+        score = off * 1e3 + np.hypot(yy - d.shape[0] / 2, xx - d.shape[1] / 2) / max(d.shape)
+        iy, ix = np.unravel_index(int(np.argmin(score)), d.shape)
+        return min(self.w - 1, int(ix) * f + f // 2), min(self.h - 1, int(iy) * f + f // 2)
+
+    def focus_crop(self, p: RenderParams, check=None, long_side: int | None = None,
+                   half: int = FOCUS_CROP_HALF) -> tuple[bytes, dict]:
+        """The focused region at the size the screen shows (the sharp version's reduction), rendered before the
+        rest so that the focus can be judged while the whole frame sharpens: a crop of ``2 half`` screen pixels
+        around :meth:`focus_point`, rendered on a window reaching the largest CoC beyond it (the light that
+        spreads into the crop), on the sharp version's pixel grid. Its ``crop`` (x0, y0, x1, y1, photo pixels)
+        says where it goes."""
+        p = dataclasses.replace(p, quality="preview")
+        f = self.screen_factor(long_side)
+        t = time.perf_counter()
+        x, y = self.focus_point(p)
+        w, h = -(-self.w // f), -(-self.h // f)
+        x0 = min(max(0, x // f - half), max(0, w - 2 * half))
+        y0 = min(max(0, y // f - half), max(0, h - 2 * half))
+        x1, y1 = min(w, x0 + 2 * half), min(h, y0 + 2 * half)
+        blur = br.BlurParams(p.blur.k_px / f, p.blur.focus_disparity)
+        reach = math.ceil(float(blur.coc_radius(np.array([self.disparity.min(), self.disparity.max()])).max())) + 2
+        tile = 16  # the window starts on the sharp version's tile grid (LayerOptions.tile_px): the same tiles copied
+        wx0, wy0 = max(0, x0 - reach) // tile * tile, max(0, y0 - reach) // tile * tile
+        wx1, wy1 = min(w, x1 + reach), min(h, y1 + reach)
+        image = self._variant(p.reconstructs)[0][wy0 * f : wy1 * f, wx0 * f : wx1 * f]
+        disparity = np.clip(box_reduce(self.disparity[wy0 * f : wy1 * f, wx0 * f : wx1 * f], f), 0.0, 1.0)
+        progress = (lambda done, total: check(done, total)) if check is not None else None
+        out, _ = br.render_with_stats(box_reduce(image, f), disparity, blur, p.lens, quality="preview",
+                                      device=self.device, highlight_boost=p.highlight_boost, progress=progress)
+        if check is not None:
+            check()
+        crop = out[y0 - wy0 : y1 - wy0, x0 - wx0 : x1 - wx0]
+        box = [x0 * f, y0 * f, min(self.w, x1 * f), min(self.h, y1 * f)]
+        return encode_jpeg(to_srgb8(crop), 90), {"factor": f, "crop": box, "render_s": time.perf_counter() - t}
+
+    def focus_words(self, p: RenderParams) -> str:
+        """The focus said as a photographer would: what it is on (the eyes of the nearest face, the subject, the
+        clicked point), how near it lies in the scene (near / middle / far in the map's range), and metres for a
+        metric map."""
+        if p.focus_at:
+            what = "the point you clicked"
+        elif p.focus_default:
+            what = self.subject.words()
+        elif p.thin_lens is not None:
+            what = "the focus distance"
+        else:
+            what = "the focus slider's depth"
+        lo, hi = float(self.disparity.min()), float(self.disparity.max())
+        d = p.blur.focus_disparity
+        t = (d - lo) / (hi - lo) if hi - lo > 1e-6 else 1.0
+        where = "near" if t >= 2 / 3 else "in the middle distance" if t >= 1 / 3 else "far"
+        if self.norm is not None:
+            z = float(self.norm.depth(d))
+            where += f", {z:.3g} m away" if math.isfinite(z) else ", at infinity"
+        return f"{what} ({where})"
+
+    def shown_command(self, p: RenderParams, body: dict) -> str:
+        """The command shown before any export: :meth:`command` with ``-o OUTPUT.<format>`` and the bit depth
+        the page's export choice holds (``format``, ``bit_depth`` in ``body``; PNG by default)."""
+        fmt = body.get("format", "png")
+        if not isinstance(fmt, str) or fmt not in EXPORT_FORMATS:
+            raise InputError(f"export format: expected one of {', '.join(EXPORT_FORMATS)}, got {fmt!r}"[:200])
+        bits = body.get("bit_depth")
+        if bits is not None and (isinstance(bits, bool) or not isinstance(bits, int) or bits not in EXPORT_FORMATS[fmt]):
+            raise InputError(f"argument --bit-depth: {fmt} takes {', '.join(map(str, EXPORT_FORMATS[fmt]))}, "
+                             f"got {bits!r}"[:200])
+        return self.command(p, f"OUTPUT.{fmt}", bit_depth=bits)
 
     def warm_up(self) -> float:
         """One preview of the coarsest proxy, thrown away: Warp loads its kernel modules now, not when the page asks
