@@ -123,3 +123,20 @@ def test_render_restores_grain_for_png_only_and_reproducibly(tmp_path, capsys):
     photo, blurred, kept = _hp_codes(codes[:, :80]), _hp_codes(b[:, 120:]), _hp_codes(a[:, 120:])
     assert blurred < 0.5 * photo  # the blur removed it
     assert kept == pytest.approx(photo, rel=0.2)  # the grain step restored it
+
+
+def test_the_patch_strip_measures_what_the_whole_frame_high_pass_gives():
+    """The measurement's shortcut (tiles cut out with the high-pass's reach, blurred as one strip) against the
+    obvious way: the high-pass of the whole frame, each tile's standard deviation, the quantile."""
+    import cv2
+
+    _, img = _grainy((100, 140), noise=2.0, seed=4)
+    g = gr.measure_grain(img)
+    srgb = linear_to_srgb(np.clip(img, 0, 1)).astype(np.float64)
+    t, m = gr.TILE, 8
+    luma = srgb @ np.array([0.2126, 0.7152, 0.0722])
+    hp = luma - cv2.GaussianBlur(luma, (0, 0), gr.HIGHPASS_SIGMA, borderType=cv2.BORDER_REFLECT)
+    stds = [hp[m + y : m + y + t, m + x : m + x + t].std() for y in range(0, 100 - 2 * m - t + 1, t)
+            for x in range(0, 140 - 2 * m - t + 1, t)]
+    assert g.tiles == len(stds) == 5 * 7
+    assert g.luma == pytest.approx(np.quantile(stds, gr.FLAT_QUANTILE), rel=1e-4)
