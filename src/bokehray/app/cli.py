@@ -302,6 +302,7 @@ _BATCH_ONLY = (  # (dest, what it does); given on a single render they would cha
     ("overwrite", f"--overwrite renders again the outputs that {_A_BATCH} would skip as done"),
     ("gif_width", f"--gif-width sets the width of the animated preview of {_A_SWEEP}"),
     ("fps", f"--fps sets the frame rate of the animated preview of {_A_SWEEP}"),
+    ("gif_labels", f"--gif-labels draws each frame's focus in the animated preview of {_A_SWEEP}"),
 )
 """The options of many renders that ``bokehray render`` with one photo and one focus refuses, as it refuses other
 flags that would change nothing (docs/robustness.md)."""
