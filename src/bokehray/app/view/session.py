@@ -477,6 +477,18 @@ class ViewSession:
         return encode_jpeg(to_srgb8(out), 88), {"factor": f, "layers": stats.layers, "level": level,
                                                 "render_s": seconds}
 
+    def _screen_arrays(self, f: int, reconstructs: bool) -> tuple[np.ndarray, np.ndarray]:
+        """The photo and its map reduced by ``f`` for the screen (cached: the sharp version and the focus crop of
+        the same size share them; the photo itself at ``f = 1``)."""
+        if f == 1:
+            return self._variant(reconstructs)[0], self.disparity
+        key = (f, reconstructs)
+        if self._screen is None or self._screen[0] != key:
+            self._screen = None
+            image = self._variant(reconstructs)[0]
+            self._screen = (key, box_reduce(image, f), np.clip(box_reduce(self.disparity, f), 0.0, 1.0))
+        return self._screen[1], self._screen[2]
+
     def focus_point(self, p: RenderParams) -> tuple[int, int]:
         """Where the focus is, in photo pixels: the clicked point, the default focus's point (the eyes, the subject),
         or for a focus set by disparity (the slider, a focus distance) the in-focus pixel nearest the frame's
@@ -512,10 +524,11 @@ class ViewSession:
         tile = 16  # the window starts on the sharp version's tile grid (LayerOptions.tile_px): the same tiles copied
         wx0, wy0 = max(0, x0 - reach) // tile * tile, max(0, y0 - reach) // tile * tile
         wx1, wy1 = min(w, x1 + reach), min(h, y1 + reach)
-        image = self._variant(p.reconstructs)[0][wy0 * f : wy1 * f, wx0 * f : wx1 * f]
-        disparity = np.clip(box_reduce(self.disparity[wy0 * f : wy1 * f, wx0 * f : wx1 * f], f), 0.0, 1.0)
+        screen, screen_d = self._screen_arrays(f, p.reconstructs)
+        image = np.ascontiguousarray(screen[wy0:wy1, wx0:wx1])
+        disparity = np.ascontiguousarray(screen_d[wy0:wy1, wx0:wx1])
         progress = (lambda done, total: check(done, total)) if check is not None else None
-        out, _ = br.render_with_stats(box_reduce(image, f), disparity, blur, p.lens, quality="preview",
+        out, _ = br.render_with_stats(image, disparity, blur, p.lens, quality="preview",
                                       device=self.device, highlight_boost=p.highlight_boost, progress=progress)
         if check is not None:
             check()
@@ -602,12 +615,7 @@ class ViewSession:
         if f == 1:
             out = self.render_full(p, check)
         else:
-            key = (f, p.reconstructs)
-            if self._screen is None or self._screen[0] != key:
-                self._screen = None
-                image = self._variant(p.reconstructs)[0]
-                self._screen = (key, box_reduce(image, f), np.clip(box_reduce(self.disparity, f), 0.0, 1.0))
-            _, image, disparity = self._screen
+            image, disparity = self._screen_arrays(f, p.reconstructs)
             progress = (lambda done, total: check(done, total)) if check is not None else None
             out, _ = br.render_with_stats(image, disparity, br.BlurParams(p.blur.k_px / f, p.blur.focus_disparity),
                                           p.lens, quality="preview", device=self.device,
