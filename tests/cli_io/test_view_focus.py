@@ -160,3 +160,18 @@ def test_an_export_with_grain_is_what_its_command_writes(server, portrait, tmp_p
     with_grain = np.asarray(Image.open(out["path"]), np.float64)
     clean = s.render_full(s.parse({"amount": 60}))
     assert not np.array_equal(with_grain, np.round(br.colour.linear_to_srgb(np.clip(clean, 0, 1)) * 255))
+
+
+def test_an_export_without_grain_says_no_grain_in_its_command(server, tmp_path):
+    st, _, body = post(server.url + "api/export", {"params": {"amount": 60, "grain": False}, "format": "png",
+                                                  "bit_depth": 8})
+    assert st == 200, body
+    out = json.loads(body)
+    argv = shlex.split(out["command"])
+    assert "--no-grain" in argv
+    again = tmp_path / "again.png"
+    argv[argv.index("-o") + 1] = str(again)
+    assert main(argv[1:] + ["--quiet"]) == 0
+    np.testing.assert_array_equal(np.asarray(Image.open(out["path"])), np.asarray(Image.open(again)))
+    st, _, body = post(server.url + "api/render", {"stage": "preview", "grain": "yes"})
+    assert st == 400 and "grain: expected true or false" in json.loads(body)["error"]

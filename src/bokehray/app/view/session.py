@@ -42,7 +42,7 @@ EXPORT_NAME_TRIES = 100
 """Names an export tries when other exports keep taking the next free one first."""
 
 _PARAM_KEYS = {"lens", "amount", "blur", "focus", "focus_at", "aperture", "blades", "rotation", "curvature", "highlight_boost",
-               "reconstruct", "quality"}
+               "reconstruct", "quality", "grain"}
 
 
 def box_factor(h: int, w: int, long_side: int) -> int:
@@ -125,7 +125,8 @@ class RenderParams:
     ``amount`` is set when the blur came as an amount (0..100, ``--amount``), else ``k_px`` was given as ``blur``
     (``--blur``); ``focus`` and ``focus_at`` are both None for the default focus (the subject, as ``render``
     chooses it); ``reconstruct`` is highlight reconstruction (``render``'s default for a display-referred photo,
-    ``--no-highlight-reconstruction`` off; a ``highlight_boost`` replaces it, as in ``render``)."""
+    ``--no-highlight-reconstruction`` off; a ``highlight_boost`` replaces it, as in ``render``); ``grain`` is the
+    export's finishing step for a display-referred photo (``render``'s default, ``--no-grain`` off)."""
 
     k_px: float
     focus: float | None
@@ -141,6 +142,7 @@ class RenderParams:
     amount: float | None = None
     reconstruct: bool = False
     thin_lens: br.ThinLens | None = None
+    grain: bool = True
 
     def key(self) -> tuple:
         return (self.blur.k_px, self.blur.focus_disparity, self.lens, self.highlight_boost, self.quality,
@@ -283,8 +285,11 @@ def parse_params(body: object, disparity: np.ndarray, *, subject_d_f: float | No
     if not isinstance(reconstruct, bool):
         raise InputError(f"reconstruct: expected true or false, got {reconstruct!r}"[:200])
     quality = check_photo_quality(body.get("quality", "preview"))
+    grain = body.get("grain", True)
+    if not isinstance(grain, bool):
+        raise InputError(f"grain: expected true or false, got {grain!r}"[:200])
     return RenderParams(k, focus, xy, shape, blades, rotation, curvature, boost, quality, blur, lens,
-                        amount, reconstruct, thin)
+                        amount, reconstruct, thin, grain)
 
 
 def _fmt(v: float) -> str:
@@ -645,7 +650,7 @@ class ViewSession:
     def _with_grain(self, out: np.ndarray, p: RenderParams, path: Path, bits: int | None) -> np.ndarray:
         """The export's finishing step, as ``render`` does it for a display-referred photo: the photo's grain
         restored where the blur removed it (on a copy: the full render stays cached as rendered)."""
-        if not self.display_referred:
+        if not self.display_referred or not p.grain:
             return out
         from ...photo.grain import output_bits, plan_grain, restore_grain
 
@@ -717,6 +722,8 @@ class ViewSession:
             args += ["--highlight-boost", _fmt(p.highlight_boost)]
         elif self.display_referred and not p.reconstruct:
             args.append("--no-highlight-reconstruction")
+        if self.display_referred and not p.grain:
+            args.append("--no-grain")
         if bit_depth is not None:
             args += ["--bit-depth", str(bit_depth)]
         if half:

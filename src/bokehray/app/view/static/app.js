@@ -16,7 +16,7 @@ const F_STOPS = [1.2, 1.4, 1.8, 2, 2.8, 4, 5.6, 8, 11, 16, 22];
 let info = null;
 // what `bokehray render` does with the same inputs: amount 50, the subject, reconstruction as the file needs
 const state = { amount: 50, blur: null, focus: null, focus_at: null, aperture: "disc", blades: 6, rotation: 0,
-                curvature: 0, highlight_boost: 0, reconstruct: false, quality: "preview",
+                curvature: 0, highlight_boost: 0, reconstruct: false, quality: "preview", grain: true,
                 lens: null };  // lens: {focal_length, f_number, focus_distance (null: the clicked point)}
 let version = 0;            // the state's number: every change increments it
 let shownVersion = -1;      // the state of the image on screen
@@ -28,7 +28,8 @@ window.bokehrayShown = shownLog;
 
 function params() {
   const p = { aperture: state.aperture, blades: state.blades, rotation: state.rotation, curvature: state.curvature,
-              highlight_boost: state.highlight_boost, reconstruct: state.reconstruct, quality: state.quality };
+              highlight_boost: state.highlight_boost, reconstruct: state.reconstruct, quality: state.quality,
+              grain: state.grain };
   if (state.lens) {  // metric depth: render's physical lens (--focal-length, --f-number, --focus-distance)
     p.lens = { focal_length: state.lens.focal_length, f_number: state.lens.f_number };
     if (state.focus_at) p.focus_at = state.focus_at; else p.lens.focus_distance = state.lens.focus_distance;
@@ -260,6 +261,7 @@ function bind() {
   }
   $("aperture").addEventListener("change", () => { state.aperture = $("aperture").value; syncOutputs(); changed(); });
   $("reconstruct").addEventListener("change", () => { state.reconstruct = $("reconstruct").checked; changed(); });
+  $("grain").addEventListener("change", () => { state.grain = $("grain").checked; changed(); });  // the command
   $("quality").addEventListener("change", () => { state.quality = $("quality").value; changed(); });
   $("show").addEventListener("change", draw);
   $("infocus").addEventListener("change", drawOverlay);
@@ -360,6 +362,7 @@ async function start() {
   $("amount").value = d.amount;
   $("reconstruct").checked = d.reconstruct;
   $("reconstruct-label").hidden = !info.display_referred;
+  $("grain-label").hidden = !info.display_referred;
   $("lens-controls").hidden = !info.metric;
   if (info.metric) setLens(false);
   $("files").textContent = `${info.files.image} · ${info.files.map} · ${info.width}×${info.height}` +
