@@ -140,3 +140,21 @@ def test_the_patch_strip_measures_what_the_whole_frame_high_pass_gives():
             for x in range(0, 140 - 2 * m - t + 1, t)]
     assert g.tiles == len(stds) == 5 * 7
     assert g.luma == pytest.approx(np.quantile(stds, gr.FLAT_QUANTILE), rel=1e-4)
+
+
+def test_the_api_keep_grain_is_what_render_writes(tmp_path, capsys):
+    """``bokehray.keep_grain`` after ``bokehray.render``: the same pixels as ``bokehray render`` writes."""
+    from PIL import Image
+
+    codes, _ = _grainy(seed=9)
+    Image.fromarray(codes).save(tmp_path / "p.png")
+    d = np.full(codes.shape[:2], 0.2, np.float32)
+    d[:, :96] = 0.8
+    br.write_disparity(tmp_path / "d.exr", d)
+    assert main([str(a) for a in ("render", tmp_path / "p.png", "--disparity", tmp_path / "d.exr", "--blur", 30,
+                                  "--focus", 0.8, "-o", tmp_path / "o.exr", "--quiet")]) == 0
+    photo = br.read_image(tmp_path / "p.png")
+    blur = br.BlurParams(30, 0.8)
+    out = br.keep_grain(br.render(photo, d, blur), photo, d, blur)
+    np.testing.assert_allclose(br.read_image(tmp_path / "o.exr"), out, atol=1e-6)
+    assert not np.allclose(out, br.render(photo, d, blur), atol=1e-3)  # the render itself has none

@@ -28,8 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["FLAT_QUANTILE", "HIGHPASS_SIGMA", "TILE", "Grain", "GrainPlan", "measure_grain", "output_bits",
-           "plan_grain", "removed_share", "restore_grain"]
+__all__ = ["FLAT_QUANTILE", "HIGHPASS_SIGMA", "TILE", "Grain", "GrainPlan", "keep_grain", "measure_grain",
+           "output_bits", "plan_grain", "removed_share", "restore_grain"]
 
 TILE = 16
 """The side of the tiles the grain is measured on (pixels)."""
@@ -205,3 +205,14 @@ class GrainPlan:
 def plan_grain(image: np.ndarray, coc: np.ndarray) -> GrainPlan:
     """The grain of ``image`` and the share to restore for the CoC radii ``coc`` (pixels)."""
     return GrainPlan(measure_grain(image), removed_share(coc).astype(np.float16))
+
+
+def keep_grain(rendered: np.ndarray, photo: np.ndarray, disparity: np.ndarray, blur, *, seed: int = 0,
+               dither_bits: int | None = None) -> np.ndarray:
+    """The finishing step of ``bokehray render`` in one call (``bokehray.keep_grain``): ``rendered`` (a render of
+    ``photo`` with ``disparity`` and ``blur``, a :class:`~bokehray.lens.BlurParams`) with the photo's grain
+    restored where the blur removed it, seeded; ``dither_bits=8`` also dithers for an 8-bit file. ``rendered`` is
+    written in place when it is a writable float32 array. For display-referred photos: the render itself
+    (``bokehray.render``) never adds grain."""
+    plan = plan_grain(np.asarray(photo, np.float32), blur.coc_radius(np.asarray(disparity, np.float32)))
+    return restore_grain(rendered, plan.grain, plan.removed, seed=seed, dither_bits=dither_bits)
