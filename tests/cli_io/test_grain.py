@@ -158,3 +158,18 @@ def test_the_api_keep_grain_is_what_render_writes(tmp_path, capsys):
     out = br.keep_grain(br.render(photo, d, blur), photo, d, blur)
     np.testing.assert_allclose(br.read_image(tmp_path / "o.exr"), out, atol=1e-6)
     assert not np.allclose(out, br.render(photo, d, blur), atol=1e-3)  # the render itself has none
+
+
+@pytest.mark.parametrize("shape", [(), (1,), (4,)])
+def test_grey_and_alpha_arrays_get_grain_too(shape):
+    _, img = _grainy()
+    if shape == ():
+        arr = np.ascontiguousarray(img[..., 1])
+    elif shape == (1,):
+        arr = np.ascontiguousarray(img[..., 1:2])
+    else:
+        arr = np.concatenate([img, np.ones(img.shape[:2] + (1,), np.float32)], axis=2)
+    g = gr.measure_grain(arr)
+    assert g.luma > 0
+    out = gr.restore_grain(arr.copy(), g, np.ones(img.shape[:2], np.float32))
+    assert out.shape == arr.shape and not np.array_equal(out, arr) and (out >= 0).all()

@@ -96,7 +96,9 @@ def measure_grain(image: np.ndarray) -> Grain:
     """The grain of a photo (linear RGB): the ``FLAT_QUANTILE`` quantile of its tiles' high-pass standard
     deviations, in sRGB values. Fewer than ``_MIN_TILES`` tiles: no grain. The tiles are measured as a strip of
     patches, each with the high-pass's reach around it (so a 12 MP photo costs a 4 MP strip, not the frame)."""
-    patches = _patches(np.asarray(image, np.float32))
+    a = np.asarray(image, np.float32)
+    a = a[..., None] if a.ndim == 2 else a
+    patches = _patches(a if a.shape[2] >= 3 else np.repeat(a[..., :1], 3, axis=2))  # grey: three equal channels
     n, p = patches.shape[:2]
     if n < _MIN_TILES:
         return Grain(0.0, (0.0, 0.0, 0.0), n)
@@ -159,15 +161,16 @@ def restore_grain(rendered: np.ndarray, grain: Grain, removed: np.ndarray, *, se
     if dither_bits and grain.luma * (2**dither_bits - 1) < 0.5:  # grain of half a code or more dithers already
         q = 1.0 / (2**dither_bits - 1)
         dither = (rng.random(shape, dtype=np.float32) - rng.random(shape, dtype=np.float32)) * np.float32(q)
-    for c in range(3):
-        own = own_std[c]
+    planes = out[..., None] if out.ndim == 2 else out
+    for c in range(min(3, planes.shape[2])):  # grey (one plane): the luma's grain
+        own = own_std[c] if planes.shape[2] >= 3 else 0.0
         noise = shared.copy()
         if own > 0.0:
             noise += _unit_noise(rng, shape) * np.float32(own)
         if dither is not None:
             noise += dither
         noise *= w
-        v = out[..., c]
+        v = planes[..., c]
         # d(linear)/d(sRGB) at the pixel's value: 2.4 / 1.055 * lin^(1/2.4 * 1.4); 1/12.92 on the linear toe
         lin = np.clip(v, 0.0, 1.0)
         slope = np.where(lin > 0.0031308, np.float32(2.4 / 1.055) * np.power(lin, np.float32(1.4 / 2.4)),
