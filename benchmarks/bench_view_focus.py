@@ -1,12 +1,12 @@
 """The page's focus after a click on a busy machine: how long until the focused region shows at screen resolution.
 
 A 12 MP portrait (the astronaut with its painted map, ``benchmarks/portrait.py``, ``--side`` 3464) is opened as
-``bokehray view`` opens it; ``--busy`` processes spin on the CPU meanwhile (the issue's "two busy processes"). For
-``--clicks`` clicks spread over the frame, the page's server-side sequence is timed as the worker runs it: the
-preview at the ladder's proxy (the ladder moves as it does on the page), then the focus crop at the screen's size
-(``--screen`` px on the long side, 1029 in the issue), then the sharp version at that size. Reported per click:
-the seconds to the proxy, to the focus crop (proxy + crop: the focus is judgeable at screen resolution) and to
-the sharp version, and the proxy's size; medians and maxima. The browser's own time (the request, decoding, drawing:
+``bokehray view`` opens it; ``--busy`` processes spin on the CPU meanwhile (a page used beside two busy
+processes). For ``--clicks`` clicks spread over the frame, the page's server-side sequence is timed as the worker
+runs it: the preview at the ladder's proxy (the ladder moves as it does on the page), then the focus crop at the
+screen's size (``--screen`` px on the long side, 1029 as in a 1400 x 950 browser window), then the sharp version
+at that size. Reported per click: the seconds to the proxy, to the focus crop (proxy + crop: the focus is
+judgeable at screen resolution) and to the sharp version, and the proxy's size; medians and maxima. The browser's own time (the request, decoding, drawing:
 tens of ms) is not in these numbers.
 
 Usage (from the repository root)::
