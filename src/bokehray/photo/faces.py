@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cache
 
 import numpy as np
 
@@ -66,7 +67,9 @@ class EyesFocus:
         return f"the {'eyes' if len(self.face.eyes) > 1 else 'eye'} of the nearest face"
 
 
+@cache
 def _cascade(name: str):
+    """A bundled cascade, loaded once per process (parsing the face cascade's XML takes about 30 ms)."""
     import cv2
 
     path = cv2.data.haarcascades + name

@@ -66,7 +66,7 @@ def _highpass(x: np.ndarray) -> np.ndarray:
 
 
 _MARGIN = 8  # the high-pass's reach (OpenCV's kernel for sigma 2: 17 taps) around each measured tile
-_MAX_TILES = 4096  # at most this many tiles are measured (a regular subsample of a larger frame's)
+_MAX_TILES = 1024  # at most this many tiles are measured (a regular subsample of a larger frame's): a 1 MP strip
 
 
 def _srgb(rgb: np.ndarray) -> np.ndarray:
