@@ -36,6 +36,7 @@ _EXPORTS: dict[str, str] = {
     "BokehrayError": "errors", "InputError": "errors", "NumericalError": "errors", "OutputError": "errors",
     "ResourceError": "errors",
     "read_depth": "photo.depth", "read_disparity": "photo.read", "read_image": "photo.read",
+    "keep_grain": "photo.grain",
     "write_disparity": "output.write", "write_image": "output.write",
     "Aperture": "lens", "BlurParams": "lens", "DepthNormalization": "lens", "ThinLens": "lens",
     "depth_from_disparity": "lens", "disparity_from_depth": "lens",
@@ -72,6 +73,7 @@ __all__ = [
     "depth_from_disparity",
     "disparity_from_depth",
     "focus_at",
+    "keep_grain",
     "raytrace_layers",
     "read_depth",
     "read_disparity",
@@ -109,6 +111,7 @@ if TYPE_CHECKING:  # what type checkers and IDEs see: the eager imports
     from .options import LayerOptions, MemoryOptions, PreviewOptions, RaytraceOptions
     from .output.write import write_disparity, write_image
     from .photo.depth import read_depth
+    from .photo.grain import keep_grain
     from .photo.read import read_disparity, read_image
     from .pipeline import QUALITIES, boost_highlights, focus_at, render, render_with_stats
     from .stats import PreviewStats, RaytraceStats, RenderStats

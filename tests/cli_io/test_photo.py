@@ -512,3 +512,65 @@ def test_the_clis_max_coc_from_the_maps_ends_is_the_frames(seed, k, d_f, wide):
     blur = br.BlurParams(k, d_f)
     assert max_coc_px(blur, d) == float(blur.coc_radius(d).max())
     assert max_coc_px(blur, np.zeros((0, 3), np.float32)) == 0.0
+
+
+# --------------------------------------------------------------------------- lights, not white surfaces
+
+
+def _white_shirt(side=256, cast=(1.0, 0.94, 0.86)):
+    """A clipped white fabric (radiance 1.0-1.9 in folds, a warm cast) over a grey backdrop, stored in 8 bits."""
+    yy, xx = np.mgrid[:side, :side] / side
+    shirt = (np.abs(xx - 0.5) < 0.28) & (yy > 0.3)
+    folds = 1.45 + 0.45 * np.sin(18 * xx + 4 * yy) * np.cos(7 * yy)
+    hdr = np.where(shirt[..., None], folds[..., None] * np.array(cast), 0.18)
+    codes = np.round(br.colour.linear_to_srgb(np.clip(hdr, 0, 1)) * 255)
+    return br.colour.srgb_to_linear(codes / 255.0).astype(np.float32)
+
+
+def test_a_clipped_white_surface_keeps_its_value():
+    """A white shirt clipped in a photo took a gain of 5 (it glowed when blurred, and its rim took the colour of its
+    edge): a large clipped plateau whose surroundings do not rise towards it is not a light."""
+    img = _white_shirt()
+    out, found = highlights.reconstruct_highlights(img)
+    assert found == 0 and np.array_equal(out, img)
+
+
+def test_a_large_light_with_a_glow_is_still_reconstructed():
+    """A lamp too large to count as small (3 % of the frame) whose surroundings rise towards it (a glow)."""
+    side = 200
+    yy, xx = np.mgrid[:side, :side]
+    r = np.hypot(yy - 100, xx - 100)
+    hdr = np.where(r < 20, 4.0, 0.02 + 3.0 * (20.0 / np.maximum(r, 20.0)) ** 3)[..., None] * np.ones(3)
+    codes = np.round(br.colour.linear_to_srgb(np.clip(hdr, 0, 1)) * 255)
+    img = br.colour.srgb_to_linear(codes / 255.0).astype(np.float32)
+    assert (img[..., 0] >= highlights.CLIP_LEVEL).sum() > highlights.LIGHT_MAX_PX
+    out, found = highlights.reconstruct_highlights(img)
+    assert found == 1 and out[100, 100].max() == pytest.approx(highlights.HIGHLIGHT_GAIN)
+    plateau = np.where(r < 20, 4.0, 0.02)[..., None] * np.ones(3)  # the same disc, sharp-edged: a white surface
+    flat = br.colour.srgb_to_linear(np.round(br.colour.linear_to_srgb(np.clip(plateau, 0, 1)) * 255) / 255.0)
+    assert highlights.reconstruct_highlights(flat.astype(np.float32))[1] == 0
+
+
+def test_small_clipped_regions_are_lights_at_every_frame_size():
+    for side in (40, 400, 4000):
+        img = np.full((side, side, 3), 0.05, np.float32)
+        n = int(max(highlights.LIGHT_MAX_PX, highlights.LIGHT_MAX_SHARE * side * side) ** 0.5)
+        img[10 : 10 + n, 10 : 10 + n] = 1.0  # a square as large as a light may be
+        assert highlights.reconstruct_highlights(img)[1] == 1, side
+
+
+@pytest.mark.skipif(not DEVSET.exists(), reason="the path-traced dev set is not here")
+def test_the_dev_set_lamps_are_all_still_lights(tmp_path):
+    """The lamps of d3 (7 white-cored clipped regions, 0.04-0.10 % of the frame each) are reconstructed exactly as
+    when every clipped region with a white core was taken for a light."""
+    hdr = br.read_image(DEVSET / "d3_lamps_ring_writing" / "image.exr")
+    img8 = br.read_image(br.write_image(tmp_path / "d3.png", np.clip(hdr, 0, 1)))
+    out, found = highlights.reconstruct_highlights(img8)
+    share = highlights.LIGHT_MAX_SHARE
+    try:
+        highlights.LIGHT_MAX_SHARE = 1.0
+        every, found_every = highlights.reconstruct_highlights(img8)
+    finally:
+        highlights.LIGHT_MAX_SHARE = share
+    assert found == found_every == 7
+    np.testing.assert_array_equal(out, every)

@@ -52,7 +52,7 @@ def _modules_after(code: str) -> set[str]:
 
 def test_import_bokehray_imports_no_warp_codec_or_colour_science():
     mods = _modules_after("import bokehray")
-    assert not {"warp", "colour", "PIL", "OpenEXR", "tifffile", "scipy", "skimage", "matplotlib"} & mods
+    assert not {"warp", "colour", "PIL", "OpenEXR", "tifffile", "scipy", "skimage", "matplotlib", "cv2"} & mods
 
 
 def test_help_and_argument_errors_import_no_warp_or_colour_science():
@@ -64,7 +64,7 @@ def test_help_and_argument_errors_import_no_warp_or_colour_science():
             "        try:\n            code = main(argv)\n        except SystemExit as e:\n            code = e.code\n"
             "    assert code in (0, 2), (argv, code)")
     mods = _modules_after(code)
-    assert not {"warp", "colour", "scipy", "matplotlib", "OpenEXR"} & mods
+    assert not {"warp", "colour", "scipy", "matplotlib", "OpenEXR", "cv2"} & mods
 
 
 @pytest.mark.slow

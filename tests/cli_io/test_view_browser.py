@@ -219,3 +219,51 @@ def test_metric_depth_offers_the_lens_in_chromium(tmp_path, browser):
         assert z == pytest.approx(float(session.norm.depth(session.subject.d_f)))
         assert "m away" in drv.find_element(By.ID, "focus-where").text
         assert drv.find_element(By.ID, "error").text == ""
+
+
+def test_focus_first_in_words_and_the_command_follows_the_format_in_chromium(tmp_path, browser):
+    """A portrait: the focus is said in words (the eyes), the focused region at screen size lands between the proxy
+    and the sharp version, choosing JPEG makes the shown command write a JPEG, and the export says its steps and
+    shows its result in view."""
+    import skimage.data
+
+    drv = browser
+    Image = pytest.importorskip("PIL.Image")
+    Image.fromarray(skimage.data.astronaut()).save(tmp_path / "photo.png")
+    disp = np.full((512, 512), 0.1, np.float32)
+    disp[200:, 20:370] = 0.859
+    disp[10:200, 150:305] = 0.839
+    br.write_disparity(tmp_path / "disp.png", disp)
+    session = ViewSession.from_files(str(tmp_path / "photo.png"), disparity=str(tmp_path / "disp.png"),
+                                     export_dir=tmp_path, proxy_long_side=128)
+    with ViewServer(session) as server:
+        drv.get(server.url)
+        wait_sharp(drv)
+        assert drv.find_element(By.ID, "focus-where").text == "the eyes of the nearest face (near)"
+        assert drv.find_element(By.ID, "subject").text == "Focus on the eyes of the nearest face"
+        assert count(drv, "focus-crops") >= 1
+        x0, y0, x1, y1 = (int(v) for v in body(drv, "focus-crop").split(","))
+        assert x0 <= session.subject.x < x1 and y0 <= session.subject.y < y1
+        assert " -o OUTPUT.png" in drv.find_element(By.ID, "command").text
+        n_prev = count(drv, "previews")
+        drv.execute_script("const f = document.getElementById('format'); f.value = 'jpg'; "
+                           "f.dispatchEvent(new Event('change'));")
+        wait(drv, lambda d: count(d, "previews") > n_prev)
+        wait_sharp(drv)
+        assert " -o OUTPUT.jpg" in drv.find_element(By.ID, "command").text
+        drv.execute_script("window.scrollTo(0, 0);")
+        drv.find_element(By.ID, "export").click()
+        wait(drv, lambda d: body(d, "exported"))
+        assert drv.find_element(By.ID, "export-out").text.startswith("wrote ")
+        assert drv.find_element(By.ID, "export-command").text.split(" -o ")[1].split()[0].endswith(".jpg")
+        in_view = drv.execute_script("const r = document.getElementById('export-command').getBoundingClientRect(); "
+                                     "return r.top >= 0 && r.bottom <= window.innerHeight;")
+        assert in_view
+        assert drv.find_element(By.ID, "error").text == ""
+    # the focus crop came after the preview of its state and before the sharp version of it
+    shown = drv.execute_script("return window.bokehrayShown;")
+    focused = [v for stage, v in shown if stage == "focus"]
+    assert focused, shown
+    for v in focused:
+        at = shown.index(["focus", v])
+        assert ["preview", v] in shown[:at] and ["full", v] not in shown[:at], shown

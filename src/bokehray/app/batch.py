@@ -107,6 +107,8 @@ def add_batch_args(r: argparse.ArgumentParser) -> None:
     g.add_argument("--gif-width", type=int, default=None,
                    help=f"width of the animated sweep preview (default {GIF_WIDTH})")
     g.add_argument("--fps", type=float, default=None, help=f"frames per second of the sweep preview (default {FPS:g})")
+    g.add_argument("--gif-labels", action="store_const", const=True, default=None,
+                   help="draw each frame's focus (or blur) small in the corner of the sweep's animated preview")
     add_executor_args(r, workers_help="worker processes (default: all cores, at most one per render)")
 
 
@@ -284,7 +286,7 @@ def _pair(images: str, maps: str, *, kind: str, suffix: str) -> list[Pair]:  # n
 
 _NOT_SETTINGS = frozenset({
     "command", "image", "disparity", "depth", "output",  # the task's own paths
-    "map_suffix", "output_format", "overwrite", "gif_width", "fps", "executor", "workers", "scheduler",  # the batch's
+    "map_suffix", "output_format", "overwrite", "gif_width", "fps", "gif_labels", "executor", "workers", "scheduler",
     "quiet", "debug", "stats",  # how a process talks, not what it renders
 })
 
@@ -411,8 +413,30 @@ def frame_labels(name: str, values: Sequence[float]) -> list[str]:
                      f"apart in the frames' file names (they differ after {_MOST_DECIMALS} decimals)")
 
 
-def _gif(frames: Sequence[Path], path: Path, width: int, fps: float) -> Path:
-    """An animated preview of a focal stack (8-bit sRGB, ``width`` px wide), written atomically."""
+def frame_caption(name: str, label: str, done: dict | None = None) -> str:
+    """What a sweep frame shows in its corner with ``--gif-labels``: ``focus 0.600`` (``, 2.4 m`` for metric depth,
+    when the render said it) or ``blur K 12 px``."""
+    if name == "blur":
+        return f"blur K {label} px"
+    metres = done.get("focus_m") if done else None
+    return f"focus {label}" + (f", {metres:.3g} m" if metres is not None and math.isfinite(metres) else "")
+
+
+def _caption(im, text: str):
+    """``text`` drawn small (Pillow's built-in bitmap font) on a dark box in the frame's top-left corner."""
+    from PIL import ImageDraw, ImageFont
+
+    draw = ImageDraw.Draw(im)
+    font = ImageFont.load_default()
+    x0, y0, x1, y1 = draw.textbbox((4, 3), text, font=font)
+    draw.rectangle((x0 - 3, y0 - 2, x1 + 3, y1 + 2), fill=(0, 0, 0))
+    draw.text((4, 3), text, fill=(255, 255, 255), font=font)
+    return im
+
+
+def _gif(frames: Sequence[Path], path: Path, width: int, fps: float, captions: Sequence[str] | None = None) -> Path:
+    """An animated preview of a focal stack (8-bit sRGB, ``width`` px wide; each frame's caption drawn small in
+    its corner when ``captions`` are given), written atomically."""
     import numpy as np
     from PIL import Image
 
@@ -426,6 +450,8 @@ def _gif(frames: Sequence[Path], path: Path, width: int, fps: float) -> Path:
         im = Image.fromarray(np.round(rgb * 255.0).astype(np.uint8))
         if im.width > width:
             im = im.resize((width, max(1, round(im.height * width / im.width))), Image.Resampling.LANCZOS)
+        if captions is not None:
+            im = _caption(im, captions[len(images)])
         images.append(im)
     duration = max(20, round(1000.0 / fps))
 
@@ -474,6 +500,52 @@ def _state(out: Path, fingerprint: str, outputs: Sequence[str], overwrite: bool)
     atomic_write(state, lambda tmp: Path(tmp).write_text(text))
 
 
+RENDER_BASE_BYTES = 300 << 20
+"""A render process's memory before its photo: Python, NumPy, Warp, OpenCV (``benchmarks/results/memory--*.json``:
+the preview's peak at 1.5, 6 and 12 MP lies on ``300 MB + 94 B/px``)."""
+
+RENDER_BYTES_PER_PX = 110
+"""A ``bokehray render``'s peak per pixel of its photo beyond :data:`RENDER_BASE_BYTES`: the preview's 94 B/px plus
+decoding, highlights and grain (measured: 1.64 GB peak RSS for a 12 MP JPEG at the defaults)."""
+
+MEMORY_SHARE = 0.8
+"""The share of the available memory a batch's workers may plan to hold together."""
+
+
+def render_peak_bytes(pixels: int) -> int:
+    """The peak memory of one render of a photo of ``pixels`` pixels (the model above)."""
+    return RENDER_BASE_BYTES + RENDER_BYTES_PER_PX * int(pixels)
+
+
+def fit_workers(requested: int, pixels: int, available: int) -> int:
+    """As many of the ``requested`` workers as can each render a photo of ``pixels`` pixels at once within
+    ``MEMORY_SHARE`` of the ``available`` memory (at least one)."""
+    return max(1, min(requested, int(MEMORY_SHARE * available) // render_peak_bytes(pixels)))
+
+
+def _workers_for(args: argparse.Namespace, todo: Sequence[RenderTask]) -> int | None:
+    """``--workers`` (None: the executor's default), lowered so that the local workers fit the memory available
+    now, from the largest photo's header; said on stderr when lowered."""
+    if args.executor == "dask" or not todo:
+        return args.workers
+    from .._memory import available_bytes
+    from ..photo.read import read_size
+
+    largest = 0
+    for image in {t.image for t in todo}:
+        with contextlib.suppress(InputError):  # an unreadable photo fails as its render, reported there
+            h, w = read_size(image)
+            largest = max(largest, h * w)
+    requested = min(args.workers or os.cpu_count() or 1, len(todo))
+    available = available_bytes()
+    n = fit_workers(requested, largest, available)
+    if n < requested and not args.quiet:
+        print(f"workers: {n} instead of {requested}, to fit the memory available ({available / 2**30:.1f} GB; a "
+              f"{largest / 1e6:.1f} MP render peaks at about {render_peak_bytes(largest) / 2**30:.1f} GB)",
+              file=sys.stderr)
+    return n if n < requested else args.workers
+
+
 def run_batch(args: argparse.Namespace) -> int:  # noqa: C901
     """``bokehray render`` with many inputs or a sweep: plan, skip what is done, run, summarise."""
     from .._quiet import progress_bar
@@ -514,6 +586,7 @@ def run_batch(args: argparse.Namespace) -> int:  # noqa: C901
     failures: list[tuple[str, str]] = []
     tasks: list[RenderTask] = []
     stacks: dict[Path, list[Path]] = {}  # gif -> frames
+    frame_label: dict[str, str] = {}  # frame -> its value as named
     seen: dict[str, Path] = {}
     for pair in pairs:
         if pair.map is None:
@@ -533,6 +606,7 @@ def run_batch(args: argparse.Namespace) -> int:  # noqa: C901
         for v, label in zip(values, labels):
             frame = out / f"{stem}_{name}_{label}{suffix}"
             frames.append(frame)
+            frame_label[str(frame)] = label
             tasks.append(RenderTask(str(pair.image), str(pair.map), str(frame), settings.with_values(**{name: v})))
         stacks[out / f"{stem}_{name}_sweep.gif"] = frames
     from ..output.write import CLI_NAMES, check_output_path
@@ -548,9 +622,10 @@ def run_batch(args: argparse.Namespace) -> int:  # noqa: C901
     done_pixels, t0 = 0, time.perf_counter()
     failed_outputs: set[str] = set()
     before = {t.output: _stamp(t.output) for t in todo}  # what is there now (with --overwrite: the old renders)
+    results: dict[str, dict] = {}  # output -> what its render said (the GIF's captions take the metres from it)
     try:
         if todo:
-            with make_executor(args.executor, workers=args.workers, scheduler=args.scheduler,
+            with make_executor(args.executor, workers=_workers_for(args, todo), scheduler=args.scheduler,
                                tasks=len(todo)) as ex:
                 if ex.workers > 1 and not args.scheduler:  # the workers share this machine's cores
                     share = max(1, (os.cpu_count() or 1) // ex.workers)
@@ -563,6 +638,7 @@ def run_batch(args: argparse.Namespace) -> int:  # noqa: C901
                     for o in ex.map(render_file, todo):
                         if o.ok:
                             done_pixels += o.value["pixels"]
+                            results[todo[o.index].output] = o.value
                             if not quiet:  # what each photo got: its focus and blur, one line
                                 bar.write(photo_line(todo[o.index].image, o.value), file=sys.stdout)
                         else:
@@ -585,9 +661,11 @@ def run_batch(args: argparse.Namespace) -> int:  # noqa: C901
     for gif, frames in stacks.items():
         if any(str(f) in failed_outputs for f in frames):
             continue
-        if args.overwrite or not gif.exists() or any(f.stat().st_mtime > gif.stat().st_mtime for f in frames):
+        if args.overwrite or args.gif_labels or not gif.exists() or any(f.stat().st_mtime > gif.stat().st_mtime for f in frames):
             try:
-                _gif(frames, gif, gif_width, fps)
+                captions = ([frame_caption(name, frame_label[str(f)], results.get(str(f))) for f in frames]
+                            if args.gif_labels else None)
+                _gif(frames, gif, gif_width, fps, captions)
                 gifs += 1
             except Exception as e:  # noqa: BLE001 - a preview that fails is reported like a render
                 failures.append((str(gif), f"{type(e).__name__}: {e}".splitlines()[0]))

@@ -129,8 +129,9 @@ def build_parser() -> argparse.ArgumentParser:
         "render",
         help="render one image with a disparity (or depth) map",
         description="CoC radius in pixels = K * |d - d_f| (d: disparity in [0, 1], 1 = nearest). With only an image "
-        "and a map it picks the blur (--amount 50) and focuses on the subject (the nearest depth region, split at the "
-        "troughs of the map's histogram, holding 3% of the centre-weighted frame) and says so, with the depth range "
+        "and a map it picks the blur (--amount 50) and focuses on the eyes of the nearest face, or without a face on "
+        "the subject (the nearest depth region, split at the troughs of the map's histogram, holding 3% of the "
+        "centre-weighted frame) and says so, with the depth range "
         "it read. Or give --amount/--blur K with --focus D_F or --focus-at X,Y, or a "
         "physical lens (--focal-length, --f-number, --focus-distance, --sensor-width) with a metric --depth map. "
         "docs/usage.md walks through it.",
@@ -183,6 +184,10 @@ def build_parser() -> argparse.ArgumentParser:
     o.add_argument("--no-highlight-reconstruction", action="store_true",
                    help="keep the clipped highlights of a PNG/JPEG/integer TIFF as they are (by default they are "
                    "re-inflated so that lamps give bright bokeh; never done for EXR/float TIFF)")
+    o.add_argument("--no-grain", action="store_true",
+                   help="keep the blur clean: by default a PNG/JPEG/integer TIFF photo's grain, measured where it is "
+                   "flat and in focus, is restored where the blur removed it, and an 8-bit output is dithered "
+                   "(seeded: the same command writes the same file; never for EXR/float TIFF)")
     o.add_argument("--highlight-boost", type=float, default=0.0,
                    help="instead of the reconstruction: the older uniform boost of every pixel near 1.0 "
                    "(1 + S t^2; 0 = off)")
@@ -303,6 +308,7 @@ _BATCH_ONLY = (  # (dest, what it does); given on a single render they would cha
     ("overwrite", f"--overwrite renders again the outputs that {_A_BATCH} would skip as done"),
     ("gif_width", f"--gif-width sets the width of the animated preview of {_A_SWEEP}"),
     ("fps", f"--fps sets the frame rate of the animated preview of {_A_SWEEP}"),
+    ("gif_labels", f"--gif-labels draws each frame's focus in the animated preview of {_A_SWEEP}"),
 )
 """The options of many renders that ``bokehray render`` with one photo and one focus refuses, as it refuses other
 flags that would change nothing (docs/robustness.md)."""

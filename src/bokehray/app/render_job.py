@@ -389,6 +389,26 @@ def render_one(args: argparse.Namespace) -> dict:
         bar.close()
 
 
+def focus_words(focus) -> str:
+    """How a default focus was chosen, as a batch line and ``render_one``'s result say it."""
+    from ..photo.faces import EyesFocus
+
+    if isinstance(focus, EyesFocus):
+        return f"{focus.words()} at ({focus.x}, {focus.y})"
+    return f"the subject around pixel ({focus.x}, {focus.y})"
+
+
+def _plan_grain(args: argparse.Namespace, image: np.ndarray, disparity: np.ndarray, blur):
+    """The grain to restore after the render (a display-referred photo without ``--no-grain``), else None."""
+    from ..photo.highlights import is_display_referred
+
+    if getattr(args, "no_grain", False) or not is_display_referred(args.image):
+        return None
+    from ..photo.grain import plan_grain
+
+    return plan_grain(image, blur.coc_radius(disparity))
+
+
 def max_coc_px(blur, disparity: np.ndarray) -> float:
     """``blur.coc_radius(disparity).max()`` from the map's nearest and farthest values alone: the float32
     ``K (d - d_f)`` is monotonic in ``d`` (each rounding is), so its magnitude peaks at an end of the range (no
@@ -446,7 +466,7 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:  
     from ..photo.embedded import exif_for_output
     from ..photo.highlights import is_display_referred, reconstruct_highlights
     from ..photo.read import read_image
-    from ..photo.subject import k_from_amount, subject_focus
+    from ..photo.subject import default_focus, k_from_amount
     from ..validate import check_radiance
 
     clock = command_clock()
@@ -498,8 +518,8 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:  
                 _say(args, f"focus: d_f = {d_f:.4g} at pixel ({args.focus_at[0]}, {args.focus_at[1]}) "
                      f"(--focus-at){_metres(norm, d_f)}")
         else:
-            subject = subject_focus(disparity)
-            d_f, focus_how = subject.d_f, f"the subject around pixel ({subject.x}, {subject.y})"
+            subject = default_focus(image, disparity)  # the eyes of the nearest face, else the subject
+            d_f, focus_how = subject.d_f, focus_words(subject)
             _say(args, f"focus: {subject.describe()}{_metres(norm, d_f)}; --focus-at X,Y to choose")
         blur = BlurParams(k, d_f)
     clock.lap("focus")
@@ -509,6 +529,9 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:  
             _say(args, f"highlights: {found} clipped highlight{'s' * (found > 1)} reconstructed (display-referred "
                  "input; --no-highlight-reconstruction keeps them clipped)")
         clock.lap("highlights")
+    grain = _plan_grain(args, image, disparity, blur)
+    if grain is not None:
+        clock.lap("grain")
 
     start_warp(args)
     from ..options import PreviewOptions
@@ -530,12 +553,20 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:  
     del clock.laps["render"]
     stages = {k: v for k, v in stats.stage_seconds.items() if k != "total"}
     clock.add({**stages, "render (other)": max(0.0, render_s - sum(stages.values()))})
+    if grain is not None:
+        from ..photo.grain import output_bits, restore_grain
+
+        out = restore_grain(out, grain.grain, grain.removed, dither_bits=output_bits(args.output, args.bit_depth))
+        clock.lap("grain")
     bar.stage("write")
     quality = JPEG_QUALITY if args.jpeg_quality is None else args.jpeg_quality
     path = write_image(args.output, out, bit_depth=args.bit_depth, half=args.half, quality=quality,
                        exif=exif_for_output(meta))  # JPEG keeps the photo's EXIF, orientation reset
     clock.lap("write")
     stats.stage_seconds = {**clock.laps, "total": clock.total()}  # the whole command, start-up to the file
+    if grain is not None:  # said once the file is written, as a render with --blur and --focus says nothing before
+        _say(args, f"grain: {grain.describe()} (--no-grain keeps the blur clean)")
+        del grain
     if not args.quiet:
         refined = (f", refined {stats.refine['tiles_refined']}/{stats.refine['tiles_total']} tiles"
                    if stats.refine else "")

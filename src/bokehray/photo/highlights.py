@@ -3,14 +3,15 @@ stays a dim disc; the reconstruction gives such lights back their radiance (docs
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["CLIP_LEVEL", "HIGHLIGHT_GAIN", "HIGHLIGHT_RAMP_PX", "dilate8", "edge_distance", "is_display_referred",
-           "label8", "reconstruct_highlights"]
+__all__ = ["CLIP_LEVEL", "HIGHLIGHT_GAIN", "HIGHLIGHT_RAMP_PX", "LIGHT_MAX_PX", "LIGHT_MAX_SHARE", "dilate8",
+           "edge_distance", "is_display_referred", "is_light", "label8", "reconstruct_highlights"]
 
 HIGHLIGHT_GAIN = 5.0
 """Radiance given to the clipped channels deep inside a clipped highlight (in units of the clip level)."""
@@ -20,6 +21,16 @@ HIGHLIGHT_RAMP_PX = 1.5
 
 CLIP_LEVEL = 0.99
 """A channel at or above this linear value (8-bit code 254 or more) is clipped."""
+
+LIGHT_MAX_PX = 256
+"""A clipped region of at most this many pixels is a light (a lamp, the sun, a specular glint) at any frame size."""
+
+LIGHT_MAX_SHARE = 0.0015
+"""A clipped region holding at most this share of the frame is a light too (the dev set's lamps hold 0.04-0.10 %);
+a larger one is a light only when its surroundings rise towards it (:func:`is_light`)."""
+
+_GLOW_RINGS = (1, 2, 4, 8, 16)  # the rings around a large clipped region: (1..2], (2..4], (4..8], (8..16] px
+_GLOW_REACH = 0.25  # a glow's ring at 4..8 px keeps at least this share of its innermost ring's brightness
 
 
 def is_display_referred(path: str | os.PathLike[str]) -> bool:
@@ -133,6 +144,41 @@ def edge_distance(mask: np.ndarray, cap: float) -> np.ndarray:
     return dist
 
 
+def _ring_medians(mine: np.ndarray, others: np.ndarray, bright: np.ndarray, scale: int) -> list[float]:
+    """The median of ``bright`` in each ring of :data:`_GLOW_RINGS` (times ``scale``) around ``mine``, other
+    clipped regions left out; NaN for a ring with no pixel (at the frame's edge)."""
+    medians = []
+    inner = dilate8(mine, _GLOW_RINGS[0] * scale)
+    for r in _GLOW_RINGS[1:]:
+        outer = dilate8(mine, r * scale)
+        ring = outer & ~inner & ~others
+        medians.append(float(np.median(bright[ring])) if ring.any() else math.nan)
+        inner = outer
+    return medians
+
+
+def is_light(mine: np.ndarray, crop: np.ndarray, others: np.ndarray, frame_pixels: int) -> bool:
+    """Whether the clipped region ``mine`` (a boolean crop of the frame, with ``crop`` its linear RGB and ``others``
+    the other clipped regions in it) is a light rather than a white surface.
+
+    Small regions are lights: at most :data:`LIGHT_MAX_PX` pixels, or :data:`LIGHT_MAX_SHARE` of the frame. A larger
+    one is a light only when its surroundings rise towards it as a glow does: the median brightness (the brightest
+    channel) of the rings 1-2, 2-4, 4-8 and 8-16 px out (scaled with the frame: one step per 1000 px of its side)
+    falls strictly from ring to ring, and the 4-8 px ring still holds ``_GLOW_REACH`` of the innermost one. A white
+    shirt, a wall, snow or a helmet is a flat clipped plateau whose surroundings fall off at its edge: it keeps its
+    value.
+    """
+    area = int(mine.sum())
+    if area <= max(LIGHT_MAX_PX, LIGHT_MAX_SHARE * frame_pixels):
+        return True
+    scale = max(1, round(math.sqrt(frame_pixels) / 1000))
+    m = _ring_medians(mine, others, crop.max(axis=2), scale)
+    if any(math.isnan(v) for v in m):
+        return False
+    falls = all(a > b * 1.05 for a, b in itertools.pairwise(m))
+    return falls and m[2] >= _GLOW_REACH * m[0]
+
+
 def reconstruct_highlights(image: np.ndarray, *, overwrite: bool = False) -> tuple[np.ndarray, int]:
     """Re-inflate the clipped highlights of a display-referred photo; returns ``(image, highlights found)``.
 
@@ -140,7 +186,8 @@ def reconstruct_highlights(image: np.ndarray, *, overwrite: bool = False) -> tup
 
     1. a *highlight* is a connected (8-neighbour) region of pixels with a channel >= ``CLIP_LEVEL`` that holds at
        least one pixel with every colour channel clipped (a white-clipped core: lamps, the sun, speculars;
-       a saturated but unclipped colour, or one clipped channel alone, is left as it is);
+       a saturated but unclipped colour, or one clipped channel alone, is left as it is) and is a light
+       (:func:`is_light`: small, or glowing); a large clipped plateau (a white shirt, a wall) keeps its values;
     2. its colour is that of its unclipped rim (the pixels just outside, minus the median of a ring 3-4 px out:
        the rim's partial coverage shows the light's hue before it clipped), normalised to a brightest channel of 1;
     3. each *clipped* channel becomes ``max(1, g * colour)`` with ``g`` ramping from 1 at the edge to
@@ -169,7 +216,8 @@ def reconstruct_highlights(image: np.ndarray, *, overwrite: bool = False) -> tup
     out = img if overwrite and img.flags.writeable else img.copy()
     found = 0
     h, w = clipped.shape
-    pad = 5  # the rim (1 px) and the background ring (3-4 px) around each highlight
+    scale = max(1, round(math.sqrt(h * w) / 1000))
+    pad = _GLOW_RINGS[-1] * scale + 1  # the rim (1 px), the background ring (3-4 px) and the glow's rings
     for i, (by0, by1, bx0, bx1) in enumerate(boxes, start=1):
         y0, y1 = max(0, by0 - pad), min(h, by1 + pad)
         x0, x1 = max(0, bx0 - pad), min(w, bx1 + pad)
@@ -178,8 +226,10 @@ def reconstruct_highlights(image: np.ndarray, *, overwrite: bool = False) -> tup
         ch = (crop >= CLIP_LEVEL) & mine[..., None]
         if not ch.all(axis=2).any():
             continue  # no white core: a saturated colour, not a light
-        found += 1
         others = clipped[y0:y1, x0:x1] & ~mine  # another highlight's pixels are neither rim nor background
+        if not is_light(mine, crop, others, h * w):
+            continue  # a white surface: kept as it is
+        found += 1
         rim = dilate8(mine, 1) & ~mine & ~others
         ring = dilate8(mine, 4) & ~dilate8(mine, 2) & ~others
         colour = np.ones(3)

@@ -3,7 +3,8 @@
 * **Blur amount** (:func:`k_from_amount`): ``--amount A`` in 0..100 sets ``K = A / 100 * 6 %`` of the image
   diagonal, so the same amount looks the same at 1 MP and at 24 MP. ``A = 50`` (the default) gives a CoC
   radius of 3 % of the diagonal for a point one full disparity unit from the focus.
-* **Default focus** (:func:`subject_focus`): the centre-weighted histogram of the map (a Gaussian of 0.3 x the
+* **Default focus** (:func:`default_focus`): the eyes of the nearest sizeable face when the photo shows faces
+  (:mod:`bokehray.photo.faces`), else the subject (:func:`subject_focus`): the centre-weighted histogram of the map (a Gaussian of 0.3 x the
   frame's width and height around its centre), over the map's own range, smoothed and split into depth regions
   at its troughs (:func:`depth_regions`); the nearest region that holds at least ``SUBJECT_MASS`` (3 %) of the
   weight is the subject, focused at its weighted median disparity. It needs no empty histogram bin, so soft,
@@ -23,8 +24,8 @@ import numpy as np
 from ..errors import InputError
 from .depth import subsample
 
-__all__ = ["AMOUNT_DEFAULT", "AMOUNT_K_FRACTION", "SUBJECT_MASS", "Subject", "amount_from_k", "depth_regions",
-           "k_from_amount", "subject_focus"]
+__all__ = ["AMOUNT_DEFAULT", "AMOUNT_K_FRACTION", "SUBJECT_MASS", "Subject", "amount_from_k", "default_focus",
+           "depth_regions", "k_from_amount", "subject_focus"]
 
 AMOUNT_DEFAULT = 50.0
 """``--amount`` when neither it nor ``--blur`` is given."""
@@ -70,6 +71,10 @@ class Subject:
     share: float
     regions: int = 1
     skipped: float = 0.0
+
+    def words(self) -> str:
+        """The choice said shortest, for the page."""
+        return "the subject"
 
     def describe(self) -> str:
         """What was chosen and why, in one line (``bokehray render`` prints it)."""
@@ -168,3 +173,16 @@ def subject_focus(disparity: np.ndarray) -> Subject:
     cx = float(np.average(cols[ix], weights=wts))
     return Subject(d_f, int(round(cx)), int(round(cy)), (float(vals.min()), float(vals.max())), float(cum[-1]),
                    len(regions), skipped)
+
+
+def default_focus(image: np.ndarray | None, disparity: np.ndarray):
+    """The default focus of a photo: the eyes of its nearest sizeable face (an :class:`~bokehray.photo.faces.EyesFocus`)
+    when it shows faces, else :func:`subject_focus` (a :class:`Subject`). Both carry ``d_f``, ``x``, ``y``,
+    ``describe()`` and ``words()``. ``image=None`` (no photo at hand) is the subject search alone."""
+    if image is not None:
+        from .faces import eyes_focus
+
+        eyes = eyes_focus(image, np.asarray(disparity, np.float32))
+        if eyes is not None:
+            return eyes
+    return subject_focus(disparity)

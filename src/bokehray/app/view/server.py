@@ -177,8 +177,8 @@ def _render_request(session: ViewSession, body) -> tuple:
     """The parameters, stage and long side of a ``/api/render`` body (:class:`InputError` for a bad one)."""
     p = session.parse(body)
     stage = body.get("stage", "preview")
-    if not isinstance(stage, str) or stage not in ("preview", "full"):
-        raise InputError(f"stage: expected 'preview' or 'full', got {stage!r}"[:200])
+    if not isinstance(stage, str) or stage not in ("preview", "focus", "full"):
+        raise InputError(f"stage: expected 'preview', 'focus' or 'full', got {stage!r}"[:200])
     long_side = body.get("long_side")
     if long_side is not None:
         long_side = json_integer(long_side, "long_side")
@@ -202,14 +202,16 @@ def _export_request(session: ViewSession, body) -> tuple:
     return p, fmt, bits
 
 
-def _render_headers(session: ViewSession, p, stage: str, meta: dict, seconds: float, t0: float) -> dict:
+def _render_headers(session: ViewSession, p, stage: str, meta: dict, seconds: float, t0: float, command: str) -> dict:
     return {
         "X-Bokehray-Stage": stage, "X-Bokehray-Factor": str(meta["factor"]),
         "X-Bokehray-Proxy-Level": str(meta.get("level", "")),
         "X-Bokehray-Focus-Disparity": repr(p.blur.focus_disparity), "X-Bokehray-K": repr(p.blur.k_px),
         "X-Bokehray-Render-Seconds": f"{seconds:.4f}",
         "X-Bokehray-Seconds": f"{time.perf_counter() - t0:.4f}",
-        "X-Bokehray-Command": quote(session.command(p, "OUTPUT.png"), safe=""),
+        "X-Bokehray-Command": quote(command, safe=""),
+        "X-Bokehray-Focus-Words": quote(session.focus_words(p), safe=""),
+        "X-Bokehray-Crop": ",".join(map(str, meta.get("crop", ()))),
         "X-Bokehray-Amount": "" if p.amount is None else repr(p.amount),
         "X-Bokehray-Focus-M": "" if session.norm is None else repr(float(session.norm.depth(p.blur.focus_disparity))),
     }
@@ -265,7 +267,9 @@ class _Api:
     async def render(self, request):
         self.stats["requests"] += 1
         try:
-            p, stage, long_side = _render_request(self.session, await _read_json(request))
+            body = await _read_json(request)
+            p, stage, long_side = _render_request(self.session, body)
+            command = self.session.shown_command(p, body)  # -o OUTPUT.<the export's format>
         except (_TooLarge, _Refused, BokehrayError) as e:
             return self.refusal(e)
         t0 = time.perf_counter()
@@ -275,17 +279,20 @@ class _Api:
             t_start = time.perf_counter()
             if stage == "preview":
                 data, meta = session.render_preview(p, check)
+            elif stage == "focus":  # the focused region at screen size, before the whole frame
+                data, meta = session.focus_crop(p, check, long_side)
             else:
                 data, meta = session.full_display(p, check, long_side)
             return data, meta, time.perf_counter() - t_start
 
         try:
-            data, meta, seconds = await asyncio.wrap_future(self.worker.submit(job, stage))
+            data, meta, seconds = await asyncio.wrap_future(
+                self.worker.submit(job, "preview" if stage == "preview" else "full"))
         except Superseded:
             return _json({"superseded": True}, 409)
         except (Stopped, BokehrayError) as e:
             return self.refusal(e)
-        return _blob(data, "image/jpeg", _render_headers(session, p, stage, meta, seconds, t0))
+        return _blob(data, "image/jpeg", _render_headers(session, p, stage, meta, seconds, t0, command))
 
     async def export(self, request):
         try:

@@ -35,11 +35,14 @@ MAX_BODY_BYTES = 4096
 EXPORT_FORMATS = {"png": (8, 16), "jpg": (8,), "tif": (8, 16, 32), "exr": (16, 32)}
 """Export formats (what ``bokehray render`` writes) and their bit depths; EXR 16 is half float."""
 
+FOCUS_CROP_HALF = 160
+"""Half the side of the focus crop (:meth:`ViewSession.focus_crop`), in the pixels the screen shows."""
+
 EXPORT_NAME_TRIES = 100
 """Names an export tries when other exports keep taking the next free one first."""
 
 _PARAM_KEYS = {"lens", "amount", "blur", "focus", "focus_at", "aperture", "blades", "rotation", "curvature", "highlight_boost",
-               "reconstruct", "quality"}
+               "reconstruct", "quality", "grain"}
 
 
 def box_factor(h: int, w: int, long_side: int) -> int:
@@ -122,7 +125,8 @@ class RenderParams:
     ``amount`` is set when the blur came as an amount (0..100, ``--amount``), else ``k_px`` was given as ``blur``
     (``--blur``); ``focus`` and ``focus_at`` are both None for the default focus (the subject, as ``render``
     chooses it); ``reconstruct`` is highlight reconstruction (``render``'s default for a display-referred photo,
-    ``--no-highlight-reconstruction`` off; a ``highlight_boost`` replaces it, as in ``render``)."""
+    ``--no-highlight-reconstruction`` off; a ``highlight_boost`` replaces it, as in ``render``); ``grain`` is the
+    export's finishing step for a display-referred photo (``render``'s default, ``--no-grain`` off)."""
 
     k_px: float
     focus: float | None
@@ -138,6 +142,7 @@ class RenderParams:
     amount: float | None = None
     reconstruct: bool = False
     thin_lens: br.ThinLens | None = None
+    grain: bool = True
 
     def key(self) -> tuple:
         return (self.blur.k_px, self.blur.focus_disparity, self.lens, self.highlight_boost, self.quality,
@@ -227,7 +232,7 @@ def parse_params(body: object, disparity: np.ndarray, *, subject_d_f: float | No
     """
     if not isinstance(body, dict):
         raise InputError(f"parameters: expected a JSON object, got {type(body).__name__}")
-    unknown = sorted(set(body) - _PARAM_KEYS - {"stage", "long_side"})
+    unknown = sorted(set(body) - _PARAM_KEYS - {"stage", "long_side", "format", "bit_depth"})
     if unknown:
         raise InputError(f"parameters: unknown {', '.join(map(repr, unknown))}"[:300])
     from ...photo.subject import AMOUNT_DEFAULT, k_from_amount, subject_focus
@@ -280,8 +285,11 @@ def parse_params(body: object, disparity: np.ndarray, *, subject_d_f: float | No
     if not isinstance(reconstruct, bool):
         raise InputError(f"reconstruct: expected true or false, got {reconstruct!r}"[:200])
     quality = check_photo_quality(body.get("quality", "preview"))
+    grain = body.get("grain", True)
+    if not isinstance(grain, bool):
+        raise InputError(f"grain: expected true or false, got {grain!r}"[:200])
     return RenderParams(k, focus, xy, shape, blades, rotation, curvature, boost, quality, blur, lens,
-                        amount, reconstruct, thin)
+                        amount, reconstruct, thin, grain)
 
 
 def _fmt(v: float) -> str:
@@ -339,11 +347,12 @@ class ViewSession:
         self.norm = norm
         self.export_dir = Path(export_dir).resolve()
         from ...photo.highlights import is_display_referred
-        from ...photo.subject import AMOUNT_DEFAULT, k_from_amount, subject_focus
+        from ...photo.subject import AMOUNT_DEFAULT, default_focus, k_from_amount
 
         self.display_referred = bool(image_path) and is_display_referred(image_path)
         self.reconstruct_default = self.display_referred if reconstruct is None else bool(reconstruct)
-        self.subject = subject_focus(self.disparity)  # the default focus, as `render` chooses it
+        # the default focus, as `render` chooses it: the eyes of the nearest face, else the subject
+        self.subject = default_focus(self.raw_image, self.disparity)
         self.default_k = k_from_amount(AMOUNT_DEFAULT, self.h, self.w)
         self.proxy_long_side = proxy_long_side
         self.display_factor = box_factor(self.h, self.w, display_long_side)
@@ -445,7 +454,7 @@ class ViewSession:
             "display": {"factor": self.display_factor, "width": -(-self.w // self.display_factor),
                         "height": -(-self.h // self.display_factor)},
             "defaults": {"amount": AMOUNT_DEFAULT, "k_px": self.default_k, "focus": s.d_f,
-                         "subject": {"x": s.x, "y": s.y, "why": s.describe()},
+                         "subject": {"x": s.x, "y": s.y, "why": s.describe(), "words": s.words()},
                          "reconstruct": self.reconstruct_default},
             "display_referred": self.display_referred, "metric": metric,
             "max_blur": float(max(8, round(self.w / 8))),
@@ -479,6 +488,98 @@ class ViewSession:
             check()
         return encode_jpeg(to_srgb8(out), 88), {"factor": f, "layers": stats.layers, "level": level,
                                                 "render_s": seconds}
+
+    def _screen_arrays(self, f: int, reconstructs: bool) -> tuple[np.ndarray, np.ndarray]:
+        """The photo and its map reduced by ``f`` for the screen (cached: the sharp version and the focus crop of
+        the same size share them; the photo itself at ``f = 1``)."""
+        if f == 1:
+            return self._variant(reconstructs)[0], self.disparity
+        key = (f, reconstructs)
+        if self._screen is None or self._screen[0] != key:
+            self._screen = None
+            image = self._variant(reconstructs)[0]
+            self._screen = (key, box_reduce(image, f), np.clip(box_reduce(self.disparity, f), 0.0, 1.0))
+        return self._screen[1], self._screen[2]
+
+    def focus_point(self, p: RenderParams) -> tuple[int, int]:
+        """Where the focus is, in photo pixels: the clicked point, the default focus's point (the eyes, the subject),
+        or for a focus set by disparity (the slider, a focus distance) the in-focus pixel nearest the frame's
+        centre on the coarsest proxy."""
+        if p.focus_at:
+            return int(p.focus_at[0]), int(p.focus_at[1])
+        if p.focus_default:
+            return self.subject.x, self.subject.y
+        f, _, d = self.proxies[-1]
+        off = np.abs(d - np.float32(p.blur.focus_disparity))
+        yy, xx = np.mgrid[: d.shape[0], : d.shape[1]]
+        score = off * 1e3 + np.hypot(yy - d.shape[0] / 2, xx - d.shape[1] / 2) / max(d.shape)
+        iy, ix = np.unravel_index(int(np.argmin(score)), d.shape)
+        return min(self.w - 1, int(ix) * f + f // 2), min(self.h - 1, int(iy) * f + f // 2)
+
+    def focus_crop(self, p: RenderParams, check=None, long_side: int | None = None,
+                   half: int = FOCUS_CROP_HALF) -> tuple[bytes, dict]:
+        """The focused region at the size the screen shows (the sharp version's reduction), rendered before the
+        rest so that the focus can be judged while the whole frame sharpens: a crop of ``2 half`` screen pixels
+        around :meth:`focus_point`, rendered on a window reaching the largest CoC beyond it (the light that
+        spreads into the crop), on the sharp version's pixel grid. Its ``crop`` (x0, y0, x1, y1, photo pixels)
+        says where it goes."""
+        p = dataclasses.replace(p, quality="preview")
+        f = self.screen_factor(long_side)
+        t = time.perf_counter()
+        x, y = self.focus_point(p)
+        w, h = -(-self.w // f), -(-self.h // f)
+        x0 = min(max(0, x // f - half), max(0, w - 2 * half))
+        y0 = min(max(0, y // f - half), max(0, h - 2 * half))
+        x1, y1 = min(w, x0 + 2 * half), min(h, y0 + 2 * half)
+        blur = br.BlurParams(p.blur.k_px / f, p.blur.focus_disparity)
+        reach = math.ceil(float(blur.coc_radius(np.array([self.disparity.min(), self.disparity.max()])).max())) + 2
+        tile = 16  # the window starts on the sharp version's tile grid (LayerOptions.tile_px): the same tiles copied
+        wx0, wy0 = max(0, x0 - reach) // tile * tile, max(0, y0 - reach) // tile * tile
+        wx1, wy1 = min(w, x1 + reach), min(h, y1 + reach)
+        screen, screen_d = self._screen_arrays(f, p.reconstructs)
+        image = np.ascontiguousarray(screen[wy0:wy1, wx0:wx1])
+        disparity = np.ascontiguousarray(screen_d[wy0:wy1, wx0:wx1])
+        progress = (lambda done, total: check(done, total)) if check is not None else None
+        out, _ = br.render_with_stats(image, disparity, blur, p.lens, quality="preview",
+                                      device=self.device, highlight_boost=p.highlight_boost, progress=progress)
+        if check is not None:
+            check()
+        crop = out[y0 - wy0 : y1 - wy0, x0 - wx0 : x1 - wx0]
+        box = [x0 * f, y0 * f, min(self.w, x1 * f), min(self.h, y1 * f)]
+        return encode_jpeg(to_srgb8(crop), 90), {"factor": f, "crop": box, "render_s": time.perf_counter() - t}
+
+    def focus_words(self, p: RenderParams) -> str:
+        """The focus said as a photographer would: what it is on (the eyes of the nearest face, the subject, the
+        clicked point), how near it lies in the scene (near / middle / far in the map's range), and metres for a
+        metric map."""
+        if p.focus_at:
+            what = "the point you clicked"
+        elif p.focus_default:
+            what = self.subject.words()
+        elif p.thin_lens is not None:
+            what = "the focus distance"
+        else:
+            what = "the focus slider's depth"
+        lo, hi = float(self.disparity.min()), float(self.disparity.max())
+        d = p.blur.focus_disparity
+        t = (d - lo) / (hi - lo) if hi - lo > 1e-6 else 1.0
+        where = "near" if t >= 2 / 3 else "in the middle distance" if t >= 1 / 3 else "far"
+        if self.norm is not None:
+            z = float(self.norm.depth(d))
+            where += f", {z:.3g} m away" if math.isfinite(z) else ", at infinity"
+        return f"{what} ({where})"
+
+    def shown_command(self, p: RenderParams, body: dict) -> str:
+        """The command shown before any export: :meth:`command` with ``-o OUTPUT.<format>`` and the bit depth
+        the page's export choice holds (``format``, ``bit_depth`` in ``body``; PNG by default)."""
+        fmt = body.get("format", "png")
+        if not isinstance(fmt, str) or fmt not in EXPORT_FORMATS:
+            raise InputError(f"export format: expected one of {', '.join(EXPORT_FORMATS)}, got {fmt!r}"[:200])
+        bits = body.get("bit_depth")
+        if bits is not None and (isinstance(bits, bool) or not isinstance(bits, int) or bits not in EXPORT_FORMATS[fmt]):
+            raise InputError(f"argument --bit-depth: {fmt} takes {', '.join(map(str, EXPORT_FORMATS[fmt]))}, "
+                             f"got {bits!r}"[:200])
+        return self.command(p, f"OUTPUT.{fmt}", bit_depth=bits)
 
     def warm_up(self) -> float:
         """One preview of the coarsest proxy, thrown away: Warp loads its kernel modules now, not when the page asks
@@ -526,12 +627,7 @@ class ViewSession:
         if f == 1:
             out = self.render_full(p, check)
         else:
-            key = (f, p.reconstructs)
-            if self._screen is None or self._screen[0] != key:
-                self._screen = None
-                image = self._variant(p.reconstructs)[0]
-                self._screen = (key, box_reduce(image, f), np.clip(box_reduce(self.disparity, f), 0.0, 1.0))
-            _, image, disparity = self._screen
+            image, disparity = self._screen_arrays(f, p.reconstructs)
             progress = (lambda done, total: check(done, total)) if check is not None else None
             out, _ = br.render_with_stats(image, disparity, br.BlurParams(p.blur.k_px / f, p.blur.focus_disparity),
                                           p.lens, quality="preview", device=self.device,
@@ -558,6 +654,16 @@ class ViewSession:
 
         return exif_for_output(embedded(Path(self.image_path), FORMATS.get(Path(self.image_path).suffix.lower(), "")))
 
+    def _with_grain(self, out: np.ndarray, p: RenderParams, path: Path, bits: int | None) -> np.ndarray:
+        """The export's finishing step, as ``render`` does it for a display-referred photo: the photo's grain
+        restored where the blur removed it (on a copy: the full render stays cached as rendered)."""
+        if not self.display_referred or not p.grain:
+            return out
+        from ...photo.grain import output_bits, plan_grain, restore_grain
+
+        plan = plan_grain(self._variant(p.reconstructs)[0], p.blur.coc_radius(self.disparity))
+        return restore_grain(out.copy(), plan.grain, plan.removed, dither_bits=output_bits(str(path), bits))
+
     def export(self, p: RenderParams, fmt: str, bit_depth: int | None, check=None) -> tuple[Path, str]:
         if not isinstance(fmt, str) or fmt not in EXPORT_FORMATS:
             raise InputError(f"export format: expected one of {', '.join(EXPORT_FORMATS)}, got {fmt!r}"[:200])
@@ -569,7 +675,7 @@ class ViewSession:
         from ..render_job import JPEG_QUALITY  # render's default: the export is the file the shown command writes
 
         check_output_path(path, bit_depth=bits, half=half)
-        out = self.render_full(p, check)
+        out = self._with_grain(self.render_full(p, check), p, path, bits)
         exif = self._exif()
         tries = iter(range(EXPORT_NAME_TRIES - 1))
 
@@ -623,6 +729,8 @@ class ViewSession:
             args += ["--highlight-boost", _fmt(p.highlight_boost)]
         elif self.display_referred and not p.reconstruct:
             args.append("--no-highlight-reconstruction")
+        if self.display_referred and not p.grain:
+            args.append("--no-grain")
         if bit_depth is not None:
             args += ["--bit-depth", str(bit_depth)]
         if half:

@@ -3,7 +3,9 @@
 // After every change the page asks for a preview (the proxy) first; only once the preview of the latest state is
 // on screen does it ask for the sharp version, at the size the screen shows (every pixel at 100 %). A change
 // while the sharp version renders asks for a new preview, which the server runs first (the sharp one is dropped),
-// so a proxy always follows a change, whatever the load of the machine.
+// so a proxy always follows a change, whatever the load of the machine. Between the two, the focused region is
+// rendered at the size the screen shows (a small crop, fast even on a busy machine) and drawn over the proxy, so
+// the focus can be judged before the whole frame is sharp.
 "use strict";
 
 const $ = (id) => document.getElementById(id);
@@ -14,19 +16,20 @@ const F_STOPS = [1.2, 1.4, 1.8, 2, 2.8, 4, 5.6, 8, 11, 16, 22];
 let info = null;
 // what `bokehray render` does with the same inputs: amount 50, the subject, reconstruction as the file needs
 const state = { amount: 50, blur: null, focus: null, focus_at: null, aperture: "disc", blades: 6, rotation: 0,
-                curvature: 0, highlight_boost: 0, reconstruct: false, quality: "preview",
+                curvature: 0, highlight_boost: 0, reconstruct: false, quality: "preview", grain: true,
                 lens: null };  // lens: {focal_length, f_number, focus_distance (null: the clicked point)}
 let version = 0;            // the state's number: every change increments it
 let shownVersion = -1;      // the state of the image on screen
 let previewInFlight = false, previewAgain = false, fullFor = -1, progressTimer = null;
-let lastRender = null, photo = null, depth = null, disparity = null, focusDisparity = null;
+let lastRender = null, photo = null, depth = null, disparity = null, focusDisparity = null, focusCrop = null;
 let images = 0, previews = 0, fulls = 0;
 const shownLog = [];  // [stage, state number] of every image shown, in order (the browser test reads it)
 window.bokehrayShown = shownLog;
 
 function params() {
   const p = { aperture: state.aperture, blades: state.blades, rotation: state.rotation, curvature: state.curvature,
-              highlight_boost: state.highlight_boost, reconstruct: state.reconstruct, quality: state.quality };
+              highlight_boost: state.highlight_boost, reconstruct: state.reconstruct, quality: state.quality,
+              grain: state.grain };
   if (state.lens) {  // metric depth: render's physical lens (--focal-length, --f-number, --focus-distance)
     p.lens = { focal_length: state.lens.focal_length, f_number: state.lens.f_number };
     if (state.focus_at) p.focus_at = state.focus_at; else p.lens.focus_distance = state.lens.focus_distance;
@@ -67,6 +70,11 @@ function draw() {
     ctx.imageSmoothingQuality = "high";
     // an image reduced by f covers ceil(W / f) pixels: the photo is its first W / f
     ctx.drawImage(item.bitmap, 0, 0, info.width / item.factor, info.height / item.factor, 0, 0, c.width, c.height);
+    // the focused region at screen size over the proxy of the same state (until the sharp version replaces both)
+    if (item === lastRender && item.stage === "preview" && focusCrop && focusCrop.v === shownVersion) {
+      const [x0, y0, x1, y1] = focusCrop.box, s = c.width / info.width;
+      ctx.drawImage(focusCrop.bitmap, x0 * s, y0 * s, (x1 - x0) * s, (y1 - y0) * s);
+    }
   }
   drawOverlay();
 }
@@ -93,20 +101,16 @@ function screenLongSide() {
   return Math.max(16, Math.round(Math.max(info.width, info.height) * Math.min(1, scale)));
 }
 
-function describeFocus(d) {
-  let where = state.focus_at ? `the point ${state.focus_at[0]}, ${state.focus_at[1]}` :
-              state.focus !== null ? "the disparity slider" :
-              state.lens && state.lens.focus_distance !== info.metric.subject_m ? "the focus distance" : "the subject";
-  where += ` (disparity ${d.toFixed(3)}`;
-  if (info.metric && lastRender && lastRender.focusM !== null) where += isFinite(lastRender.focusM) ? `, ${lastRender.focusM.toPrecision(3)} m away` : ", at infinity";
-  return where + ")";
+function exportChoice() {
+  const bits = Number($("bit_depth").value);
+  return { format: $("format").value || "png", bit_depth: bits || null };
 }
 
 // one render request; answers whether it was shown
 async function requestRender(stage, v) {
   const t0 = performance.now();
-  const body = { ...params(), stage };
-  if (stage === "full") body.long_side = screenLongSide();
+  const body = { ...params(), ...exportChoice(), stage };
+  if (stage !== "preview") body.long_side = screenLongSide();
   let r;
   try {
     r = await fetch("/api/render", { method: "POST", headers: { "Content-Type": "application/json" },
@@ -121,6 +125,16 @@ async function requestRender(stage, v) {
     return false;
   }
   const bitmap = await createImageBitmap(await r.blob());
+  if (stage === "focus") {  // drawn over the proxy of the same state, if that is still what is shown
+    if (v !== shownVersion || !lastRender || lastRender.stage !== "preview") return false;
+    focusCrop = { bitmap, v, box: r.headers.get("X-Bokehray-Crop").split(",").map(Number) };
+    mark("focusCrop", focusCrop.box.join(","));
+    mark("focusCrops", (Number(document.body.dataset.focusCrops) || 0) + 1);
+    shownLog.push(["focus", v]);
+    setStatus($("status").textContent.replace(" — sharpening…", "") + " — focus sharp, sharpening the rest…");
+    draw();
+    return true;
+  }
   if (v < shownVersion || (v === shownVersion && stage === "preview" && lastRender && lastRender.stage === "full")) {
     return false;  // an answer to an older state arrived late
   }
@@ -143,7 +157,7 @@ async function requestRender(stage, v) {
   $("focus-out").textContent = focusDisparity.toFixed(4);
   $("blur").value = lastRender.k;
   $("blur-out").textContent = lastRender.k.toFixed(1);
-  $("focus-where").textContent = describeFocus(focusDisparity);
+  $("focus-where").textContent = decodeURIComponent(r.headers.get("X-Bokehray-Focus-Words") || "");
   if (state.lens && lastRender.focusM !== null) {
     $("focus_distance-out").textContent = lastRender.focusM.toPrecision(3);
     $("focus_distance").value = metresToSlider(lastRender.focusM);
@@ -196,8 +210,11 @@ async function preview() {
   let shown = false;
   try { shown = await requestRender("preview", v); } finally { previewInFlight = false; }
   if (previewAgain || v !== version) { previewAgain = false; preview(); return; }
-  // the preview of the latest state is on screen: now, and only now, the sharp version
-  if (shown) full(v);
+  // the preview of the latest state is on screen: now, and only now, the focused region and then the sharp version
+  if (shown) {
+    await requestRender("focus", v);
+    if (v === version) full(v);
+  }
 }
 
 function changed() {
@@ -244,11 +261,13 @@ function bind() {
   }
   $("aperture").addEventListener("change", () => { state.aperture = $("aperture").value; syncOutputs(); changed(); });
   $("reconstruct").addEventListener("change", () => { state.reconstruct = $("reconstruct").checked; changed(); });
+  $("grain").addEventListener("change", () => { state.grain = $("grain").checked; changed(); });  // the command
   $("quality").addEventListener("change", () => { state.quality = $("quality").value; changed(); });
   $("show").addEventListener("change", draw);
   $("infocus").addEventListener("change", drawOverlay);
   $("zoom").addEventListener("change", () => { sizeCanvas(); draw(); if (shownVersion === version) full(version); });
-  $("format").addEventListener("change", fillBitDepths);
+  $("format").addEventListener("change", () => { fillBitDepths(); changed(); });  // the shown command's -o and depth
+  $("bit_depth").addEventListener("change", changed);
   $("subject").addEventListener("click", () => {
     state.focus = null; state.focus_at = null; $("marker").hidden = true;
     if (state.lens) state.lens.focus_distance = info.metric.subject_m;
@@ -297,12 +316,28 @@ function fillBitDepths() {
   }
 }
 
+async function pollExport() {
+  try {
+    const p = await (await fetch("/api/progress")).json();
+    const job = p.running.find((j) => j.kind === "export");
+    if (!job) return;
+    const text = job.total > 0 && job.done >= job.total ? "step 2 of 2: finishing (grain) and writing the file…" :
+      "step 1 of 2: rendering every pixel" + (job.total > 0 ? ` (depth layer ${job.done} of ${job.total})` : "…");
+    $("export-out").textContent = text;
+    $("export-progress").hidden = false;
+    $("export-progress").value = job.total > 0 ? job.done / job.total : 0;
+    mark("exportStep", text);
+  } catch (e) { /* the next poll tries again */ }
+}
+
 async function exportImage() {
   const btn = $("export");
   btn.disabled = true;
   mark("exported", "");
-  $("export-out").textContent = "rendering every pixel and writing…";
+  $("export-out").textContent = "step 1 of 2: rendering every pixel…";
   $("export-command").textContent = "";
+  $("export-out").scrollIntoView({ block: "nearest" });
+  const timer = setInterval(pollExport, PROGRESS_POLL_MS);
   try {
     const r = await fetch("/api/export", { method: "POST", headers: { "Content-Type": "application/json" },
       body: JSON.stringify({ params: params(), format: $("format").value, bit_depth: Number($("bit_depth").value) }) });
@@ -310,10 +345,11 @@ async function exportImage() {
     if (!r.ok) { $("export-out").textContent = ""; setError(j.error || ("HTTP " + r.status)); return; }
     $("export-out").textContent = "wrote " + j.path + ` (${j.seconds.toFixed(1)} s); the same file from the command line:`;
     $("export-command").textContent = j.command;
+    $("export-command").scrollIntoView({ block: "nearest" });
     mark("exported", j.path);
   } catch (e) {
     setError("export failed: " + e);
-  } finally { btn.disabled = false; }
+  } finally { clearInterval(timer); $("export-progress").hidden = true; btn.disabled = false; }
 }
 
 async function start() {
@@ -326,11 +362,13 @@ async function start() {
   $("amount").value = d.amount;
   $("reconstruct").checked = d.reconstruct;
   $("reconstruct-label").hidden = !info.display_referred;
+  $("grain-label").hidden = !info.display_referred;
   $("lens-controls").hidden = !info.metric;
   if (info.metric) setLens(false);
   $("files").textContent = `${info.files.image} · ${info.files.map} · ${info.width}×${info.height}` +
     (info.metric ? ` · depth ${info.metric.nearest_m.toPrecision(3)}–${info.metric.farthest_m.toPrecision(3)} m` : "");
   $("subject").title = "focus " + d.subject.why;
+  $("subject").textContent = "Focus on " + d.subject.words;
   $("overlay").width = info.display.width; $("overlay").height = info.display.height;
   sizeCanvas();
   $("blur").max = info.max_blur;
