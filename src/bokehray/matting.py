@@ -164,9 +164,10 @@ def split_mixed_pixels(
 
 
 def check_split_fits(band_pixels: int, shape: tuple[int, int], budget_bytes: int) -> None:
-    """Refuse a split whose band cannot fit ``budget_bytes`` (its result at worst: every band pixel split, and one
-    chunk's work), before the matting allocates it."""
-    need = SPLIT_B * band_pixels + CHUNK_B * min(band_pixels, SPLIT_CHUNK)
+    """Refuse a split whose result cannot fit ``budget_bytes`` at worst (every band pixel split; held through the
+    layers), before the matting allocates it. A chunk's work (``CHUNK_B`` a band pixel of at most ``SPLIT_CHUNK``,
+    about 120 MB) is transient, freed before the layers, and bounded whatever the image."""
+    need = SPLIT_B * band_pixels
     if need > budget_bytes:
         h, w = shape
         raise ResourceError(f"soft edges of the {w} x {h} px image: its {band_pixels} pixels at depth edges need up "

@@ -177,7 +177,7 @@ def test_a_split_that_cannot_fit_the_budget_is_refused_before_the_matting():
     img = rng.uniform(0, 1, (256, 256, 3)).astype(np.float32)
     d = (np.indices((256, 256)).sum(0) % 2).astype(np.float32)  # a 1 px checkerboard: every pixel an edge pixel
     with pytest.raises(ResourceError, match="soft edges of the 256 x 256 px image"):
-        br.render(img, d, br.BlurParams(8.0, 0.5), memory=br.MemoryOptions(memory_limit_mb=4))
+        br.render(img, d, br.BlurParams(8.0, 0.5), memory=br.MemoryOptions(memory_limit_mb=1.6))
 
 
 @settings(max_examples=30, deadline=None)
