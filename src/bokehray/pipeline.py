@@ -237,24 +237,12 @@ def _render_with_stats(inputs: Handover, blur: BlurParams, aperture: Aperture | 
         out_rgb, stats, ctx = _render_refined(level, ctx, work, refine, refine_options)
     else:
         out_rgb, stats = level.render(ctx)
-    _time_level(clock, stats)
+    clock.lap_as(stats.stage_seconds, "level (other)")  # the level's crop, the refiner's second scene
     stats.max_coc_px = raw_max
     out = _output(level, ctx, work, out_rgb, quality, channels, lowest)
     clock.lap("output")
     stats.stage_seconds = {**clock.laps, "total": clock.total()}
     return out, stats
-
-
-def _time_level(clock: Clock, stats: RenderStats) -> None:
-    """The level's own stages on the render's clock; what the level's call took beyond them (its crop, the refiner's
-    second scene) goes to "level (other)"."""
-    stages = {k: v for k, v in stats.stage_seconds.items() if k != "total"}
-    wall = clock.lap("level")
-    del clock.laps["level"]
-    clock.add(stages)
-    rest = wall - sum(stages.values())
-    if rest > 0.0:
-        clock.add({"level (other)": rest})
 
 
 def _checked_arguments(level, blur: object, aperture: object, device: object, options: object, layers: object,

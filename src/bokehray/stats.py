@@ -31,9 +31,13 @@ class Clock:
         self.last = now
         return dt
 
-    def add(self, stages: dict[str, float]) -> None:
-        """Stages timed elsewhere, within the time since the last lap (a level's own stages)."""
-        for name, dt in stages.items():
+    def lap_as(self, stages: dict[str, float], rest: str) -> None:
+        """Close the time since the last lap as ``stages``, timed inside it (a level's own stages; a "total" among
+        them is left out), and what they leave of it under ``rest``."""
+        parts = {k: v for k, v in stages.items() if k != "total"}
+        left = self.lap(rest) - sum(parts.values())
+        del self.laps[rest]
+        for name, dt in {**parts, rest: max(0.0, left)}.items():
             self.laps[name] = self.laps.get(name, 0.0) + dt
 
     def total(self) -> float:

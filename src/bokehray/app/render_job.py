@@ -549,10 +549,7 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:  
                                     layers=layer_options_of(args), highlight_boost=args.highlight_boost,
                                     progress=bar.layers(), refine=args.refine,
                                     refine_options=refine_options_of(args))
-    render_s = clock.lap("render")
-    del clock.laps["render"]
-    stages = {k: v for k, v in stats.stage_seconds.items() if k != "total"}
-    clock.add({**stages, "render (other)": max(0.0, render_s - sum(stages.values()))})
+    clock.lap_as(stats.stage_seconds, "render (other)")
     if grain is not None:
         from ..photo.grain import output_bits, restore_grain
 
