@@ -458,6 +458,10 @@ def _strip_case(rng: np.random.Generator, folder: Path) -> tuple[dict, tuple[int
     out = folder / "strip-out.png"
     rc, err, peak = _run_measured(["render", img, "--disparity", d, "-o", out])
     case = {"kind": "strip", "width": w, "map": kind, "peak_rss_mb": round(peak)}
+    # a strip is all border: a checkerboard puts half of its border on the nearest values, which the reversed-map
+    # check rightly says (bokehray's own one-line warning, not a failure here)
+    err = "\n".join(ln for ln in err.splitlines() if not ln.startswith("bokehray: warning: ") or
+                     "the map looks reversed" not in ln)
     problem = _check(rc, err, out, {0, 2}, False)
     if problem is None and rc == 2 and peak > STRIP_RSS_LIMIT_MB:
         problem = f"refused after a peak of {peak:.0f} MB (more than {STRIP_RSS_LIMIT_MB} MB)"
