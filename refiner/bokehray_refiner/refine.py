@@ -36,7 +36,7 @@ from bokehray.lens import BlurParams
 from bokehray_refiner.depthfix import DepthFixOptions, correction_steps
 from bokehray_refiner.pisa import PisaMaskOptions
 
-from .edges import EdgeNet, load_edge_net, place_edges
+from .edges import EdgeNet, Placement, load_edge_net, place_edges
 from .gate import GateOptions, channel_max, edge_gate, refine_gate
 from .masks import PisaMaskProvider
 from .model import BokehRefiner, RefinerConfig
@@ -454,8 +454,9 @@ def _edge_stage(image, focus_srgb, blur, options, edge_model, lights, c: _Correc
         if c.disagreement < options.edge_min_disagreement:
             return c
     model = load_edge_net() if edge_model is None else edge_model
-    placed = place_edges(model, focus_srgb, c.disparity, blur, band, options.edge_threshold, keep=lights,
-                         colour_margin=options.edge_colour_margin, passes=options.edge_passes)
+    placement = Placement(options.edge_threshold, colour_margin=options.edge_colour_margin,
+                          passes=options.edge_passes)
+    placed = place_edges(model, focus_srgb, c.disparity, blur, band, keep=lights, placement=placement)
     return _Correction(placed, c.changed | (placed != c.disparity), None, c.share, True, c.disagreement, True)
 
 
