@@ -114,7 +114,7 @@ _ROOT = Path(__file__).resolve().parents[2]
 _ENV = {**os.environ, "PYTHONPATH": os.pathsep.join([str(_ROOT / "src"), str(_ROOT / "kernels"), str(_ROOT / "refiner"),
                                                      os.environ.get("PYTHONPATH", "")])}
 _CLI = [sys.executable, "-c", "import sys; from bokehray.app.cli import main; sys.exit(main())"]
-_KNOWN = {"renderer produced NaN/Inf": "issue 18.3 (radiance near float32's maximum; tests/test_reliability.py)"}
+_KNOWN = {"renderer produced NaN/Inf": "a known defect: radiance near float32's maximum (tests/stress/test_reliability.py)"}
 
 
 def _inputs(folder: Path) -> dict:
@@ -468,7 +468,7 @@ def run_io(n: int, seed: int, kinds: tuple[str, ...] = IO_KINDS) -> int:  # noqa
                 subprocess.run(["umount", str(out_dir)], check=False)
     shutil.rmtree(work, ignore_errors=True)
     print("outcomes: " + ", ".join(f"{k} x{v}" for k, v in sorted(counts.items())))
-    print(f"soak --io: {n} cases, {failures} failed, {known} known (issue 18.3), startup {startup:.1f} s "
+    print(f"soak --io: {n} cases, {failures} failed, {known} known defects, startup {startup:.1f} s "
           f"({time.perf_counter() - t0:.1f} s)")
     return 1 if failures else 0
 
