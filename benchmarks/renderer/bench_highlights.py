@@ -9,7 +9,7 @@ whole image and the depth-edge band), per scene group:
 * ``highlights``: the scenes whose HDR image exceeds 1 (``has_highlights`` in info.json: d3, lamps of radiance 3-8);
 * ``no highlights``: the others (d1, d2), where a reconstruction must not lose anything.
 
-Variants: no reconstruction (bokehray's behaviour before issue 15), ``--highlight-boost 4`` (the old opt-in
+Variants: no reconstruction (bokehray's behaviour before highlight reconstruction), ``--highlight-boost 4`` (the old opt-in
 boost), the reconstruction that is now the default for display-referred inputs
 (``bokehray.photo.highlights.reconstruct_highlights``), and the HDR input itself (the ceiling: what the 8-bit file lost).
 

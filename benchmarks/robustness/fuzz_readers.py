@@ -72,7 +72,7 @@ def write_seeds(fmt: str, folder: Path) -> list[Path]:
 
 
 def _issue18_seeds(fmt: str, folder: Path, img, d) -> list[Path]:
-    """Variants the readers refuse or handle specially since issue 18, so the fuzzer explores those paths:
+    """Variants the readers refuse or handle specially, so the fuzzer explores those paths:
     CMYK JPEG, multi-page TIFF and one with a reduced-resolution page, alpha-only EXR, float64 NPY."""
     import numpy as np
     import OpenEXR

@@ -127,7 +127,7 @@ _ROOT = Path(__file__).resolve().parents[2]
 _ENV = {**os.environ, "PYTHONPATH": os.pathsep.join([str(_ROOT / "src"), str(_ROOT / "kernels"), str(_ROOT / "refiner"),
                                                      os.environ.get("PYTHONPATH", "")])}
 _CLI = [sys.executable, "-c", "import sys; from bokehray.app.cli import main; sys.exit(main())"]
-_KNOWN = {"renderer produced NaN/Inf": "issue 18.3 (radiance near float32's maximum; tests/test_reliability.py)"}
+_KNOWN = {"renderer produced NaN/Inf": "a known defect: radiance near float32's maximum (tests/stress/test_reliability.py)"}
 
 
 def _inputs(folder: Path) -> dict:
@@ -652,7 +652,7 @@ def run_io(n: int, seed: int, kinds: tuple[str, ...] = IO_KINDS) -> int:  # noqa
         print(f"page: exit after the signal in {min(page_exits):.2f}..{max(page_exits):.2f} s (median "
               f"{float(np.median(page_exits)):.2f} s, {sum(t > PAGE_EXIT_S for t in page_exits)} of {len(page_exits)} "
               f"over {PAGE_EXIT_S:g} s)")
-    print(f"soak --io: {n} cases, {failures} failed, {known} known (issue 18.3), startup {startup:.1f} s "
+    print(f"soak --io: {n} cases, {failures} failed, {known} known defects, startup {startup:.1f} s "
           f"({time.perf_counter() - t0:.1f} s)")
     return 1 if failures else 0
 

@@ -56,7 +56,7 @@ def _cases(tmp: str, defaults: bool) -> dict[str, tuple[list[str], int]]:
         "flag_conflict": (["-c", CLI, *render, "--focus", "0.5", "--focus-at", "3,4"], 2),
         "preview_1mp_explicit": (["-c", CLI, *render, "--blur", "44.13", "--focus", "0.892"], 0),
     }
-    if defaults:  # the defaults: subject focus, highlight reconstruction (a checkout before issue 15 has none)
+    if defaults:  # the defaults: subject focus, highlight reconstruction (an older checkout may have none)
         cases["preview_1mp"] = (["-c", CLI, *render], 0)
     return cases
 

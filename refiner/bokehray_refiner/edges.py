@@ -31,9 +31,21 @@ from bokehray.lens import BlurParams
 from .saved import load_saved
 from .tiles import refine_boxes
 
-__all__ = ["DEFAULT_EDGE_WEIGHTS", "EdgeConfig", "EdgeNet", "candidates", "colour_allows", "colour_features",
-           "edge_features", "load_edge_net", "map_sides", "place_edges", "place_edges_once",
-           "save_edge_net"]
+__all__ = [
+    "DEFAULT_EDGE_WEIGHTS",
+    "EdgeConfig",
+    "EdgeNet",
+    "Placement",
+    "candidates",
+    "colour_allows",
+    "colour_features",
+    "edge_features",
+    "load_edge_net",
+    "map_sides",
+    "place_edges",
+    "place_edges_once",
+    "save_edge_net",
+]
 
 DEFAULT_EDGE_WEIGHTS = Path(__file__).parent / "weights" / "edges.safetensors"
 
@@ -154,21 +166,40 @@ def map_sides(disparity: np.ndarray, near: np.ndarray, far: np.ndarray) -> tuple
     return reach, reach & (disparity - far > near - disparity)
 
 
+@dataclass(frozen=True)
+class Placement:
+    """How :func:`place_edges` moves pixels.
+
+    Args:
+        threshold: a pixel moves only where the network gives the other side at least this probability.
+        tile: the tile side the network runs on (tiles with band pixels, boxes of them with a halo).
+        min_region_px: moves in 8-connected regions smaller than this are dropped.
+        attached: a region moves only where it touches the side it moves to (no islands, no holes).
+        colour_margin: a pixel moves only where its colour is nearer the side it joins by this much
+            (:func:`colour_allows`); None: no colour veto.
+        passes: :func:`place_edges` runs again on the map it made, up to this many passes in all.
+    """
+
+    threshold: float = 0.9
+    tile: int = 64
+    min_region_px: int = 0
+    attached: bool = False
+    colour_margin: float | None = None
+    passes: int = 1
+
+
 def place_edges(model: EdgeNet, focus_srgb: np.ndarray, disparity: np.ndarray, blur: BlurParams,
-                band: np.ndarray, threshold: float = 0.9, keep: np.ndarray | None = None,
-                tile: int = 64, min_region_px: int = 0, attached: bool = False,
-                colour_margin: float | None = None, passes: int = 1) -> np.ndarray:
+                band: np.ndarray, keep: np.ndarray | None = None, placement: Placement = Placement()) -> np.ndarray:
     """The map with the network's segmentation applied where the band is open and the network is sure (one
     :func:`place_edges_once`), then again on the map it made, up to ``passes`` times in all (fewer where a pass moves
     nothing). Each pass reads the candidates and the sides' colour means of the map the last one made: a misplaced
     strip contaminates both until it is moved, so a second look finds what the first could not (docs/refiner.md,
-    docs/design/edge-gate.md). The band stays the one given."""
-    if passes < 1:
-        raise ValueError(f"passes must be >= 1, got {passes}")
+    docs/design/edge-gate.md). The band stays the one given; ``keep`` marks pixels never moved (clipped lights)."""
+    if placement.passes < 1:
+        raise ValueError(f"passes must be >= 1, got {placement.passes}")
     out = disparity
-    for _ in range(passes):
-        moved = place_edges_once(model, focus_srgb, out, blur, band, threshold, keep, tile, min_region_px, attached,
-                                 colour_margin)
+    for _ in range(placement.passes):
+        moved = place_edges_once(model, focus_srgb, out, blur, band, keep, placement)
         if moved is out or np.array_equal(moved, out):
             break
         out = moved
@@ -176,20 +207,20 @@ def place_edges(model: EdgeNet, focus_srgb: np.ndarray, disparity: np.ndarray, b
 
 
 def place_edges_once(model: EdgeNet, focus_srgb: np.ndarray, disparity: np.ndarray, blur: BlurParams,
-                     band: np.ndarray, threshold: float = 0.9, keep: np.ndarray | None = None,
-                     tile: int = 64, min_region_px: int = 0, attached: bool = False,
-                     colour_margin: float | None = None) -> np.ndarray:
+                     band: np.ndarray, keep: np.ndarray | None = None,
+                     placement: Placement = Placement()) -> np.ndarray:
     """The map with the network's segmentation applied where the band is open and the network is sure: a pixel the
-    map puts on the far side takes the near value where the near side's probability is at least ``threshold``, and
-    the other way round; ``keep`` marks pixels never moved (clipped lights). Moves in connected regions (8-connected)
-    smaller than ``min_region_px`` are dropped: a misplaced edge moves a strip, and a lone pixel moved into the
-    near layer scatters its colour over a whole CoC disc. With ``attached``, a region moves only where it touches the
-    side it moves to (the near region grows or shrinks from its edge; no islands, no holes). With ``colour_margin``,
-    a pixel moves only where its colour is nearer the side it moves to by that much (:func:`colour_allows`).
+    map puts on the far side takes the near value where the near side's probability is at least
+    ``placement.threshold``, and the other way round; ``keep`` marks pixels never moved (clipped lights). Moves in
+    connected regions (8-connected) smaller than ``placement.min_region_px`` are dropped: a misplaced edge moves a
+    strip, and a lone pixel moved into the near layer scatters its colour over a whole CoC disc. With
+    ``placement.attached``, a region moves only where it touches the side it moves to (the near region grows or
+    shrinks from its edge; no islands, no holes). With ``placement.colour_margin``, a pixel moves only where its
+    colour is nearer the side it moves to by that much (:func:`colour_allows`).
 
     The network runs only on the tiles with band pixels, each box of them with a halo of its receptive field, so its
     output there is what it would be on the whole frame."""
-    config = model.config
+    config, threshold, tile = model.config, placement.threshold, placement.tile
     h, w = disparity.shape
     near, far = candidates(disparity, config.radius_px)
     reach, on_near = map_sides(disparity, near, far)
@@ -217,13 +248,14 @@ def place_edges_once(model: EdgeNet, focus_srgb: np.ndarray, disparity: np.ndarr
         sl = (slice(y0, y1), slice(x0, x1))
         to_near[sl] = need_px[sl] & ~on_near[sl] & (p >= threshold)
         to_far[sl] = need_px[sl] & on_near[sl] & (p <= 1.0 - threshold)
-    if colour_margin is not None:
-        near_ok, far_ok = colour_allows(feats, colour_margin)
+    if placement.colour_margin is not None:
+        near_ok, far_ok = colour_allows(feats, placement.colour_margin)
         to_near &= near_ok
         to_far &= far_ok
-    if min_region_px > 1:
-        to_near, to_far = _drop_small(to_near, min_region_px), _drop_small(to_far, min_region_px)
-    if attached:
+    if placement.min_region_px > 1:
+        to_near = _drop_small(to_near, placement.min_region_px)
+        to_far = _drop_small(to_far, placement.min_region_px)
+    if placement.attached:
         to_near = _touching(to_near, on_near & ~to_far)
         to_far = _touching(to_far, reach & ~on_near & ~to_near)
     return np.where(to_near, near, np.where(to_far, far, disparity))

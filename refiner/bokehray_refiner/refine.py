@@ -26,6 +26,7 @@ from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -36,7 +37,7 @@ from bokehray.lens import BlurParams
 from bokehray_refiner.depthfix import DepthFixOptions, correction_steps
 from bokehray_refiner.pisa import PisaMaskOptions
 
-from .edges import EdgeNet, load_edge_net, place_edges
+from .edges import EdgeNet, Placement, load_edge_net, place_edges
 from .gate import GateOptions, channel_max, edge_gate, refine_gate
 from .masks import PisaMaskProvider
 from .model import BokehRefiner, RefinerConfig
@@ -317,14 +318,15 @@ def refine(
     if need.any():
         if focus_srgb is None:
             focus_srgb = linear_to_srgb(np.clip(image[..., :3], 0.0, 1.0))
-        band = _gated_band(image, focus_srgb, disparity, classical, coc, reach, need, options, stats, edge_field)
+        frame = _Frame(image, focus_srgb, disparity, classical, coc)
+        band = _gated_band(frame, reach, need, options, stats, edge_field)
     stats.tiles_refined = int(need.sum())
     stats.gate_seconds = time.perf_counter() - t1
     if not need.any():
         stats.seconds = time.perf_counter() - t0 - render_time
         return classical.astype(np.float32, copy=True), stats
     t1 = time.perf_counter()
-    out = _network_pass(model, focus_srgb, classical, disparity, coc, band, need, blur, options)
+    out = _network_pass(model, frame, band, need, blur, options)
     stats.neural_seconds = time.perf_counter() - t1
     stats.seconds = time.perf_counter() - t0 - render_time
     return np.maximum(out, 0.0) if classical.min() >= 0 else out, stats
@@ -454,8 +456,9 @@ def _edge_stage(image, focus_srgb, blur, options, edge_model, lights, c: _Correc
         if c.disagreement < options.edge_min_disagreement:
             return c
     model = load_edge_net() if edge_model is None else edge_model
-    placed = place_edges(model, focus_srgb, c.disparity, blur, band, options.edge_threshold, keep=lights,
-                         colour_margin=options.edge_colour_margin, passes=options.edge_passes)
+    placement = Placement(options.edge_threshold, colour_margin=options.edge_colour_margin,
+                          passes=options.edge_passes)
+    placed = place_edges(model, focus_srgb, c.disparity, blur, band, keep=lights, placement=placement)
     return _Correction(placed, c.changed | (placed != c.disparity), None, c.share, True, c.disagreement, True)
 
 
@@ -544,15 +547,25 @@ def blend_weight(image: np.ndarray, focus_srgb: np.ndarray, disparity: np.ndarra
     return full_band, full_band * gate
 
 
-def _gated_band(image: np.ndarray, focus_srgb: np.ndarray, disparity: np.ndarray, classical: np.ndarray,
-                coc: np.ndarray, reach: np.ndarray, need: np.ndarray, options: RefineOptions,
+class _Frame(NamedTuple):
+    """The render refine works on: the photo (scene-linear and sRGB), the (corrected) map, the level's render on it
+    and its signed CoC."""
+
+    image: np.ndarray
+    focus_srgb: np.ndarray
+    disparity: np.ndarray
+    classical: np.ndarray
+    coc: np.ndarray
+
+
+def _gated_band(frame: _Frame, reach: np.ndarray, need: np.ndarray, options: RefineOptions,
                 stats: RefineStats, field: _EdgeField | None = None) -> np.ndarray:
     """Stage 2: the blend weight of the correction, the band near depth edges times the confidence gate; tiles the
     gate closes are dropped from ``need`` (in place). ``field``: the map's edge field, with what it already holds."""
-    h, w = disparity.shape
+    h, w = frame.disparity.shape
     t = options.tile
-    full_band, band = blend_weight(image, focus_srgb, disparity, classical, coc, options, reach,
-                                   None if field is None else field.nearest, None if field is None else field.agreement)
+    full_band, band = blend_weight(*frame, options, reach, None if field is None else field.nearest,
+                                   None if field is None else field.agreement)
     stats.band_pixels = int((full_band > 0).sum())
     stats.gate_open = float(band.sum() / full_band.sum()) if full_band.sum() > 0 else 0.0
     ty, tx = need.shape
@@ -562,11 +575,11 @@ def _gated_band(image: np.ndarray, focus_srgb: np.ndarray, disparity: np.ndarray
     return band
 
 
-def _network_pass(model: BokehRefiner, focus_srgb: np.ndarray, classical: np.ndarray, disparity: np.ndarray,
-                  coc: np.ndarray, band: np.ndarray, need: np.ndarray, blur: BlurParams,
+def _network_pass(model: BokehRefiner, frame: _Frame, band: np.ndarray, need: np.ndarray, blur: BlurParams,
                   options: RefineOptions) -> np.ndarray:
     """Stage 3: the network's residual on the tiles in ``need`` (with their halos), feathered across the halos and
     blended into the classical render by ``band``; every other pixel keeps the classical value bit for bit."""
+    _, focus_srgb, disparity, classical, coc = frame
     h, w = disparity.shape
     t, halo = options.tile, options.halo
     size = t + 2 * halo

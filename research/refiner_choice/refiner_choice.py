@@ -1,4 +1,4 @@
-"""A learned choice among renders: how much of a perfect choice's gain a small network reaches (issue 26's next step).
+"""A learned choice among renders: how much of a perfect choice's gain a small network reaches.
 
 ``refiner_headroom.py --choices`` bounds what choosing, per pixel of the edge band, among the level rendered on the
 corrected map and on it with its near regions grown and shrunk by 3, 6 and 12 px could gain (an oracle that sees the

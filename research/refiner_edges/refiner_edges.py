@@ -70,9 +70,9 @@ def score(model, samples, opts, thresholds, gate: bool = False, min_region: int 
           margins: tuple[float, ...] = (), passes: int = 1) -> tuple[list[dict], list[dict]]:
     """Band PSNR of the depth fix's render and of the level on the edge network's map (``edges``; with ``gate``
     also behind refine's confidence gate, ``gated``), per render and condition; each also with the colour veto at
-    each of ``margins`` (``_v<margin>``, ``place_edges(colour_margin=)``), the oracle too; the network makes
-    ``passes`` passes (``place_edges(passes=)``)."""
-    from bokehray_refiner.edges import edge_features, place_edges
+    each of ``margins`` (``_v<margin>``, ``Placement(colour_margin=)``), the oracle too; the network makes
+    ``passes`` passes (``Placement(passes=)``)."""
+    from bokehray_refiner.edges import Placement, edge_features, place_edges
     from bokehray_refiner.training.data import corrupt_disparity
 
     import bokehray as br
@@ -110,9 +110,9 @@ def score(model, samples, opts, thresholds, gate: bool = False, min_region: int 
                         if not runs:
                             row[key], row[key.replace("_", "_moved_", 1)] = row["fix"], 0
                             continue
-                        moved = place_edges(model, focus, used, blur, band, th, keep=hold,
-                                            min_region_px=min_region, attached=attached, colour_margin=margin,
-                                            passes=passes)
+                        placement = Placement(th, min_region_px=min_region, attached=attached,
+                                              colour_margin=margin, passes=passes)
+                        moved = place_edges(model, focus, used, blur, band, keep=hold, placement=placement)
                         row[key] = band_psnr(moved)
                         row[key.replace("_", "_moved_", 1)] = int((moved != used).sum())
             rows.append(row)

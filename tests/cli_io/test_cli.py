@@ -470,7 +470,7 @@ def test_a_named_pipe_as_input_is_refused_not_waited_on(scene, tmp_path, capsys,
 
 @pytest.mark.parametrize("fails", [False, True])
 def test_warnings_are_one_line_on_success_and_dropped_on_error(monkeypatch, capsys, fails):
-    """A Python warning during a command never turns the one-line error into several (issue 18.2)."""
+    """A Python warning during a command never turns the one-line error into several."""
     import sys
     import warnings
 

@@ -13,6 +13,7 @@ torch = pytest.importorskip("torch")
 from bokehray_refiner.edges import (  # noqa: E402
     EdgeConfig,
     EdgeNet,
+    Placement,
     candidates,
     colour_allows,
     edge_features,
@@ -63,16 +64,16 @@ def test_passes_apply_the_network_again_to_the_map_it_made_until_nothing_moves(s
     band = (rng.random(d.shape) < 0.6).astype(np.float32)
     keep = rng.random(d.shape) < 0.2 if keep_lights else None
     m = _mover(seed=seed % 7)
-    out = place_edges(m, focus, d, blur, band, threshold, keep=keep, tile=16, passes=passes)
+    out = place_edges(m, focus, d, blur, band, keep, Placement(threshold, tile=16, passes=passes))
     expect = d
     for _ in range(passes):
-        expect = place_edges_once(m, focus, expect, blur, band, threshold, keep=keep, tile=16)
+        expect = place_edges_once(m, focus, expect, blur, band, keep, Placement(threshold, tile=16))
     np.testing.assert_array_equal(out, expect)  # each pass reads the last one's map; a pass that moves nothing ends it
     changed = out != d
     assert not (changed & (band <= 0)).any() and (keep is None or not (changed & keep).any())
     assert set(np.unique(out)) <= set(np.unique(d))  # every value is one the map had: edges move, no new depths
     with pytest.raises(ValueError, match="passes"):
-        place_edges(m, focus, d, blur, band, threshold, passes=0)
+        place_edges(m, focus, d, blur, band, placement=Placement(threshold, passes=0))
 
 
 def test_the_candidates_are_the_local_extremes_of_the_map_and_the_sides_split_between_them():
@@ -93,7 +94,7 @@ def test_on_tiles_the_network_moves_the_map_as_it_would_on_the_whole_frame():
     band[10:70, 20:80] = 1.0
     band[30:50, 150:190] = 0.5  # two boxes of tiles, apart
     m = _mover()
-    moved = place_edges(m, focus, d, blur, band, threshold=0.5, tile=16)
+    moved = place_edges(m, focus, d, blur, band, placement=Placement(0.5, tile=16))
     with torch.no_grad():
         p = torch.sigmoid(m(torch.from_numpy(edge_features(focus, d, blur, band, SMALL))[None]))[0, 0].numpy()
     near, far = candidates(d, SMALL.radius_px)
@@ -112,8 +113,8 @@ def test_moves_only_open_band_pixels_only_to_a_candidate(seed, threshold, keep_l
     rng = np.random.default_rng(seed)
     band = (rng.random(d.shape) < 0.4).astype(np.float32) * rng.random(d.shape, dtype=np.float32)
     keep = rng.random(d.shape) < 0.3 if keep_lights else None
-    moved = place_edges(_mover(seed=seed % 7), focus, d, blur, band, threshold, keep=keep, tile=16,
-                        attached=attached, colour_margin=margin)
+    moved = place_edges(_mover(seed=seed % 7), focus, d, blur, band, keep,
+                        Placement(threshold, tile=16, attached=attached, colour_margin=margin))
     near, far = candidates(d, SMALL.radius_px)
     reach, on_near = map_sides(d, near, far)
     changed = moved != d
@@ -150,11 +151,11 @@ def test_the_colour_veto_keeps_a_sharp_subject_whole_and_lets_a_misplaced_strip_
     with torch.no_grad():
         m.net[-1].weight.zero_()
         m.net[-1].bias.fill_(-10.0)  # sure every pixel is far
-    assert (place_edges(m, focus, exact, blur, band, 0.9) != exact).any()  # holes in the rim
-    np.testing.assert_array_equal(place_edges(m, focus, exact, blur, band, 0.9, colour_margin=0.05), exact)
+    assert (place_edges(m, focus, exact, blur, band, placement=Placement(0.9)) != exact).any()  # holes in the rim
+    np.testing.assert_array_equal(place_edges(m, focus, exact, blur, band, placement=Placement(0.9, colour_margin=0.05)), exact)
     grown = np.full((h, w), 0.2, np.float32)
     grown[12:52, 12:52] = 0.8  # the subject grown by 4 px into the background
-    moved = place_edges(m, focus, grown, blur, band, 0.9, colour_margin=0.05)
+    moved = place_edges(m, focus, grown, blur, band, placement=Placement(0.9, colour_margin=0.05))
     strip = (grown != exact)
     assert (moved[strip] == 0.2).mean() > 0.9  # the background strip goes back to the background
     np.testing.assert_array_equal(moved[16:48, 16:48], exact[16:48, 16:48])  # and the subject stays whole
@@ -167,10 +168,10 @@ def test_an_undecided_network_keeps_the_map():
     with torch.no_grad():
         m.net[-1].weight.zero_()
         m.net[-1].bias.zero_()  # p = 0.5 everywhere: sure of nothing
-    np.testing.assert_array_equal(place_edges(m, focus, d, blur, band, threshold=0.9), d)
+    np.testing.assert_array_equal(place_edges(m, focus, d, blur, band, placement=Placement(0.9)), d)
     with torch.no_grad():
         m.net[-1].bias.fill_(10.0)  # sure every pixel is near: the far side next to the edges moves
-    moved = place_edges(m, focus, d, blur, band, threshold=0.9)
+    moved = place_edges(m, focus, d, blur, band, placement=Placement(0.9))
     near, _ = candidates(d, SMALL.radius_px)
     assert moved[20 - 6, 30] == near[20 - 6, 30] == 0.8 and moved[5, 5] == d[5, 5]
 

@@ -1,4 +1,4 @@
-"""Issue 18, items 3, 4, 5, 7 and 8: regression tests for broken promises of the render core.
+"""Regression tests for broken promises of the render core (docs/robustness.md).
 
 Each test states the promise; each failed before its fix (the adversarial run's cases).
 
@@ -215,7 +215,7 @@ def test_the_right_types_still_work():
 
 @pytest.mark.slow
 def test_ctrl_c_stops_the_preview_while_layers_are_in_flight(tmp_path):
-    """Issue 18.5 for the preview: Ctrl-C arrived in the main thread but the pool of layer renders was waited for
+    """Regression, the preview: Ctrl-C arrived in the main thread but the pool of layer renders was waited for
     (2.96 s on a 13 MP render; up to a layer's whole render). A layer render that takes 60 s stands in here."""
     import signal
     import subprocess

@@ -255,7 +255,7 @@ OpenEXR.File.write, tifffile.imwrite, Image.Image.save = _exr, _enospc, _enospc
 @pytest.mark.slow
 @pytest.mark.parametrize("ext", ["exr", "png", "tif", "jpg"])
 def test_disk_full_while_writing_is_one_line_naming_the_output(inputs, full_disk, ext):
-    """issue 18.1: a full disk during the EXR write was a traceback with exit 1; PNG/TIFF named no file."""
+    """Regression: a full disk during the EXR write was a traceback with exit 1; PNG/TIFF named no file."""
     (img, disp), (folder, mounted) = inputs, full_disk
     out = folder / f"o.{ext}"
     proc = _cli(["render", img, "--disparity", disp, "-o", out, "--blur", 4, "--focus", 0.5],
@@ -305,7 +305,7 @@ def _start_and_signal(args, sig):
                                             (signal.SIGINT, 130, "interrupted"),
                                             (signal.SIGHUP, 129, "terminated (SIGHUP)")])
 def test_a_signal_while_writing_removes_the_temporary_file(inputs, tmp_path, sig, code, words):
-    """issue 18.6: SIGTERM used to kill the process mid-write, leaving ``.o.png.XXXX.png`` beside the output; SIGHUP
+    """Regression: SIGTERM used to kill the process mid-write, leaving ``.o.png.XXXX.png`` beside the output; SIGHUP
     (the terminal closed) did before."""
     img, disp = inputs
     out = tmp_path / "o.png"
@@ -378,7 +378,7 @@ r.render_handed_over = _slow
 
 @pytest.mark.slow
 def test_overflow_cases_are_one_line_with_no_warnings(inputs, tmp_path):
-    """issue 18.2: overflow warnings leaked onto stderr (3 to 5 lines), and 1e300 was reported as "+Inf"."""
+    """Regression: overflow warnings leaked onto stderr (3 to 5 lines), and 1e300 was reported as "+Inf"."""
     img, disp = inputs
     out = tmp_path / "o.png"
     base = ["--blur", 4, "--focus", 0.5, "-o", out]
