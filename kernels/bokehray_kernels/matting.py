@@ -22,6 +22,39 @@ BAND_OWN_NEAR = 2
 """Flag bit: the pixel's own CoC lies on the near side of its window's middle."""
 
 
+@wp.struct
+class BandWindow:
+    """A band pixel's window: the offsets (nearest first) and their Gaussian weights."""
+
+    offset_y: wp.array(dtype=wp.int32)
+    offset_x: wp.array(dtype=wp.int32)
+    offset_g: wp.array(dtype=float)
+
+
+@wp.struct
+class BandParams:
+    """The matting's constants (``bokehray.edge_estimate.MattingRule``)."""
+
+    jump_px: float
+    unknown_weight: float
+    ridge: float
+    purity: float
+
+
+@wp.struct
+class BandEstimate:
+    """The kernel's outputs, one entry a band pixel."""
+
+    alpha: wp.array(dtype=float)
+    fg: wp.array(dtype=wp.vec3)
+    bg: wp.array(dtype=wp.vec3)
+    fg_var: wp.array(dtype=wp.vec3)
+    bg_var: wp.array(dtype=wp.vec3)
+    near_coc: wp.array(dtype=float)
+    far_coc: wp.array(dtype=float)
+    flags: wp.array(dtype=wp.int32)
+
+
 @wp.kernel
 def matting_band_kernel(  # noqa: C901
     image: wp.array2d(dtype=wp.vec3),
@@ -29,33 +62,21 @@ def matting_band_kernel(  # noqa: C901
     unknown: wp.array2d(dtype=wp.uint8),
     band_y: wp.array(dtype=wp.int32),
     band_x: wp.array(dtype=wp.int32),
-    offset_y: wp.array(dtype=wp.int32),
-    offset_x: wp.array(dtype=wp.int32),
-    offset_g: wp.array(dtype=float),
-    jump_px: float,
-    unknown_weight: float,
-    ridge: float,
-    purity: float,
-    alpha: wp.array(dtype=float),
-    fg: wp.array(dtype=wp.vec3),
-    bg: wp.array(dtype=wp.vec3),
-    fg_var: wp.array(dtype=wp.vec3),
-    bg_var: wp.array(dtype=wp.vec3),
-    near_coc: wp.array(dtype=float),
-    far_coc: wp.array(dtype=float),
-    flags: wp.array(dtype=wp.int32),
+    window: BandWindow,
+    params: BandParams,
+    out: BandEstimate,
 ):
     i = wp.tid()
     h = coc.shape[0]
     w = coc.shape[1]
     py = band_y[i]
     px = band_x[i]
-    m = offset_y.shape[0]
+    m = window.offset_y.shape[0]
     hi = float(-1.0e30)
     lo = float(1.0e30)
     for k in range(m):
-        y = py + offset_y[k]
-        x = px + offset_x[k]
+        y = py + window.offset_y[k]
+        x = px + window.offset_x[k]
         if y >= 0 and y < h and x >= 0 and x < w:
             v = coc[y, x]
             hi = wp.max(hi, v)
@@ -78,12 +99,12 @@ def matting_band_kernel(  # noqa: C901
     y1 = wp.float64(0.0)
     y2 = wp.float64(0.0)
     for k in range(m):
-        y = py + offset_y[k]
-        x = px + offset_x[k]
+        y = py + window.offset_y[k]
+        x = px + window.offset_x[k]
         if y >= 0 and y < h and x >= 0 and x < w:
-            wt = offset_g[k]
+            wt = window.offset_g[k]
             if unknown[y, x] != wp.uint8(0):
-                wt = wt * unknown_weight
+                wt = wt * params.unknown_weight
             wd = wp.float64(wt)
             c = image[y, x]
             d0 = wp.float64(c[0])
@@ -118,11 +139,11 @@ def matting_band_kernel(  # noqa: C901
     c11 = c11 / sw - m1 * m1
     c12 = c12 / sw - m1 * m2
     c22 = c22 / sw - m2 * m2
-    eps = wp.float64(ridge * ridge) * ((m0 * m0 + m1 * m1 + m2 * m2) / wp.float64(3.0) + wp.float64(1.0e-8))
+    eps = wp.float64(params.ridge * params.ridge) * ((m0 * m0 + m1 * m1 + m2 * m2) / wp.float64(3.0) + wp.float64(1.0e-8))
     cov = wp.mat33d(c00 + eps, c01, c02, c01, c11 + eps, c12, c02, c12, c22 + eps)
     wvd = wp.inverse(cov) * cy
     wv = wp.vec3(float(wvd[0]), float(wvd[1]), float(wvd[2]))
-    alpha[i] = wp.clamp(my + wp.dot(image[py, px] - mu, wv), 0.0, 1.0)
+    out.alpha[i] = wp.clamp(my + wp.dot(image[py, px] - mu, wv), 0.0, 1.0)
 
     # the side means weighted by the model's purity
     sf = float(0.0)
@@ -134,21 +155,21 @@ def matting_band_kernel(  # noqa: C901
     best_f = float(0.0)
     best_b = float(0.0)
     for k in range(m):
-        y = py + offset_y[k]
-        x = px + offset_x[k]
+        y = py + window.offset_y[k]
+        x = px + window.offset_x[k]
         if y >= 0 and y < h and x >= 0 and x < w:
-            g = offset_g[k]
+            g = window.offset_g[k]
             c = image[y, x]
             aq = wp.clamp(my + wp.dot(c - mu, wv), 0.0, 1.0)
             v = coc[y, x]
             if v > mid:
-                wf = g * wp.pow(aq, purity)
+                wf = g * wp.pow(aq, params.purity)
                 sf += wf
                 f1 += wf * c
                 f2 += wf * wp.cw_mul(c, c)
                 best_f = wp.max(best_f, wf)
             else:
-                wb = g * wp.pow(1.0 - aq, purity)
+                wb = g * wp.pow(1.0 - aq, params.purity)
                 sb += wb
                 b1 += wb * c
                 b2 += wb * wp.cw_mul(c, c)
@@ -157,16 +178,16 @@ def matting_band_kernel(  # noqa: C901
     sb = wp.max(sb, 1.0e-30)
     mf = f1 / sf
     mb = b1 / sb
-    fg[i] = mf
-    bg[i] = mb
+    out.fg[i] = mf
+    out.bg[i] = mb
     zero = wp.vec3(0.0, 0.0, 0.0)
-    fg_var[i] = wp.max(f2 / sf - wp.cw_mul(mf, mf), zero)
-    bg_var[i] = wp.max(b2 / sb - wp.cw_mul(mb, mb), zero)
-    near_coc[i] = hi
-    far_coc[i] = lo
+    out.fg_var[i] = wp.max(f2 / sf - wp.cw_mul(mf, mf), zero)
+    out.bg_var[i] = wp.max(b2 / sb - wp.cw_mul(mb, mb), zero)
+    out.near_coc[i] = hi
+    out.far_coc[i] = lo
     fl = int(0)
-    if hi - lo > jump_px and best_f > 0.0 and best_b > 0.0:
+    if hi - lo > params.jump_px and best_f > 0.0 and best_b > 0.0:
         fl = fl | BAND_OK
     if coc[py, px] > mid:
         fl = fl | BAND_OWN_NEAR
-    flags[i] = fl
+    out.flags[i] = fl

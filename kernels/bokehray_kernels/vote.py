@@ -1,4 +1,4 @@
-"""The colour-weighted vote of the depth correction (``bokehray.depthfix.vote``): which side a suspect pixel joins.
+"""The colour-weighted vote of the depth correction (``bokehray_refiner.depthfix.vote``): which side a suspect pixel joins.
 
 One thread a suspect pixel, over its window (``offset_y``, ``offset_x``; spatial weight ``space``). Every trusted
 window pixel inside the image votes with weight ``space * exp(-|colour step|^2 / (2 sigma_colour^2))`` for one of

@@ -4,7 +4,7 @@ alpha is, by the photo's colour (a local linear colour model per band pixel).
 Two consumers, one estimate:
 
 * ``bokehray.matting.split_mixed_pixels`` splits the band pixels whose alpha is mixed into a near and a far part.
-* ``bokehray.depthfix.correct_disparity`` takes its depth edges from here and looks for smeared ramps only
+* ``bokehray_refiner.depthfix.correct_disparity`` takes its depth edges from here and looks for smeared ramps only
   where this module measures ramps (:func:`ramp_width` > 0, the measure that widens the matting's band).
 
 Steps (docs/soft-scene.md): the depth edges (4-neighbour pairs whose signed CoC differs by more than
@@ -27,7 +27,7 @@ import numpy as np
 
 from ._memory import row_bands
 
-__all__ = ["PIXELS_PER_THREAD", "EdgeBand", "EdgeEstimate", "Steps", "depth_edges", "dilate", "edge_band",
+__all__ = ["PIXELS_PER_THREAD", "EdgeBand", "EdgeEstimate", "MattingRule", "Steps", "band_window", "depth_edges", "dilate", "edge_band",
            "edges_of_steps", "estimate_edges",
            "in_parts", "isolated_share", "launch_band_kernel", "map_steps", "ramp_of_steps", "ramp_width", "window_offsets"]
 
@@ -183,40 +183,73 @@ def edges_of_steps(steps: Steps) -> np.ndarray:
     return e
 
 
-def launch_band_kernel(img, s, band, by, bx, radius, jump_px, unknown_weight, ridge, purity, device, threads,
-                       check=None):
-    """Launch ``bokehray_kernels.matting.matting_band_kernel`` over the band pixels (in ``threads`` row bands on
-    the CPU: Warp CPU launches release the GIL). Returns NumPy arrays: alpha, F, B, their variances, the near and
-    far CoC and the flags."""
+@dataclass(frozen=True, slots=True)
+class MattingRule:
+    """The constants of the edge estimate and the split (``bokehray.matting.split_mixed_pixels`` says what each
+    does); the defaults are the measured ones (docs/soft-scene.md)."""
+
+    jump_px: float = 1.0
+    band_px: int = 0
+    max_ramp_px: int = 6
+    unknown_weight: float = 0.3
+    ridge: float = 0.03
+    purity: float = 12.0
+    min_contrast: float = 0.02
+    min_alpha: float = 0.02
+    max_alpha: float = 0.9
+    model_sd: float | None = 0.1
+    max_isolated_share: float = 0.25
+
+    def band_params(self) -> bk_matting.BandParams:
+        p = bk_matting.BandParams()
+        p.jump_px, p.unknown_weight, p.ridge, p.purity = (float(self.jump_px), float(self.unknown_weight),
+                                                          float(self.ridge), float(self.purity))
+        return p
+
+
+def band_window(radius: int, device) -> bk_matting.BandWindow:
+    """The window of radius ``radius`` as the kernel takes it (:func:`window_offsets`, Gaussian weights of sigma
+    ``radius / 2``)."""
     import warp as wp
 
-    n = by.size
     offs, dist = window_offsets(radius)
+    sigma = 0.5 * radius
+    window = bk_matting.BandWindow()
+    window.offset_y = wp.array(offs[:, 0].astype(np.int32), dtype=wp.int32, device=device)
+    window.offset_x = wp.array(offs[:, 1].astype(np.int32), dtype=wp.int32, device=device)
+    window.offset_g = wp.array(np.exp(-(dist.astype(np.float64) ** 2) / (2.0 * sigma * sigma)).astype(np.float32),
+                               dtype=float, device=device)
+    return window
+
+
+def launch_band_kernel(img, s, band, by, bx, radius: int, rule: MattingRule, device, threads, check=None):
+    """Launch ``bokehray_kernels.matting.matting_band_kernel`` over the band pixels ``(by, bx)`` of the box ``img``
+    (scaled), ``s`` (its CoC) and ``band`` (its band mask), in rounds of parts on CPU threads (:func:`in_parts`: Warp
+    CPU launches release the GIL). Returns NumPy arrays: alpha, F, B, their variances, the near and far CoC and the
+    flags."""
+    import warp as wp
+
     dev = wp.get_device(device)
     copy = not dev.is_cpu  # on the CPU the kernel reads the (contiguous) arrays in place: no copy of the box
     image = wp.array(np.ascontiguousarray(img, np.float32), dtype=wp.vec3, device=dev, copy=copy)
     coc = wp.array(np.ascontiguousarray(s, np.float32), dtype=float, device=dev, copy=copy)
     unknown = wp.array(np.ascontiguousarray(band, bool).view(np.uint8), dtype=wp.uint8, device=dev, copy=copy)
-    oy = wp.array(offs[:, 0].astype(np.int32), dtype=wp.int32, device=dev)
-    ox = wp.array(offs[:, 1].astype(np.int32), dtype=wp.int32, device=dev)
-    sigma = 0.5 * radius
-    og = wp.array(np.exp(-(dist.astype(np.float64) ** 2) / (2.0 * sigma * sigma)).astype(np.float32), dtype=float,
-                  device=dev)
+    window, params = band_window(radius, dev), rule.band_params()
+    names = ("alpha", "fg", "bg", "fg_var", "bg_var", "near_coc", "far_coc", "flags")
+    types = (float, wp.vec3, wp.vec3, wp.vec3, wp.vec3, float, float, wp.int32)
 
     def launch(a: int, b: int) -> list[np.ndarray]:
-        m = b - a
-        res = [wp.empty(m, dtype=float, device=dev)] + [wp.empty(m, dtype=wp.vec3, device=dev) for _ in range(4)] \
-            + [wp.empty(m, dtype=float, device=dev), wp.empty(m, dtype=float, device=dev),
-               wp.empty(m, dtype=wp.int32, device=dev)]
-        if m:
-            wp.launch(bk_matting.matting_band_kernel, dim=m,
+        out = bk_matting.BandEstimate()
+        for name, dtype in zip(names, types):
+            setattr(out, name, wp.empty(b - a, dtype=dtype, device=dev))
+        if b > a:
+            wp.launch(bk_matting.matting_band_kernel, dim=b - a,
                       inputs=[image, coc, unknown, wp.array(by[a:b].astype(np.int32), dtype=wp.int32, device=dev),
-                              wp.array(bx[a:b].astype(np.int32), dtype=wp.int32, device=dev), oy, ox, og,
-                              float(jump_px), float(unknown_weight), float(ridge), float(purity)],
-                      outputs=res, device=dev)
-        return [r.numpy() for r in res]
+                              wp.array(bx[a:b].astype(np.int32), dtype=wp.int32, device=dev), window, params, out],
+                      device=dev)
+        return [getattr(out, name).numpy() for name in names]
 
-    outs = in_parts(n, launch, threads=threads, cpu=dev.is_cpu, check=check)
+    outs = in_parts(by.size, launch, threads=threads, cpu=dev.is_cpu, check=check)
     return tuple(np.concatenate([o[k] for o in outs]) for k in range(8))
 
 
@@ -285,26 +318,27 @@ class EdgeBand:
     coc: np.ndarray
     band: np.ndarray
     radius: int
-    jump_px: float
 
     @property
     def size(self) -> int:
         return int(self.by.size)
 
-    def estimate(self, a: int, b: int, *, unknown_weight: float = 0.3, ridge: float = 0.03, purity: float = 12.0,
-                 device: str = "cpu", threads: int | None = None, check=None) -> EdgeEstimate:
+    def estimate(self, a: int, b: int, rule: MattingRule, *, device: str = "cpu", threads: int | None = None,
+                 check=None) -> EdgeEstimate:
         """The edge estimate of band pixels ``a`` to ``b`` (its arrays that long; ``box``, ``image`` the band's)."""
         by, bx = self.by[a:b], self.bx[a:b]
-        out = launch_band_kernel(self.image, self.coc, self.band, by, bx, self.radius, self.jump_px, unknown_weight,
-                                 ridge, purity, device, threads, check)
+        out = launch_band_kernel(self.image, self.coc, self.band, by, bx, self.radius, rule, device, threads, check)
         return EdgeEstimate(self.shape, self.box, by, bx, self.ramp, self.scale, self.image, *out)
 
 
-def edge_band(image: np.ndarray, signed_coc: np.ndarray, *, jump_px: float = 1.0, band_px: int = 0,
-              max_ramp_px: int = 6, max_isolated_share: float = 0.25, check=None) -> EdgeBand | None:
+def edge_band(image: np.ndarray, signed_coc: np.ndarray, rule: MattingRule | None = None,
+              check=None) -> EdgeBand | None:
     """The band around the depth edges of a checked ``H x W x 3`` float32 linear image's ``H x W`` float32 signed
-    CoC (parameters: ``bokehray.matting.split_mixed_pixels``). None where the map has no depth edge or its edges
-    are noise. ``check()``: called between the steps (a render stops there: it raises)."""
+    CoC (``rule``: :class:`MattingRule`). None where the map has no depth edge or its edges are noise. ``check()``:
+    called between the steps (a render stops there: it raises)."""
+    rule = rule or MattingRule()
+    jump_px, band_px, max_ramp_px, max_isolated_share = (rule.jump_px, rule.band_px, rule.max_ramp_px,
+                                                         rule.max_isolated_share)
     check = check or (lambda: None)
     s = signed_coc
     h, w = s.shape
@@ -335,19 +369,15 @@ def edge_band(image: np.ndarray, signed_coc: np.ndarray, *, jump_px: float = 1.0
     # every threshold is relative: the result does not depend on the exposure (the box only: nothing reads more)
     box_img = image[y0:y1, x0:x1] / np.float32(scale)
     check()
-    return EdgeBand((h, w), (y0, y1, x0, x1), by, bx, ramp, scale, box_img, s[y0:y1, x0:x1], band, radius,
-                    float(jump_px))
+    return EdgeBand((h, w), (y0, y1, x0, x1), by, bx, ramp, scale, box_img, s[y0:y1, x0:x1], band, radius)
 
 
-def estimate_edges(image: np.ndarray, signed_coc: np.ndarray, *, jump_px: float = 1.0, band_px: int = 0,
-                   max_ramp_px: int = 6, unknown_weight: float = 0.3, ridge: float = 0.03, purity: float = 12.0,
-                   max_isolated_share: float = 0.25, device: str = "cpu",
-                   threads: int | None = None, check=None) -> EdgeEstimate | None:
-    """The edge estimate of every pixel of :func:`edge_band` (parameters: ``bokehray.matting.split_mixed_pixels``).
-    None where the map has no depth edge or its edges are noise."""
-    band = edge_band(image, signed_coc, jump_px=jump_px, band_px=band_px, max_ramp_px=max_ramp_px,
-                     max_isolated_share=max_isolated_share, check=check)
+def estimate_edges(image: np.ndarray, signed_coc: np.ndarray, rule: MattingRule | None = None, *,
+                   device: str = "cpu", threads: int | None = None, check=None) -> EdgeEstimate | None:
+    """The edge estimate of every pixel of :func:`edge_band`. None where the map has no depth edge or its edges are
+    noise."""
+    rule = rule or MattingRule()
+    band = edge_band(image, signed_coc, rule, check)
     if band is None:
         return None
-    return band.estimate(0, band.size, unknown_weight=unknown_weight, ridge=ridge, purity=purity, device=device,
-                         threads=threads, check=check)
+    return band.estimate(0, band.size, rule, device=device, threads=threads, check=check)

@@ -46,12 +46,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from .edge_estimate import CHECK_ITEMS, edge_band
+from .edge_estimate import CHECK_ITEMS, MattingRule, edge_band
 from .errors import InputError, ResourceError
 from .scene import SoftEdges
 from .validate import check_finite
 
-__all__ = ["SPLIT_B", "check_split_fits", "fuse_alpha", "split_mixed_pixels"]
+__all__ = ["SPLIT_B", "MattingRule", "check_split_fits", "fuse_alpha", "split_mixed_pixels"]
 
 SPLIT_B = 44
 """Bytes a split pixel holds (``SoftEdges``: its flat index, alpha, F, B and the two CoC) from the split on."""
@@ -84,18 +84,8 @@ def _check(image: np.ndarray, signed_coc: np.ndarray, finite: bool = True) -> tu
 def split_mixed_pixels(
     image: np.ndarray,
     signed_coc: np.ndarray,
+    rule: MattingRule | None = None,
     *,
-    jump_px: float = 1.0,
-    band_px: int = 0,
-    max_ramp_px: int = 6,
-    unknown_weight: float = 0.3,
-    ridge: float = 0.03,
-    purity: float = 12.0,
-    min_contrast: float = 0.02,
-    min_alpha: float = 0.02,
-    max_alpha: float = 0.9,
-    model_sd: float | None = 0.1,
-    max_isolated_share: float = 0.25,
     device: str = "cpu",
     threads: int | None = None,
     finite_checked: bool = False,
@@ -107,26 +97,29 @@ def split_mixed_pixels(
     Args:
         image: ``H x W x 3`` float32, scene-linear (1 or 4 channels are taken as grey / RGB).
         signed_coc: ``H x W`` signed CoC ``K (d - d_f)`` in px (> 0 in front of the focus).
-        jump_px: a depth edge is a pair of 4-neighbours whose CoC differs by more than this.
-        band_px: how far (Chebyshev px) the unknown band reaches beyond the depth-edge pixels of a hard edge.
-        max_ramp_px: the widest CoC ramp (px) the band and the window widen for (a soft map's edges).
-        unknown_weight: weight of the unknown (band) pixels, at their side's value, in the alpha model's fit.
-        ridge: regularisation of the alpha model, relative to the window's mean colour.
-        purity: F and B are means of the window's near / far side weighted by ``alpha^purity`` /
-            ``(1 - alpha)^purity`` (the model's alpha of each window pixel): the purest samples dominate.
-        min_contrast: pixels whose F and B differ by less than this share of the brighter of the two (Euclidean,
-            linear RGB) are left alone: their colour says nothing about alpha.
-        min_alpha: a pixel is split when its alpha (on a sharp map also its colour's projection on the F-B line)
-            lies in ``[min_alpha, max_alpha]``; otherwise it keeps its one depth, unless the depth map puts it
-            on the other side than its alpha (then alpha is clipped into the range).
-        max_alpha: the top of that range: a nearly pure foreground pixel stays whole (splitting it would leave a
-            sharp sliver ``I - alpha F`` of the foreground's colour where F is a little off), a faint background one
-            is split (whole, its share of the strand would stay sharp and feed the fill behind the strand).
-        model_sd: the standard deviation given to the model's alpha when it is fused with the projection of the
-            pixel's colour on the F-B line (:func:`fuse_alpha`); None: the model's alpha alone.
-        max_isolated_share: a map where more than this share of the pixels differ by more than ``jump_px`` from
-            all their neighbours is noise, not edges: nothing is split (a strand one pixel wide, even diagonal,
-            has neighbours of its own depth along it).
+        rule: the constants (:class:`~bokehray.edge_estimate.MattingRule`; default: its defaults):
+
+            * ``jump_px``: a depth edge is a pair of 4-neighbours whose CoC differs by more than this.
+            * ``band_px``: how far (Chebyshev px) the unknown band reaches beyond the depth-edge pixels of a hard
+              edge.
+            * ``max_ramp_px``: the widest CoC ramp (px) the band and the window widen for (a soft map's edges).
+            * ``unknown_weight``: weight of the unknown (band) pixels, at their side's value, in the alpha model's fit.
+            * ``ridge``: regularisation of the alpha model, relative to the window's mean colour.
+            * ``purity``: F and B are means of the window's near / far side weighted by ``alpha^purity`` /
+              ``(1 - alpha)^purity`` (the model's alpha of each window pixel): the purest samples dominate.
+            * ``min_contrast``: pixels whose F and B differ by less than this share of the brighter of the two
+              (Euclidean, linear RGB) are left alone: their colour says nothing about alpha.
+            * ``min_alpha``, ``max_alpha``: a pixel is split when its alpha (on a sharp map also its colour's
+              projection on the F-B line) lies in this range; otherwise it keeps its one depth, unless the depth
+              map puts it on the other side than its alpha (then alpha is clipped into the range). A nearly pure
+              foreground pixel stays whole (splitting it would leave a sharp sliver ``I - alpha F`` of the
+              foreground's colour where F is a little off), a faint background one is split (whole, its share of
+              the strand would stay sharp and feed the fill behind the strand).
+            * ``model_sd``: the standard deviation given to the model's alpha when it is fused with the projection
+              of the pixel's colour on the F-B line (:func:`fuse_alpha`); None: the model's alpha alone.
+            * ``max_isolated_share``: a map where more than this share of the pixels differ by more than
+              ``jump_px`` from all their neighbours is noise, not edges: nothing is split (a strand one pixel wide,
+              even diagonal, has neighbours of its own depth along it).
         device: the Warp device of the band's kernel.
         threads: CPU threads of the kernel (None: all cores); the result does not depend on it.
         finite_checked: the caller has already refused NaN and Inf in both arrays (the render pipeline: a checked
@@ -145,19 +138,17 @@ def split_mixed_pixels(
     Raises:
         InputError: mismatched shapes, non-numeric or non-finite input.
     """
+    rule = rule or MattingRule()
     img, s = _check(image, signed_coc, finite=not finite_checked)
-    band = edge_band(img, s, jump_px=jump_px, band_px=band_px, max_ramp_px=max_ramp_px,
-                     max_isolated_share=max_isolated_share, check=check)
+    band = edge_band(img, s, rule, check)
     if band is None:
         return SoftEdges.empty()
     if budget_bytes is not None:
         check_split_fits(band.size, s.shape, budget_bytes)
-    part = dict(min_contrast=min_contrast, min_alpha=min_alpha, max_alpha=max_alpha, model_sd=model_sd)
     pieces = []
     for a in range(0, band.size, SPLIT_CHUNK):  # the work of a chunk at a time (its float64 temporaries)
-        est = band.estimate(a, min(band.size, a + SPLIT_CHUNK), unknown_weight=unknown_weight, ridge=ridge,
-                            purity=purity, device=device, threads=threads, check=check)
-        pieces.append(_split_estimate(img, est, **part))
+        est = band.estimate(a, min(band.size, a + SPLIT_CHUNK), rule, device=device, threads=threads, check=check)
+        pieces.append(_split_estimate(img, est, rule))
     return pieces[0] if len(pieces) == 1 else SoftEdges(*(np.concatenate([getattr(p, f) for p in pieces])
                                                           for f in ("index", "alpha", "foreground", "background",
                                                                     "near_coc", "far_coc")))
@@ -175,18 +166,18 @@ def check_split_fits(band_pixels: int, shape: tuple[int, int], budget_bytes: int
                             "(a map that is edges everywhere; give more memory, or LayerOptions(soft_edges=False))")
 
 
-def _split_estimate(photo: np.ndarray, est, *, min_contrast: float, min_alpha: float, max_alpha: float,
-                    model_sd: float | None) -> SoftEdges:
+def _split_estimate(photo: np.ndarray, est, rule: MattingRule) -> SoftEdges:
     """The split pixels among the band pixels of one edge estimate (``bokehray.edge_estimate.EdgeEstimate``)."""
     w = est.shape[1]
     y0, y1, x0, x1 = est.box
     by, bx, ramp, scale = est.by, est.bx, est.ramp, est.scale
     alpha, F, B, vF, vB, near, far = est.alpha, est.fg, est.bg, est.fg_var, est.bg_var, est.near, est.far
     ok, own_near = est.ok, est.own_near
+    min_alpha, max_alpha, model_sd = rule.min_alpha, rule.max_alpha, rule.model_sd
 
     d = F - B
     den = (d * d).sum(1)
-    contrast = est.contrast(min_contrast)
+    contrast = est.contrast(rule.min_contrast)
     if model_sd is not None:
         alpha = fuse_alpha(alpha, est.image[by, bx], F, B, vF, vB, float(model_sd))
     lo_a = np.float32(min_alpha)

@@ -119,7 +119,7 @@ def _soft_scene(image: np.ndarray, signed_coc: np.ndarray, layers: LayerOptions,
     check = None if progress is None else (lambda: progress(0, 1))
     if not layers.soft_edges:
         return signed_coc, None
-    from .matting import split_mixed_pixels
+    from .matting import MattingRule, split_mixed_pixels
     from .ramps import snap_ramps
 
     ramp_px = 6  # the matting's own reading of ramps: its band and window widen with the measured ramp width
@@ -128,8 +128,8 @@ def _soft_scene(image: np.ndarray, signed_coc: np.ndarray, layers: LayerOptions,
         clock.lap("soft maps")
         ramp_px = 0  # the ramps are steps now: the band of a hard map (docs/design/soft-maps.md: 10x less work)
     budget = None if memory is None else tiling.budget_bytes(memory) - HELD_DURING_SPLIT_B * signed_coc.size
-    soft = split_mixed_pixels(image, signed_coc, max_ramp_px=ramp_px, finite_checked=finite_checked, check=check,
-                              budget_bytes=budget)
+    soft = split_mixed_pixels(image, signed_coc, MattingRule(max_ramp_px=ramp_px), finite_checked=finite_checked,
+                              check=check, budget_bytes=budget)
     scene.check_soft_edges(soft, signed_coc.shape)
     clock.lap("edges")
     return signed_coc, soft

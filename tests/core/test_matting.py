@@ -10,7 +10,7 @@ from scipy import ndimage
 
 from bokehray.edge_estimate import depth_edges, isolated_share, ramp_width, window_offsets
 from bokehray.errors import InputError
-from bokehray.matting import split_mixed_pixels
+from bokehray.matting import MattingRule, split_mixed_pixels
 from bokehray.scene import SoftEdges
 
 K = 30.0
@@ -107,7 +107,7 @@ def test_two_plane_contract_and_only_pixels_at_the_edges_split():
     check_contract(se, photo, coc)
     # hard edges: the band is the depth-edge pixels (band_px 0); nothing else is touched
     assert depth_edges(coc, 1.0).ravel()[se.index].all()
-    se1 = split_mixed_pixels(photo, coc, band_px=1)
+    se1 = split_mixed_pixels(photo, coc, MattingRule(band_px=1))
     assert ndimage.binary_dilation(depth_edges(coc, 1.0), np.ones((3, 3), bool)).ravel()[se1.index].all()
     assert len(se1) >= len(se)
     # the near and far parts carry the two planes' CoC, not a mixed value
@@ -139,7 +139,7 @@ def test_noise_maps_split_nothing_and_all_edge_maps_stay_finite():
     noise = rng.uniform(-20, 20, (48, 40)).astype(np.float32)
     assert len(split_mixed_pixels(img, noise)) == 0
     assert isolated_share(noise, 1.0) > 0.5
-    assert len(split_mixed_pixels(img, noise, max_isolated_share=1.0)) > 0  # the guard is what stopped it
+    assert len(split_mixed_pixels(img, noise, MattingRule(max_isolated_share=1.0))) > 0  # the guard is what stopped it
     # a checkerboard of two depths is all edge (and diagonal strands, not noise): bounded work, a valid result
     checker = np.where((np.indices((48, 40)).sum(0) % 2) == 0, 10.0, -10.0).astype(np.float32)
     assert isolated_share(checker, 1.0) == 0.0
@@ -280,7 +280,8 @@ def test_band_kernel_matches_the_reference(device, soft):
     band = ndimage.binary_dilation(edges, np.ones((3, 3), bool))
     by, bx = np.nonzero(band)
     radius, params = 5, (1.0, 0.3, 0.03, 8.0)
-    got = launch_band_kernel(img, coc, band, by, bx, radius, *params, device, 2)
+    rule = MattingRule(jump_px=params[0], unknown_weight=params[1], ridge=params[2], purity=params[3])
+    got = launch_band_kernel(img, coc, band, by, bx, radius, rule, device, 2)
     offs, dist = window_offsets(radius)
     g = gaussian_weights(dist, radius)
     flags = got[7]

@@ -301,7 +301,7 @@ def test_the_pipeline_renders_the_matting_split(monkeypatch):
     disparity = np.where(t["alpha"] >= 0.5, D_NEAR, D_FAR).astype(np.float32)
     soft = sc.SoftEdges(**R.exact_split(t, R_NEAR, 0.0))
     seen = []
-    monkeypatch.setattr(matting, "split_mixed_pixels", lambda image, s, **kw: seen.append(s.shape) or soft)
+    monkeypatch.setattr(matting, "split_mixed_pixels", lambda image, s, *a, **kw: seen.append(s.shape) or soft)
     got = br.render(t["photo"], disparity, blur)
     want, _ = _render("preview", t["photo"], disparity, blur, soft)
     assert seen == [(64, 96)] and got.tobytes() == want.tobytes()
@@ -315,7 +315,7 @@ def test_an_rgba_photo_splits_its_colour_and_renders_its_alpha_with_one_depth_a_
     blur = br.BlurParams(K, D_FAR)
     disparity = np.where(t["alpha"] >= 0.5, D_NEAR, D_FAR).astype(np.float32)
     soft = sc.SoftEdges(**R.exact_split(t, R_NEAR, 0.0))
-    monkeypatch.setattr(matting, "split_mixed_pixels", lambda image, s, **kw: soft)
+    monkeypatch.setattr(matting, "split_mixed_pixels", lambda image, s, *a, **kw: soft)
     alpha = np.linspace(0.0, 1.0, 64 * 96, dtype=np.float32).reshape(64, 96, 1)
     out = br.render(np.concatenate([t["photo"], alpha], axis=2), disparity, blur)
     colour, _ = _render("preview", t["photo"], disparity, blur, soft)
