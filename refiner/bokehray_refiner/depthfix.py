@@ -282,7 +282,19 @@ def smeared(disparity: np.ndarray, k_px: float, options: DepthFixOptions = Depth
     return (hi - d > snap) & (d - lo > snap)
 
 
-def vote(img, cur, sus, offs, space, snap, options, new, keep=None, one_sided=False, targets=None):
+@dataclass(frozen=True, eq=False)
+class Voting:
+    """What every vote of one correction reads: the window (offsets, nearest first, and their spatial weights),
+    ``snap`` (a disparity difference below it is the pixel's own layer), the options and the blur's ``k_px``."""
+
+    offs: np.ndarray
+    space: np.ndarray
+    snap: float
+    options: DepthFixOptions
+    k_px: float = 0.0
+
+
+def vote(voting: Voting, img, cur, sus, new, keep=None, one_sided=False, targets=None):
     """Colour-weighted vote of the trusted pixels (not ``sus``, not ``keep``) for every pixel of ``sus``
     (not ``keep``; only those of ``targets`` when given); writes ``new``. Which side each pixel joins is
     ``bokehray_kernels.vote.vote_kernel``'s (:func:`vote_sides`), and so is the value it takes there, the weighted
@@ -292,12 +304,12 @@ def vote(img, cur, sus, offs, space, snap, options, new, keep=None, one_sided=Fa
     ys, xs = np.nonzero(voters if targets is None else voters & targets)
     if ys.size == 0:
         return
-    side, value = vote_sides(img, cur, trusted, ys, xs, offs, space, snap, options, one_sided)
+    side, value = vote_sides(voting, img, cur, trusted, ys, xs, one_sided)
     moves = side != bk_vote.VOTE_NONE
     new[ys[moves], xs[moves]] = value[moves]
 
 
-def vote_sides(img, cur, trusted, ys, xs, offs, space, snap, options, one_sided=False,
+def vote_sides(voting: Voting, img, cur, trusted, ys, xs, one_sided=False,
                threads=None) -> tuple[np.ndarray, np.ndarray]:
     """Per pixel ``(ys, xs)``, the side the vote moves it to (``bokehray_kernels.vote``: ``VOTE_FAR``,
     ``VOTE_NEAR``, or ``VOTE_NONE``) and the disparity it takes (its own where it stays), on the CPU in ``threads``
@@ -310,21 +322,27 @@ def vote_sides(img, cur, trusted, ys, xs, offs, space, snap, options, one_sided=
                          "must be H x W x 3, H x W float32 and H x W")
 
     dev = wp.get_device("cpu")
-    image = wp.array(np.ascontiguousarray(img, np.float32), dtype=wp.vec3, device=dev, copy=False)
-    disp = wp.array(np.ascontiguousarray(cur, np.float32), dtype=float, device=dev, copy=False)
-    tru = wp.array(np.ascontiguousarray(trusted, bool).view(np.uint8), dtype=wp.uint8, device=dev, copy=False)
-    oy = wp.array(offs[:, 0].astype(np.int32), dtype=wp.int32, device=dev)
-    ox = wp.array(offs[:, 1].astype(np.int32), dtype=wp.int32, device=dev)
-    sp = wp.array(np.asarray(space, np.float32), dtype=float, device=dev)
+    options = voting.options
+    votes = bk_vote.Votes()
+    votes.image = wp.array(np.ascontiguousarray(img, np.float32), dtype=wp.vec3, device=dev, copy=False)
+    votes.disparity = wp.array(np.ascontiguousarray(cur, np.float32), dtype=float, device=dev, copy=False)
+    votes.trusted = wp.array(np.ascontiguousarray(trusted, bool).view(np.uint8), dtype=wp.uint8, device=dev,
+                             copy=False)
+    votes.offset_y = wp.array(voting.offs[:, 0].astype(np.int32), dtype=wp.int32, device=dev)
+    votes.offset_x = wp.array(voting.offs[:, 1].astype(np.int32), dtype=wp.int32, device=dev)
+    votes.space = wp.array(np.asarray(voting.space, np.float32), dtype=float, device=dev)
+    votes.snap, votes.colour_scale = float(voting.snap), float(-1.0 / (2.0 * options.sigma_colour ** 2))
+    rule = bk_vote.VoteRule()
+    rule.min_class, rule.contrast, rule.min_affinity = (float(options.min_class), float(options.contrast),
+                                                        float(options.min_affinity))
+    rule.one_sided = int(bool(one_sided))
 
     def launch(a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
         side, value = wp.empty(b - a, dtype=wp.int32, device=dev), wp.empty(b - a, dtype=float, device=dev)
         if b > a:
             wp.launch(bk_vote.vote_kernel, dim=b - a,
-                      inputs=[image, disp, tru, wp.array(ys[a:b].astype(np.int32), dtype=wp.int32, device=dev),
-                              wp.array(xs[a:b].astype(np.int32), dtype=wp.int32, device=dev), oy, ox, sp,
-                              float(snap), float(-1.0 / (2.0 * options.sigma_colour ** 2)), float(options.min_class),
-                              float(options.contrast), float(options.min_affinity), int(bool(one_sided))],
+                      inputs=[votes, wp.array(ys[a:b].astype(np.int32), dtype=wp.int32, device=dev),
+                              wp.array(xs[a:b].astype(np.int32), dtype=wp.int32, device=dev), rule],
                       outputs=[side, value], device=dev)
         return side.numpy(), value.numpy()
 
@@ -431,9 +449,10 @@ def has_ramps(disparity: np.ndarray, k_px: float, options: DepthFixOptions = Dep
     return ramp_width(coc, options.jump_px, options.max_ramp_px) > 0
 
 
-def _pass(img, cur, k_px, options, offs, space, snap, active, keep, new, targets, ramps):
+def _pass(voting: Voting, img, cur, active, keep, new, targets, ramps):
     """One pass of the correction on ``cur``, written into ``new``; only pixels of ``targets`` (None: all) vote;
     ``ramps``: :func:`has_ramps` of the map as given."""
+    options, k_px = voting.options, voting.k_px
     hyps = list(untrusted(img, cur, k_px, options))
     if options.ramp_px > 0 and ramps:
         hyps.append(smeared(cur, k_px, options))
@@ -441,8 +460,7 @@ def _pass(img, cur, k_px, options, offs, space, snap, active, keep, new, targets
         if active is not None:
             sus &= active
         if sus.any():
-            vote(img, cur, sus, offs, space, snap, options, new, keep,
-                  one_sided=options.thin_dilated and h_i == 1, targets=targets)
+            vote(voting, img, cur, sus, new, keep, one_sided=options.thin_dilated and h_i == 1, targets=targets)
 
 
 def correct_disparity(focus_srgb: np.ndarray, disparity: np.ndarray, k_px: float,
@@ -494,13 +512,14 @@ def correction_steps(focus_srgb: np.ndarray, disparity: np.ndarray, k_px: float,
         out = shift_map(d, sy, sx)
     shifted = out
     ramps = has_ramps(out, k_px, options)  # of the map as given (shifted back): the passes do not change it
+    voting = Voting(offs, space, snap, options, float(k_px))
     todo = None  # the first pass looks at the whole map, later ones only where the last one moved pixels
     reach = pass_reach(options)
     for _ in range(max(1, options.iterations)):
         cur = out
         new = cur.copy()
         if todo is None:
-            _pass(img, cur, k_px, options, offs, space, snap, active, keep, new, None, ramps)
+            _pass(voting, img, cur, active, keep, new, None, ramps)
         else:
             # a pixel farther than ``reach`` from every pixel the last pass moved sees the same inputs as in that
             # pass and so gives the same (unmoved) value: each cluster of moved pixels is recomputed on its window,
@@ -511,9 +530,8 @@ def correction_steps(focus_srgb: np.ndarray, disparity: np.ndarray, k_px: float,
                 wx = slice(max(0, cx.start - reach), min(w, cx.stop + reach))
                 mine = lab[wy, wx] == n_c
                 part = cur[wy, wx].copy()
-                _pass(img[wy, wx], cur[wy, wx], k_px, options, offs, space, snap,
-                      None if active is None else active[wy, wx], None if keep is None else keep[wy, wx], part, mine,
-                      ramps)
+                _pass(voting, img[wy, wx], cur[wy, wx], None if active is None else active[wy, wx],
+                      None if keep is None else keep[wy, wx], part, mine, ramps)
                 new[wy, wx][mine] = part[mine]
         moved = new != cur
         if not moved.any():

@@ -5,7 +5,7 @@ and the weighted median where the side's values are ties, and where they lie clo
 import bokehray_kernels.vote as bk_vote
 import numpy as np
 import pytest
-from bokehray_refiner.depthfix import DepthFixOptions, _offsets, vote, vote_sides
+from bokehray_refiner.depthfix import DepthFixOptions, Voting, _offsets, vote, vote_sides
 from hypothesis import given
 from hypothesis import strategies as st
 from reference.depthfix_ref import vote_ref, weighted_median_ref
@@ -23,7 +23,7 @@ def _both(img, cur, sus, snap, keep=None, one_sided=False, options=OPTIONS):
     """The kernel's vote and the oracle's, each written over a copy of ``cur``."""
     offs, space = _window(options)
     got, want = cur.copy(), cur.copy()
-    vote(img, cur, sus, offs, space, snap, options, got, keep, one_sided=one_sided)
+    vote(Voting(offs, space, snap, options), img, cur, sus, got, keep, one_sided=one_sided)
     vote_ref(img, cur, sus, snap, options, want, keep, one_sided=one_sided)
     return got, want
 
@@ -95,8 +95,8 @@ def test_the_side_median_is_the_weighted_median(values):
         cur[y, x] = v
         img[y, x] = img[c, c] + rng.normal(0, 0.03, 3)
         trusted[y, x] = True
-    side, value = vote_sides(img, cur, trusted, np.array([c]), np.array([c]), offs, space, 1.0 / 16.0, OPTIONS,
-                             one_sided=True)
+    side, value = vote_sides(Voting(offs, space, 1.0 / 16.0, OPTIONS), img, cur, trusted, np.array([c]),
+                             np.array([c]), one_sided=True)
     assert side[0] == bk_vote.VOTE_FAR
     vals, wts = [], []
     for k in picks:
@@ -117,8 +117,8 @@ def test_an_exact_tie_takes_the_smaller_value():
     trusted = np.zeros((h, w), bool)
     cur[4, 3], cur[4, 5] = 0.2, 0.1
     trusted[4, 3] = trusted[4, 5] = True
-    side, value = vote_sides(img, cur, trusted, np.array([4]), np.array([4]), offs, space, 1.0 / 16.0, OPTIONS,
-                             one_sided=True)
+    side, value = vote_sides(Voting(offs, space, 1.0 / 16.0, OPTIONS), img, cur, trusted, np.array([4]),
+                             np.array([4]), one_sided=True)
     assert side[0] == bk_vote.VOTE_FAR
     assert value[0] == np.float32(0.1) == np.float32(weighted_median_ref([0.2, 0.1], [1.0, 1.0]))
 
@@ -144,4 +144,4 @@ def test_arrays_that_do_not_fit_are_refused():
     img, cur, trusted = np.zeros((6, 8, 3), np.float32), np.zeros((6, 8), np.float32), np.ones((6, 8), bool)
     for args in ((img[:4], cur, trusted), (img, cur, trusted[:, :4]), (img, cur.astype(np.float64), trusted)):
         with pytest.raises(ValueError, match="must be H x W x 3"):
-            vote_sides(*args, np.array([1]), np.array([1]), offs, space, 0.1, OPTIONS)
+            vote_sides(Voting(offs, space, 0.1, OPTIONS), *args, np.array([1]), np.array([1]))
