@@ -8,7 +8,7 @@ NumPy oracle in ``tests/reference/`` and a test comparing them.
 By concern: ``aperture`` (the shape's chords), ``spans`` (a source's row-span deposits), ``pyramid`` (the radius
 pyramid: scatter, prefix sums, resolve), ``routing`` (salient lights to level 0), ``composite`` (layers back to
 front), ``fill`` (layer sources and the pull-push fill), ``soft`` (the near parts of split pixels), ``matting``
-(soft edges at depth edges), ``vote`` (the depth correction's colour vote), ``raytrace`` (the layered ray tracer),
+(soft edges at depth edges), ``ramps`` (a soft map's ramps read as edges), ``vote`` (the depth correction's colour vote), ``raytrace`` (the layered ray tracer),
 ``pisa`` (the refiner's attention masks); ``support``, ``reduce`` and ``sampling`` hold what several of them share.
 """
 
