@@ -23,9 +23,14 @@ from contextlib import contextmanager
 import numpy as np
 import warp as wp
 
-__all__ = ["MIN_BYTES", "CachingHostAllocator", "lazy_zeros", "reuse_buffers"]
+__all__ = ["LAZY_MIN_BYTES", "MIN_BYTES", "CachingHostAllocator", "is_lazy", "lazy_for", "lazy_zeros", "reuse_buffers"]
 
 MIN_BYTES = 1 << 20
+LAZY_MIN_BYTES = 64 << 20
+"""A layer (or a window) whose ``(h, w)`` vec4 plane is smaller than this zeroes its arrays at once (``wp.zeros``;
+:func:`lazy_for`): a lazily zeroed mapping takes a page fault for each page first written, which a 1.5 MP render
+paid for nothing (t32/tFFT 14.5 against 12.2, 19 % more CPU, on the quiet 2-core VM); at 12 MP the pages it never
+takes are worth it (docs/design/memory-model.md)."""
 """Blocks below this go straight to the C allocator (which reuses small blocks itself)."""
 FIT = 4
 """A cached block serves a request of at least 1 / FIT of its size (its unused tail is not touched again)."""
@@ -128,19 +133,24 @@ def reuse_buffers(device: str) -> Iterator[CachingHostAllocator | None]:
 _LAYOUTS = {wp.vec4: (np.float32, 4), float: (np.float32, 1), wp.float32: (np.float32, 1), wp.uint8: (np.uint8, 1)}
 
 
-def lazy_zeros(shape: tuple[int, ...], dtype, device: str) -> wp.array:
+def lazy_for(h: int, w: int) -> bool:
+    """Whether the arrays of a layer's box (or a window) of ``h x w`` are worth lazily zeroed pages."""
+    return 16 * h * w >= LAZY_MIN_BYTES
+
+
+def lazy_zeros(shape: tuple[int, ...], dtype, device: str, lazy: bool = True) -> wp.array:
     """``wp.zeros(shape, dtype, device)`` whose pages are taken only where they are written.
 
     On the CPU a large array is a fresh private anonymous mapping (zero pages from the kernel, never cleared by a
     write): memory is taken, and faulted in, only for the pages a kernel writes, and pages only read stay the
     kernel's shared zero page. For arrays mostly left zero: the routing's per-level planes, each allocated at the
     finest level's size while level ``k`` writes only the first ``1 / 2^k`` of the rows and of each row. Values are
-    those of ``wp.zeros``. Smaller arrays and CUDA devices: ``wp.zeros``.
+    those of ``wp.zeros``. Not ``lazy`` (:func:`lazy_for`), small arrays and CUDA devices: ``wp.zeros``.
     """
     dev = wp.get_device(device)
     layout = _LAYOUTS.get(dtype)  # (numpy scalar type, lanes)
     nbytes = int(np.prod(shape)) * layout[1] * np.dtype(layout[0]).itemsize if layout else 0
-    if not dev.is_cpu or nbytes < MIN_BYTES:
+    if not lazy or not dev.is_cpu or nbytes < MIN_BYTES:
         return wp.zeros(shape, dtype=dtype, device=device)
     mm = mmap.mmap(-1, nbytes, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS)
     host = np.frombuffer(mm, dtype=layout[0]).reshape(*shape, *((layout[1],) if layout[1] > 1 else ()))
@@ -149,3 +159,8 @@ def lazy_zeros(shape: tuple[int, ...], dtype, device: str) -> wp.array:
         return arr
     arr._lazy_host = host  # the mapping lives as long as the array
     return arr
+
+
+def is_lazy(a: wp.array) -> bool:
+    """Whether ``a`` came from :func:`lazy_zeros` as a lazily zeroed mapping (its pages not yet taken)."""
+    return hasattr(a, "_lazy_host")

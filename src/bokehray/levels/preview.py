@@ -39,7 +39,7 @@ from ..lens import Aperture, aperture_area
 from ..options import PreviewOptions
 from ..stats import PreviewStats
 from .base import Progress, RenderContext
-from .buffers import lazy_zeros, reuse_buffers
+from .buffers import is_lazy, lazy_for, lazy_zeros, reuse_buffers
 
 __all__ = ["aperture_shape", "border_pad", "no_routing", "prefix_rows", "pyramid_buffers", "render_preview",
            "render_signed_coc", "route_salient"]
@@ -71,6 +71,10 @@ DENSE_LAYER_B = 48
 """Per pixel of a layer's box in work on a GPU, where every array is dense (``buffers.lazy_zeros`` allocates
 whole): sources (16 + 4), the radius pyramid's difference buffers (16 x 4/3) and the routing's arrays (as the CPU
 model was calibrated before its pages followed the support; not measured on a GPU)."""
+SMALL_BOX_B = 70
+"""Per pixel of the box of a layer whose arrays are zeroed at once on the CPU (a box below ``buffers.LAZY_MIN_BYTES``
+of vec4): its sources, level 0, the routing's planes and flags, dense; calibrated on measured growth at 1.5 MP
+(the demo, exact and soft maps, two workers: docs/robustness.md)."""
 TILED_B = 12
 """Per pixel of the frame in a tiled render: the output the tiles' cores are copied into (``_render_tiled``); 12 more
 where the frame is not padded, for the photo it keeps for the copied tiles (padded, that photo is the scene's colour,
@@ -87,6 +91,8 @@ def _layer_footprint(layer: sc.LayerRecord, level_radius_px: float, on_cpu: bool
     """(the pixels a layer's arrays take pages on, bytes per such pixel while it is in work)."""
     if not on_cpu:
         return _area(layer.bbox), DENSE_LAYER_B
+    if not lazy_for(layer.bbox[1] - layer.bbox[0], layer.bbox[3] - layer.bbox[2]):  # a small box: dense arrays
+        return _area(layer.bbox), SMALL_BOX_B
     dense_level0 = sc.lowest_level(layer, level_radius_px) == 0
     return _lit_area(layer), LIT_B + (LEVEL0_B if dense_level0 else 0)
 
@@ -166,7 +172,7 @@ def no_routing(device: str) -> Routing:
 
 
 def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device: str,
-                  support: sc.LayerSupport | None = None, first: int = 1) -> Routing:
+                  support: sc.LayerSupport | None = None, first: int = 1, lazy: bool = True) -> Routing:
     """Which pyramid-level sources send their excess light to level 0: alone, or as their cell's cluster.
 
     A source on pyramid level ``l`` gets its outline blurred by about ``2^l`` px. That is
@@ -184,21 +190,21 @@ def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device
     h, w = src.shape
     where = (support or sc.LayerSupport.everywhere(device)).struct()
     # the routing's arrays are mostly zero (level k writes 1 / 4^k of its plane): pages taken where written
-    exact = lazy_zeros((h, w), wp.uint8, device)
+    exact = lazy_zeros((h, w), wp.uint8, device, lazy)
     n_means = n_levels - 1  # radiance pyramid levels 1 .. n_levels - 1
     h1, w1 = (h + 1) // 2, (w + 1) // 2
-    means = lazy_zeros((n_means, h1, w1), wp.vec4, device)
-    counts = lazy_zeros((n_means, h1, w1), float, device)
+    means = lazy_zeros((n_means, h1, w1), wp.vec4, device, lazy)
+    counts = lazy_zeros((n_means, h1, w1), float, device, lazy)
     wp.launch(bk.radiance_mean_kernel, dim=(h1, w1), inputs=[src, where], outputs=[means, counts], device=device)
     fh, fw = h1, w1
     for k in range(1, n_means):
         ch, cw = (fh + 1) // 2, (fw + 1) // 2
         wp.launch(bk.halve_mean_kernel, dim=(ch, cw), inputs=[means, counts, k, fh, fw], device=device)
         fh, fw = ch, cw
-    cell_total = lazy_zeros((n_means, h1, w1), wp.vec4, device)
-    cell_pixels = lazy_zeros((n_means, h1, w1), float, device)
-    light = lazy_zeros((n_means, h1, w1), wp.vec4, device)
-    shape = lazy_zeros((n_means, h1, w1), wp.vec4, device)
+    cell_total = lazy_zeros((n_means, h1, w1), wp.vec4, device, lazy)
+    cell_pixels = lazy_zeros((n_means, h1, w1), float, device, lazy)
+    light = lazy_zeros((n_means, h1, w1), wp.vec4, device, lazy)
+    shape = lazy_zeros((n_means, h1, w1), wp.vec4, device, lazy)
     routing = Routing(exact, cell_total, cell_pixels, light, shape)
     for lev in range(max(1, first), n_levels):
         side = 1 << lev
@@ -419,14 +425,15 @@ def render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatt
     y0, y1, x0, x1 = layer.bbox
     h, w = y1 - y0, x1 - x0
     support = sc.LayerSupport.of(layer, device)
+    lazy = lazy_for(h, w)  # a small box's arrays are zeroed at once (buffers.LAZY_MIN_BYTES)
 
     def sources_zeros(shape, dtype, device):
         """Lazily zeroed: pages taken where written. The sources' plane, read over the support (routing, scatter)
         and written there at last (the result), takes the support's pages by a first write: one fault a page where
         a first read would map the shared zero page and the write fault again to copy it (12 MP: 0.14 M faults
         fewer, 3 s of CPU on this machine; doing the same to level 0 saves 0.03 M more and raises the peak 0.1 GB)."""
-        a = lazy_zeros(shape, dtype, device)
-        if dtype is wp.vec4:
+        a = lazy_zeros(shape, dtype, device, lazy)
+        if dtype is wp.vec4 and is_lazy(a):  # (``wp.zeros`` wrote every page already)
             wp.launch(bk.clear_support_kernel, dim=(h, w), inputs=[support.struct()], outputs=[a], device=device)
         return a
 
@@ -443,11 +450,11 @@ def render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatt
             # level 0's pages are taken only within the support, where light is deposited and read (the prefix
             # sums store nothing before a row's first deposit nor outside the support); above a first level of 1
             # or more it holds only the routed light and sub-pixel sources, sparse
-            bufs.append((lazy_zeros if lv == 0 else wp.zeros)(shape, wp.vec4, device))
+            bufs.append(lazy_zeros(shape, wp.vec4, device, lazy) if lv == 0 else wp.zeros(shape, wp.vec4, device))
         else:
             bufs.append(bufs[0] if lv > 0 else None)
     routed = scatter.exact_highlights and n_levels > 1
-    routing = (route_salient(src, coc, n_levels, scatter.level_radius_px, device, support, first) if routed
+    routing = (route_salient(src, coc, n_levels, scatter.level_radius_px, device, support, first, lazy) if routed
                else no_routing(device))
     levels = pyramid_buffers(bufs)
     wp.launch(bk.scatter_kernel, dim=(h, w),
@@ -486,7 +493,7 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
     device = scatter.device
     h, w = s.shape
     arrays = sc.LayerSources.upload(image, s, ids, n_slots, device, near)
-    acc = lazy_zeros((h, w), wp.vec4, device)  # its pages are taken at the first composite (after the back layer)
+    acc = lazy_zeros((h, w), wp.vec4, device, lazy_for(h, w))  # pages taken at the first composite, when lazy
 
     # Layers render independently (Warp CPU launches release the GIL) on ``threads`` workers and are composited
     # strictly back to front as they complete. A free worker takes the next layer to composite if it has not
