@@ -31,7 +31,7 @@ from typing import Self
 from urllib.parse import quote
 
 from ...errors import BokehrayError, InputError
-from .session import EXPORT_FORMATS, MAX_BODY_BYTES, ViewSession, json_integer
+from .session import MAX_BODY_BYTES, ViewSession, export_choice, json_integer
 from .worker import Busy, RenderWorker, Stopped, Superseded
 
 __all__ = ["ViewServer", "create_app"]
@@ -192,13 +192,7 @@ def _export_request(session: ViewSession, body) -> tuple:
     if not isinstance(body, dict) or set(body) - {"params", "format", "bit_depth"}:
         raise InputError("export: expected {\"params\": {...}, \"format\": ..., \"bit_depth\": ...}")
     p = session.parse(body.get("params", {}))
-    fmt = body.get("format", "png")
-    if not isinstance(fmt, str) or fmt not in EXPORT_FORMATS:
-        raise InputError(f"export format: expected one of {', '.join(EXPORT_FORMATS)}, got {fmt!r}"[:200])
-    bits = body.get("bit_depth")
-    if bits is not None and (isinstance(bits, bool) or not isinstance(bits, int) or bits not in EXPORT_FORMATS[fmt]):
-        raise InputError(f"argument --bit-depth: {fmt} takes {', '.join(map(str, EXPORT_FORMATS[fmt]))}, "
-                         f"got {bits!r}"[:200])
+    fmt, bits = export_choice(body)
     return p, fmt, bits
 
 

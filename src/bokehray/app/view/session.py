@@ -25,9 +25,20 @@ import bokehray as br
 from ...errors import InputError, OutputError, OutputExistsError
 from ...levels import PHOTO_QUALITIES, check_photo_quality
 
-__all__ = ["EXPORT_FORMATS", "MAX_BODY_BYTES", "ProxyLadder", "RenderParams", "ViewSession", "box_factor", "box_reduce",
-           "encode_jpeg", "json_integer", "json_number",
-           "parse_params"]
+__all__ = [
+    "EXPORT_FORMATS",
+    "MAX_BODY_BYTES",
+    "ProxyLadder",
+    "RenderParams",
+    "ViewSession",
+    "box_factor",
+    "box_reduce",
+    "encode_jpeg",
+    "export_choice",
+    "json_integer",
+    "json_number",
+    "parse_params",
+]
 
 MAX_BODY_BYTES = 4096
 """Largest request body the server reads (a parameter set is ~300 bytes)."""
@@ -304,6 +315,19 @@ def _signed_option(flag: str, v: float) -> list[str]:
     return [f"{flag}={text}"] if text.startswith("-") else [flag, text]
 
 
+def export_choice(body: dict) -> tuple[str, int | None]:
+    """The export's format and bit depth in a request body (``format``: PNG by default; ``bit_depth``: None or one
+    the format takes), :class:`InputError` for one it does not take."""
+    fmt = body.get("format", "png")
+    if not isinstance(fmt, str) or fmt not in EXPORT_FORMATS:
+        raise InputError(f"export format: expected one of {', '.join(EXPORT_FORMATS)}, got {fmt!r}"[:200])
+    bits = body.get("bit_depth")
+    if bits is not None and (isinstance(bits, bool) or not isinstance(bits, int) or bits not in EXPORT_FORMATS[fmt]):
+        raise InputError(f"argument --bit-depth: {fmt} takes {', '.join(map(str, EXPORT_FORMATS[fmt]))}, "
+                         f"got {bits!r}"[:200])
+    return fmt, bits
+
+
 class ViewSession:
     """One photo and its disparity, loaded once, with everything the page needs that does not change.
 
@@ -572,13 +596,7 @@ class ViewSession:
     def shown_command(self, p: RenderParams, body: dict) -> str:
         """The command shown before any export: :meth:`command` with ``-o OUTPUT.<format>`` and the bit depth
         the page's export choice holds (``format``, ``bit_depth`` in ``body``; PNG by default)."""
-        fmt = body.get("format", "png")
-        if not isinstance(fmt, str) or fmt not in EXPORT_FORMATS:
-            raise InputError(f"export format: expected one of {', '.join(EXPORT_FORMATS)}, got {fmt!r}"[:200])
-        bits = body.get("bit_depth")
-        if bits is not None and (isinstance(bits, bool) or not isinstance(bits, int) or bits not in EXPORT_FORMATS[fmt]):
-            raise InputError(f"argument --bit-depth: {fmt} takes {', '.join(map(str, EXPORT_FORMATS[fmt]))}, "
-                             f"got {bits!r}"[:200])
+        fmt, bits = export_choice(body)
         return self.command(p, f"OUTPUT.{fmt}", bit_depth=bits)
 
     def warm_up(self) -> float:
