@@ -26,8 +26,8 @@ import warp as wp
 __all__ = ["LAZY_MIN_BYTES", "MIN_BYTES", "CachingHostAllocator", "is_lazy", "lazy_for", "lazy_zeros", "reuse_buffers"]
 
 MIN_BYTES = 1 << 20
-LAZY_MIN_BYTES = 64 << 20
-"""A layer (or a window) whose ``(h, w)`` vec4 plane is smaller than this zeroes its arrays at once (``wp.zeros``;
+LAZY_MIN_BYTES = 32 << 20
+"""A layer (or a window) whose ``(h, w)`` vec4 plane is smaller than this (2 MP) zeroes its arrays at once (``wp.zeros``;
 :func:`lazy_for`): a lazily zeroed mapping takes a page fault for each page first written, which a 1.5 MP render
 paid for nothing (t32/tFFT 14.5 against 12.2, 19 % more CPU, on the quiet 2-core VM); at 12 MP the pages it never
 takes are worth it (docs/design/memory-model.md)."""

@@ -74,7 +74,7 @@ model was calibrated before its pages followed the support; not measured on a GP
 SMALL_BOX_B = 70
 """Per pixel of the box of a layer whose arrays are zeroed at once on the CPU (a box below ``buffers.LAZY_MIN_BYTES``
 of vec4): its sources, level 0, the routing's planes and flags, dense; calibrated on measured growth at 1.5 MP
-(the demo, exact and soft maps, two workers: docs/robustness.md)."""
+(the demo, exact and soft maps, two workers: 0.92-0.98 of the growth at 1.5 and 6 MP; docs/robustness.md)."""
 TILED_B = 12
 """Per pixel of the frame in a tiled render: the output the tiles' cores are copied into (``_render_tiled``); 12 more
 where the frame is not padded, for the photo it keeps for the copied tiles (padded, that photo is the scene's colour,
