@@ -496,4 +496,6 @@ def test_prefix_sums_leave_a_lazy_buffers_empty_rows_untouched():
     np.testing.assert_array_equal(host, np.cumsum(d, axis=1, dtype=np.float32))
     if before is None or after is None:
         pytest.skip("no /proc/self/smaps")
-    assert after - before < 1024  # storing every element would take all 4096 kB
+    # storing every element would take all 4096 kB, the empty rows' 3584 of them; a neighbouring mapping that shares
+    # the smaps entry can grow by about a MB meanwhile (seen once in eight runs under xdist: 1048 kB)
+    assert after - before < 2048
