@@ -1,6 +1,6 @@
 """The default focus on a portrait at 12 MP: the eyes of the nearest face against the subject search.
 
-The astronaut portrait with its painted map (``benchmarks/portrait.py``: the head painted at 0.839 behind the chest
+The astronaut portrait with its painted map (``benchmarks/photo/portrait.py``: the head painted at 0.839 behind the chest
 at 0.859) scaled to ``--side`` (3464: 12.0 MP) is rendered with the preview at the default blur (``--amount 50``),
 focused (a) by the subject search alone (``subject_focus``: the chest) and (b) by the default focus
 (``default_focus``: the eyes of the nearest face). *Eye detail* is the mean Sobel gradient magnitude of the sRGB
@@ -11,7 +11,7 @@ pixels; a camera's 12 MP file has grain and detail at every scale).
 
 Usage (from the repository root)::
 
-    python benchmarks/bench_eyes.py            # JSON to benchmarks/results/eyes.json
+    python benchmarks/photo/bench_eyes.py            # JSON to benchmarks/results/eyes.json
 """
 
 from __future__ import annotations
@@ -22,16 +22,16 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import numpy as np
-from portrait import EYES_512, portrait
 
 import bokehray as br
+from benchmarks.photo.portrait import EYES_512, portrait
 from bokehray.colour import linear_to_srgb
 from bokehray.photo.subject import AMOUNT_DEFAULT, default_focus, k_from_amount, subject_focus
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def eye_detail(img: np.ndarray, box: tuple[int, int, int, int]) -> float:

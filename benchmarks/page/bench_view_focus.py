@@ -1,6 +1,6 @@
 """The page's focus after a click on a busy machine: how long until the focused region shows at screen resolution.
 
-A 12 MP portrait (the astronaut with its painted map, ``benchmarks/portrait.py``, ``--side`` 3464) is opened as
+A 12 MP portrait (the astronaut with its painted map, ``benchmarks/photo/portrait.py``, ``--side`` 3464) is opened as
 ``bokehray view`` opens it; ``--busy`` processes spin on the CPU meanwhile (a page used beside two busy
 processes). For ``--clicks`` clicks spread over the frame, the page's server-side sequence is timed as the worker
 runs it: the preview at the ladder's proxy (the ladder moves as it does on the page), then the focus crop at the
@@ -11,7 +11,7 @@ tens of ms) is not in these numbers.
 
 Usage (from the repository root)::
 
-    python benchmarks/bench_view_focus.py          # JSON to benchmarks/results/view_focus.json
+    python benchmarks/page/bench_view_focus.py          # JSON to benchmarks/results/view_focus.json
 """
 
 from __future__ import annotations
@@ -24,11 +24,11 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from portrait import portrait
+from benchmarks.photo.portrait import portrait
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _spin(stop) -> None:

@@ -1,6 +1,6 @@
 """Grain kept: the high-pass of the blurred backdrop against the photo's, with and without the grain step.
 
-The astronaut portrait (``benchmarks/portrait.py``) at ``--side`` px with sensor-like grain added (seeded Gaussian
+The astronaut portrait (``benchmarks/photo/portrait.py``) at ``--side`` px with sensor-like grain added (seeded Gaussian
 noise of ``--noise`` 8-bit codes per channel, as a phone's or a camera's JPEG holds it), written as an 8-bit PNG
 with its painted map, is rendered by ``bokehray render`` at its defaults (the eyes' focus, ``--amount 50``) with
 and without ``--no-grain``. Measured on the 8-bit outputs: the standard deviation of a 2 px high-pass (the luma
@@ -10,7 +10,7 @@ grain, with grain) for docs/usage.md.
 
 Usage (from the repository root)::
 
-    python benchmarks/bench_grain.py --figure docs/img/grain_crops.png   # JSON to benchmarks/results/grain.json
+    python benchmarks/photo/bench_grain.py --figure docs/img/grain_crops.png   # JSON to benchmarks/results/grain.json
 """
 
 from __future__ import annotations
@@ -21,16 +21,16 @@ import sys
 import tempfile
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import numpy as np
-from portrait import portrait
 
 import bokehray as br
+from benchmarks.photo.portrait import portrait
 from bokehray.app.cli import main as cli
 from bokehray.colour import linear_to_srgb
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 BOX_1024 = (620, 40, 700, 200)  # backdrop between the head and the shuttle (x0, y0, x1, y1 at 1024 px)
 
 

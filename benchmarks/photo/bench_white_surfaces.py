@@ -13,13 +13,13 @@ a white rim are such pixels) within 8 px (at 512 px; scaled with the side) of a 
 in each output; and the mean brightness (linear) of the output over
 the clipped pixels' neighbourhood, where a white surface taken for a light glows.
 
-Inputs: the astronaut portrait (``benchmarks/portrait.py``; its white helmet rim and visor clip) at ``--side``, and a
+Inputs: the astronaut portrait (``benchmarks/photo/portrait.py``; its white helmet rim and visor clip) at ``--side``, and a
 synthetic white shirt: a clipped fabric of radiance 1.0-1.9 (folds) with a faint warm cast, in front of a grey
 backdrop, with photo noise, stored as 8-bit sRGB.
 
 Usage (from the repository root)::
 
-    python benchmarks/bench_white_surfaces.py          # JSON to benchmarks/results/white_surfaces.json
+    python benchmarks/photo/bench_white_surfaces.py          # JSON to benchmarks/results/white_surfaces.json
 """
 
 from __future__ import annotations
@@ -29,17 +29,17 @@ import json
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import numpy as np
-from portrait import portrait
 
 import bokehray as br
+from benchmarks.photo.portrait import portrait
 from bokehray.colour import linear_to_srgb, srgb_to_linear
 from bokehray.photo import highlights
 from bokehray.photo.subject import AMOUNT_DEFAULT, default_focus, k_from_amount
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def codes8(img: np.ndarray) -> np.ndarray:
