@@ -175,3 +175,22 @@ def test_an_export_without_grain_says_no_grain_in_its_command(server, tmp_path):
     np.testing.assert_array_equal(np.asarray(Image.open(out["path"])), np.asarray(Image.open(again)))
     st, _, body = post(server.url + "api/render", {"stage": "preview", "grain": "yes"})
     assert st == 400 and "grain: expected true or false" in json.loads(body)["error"]
+
+
+@pytest.mark.parametrize("f", [2, 3])
+def test_a_first_focus_crop_reduces_its_window_alone_and_agrees_with_the_screen_arrays(portrait, f):
+    """Before the sharp version has reduced the whole photo for the screen, the focus crop reduces only its window
+    (a first click waited for the whole frame's reduction); block-aligned, the window equals that slice of the
+    whole frame's reduction, the frame's last partial block included."""
+    _, s = portrait
+    s._screen = None
+    h, w = -(-s.h // f), -(-s.w // f)
+    box = (16, h, 32, w)  # reaching the frame's bottom and right edges
+    alone = s._screen_window(f, False, box)
+    assert s._screen is None  # the whole frame was not reduced for it
+    whole = s._screen_window(f, False, (0, h, 0, w))  # the uncached path, on the whole frame
+    s._screen_arrays(f, False)  # the sharp version's arrays, cached
+    sliced = s._screen_window(f, False, box)
+    for a, b, c in zip(alone, sliced, whole):
+        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
+        np.testing.assert_allclose(a, c[box[0]:, box[2]:], rtol=1e-6, atol=1e-7)
