@@ -4,7 +4,6 @@ REGRESSION, a 12 MP stage only when it also moved by a fifth of an FFT; nothing 
 from __future__ import annotations
 
 import pytest
-
 from scripts import load_script
 
 
