@@ -9,8 +9,8 @@ Two consumers, one estimate:
 
 Steps (docs/soft-scene.md): the depth edges (4-neighbour pairs whose signed CoC differs by more than
 ``jump_px``); a map whose edges are noise is left alone (:func:`isolated_share`); the unknown band (the
-depth-edge pixels, widened with the map's measured ramp width); per band pixel the kernel
-``bokehray_kernels.matting.matting_band_kernel`` (alpha, F, B and the parts' CoC).
+depth-edge pixels, widened with the map's measured ramp width: :func:`edge_band`); per band pixel the kernel
+``bokehray_kernels.matting.matting_band_kernel`` (alpha, F, B and the parts' CoC: :meth:`EdgeBand.estimate`).
 
 This module sits beside the depth fix and below the matting in the package's layers (the depth fix cannot import
 the matting), so both import it.
@@ -28,7 +28,7 @@ import numpy as np
 from ._memory import row_bands
 
 __all__ = ["PIXELS_PER_THREAD", "EdgeBand", "EdgeEstimate", "MattingRule", "Steps", "band_window", "depth_edges", "dilate", "edge_band",
-           "edges_of_steps", "estimate_edges",
+           "edges_of_steps",
            "in_parts", "isolated_share", "launch_band_kernel", "map_steps", "ramp_of_steps", "ramp_width", "window_offsets"]
 
 PIXELS_PER_THREAD = 4096
@@ -370,14 +370,3 @@ def edge_band(image: np.ndarray, signed_coc: np.ndarray, rule: MattingRule | Non
     box_img = image[y0:y1, x0:x1] / np.float32(scale)
     check()
     return EdgeBand((h, w), (y0, y1, x0, x1), by, bx, ramp, scale, box_img, s[y0:y1, x0:x1], band, radius)
-
-
-def estimate_edges(image: np.ndarray, signed_coc: np.ndarray, rule: MattingRule | None = None, *,
-                   device: str = "cpu", threads: int | None = None, check=None) -> EdgeEstimate | None:
-    """The edge estimate of every pixel of :func:`edge_band`. None where the map has no depth edge or its edges are
-    noise."""
-    rule = rule or MattingRule()
-    band = edge_band(image, signed_coc, rule, check)
-    if band is None:
-        return None
-    return band.estimate(0, band.size, rule, device=device, threads=threads, check=check)
