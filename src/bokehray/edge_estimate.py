@@ -254,53 +254,6 @@ def launch_band_kernel(img, s, band, by, bx, radius: int, rule: MattingRule, dev
 
 
 @dataclass(frozen=True, eq=False)
-class EdgeEstimate:
-    """The matting of the unknown band around a map's depth edges, on the box ``(y0, y1, x0, x1)`` of the edges
-    padded by what the band pixels' windows reach. Band pixel ``k`` lies at ``(y0 + by[k], x0 + bx[k])``.
-
-    ``alpha`` is the local linear colour model's coverage of the near part, ``fg`` / ``bg`` the near and far
-    colours and ``fg_var`` / ``bg_var`` their spreads (all in units of ``scale``: the image was divided by its
-    largest value), ``near`` / ``far`` the parts' CoC (the window's largest and smallest), ``flags`` the
-    kernel's ``BAND_OK`` / ``BAND_OWN_NEAR`` bits. ``ramp`` is the map's measured ramp width (0: its edges are
-    steps), ``image`` the scaled box of the image the model saw.
-    """
-
-    shape: tuple[int, int]
-    box: tuple[int, int, int, int]
-    by: np.ndarray
-    bx: np.ndarray
-    ramp: int
-    scale: float
-    image: np.ndarray
-    alpha: np.ndarray
-    fg: np.ndarray
-    bg: np.ndarray
-    fg_var: np.ndarray
-    bg_var: np.ndarray
-    near: np.ndarray
-    far: np.ndarray
-    flags: np.ndarray
-
-    @property
-    def ok(self) -> np.ndarray:
-        """The band pixels whose window holds a depth edge and samples of both sides."""
-        return (self.flags & bk_matting.BAND_OK) != 0
-
-    @property
-    def own_near(self) -> np.ndarray:
-        """The band pixels the map puts on the near side of their window's CoC range."""
-        return (self.flags & bk_matting.BAND_OWN_NEAR) != 0
-
-    def contrast(self, min_contrast: float) -> np.ndarray:
-        """The band pixels whose F and B differ by more than ``min_contrast`` of the brighter of the two
-        (Euclidean, linear RGB): elsewhere the colour says nothing about alpha."""
-        d = self.fg - self.bg
-        den = (d * d).sum(1)
-        bright = np.maximum((self.fg * self.fg).sum(1), (self.bg * self.bg).sum(1))
-        return (den > np.float32(min_contrast) ** 2 * bright) & (den > 1e-20)
-
-
-@dataclass(frozen=True, eq=False)
 class EdgeBand:
     """The unknown band around a map's depth edges, before its matting: band pixel ``k`` lies at
     ``(y0 + by[k], x0 + bx[k])`` of the box ``(y0, y1, x0, x1)`` (the edges padded by what a band pixel's window
@@ -328,7 +281,48 @@ class EdgeBand:
         """The edge estimate of band pixels ``a`` to ``b`` (its arrays that long; ``box``, ``image`` the band's)."""
         by, bx = self.by[a:b], self.bx[a:b]
         out = launch_band_kernel(self.image, self.coc, self.band, by, bx, self.radius, rule, device, threads, check)
-        return EdgeEstimate(self.shape, self.box, by, bx, self.ramp, self.scale, self.image, *out)
+        return EdgeEstimate(self, by, bx, *out)
+
+
+@dataclass(frozen=True, eq=False)
+class EdgeEstimate:
+    """The matting of band pixels ``by``, ``bx`` (a slice of ``band``'s: :meth:`EdgeBand.estimate`).
+
+    ``alpha`` is the local linear colour model's coverage of the near part, ``fg`` / ``bg`` the near and far
+    colours and ``fg_var`` / ``bg_var`` their spreads (all in units of ``band.scale``: the image was divided by its
+    largest value), ``near`` / ``far`` the parts' CoC (the window's largest and smallest), ``flags`` the
+    kernel's ``BAND_OK`` / ``BAND_OWN_NEAR`` bits.
+    """
+
+    band: EdgeBand
+    by: np.ndarray
+    bx: np.ndarray
+    alpha: np.ndarray
+    fg: np.ndarray
+    bg: np.ndarray
+    fg_var: np.ndarray
+    bg_var: np.ndarray
+    near: np.ndarray
+    far: np.ndarray
+    flags: np.ndarray
+
+    @property
+    def ok(self) -> np.ndarray:
+        """The band pixels whose window holds a depth edge and samples of both sides."""
+        return (self.flags & bk_matting.BAND_OK) != 0
+
+    @property
+    def own_near(self) -> np.ndarray:
+        """The band pixels the map puts on the near side of their window's CoC range."""
+        return (self.flags & bk_matting.BAND_OWN_NEAR) != 0
+
+    def contrast(self, min_contrast: float) -> np.ndarray:
+        """The band pixels whose F and B differ by more than ``min_contrast`` of the brighter of the two
+        (Euclidean, linear RGB): elsewhere the colour says nothing about alpha."""
+        d = self.fg - self.bg
+        den = (d * d).sum(1)
+        bright = np.maximum((self.fg * self.fg).sum(1), (self.bg * self.bg).sum(1))
+        return (den > np.float32(min_contrast) ** 2 * bright) & (den > 1e-20)
 
 
 def edge_band(image: np.ndarray, signed_coc: np.ndarray, rule: MattingRule | None = None,

@@ -57,8 +57,6 @@ SPLIT_B = 44
 """Bytes a split pixel holds (``SoftEdges``: its flat index, alpha, F, B and the two CoC) from the split on."""
 SPLIT_CHUNK = CHECK_ITEMS
 """Band pixels matted at a time: the kernel's outputs and the split's float64 temporaries are a chunk's."""
-CHUNK_B = 900
-"""Bytes a band pixel of the chunk in work takes at most (kernel outputs 64, the split's float64 temporaries)."""
 
 def _check(image: np.ndarray, signed_coc: np.ndarray, finite: bool = True) -> tuple[np.ndarray, np.ndarray]:
     img = np.asarray(image)
@@ -156,8 +154,9 @@ def split_mixed_pixels(
 
 def check_split_fits(band_pixels: int, shape: tuple[int, int], budget_bytes: int) -> None:
     """Refuse a split whose result cannot fit ``budget_bytes`` at worst (every band pixel split; held through the
-    layers), before the matting allocates it. A chunk's work (``CHUNK_B`` a band pixel of at most ``SPLIT_CHUNK``,
-    about 120 MB) is transient, freed before the layers, and bounded whatever the image."""
+    layers), before the matting allocates it. A chunk's work (at most ``SPLIT_CHUNK`` band pixels at about 900 B
+    each, the kernel's outputs and the split's float64 temporaries: 120 MB) is transient, freed before the layers,
+    and bounded whatever the image."""
     need = SPLIT_B * band_pixels
     if need > budget_bytes:
         h, w = shape
@@ -168,9 +167,10 @@ def check_split_fits(band_pixels: int, shape: tuple[int, int], budget_bytes: int
 
 def _split_estimate(photo: np.ndarray, est, rule: MattingRule) -> SoftEdges:
     """The split pixels among the band pixels of one edge estimate (``bokehray.edge_estimate.EdgeEstimate``)."""
-    w = est.shape[1]
-    y0, y1, x0, x1 = est.box
-    by, bx, ramp, scale = est.by, est.bx, est.ramp, est.scale
+    band = est.band
+    w = band.shape[1]
+    y0, y1, x0, x1 = band.box
+    by, bx, ramp, scale = est.by, est.bx, band.ramp, band.scale
     alpha, F, B, vF, vB, near, far = est.alpha, est.fg, est.bg, est.fg_var, est.bg_var, est.near, est.far
     ok, own_near = est.ok, est.own_near
     min_alpha, max_alpha, model_sd = rule.min_alpha, rule.max_alpha, rule.model_sd
@@ -179,7 +179,7 @@ def _split_estimate(photo: np.ndarray, est, rule: MattingRule) -> SoftEdges:
     den = (d * d).sum(1)
     contrast = est.contrast(rule.min_contrast)
     if model_sd is not None:
-        alpha = fuse_alpha(alpha, est.image[by, bx], F, B, vF, vB, float(model_sd))
+        alpha = fuse_alpha(alpha, band.image[by, bx], F, B, vF, vB, float(model_sd))
     lo_a = np.float32(min_alpha)
     hi_a = np.float32(max_alpha)
     mixed = (alpha >= lo_a) & (alpha <= hi_a)
@@ -187,7 +187,7 @@ def _split_estimate(photo: np.ndarray, est, rule: MattingRule) -> SoftEdges:
         # a sharp map's labels are trusted: a pixel the model calls mixed but whose colour's place on the F-B line
         # is F or B stays whole (a pure corner whose window is mostly the other side's texture). A soft map's
         # F and B are rougher; there the model alone decides (the check lost 0.4 dB on the estimated maps)
-        proj = np.clip(((est.image[by, bx] - B) * d).sum(1) / np.maximum(den, np.float32(1e-30)), 0.0, 1.0)
+        proj = np.clip(((band.image[by, bx] - B) * d).sum(1) / np.maximum(den, np.float32(1e-30)), 0.0, 1.0)
         mixed &= (proj >= lo_a) & (proj <= hi_a)
     misplaced = ((alpha < lo_a) & own_near) | ((alpha > hi_a) & ~own_near)
     split = ok & contrast & (mixed | misplaced) & (near > far)

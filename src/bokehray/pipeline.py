@@ -122,14 +122,14 @@ def _soft_scene(image: np.ndarray, signed_coc: np.ndarray, layers: LayerOptions,
     from .matting import MattingRule, split_mixed_pixels
     from .ramps import snap_ramps
 
-    ramp_px = 6  # the matting's own reading of ramps: its band and window widen with the measured ramp width
+    rule = MattingRule()  # the matting's own reading of ramps: its band and window widen with the ramp width
     if layers.soft_maps:
         signed_coc, _ = snap_ramps(image, signed_coc, device=device, check=check)
         clock.lap("soft maps")
-        ramp_px = 0  # the ramps are steps now: the band of a hard map (docs/design/soft-maps.md: 10x less work)
+        rule = MattingRule(max_ramp_px=0)  # the ramps are steps now (docs/design/soft-maps.md: 10x less work)
     budget = None if memory is None else tiling.budget_bytes(memory) - HELD_DURING_SPLIT_B * signed_coc.size
-    soft = split_mixed_pixels(image, signed_coc, MattingRule(max_ramp_px=ramp_px), finite_checked=finite_checked,
-                              check=check, budget_bytes=budget)
+    soft = split_mixed_pixels(image, signed_coc, rule, finite_checked=finite_checked, check=check,
+                              budget_bytes=budget)
     scene.check_soft_edges(soft, signed_coc.shape)
     clock.lap("edges")
     return signed_coc, soft

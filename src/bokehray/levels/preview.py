@@ -428,9 +428,10 @@ def render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatt
     lazy = lazy_for(h, w)  # a small box's arrays are zeroed at once (buffers.LAZY_MIN_BYTES)
 
     def sources_zeros(shape, dtype, device):
-        """Lazily zeroed: pages taken where written. The sources' plane, read over the support (routing, scatter)
-        and written there at last (the result), takes the support's pages by a first write: one fault a page where
-        a first read would map the shared zero page and the write fault again to copy it (12 MP: 0.14 M faults
+        """Lazily zeroed on a large box (``lazy``): pages taken where written. The sources' plane, read over the
+        support (routing, scatter) and written there at last (the result), takes the support's pages by a first
+        write: one fault a page where a first read would map the shared zero page and the write fault again to copy
+        it (12 MP: 0.14 M faults
         fewer, 3 s of CPU on this machine; doing the same to level 0 saves 0.03 M more and raises the peak 0.1 GB)."""
         a = lazy_zeros(shape, dtype, device, lazy)
         if dtype is wp.vec4 and is_lazy(a):  # (``wp.zeros`` wrote every page already)
