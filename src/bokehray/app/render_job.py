@@ -563,7 +563,6 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:  
     stats.stage_seconds = {**clock.laps, "total": clock.total()}  # the whole command, start-up to the file
     if grain is not None:  # said once the file is written, as a render with --blur and --focus says nothing before
         _say(args, f"grain: {grain.describe()} (--no-grain keeps the blur clean)")
-        del grain
     if not args.quiet:
         refined = (f", refined {stats.refine['tiles_refined']}/{stats.refine['tiles_total']} tiles"
                    if stats.refine else "")

@@ -360,6 +360,7 @@ class ViewSession:
         if self.raw_image.ndim == 2:
             self.raw_image = self.raw_image[..., None]
         self.disparity = np.ascontiguousarray(disparity, np.float32)
+        self.d_lo, self.d_hi = float(self.disparity.min()), float(self.disparity.max())  # the map's range, read once
         self.h, self.w = self.raw_image.shape[:2]
         if self.disparity.shape != (self.h, self.w):
             raise InputError(f"disparity: expected shape {(self.h, self.w)} (the image's H x W), got "
@@ -455,7 +456,7 @@ class ViewSession:
     def depth_range_m(self) -> tuple[float, float] | None:
         if self.norm is None:
             return None
-        return float(self.norm.depth(float(self.disparity.max()))), float(self.norm.depth(float(self.disparity.min())))
+        return float(self.norm.depth(self.d_hi)), float(self.norm.depth(self.d_lo))
 
     def info(self) -> dict:
         from ...photo.subject import AMOUNT_DEFAULT
@@ -569,7 +570,7 @@ class ViewSession:
         y0 = min(max(0, y // f - half), max(0, h - 2 * half))
         x1, y1 = min(w, x0 + 2 * half), min(h, y0 + 2 * half)
         blur = br.BlurParams(p.blur.k_px / f, p.blur.focus_disparity)
-        reach = math.ceil(float(blur.coc_radius(np.array([self.disparity.min(), self.disparity.max()])).max())) + 2
+        reach = math.ceil(float(blur.coc_radius(np.array([self.d_lo, self.d_hi])).max())) + 2
         tile = 16  # the window starts on the sharp version's tile grid (LayerOptions.tile_px): the same tiles copied
         wx0, wy0 = max(0, x0 - reach) // tile * tile, max(0, y0 - reach) // tile * tile
         wx1, wy1 = min(w, x1 + reach), min(h, y1 + reach)
@@ -595,7 +596,7 @@ class ViewSession:
             what = "the focus distance"
         else:
             what = "the focus slider's depth"
-        lo, hi = float(self.disparity.min()), float(self.disparity.max())
+        lo, hi = self.d_lo, self.d_hi
         d = p.blur.focus_disparity
         t = (d - lo) / (hi - lo) if hi - lo > 1e-6 else 1.0
         where = "near" if t >= 2 / 3 else "in the middle distance" if t >= 1 / 3 else "far"
@@ -688,14 +689,13 @@ class ViewSession:
         restored where the blur removed it (on a copy: the full render stays cached as rendered)."""
         if not self.display_referred or not p.grain:
             return out
-        from ...photo.grain import output_bits, plan_grain, restore_grain
+        from ...photo.grain import keep_grain, output_bits
 
-        plan = plan_grain(self._variant(p.reconstructs)[0], p.blur.coc_radius(self.disparity))
-        return restore_grain(out.copy(), plan.grain, plan.removed, dither_bits=output_bits(str(path), bits))
+        return keep_grain(out.copy(), self._variant(p.reconstructs)[0], self.disparity, p.blur,
+                          dither_bits=output_bits(str(path), bits))
 
     def export(self, p: RenderParams, fmt: str, bit_depth: int | None, check=None) -> tuple[Path, str]:
-        if not isinstance(fmt, str) or fmt not in EXPORT_FORMATS:
-            raise InputError(f"export format: expected one of {', '.join(EXPORT_FORMATS)}, got {fmt!r}"[:200])
+        fmt, _ = export_choice({"format": fmt})
         if bit_depth is not None and (isinstance(bit_depth, bool) or not isinstance(bit_depth, int)):
             raise InputError(f"argument --bit-depth: invalid int value: {bit_depth!r}"[:200])
         bits, half = bit_depth, False  # EXR at 16 bits is half float, as `--bit-depth 16` gives
