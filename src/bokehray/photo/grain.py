@@ -28,6 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .._memory import row_bands
+
 __all__ = ["FLAT_QUANTILE", "HIGHPASS_SIGMA", "TILE", "Grain", "GrainPlan", "keep_grain", "measure_grain",
            "output_bits", "plan_grain", "removed_share", "restore_grain"]
 
@@ -164,19 +166,22 @@ def restore_grain(rendered: np.ndarray, grain: Grain, removed: np.ndarray, *, se
     planes = out[..., None] if out.ndim == 2 else out
     for c in range(min(3, planes.shape[2])):  # grey (one plane): the luma's grain
         own = own_std[c] if planes.shape[2] >= 3 else 0.0
-        noise = shared.copy()
-        if own > 0.0:
-            noise += _unit_noise(rng, shape) * np.float32(own)
-        if dither is not None:
-            noise += dither
-        noise *= w
-        v = planes[..., c]
-        # d(linear)/d(sRGB) at the pixel's value: 2.4 / 1.055 * lin^(1/2.4 * 1.4); 1/12.92 on the linear toe
-        lin = np.clip(v, 0.0, 1.0)
-        slope = np.where(lin > 0.0031308, np.float32(2.4 / 1.055) * np.power(lin, np.float32(1.4 / 2.4)),
-                         np.float32(1.0 / 12.92)).astype(np.float32)
-        v += np.where(v < 1.0, noise * slope, 0.0).astype(np.float32)
-        np.maximum(v, 0.0, out=v)
+        own_noise = _unit_noise(rng, shape) * np.float32(own) if own > 0.0 else None  # drawn whole: seeded alike
+        for y0, y1 in row_bands(*shape):  # the arithmetic a band at a time: its temporaries stay small
+            noise = shared[y0:y1].copy()
+            if own_noise is not None:
+                noise += own_noise[y0:y1]
+            if dither is not None:
+                noise += dither[y0:y1]
+            noise *= w[y0:y1]
+            v = planes[y0:y1, :, c]
+            # d(linear)/d(sRGB) at the pixel's value: 2.4 / 1.055 * lin^(1/2.4 * 1.4); 1/12.92 on the linear toe
+            lin = np.clip(v, 0.0, 1.0)
+            noise *= np.where(lin > 0.0031308, np.float32(2.4 / 1.055) * np.power(lin, np.float32(1.4 / 2.4)),
+                              np.float32(1.0 / 12.92))
+            noise[v >= 1.0] = 0.0
+            v += noise
+            np.maximum(v, 0.0, out=v)
     return out
 
 
