@@ -96,3 +96,13 @@ def test_a_batch_lowers_its_workers_to_fit_the_memory_available(tmp_path, capsys
                  "--focus", "0.5", "--workers", "2"])
     err = capsys.readouterr().err
     assert code == 0 and "instead of" not in err and "2 workers" in err, err
+
+
+def test_a_resumed_sweep_s_captions_do_not_mix_metres_and_none(tmp_path):
+    """A resumed run knows the distances of the frames it rendered only: every caption drops them, not some."""
+    frames = [tmp_path / "a_focus_0.2.png", tmp_path / "a_focus_0.8.png"]
+    labels = {str(frames[0]): "0.200", str(frames[1]): "0.800"}
+    both = {str(frames[0]): {"focus_m": 3.0}, str(frames[1]): {"focus_m": 1.5}}
+    assert batch._captions("focus", frames, labels, both) == ["focus 0.200, 3 m", "focus 0.800, 1.5 m"]
+    one = {str(frames[1]): {"focus_m": 1.5}}  # the first frame was skipped as already written
+    assert batch._captions("focus", frames, labels, one) == ["focus 0.200", "focus 0.800"]

@@ -422,6 +422,14 @@ def frame_caption(name: str, label: str, done: dict | None = None) -> str:
     return f"focus {label}" + (f", {metres:.3g} m" if metres is not None and math.isfinite(metres) else "")
 
 
+def _captions(name: str, frames: list[Path], frame_label: dict[str, str], results: dict) -> list[str]:
+    """The captions of a sweep's frames: with metres only when every frame was rendered in this run (a resumed run
+    skips the frames already written, whose distances it does not know: one GIF must not mix the two)."""
+    done = [results.get(str(f)) for f in frames]
+    every = all(d is not None for d in done)
+    return [frame_caption(name, frame_label[str(f)], d if every else None) for f, d in zip(frames, done)]
+
+
 def _caption(im, text: str):
     """``text`` drawn small (Pillow's built-in bitmap font) on a dark box in the frame's top-left corner."""
     from PIL import ImageDraw, ImageFont
@@ -663,8 +671,7 @@ def run_batch(args: argparse.Namespace) -> int:  # noqa: C901
             continue
         if args.overwrite or args.gif_labels or not gif.exists() or any(f.stat().st_mtime > gif.stat().st_mtime for f in frames):
             try:
-                captions = ([frame_caption(name, frame_label[str(f)], results.get(str(f))) for f in frames]
-                            if args.gif_labels else None)
+                captions = _captions(name, frames, frame_label, results) if args.gif_labels else None
                 _gif(frames, gif, gif_width, fps, captions)
                 gifs += 1
             except Exception as e:  # noqa: BLE001 - a preview that fails is reported like a render
