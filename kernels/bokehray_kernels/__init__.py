@@ -8,7 +8,8 @@ NumPy oracle in ``tests/reference/`` and a test comparing them.
 By concern: ``aperture`` (the shape's chords), ``spans`` (a source's row-span deposits), ``pyramid`` (the radius
 pyramid: scatter, prefix sums, resolve), ``routing`` (salient lights to level 0), ``composite`` (layers back to
 front), ``fill`` (layer sources and the pull-push fill), ``soft`` (the near parts of split pixels), ``matting``
-(soft edges at depth edges), ``ramps`` (a soft map's ramps read as edges), ``vote`` (the depth correction's colour vote), ``raytrace`` (the layered ray tracer),
+(soft edges at depth edges), ``split`` (a band pixel's near and far parts from its estimate), ``ramps`` (a soft
+map's ramps read as edges), ``vote`` (the depth correction's colour vote), ``raytrace`` (the layered ray tracer),
 ``pisa`` (the refiner's attention masks); ``support``, ``reduce`` and ``sampling`` hold what several of them share.
 """
 
@@ -40,6 +41,7 @@ from .routing import route_cells_kernel as route_cells_kernel
 from .routing import scatter_clusters_kernel as scatter_clusters_kernel
 from .soft import near_sources_kernel as near_sources_kernel
 from .spans import Shape as Shape
+from .split import split_kernel as split_kernel
 from .support import Support as Support
 
 __all__ = [
@@ -72,4 +74,5 @@ __all__ = [
     "row_distance_kernel",
     "scatter_clusters_kernel",
     "scatter_kernel",
+    "split_kernel",
 ]

@@ -54,8 +54,10 @@ def _sobel(coc: wp.array2d(dtype=float), y: int, x: int) -> wp.vec2:
 
 
 @wp.kernel
-def ramp_gradient_kernel(coc: wp.array2d(dtype=float), grad: wp.array2d(dtype=float)):
-    y, x = wp.tid()
+def ramp_gradient_kernel(coc: wp.array2d(dtype=float), row0: int, grad: wp.array2d(dtype=float)):
+    """The gradient of rows ``row0`` on (a launch of ``(rows, W)``: a band of rows a CPU thread)."""
+    t, x = wp.tid()
+    y = row0 + t
     grad[y, x] = wp.length(_sobel(coc, y, x))
 
 

@@ -348,7 +348,7 @@ def edge_band(image: np.ndarray, signed_coc: np.ndarray, rule: MattingRule | Non
         return None  # noise in the map, not edges
     # max |v| as max(max v, -min v): the same value, without a frame-sized |image|
     scale = max(float(image.max()), -float(image.min())) or 1.0
-    ramp = ramp_of_steps(s, steps, int(max_ramp_px))
+    ramp = ramp_of_steps(s, steps, int(max_ramp_px)) if max_ramp_px > 0 else 0  # capped at 0: not measured
     del steps
     check()
     b = int(band_px) + (ramp + 1) // 2

@@ -3,8 +3,8 @@
 A pixel on the edge of a near object holds both colours, ``I = alpha F + (1 - alpha) B``, but a disparity map
 gives it one depth. :func:`split_mixed_pixels` finds those pixels and estimates ``alpha``, the decontaminated
 foreground ``F`` and the background ``B`` behind it, so the layered scene (``bokehray.scene.SoftEdges``) can
-blur the two parts with their own CoC. NumPy for the edges and the band, one Warp kernel a band pixel
-(``bokehray_kernels.matting``) for the matting:
+blur the two parts with their own CoC. NumPy for the edges and the band, Warp kernels a band pixel
+for the matting (``bokehray_kernels.matting``) and the split (``bokehray_kernels.split``):
 
 1. **Depth edges.** Pairs of 4-neighbours whose signed CoC differs by more than ``jump_px``
    (``edge_estimate.depth_edges``). A map whose edges are noise (most pixels differ from all their neighbours:
@@ -28,7 +28,7 @@ blur the two parts with their own CoC. NumPy for the edges and the band, one War
    from. The parts' CoC are the window's largest and smallest CoC (the plateaus either side of the edge), not
    the pixel's own value, which a soft map's ramp leaves in between.
 4b. **Alpha fused with the projection.** The model's alpha (biased towards the window's mean by the ridge) and the
-   projection of the pixel's colour on its F-B line are fused by their inverse variances (:func:`fuse_alpha`):
+   projection of the pixel's colour on its F-B line are fused by their inverse variances:
    over flat sides the projection decides, over texture the model.
 5. **Compositing identity.** Per channel, the change of (F, B) that makes ``alpha F + (1 - alpha) B`` the
    photo's colour while moving each part the least relative to the spread of its side's colours (a light
@@ -44,14 +44,16 @@ pixel is untouched. Results and the choice of method: docs/soft-scene.md.
 
 from __future__ import annotations
 
+import bokehray_kernels.matting as bk_matting
+import bokehray_kernels.split as bk_split
 import numpy as np
 
-from .edge_estimate import CHECK_ITEMS, MattingRule, edge_band
+from .edge_estimate import CHECK_ITEMS, MattingRule, edge_band, in_parts
 from .errors import InputError, ResourceError
 from .scene import SoftEdges
 from .validate import check_finite
 
-__all__ = ["SPLIT_B", "MattingRule", "check_split_fits", "fuse_alpha", "split_mixed_pixels"]
+__all__ = ["SPLIT_B", "MattingRule", "check_split_fits", "split_mixed_pixels"]
 
 SPLIT_B = 44
 """Bytes a split pixel holds (``SoftEdges``: its flat index, alpha, F, B and the two CoC) from the split on."""
@@ -114,12 +116,13 @@ def split_mixed_pixels(
               foreground's colour where F is a little off), a faint background one is split (whole, its share of
               the strand would stay sharp and feed the fill behind the strand).
             * ``model_sd``: the standard deviation given to the model's alpha when it is fused with the projection
-              of the pixel's colour on the F-B line (:func:`fuse_alpha`); None: the model's alpha alone.
+              of the pixel's colour on the F-B line (whose variance is the spread of F's and B's samples carried
+              through it); None: the model's alpha alone.
             * ``max_isolated_share``: a map where more than this share of the pixels differ by more than
               ``jump_px`` from all their neighbours is noise, not edges: nothing is split (a strand one pixel wide,
               even diagonal, has neighbours of its own depth along it).
-        device: the Warp device of the band's kernel.
-        threads: CPU threads of the kernel (None: all cores); the result does not depend on it.
+        device: the Warp device of the band's kernels.
+        threads: CPU threads of the kernels (None: all cores); the result does not depend on it.
         finite_checked: the caller has already refused NaN and Inf in both arrays (the render pipeline: a checked
             photo, a CoC computed from a checked map): the scans for them (a pass over the frame each) are skipped.
         check: called between the steps and between rounds of the band's kernel; it raises to stop the split (a
@@ -146,7 +149,7 @@ def split_mixed_pixels(
     pieces = []
     for a in range(0, band.size, SPLIT_CHUNK):  # the work of a chunk at a time (its float64 temporaries)
         est = band.estimate(a, min(band.size, a + SPLIT_CHUNK), rule, device=device, threads=threads, check=check)
-        pieces.append(_split_estimate(img, est, rule))
+        pieces.append(_split_estimate(img, est, rule, device=device, threads=threads))
     return pieces[0] if len(pieces) == 1 else SoftEdges(*(np.concatenate([getattr(p, f) for p in pieces])
                                                           for f in ("index", "alpha", "foreground", "background",
                                                                     "near_coc", "far_coc")))
@@ -165,74 +168,55 @@ def check_split_fits(band_pixels: int, shape: tuple[int, int], budget_bytes: int
                             "(a map that is edges everywhere; give more memory, or LayerOptions(soft_edges=False))")
 
 
-def _split_estimate(photo: np.ndarray, est, rule: MattingRule) -> SoftEdges:
-    """The split pixels among the band pixels of one edge estimate (``bokehray.edge_estimate.EdgeEstimate``)."""
+def _split_estimate(photo: np.ndarray, est, rule: MattingRule, *, device: str = "cpu",
+                    threads: int | None = None) -> SoftEdges:
+    """The split pixels among the band pixels of one edge estimate (``bokehray.edge_estimate.EdgeEstimate``):
+    ``bokehray_kernels.split.split_kernel`` decides and splits each (steps 4b and 5 above), on the threads of
+    :func:`~bokehray.edge_estimate.in_parts`; the split ones are gathered here."""
+    import warp as wp
+
     band = est.band
     w = band.shape[1]
-    y0, y1, x0, x1 = band.box
-    by, bx, ramp, scale = est.by, est.bx, band.ramp, band.scale
-    alpha, F, B, vF, vB, near, far = est.alpha, est.fg, est.bg, est.fg_var, est.bg_var, est.near, est.far
-    ok, own_near = est.ok, est.own_near
-    min_alpha, max_alpha, model_sd = rule.min_alpha, rule.max_alpha, rule.model_sd
+    y0, x0 = band.box[0], band.box[2]
+    n = est.by.size
+    dev = wp.get_device(device)
+    copy = not dev.is_cpu  # on the CPU the kernel reads the (contiguous) arrays in place
+    fields = {"alpha": (est.alpha, float), "fg": (est.fg, wp.vec3), "bg": (est.bg, wp.vec3),
+              "fg_var": (est.fg_var, wp.vec3), "bg_var": (est.bg_var, wp.vec3), "near_coc": (est.near, float),
+              "far_coc": (est.far, float), "flags": (est.flags, wp.int32)}
+    image = wp.array(band.image, dtype=wp.vec3, device=dev, copy=copy)
+    frame = wp.array(photo, dtype=wp.vec3, device=dev, copy=copy)
+    params = _split_rule(rule, band)
+    split = np.zeros(n, np.uint8)
+    alpha, fg, bg = np.empty(n, np.float32), np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
 
-    d = F - B
-    den = (d * d).sum(1)
-    contrast = est.contrast(rule.min_contrast)
-    if model_sd is not None:
-        alpha = fuse_alpha(alpha, band.image[by, bx], F, B, vF, vB, float(model_sd))
-    lo_a = np.float32(min_alpha)
-    hi_a = np.float32(max_alpha)
-    mixed = (alpha >= lo_a) & (alpha <= hi_a)
-    if ramp == 0:
-        # a sharp map's labels are trusted: a pixel the model calls mixed but whose colour's place on the F-B line
-        # is F or B stays whole (a pure corner whose window is mostly the other side's texture). A soft map's
-        # F and B are rougher; there the model alone decides (the check lost 0.4 dB on the estimated maps)
-        proj = np.clip(((band.image[by, bx] - B) * d).sum(1) / np.maximum(den, np.float32(1e-30)), 0.0, 1.0)
-        mixed &= (proj >= lo_a) & (proj <= hi_a)
-    misplaced = ((alpha < lo_a) & own_near) | ((alpha > hi_a) & ~own_near)
-    split = ok & contrast & (mixed | misplaced) & (near > far)
-    if not split.any():
+    def launch(a: int, b: int) -> None:
+        if b == a:
+            return
+        inp = bk_matting.BandEstimate()
+        for name, (values, dtype) in fields.items():
+            setattr(inp, name, wp.array(np.ascontiguousarray(values[a:b]), dtype=dtype, device=dev, copy=copy))
+        out = bk_split.SplitOut()
+        out.split, out.alpha = wp.empty(b - a, dtype=wp.uint8, device=dev), wp.empty(b - a, dtype=float, device=dev)
+        out.fg, out.bg = wp.empty(b - a, dtype=wp.vec3, device=dev), wp.empty(b - a, dtype=wp.vec3, device=dev)
+        wp.launch(bk_split.split_kernel, dim=b - a, device=dev,
+                  inputs=[inp, image, frame, wp.array(est.by[a:b], dtype=wp.int32, device=dev),
+                          wp.array(est.bx[a:b], dtype=wp.int32, device=dev), params, out])
+        split[a:b], alpha[a:b], fg[a:b], bg[a:b] = (v.numpy() for v in (out.split, out.alpha, out.fg, out.bg))
+
+    in_parts(n, launch, threads=threads, cpu=dev.is_cpu)
+    k = np.flatnonzero(split)
+    if k.size == 0:
         return SoftEdges.empty()
-    a = np.clip(alpha[split], lo_a, hi_a).astype(np.float32)
-    Fk, Bk = F[split], B[split]
-    floor = np.float32(1e-4) * (Fk ** 2 + Bk ** 2) + np.float32(1e-20)
-    Fs, Bs = _composite_exact(photo[y0:y1, x0:x1][by[split], bx[split]], a, Fk * np.float32(scale),
-                              Bk * np.float32(scale), vF[split] + floor, vB[split] + floor)
-    index = (by[split] + y0).astype(np.int64) * w + (bx[split] + x0)  # row-major: sorted, unique
-    return SoftEdges(index, a, Fs, Bs, near[split], far[split])
+    index = (est.by[k] + y0).astype(np.int64) * w + (est.bx[k] + x0)  # row-major: sorted, unique
+    return SoftEdges(index, alpha[k], fg[k], bg[k], est.near[k], est.far[k])
 
 
-def fuse_alpha(alpha: np.ndarray, I: np.ndarray, F: np.ndarray, B: np.ndarray, var_f: np.ndarray,
-               var_b: np.ndarray, model_sd: float) -> np.ndarray:
-    """The linear model's alpha fused with the projection of the pixel's colour on its F-B line, each weighted by
-    the inverse of its variance: the model's is ``model_sd^2``; the projection's is the spread of F and B's samples
-    carried through it, ``(a^2 |var F| + (1 - a)^2 |var B|) / |F - B|^2``. Where both sides are uniform (a wire
-    over the sky) the projection is exact and the model's ridge bias goes; over texture the model decides."""
-    a = alpha.astype(np.float64)
-    d = (F - B).astype(np.float64)
-    den = np.maximum((d * d).sum(1), 1e-30)
-    proj = ((I.astype(np.float64) - B) * d).sum(1) / den
-    vp = (a * a * var_f.astype(np.float64).sum(1) + (1 - a) ** 2 * var_b.astype(np.float64).sum(1)) / den
-    vm = model_sd * model_sd
-    out = (a * vp + proj * vm) / (vp + vm)
-    return np.clip(out, 0.0, 1.0).astype(np.float32)
-
-
-def _composite_exact(I: np.ndarray, a: np.ndarray, F: np.ndarray, B: np.ndarray, var_f: np.ndarray,
-                     var_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(F, B) moved the least, per channel, so that ``a F + (1 - a) B = I``: the change minimises
-    ``dF^2 / var_f + dB^2 / var_b`` (the side whose colours vary more nearby takes more of it: a light behind a
-    strand stays in B instead of lighting up the strand), then F is kept between 0 and ``I / a`` and B between 0
-    and ``I / (1 - a)`` (no negative light, no part brighter than its share of the pixel allows)."""
-    I64, F64, B64 = I.astype(np.float64), F.astype(np.float64), B.astype(np.float64)
-    vf, vb = var_f.astype(np.float64), var_b.astype(np.float64)
-    a64 = a.astype(np.float64)[:, None]
-    r = I64 - a64 * F64 - (1.0 - a64) * B64
-    norm = a64 * a64 * vf + (1.0 - a64) * (1.0 - a64) * vb
-    Fn = F64 + r * a64 * vf / norm
-    lo = np.minimum(0.0, I64 / a64)
-    hi = np.maximum(0.0, I64 / a64)
-    Fn = np.clip(Fn, lo, hi)
-    Bn = (I64 - a64 * Fn) / (1.0 - a64)
-    Bn = np.clip(Bn, np.minimum(0.0, I64 / (1.0 - a64)), np.maximum(0.0, I64 / (1.0 - a64)))  # rounding only
-    return Fn.astype(np.float32), Bn.astype(np.float32)
+def _split_rule(rule: MattingRule, band) -> bk_split.SplitRule:
+    p = bk_split.SplitRule()
+    p.min_alpha, p.max_alpha, p.min_contrast = float(rule.min_alpha), float(rule.max_alpha), float(rule.min_contrast)
+    p.model_sd = -1.0 if rule.model_sd is None else float(rule.model_sd)
+    p.sharp = int(band.ramp == 0)  # a sharp map's labels are trusted: its projection must be mixed too
+    p.scale = float(band.scale)
+    p.y0, p.x0 = int(band.box[0]), int(band.box[2])
+    return p

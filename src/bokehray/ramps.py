@@ -75,7 +75,13 @@ def snap_ramps(image: np.ndarray, signed_coc: np.ndarray, rule: RampRule | None 
     copy = not dev.is_cpu  # on the CPU the kernels read the (contiguous) arrays in place
     coc = wp.array(s, dtype=float, device=dev, copy=copy)
     grad = wp.empty((h, w), dtype=float, device=dev)
-    wp.launch(bk_ramps.ramp_gradient_kernel, dim=(h, w), inputs=[coc], outputs=[grad], device=dev)
+
+    def gradient(a: int, b: int) -> None:  # pixels a to b: the rows from ceil(a / w) on (the parts tile the rows)
+        y0, y1 = -(-a // w), -(-b // w)
+        if y1 > y0:
+            wp.launch(bk_ramps.ramp_gradient_kernel, dim=(y1 - y0, w), inputs=[coc, y0], outputs=[grad], device=dev)
+
+    in_parts(h * w, gradient, threads=threads, cpu=dev.is_cpu)
     g = grad.numpy()
     cand = np.flatnonzero(g > np.float32(rule.grad_min))
     if cand.size == 0:

@@ -323,27 +323,6 @@ def test_a_pure_corner_over_noise_stays_whole():
     assert not ((y >= 20) & (y < 60) & (x >= 20) & (x < 60)).any()
 
 
-def test_fused_alpha_matches_the_reference():
-    from reference.matting_ref import fuse_alpha_ref
-
-    from bokehray.matting import fuse_alpha
-
-    rng = np.random.default_rng(5)
-    n = 200
-    alpha = rng.uniform(0, 1, n).astype(np.float32)
-    fg, bg = rng.uniform(0, 1, (n, 3)).astype(np.float32), rng.uniform(0, 1, (n, 3)).astype(np.float32)
-    var_f = (rng.uniform(0, 0.05, (n, 3)) * (rng.uniform(0, 1, (n, 1)) < 0.7)).astype(np.float32)  # some exact 0
-    var_b = rng.uniform(0, 0.05, (n, 3)).astype(np.float32)
-    image = (rng.uniform(-0.1, 1.1, (n, 1)) * fg + rng.uniform(0, 1, (n, 1)) * bg).astype(np.float32)
-    got = fuse_alpha(alpha, image, fg, bg, var_f, var_b, 0.1)
-    np.testing.assert_allclose(got, fuse_alpha_ref(alpha, image, fg, bg, var_f, var_b, 0.1), atol=2e-6)
-    # uniform sides: the projection decides; a very sure model: the model decides
-    z = np.zeros((n, 3), np.float32)
-    proj = np.clip(((image - bg) * (fg - bg)).sum(1) / ((fg - bg) ** 2).sum(1), 0, 1)
-    np.testing.assert_allclose(fuse_alpha(alpha, image, fg, bg, z, z, 0.1), proj, atol=1e-5)
-    np.testing.assert_allclose(fuse_alpha(alpha, image, fg, bg, var_f + 0.01, var_b, 1e-6), alpha, atol=1e-4)
-
-
 def test_a_wire_over_a_flat_sky_gets_its_coverage():
     """A grey 2.5 px wire at a slant over a flat dark sky (the demo's wire): every mixed pixel the map's edge
     touches is split with its true coverage (the linear model's ridge bias alone left errors of 0.05, and pixels
