@@ -204,6 +204,8 @@ class MattingRule:
         p = bk_matting.BandParams()
         p.jump_px, p.unknown_weight, p.ridge, p.purity = (float(self.jump_px), float(self.unknown_weight),
                                                           float(self.ridge), float(self.purity))
+        whole = float(self.purity).is_integer() and 0 <= self.purity <= 64
+        p.purity_n = int(self.purity) if whole else -1
         return p
 
 
