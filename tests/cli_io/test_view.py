@@ -115,10 +115,21 @@ def box_reduce_reference(a: np.ndarray, f: int) -> np.ndarray:
     return out
 
 
-@pytest.mark.parametrize("shape,f", [((7, 5), 1), ((7, 5), 2), ((9, 13, 3), 4), ((6, 6, 1), 3)])
+@pytest.mark.parametrize("shape,f", [((7, 5), 1), ((7, 5), 2), ((9, 13, 3), 4), ((6, 6, 1), 3), ((5, 3, 3), 7),
+                                     ((17, 11, 4), 3), ((1, 9), 4)])
 def test_box_reduce_matches_the_loop(shape, f):
     a = np.random.default_rng(1).random(shape).astype(np.float32)
-    np.testing.assert_allclose(box_reduce(a, f), box_reduce_reference(a, f), rtol=1e-5, atol=1e-6)
+    got = box_reduce(a, f)
+    assert got.dtype == np.float32 and got.flags.c_contiguous
+    np.testing.assert_allclose(got, box_reduce_reference(a, f), rtol=1e-5, atol=1e-6)
+
+
+def test_box_reduce_of_a_strided_hdr_view():
+    """A crop of the photo (a strided view) with lights 1e4 times the rest: the block means as the loop's."""
+    a = np.random.default_rng(2).random((40, 50, 3)).astype(np.float32)
+    a[::7, ::5] *= 1e4
+    view = a[3:38, 5:47]
+    np.testing.assert_allclose(box_reduce(view, 4), box_reduce_reference(view, 4), rtol=1e-5, atol=1e-6)
 
 
 def test_proxy_preview_approximates_the_reduced_full_render(scene_files):

@@ -62,15 +62,41 @@ def box_factor(h: int, w: int, long_side: int) -> int:
 
 
 def box_reduce(a: np.ndarray, f: int) -> np.ndarray:
-    """Mean over ``f x f`` blocks (edge-padded to a multiple of ``f``): shape ``ceil(h/f) x ceil(w/f) [x C]``."""
+    """Mean over ``f x f`` blocks (edge-padded to a multiple of ``f``): shape ``ceil(h/f) x ceil(w/f) [x C]``.
+    OpenCV's area resampling, which at a whole factor is the block mean, on all cores; only the ragged last row and
+    column of blocks are padded (a 12 MP photo's proxy ladder: 1.6 s as NumPy means over padded copies, 0.1 s)."""
+    a = np.asarray(a, np.float32)
     if f == 1:
-        return np.ascontiguousarray(a, np.float32)
+        return np.ascontiguousarray(a)
     h, w = a.shape[:2]
-    ph, pw = -h % f, -w % f
-    pad = ((0, ph), (0, pw)) + ((0, 0),) * (a.ndim - 2)
-    a = np.pad(a, pad, mode="edge") if ph or pw else a
-    shape = (a.shape[0] // f, f, a.shape[1] // f, f) + a.shape[2:]
-    return np.ascontiguousarray(a.reshape(shape).mean(axis=(1, 3), dtype=np.float32), np.float32)
+    hq, wq = h // f, w // f
+    out = np.empty((-(-h // f), -(-w // f)) + a.shape[2:], np.float32)
+    out[:hq, :wq] = _box_whole(a[: hq * f, : wq * f], f)
+    if w > wq * f:  # the last column of blocks, its columns edge-padded
+        out[:hq, wq:] = _box_whole(_edge_pad(a[: hq * f, wq * f :], 1, f), f)
+    if h > hq * f:  # the last row of blocks
+        out[hq:] = _box_whole(_edge_pad(_edge_pad(a[hq * f :], 0, f), 1, f * out.shape[1]), f)
+    return out
+
+
+def _edge_pad(a: np.ndarray, axis: int, n: int) -> np.ndarray:
+    """``a`` along ``axis`` to ``n`` entries, its last one repeated."""
+    pad = [(0, 0)] * a.ndim
+    pad[axis] = (0, n - a.shape[axis])
+    return np.pad(a, pad, mode="edge")
+
+
+def _box_whole(a: np.ndarray, f: int) -> np.ndarray:
+    """:func:`box_reduce` of an array whose sides are multiples of ``f`` (a strided view is read in place)."""
+    import cv2
+
+    h, w = a.shape[:2]
+    if h == 0 or w == 0:
+        return np.zeros((h // f, w // f) + a.shape[2:], np.float32)
+    if a.strides[-1] != a.itemsize or (a.ndim == 3 and a.strides[1] != a.itemsize * a.shape[2]):
+        a = np.ascontiguousarray(a)  # OpenCV takes rows of contiguous pixels
+    out = cv2.resize(a, (w // f, h // f), interpolation=cv2.INTER_AREA)
+    return out.reshape(out.shape[:2] + a.shape[2:])  # a single channel keeps its axis
 
 
 # sRGB encoding through a 16-bit table: a lookup per pixel instead of a power law
