@@ -35,6 +35,7 @@ from bokehray_kernels.routing import cluster_grid
 
 from .. import scene as sc
 from .. import tiling
+from .._memory import bound_heap
 from ..lens import Aperture, aperture_area
 from ..options import PreviewOptions
 from ..stats import PreviewStats
@@ -317,6 +318,7 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
     del active, soft
     check()
     ctx.release_pixels()  # the scene holds what the layers read (a disposable context's pixels are freed here)
+    bound_heap()  # the soft scene's and the plan's freed transients handed back before the layers
     stats.layers = len(scene.layers)
     stats.sources_scattered = int((scene.ids >= 0).sum()) + len(scene.near)
     stats.pyramid_levels = max(sc.pyramid_levels(lyr.max_radius, options.level_radius_px) for lyr in scene.layers)
