@@ -86,16 +86,26 @@ RESULT_B = 16
 """Per pixel of a finished layer's lit area (its box's on a GPU) waiting to be composited (premultiplied RGB and
 coverage): while the next layer to composite is in work, at most ``threads - 1`` others' results wait beside the
 other workers' layers (``_render_window`` starts no more once ``threads`` wait)."""
+HELD_B = 20
+"""Per pixel of a lazily zeroed layer's lit area, what it holds from its start to its end: its sources (16, written
+over its support as it starts, then its result) and its CoC (4). Its level 0 and routing planes take their pages as
+its light is deposited, at the end of its scatter: beside the largest layer at its peak, the other workers' layers
+count this much (a dense box, zeroed whole as it starts, counts whole). Counted at their full rate, two workers'
+layers made the estimate 1.34 of the growth on a 6 MP all-edges map (one worker: 1.03; docs/design/memory-model.md)."""
+
+Footprint = tuple[int, int, int]
+"""(pixels a layer's arrays take pages on, bytes per such pixel at its peak, bytes per such pixel it holds while in
+work beside another layer's peak)."""
 
 
-def _layer_footprint(layer: sc.LayerRecord, level_radius_px: float, on_cpu: bool) -> tuple[int, int]:
-    """(the pixels a layer's arrays take pages on, bytes per such pixel while it is in work)."""
+def _layer_footprint(layer: sc.LayerRecord, level_radius_px: float, on_cpu: bool) -> Footprint:
+    """A layer's :data:`Footprint`: dense arrays (a GPU's, a small box's) are taken whole as the layer starts."""
     if not on_cpu:
-        return _area(layer.bbox), DENSE_LAYER_B
+        return _area(layer.bbox), DENSE_LAYER_B, DENSE_LAYER_B
     if not lazy_for(layer.bbox[1] - layer.bbox[0], layer.bbox[3] - layer.bbox[2]):  # a small box: dense arrays
-        return _area(layer.bbox), SMALL_BOX_B
+        return _area(layer.bbox), SMALL_BOX_B, SMALL_BOX_B
     dense_level0 = sc.lowest_level(layer, level_radius_px) == 0
-    return _lit_area(layer), LIT_B + (LEVEL0_B if dense_level0 else 0)
+    return _lit_area(layer), LIT_B + (LEVEL0_B if dense_level0 else 0), HELD_B
 
 
 @dataclass(frozen=True, slots=True)
@@ -131,14 +141,17 @@ def pyramid_buffers(bufs: list[wp.array]) -> bk.Levels:
     return levels
 
 
-def _region_bytes(window_px: int, layers: list[tuple[int, int]], threads: int) -> int:
+def _region_bytes(window_px: int, layers: list[Footprint], threads: int) -> int:
     """The peak beyond the whole-image arrays of rendering a region of ``window_px`` pixels whose layers take
-    ``layers`` (pixels, bytes a pixel: :func:`_layer_footprint`) on ``threads`` workers."""
-    # at most one layer in work per thread (the largest, at worst), and threads - 1 of the others finished,
-    # waiting to be composited behind a slower one (the next largest)
-    work = sorted((px * rate for px, rate in layers), reverse=True)
-    results = sorted((px for px, _ in layers), reverse=True)
-    return REGION_B * window_px + sum(work[:threads]) + RESULT_B * sum(results[threads : 2 * threads - 1])
+    ``layers`` (:func:`_layer_footprint`) on ``threads`` workers."""
+    # one layer at its peak and each other worker's layer at what it holds while in work (the choice that makes the
+    # sum largest), and threads - 1 others finished, waiting to be composited behind a slower one (the next largest)
+    work = 0
+    for i, (px, rate, _) in enumerate(layers):
+        held = sorted((p * h for j, (p, _, h) in enumerate(layers) if j != i), reverse=True)
+        work = max(work, px * rate + sum(held[: threads - 1]))
+    results = sorted((px for px, _, _ in layers), reverse=True)
+    return REGION_B * window_px + work + RESULT_B * sum(results[threads : 2 * threads - 1])
 
 
 SALIENT_VISIBLE = 0.002
@@ -340,8 +353,8 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
     tiled = (TILED_B if (h, w) != (h0, w0) else 2 * TILED_B) * h * w
     tile, need = tiling.choose_tile(
         h, w, ctx.memory, untiled_bytes=whole + _region_bytes(h * w, footprints, threads), margin=margin,
-        window_bytes=lambda hy, wx: whole + tiled + _region_bytes(hy * wx, [(min(px, hy * wx), rate)
-                                                                            for px, rate in footprints], threads),
+        window_bytes=lambda hy, wx: whole + tiled + _region_bytes(hy * wx, [(min(px, hy * wx), rate, held)
+                                                                            for px, rate, held in footprints], threads),
         what=f"preview render at a largest CoC of {stats.max_coc_px:.0f} px", frame=(h0, w0),
     )
     stats.memory_estimate_mb = need / tiling.MB
