@@ -82,6 +82,12 @@ where the frame is not padded, for the photo it keeps for the copied tiles (padd
 ``split_scene`` writing into it)."""
 SOFT_B = 76
 """Per split pixel (``SoftEdges``, 44, and its near part in the scene, ``NearParts``, 32), through the layers."""
+SPLIT_PLAN_B = 170
+"""Per split pixel of the (padded) frame while its scene is planned (``scene.split_scene``): the split pixels (44)
+held while their near parts (32) are made, with the split's int64 indices, layer ids and F and B kept in range.
+Measured on a 20 000 x 2 strip with a 1-px checkerboard map, whose clamped border replicates its split pixels 10.8
+million times: the plan peaked at 2448 MB over 690 MB of frame arrays, where the layers held 1511 MB
+(docs/design/memory-model.md)."""
 RESULT_B = 16
 """Per pixel of a finished layer's lit area (its box's on a GPU) waiting to be composited (premultiplied RGB and
 coverage): while the next layer to composite is in work, at most ``threads - 1`` others' results wait beside the
@@ -96,6 +102,17 @@ layers made the estimate 1.34 of the growth on a 6 MP all-edges map (one worker:
 Footprint = tuple[int, int, int]
 """(pixels a layer's arrays take pages on, bytes per such pixel at its peak, bytes per such pixel it holds while in
 work beside another layer's peak)."""
+
+
+def _plan_bytes(frame_px: int, n_split: int) -> int:
+    """The peak while the scene of a frame of ``frame_px`` pixels with ``n_split`` split pixels is planned."""
+    return WHOLE_IMAGE_B * frame_px + SPLIT_PLAN_B * n_split
+
+
+def _least_bytes(frame_px: int, n_split: int) -> int:
+    """The least any render of such a frame holds, tiles or not: its plan, and its layers' whole-image arrays with
+    a tiled render's output."""
+    return max(_plan_bytes(frame_px, n_split), (WHOLE_IMAGE_B + TILED_B) * frame_px + SOFT_B * n_split)
 
 
 def _layer_footprint(layer: sc.LayerRecord, level_radius_px: float, on_cpu: bool) -> Footprint:
@@ -300,9 +317,8 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
         else (0, 0, 0, 0)
     h, w = h0 + pt + pb, w0 + pl + pr
     n_soft = 0 if soft is None else len(soft) + sc.soft_replicas(soft, (h0, w0), (pt, pb, pl, pr))
-    # the least any render of the padded frame holds (its whole-image arrays and a tiled render's output), counted
-    # before the padding allocates anything
-    if (h, w) != (h0, w0) and (WHOLE_IMAGE_B + TILED_B) * h * w + SOFT_B * n_soft > tiling.budget_bytes(ctx.memory):
+    # the least any render of the padded frame holds, counted before the padding allocates anything
+    if (h, w) != (h0, w0) and _least_bytes(h * w, n_soft) > tiling.budget_bytes(ctx.memory):
         (pt, pb, pl, pr), h, w = (0, 0, 0, 0), h0, w0  # the clamped border does not fit: the frame alone
     if (h, w) != (h0, w0):
         image = np.pad(image, ((pt, pb), (pl, pr), (0, 0)), mode="edge")
@@ -357,7 +373,7 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
                                                                             for px, rate, held in footprints], threads),
         what=f"preview render at a largest CoC of {stats.max_coc_px:.0f} px", frame=(h0, w0),
     )
-    stats.memory_estimate_mb = need / tiling.MB
+    stats.memory_estimate_mb = max(need, _plan_bytes(h * w, n_split)) / tiling.MB  # the plan's peak is past
     if tile is None:
         photo = None  # the padded input is read by tiled renders only
     blade_rows = ctx.aperture.blade_discs()
