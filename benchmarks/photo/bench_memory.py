@@ -195,12 +195,12 @@ def soft_child(npz: str, kind: str, limit: str, heap: str) -> None:
     plan.clear()
     sampler = _Sampler(plan)
     sampler.thread.start()
-    t = time.perf_counter()
+    t, cpu = time.perf_counter(), time.process_time()
     try:
         _, stats = br.render_with_stats(image, disparity, blur, memory=memory)
         info = {"seconds": time.perf_counter() - t, "memory_estimate_mb": stats.memory_estimate_mb,
                 "threads": stats.threads, "layers": stats.layers, "image_tiles": stats.image_tiles,
-                "split_pixels": split[0] if split else None, "plan": plan}
+                "cpu_seconds": time.process_time() - cpu, "split_pixels": split[0] if split else None, "plan": plan}
     except br.ResourceError as e:
         info = {"seconds": time.perf_counter() - t, "refused": str(e)}
     sampler.stop.set()
