@@ -28,8 +28,9 @@ HEAP_MMAP_BYTES = 4 << 20
 freed so far (up to 32 MB): a render's temporaries of 1 to 32 MB then come from the heaps of the threads that
 allocate them, and what is freed between blocks still in use stays in the process. A 6 MP render on a map that is
 depth edges everywhere grew by 1158 MB with the moving threshold and by 820 MB with 4 MB (medians of fresh
-processes), in the same CPU time (19.4 s against 19.1-19.9 s); 1 MB gave 851 MB for more page faults (one run each: 1.42 M,
-4 MB 1.27 M, glibc's 0.86 M; docs/design/memory-model.md)."""
+processes), in about the same CPU time (19.1-19.9 s against 19.4 s; the exact map 8.5-8.7 s against 8.1-8.4 s);
+1 MB gave 851 MB for more page faults (one run each: 1.42 M, 4 MB 1.27 M, glibc's 0.86 M;
+docs/design/memory-model.md)."""
 M_MMAP_THRESHOLD = -3
 """glibc's ``mallopt`` parameter (malloc.h)."""
 _heap = {"bounded": False}
