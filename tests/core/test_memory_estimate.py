@@ -56,3 +56,28 @@ def test_the_estimate_counts_the_plan_where_it_is_the_peak():
     assert pv._plan_bytes(1000, 1000) == 1000 * (pv.WHOLE_IMAGE_B + pv.SPLIT_PLAN_B)
     assert pv._least_bytes(1000, 0) == 1000 * (pv.WHOLE_IMAGE_B + pv.TILED_B)
     assert pv._least_bytes(1000, 1000) == pv._plan_bytes(1000, 1000)
+
+
+def test_split_pixels_that_cannot_be_planned_are_refused_before_the_split(monkeypatch):
+    """No border (clamp_border=False), a 1-px checkerboard: the matting's check (44 B a band pixel beside the frame)
+    lets it through, but planning its split pixels (170 B each) exceeds the budget: one ResourceError naming the
+    image, before ``split_scene`` allocates anything."""
+    rng = np.random.default_rng(0)
+    image = rng.uniform(0, 1, (200, 200, 3)).astype(np.float32)
+    d = (np.indices((200, 200)).sum(0) % 2).astype(np.float32)
+    blur, options = br.BlurParams(8.0, 0.5), br.PreviewOptions(clamp_border=False)
+    seen = {}
+    split = sc.split_scene
+
+    def counted(image, s, soft, *a, **k):
+        seen["n"] = len(soft)
+        return split(image, s, soft, *a, **k)
+
+    monkeypatch.setattr(sc, "split_scene", counted)
+    br.render(image, d, blur, options=options)
+    need = pv._plan_bytes(200 * 200, seen["n"])
+    assert seen["n"] > 5000
+    seen.clear()
+    with pytest.raises(br.ResourceError, match=r"soft edges of the 200 x 200 px image: its \d+ split pixels need"):
+        br.render(image, d, blur, options=options, memory=br.MemoryOptions(memory_limit_mb=0.9 * need / 2**20))
+    assert not seen  # refused before the split

@@ -36,6 +36,7 @@ from bokehray_kernels.routing import cluster_grid
 from .. import scene as sc
 from .. import tiling
 from .._memory import bound_heap
+from ..errors import ResourceError
 from ..lens import Aperture, aperture_area
 from ..options import PreviewOptions
 from ..stats import PreviewStats
@@ -113,6 +114,29 @@ def _least_bytes(frame_px: int, n_split: int) -> int:
     """The least any render of such a frame holds, tiles or not: its plan, and its layers' whole-image arrays with
     a tiled render's output."""
     return max(_plan_bytes(frame_px, n_split), (WHOLE_IMAGE_B + TILED_B) * frame_px + SOFT_B * n_split)
+
+
+def _clamped_border(s: np.ndarray, soft: sc.SoftEdges | None, grid: int, clamp: bool,
+                    memory) -> tuple[int, int, int, int]:
+    """The clamped border's pads (:func:`border_pad`: a split pixel's near part reaches as far as its CoC), or none
+    where the least any render of the padded frame holds (its split pixels' replicas counted before they are made)
+    does not fit the budget. Raises ResourceError where the frame's own split pixels cannot be planned within it
+    (before anything is padded or split)."""
+    h0, w0 = s.shape
+    pads = border_pad(s if soft is None else sc.soft_radius(s, soft), grid) if clamp else (0, 0, 0, 0)
+    n_own = 0 if soft is None else len(soft)
+    budget = tiling.budget_bytes(memory)
+    if any(pads):
+        h, w = h0 + pads[0] + pads[1], w0 + pads[2] + pads[3]
+        n_soft = n_own + (sc.soft_replicas(soft, (h0, w0), pads) if n_own else 0)
+        if _least_bytes(h * w, n_soft) > budget:
+            pads = (0, 0, 0, 0)  # the clamped border does not fit: the frame alone
+    if n_own and _plan_bytes(h0 * w0, n_own) > budget:
+        raise ResourceError(f"soft edges of the {w0} x {h0} px image: its {n_own} split pixels need about "
+                            f"{_plan_bytes(h0 * w0, n_own) / tiling.MB:,.0f} MB to plan, over the memory budget of "
+                            f"{budget / tiling.MB:,.0f} MB (a map that is edges everywhere; give more memory, or "
+                            "LayerOptions(soft_edges=False))")
+    return pads
 
 
 def _layer_footprint(layer: sc.LayerRecord, level_radius_px: float, on_cpu: bool) -> Footprint:
@@ -312,14 +336,8 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
 
     grid = ctx.layers.tile_px
     soft = ctx.soft if ctx.soft is not None and len(ctx.soft) else None
-    # the border's reach: a split pixel's near part reaches as far as its CoC
-    pt, pb, pl, pr = border_pad(s if soft is None else sc.soft_radius(s, soft), grid) if options.clamp_border \
-        else (0, 0, 0, 0)
+    pt, pb, pl, pr = _clamped_border(s, soft, grid, options.clamp_border, ctx.memory)
     h, w = h0 + pt + pb, w0 + pl + pr
-    n_soft = 0 if soft is None else len(soft) + sc.soft_replicas(soft, (h0, w0), (pt, pb, pl, pr))
-    # the least any render of the padded frame holds, counted before the padding allocates anything
-    if (h, w) != (h0, w0) and _least_bytes(h * w, n_soft) > tiling.budget_bytes(ctx.memory):
-        (pt, pb, pl, pr), h, w = (0, 0, 0, 0), h0, w0  # the clamped border does not fit: the frame alone
     if (h, w) != (h0, w0):
         image = np.pad(image, ((pt, pb), (pl, pr), (0, 0)), mode="edge")
         s = np.pad(s, ((pt, pb), (pl, pr)), mode="edge")
