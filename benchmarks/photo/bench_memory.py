@@ -11,6 +11,16 @@ Usage (from the repository root)::
     python benchmarks/photo/bench_memory.py              # the full sweep (about 15 minutes on 2 cores)
     python benchmarks/photo/bench_memory.py --quick      # 1.5 MP only, a smoke test
     python benchmarks/photo/bench_memory.py --model      # the preview's memory model against peaks, 1.5 to 24 MP
+    python benchmarks/photo/bench_memory.py --soft --sizes 1.5,6 --maps exact,gauss4,edges --runs 4 --budget 1500
+                                                         # the soft scene (split pixels) in the estimate
+
+``--soft``: the default blur and focus of the command line (``--amount 50``, the subject's focus) on the demo
+scene's map as it is (``exact``), blurred by a Gaussian of 4 or 6 px (``gauss4``, ``gauss6``: soft maps, snapped
+to their plateaus) or with every third diagonal of the frame at the nearest disparity (``edges``: a depth edge at
+every pixel); soft edges on. The warm-up renders a 256 x 256 crop of the same map (the soft scene's kernels
+loaded); the peak is then reset (``VmHWM``), and a sampler thread reads the RSS every 2 ms to tell the peak before
+the layers (the soft scene, the plan) from the peak during them. Each row a fresh process; ``--runs`` repeats
+each case (median and range reported).
 """
 
 from __future__ import annotations
@@ -84,6 +94,192 @@ def child(npz: str, quality: str, radius: str, tile: str, limit: str, spp: str) 
     common.report_rss(peak=True)
 
 
+def soft_map(disparity: np.ndarray, kind: str) -> np.ndarray:
+    """The demo's map as it is, blurred (``gauss4``, ``gauss6``) or with every third diagonal nearest (``edges``)."""
+    if kind == "exact":
+        return disparity
+    if kind.startswith("gauss"):
+        from scipy.ndimage import gaussian_filter
+
+        return gaussian_filter(disparity, float(kind[5:])).astype(np.float32)
+    if kind == "edges":
+        yy, xx = np.indices(disparity.shape)
+        return np.where((yy + xx) % 3 == 0, np.float32(disparity.max()), disparity).astype(np.float32)
+    raise SystemExit(f"--maps: unknown map {kind!r} (exact, gauss4, gauss6, edges)")
+
+
+class _Sampler:
+    """The RSS every ``dt`` s in a thread: its peak before the layers (the soft scene, the plan) and after (from the
+    estimate's planning on: ``plan`` filled)."""
+
+    def __init__(self, plan: dict, dt: float = 0.002) -> None:
+        import threading
+
+        self.plan, self.dt, self.peaks, self.peak_at = plan, dt, {}, {}
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self.loop, daemon=True)
+        self.t0 = time.perf_counter()
+
+    def loop(self) -> None:
+        import os
+
+        page = os.sysconf("SC_PAGE_SIZE")
+        with open("/proc/self/statm") as f:
+            while not self.stop.is_set():
+                f.seek(0)
+                rss = int(f.read().split()[1]) * page
+                phase = "layers" if self.plan else "before layers"
+                if rss > self.peaks.get(phase, 0):
+                    self.peaks[phase], self.peak_at[phase] = rss, time.perf_counter() - self.t0
+                time.sleep(self.dt)
+
+
+def _count_split() -> list[int]:
+    """The split pixels' count of the last render (the pipeline's soft scene, wrapped)."""
+    from bokehray import pipeline
+
+    seen: list[int] = []
+    inner = pipeline._soft_scene
+
+    def wrapped(*a, **k):
+        s, soft = inner(*a, **k)
+        seen[:] = [0 if soft is None else len(soft)]
+        return s, soft
+
+    pipeline._soft_scene = wrapped
+    return seen
+
+
+def _record_plan() -> dict:
+    """The estimate's parts of the next preview render: the frame's pixels, the layers' (pixels, bytes a pixel) and
+    the workers (``bokehray.levels.preview._region_bytes``'s first call, wrapped)."""
+    from bokehray.levels import preview
+
+    plan: dict = {}
+    inner = preview._region_bytes
+
+    def wrapped(window_px, layers, threads):
+        if not plan:
+            plan.update(frame_px=int(window_px), layers=[[int(v) for v in x] for x in layers], threads=int(threads))
+        return inner(window_px, layers, threads)
+
+    preview._region_bytes = wrapped
+    return plan
+
+
+def soft_child(npz: str, kind: str, limit: str, heap: str) -> None:
+    """Fresh process: the map, a 256 x 256 warm-up of it, the peak reset, one render with soft edges sampled.
+    ``heap``: ``bounded`` (as rendered) or ``glibc`` (``bokehray._memory.bound_heap`` not called: glibc's moving
+    mapping threshold, the heaps untrimmed; the A/B of docs/design/memory-model.md)."""
+    import warp
+
+    warp.config.log_level = warp.LOG_WARNING
+    import bokehray as br
+    from bokehray.photo.subject import AMOUNT_DEFAULT, default_focus, k_from_amount
+
+    with np.load(npz) as f:
+        image, disparity = f["image"], soft_map(f["disparity"], kind)
+    h, w = disparity.shape
+    blur = br.BlurParams(k_from_amount(AMOUNT_DEFAULT, h, w), float(default_focus(None, disparity).d_f))
+    memory = br.MemoryOptions(memory_limit_mb=None if limit == "-" else float(limit))
+    split = _count_split()
+    plan = _record_plan()
+    if heap == "glibc":
+        from bokehray import pipeline
+        from bokehray.levels import preview
+
+        pipeline.bound_heap = preview.bound_heap = lambda: False
+    br.render(np.ascontiguousarray(image[:256, :256]), np.ascontiguousarray(disparity[:256, :256]), blur)
+    common.reset_peak_rss()
+    common.report_rss(peak=False)
+    plan.clear()
+    sampler = _Sampler(plan)
+    sampler.thread.start()
+    t, cpu = time.perf_counter(), time.process_time()
+    try:
+        _, stats = br.render_with_stats(image, disparity, blur, memory=memory)
+        info = {"seconds": time.perf_counter() - t, "memory_estimate_mb": stats.memory_estimate_mb,
+                "threads": stats.threads, "layers": stats.layers, "image_tiles": stats.image_tiles,
+                "cpu_seconds": time.process_time() - cpu, "split_pixels": split[0] if split else None, "plan": plan}
+    except br.ResourceError as e:
+        info = {"seconds": time.perf_counter() - t, "refused": str(e)}
+    sampler.stop.set()
+    sampler.thread.join()
+    info["sampled_peak_mb"] = {k: v / (1 << 20) for k, v in sampler.peaks.items()}
+    info["sampled_peak_at_s"] = sampler.peak_at
+    print("INFO=" + json.dumps(info), flush=True)
+    common.report_rss(peak=True)
+
+
+def run_soft(sizes: list[float], maps: list[str], runs: int, limit: float | None, heap: str, tmp: str) -> list[dict]:
+    """One fresh process a (size, map, run)."""
+    import subprocess
+
+    from bokehray.app.demo import build_demo_scene
+
+    rows = []
+    for mp in sizes:
+        w, h = SIZES[mp]
+        npz = f"{tmp}/demo-{w}x{h}.npz"
+        scene = build_demo_scene(w, h)
+        np.savez(npz, image=scene.image, disparity=scene.disparity)
+        del scene
+        for kind in maps:
+            for k in range(runs):
+                args = [__file__, "--soft-child", npz, kind, str(limit or "-"), heap]
+                p = subprocess.run([sys.executable, *args], cwd=common.REPO, capture_output=True, text=True,
+                                   timeout=3600)
+                row = {"megapixels": mp, "width": w, "height": h, "map": kind, "run": k, "memory_limit_mb": limit,
+                       "heap": heap}
+                row.update(_parse_child(p))
+                print("  " + json.dumps(row), file=sys.stderr, flush=True)
+                rows.append(row)
+    return rows
+
+
+def _parse_child(p) -> dict:
+    kv = dict(ln.partition("=")[::2] for ln in p.stdout.splitlines() if "=" in ln)
+    if p.returncode != 0 or "PEAK_KB" not in kv:
+        return {"error": (p.stderr.strip().splitlines() or [f"exit code {p.returncode}"])[-1]}
+    row = json.loads(kv["INFO"])
+    row["before_mb"] = int(kv["RSS_KB"]) / 1024
+    row["peak_mb"] = int(kv["PEAK_KB"]) / 1024
+    row["growth_mb"] = row["peak_mb"] - row["before_mb"]
+    if row.get("memory_estimate_mb"):
+        row["estimate_over_growth"] = row["memory_estimate_mb"] / row["growth_mb"]
+    return row
+
+
+def soft_table(rows: list[dict]) -> str:
+    """Per (size, map): growth median and range over the runs, the estimate, estimate / median growth, and the
+    share of runs whose peak came before the layers."""
+    import statistics
+
+    out = ["| size | map | runs | growth MB, median (range) | estimate MB | estimate / median growth (range) | "
+           "split pixels | peak before the layers |", "|---|---|---|---|---|---|---|---|"]
+    cases: dict[tuple, list[dict]] = {}
+    for r in rows:
+        cases.setdefault((r["megapixels"], r["map"]), []).append(r)
+    for (mp, kind), rs in cases.items():
+        ok = [r for r in rs if "growth_mb" in r and r.get("memory_estimate_mb")]
+        if not ok:
+            out.append(f"| {mp:g} MP | {kind} | {len(rs)} | error: {rs[0].get('error') or rs[0].get('refused')} "
+                       "| | | | |")
+            continue
+        g = [r["growth_mb"] for r in ok]
+        est = statistics.median(r["memory_estimate_mb"] for r in ok)
+        ratios = [est / x for x in g]
+        before = sum(_peak_before_layers(r) for r in ok)
+        out.append(f"| {mp:g} MP | {kind} | {len(ok)} | {statistics.median(g):.0f} ({min(g):.0f}-{max(g):.0f}) | "
+                   f"{est:.0f} | {est / statistics.median(g):.2f} ({min(ratios):.2f}-{max(ratios):.2f}) | "
+                   f"{ok[0].get('split_pixels') or ''} | {before} of {len(ok)} |")
+    return "\n".join(out)
+
+
+def _peak_before_layers(r: dict) -> bool:
+    peaks = r.get("sampled_peak_mb", {})
+    return peaks.get("before layers", 0) > peaks.get("layers", 0)
+
 def run(plan: list, tmp: str) -> list[dict]:
     from bokehray.app.demo import build_demo_scene
 
@@ -132,16 +328,45 @@ def table(rows: list[dict]) -> str:
     return "\n".join(out)
 
 
+def soft_main(args) -> int:
+    machine = common.machine_info()
+    with tempfile.TemporaryDirectory(prefix="bokehray-mem-") as tmp:
+        rows = run_soft([float(v) for v in args.sizes.split(",")], args.maps.split(","), args.runs, args.budget,
+                        args.heap, tmp)
+    print(soft_table(rows))
+    tag = "-" + args.sizes.replace(",", "-") + "mp" + ("" if args.heap == "bounded" else "-glibc-heap")
+    path = common.write_json(args.out / f"memory-soft{tag}--{common.machine_tag(machine)}.json",
+                             {"what": "demo scene, --amount 50 and the subject's focus, soft edges on; one fresh "
+                                      "process a row; growth = peak (VmHWM, reset after a 256 x 256 warm-up of the "
+                                      "same map) - RSS after the warm-up; estimate = memory_estimate_mb",
+                              "machine": machine, "rows": rows})
+    print("wrote", path)
+    return 0 if all("error" not in r for r in rows) else 1
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="1.5 MP only")
     ap.add_argument("--model", action="store_true", help="the preview's memory model: estimate against growth")
     ap.add_argument("--out", type=Path, default=common.REPO / "benchmarks" / "results")
+    ap.add_argument("--soft", action="store_true", help="the soft scene in the estimate (--sizes, --maps, --runs)")
+    ap.add_argument("--sizes", default="1.5,6", help="megapixels for --soft: 1.5, 6, 12, 24")
+    ap.add_argument("--maps", default="exact,gauss4,edges", help="maps for --soft: exact, gauss4, gauss6, edges")
+    ap.add_argument("--runs", type=int, default=3, help="fresh processes a case for --soft")
+    ap.add_argument("--budget", type=float, default=None, help="memory_limit_mb for --soft (default: automatic)")
     ap.add_argument("--child", nargs=6, help=argparse.SUPPRESS)
+    ap.add_argument("--heap", choices=("bounded", "glibc"), default="bounded",
+                    help="--soft: the C heap as rendered (bounded) or glibc's own (bound_heap not called)")
+    ap.add_argument("--soft-child", nargs=4, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
         child(*args.child)
         return 0
+    if args.soft_child:
+        soft_child(*args.soft_child)
+        return 0
+    if args.soft:
+        return soft_main(args)
     machine = common.machine_info()
     with tempfile.TemporaryDirectory(prefix="bokehray-mem-") as tmp:
         rows = run(QUICK if args.quick else MODEL if args.model else FULL, tmp)

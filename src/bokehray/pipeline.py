@@ -14,6 +14,7 @@ from numbers import Integral, Real
 import numpy as np
 
 from . import scene, tiling
+from ._memory import bound_heap
 from .errors import InputError, NumericalError
 from .lens import Aperture, BlurParams
 from .levels import LEVELS, RenderContext, get_level
@@ -230,6 +231,7 @@ def _render_with_stats(inputs: Handover, blur: BlurParams, aperture: Aperture | 
         level, blur, aperture, device, options, layers, memory, highlight_boost, progress)
     refining = _check_refine(refine, quality, refine_options)
     _check_shape_fits(inputs.image, level.whole_image_bytes(), memory)
+    bound_heap()  # the C heap held to what is in use (the estimate counts arrays, not freed pages kept)
     # the context takes the arrays out of the holder: from here only the context (and the caller) holds them
     ctx, work, raw_max, channels, lowest = _context(inputs, blur, aperture, layers, memory, options, device,
                                                     progress, highlight_boost, keep_pixels=refining, clock=clock)

@@ -132,3 +132,46 @@ def test_a_layers_lit_area_counts_its_box_pixels_in_support_tiles(mask, box, ori
     oy, ox = origin
     assert pv._lit_area(layer) == int(pixels[oy + y0 : oy + y1, ox + x0 : ox + x1].sum())
     assert pv._lit_area(dataclasses.replace(layer, support=None)) == (y1 - y0) * (x1 - x0)
+
+
+def test_the_estimate_counts_one_layer_at_its_peak_and_the_other_workers_at_what_they_hold():
+    """Two workers, two large (lazily zeroed) layers and a small dense one: the peak layer at its full rate, the
+    other worker's at HELD_B (not its own peak: its level 0 and routing take their pages as its light lands), the
+    third largest's result waiting. The largest sum is the first layer's peak beside the second's held bytes."""
+    layers = [(1000, 46, pv.HELD_B), (900, 30, pv.HELD_B), (100, pv.SMALL_BOX_B, pv.SMALL_BOX_B)]
+    want = pv.REGION_B * 2000 + 1000 * 46 + 900 * pv.HELD_B + pv.RESULT_B * 100
+    assert pv._region_bytes(2000, layers, 2) == want
+    # a dense box is held whole from its start: beside the other layer's peak it counts whole
+    dense = [(300, 46, pv.HELD_B), (1000, pv.SMALL_BOX_B, pv.SMALL_BOX_B)]
+    assert pv._region_bytes(0, dense, 2) == 1000 * pv.SMALL_BOX_B + 300 * 46
+    assert pv._region_bytes(0, dense, 1) == 1000 * pv.SMALL_BOX_B
+
+
+_footprints = st.lists(st.tuples(st.integers(0, 10**6), st.sampled_from([30, 46, pv.SMALL_BOX_B, pv.DENSE_LAYER_B]))
+                       .map(lambda t: (t[0], t[1], pv.HELD_B if t[1] in (30, 46) else t[1])), min_size=1, max_size=12)
+
+
+@given(layers=_footprints, threads=st.integers(1, 6), window=st.integers(0, 10**7))
+def test_the_estimate_lies_between_one_worker_and_every_worker_at_its_peak(layers, threads, window):
+    """More workers never lower it; one worker is its largest layer at its peak; it never exceeds every worker's
+    layer counted at its peak (the model it replaced, an upper bound)."""
+    one = pv._region_bytes(window, layers, 1)
+    assert one == pv.REGION_B * window + max(px * rate for px, rate, _ in layers)
+    got = pv._region_bytes(window, layers, threads)
+    assert got >= one and got <= pv._region_bytes(window, layers, threads + 1)
+    results = sorted((px for px, _, _ in layers), reverse=True)[threads : 2 * threads - 1]
+    bound = sum(sorted((px * rate for px, rate, _ in layers), reverse=True)[:threads]) + pv.RESULT_B * sum(results)
+    assert got <= pv.REGION_B * window + bound
+
+
+def test_a_layer_s_footprint_dense_when_small_lazy_when_large():
+    """A box below buffers.LAZY_MIN_BYTES of vec4 is zeroed whole as it starts (held whole); a large one counts its
+    lit area at its peak rate and HELD_B beside another layer's peak; on a GPU every box is dense."""
+    from bokehray.scene import LayerRecord
+
+    small = LayerRecord(0, -1.0, 1.0, (0, 100, 0, 200), 4.0, 0.0)
+    assert pv._layer_footprint(small, 8.0, True) == (20000, pv.SMALL_BOX_B, pv.SMALL_BOX_B)
+    large = LayerRecord(0, -1.0, 1.0, (0, 2000, 0, 2000), 4.0, 0.0)
+    px, rate, held = pv._layer_footprint(large, 8.0, True)
+    assert px == 4_000_000 and rate in (pv.LIT_B, pv.LIT_B + pv.LEVEL0_B) and held == pv.HELD_B < rate
+    assert pv._layer_footprint(large, 8.0, False) == (4_000_000, pv.DENSE_LAYER_B, pv.DENSE_LAYER_B)

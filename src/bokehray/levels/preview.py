@@ -35,6 +35,8 @@ from bokehray_kernels.routing import cluster_grid
 
 from .. import scene as sc
 from .. import tiling
+from .._memory import bound_heap
+from ..errors import ResourceError
 from ..lens import Aperture, aperture_area
 from ..options import PreviewOptions
 from ..stats import PreviewStats
@@ -81,20 +83,70 @@ where the frame is not padded, for the photo it keeps for the copied tiles (padd
 ``split_scene`` writing into it)."""
 SOFT_B = 76
 """Per split pixel (``SoftEdges``, 44, and its near part in the scene, ``NearParts``, 32), through the layers."""
+SPLIT_PLAN_B = 170
+"""Per split pixel of the (padded) frame while its scene is planned (``scene.split_scene``): the split pixels (44)
+held while their near parts (32) are made, with the split's int64 indices, layer ids and F and B kept in range.
+Measured on a 20 000 x 2 strip with a 1-px checkerboard map, whose clamped border replicates its split pixels 10.8
+million times: the plan peaked at 2448 MB over 690 MB of frame arrays, where the layers held 1511 MB
+(docs/design/memory-model.md)."""
 RESULT_B = 16
 """Per pixel of a finished layer's lit area (its box's on a GPU) waiting to be composited (premultiplied RGB and
 coverage): while the next layer to composite is in work, at most ``threads - 1`` others' results wait beside the
 other workers' layers (``_render_window`` starts no more once ``threads`` wait)."""
+HELD_B = 20
+"""Per pixel of a lazily zeroed layer's lit area, what it holds from its start to its end: its sources (16, written
+over its support as it starts, then its result) and its CoC (4). Its level 0 and routing planes take their pages as
+its light is deposited, at the end of its scatter: beside the largest layer at its peak, the other workers' layers
+count this much (a dense box, zeroed whole as it starts, counts whole). Counted at their full rate, two workers'
+layers made the estimate 1.34 of the growth on a 6 MP all-edges map (one worker: 1.03; docs/design/memory-model.md)."""
+
+Footprint = tuple[int, int, int]
+"""(pixels a layer's arrays take pages on, bytes per such pixel at its peak, bytes per such pixel it holds while in
+work beside another layer's peak)."""
 
 
-def _layer_footprint(layer: sc.LayerRecord, level_radius_px: float, on_cpu: bool) -> tuple[int, int]:
-    """(the pixels a layer's arrays take pages on, bytes per such pixel while it is in work)."""
+def _plan_bytes(frame_px: int, n_split: int) -> int:
+    """The peak while the scene of a frame of ``frame_px`` pixels with ``n_split`` split pixels is planned."""
+    return WHOLE_IMAGE_B * frame_px + SPLIT_PLAN_B * n_split
+
+
+def _least_bytes(frame_px: int, n_split: int) -> int:
+    """The least any render of such a frame holds, tiles or not: its plan, and its layers' whole-image arrays with
+    a tiled render's output."""
+    return max(_plan_bytes(frame_px, n_split), (WHOLE_IMAGE_B + TILED_B) * frame_px + SOFT_B * n_split)
+
+
+def _clamped_border(s: np.ndarray, soft: sc.SoftEdges | None, grid: int, clamp: bool,
+                    memory) -> tuple[int, int, int, int]:
+    """The clamped border's pads (:func:`border_pad`: a split pixel's near part reaches as far as its CoC), or none
+    where the least any render of the padded frame holds (its split pixels' replicas counted before they are made)
+    does not fit the budget. Raises ResourceError where the frame's own split pixels cannot be planned within it
+    (before anything is padded or split)."""
+    h0, w0 = s.shape
+    pads = border_pad(s if soft is None else sc.soft_radius(s, soft), grid) if clamp else (0, 0, 0, 0)
+    n_own = 0 if soft is None else len(soft)
+    budget = tiling.budget_bytes(memory)
+    if any(pads):
+        h, w = h0 + pads[0] + pads[1], w0 + pads[2] + pads[3]
+        n_soft = n_own + (sc.soft_replicas(soft, (h0, w0), pads) if n_own else 0)
+        if _least_bytes(h * w, n_soft) > budget:
+            pads = (0, 0, 0, 0)  # the clamped border does not fit: the frame alone
+    if n_own and _plan_bytes(h0 * w0, n_own) > budget:
+        raise ResourceError(f"soft edges of the {w0} x {h0} px image: its {n_own} split pixels need about "
+                            f"{_plan_bytes(h0 * w0, n_own) / tiling.MB:,.0f} MB to plan, over the memory budget of "
+                            f"{budget / tiling.MB:,.0f} MB (a map that is edges everywhere; give more memory, or "
+                            "LayerOptions(soft_edges=False))")
+    return pads
+
+
+def _layer_footprint(layer: sc.LayerRecord, level_radius_px: float, on_cpu: bool) -> Footprint:
+    """A layer's :data:`Footprint`: dense arrays (a GPU's, a small box's) are taken whole as the layer starts."""
     if not on_cpu:
-        return _area(layer.bbox), DENSE_LAYER_B
+        return _area(layer.bbox), DENSE_LAYER_B, DENSE_LAYER_B
     if not lazy_for(layer.bbox[1] - layer.bbox[0], layer.bbox[3] - layer.bbox[2]):  # a small box: dense arrays
-        return _area(layer.bbox), SMALL_BOX_B
+        return _area(layer.bbox), SMALL_BOX_B, SMALL_BOX_B
     dense_level0 = sc.lowest_level(layer, level_radius_px) == 0
-    return _lit_area(layer), LIT_B + (LEVEL0_B if dense_level0 else 0)
+    return _lit_area(layer), LIT_B + (LEVEL0_B if dense_level0 else 0), HELD_B
 
 
 @dataclass(frozen=True, slots=True)
@@ -130,14 +182,17 @@ def pyramid_buffers(bufs: list[wp.array]) -> bk.Levels:
     return levels
 
 
-def _region_bytes(window_px: int, layers: list[tuple[int, int]], threads: int) -> int:
+def _region_bytes(window_px: int, layers: list[Footprint], threads: int) -> int:
     """The peak beyond the whole-image arrays of rendering a region of ``window_px`` pixels whose layers take
-    ``layers`` (pixels, bytes a pixel: :func:`_layer_footprint`) on ``threads`` workers."""
-    # at most one layer in work per thread (the largest, at worst), and threads - 1 of the others finished,
-    # waiting to be composited behind a slower one (the next largest)
-    work = sorted((px * rate for px, rate in layers), reverse=True)
-    results = sorted((px for px, _ in layers), reverse=True)
-    return REGION_B * window_px + sum(work[:threads]) + RESULT_B * sum(results[threads : 2 * threads - 1])
+    ``layers`` (:func:`_layer_footprint`) on ``threads`` workers."""
+    # one layer at its peak and each other worker's layer at what it holds while in work (the choice that makes the
+    # sum largest), and threads - 1 others finished, waiting to be composited behind a slower one (the next largest)
+    work = 0
+    for i, (px, rate, _) in enumerate(layers):
+        held = sorted((p * h for j, (p, _, h) in enumerate(layers) if j != i), reverse=True)
+        work = max(work, px * rate + sum(held[: threads - 1]))
+    results = sorted((px for px, _, _ in layers), reverse=True)
+    return REGION_B * window_px + work + RESULT_B * sum(results[threads : 2 * threads - 1])
 
 
 SALIENT_VISIBLE = 0.002
@@ -281,15 +336,8 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
 
     grid = ctx.layers.tile_px
     soft = ctx.soft if ctx.soft is not None and len(ctx.soft) else None
-    # the border's reach: a split pixel's near part reaches as far as its CoC
-    pt, pb, pl, pr = border_pad(s if soft is None else sc.soft_radius(s, soft), grid) if options.clamp_border \
-        else (0, 0, 0, 0)
+    pt, pb, pl, pr = _clamped_border(s, soft, grid, options.clamp_border, ctx.memory)
     h, w = h0 + pt + pb, w0 + pl + pr
-    n_soft = 0 if soft is None else len(soft) + sc.soft_replicas(soft, (h0, w0), (pt, pb, pl, pr))
-    # the least any render of the padded frame holds (its whole-image arrays and a tiled render's output), counted
-    # before the padding allocates anything
-    if (h, w) != (h0, w0) and (WHOLE_IMAGE_B + TILED_B) * h * w + SOFT_B * n_soft > tiling.budget_bytes(ctx.memory):
-        (pt, pb, pl, pr), h, w = (0, 0, 0, 0), h0, w0  # the clamped border does not fit: the frame alone
     if (h, w) != (h0, w0):
         image = np.pad(image, ((pt, pb), (pl, pr), (0, 0)), mode="edge")
         s = np.pad(s, ((pt, pb), (pl, pr)), mode="edge")
@@ -317,6 +365,7 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
     del active, soft
     check()
     ctx.release_pixels()  # the scene holds what the layers read (a disposable context's pixels are freed here)
+    bound_heap()  # the soft scene's and the plan's freed transients handed back before the layers
     stats.layers = len(scene.layers)
     stats.sources_scattered = int((scene.ids >= 0).sum()) + len(scene.near)
     stats.pyramid_levels = max(sc.pyramid_levels(lyr.max_radius, options.level_radius_px) for lyr in scene.layers)
@@ -338,11 +387,11 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
     tiled = (TILED_B if (h, w) != (h0, w0) else 2 * TILED_B) * h * w
     tile, need = tiling.choose_tile(
         h, w, ctx.memory, untiled_bytes=whole + _region_bytes(h * w, footprints, threads), margin=margin,
-        window_bytes=lambda hy, wx: whole + tiled + _region_bytes(hy * wx, [(min(px, hy * wx), rate)
-                                                                            for px, rate in footprints], threads),
+        window_bytes=lambda hy, wx: whole + tiled + _region_bytes(hy * wx, [(min(px, hy * wx), rate, held)
+                                                                            for px, rate, held in footprints], threads),
         what=f"preview render at a largest CoC of {stats.max_coc_px:.0f} px", frame=(h0, w0),
     )
-    stats.memory_estimate_mb = need / tiling.MB
+    stats.memory_estimate_mb = max(need, _plan_bytes(h * w, n_split)) / tiling.MB  # the plan's peak is past
     if tile is None:
         photo = None  # the padded input is read by tiled renders only
     blade_rows = ctx.aperture.blade_discs()
