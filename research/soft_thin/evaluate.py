@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 import argparse
+import ast
 import json
 import sys
 import time
@@ -80,7 +81,7 @@ def main() -> int:
     kw = {}
     for s in args.set:
         k, v = s.split("=")
-        kw[k] = eval(v)  # noqa: S307 (a research script's own command line)
+        kw[k] = ast.literal_eval(v)
     fix = None if args.none else (lambda img, d: proto.restore(img, d, **kw))
     print(f"restore {kw}" if fix else "baseline")
     run(fix, args.kinds, args.maps_only)

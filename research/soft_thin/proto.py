@@ -57,8 +57,6 @@ def restore(image: np.ndarray, d: np.ndarray, sigmas=(1.0, 2.0, 4.0, 8.0), eps: 
     best = np.full(d.shape, np.inf)
     out = d64.copy()
     pick = np.zeros(d.shape, np.int8)
-    r0 = 2
-    _, _, res0, vd0 = fit_colour(guide, d64, 0.0, r0, eps)
     for k, s in enumerate(sigmas, 1):
         r = max(2, int(np.ceil(win * s)) + 1)
         a, b, res, vd = fit_colour(guide, d64, s, r, eps)

@@ -45,7 +45,8 @@ class LayerOptions:
             depth no surface has; slopes that do not end within 40 px (floors, walls) stay. With ``soft_edges``.
         thin_depth: before the ramps, give the structures a soft map's blur flattened (wires, twigs, strokes)
             their depth back from the photo's colour (``bokehray.thin_depth.restore_thin``); hard maps, tilted
-            planes and smooth slopes stay as they are. With ``soft_maps``.
+            planes and smooth slopes stay as they are. With ``soft_maps``. Off by default: it costs about 3 CPU-s
+            a megapixel of soft map (docs/soft-scene.md, "Soft maps").
     """
 
     max_layers: int = 8
@@ -55,7 +56,7 @@ class LayerOptions:
     tile_px: int = 16
     soft_edges: bool = True
     soft_maps: bool = True
-    thin_depth: bool = True
+    thin_depth: bool = False
 
     def __post_init__(self) -> None:
         check_int(self.max_layers, "max_layers", lo=1)

