@@ -2,7 +2,7 @@
 the path-traced reference, the exact map's render, the soft map's without and with the thin structures' depth
 restored (``LayerOptions(thin_depth=True)``), and the soft and the restored maps.
 
-    python research/soft_thin/crops.py research/soft_thin/results/crops.png
+    python research/soft_thin/crops.py docs/img/thin_depth_crops.png
 """
 
 from __future__ import annotations

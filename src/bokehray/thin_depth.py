@@ -57,7 +57,8 @@ class ThinRule:
     min_sd: float = 0.05
     """A window whose map varies by less than this (CoC px, rms) is flat: left alone."""
     grad_min: float = 0.2
-    """Only tiles with a CoC gradient above this (px per px) somewhere are looked at (``ramps.RampRule.grad_min``)."""
+    """Only tiles with a ramp somewhere are looked at: two steps in a row of the same sign, each above this (CoC px
+    per px; ``ramps.RampRule.grad_min``)."""
     tile: int = 512
     """The work goes tile by tile (px), with a margin the fit reaches through; tiles with no ramp are skipped."""
 
@@ -81,7 +82,7 @@ def restore_thin(image: np.ndarray, signed_coc: np.ndarray, rule: ThinRule | Non
     h, w = s.shape
     if h < 3 or w < 3:
         return signed_coc, 0
-    ramp = _gradient(s) > rule.grad_min
+    ramp = _ramps(s, rule.grad_min)
     if not ramp.any():
         return signed_coc, 0
     out, m, t = s.copy(), rule.margin(), rule.tile
@@ -100,6 +101,16 @@ def restore_thin(image: np.ndarray, signed_coc: np.ndarray, rule: ThinRule | Non
         np.clip(out, min(lo, float(s.min())), max(hi, float(s.max())), out=out)
     n = int(np.count_nonzero(out != s))
     return (out, n) if n else (signed_coc, 0)
+
+
+def _ramps(s: np.ndarray, grad_min: float) -> np.ndarray:
+    """Pixels between two steps of the same sign above ``grad_min`` along a row or a column: a ramp (a hard map's
+    steps stand alone, so its tiles are not fitted)."""
+    out = np.zeros(s.shape, bool)
+    dy, dx = np.diff(s, axis=0), np.diff(s, axis=1)
+    out[1:-1] |= (np.abs(dy[:-1]) > grad_min) & (np.abs(dy[1:]) > grad_min) & (dy[:-1] * dy[1:] > 0)
+    out[:, 1:-1] |= (np.abs(dx[:, :-1]) > grad_min) & (np.abs(dx[:, 1:]) > grad_min) & (dx[:, :-1] * dx[:, 1:] > 0)
+    return out
 
 
 def _gradient(s: np.ndarray) -> np.ndarray:
