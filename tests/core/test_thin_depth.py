@@ -4,13 +4,16 @@ docs/soft-scene.md "Soft maps")."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import ndimage
 
 import bokehray as br
 from bokehray.thin_depth import ThinRule, restore_thin
+from tests.core.test_soft_maps import _band_psnr
 from tests.reference.thin_ref import interior, restore_thin_ref
+from tests.reference.two_planes_ref import TwoPlanes
 
 
 def _wires(n: int, seed: int, width: float = 2.0, spacing: int = 24):
@@ -126,7 +129,22 @@ def test_a_render_from_a_soft_map_of_wires_comes_close_to_the_hard_map_s():
 
 
 def test_the_option_is_checked():
-    import pytest
-
     with pytest.raises(br.InputError, match="thin_depth"):
         br.LayerOptions(thin_depth=1)
+
+
+@pytest.mark.parametrize("focus", [0.15, 0.5, 0.85])
+def test_the_two_plane_scene_stays_within_1_5_db_of_the_hard_map(focus):
+    """A wide edge is the ramp snap's: with the restoration on, the soft map of the analytic two-plane scene still
+    renders within 1.5 dB of the hard map in the band (tests/core/test_soft_maps.py, the same check without it)."""
+    sc = TwoPlanes()
+    photo, hard = sc.photo().astype(np.float32), sc.hard_map().astype(np.float32)
+    k = 24.0
+    ref = sc.bokeh(k, focus)
+    yy, xx = np.mgrid[0 : sc.n, 0 : sc.n] + 0.5
+    band = np.abs(np.hypot(yy - sc.c, xx - sc.c) - sc.radius) <= k * max(focus, 1 - focus) + 4
+    soft = ndimage.gaussian_filter(hard, 4.0, mode="nearest").astype(np.float32)
+    blur = br.BlurParams(k, focus)
+    p_hard = _band_psnr(br.render(photo, hard, blur), ref, band)
+    p_thin = _band_psnr(br.render(photo, soft, blur, layers=br.LayerOptions(thin_depth=True)), ref, band)
+    assert p_thin >= p_hard - 1.5, (p_hard, p_thin)
