@@ -9,11 +9,14 @@ twigs a blur of 2-8 px flattened into a faint bump. Every window's regression co
 (as in the guided filter), so the step is a fixed number of image passes per blur tried.
 
 :func:`restore_thin` tries the blurs ``ThinRule.sigmas`` and keeps, per pixel, the one whose colour model explains
-its window best, only where that model explains the window clearly better than a plane does (tilted planes and
-smooth slopes stay exactly as they are) and where the window holds no hard step (a hard map's step is not a blur:
-hard maps stay exactly as they are). The restored value is then made hard: nothing farther than the window's
-farthest map value, and each pixel either at that far value or at the window's nearest restored value, the side
-decided by the middle between the two (the matting then splits the mixed pixels of the step, as on a hard map).
+its window best, among the fits that explain it clearly better than a plane does (tilted planes and smooth slopes
+stay exactly as they are) and whose window holds no hard step (a hard map's step is no blur: hard maps stay exactly
+as they are). The restored value is made hard, each pixel at the window's far plateau (its smallest map value) or
+at its near value (the largest restored value around), and used only where that is a structure: the far value is
+a plateau of the map, and so is the near value unless the structure is thin (a wide object's ramp is the ramp
+snap's, ``bokehray.ramps``, which runs next); the restoration does not undershoot the far plateau as a texture's
+amplified noise would; and enough of the window lies on the near side. The matting then splits the mixed pixels of
+the step this leaves, as on a hard map.
 """
 
 from __future__ import annotations

@@ -148,3 +148,13 @@ def test_the_two_plane_scene_stays_within_1_5_db_of_the_hard_map(focus):
     p_hard = _band_psnr(br.render(photo, hard, blur), ref, band)
     p_thin = _band_psnr(br.render(photo, soft, blur, layers=br.LayerOptions(thin_depth=True)), ref, band)
     assert p_thin >= p_hard - 1.5, (p_hard, p_thin)
+
+
+def test_tiles_give_the_whole_image_s_result():
+    """The work goes tile by tile with a margin the fit reaches through: small tiles give what one tile does."""
+    image, hard = _wires(160, 11, spacing=20)
+    s = (24.0 * (ndimage.gaussian_filter(hard, 2.0, mode="nearest") - 0.5)).astype(np.float32)
+    whole, n = restore_thin(image, s)
+    tiled, m = restore_thin(image, s, ThinRule(tile=48))
+    assert n > 0 and m == n
+    np.testing.assert_array_equal(tiled, whole)
