@@ -34,8 +34,9 @@ __all__ = ["ThinRule", "restore_thin"]
 class ThinRule:
     """The constants of :func:`restore_thin` (chosen on the dev set's soft maps: docs/design/thin-depth.md)."""
 
-    sigmas: tuple[float, ...] = (1.0, 2.0, 4.0, 8.0)
-    """The map blurs tried (Gaussian sigma, px); each pixel keeps the one whose model fits its window best."""
+    sigmas: tuple[float, ...] = (2.0, 4.0, 8.0)
+    """The map blurs tried (Gaussian sigma, px); each pixel keeps the one whose model fits its window best (1 px
+    was almost never usable: such a map keeps steps of half its range, which the hard-step test refuses)."""
     window: float = 1.5
     """A blur ``s`` is fitted over windows of radius ``ceil(window * s) + 1`` px (at least 2)."""
     ridge: float = 1e-6
