@@ -45,7 +45,7 @@ class LayerOptions:
             depth no surface has; slopes that do not end within 40 px (floors, walls) stay. With ``soft_edges``.
         thin_depth: before the ramps, give the structures a soft map's blur flattened (wires, twigs, strokes)
             their depth back from the photo's colour (``bokehray.thin_depth.restore_thin``); hard maps, tilted
-            planes and smooth slopes stay as they are. With ``soft_maps``. Off by default: it costs 2.4 - 4 CPU-s
+            planes and smooth slopes stay as they are. With ``soft_maps``. Off by default: it costs 1.8 - 2.5 CPU-s
             a megapixel of soft map (docs/soft-scene.md, "Soft maps").
     """
 
