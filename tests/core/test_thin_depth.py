@@ -158,3 +158,15 @@ def test_tiles_give_the_whole_image_s_result():
     tiled, m = restore_thin(image, s, ThinRule(tile=48))
     assert n > 0 and m == n
     np.testing.assert_array_equal(tiled, whole)
+
+
+def test_a_capped_map_is_not_restored():
+    """Radii beyond twice the diagonal are compressed (scene.cap_coc): the map is then no blur of one, and the
+    restoration is not attempted (the render equals the one without it)."""
+    image, hard = _wires(48, 2, spacing=16)
+    soft = ndimage.gaussian_filter(hard, 2.0, mode="nearest").astype(np.float32)
+    blur = br.BlurParams(2000.0, 0.0)
+    on = br.render(image, soft, blur, layers=br.LayerOptions(thin_depth=True))
+    np.testing.assert_array_equal(on, br.render(image, soft, blur))
+    _, stats = br.render_with_stats(image, soft, br.BlurParams(16.0, 0.0), layers=br.LayerOptions(thin_depth=True))
+    assert "thin depth" in stats.stage_seconds
