@@ -4,7 +4,8 @@ are, and the analytic two-plane scene (docs/soft-scene.md, "Soft maps").
 Map kinds: ``exact`` (the dev set's own), ``gauss2`` / ``gauss4`` / ``gauss8`` (a Gaussian of that sigma in px),
 ``down4`` (downsampled 4x by block means and upsampled bilinearly: a model's resolution), ``halo`` (a Gaussian of
 4 px after a 2 px dilation: a model's halo around the subject). Each is rendered by the preview with ramps read as
-edges (the default, ``LayerOptions(soft_maps=True)``) and as surfaces (``soft_maps=False``), and scored by the dev
+edges (the default, ``LayerOptions(soft_maps=True)``), as edges after the thin structures' depth is restored from
+the photo (``thin_depth=True``) and as surfaces (``soft_maps=False``), and scored by the dev
 set's own PSNR (whole frame and the band within 8 px of a depth edge of the exact depth) against the exact renders.
 The two-plane scene (``tests/reference/two_planes_ref.py``: a textured disc at disparity 1 over a textured plane at
 0, float64 thin-lens reference) is scored in the band within R + 4 px of the rim, with the hard map and with it
@@ -36,6 +37,8 @@ from benchmarks import common
 
 ROOT = Path(__file__).resolve().parents[2]
 KINDS = ("exact", "gauss2", "gauss4", "gauss8", "down4", "halo")
+VARIANTS = (("edges", br.LayerOptions()), ("edges + thin depth", br.LayerOptions(thin_depth=True)),
+            ("surfaces", br.LayerOptions(soft_maps=False)))
 
 
 def soften(d: np.ndarray, kind: str) -> np.ndarray:
@@ -74,7 +77,7 @@ def devset(data: Path, kinds=KINDS) -> dict:
                        sc.discontinuity_band(sc.read_exr(str(sd / "depth.exr")), 8.0)))
     out = {}
     for kind in kinds:
-        for variant, soft_maps in (("edges", True), ("surfaces", False)):
+        for variant, layers in VARIANTS:
             whole, band, seconds = [], [], 0.0
             for sd, info, image, disp, edge_band in scenes:
                 d = soften(disp, kind)
@@ -82,14 +85,14 @@ def devset(data: Path, kinds=KINDS) -> dict:
                     gt = sc.to_srgb(sc.read_exr(str(sd / (r["file"] + ".exr"))))
                     blur = br.BlurParams(r["K"], min(1.0, max(0.0, r["focus_disparity"])))
                     t = time.perf_counter()
-                    pred = br.render(image, d, blur, layers=br.LayerOptions(soft_maps=soft_maps))
+                    pred = br.render(image, d, blur, layers=layers)
                     seconds += time.perf_counter() - t
                     p = sc.to_srgb(pred)
                     whole.append(sc.psnr(gt, p))
                     band.append(sc.psnr(gt, p, edge_band))
             out[f"{kind} {variant}"] = {"psnr": float(np.mean(whole)), "band_psnr": float(np.mean(band)),
                                         "worst_psnr": float(np.min(whole)), "seconds_18": seconds}
-            print(f"  dev set {kind:7s} ramps as {variant:8s}: PSNR {np.mean(whole):6.2f}  band {np.mean(band):6.2f}",
+            print(f"  dev set {kind:7s} ramps as {variant:22s}: PSNR {np.mean(whole):6.2f}  band {np.mean(band):6.2f}",
                   flush=True)
     return out
 
@@ -115,6 +118,8 @@ def two_planes(foci=(0.15, 0.5, 0.85), k: float = 24.0, sigma: float = 4.0) -> d
         blur = br.BlurParams(k, f)
         row = {"hard": band_psnr(br.render(photo, hard, blur), ref, band),
                "soft, ramps as edges": band_psnr(br.render(photo, soft, blur), ref, band),
+               "soft, ramps as edges + thin depth": band_psnr(
+                   br.render(photo, soft, blur, layers=br.LayerOptions(thin_depth=True)), ref, band),
                "soft, ramps as surfaces": band_psnr(br.render(photo, soft, blur,
                                                               layers=br.LayerOptions(soft_maps=False)), ref, band)}
         out[f"focus {f}"] = row

@@ -43,6 +43,10 @@ class LayerOptions:
         soft_maps: read a ramp in the map between two depths as an edge (``bokehray.ramps.snap_ramps``): each pixel
             strictly inside it takes the depth of the side its colour belongs to, so no pixel is rendered at a
             depth no surface has; slopes that do not end within 40 px (floors, walls) stay. With ``soft_edges``.
+        thin_depth: before the ramps, give the structures a soft map's blur flattened (wires, twigs, strokes)
+            their depth back from the photo's colour (``bokehray.thin_depth.restore_thin``); hard maps, tilted
+            planes and smooth slopes stay as they are. With ``soft_maps``. Off by default: it costs 1.8 - 2.5 CPU-s
+            a megapixel of soft map (docs/soft-scene.md, "Soft maps").
     """
 
     max_layers: int = 8
@@ -52,13 +56,14 @@ class LayerOptions:
     tile_px: int = 16
     soft_edges: bool = True
     soft_maps: bool = True
+    thin_depth: bool = False
 
     def __post_init__(self) -> None:
         check_int(self.max_layers, "max_layers", lo=1)
         check_int(self.tile_px, "tile_px", lo=1, hi=MAX_TILE_PX)
         check_number(self.max_layer_px, "max_layer_px", 0.0, lo_open=True)
         check_number(self.min_layer_px, "min_layer_px", 0.0, lo_open=True)
-        for name in ("fill", "soft_edges", "soft_maps"):
+        for name in ("fill", "soft_edges", "soft_maps", "thin_depth"):
             if not isinstance(getattr(self, name), bool):
                 raise InputError(f"{name}: expected True or False, got {getattr(self, name)!r}")
 

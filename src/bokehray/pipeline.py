@@ -107,7 +107,7 @@ def _check_device(device: str) -> str:
 
 def _soft_scene(image: np.ndarray, signed_coc: np.ndarray, layers: LayerOptions, device: str,
                 finite_checked: bool = False, clock: Clock | None = None, progress: Progress | None = None,
-                memory: MemoryOptions | None = None):
+                memory: MemoryOptions | None = None, coc_bounds: tuple[float, float] | None = None):
     """The scene's map and its split pixels: ramps in the map snapped to their plateaus (``LayerOptions.soft_maps``,
     ``bokehray.ramps``), then the mixed pixels at its depth edges split by matting (``LayerOptions.soft_edges``),
     a ``scene.SoftEdges`` checked against the image (None when off). ``finite_checked``: both arrays are known finite
@@ -115,7 +115,9 @@ def _soft_scene(image: np.ndarray, signed_coc: np.ndarray, layers: LayerOptions,
     ``clock``: laps "soft maps" and "edges" on it. ``progress``: called as ``progress(0, 1)`` (no layer done yet)
     between the steps' parts, so that a render abandoned by its callback stops within a fraction of a second.
     ``memory``: the split is refused before the matting when its band cannot fit the budget beside the photo, its
-    map and its CoC (``matting.check_split_fits``)."""
+    map and its CoC (``matting.check_split_fits``). ``coc_bounds``: the CoC of disparity 0 and 1; with
+    ``LayerOptions.thin_depth``, thin structures the map's blur flattened get their depth back within them
+    (``bokehray.thin_depth``; None: not attempted)."""
     clock = clock or Clock()
     check = None if progress is None else (lambda: progress(0, 1))
     if not layers.soft_edges:
@@ -124,6 +126,11 @@ def _soft_scene(image: np.ndarray, signed_coc: np.ndarray, layers: LayerOptions,
     from .ramps import snap_ramps
 
     rule = MattingRule()  # the matting's own reading of ramps: its band and window widen with the ramp width
+    if layers.soft_maps and layers.thin_depth and coc_bounds is not None:
+        from .thin_depth import restore_thin
+
+        signed_coc, _ = restore_thin(image, signed_coc, bounds=coc_bounds, check=check)
+        clock.lap("thin depth")
     if layers.soft_maps:
         signed_coc, _ = snap_ramps(image, signed_coc, device=device, check=check)
         clock.lap("soft maps")
@@ -134,6 +141,14 @@ def _soft_scene(image: np.ndarray, signed_coc: np.ndarray, layers: LayerOptions,
     scene.check_soft_edges(soft, signed_coc.shape)
     clock.lap("edges")
     return signed_coc, soft
+
+
+def _coc_bounds(blur: BlurParams, signed_coc: np.ndarray, capped: np.ndarray) -> tuple[float, float] | None:
+    """The CoC of disparity 0 and 1, or None where the cap compressed the map (no longer a blur of one)."""
+    if capped is not signed_coc:
+        return None
+    ends = blur.signed_coc(np.array([0.0, 1.0], np.float32))
+    return float(ends[0]), float(ends[1])
 
 
 def _check_shape_fits(image: object, level_whole_image_b: int, memory: MemoryOptions) -> None:
@@ -294,7 +309,7 @@ def _context(inputs: Handover, blur: BlurParams, aperture: Aperture, layers: Lay
     disposable = not keep_pixels and img.shape[2] != 4
     clock.lap("checks")
     capped, soft = _soft_scene(rgb, capped, layers, device, finite_checked=True, clock=clock, progress=progress,
-                               memory=memory)
+                               memory=memory, coc_bounds=_coc_bounds(blur, s, capped))
     ctx = RenderContext(rgb, d, capped, blur, aperture, layers, memory, options, device, progress, soft, disposable)
     return ctx, None if disposable else work, raw_max, img.shape[2], float(img.min())
 
@@ -310,8 +325,10 @@ def _render_refined(level, ctx: RenderContext, work: np.ndarray, refine: bool | 
         if dd is d:
             c = ctx
         else:  # a corrected depth moves the depth edges: split its mixed pixels anew
-            sc, soft = _soft_scene(ctx.image, scene.cap_coc(blur.signed_coc(dd)), layers, ctx.device,
-                                   progress=ctx.progress, memory=ctx.memory)
+            s = blur.signed_coc(dd)
+            sc = scene.cap_coc(s)
+            sc, soft = _soft_scene(ctx.image, sc, layers, ctx.device, progress=ctx.progress, memory=ctx.memory,
+                                   coc_bounds=_coc_bounds(blur, s, sc))
             c = replace(ctx, disparity=dd, signed_coc=sc, soft=soft)
         rgb, rendered["stats"] = level.render(c)
         rendered["ctx"] = c
