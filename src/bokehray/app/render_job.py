@@ -60,6 +60,8 @@ def layer_options_of(args: argparse.Namespace):
         kw["max_layers"] = args.max_layers
     if args.no_fill:
         kw["fill"] = False
+    if args.thin_depth:
+        kw["thin_depth"] = True
     return LayerOptions(**kw)
 
 
