@@ -43,6 +43,10 @@ class LayerOptions:
         soft_maps: read a ramp in the map between two depths as an edge (``bokehray.ramps.snap_ramps``): each pixel
             strictly inside it takes the depth of the side its colour belongs to, so no pixel is rendered at a
             depth no surface has; slopes that do not end within 40 px (floors, walls) stay. With ``soft_edges``.
+        strand_gaps: bridge the gaps of a strand the map breaks into dashes (``bokehray.strands.bridge_strands``):
+            a pixel between two dashes of the same depth takes the strand's depth where the photo shows the strand
+            going on there, so the matting splits it instead of leaving its share of the strand sharp inside the
+            strand's blur. With ``soft_edges``.
     """
 
     max_layers: int = 8
@@ -52,13 +56,14 @@ class LayerOptions:
     tile_px: int = 16
     soft_edges: bool = True
     soft_maps: bool = True
+    strand_gaps: bool = True
 
     def __post_init__(self) -> None:
         check_int(self.max_layers, "max_layers", lo=1)
         check_int(self.tile_px, "tile_px", lo=1, hi=MAX_TILE_PX)
         check_number(self.max_layer_px, "max_layer_px", 0.0, lo_open=True)
         check_number(self.min_layer_px, "min_layer_px", 0.0, lo_open=True)
-        for name in ("fill", "soft_edges", "soft_maps"):
+        for name in ("fill", "soft_edges", "soft_maps", "strand_gaps"):
             if not isinstance(getattr(self, name), bool):
                 raise InputError(f"{name}: expected True or False, got {getattr(self, name)!r}")
 

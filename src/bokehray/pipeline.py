@@ -127,6 +127,11 @@ def _soft_scene(image: np.ndarray, signed_coc: np.ndarray, layers: LayerOptions,
         signed_coc, _ = snap_ramps(image, signed_coc, device=device, check=check)
         clock.lap("soft maps")
         rule = MattingRule(max_ramp_px=0)  # the ramps are steps now (docs/design/soft-maps.md: 10x less work)
+    if layers.strand_gaps:
+        from .strands import bridge_strands
+
+        signed_coc, _ = bridge_strands(image, signed_coc, device=device, check=check)
+        clock.lap("strands")
     budget = None if memory is None else tiling.budget_bytes(memory) - HELD_DURING_SPLIT_B * signed_coc.size
     soft = split_mixed_pixels(image, signed_coc, rule, finite_checked=finite_checked, check=check,
                               budget_bytes=budget)
