@@ -108,11 +108,13 @@ def _soft_scene(image: np.ndarray, signed_coc: np.ndarray, layers: LayerOptions,
                 finite_checked: bool = False, clock: Clock | None = None, progress: Progress | None = None,
                 memory: MemoryOptions | None = None):
     """The scene's map and its split pixels: ramps in the map snapped to their plateaus (``LayerOptions.soft_maps``,
-    ``bokehray.ramps``), then the mixed pixels at its depth edges split by matting (``LayerOptions.soft_edges``),
+    ``bokehray.ramps``), the gaps of strands the map breaks into dashes bridged (``LayerOptions.strand_gaps``,
+    ``bokehray.strands``), then the mixed pixels at its depth edges split by matting (``LayerOptions.soft_edges``),
     a ``scene.SoftEdges`` checked against the image (None when off). ``finite_checked``: both arrays are known finite
     (the context's checked photo and the CoC of its checked map), so the matting does not scan them again.
-    ``clock``: laps "soft maps" and "edges" on it. ``progress``: called as ``progress(0, 1)`` (no layer done yet)
-    between the steps' parts, so that a render abandoned by its callback stops within a fraction of a second.
+    ``clock``: laps "soft maps", "strands" and "edges" on it. ``progress``: called as ``progress(0, 1)`` (no layer
+    done yet) between the steps' parts, so that a render abandoned by its callback stops within a fraction of a
+    second.
     ``memory``: the split is refused before the matting when its band cannot fit the budget beside the photo, its
     map and its CoC (``matting.check_split_fits``)."""
     clock = clock or Clock()
