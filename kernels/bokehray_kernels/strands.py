@@ -64,8 +64,11 @@ def _thin_along(coc: wp.array2d(dtype=float), y: int, x: int, dy: int, dx: int, 
 
 
 @wp.kernel
-def strand_pixels_kernel(coc: wp.array2d(dtype=float), params: StrandParams, strand: wp.array2d(dtype=wp.uint8)):
-    y, x = wp.tid()
+def strand_pixels_kernel(coc: wp.array2d(dtype=float), params: StrandParams, y0: int,
+                         strand: wp.array2d(dtype=wp.uint8)):
+    """Rows from ``y0`` on (a band of rows a launch)."""
+    t0, x = wp.tid()
+    y = y0 + t0
     level = coc[y, x] - params.jump_px
     n = params.thin_px
     t = int(0)

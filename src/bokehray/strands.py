@@ -82,7 +82,14 @@ def bridge_strands(image: np.ndarray, signed_coc: np.ndarray, rule: StrandRule |
     coc = wp.array(s, dtype=float, device=dev, copy=copy)
     params = rule.struct()
     strand = wp.empty((h, w), dtype=wp.uint8, device=dev)
-    wp.launch(bk_strands.strand_pixels_kernel, dim=(h, w), inputs=[coc, params], outputs=[strand], device=dev)
+
+    def rows(a: int, b: int) -> None:  # pixels [a, b) as whole rows (consecutive parts meet): the threads share
+        ya, yb = round(a / w), round(b / w)  # the frame a band of rows each
+        if yb > ya:
+            wp.launch(bk_strands.strand_pixels_kernel, dim=(yb - ya, w), inputs=[coc, params, ya],
+                      outputs=[strand], device=dev)
+
+    in_parts(h * w, rows, threads=threads, cpu=dev.is_cpu, check=check)
     t = strand.numpy()
     ends = np.flatnonzero(t)
     if ends.size < 2:
