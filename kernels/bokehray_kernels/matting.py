@@ -45,7 +45,9 @@ class BandParams:
     purity: float
     light_level: float  # a far side brighter than this (mean of RGB, the image's units) may be a light ...
     light_ratio: float  # ... when it is also this many times brighter than F (summed RGB)
-    light_reach: int  # ... then F also takes near-side samples out to this many px (a full grid); 0: never
+    light_reach: int  # ... then F also takes near-side samples out to this many px; 0: never
+    light_thin: float  # ... where the near side holds less than this share of the window's weight (a strand)
+    light_share: float  # ... and the window's F holds more than this share of the light's colour than the unlit F
 
 
 @wp.struct
@@ -278,15 +280,21 @@ def matting_band_kernel(  # noqa: C901
     mb = b1 / sb
     if params.light_reach > 0 and hi - lo > params.jump_px and best_f > 0.0 and best_b > 0.0:
         bsum = mb[0] + mb[1] + mb[2]
-        if bsum > 3.0 * params.light_level and bsum > params.light_ratio * (mf[0] + mf[1] + mf[2]):
+        thin = my < params.light_thin  # a strand's share of the window, not a body's
+        if thin and bsum > 3.0 * params.light_level and bsum > params.light_ratio * (mf[0] + mf[1] + mf[2]):
             # a light behind the near side (a strand across a lamp): every near sample of the window holds some of
             # it and looks pure to the model. F is taken again where the near side crosses a darker background
             # (``_light_free``), and the pixel's alpha is its place on the line from B to that F
-            lw, f1, f2 = _light_free(image, coc, window, py, px, mid, mu, my, wv, mb, params)
-            sf = wp.max(lw[0], 1.0e-30)
-            mf = f1 / sf
-            fb = mf - mb
-            out.alpha[i] = wp.clamp(wp.dot(image[py, px] - mb, fb) / wp.max(wp.dot(fb, fb), 1.0e-30), 0.0, 1.0)
+            lw, l1, l2 = _light_free(image, coc, window, py, px, mid, mu, my, wv, mb, params)
+            lf = l1 / wp.max(lw[0], 1.0e-30)
+            # only where the window's F holds clearly more of the light than the unlit one (an opaque wire's core
+            # is its own colour over any light: its F stays)
+            if wp.dot(mf - lf, mb) / wp.max(wp.dot(mb, mb), 1.0e-30) > params.light_share:
+                sf = wp.max(lw[0], 1.0e-30)
+                mf = lf
+                f2 = l2
+                fb = mf - mb
+                out.alpha[i] = wp.clamp(wp.dot(image[py, px] - mb, fb) / wp.max(wp.dot(fb, fb), 1.0e-30), 0.0, 1.0)
     out.fg[i] = mf
     out.bg[i] = mb
     zero = wp.vec3(0.0, 0.0, 0.0)

@@ -200,8 +200,10 @@ class MattingRule:
     model_sd: float | None = 0.1
     max_isolated_share: float = 0.25
     light_level: float = 1.0
-    light_ratio: float = 2.0
+    light_ratio: float = 1.2
     light_reach: int = 16
+    light_thin: float = 0.35
+    light_share: float = 0.25
 
     def band_params(self, scale: float = 1.0) -> bk_matting.BandParams:
         """The kernel's constants for an image divided by ``scale`` (``light_level`` is in the photo's units)."""
@@ -210,6 +212,7 @@ class MattingRule:
                                                           float(self.ridge), float(self.purity))
         p.light_level = float(self.light_level) / float(scale)
         p.light_ratio, p.light_reach = float(self.light_ratio), int(self.light_reach)
+        p.light_thin, p.light_share = float(self.light_thin), float(self.light_share)
         return p
 
 

@@ -31,7 +31,7 @@ def ramp_width_ref(coc: np.ndarray, jump_px: float, cap: int) -> int:
 
 
 def band_pixel_ref(image, coc, unknown, y, x, offsets, weights, jump_px, unknown_weight, ridge, purity,
-                   light_level=1.0, light_ratio=2.0, light_reach=0):
+                   light_level=1.0, light_ratio=1.2, light_reach=0, light_thin=0.35, light_share=0.25):
     """The matting of one band pixel, as the kernel's docstring states it: returns (alpha, F, B, var F, var B,
     near CoC, far CoC, ok, own_near). ``light_*``: a light behind the near side (``MattingRule``; reach 0: off)."""
     h, w = coc.shape
@@ -71,7 +71,7 @@ def band_pixel_ref(image, coc, unknown, y, x, offsets, weights, jump_px, unknown
     ok = (hi - lo) > jump_px and best["f"] > 0.0 and best["b"] > 0.0
     own_near = float(coc[y, x]) > mid
     fb_light = _light_behind(image, coc, y, x, offsets, weights, mid, mu, my, wv, purity, out[0][0], out[1][0],
-                             light_level, light_ratio, light_reach) if light_reach > 0 and ok else None
+                             light_level, light_ratio, light_reach, light_share) if light_reach > 0 and ok and my < light_thin else None
     if fb_light is not None:
         (mean_f, var_f), alpha = fb_light
         out[0] = (mean_f, var_f)
@@ -79,13 +79,14 @@ def band_pixel_ref(image, coc, unknown, y, x, offsets, weights, jump_px, unknown
 
 
 def _light_behind(image, coc, y, x, offsets, weights, mid, mu, my, wv, purity, mf, mb, light_level, light_ratio,
-                  reach):
+                  reach, light_share):
     """A far side brighter than ``light_level`` (mean of RGB) and ``light_ratio`` times F (summed RGB) is a light
     behind the near side. Over the window and the full grid out to ``reach`` px beyond it (at the window's smallest
     weight): the unlit background D (far samples weighted by ``(1 - l)^purity``, ``l`` the projection on B); F0, the
     near samples weighted by ``(alpha (1 - l)^2)^purity``; F, the near samples weighted by ``(alpha (1 - l)^2
     t)^purity``, ``t`` the place from D towards F0 clipped to [0, 1.5]; alpha the pixel's place on the line from B to
-    F. Returns ((F, var F), alpha), None when no light."""
+    F. Returns ((F, var F), alpha); None when no light, or where the window's F holds at most ``light_share``
+    more of the light's colour than that F."""
     if not (float(mb.sum()) > 3.0 * light_level and float(mb.sum()) > light_ratio * float(mf.sum())):
         return None
     h, w = coc.shape
@@ -117,6 +118,8 @@ def _light_behind(image, coc, y, x, offsets, weights, mid, mu, my, wv, purity, m
     sw = max(sum(wt for wt, _ in pairs), 1e-30)
     f = sum((wt * c for wt, c in pairs), np.zeros(3)) / sw
     var = np.maximum(sum((wt * c * c for wt, c in pairs), np.zeros(3)) / sw - f * f, 0.0)
+    if float((mf - f) @ mb) / bb <= light_share:
+        return None  # the window's F holds hardly more of the light than the unlit one: it stays
     fb = f - mb
     alpha = min(1.0, max(0.0, float((image[y, x] - mb) @ fb) / max(float(fb @ fb), 1e-30)))
     return (f, var), alpha
