@@ -118,10 +118,11 @@ def split_mixed_pixels(
             * ``max_isolated_share``: a map where more than this share of the pixels differ by more than
               ``jump_px`` from all their neighbours is noise, not edges: nothing is split (a strand one pixel wide,
               even diagonal, has neighbours of its own depth along it).
-            * ``light_level``, ``light_ratio``, ``light_reach``: a far side brighter than ``light_level`` (mean of
-              RGB, the photo's units: above a white surface, a light) and ``light_ratio`` times F is a light behind
-              the near side (a strand across a lamp): F is taken again from the near samples out to ``light_reach``
-              px that hold the least of the light, and alpha is the pixel's place on the line from B to that F
+            * ``light_level``, ``light_ratio``, ``light_reach``, ``light_thin``, ``light_share``: a far side
+              brighter than ``light_level`` (mean of RGB, the photo's units: above a white surface, a light) and
+              ``light_ratio`` times F, behind a near side under ``light_thin`` of the window's weight (a strand)
+              whose F holds over ``light_share`` more of the light's colour than the F of its unlit samples out to
+              ``light_reach`` px: F is that F and alpha the pixel's place on the line from B to it
               (``light_reach = 0``: never).
         device: the Warp device of the band's kernel.
         threads: CPU threads of the kernel (None: all cores); the result does not depend on it.
