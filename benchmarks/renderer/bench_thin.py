@@ -12,7 +12,8 @@ the background. Each input is scored:
   background the near side hides is filled the same simple way (:func:`fill_hidden`); plus the alpha RMSE over
   the mixed pixels and their neighbours;
 * **renderers**: ``bokehray.render`` at the preview (and, with ``--raytrace``, the ray-tracer) level with
-  ``LayerOptions(soft_edges=False)`` and ``True``, when this build's LayerOptions has that option.
+  ``LayerOptions(soft_edges=False)`` and ``True``, when this build's LayerOptions has that option, and the preview
+  with ``strand_gaps=False`` (dashed strands' gaps not bridged) where it has that one.
 
 Scores are PSNR (sRGB, clipped, ``bokehray.data.metrics``) over the whole image, the 8 px band around depth edges and
 the 1.5 px silhouette ring. It also times ``split_mixed_pixels`` on the 1536 x 1024 demo scene (median of warm
@@ -230,8 +231,12 @@ def alpha_rmse(scene: Scene, disparity: np.ndarray, soft) -> tuple[float, float]
     return (float(np.sqrt(((base - a)[region] ** 2).mean())), float(np.sqrt(((est - a)[region] ** 2).mean())))
 
 
+def has_option(name: str) -> bool:
+    return name in {f.name for f in dataclasses.fields(br.LayerOptions)}
+
+
 def has_soft_option() -> bool:
-    return "soft_edges" in {f.name for f in dataclasses.fields(br.LayerOptions)}
+    return has_option("soft_edges")
 
 
 def run_case(scene: Scene, mapname: str, focus: str, raytrace: bool, keep: dict, spp: int = SPP) -> dict:
@@ -255,6 +260,9 @@ def run_case(scene: Scene, mapname: str, focus: str, raytrace: bool, keep: dict,
             if raytrace:
                 renders[f"raytrace, soft_edges={on}"] = br.render(scene.photo, d, blur, quality="raytrace",
                                                                   layers=br.LayerOptions(soft_edges=on))
+        if has_option("strand_gaps"):  # the soft edges without the dashed strands' gaps bridged (bokehray.strands)
+            renders["preview, strand_gaps=False"] = br.render(scene.photo, d, blur,
+                                                              layers=br.LayerOptions(strand_gaps=False))
     row["scores"] = {name: scores(img, target, band, ring) for name, img in renders.items()}
     keep[(scene.kind, mapname, focus)] = (scene.photo, target, renders, ring)
     return row
@@ -341,13 +349,14 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--size", type=int, default=320)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--quick", action="store_true", help="small scenes, two classes, no timing (a smoke run)")
+    ap.add_argument("--classes", default=None, help="comma-separated classes (default: all; --quick: the first two)")
     ap.add_argument("--raytrace", action="store_true", help="also score the ray-tracer level")
     ap.add_argument("--spp", type=int, default=SPP, help="ray cap of the exact traces (targets and scenes)")
     ap.add_argument("--runs", type=int, default=5, help="warm runs of the timing (0: no timing)")
     ap.add_argument("--out", type=Path, default=REPO / "benchmarks" / "results" / "thin.json")
     ap.add_argument("--img", type=Path, default=REPO / "docs" / "img")
     args = ap.parse_args(argv)
-    classes = CLASSES[:2] if args.quick else CLASSES
+    classes = tuple(args.classes.split(",")) if args.classes else CLASSES[:2] if args.quick else CLASSES
     size = 96 if args.quick else args.size
     rows, keep = [], {}
     for kind in classes:

@@ -7,7 +7,12 @@ One thread a band pixel, over its window (``offset_y``, ``offset_x``; Gaussian w
    ``unknown_weight``; targets 1 near, 0 far), solved in float64;
 3. the model's alpha of every window pixel weights the side means: F from the near side by ``alpha^purity``,
    B from the far side by ``(1 - alpha)^purity``; the parts' CoC are the window's largest and smallest CoC
-   (the plateaus on either side of the edge, not the pixel's own, mixed or ramp value).
+   (the plateaus on either side of the edge, not the pixel's own, mixed or ramp value);
+4. a light behind a strand (B brighter than ``light_level`` and ``light_ratio`` times F, the near side under
+   ``light_thin`` of the window's weight): every near sample of the window holds some of the light and the model
+   calls them pure, so F is taken again from the near samples out to ``light_reach`` px that hold the least of the
+   light's colour and the most of the strand (``_light_free``); where the window's F holds over ``light_share``
+   more of the light than that F, it is F, and alpha is the pixel's place on the line from B to it.
 
 Oracle: ``tests/reference/matting_ref.py``.
 """
@@ -41,6 +46,11 @@ class BandParams:
     purity: float
     purity_n: int
     """``purity`` as a whole number (0 to 64), raised by squaring; -1: ``purity`` is not one (``wp.pow``)."""
+    light_level: float  # a far side brighter than this (mean of RGB, the image's units) may be a light ...
+    light_ratio: float  # ... when it is also this many times brighter than F (summed RGB)
+    light_reach: int  # ... then F also takes near-side samples out to this many px; 0: never
+    light_thin: float  # ... where the near side holds less than this share of the window's weight (a strand)
+    light_share: float  # ... and the window's F holds more than this share of the light's colour than the unlit F
 
 
 @wp.struct
@@ -71,6 +81,97 @@ def purity_weight(a: float, params: BandParams) -> float:
         base = base * base
         n = n // 2
     return out
+
+
+@wp.func
+def _reach_weight(window: BandWindow, k: int, gy: int, gx: int, reach: int) -> float:
+    """The Gaussian weight of window offset ``k`` (``k`` < the window's size), else of grid offset (gy, gx) out to
+    ``reach`` beyond the window (the window's smallest weight; 0 inside the window or beyond the reach)."""
+    m = window.offset_y.shape[0]
+    if k < m:
+        return window.offset_g[k]
+    r_in = float(window.offset_y[m - 1] * window.offset_y[m - 1] + window.offset_x[m - 1] * window.offset_x[m - 1])
+    dd = float(gy * gy + gx * gx)
+    if dd > r_in and dd <= float(reach * reach):
+        return window.offset_g[m - 1]
+    return 0.0
+
+
+@wp.func
+def _light_free(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), window: BandWindow, py: int,
+                px: int, mid: float, mu: wp.vec3, my: float, wv: wp.vec3, mb: wp.vec3, params: BandParams):
+    """F of a near side lit from behind by a light of colour ``mb``: over the window and a full grid out to
+    ``light_reach``, (1) the unlit background ``D``, the far samples weighted by ``(1 - l)^purity`` (``l``: the
+    sample's projection on ``mb``); (2) the near samples weighted by ``(alpha (1 - l)^2)^purity`` (the model's
+    alpha), their mean ``F0``; (3) F: their mean weighted by ``(alpha (1 - l)^2 t)^purity``, ``t`` the sample's place
+    from ``D`` towards ``F0`` (clamped to [0, 1.5], so that a lit sample's brightness does not count as cover): the
+    most covered of the unlit near samples (a strand thinner than a
+    pixel is nowhere pure: the mean of its unlit samples is its colour times its mean coverage). Returns (the weight sum as a vec3's first
+    entry, the weighted sum, the weighted sum of squares)."""
+    h = coc.shape[0]
+    w = coc.shape[1]
+    m = window.offset_y.shape[0]
+    reach = params.light_reach
+    side = 2 * reach + 1
+    n = m + side * side
+    bb = wp.max(wp.dot(mb, mb), 1.0e-30)
+    sd = float(0.0)
+    d1 = wp.vec3(0.0, 0.0, 0.0)
+    s0 = float(0.0)
+    f0 = wp.vec3(0.0, 0.0, 0.0)
+    for k in range(n):
+        gy = int(0)
+        gx = int(0)
+        if k < m:
+            gy = window.offset_y[k]
+            gx = window.offset_x[k]
+        else:
+            gy = (k - m) / side - reach
+            gx = (k - m) % side - reach
+        g = _reach_weight(window, k, gy, gx, reach)
+        y = py + gy
+        x = px + gx
+        if g > 0.0 and y >= 0 and y < h and x >= 0 and x < w:
+            c = image[y, x]
+            lq = wp.clamp(wp.dot(c, mb) / bb, 0.0, 1.0)
+            if coc[y, x] > mid:
+                aq = wp.clamp(my + wp.dot(c - mu, wv), 0.0, 1.0)
+                wf = g * wp.pow(aq * (1.0 - lq) * (1.0 - lq), params.purity)
+                s0 += wf
+                f0 += wf * c
+            else:
+                wd = g * wp.pow(1.0 - lq, params.purity)
+                sd += wd
+                d1 += wd * c
+    dk = d1 / wp.max(sd, 1.0e-30)
+    fd = f0 / wp.max(s0, 1.0e-30) - dk
+    ff = wp.max(wp.dot(fd, fd), 1.0e-30)
+    sf = float(0.0)
+    f1 = wp.vec3(0.0, 0.0, 0.0)
+    f2 = wp.vec3(0.0, 0.0, 0.0)
+    for k in range(n):
+        gy = int(0)
+        gx = int(0)
+        if k < m:
+            gy = window.offset_y[k]
+            gx = window.offset_x[k]
+        else:
+            gy = (k - m) / side - reach
+            gx = (k - m) % side - reach
+        g = _reach_weight(window, k, gy, gx, reach)
+        y = py + gy
+        x = px + gx
+        if g > 0.0 and y >= 0 and y < h and x >= 0 and x < w:
+            if coc[y, x] > mid:
+                c = image[y, x]
+                lq = wp.clamp(wp.dot(c, mb) / bb, 0.0, 1.0)
+                aq = wp.clamp(my + wp.dot(c - mu, wv), 0.0, 1.0)
+                tq = wp.clamp(wp.dot(c - dk, fd) / ff, 0.0, 1.5)
+                wf = g * wp.pow(aq * (1.0 - lq) * (1.0 - lq) * tq, params.purity)
+                sf += wf
+                f1 += wf * c
+                f2 += wf * wp.cw_mul(c, c)
+    return wp.vec3(sf, 0.0, 0.0), f1, f2
 
 
 @wp.kernel
@@ -196,6 +297,23 @@ def matting_band_kernel(  # noqa: C901
     sb = wp.max(sb, 1.0e-30)
     mf = f1 / sf
     mb = b1 / sb
+    if params.light_reach > 0 and hi - lo > params.jump_px and best_f > 0.0 and best_b > 0.0:
+        bsum = mb[0] + mb[1] + mb[2]
+        thin = my < params.light_thin  # a strand's share of the window, not a body's
+        if thin and bsum > 3.0 * params.light_level and bsum > params.light_ratio * (mf[0] + mf[1] + mf[2]):
+            # a light behind the near side (a strand across a lamp): every near sample of the window holds some of
+            # it and looks pure to the model. F is taken again where the near side crosses a darker background
+            # (``_light_free``), and the pixel's alpha is its place on the line from B to that F
+            lw, l1, l2 = _light_free(image, coc, window, py, px, mid, mu, my, wv, mb, params)
+            lf = l1 / wp.max(lw[0], 1.0e-30)
+            # only where the window's F holds clearly more of the light than the unlit one (an opaque wire's core
+            # is its own colour over any light: its F stays)
+            if wp.dot(mf - lf, mb) / wp.max(wp.dot(mb, mb), 1.0e-30) > params.light_share:
+                sf = wp.max(lw[0], 1.0e-30)
+                mf = lf
+                f2 = l2
+                fb = mf - mb
+                out.alpha[i] = wp.clamp(wp.dot(image[py, px] - mb, fb) / wp.max(wp.dot(fb, fb), 1.0e-30), 0.0, 1.0)
     out.fg[i] = mf
     out.bg[i] = mb
     zero = wp.vec3(0.0, 0.0, 0.0)

@@ -199,13 +199,22 @@ class MattingRule:
     max_alpha: float = 0.9
     model_sd: float | None = 0.1
     max_isolated_share: float = 0.25
+    light_level: float = 1.0
+    light_ratio: float = 1.2
+    light_reach: int = 16
+    light_thin: float = 0.35
+    light_share: float = 0.25
 
-    def band_params(self) -> bk_matting.BandParams:
+    def band_params(self, scale: float = 1.0) -> bk_matting.BandParams:
+        """The kernel's constants for an image divided by ``scale`` (``light_level`` is in the photo's units)."""
         p = bk_matting.BandParams()
         p.jump_px, p.unknown_weight, p.ridge, p.purity = (float(self.jump_px), float(self.unknown_weight),
                                                           float(self.ridge), float(self.purity))
         whole = float(self.purity).is_integer() and 0 <= self.purity <= 64
         p.purity_n = int(self.purity) if whole else -1
+        p.light_level = float(self.light_level) / float(scale)
+        p.light_ratio, p.light_reach = float(self.light_ratio), int(self.light_reach)
+        p.light_thin, p.light_share = float(self.light_thin), float(self.light_share)
         return p
 
 
@@ -224,7 +233,8 @@ def band_window(radius: int, device) -> bk_matting.BandWindow:
     return window
 
 
-def launch_band_kernel(img, s, band, by, bx, radius: int, rule: MattingRule, device, threads, check=None):
+def launch_band_kernel(img, s, band, by, bx, radius: int, rule: MattingRule, device, threads, check=None,
+                       scale: float = 1.0):
     """Launch ``bokehray_kernels.matting.matting_band_kernel`` over the band pixels ``(by, bx)`` of the box ``img``
     (scaled), ``s`` (its CoC) and ``band`` (its band mask), in rounds of parts on CPU threads (:func:`in_parts`: Warp
     CPU launches release the GIL). Returns NumPy arrays: alpha, F, B, their variances, the near and far CoC and the
@@ -236,7 +246,7 @@ def launch_band_kernel(img, s, band, by, bx, radius: int, rule: MattingRule, dev
     image = wp.array(np.ascontiguousarray(img, np.float32), dtype=wp.vec3, device=dev, copy=copy)
     coc = wp.array(np.ascontiguousarray(s, np.float32), dtype=float, device=dev, copy=copy)
     unknown = wp.array(np.ascontiguousarray(band, bool).view(np.uint8), dtype=wp.uint8, device=dev, copy=copy)
-    window, params = band_window(radius, dev), rule.band_params()
+    window, params = band_window(radius, dev), rule.band_params(scale)
     names = ("alpha", "fg", "bg", "fg_var", "bg_var", "near_coc", "far_coc", "flags")
     types = (float, wp.vec3, wp.vec3, wp.vec3, wp.vec3, float, float, wp.int32)
 
@@ -282,7 +292,8 @@ class EdgeBand:
                  check=None) -> EdgeEstimate:
         """The edge estimate of band pixels ``a`` to ``b`` (its arrays that long; ``box``, ``image`` the band's)."""
         by, bx = self.by[a:b], self.bx[a:b]
-        out = launch_band_kernel(self.image, self.coc, self.band, by, bx, self.radius, rule, device, threads, check)
+        out = launch_band_kernel(self.image, self.coc, self.band, by, bx, self.radius, rule, device, threads, check,
+                                 self.scale)
         return EdgeEstimate(self, by, bx, *out)
 
 

@@ -121,6 +121,12 @@ def split_mixed_pixels(
             * ``max_isolated_share``: a map where more than this share of the pixels differ by more than
               ``jump_px`` from all their neighbours is noise, not edges: nothing is split (a strand one pixel wide,
               even diagonal, has neighbours of its own depth along it).
+            * ``light_level``, ``light_ratio``, ``light_reach``, ``light_thin``, ``light_share``: a far side
+              brighter than ``light_level`` (mean of RGB, the photo's units: above a white surface, a light) and
+              ``light_ratio`` times F, behind a near side under ``light_thin`` of the window's weight (a strand)
+              whose F holds over ``light_share`` more of the light's colour than the F of its unlit samples out to
+              ``light_reach`` px: F is that F and alpha the pixel's place on the line from B to it
+              (``light_reach = 0``: never).
         device: the Warp device of the band's kernels.
         threads: CPU threads of the kernels (None: all cores); the result does not depend on it.
         finite_checked: the caller has already refused NaN and Inf in both arrays (the render pipeline: a checked

@@ -47,6 +47,10 @@ class LayerOptions:
             their depth back from the photo's colour (``bokehray.thin_depth.restore_thin``); hard maps, tilted
             planes and smooth slopes stay as they are. With ``soft_maps``. Off by default: it costs 1.8 - 2.5 CPU-s
             a megapixel of soft map (docs/soft-scene.md, "Soft maps").
+        strand_gaps: bridge the gaps of a strand the map breaks into dashes (``bokehray.strands.bridge_strands``):
+            a pixel between two dashes of the same depth takes the strand's depth where the photo shows the strand
+            going on there, so the matting splits it instead of leaving its share of the strand sharp inside the
+            strand's blur. With ``soft_edges``.
     """
 
     max_layers: int = 8
@@ -57,13 +61,14 @@ class LayerOptions:
     soft_edges: bool = True
     soft_maps: bool = True
     thin_depth: bool = False
+    strand_gaps: bool = True
 
     def __post_init__(self) -> None:
         check_int(self.max_layers, "max_layers", lo=1)
         check_int(self.tile_px, "tile_px", lo=1, hi=MAX_TILE_PX)
         check_number(self.max_layer_px, "max_layer_px", 0.0, lo_open=True)
         check_number(self.min_layer_px, "min_layer_px", 0.0, lo_open=True)
-        for name in ("fill", "soft_edges", "soft_maps", "thin_depth"):
+        for name in ("fill", "soft_edges", "soft_maps", "thin_depth", "strand_gaps"):
             if not isinstance(getattr(self, name), bool):
                 raise InputError(f"{name}: expected True or False, got {getattr(self, name)!r}")
 

@@ -109,11 +109,13 @@ def _soft_scene(image: np.ndarray, signed_coc: np.ndarray, layers: LayerOptions,
                 finite_checked: bool = False, clock: Clock | None = None, progress: Progress | None = None,
                 memory: MemoryOptions | None = None, coc_bounds: tuple[float, float] | None = None):
     """The scene's map and its split pixels: ramps in the map snapped to their plateaus (``LayerOptions.soft_maps``,
-    ``bokehray.ramps``), then the mixed pixels at its depth edges split by matting (``LayerOptions.soft_edges``),
+    ``bokehray.ramps``), the gaps of strands the map breaks into dashes bridged (``LayerOptions.strand_gaps``,
+    ``bokehray.strands``), then the mixed pixels at its depth edges split by matting (``LayerOptions.soft_edges``),
     a ``scene.SoftEdges`` checked against the image (None when off). ``finite_checked``: both arrays are known finite
     (the context's checked photo and the CoC of its checked map), so the matting does not scan them again.
-    ``clock``: laps "soft maps" and "edges" on it. ``progress``: called as ``progress(0, 1)`` (no layer done yet)
-    between the steps' parts, so that a render abandoned by its callback stops within a fraction of a second.
+    ``clock``: laps "soft maps", "strands" and "edges" on it. ``progress``: called as ``progress(0, 1)`` (no layer
+    done yet) between the steps' parts, so that a render abandoned by its callback stops within a fraction of a
+    second.
     ``memory``: the split is refused before the matting when its band cannot fit the budget beside the photo, its
     map and its CoC (``matting.check_split_fits``). ``coc_bounds``: the CoC of disparity 0 and 1; with
     ``LayerOptions.thin_depth``, thin structures the map's blur flattened get their depth back within them
@@ -135,6 +137,11 @@ def _soft_scene(image: np.ndarray, signed_coc: np.ndarray, layers: LayerOptions,
         signed_coc, _ = snap_ramps(image, signed_coc, device=device, check=check)
         clock.lap("soft maps")
         rule = MattingRule(max_ramp_px=0)  # the ramps are steps now (docs/design/soft-maps.md: 10x less work)
+    if layers.strand_gaps:
+        from .strands import bridge_strands
+
+        signed_coc, _ = bridge_strands(image, signed_coc, device=device, check=check)
+        clock.lap("strands")
     budget = None if memory is None else tiling.budget_bytes(memory) - HELD_DURING_SPLIT_B * signed_coc.size
     soft = split_mixed_pixels(image, signed_coc, rule, finite_checked=finite_checked, check=check,
                               budget_bytes=budget)

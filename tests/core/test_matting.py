@@ -343,3 +343,78 @@ def test_a_wire_over_a_flat_sky_gets_its_coverage():
     edges = depth_edges(coc, 1.0).ravel()
     faint = np.flatnonzero(edges & (alpha.ravel() >= 0.03) & (alpha.ravel() < 0.1))
     assert faint.size and np.isin(faint, se.index).all()
+
+
+def _spoke_over_a_lamp(n: int = 48, width: float = 0.7, colour: float = 0.45):
+    """A strand ``width`` px wide (grey ``colour``) across a small lamp (radiance 6, radius 6 px) over a dark sky,
+    its map by the alpha >= 0.5 rule (strand at CoC 0, in focus; the sky and the lamp at -32). Returns the photo,
+    the CoC map and the strand's coverage."""
+    from bokehray.app.demo import stroke
+
+    yy, xx = np.mgrid[0:n, 0:n] + 0.5
+    sky = np.full((n, n, 3), 0.01, np.float32)
+    lamp = np.clip(6.5 - np.hypot(yy - n / 2, xx - n / 2), 0, 1)[..., None]
+    bg = (sky * (1 - lamp) + 6.0 * lamp).astype(np.float32)
+    sl, a = stroke(np.array([[-2.0, n / 2 - 5.0], [n + 2.0, n / 2 + 3.0]]), np.full(2, width), n, n)
+    alpha = np.zeros((n, n), np.float32)
+    alpha[sl] = a
+    photo = (alpha[..., None] * np.float32(colour) + (1 - alpha[..., None]) * bg).astype(np.float32)
+    coc = np.where(alpha >= 0.5, 0.0, -32.0).astype(np.float32)
+    return photo, coc, alpha, lamp[..., 0]
+
+
+def test_band_kernel_matches_the_reference_with_a_light_behind_a_strand():
+    """The kernel's reading of a light behind the near side against the float64 loop (the light's branch runs)."""
+    from reference.matting_ref import band_pixel_ref, gaussian_weights
+
+    from bokehray.edge_estimate import launch_band_kernel
+
+    photo, coc, _, _ = _spoke_over_a_lamp()
+    scale = float(photo.max())
+    img = photo / np.float32(scale)
+    edges = depth_edges(coc, 1.0)
+    by, bx = np.nonzero(edges)
+    rule = MattingRule()
+    radius = 4
+    got = launch_band_kernel(img, coc, edges, by, bx, radius, rule, "cpu", 2, scale=scale)
+    offs, dist = window_offsets(radius)
+    g = gaussian_weights(dist, radius)
+    moved = 0
+    for i in range(by.size):
+        a, F, B, vF, _, _, _, ok, _ = band_pixel_ref(
+            img, coc, edges, by[i], bx[i], offs, g, rule.jump_px, rule.unknown_weight, rule.ridge, rule.purity,
+            rule.light_level / scale, rule.light_ratio, rule.light_reach, rule.light_thin, rule.light_share)
+        plain = band_pixel_ref(img, coc, edges, by[i], bx[i], offs, g, rule.jump_px, rule.unknown_weight,
+                               rule.ridge, rule.purity)
+        assert bool(got[7][i] & 1) == ok
+        if not ok:
+            continue
+        moved += int(np.abs(plain[1] - F).max() > 1e-3)
+        assert abs(got[0][i] - a) < 2e-4
+        np.testing.assert_allclose(got[1][i], F, atol=2e-5)
+        np.testing.assert_allclose(got[2][i], B, atol=2e-5)
+        np.testing.assert_allclose(got[3][i], vF, atol=2e-5)
+    assert moved > 5  # the light's branch ran, and changed F
+
+
+@pytest.mark.parametrize("width", [0.5, 0.6, 0.7])
+def test_a_strand_across_a_light_is_not_kept_light_bright(width):
+    """The regression (the dev set's lamp spoke, 0.7 px): the window's near samples of a strand across a lamp all
+    hold the lamp's light, so F came out lamp-bright and the pixels stayed whole, a sharp dash of the lamp's light.
+    The near part the split leaves in focus, ``alpha F``, must be near the strand's share ``coverage x colour``, not
+    the lamp's (a wider strand lets too little of the light through for the rule: docs/soft-scene.md, Limits)."""
+    photo, coc, alpha, lamp = _spoke_over_a_lamp(width=width)
+    over = (lamp > 0.99) & (alpha > 0.3) & (coc == 0.0)  # the strand's map pixels over the lamp's core
+    assert over.sum() >= 4
+    truth = alpha[over] * 0.45
+
+    def near_share(rule):
+        soft = split_mixed_pixels(photo, coc, rule)
+        share = photo[..., 1].copy()  # a pixel left whole is in focus all of it
+        share.ravel()[soft.index] = soft.alpha * soft.foreground[:, 1]
+        return share[over]
+
+    before = near_share(MattingRule(max_ramp_px=0, light_reach=0))
+    after = near_share(MattingRule(max_ramp_px=0))
+    assert np.abs(before - truth).max() > 1.0  # lamp-bright
+    assert np.abs(after - truth).max() < 0.2

@@ -118,7 +118,7 @@ def test_the_render_s_stages_sum_to_its_total():
     d = (s / 24.0 + 0.5).clip(0, 1).astype(np.float32)
     _, stats = br.render_with_stats(img, d, br.BlurParams(24.0, 0.5))
     st = stats.stage_seconds
-    assert {"checks", "soft maps", "edges", "plan", "layers", "output", "total"} <= set(st)
+    assert {"checks", "soft maps", "strands", "edges", "plan", "layers", "output", "total"} <= set(st)
     assert sum(v for k, v in st.items() if k != "total") == pytest.approx(st["total"], rel=0.02, abs=0.002)
 
 

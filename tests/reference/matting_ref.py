@@ -30,9 +30,10 @@ def ramp_width_ref(coc: np.ndarray, jump_px: float, cap: int) -> int:
     return int(min(cap, max(0, int(np.percentile(np.array(lengths), 90)) - 1)))
 
 
-def band_pixel_ref(image, coc, unknown, y, x, offsets, weights, jump_px, unknown_weight, ridge, purity):
+def band_pixel_ref(image, coc, unknown, y, x, offsets, weights, jump_px, unknown_weight, ridge, purity,
+                   light_level=1.0, light_ratio=1.2, light_reach=0, light_thin=0.35, light_share=0.25):
     """The matting of one band pixel, as the kernel's docstring states it: returns (alpha, F, B, var F, var B,
-    near CoC, far CoC, ok, own_near)."""
+    near CoC, far CoC, ok, own_near). ``light_*``: a light behind the near side (``MattingRule``; reach 0: off)."""
     h, w = coc.shape
     win = []
     for (dy, dx), g in zip(offsets, weights):
@@ -69,7 +70,59 @@ def band_pixel_ref(image, coc, unknown, y, x, offsets, weights, jump_px, unknown
         out.append((mean, np.maximum(sums[side][2] / sw - mean * mean, 0.0)))
     ok = (hi - lo) > jump_px and best["f"] > 0.0 and best["b"] > 0.0
     own_near = float(coc[y, x]) > mid
+    fb_light = _light_behind(image, coc, y, x, offsets, weights, mid, mu, my, wv, purity, out[0][0], out[1][0],
+                             light_level, light_ratio, light_reach, light_share) if light_reach > 0 and ok and my < light_thin else None
+    if fb_light is not None:
+        (mean_f, var_f), alpha = fb_light
+        out[0] = (mean_f, var_f)
     return alpha, out[0][0], out[1][0], out[0][1], out[1][1], hi, lo, ok, own_near
+
+
+def _light_behind(image, coc, y, x, offsets, weights, mid, mu, my, wv, purity, mf, mb, light_level, light_ratio,
+                  reach, light_share):
+    """A far side brighter than ``light_level`` (mean of RGB) and ``light_ratio`` times F (summed RGB) is a light
+    behind the near side. Over the window and the full grid out to ``reach`` px beyond it (at the window's smallest
+    weight): the unlit background D (far samples weighted by ``(1 - l)^purity``, ``l`` the projection on B); F0, the
+    near samples weighted by ``(alpha (1 - l)^2)^purity``; F, the near samples weighted by ``(alpha (1 - l)^2
+    t)^purity``, ``t`` the place from D towards F0 clipped to [0, 1.5]; alpha the pixel's place on the line from B to
+    F. Returns ((F, var F), alpha); None when no light, or where the window's F holds at most ``light_share``
+    more of the light's colour than that F."""
+    if not (float(mb.sum()) > 3.0 * light_level and float(mb.sum()) > light_ratio * float(mf.sum())):
+        return None
+    h, w = coc.shape
+    bb = max(float(mb @ mb), 1e-30)
+    samples = [(float(g), int(dy), int(dx)) for (dy, dx), g in zip(offsets, weights)]
+    r_in = float(offsets[-1][0]) ** 2 + float(offsets[-1][1]) ** 2
+    samples += [(float(weights[-1]), gy, gx) for gy in range(-reach, reach + 1) for gx in range(-reach, reach + 1)
+                if r_in < gy * gy + gx * gx <= reach * reach]
+    near, far = [], []
+    for g, dy, dx in samples:
+        yy, xx = y + dy, x + dx
+        if 0 <= yy < h and 0 <= xx < w:
+            c = image[yy, xx].astype(np.float64)
+            lq = min(1.0, max(0.0, float(c @ mb) / bb))
+            if float(coc[yy, xx]) > mid:
+                near.append((g, c, lq, min(1.0, max(0.0, my + float((c - mu) @ wv)))))
+            else:
+                far.append((g, c, lq))
+
+    def mean(pairs):
+        sw = sum(wt for wt, _ in pairs)
+        return sum((wt * c for wt, c in pairs), np.zeros(3)) / max(sw, 1e-30)
+
+    d = mean([(g * (1 - lq) ** purity, c) for g, c, lq in far])
+    fd = mean([(g * (aq * (1 - lq) ** 2) ** purity, c) for g, c, lq, aq in near]) - d
+    ff = max(float(fd @ fd), 1e-30)
+    pairs = [(g * (aq * (1 - lq) ** 2 * min(1.5, max(0.0, float((c - d) @ fd) / ff))) ** purity, c)
+             for g, c, lq, aq in near]
+    sw = max(sum(wt for wt, _ in pairs), 1e-30)
+    f = sum((wt * c for wt, c in pairs), np.zeros(3)) / sw
+    var = np.maximum(sum((wt * c * c for wt, c in pairs), np.zeros(3)) / sw - f * f, 0.0)
+    if float((mf - f) @ mb) / bb <= light_share:
+        return None  # the window's F holds hardly more of the light than the unlit one: it stays
+    fb = f - mb
+    alpha = min(1.0, max(0.0, float((image[y, x] - mb) @ fb) / max(float(fb @ fb), 1e-30)))
+    return (f, var), alpha
 
 
 def gaussian_weights(dist: np.ndarray, radius: int) -> np.ndarray:

@@ -1,0 +1,196 @@
+"""Strands broken in the map bridged where the photo shows them whole (``bokehray.strands.bridge_strands``).
+
+A strand thinner than about a pixel (a grass stem, a hair, a wire) gets its depth only where its coverage reaches
+1/2: its map is a row of dashes, and the pixels between two dashes keep the background's depth while they hold a
+share of the strand's colour. Two kernels:
+
+1. :func:`strand_pixels_kernel`: the map's strand pixels, nearer by more than ``jump_px`` than a pixel within
+   ``thin_px`` on both sides along one of the four axes (a structure at most ``2 thin_px - 1`` px across; outside
+   the frame counts as farther).
+2. :func:`bridge_strands_kernel`, one thread a strand pixel ``q1``: for every strand pixel ``q2`` of the same
+   depth (within ``jump_px``) in the half window ``offsets`` (``q2`` after ``q1`` in row-major order, 2 to
+   ``max_gap`` px away) such that both end their dashes towards each other (neither has an 8-neighbour of its own
+   depth on the other's side), the pixels of the segment between them (one a step along its longer axis,
+   rounded) that the map puts behind the strand are a gap. The gap is bridged, each of its pixels given the mean of the two ends'
+   values (``atomic_max``: the nearest bridge wins, whatever the threads' order), when for every gap pixel ``p``:
+
+   * the map is thin across the segment: the pixels 1 and 2 px from ``p`` on both sides across it (Chebyshev
+     steps) are behind the strand too, or outside the frame (a gap inside a strand, not a notch in a solid
+     outline);
+   * the photo shows the strand there: ``p``'s colour, on the line from the background ``B`` (the mean of the two
+     pixels 2 px across) to the strand ``F`` (the mean of the ends' colours), lies at least ``min_share`` of the
+     way to ``F`` and at most ``max_off`` of ``|F - B|`` off the line (``B``: the one inside the frame at a border); ``|F - B|`` must exceed ``min_contrast``
+     of the brighter of the two. A gap the photo shows as background (a hole in a mesh) stays.
+
+Oracle: ``tests/reference/strands_ref.py``.
+"""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.struct
+class StrandParams:
+    """The rule's constants (``bokehray.strands.StrandRule``)."""
+
+    jump_px: float  # nearer / farther: a CoC difference of more than this (px)
+    thin_px: int  # a strand pixel has a farther pixel within this on both sides along one axis
+    min_share: float  # a gap pixel's colour lies at least this far from B towards F
+    max_off: float  # ... and at most this share of |F - B| off the B-F line
+    min_contrast: float  # |F - B| above this share of the brighter of the two
+
+
+@wp.func
+def _farther(coc: wp.array2d(dtype=float), y: int, x: int, level: float) -> int:
+    """1 when (y, x) lies outside the map (nothing nearer there) or its value is below ``level``."""
+    if y < 0 or y >= coc.shape[0] or x < 0 or x >= coc.shape[1]:
+        return 1
+    if coc[y, x] < level:
+        return 1
+    return 0
+
+
+@wp.func
+def _thin_along(coc: wp.array2d(dtype=float), y: int, x: int, dy: int, dx: int, level: float, n: int) -> int:
+    """1 when a pixel below ``level`` lies within ``n`` px of (y, x) both ways along (dy, dx)."""
+    for k in range(1, n + 1):
+        if _farther(coc, y + k * dy, x + k * dx, level) == 1:
+            for j in range(1, n + 1):
+                if _farther(coc, y - j * dy, x - j * dx, level) == 1:
+                    return 1
+            return 0
+    return 0
+
+
+@wp.kernel
+def strand_pixels_kernel(coc: wp.array2d(dtype=float), params: StrandParams, y0: int,
+                         strand: wp.array2d(dtype=wp.uint8)):
+    """Rows from ``y0`` on (a band of rows a launch)."""
+    t0, x = wp.tid()
+    y = y0 + t0
+    level = coc[y, x] - params.jump_px
+    n = params.thin_px
+    t = int(0)
+    if _thin_along(coc, y, x, 0, 1, level, n) == 1 or _thin_along(coc, y, x, 1, 0, level, n) == 1:
+        t = 1
+    elif _thin_along(coc, y, x, 1, 1, level, n) == 1 or _thin_along(coc, y, x, 1, -1, level, n) == 1:
+        t = 1
+    strand[y, x] = wp.uint8(t)
+
+
+@wp.func
+def _round(v: float) -> int:
+    return int(wp.floor(v + 0.5))
+
+
+@wp.func
+def _gap_pixel_ok(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), py: int, px: int, ny: float,
+                  nx: float, level: float, f: wp.vec3, params: StrandParams) -> int:
+    """1 when gap pixel (py, px) is thin across the segment (normal (ny, nx), Chebyshev length 1) and its colour
+    continues the strand's ``f`` over the background 2 px across."""
+    for m in range(1, 3):
+        fm = float(m)
+        if _farther(coc, py + _round(fm * ny), px + _round(fm * nx), level) == 0:
+            return 0
+        if _farther(coc, py - _round(fm * ny), px - _round(fm * nx), level) == 0:
+            return 0
+    b = wp.vec3(0.0, 0.0, 0.0)
+    nb = float(0.0)
+    for side in range(2):
+        sg = 1.0 - 2.0 * float(side)
+        qy = py + _round(sg * 2.0 * ny)
+        qx = px + _round(sg * 2.0 * nx)
+        if qy >= 0 and qy < coc.shape[0] and qx >= 0 and qx < coc.shape[1]:
+            b += image[qy, qx]
+            nb += 1.0
+    if nb == 0.0:
+        return 0
+    b = b / nb
+    d = f - b
+    den = wp.dot(d, d)
+    bright = wp.max(wp.dot(f, f), wp.dot(b, b))
+    if den <= params.min_contrast * params.min_contrast * bright or den <= 1.0e-20:
+        return 0
+    r = image[py, px] - b
+    a = wp.dot(r, d) / den
+    off = r - a * d
+    if a < params.min_share or wp.dot(off, off) > params.max_off * params.max_off * den:
+        return 0
+    return 1
+
+
+@wp.func
+def _ends_towards(coc: wp.array2d(dtype=float), y: int, x: int, oy: int, ox: int, jump: float) -> int:
+    """1 when (y, x) ends its dash towards (oy, ox): none of its 8-neighbours of its own depth (within ``jump``)
+    lies on that side (a dot product with (oy, ox) above 0)."""
+    v = coc[y, x]
+    for dy in range(-1, 2):
+        for dx in range(-1, 2):
+            if dy * oy + dx * ox > 0:
+                yy = y + dy
+                xx = x + dx
+                if yy >= 0 and yy < coc.shape[0] and xx >= 0 and xx < coc.shape[1]:
+                    if wp.abs(coc[yy, xx] - v) <= jump:
+                        return 0
+    return 1
+
+
+@wp.func
+def _bridge(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), y1: int, x1: int, oy: int, ox: int,
+            params: StrandParams, out: wp.array2d(dtype=float)):
+    """Bridge the gap between strand pixels (y1, x1) and (y1 + oy, x1 + ox) when the photo shows it whole."""
+    y2 = y1 + oy
+    x2 = x1 + ox
+    v = 0.5 * (coc[y1, x1] + coc[y2, x2])
+    level = wp.min(coc[y1, x1], coc[y2, x2]) - params.jump_px
+    f = 0.5 * (image[y1, x1] + image[y2, x2])
+    steps = wp.max(wp.abs(oy), wp.abs(ox))
+    ny = float(ox) / float(steps)  # the normal across the segment, Chebyshev length 1
+    nx = -float(oy) / float(steps)
+    gaps = int(0)
+    for k in range(1, steps):
+        t = float(k) / float(steps)
+        py = y1 + _round(t * float(oy))
+        px = x1 + _round(t * float(ox))
+        if coc[py, px] < level:
+            if _gap_pixel_ok(image, coc, py, px, ny, nx, level, f, params) == 0:
+                return
+            gaps += 1
+    if gaps == 0:
+        return
+    for k in range(1, steps):
+        t = float(k) / float(steps)
+        py = y1 + _round(t * float(oy))
+        px = x1 + _round(t * float(ox))
+        if coc[py, px] < level:
+            wp.atomic_max(out, py, px, v)
+
+
+@wp.kernel
+def bridge_strands_kernel(
+    image: wp.array2d(dtype=wp.vec3),
+    coc: wp.array2d(dtype=float),
+    strand: wp.array2d(dtype=wp.uint8),
+    strand_y: wp.array(dtype=wp.int32),
+    strand_x: wp.array(dtype=wp.int32),
+    offset_y: wp.array(dtype=wp.int32),
+    offset_x: wp.array(dtype=wp.int32),
+    params: StrandParams,
+    out: wp.array2d(dtype=float),
+):
+    i = wp.tid()
+    h = coc.shape[0]
+    w = coc.shape[1]
+    y1 = strand_y[i]
+    x1 = strand_x[i]
+    s1 = coc[y1, x1]
+    for k in range(offset_y.shape[0]):
+        y2 = y1 + offset_y[k]
+        x2 = x1 + offset_x[k]
+        if y2 >= 0 and y2 < h and x2 >= 0 and x2 < w:
+            if strand[y2, x2] != wp.uint8(0) and wp.abs(coc[y2, x2] - s1) <= params.jump_px:
+                # two dash ends facing each other: a chord along a whole (kinked) strand is no gap
+                if _ends_towards(coc, y1, x1, offset_y[k], offset_x[k], params.jump_px) == 1:
+                    if _ends_towards(coc, y2, x2, -offset_y[k], -offset_x[k], params.jump_px) == 1:
+                        _bridge(image, coc, y1, x1, offset_y[k], offset_x[k], params, out)

@@ -1,0 +1,116 @@
+"""Strands broken in the map: a gap between two dashes of a thin strand, where the photo shows the strand going on,
+takes the strand's depth (docs/soft-scene.md, "Strands broken in the map").
+
+A strand thinner than about a pixel gets its depth only where it covers half a pixel or more: its map is a row of
+dashes. The pixels between two dashes hold a share of the strand's colour but keep the background's depth; when
+the strand blurs (in front of the focus) they stay sharp, a column of specks of the strand's colour inside its
+blur. :func:`bridge_strands` gives those pixels the strand's depth where the photo shows the strand there; the
+matting (``bokehray.matting``) then splits them, and the far pixels they now border, into a near and a far part by
+their colour, as it does every pixel of a depth edge. A gap the photo shows as background (a hole in a mesh, the
+space between two letters) keeps its depth, and so does every pixel of a map without thin structures.
+
+The rule (``bokehray_kernels.strands``): strand pixels are nearer than a pixel within ``thin_px`` on both sides
+along one axis; two strand pixels of the same depth, 2 to ``max_gap`` px apart, whose segment crosses pixels behind
+them, bridge those pixels when every one of them is thin across the segment and its colour lies on the line from
+the background beside it towards the strand's colour, at least ``min_share`` of the way.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import bokehray_kernels.strands as bk_strands
+import numpy as np
+
+from .edge_estimate import in_parts
+
+__all__ = ["StrandRule", "bridge_strands", "gap_offsets"]
+
+
+@dataclass(frozen=True, slots=True)
+class StrandRule:
+    """The constants of :func:`bridge_strands` (docs/design/strand-gaps.md)."""
+
+    jump_px: float = 1.0
+    """Nearer or farther: a CoC difference of more than this (px), the matting's depth edge."""
+    thin_px: int = 2
+    """A strand pixel has a farther pixel within this many px on both sides along one axis (at most 3 px across)."""
+    max_gap: int = 6
+    """The farthest two dashes of a strand may lie apart (px) and be bridged."""
+    min_share: float = 0.25
+    """A gap pixel's colour lies at least this far from the background towards the strand's colour."""
+    max_off: float = 0.5
+    """... and at most this share of the strand's contrast off the line between them."""
+    min_contrast: float = 0.05
+    """A strand whose colour differs from the background's by less than this share of the brighter is not bridged
+    (its colour cannot tell a gap from the strand)."""
+
+    def struct(self) -> bk_strands.StrandParams:
+        p = bk_strands.StrandParams()
+        p.jump_px, p.thin_px, p.min_share = float(self.jump_px), int(self.thin_px), float(self.min_share)
+        p.max_off, p.min_contrast = float(self.max_off), float(self.min_contrast)
+        return p
+
+
+def gap_offsets(max_gap: int) -> np.ndarray:
+    """The (dy, dx) offsets from one dash's pixel to the next one's: 2 to ``max_gap`` px away (Euclidean), after it
+    in row-major order (each pair once), nearest first."""
+    r = int(max_gap)
+    g = np.arange(-r, r + 1)
+    oy, ox = (v.ravel() for v in np.meshgrid(g, g, indexing="ij"))
+    dist = np.hypot(oy, ox)
+    keep = (dist >= 2.0) & (dist <= r) & ((oy > 0) | ((oy == 0) & (ox > 0)))
+    order = np.argsort(dist[keep], kind="stable")
+    return np.stack([oy[keep], ox[keep]], 1)[order].astype(np.int32)
+
+
+def bridge_strands(image: np.ndarray, signed_coc: np.ndarray, rule: StrandRule | None = None, *,
+                   device: str = "cpu", threads: int | None = None, check=None) -> tuple[np.ndarray, int]:
+    """The signed CoC map with the gaps of thin strands bridged (each gap pixel given the mean depth of the two
+    dashes it joins), and how many pixels changed. ``image``: ``H x W x 3`` float32 linear RGB; ``signed_coc``:
+    ``H x W`` float32, both finite (checked by the caller). The map is returned as given (not copied) when nothing
+    changes. ``check()``: called between rounds of the kernel (it raises to stop)."""
+    import warp as wp
+
+    rule = rule or StrandRule()
+    s = np.ascontiguousarray(signed_coc, np.float32)
+    h, w = s.shape
+    if h < 5 or w < 5:
+        return signed_coc, 0
+    dev = wp.get_device(device)
+    copy = not dev.is_cpu  # on the CPU the kernels read the (contiguous) arrays in place
+    coc = wp.array(s, dtype=float, device=dev, copy=copy)
+    params = rule.struct()
+    strand = wp.empty((h, w), dtype=wp.uint8, device=dev)
+
+    def rows(a: int, b: int) -> None:  # pixels [a, b) as whole rows (consecutive parts meet): the threads share
+        ya, yb = round(a / w), round(b / w)  # the frame a band of rows each
+        if yb > ya:
+            wp.launch(bk_strands.strand_pixels_kernel, dim=(yb - ya, w), inputs=[coc, params, ya],
+                      outputs=[strand], device=dev)
+
+    in_parts(h * w, rows, threads=threads, cpu=dev.is_cpu, check=check)
+    t = strand.numpy()
+    ends = np.flatnonzero(t)
+    if ends.size < 2:
+        return signed_coc, 0
+    ty, tx = (v.astype(np.int32) for v in np.divmod(ends, w))
+    img = wp.array(np.ascontiguousarray(image, np.float32), dtype=wp.vec3, device=dev, copy=copy)
+    offs = gap_offsets(rule.max_gap)
+    oy = wp.array(offs[:, 0], dtype=wp.int32, device=dev)
+    ox = wp.array(offs[:, 1], dtype=wp.int32, device=dev)
+    out = wp.array(s, dtype=float, device=dev, copy=True)
+
+    def launch(a: int, b: int) -> None:
+        if b > a:
+            wp.launch(bk_strands.bridge_strands_kernel, dim=b - a,
+                      inputs=[img, coc, strand, wp.array(ty[a:b], dtype=wp.int32, device=dev),
+                              wp.array(tx[a:b], dtype=wp.int32, device=dev), oy, ox, params],
+                      outputs=[out], device=dev)
+
+    in_parts(ends.size, launch, threads=threads, cpu=dev.is_cpu, check=check)
+    bridged = out.numpy()
+    n = int(np.count_nonzero(bridged != s))
+    if n == 0:
+        return signed_coc, 0
+    return bridged, n

@@ -1,0 +1,126 @@
+"""Strands broken in the map: gaps bridged where the photo shows the strand (bokehray.strands, docs/soft-scene.md)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy import ndimage
+
+import bokehray as br
+from bokehray.app.demo import stroke
+from bokehray.colour import linear_to_srgb
+from bokehray.strands import StrandRule, bridge_strands, gap_offsets
+from tests.reference.strands_ref import bridge_strands_ref
+
+K, FOCUS, D_STRAND, D_BG = 32.0, 0.1, 0.9, 0.1
+
+
+def _strand_scene(n: int, seed: int, width: float = 0.6, gap_colour: bool = False):
+    """A slanted strand ``width`` px wide over a textured background, its map by the alpha >= 0.5 rule (a row of
+    dashes for a width below 1 px). ``gap_colour``: the photo shows background, not the strand, wherever the map
+    has no strand (a dashed strand in the photo too). Returns the photo, the map, the strand's coverage and the map
+    with the strand whole (each row's most covered pixel too)."""
+    rng = np.random.default_rng(seed)
+    tex = ndimage.gaussian_filter(rng.uniform(0.05, 0.3, (n, n, 3)), (1.5, 1.5, 0))
+    x0, x1 = rng.uniform(0.3, 0.45) * n, rng.uniform(0.55, 0.7) * n
+    pts = np.array([[x0, -2.0], [x1, n + 2.0]])
+    sl, a = stroke(pts, np.full(2, width), n, n)
+    alpha = np.zeros((n, n), np.float32)
+    alpha[sl] = a
+    disp = np.where(alpha >= 0.5, D_STRAND, D_BG).astype(np.float32)
+    if gap_colour:
+        alpha = np.where(alpha >= 0.5, alpha, 0.0).astype(np.float32)
+    colour = np.array(rng.uniform(0.5, 0.9, 3), np.float32) * np.float32([0.9, 1.0, 0.4])
+    img = (alpha[..., None] * colour + (1 - alpha[..., None]) * tex).astype(np.float32)
+    whole = disp.copy()
+    rows = np.flatnonzero(alpha.max(1) > 0.1)
+    whole[rows, alpha[rows].argmax(1)] = D_STRAND
+    return img, disp, alpha, whole
+
+
+def _coc(disp: np.ndarray) -> np.ndarray:
+    return (K * (disp - FOCUS)).astype(np.float32)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_kernel_matches_the_float64_oracle(seed):
+    rng = np.random.default_rng(seed)
+    img, disp, _, _ = _strand_scene(48, seed, width=rng.uniform(0.5, 0.9), gap_colour=seed % 3 == 2)
+    # a second, wider strand and a solid block at other depths: pairs across depths, thick and thin pixels
+    disp[30:40, 5:15] = 0.6
+    disp[:, 40] = np.where(np.arange(48) % 5 < 3, 0.7, disp[:, 40])  # its gaps in the map, not in the photo
+    img[:, 40] = 0.4 * img[:, 40] + 0.6 * np.float32([0.1, 0.5, 0.9])
+    s = _coc(disp)
+    rule = StrandRule()
+    got, n = bridge_strands(img, s, rule)
+    want = bridge_strands_ref(img, s, rule, gap_offsets(rule.max_gap))
+    assert n == int((want != s).sum()) and n > 0
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-4)
+
+
+def test_a_dashed_strand_s_gaps_take_its_depth():
+    img, disp, alpha, _ = _strand_scene(64, 1)
+    s = _coc(disp)
+    out, n = bridge_strands(img, s)
+    bridged = out != s
+    assert n > 10
+    assert np.allclose(out[bridged], K * (D_STRAND - FOCUS))
+    assert alpha[bridged].min() > 0.1  # only pixels holding the strand
+    # the strand is whole in the map: its dashes joined into one 8-connected piece
+    assert ndimage.label(s > 0, np.ones((3, 3)))[1] > 3
+    assert ndimage.label(out > 0, np.ones((3, 3)))[1] == 1
+
+
+def test_a_gap_the_photo_shows_as_background_stays():
+    img, disp, _, _ = _strand_scene(64, 1, gap_colour=True)
+    s = _coc(disp)
+    out, n = bridge_strands(img, s)
+    assert n == 0 and out is s
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**16), kind=st.sampled_from(["disc", "box"]), size=st.integers(5, 20),
+       levels=st.integers(2, 4))
+def test_a_hard_map_of_solid_objects_is_left_exactly_as_it_is(seed, kind, size, levels):
+    """No pixel of a map of solid objects (at least 5 px across, overlapping at several depths) moves when the photo
+    shows them as the map does (the photo is the map's own shading, plus noise): a box's corners are thin along a
+    diagonal, but what lies between two of them is what the photo shows there."""
+    rng = np.random.default_rng(seed)
+    n = 40
+    yy, xx = np.mgrid[0:n, 0:n]
+    disp = np.full((n, n), rng.uniform(0, 0.3), np.float32)
+    for _ in range(levels - 1):
+        cy, cx = rng.uniform(0, n, 2)
+        if kind == "disc":
+            m = (yy - cy) ** 2 + (xx - cx) ** 2 <= (size / 2) ** 2
+        else:
+            m = (np.abs(yy - cy) <= size / 2) & (np.abs(xx - cx) <= size / 2)
+        disp[m] = rng.uniform(0.35, 1.0)
+    img = np.repeat(disp[..., None], 3, 2) * rng.uniform(0.2, 1.0, 3).astype(np.float32)
+    img = (img + rng.uniform(0, 0.05, img.shape)).astype(np.float32)
+    s = _coc(disp)
+    out, n_moved = bridge_strands(img, s)
+    assert n_moved == 0 and out is s
+
+
+def _speck(render: np.ndarray, ref: np.ndarray, where: np.ndarray) -> float:
+    """The largest local excess of ``render`` over ``ref`` at ``where``, in 8-bit sRGB: their difference less its
+    median over 9 x 9 px (a broad difference is the blur's level, not a speck)."""
+    d = (linear_to_srgb(np.clip(render, 0, 1)) - linear_to_srgb(np.clip(ref, 0, 1))) * 255
+    local = np.stack([ndimage.median_filter(d[..., c], size=9) for c in range(3)], -1)
+    return float((d - local).max(2)[where].max())
+
+
+def test_a_dashed_strand_blurred_in_front_leaves_no_speck():
+    """The regression: a 0.6 px strand the map breaks into dashes, blurred in front (focus far), left a speck of
+    its colour at every gap (the gap's share of the strand stayed sharp at the background's depth)."""
+    img, disp, alpha, whole = _strand_scene(96, 3)
+    blur = br.BlurParams(K, FOCUS)
+    ref = br.render(img, whole, blur)
+    on = br.render(img, disp, blur)
+    off = br.render(img, disp, blur, layers=br.LayerOptions(strand_gaps=False))
+    where = alpha >= 0.05
+    assert _speck(off, ref, where) > 6.0
+    assert _speck(on, ref, where) <= 3.0
