@@ -64,11 +64,15 @@ def _thin_along(coc: wp.array2d(dtype=float), y: int, x: int, dy: int, dx: int, 
 
 
 @wp.kernel
-def strand_pixels_kernel(coc: wp.array2d(dtype=float), params: StrandParams, y0: int,
-                         strand: wp.array2d(dtype=wp.uint8)):
-    """Rows from ``y0`` on (a band of rows a launch)."""
-    t0, x = wp.tid()
-    y = y0 + t0
+def strand_pixels_kernel(coc: wp.array2d(dtype=float), params: StrandParams, tile_y: wp.array(dtype=wp.int32),
+                         tile_x: wp.array(dtype=wp.int32), tile: int, strand: wp.array2d(dtype=wp.uint8)):
+    """The pixels of the ``tile`` x ``tile`` tiles whose corners are (``tile_y``, ``tile_x``) (a launch of (tiles,
+    tile * tile)); pixels outside the map are skipped."""
+    i, j = wp.tid()
+    y = tile_y[i] + j / tile
+    x = tile_x[i] + j % tile
+    if y >= coc.shape[0] or x >= coc.shape[1]:
+        return
     level = coc[y, x] - params.jump_px
     n = params.thin_px
     t = int(0)
