@@ -72,8 +72,8 @@ TILE_PX = 16
 def varied_tiles(s: np.ndarray, jump_px: float, reach: int) -> np.ndarray:
     """The corners ``(y, x)`` (int32, N x 2) of the :data:`TILE_PX` tiles where a pixel may have a pixel farther by
     more than ``jump_px`` within ``reach`` px: those whose map, with the 8 tiles around them,
-    spans more than ``jump_px`` (with the tiles within ``reach`` around them). The ragged last row and column of
-    tiles are always taken."""
+    spans more than ``jump_px`` (with the tiles within ``reach`` around them). The tiles on the frame's border and
+    the ragged last row and column are always taken."""
     t = TILE_PX
     h, w = s.shape
     hq, wq = h // t, w // t
@@ -86,7 +86,10 @@ def varied_tiles(s: np.ndarray, jump_px: float, reach: int) -> np.ndarray:
     size = 2 * -(-int(reach) // t) + 1
     hi = ndimage.maximum_filter(hi, size, mode="nearest")
     lo = ndimage.minimum_filter(lo, size, mode="nearest")
-    ty, tx = np.nonzero(hi - lo > np.float32(jump_px))
+    varied = hi - lo > np.float32(jump_px)
+    varied[[0, -1]] = True  # outside the frame counts as farther: the frame's corners hold strand pixels
+    varied[:, [0, -1]] = True
+    ty, tx = np.nonzero(varied)
     return np.stack([ty * t, tx * t], 1).astype(np.int32)
 
 

@@ -11,8 +11,8 @@ from scipy import ndimage
 import bokehray as br
 from bokehray.app.demo import stroke
 from bokehray.colour import linear_to_srgb
-from bokehray.strands import StrandRule, bridge_strands, gap_offsets
-from tests.reference.strands_ref import bridge_strands_ref
+from bokehray.strands import TILE_PX, StrandRule, bridge_strands, gap_offsets, varied_tiles
+from tests.reference.strands_ref import bridge_strands_ref, strand_pixels_ref
 
 K, FOCUS, D_STRAND, D_BG = 32.0, 0.1, 0.9, 0.1
 
@@ -124,3 +124,24 @@ def test_a_dashed_strand_blurred_in_front_leaves_no_speck():
     where = alpha >= 0.05
     assert _speck(off, ref, where) > 6.0
     assert _speck(on, ref, where) <= 3.0
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**16), h=st.integers(5, 70), w=st.integers(5, 70), n=st.integers(0, 6))
+def test_the_tiles_skipped_hold_no_strand_pixel(seed, h, w, n):
+    """The strand-pixel pass skips tiles whose neighbourhood's map spans at most a jump: no pixel the oracle calls a
+    strand pixel lies in one (maps of flat blocks, thin lines and a gentle slope)."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[:h, :w]
+    s = (0.01 * xx + 0.005 * yy).astype(np.float32)  # a slope: 0.24 px of CoC a tile across
+    for _ in range(n):
+        y0, x0 = rng.integers(0, h), rng.integers(0, w)
+        s[y0 : y0 + rng.integers(1, 20), x0 : x0 + rng.integers(1, 4)] += np.float32(rng.uniform(-5, 5))
+    rule = StrandRule()
+    strand = strand_pixels_ref(s, rule)
+    covered = np.zeros((h, w), bool)
+    for ty, tx in varied_tiles(s, rule.jump_px, rule.thin_px):
+        covered[ty : ty + TILE_PX, tx : tx + TILE_PX] = True
+    assert not (strand & ~covered).any()
+    if n == 0 and h >= 3 * TILE_PX and w >= 3 * TILE_PX:
+        assert not covered[TILE_PX : 2 * TILE_PX, TILE_PX : 2 * TILE_PX].any()  # a flat inner tile is skipped
