@@ -31,6 +31,7 @@ from .pyramid import clear_support_kernel as clear_support_kernel
 from .pyramid import prefix_rows_kernel as prefix_rows_kernel
 from .pyramid import resolve_levels_kernel as resolve_levels_kernel
 from .pyramid import scatter_kernel as scatter_kernel
+from .pyramid import scatter_merged_kernel as scatter_merged_kernel
 from .raytrace import raytrace_kernel as raytrace_kernel
 from .routing import Routing as Routing
 from .routing import Salience as Salience
@@ -72,4 +73,5 @@ __all__ = [
     "row_distance_kernel",
     "scatter_clusters_kernel",
     "scatter_kernel",
+    "scatter_merged_kernel",
 ]

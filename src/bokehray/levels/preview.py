@@ -42,7 +42,7 @@ from .base import Progress, RenderContext
 from .buffers import is_lazy, lazy_for, lazy_zeros, reuse_buffers
 
 __all__ = ["aperture_shape", "border_pad", "no_routing", "prefix_rows", "pyramid_buffers", "render_preview",
-           "render_signed_coc", "route_salient"]
+           "render_signed_coc", "route_salient", "scatter_merged"]
 
 # Bytes per pixel, from the arrays each stage allocates (float32 = 4 bytes), calibrated on measured peaks (the
 # growth of the process during renders of 1.5 to 24 MP, within 15 %: docs/renderer.md, "The memory model");
@@ -105,6 +105,7 @@ class _Scatter:
     shape: bk.Shape
     level_radius_px: float
     exact_highlights: bool
+    merge_sources: bool
     threads: int
     device: str
     fill_gate: threading.Lock = dataclasses.field(default_factory=threading.Lock)
@@ -347,7 +348,7 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
         photo = None  # the padded input is read by tiled renders only
     blade_rows = ctx.aperture.blade_discs()
     scatter = _Scatter(aperture_shape(ctx.aperture, blade_rows, ctx.device), float(options.level_radius_px),
-                       bool(options.exact_highlights), threads, ctx.device)
+                       bool(options.exact_highlights), bool(options.merge_sources), threads, ctx.device)
     t_plan = time.perf_counter()
     stats.stage_seconds["plan"] = t_plan - t_start
 
@@ -458,10 +459,7 @@ def render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatt
     routing = (route_salient(src, coc, n_levels, scatter.level_radius_px, device, support, first, lazy) if routed
                else no_routing(device))
     levels = pyramid_buffers(bufs)
-    wp.launch(bk.scatter_kernel, dim=(h, w),
-              inputs=[src, coc, support.struct(), routing.struct(), scatter.shape, scatter.level_radius_px, n_levels,
-                      levels],
-              device=device)
+    _scatter_sources(src, coc, support, routing, scatter, n_levels, first, levels)
     if routed:
         for lev in range(max(1, first), n_levels):
             wp.launch(bk.scatter_clusters_kernel, dim=cluster_grid(h, w, lev),
@@ -474,6 +472,35 @@ def render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatt
     wp.launch(bk.resolve_levels_kernel, dim=(h, w), inputs=[n_levels, first, levels, support.struct()], outputs=[out],
               device=device)
     return out
+
+
+def _scatter_sources(src: wp.array, coc: wp.array, support: sc.LayerSupport, routing: Routing, scatter: _Scatter,
+                     n_levels: int, first: int, levels: bk.Levels) -> None:
+    """Scatter a layer's sources (``bk.scatter_kernel``), those of the pyramid levels ``first`` (at least 1) and up
+    merged per cell (:func:`scatter_merged`) unless ``scatter.merge_sources`` is off."""
+    h, w = src.shape
+    wp.launch(bk.scatter_kernel, dim=(h, w),
+              inputs=[src, coc, support.struct(), routing.struct(), scatter.shape, scatter.level_radius_px, n_levels,
+                      levels, int(scatter.merge_sources)],
+              device=scatter.device)
+    if scatter.merge_sources:
+        for lev in range(max(1, first), n_levels):
+            scatter_merged(src, coc, support, routing, scatter, n_levels, lev, levels)
+
+
+MERGE_COC_CELLS = 0.5
+"""Sources of one pyramid cell merge when their signed CoCs differ by less than this many of the level's pixels
+(``bk.scatter_merged_kernel``): the level's sharp spans and the upsampling blur their outlines by about one."""
+
+
+def scatter_merged(src: wp.array, coc: wp.array, support: sc.LayerSupport, routing: Routing, scatter: _Scatter,
+                   n_levels: int, lev: int, levels: bk.Levels) -> None:
+    """Scatter a layer's sources of pyramid level ``lev`` >= 1 merged per cell (``bk.scatter_merged_kernel``)."""
+    h, w = src.shape
+    side = 1 << lev
+    wp.launch(bk.scatter_merged_kernel, dim=((h + side - 1) // side, (w + side - 1) // side),
+              inputs=[src, coc, support.struct(), routing.struct(), scatter.shape, scatter.level_radius_px, n_levels,
+                      lev, MERGE_COC_CELLS * side, levels], device=scatter.device)
 
 
 def prefix_rows(buf: wp.array, device: str, support: sc.LayerSupport | None = None, width: int | None = None) -> None:
