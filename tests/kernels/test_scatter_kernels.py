@@ -274,6 +274,57 @@ def test_merged_render_is_the_unmerged_one_where_lights_are_routed(device, rng):
         assert np.abs(merged - exact).mean() < 1.5 * pyramid_err
 
 
+def _random_support(rng, h: int, w: int, shift: int) -> LayerSupport:
+    """A random tile mask of ``2^shift`` px tiles over an ``h x w`` box at a random scene offset."""
+    oy, ox = (int(v) for v in rng.integers(0, 1 << shift, 2))
+    mask = (rng.random((((h + oy) >> shift) + 1, ((w + ox) >> shift) + 1)) < 0.6).astype(np.uint8)
+    return LayerSupport(wp.array(mask, dtype=wp.uint8), shift, oy, ox)
+
+
+@given(h=st.integers(1, 40), w=st.integers(1, 40), n_levels=st.integers(1, 4), first=st.integers(0, 3),
+       seed=st.integers(0, 2**32 - 1))
+def test_resolve_rows_stores_what_the_pixel_kernel_stores(h, w, n_levels, first, seed):
+    """resolve_rows_kernel (the CPU's launch, a thread a row) against resolve_levels_kernel, bit for bit, within a
+    random support."""
+    rng = np.random.default_rng(seed)
+    bufs = [wp.array(rng.random(((h + (1 << lv) - 1) >> lv, ((w + (1 << lv) - 1) >> lv) + 2, 4)).astype(np.float32),
+                     dtype=wp.vec4) for lv in range(n_levels)]
+    levels = pyramid_buffers(bufs + [bufs[0]] * (bk.MAX_LEVELS - n_levels))
+    support = _random_support(rng, h, w, 2).struct()
+    start = rng.random((h, w, 4)).astype(np.float32)
+    pixel, rows = wp.array(start, dtype=wp.vec4), wp.array(start, dtype=wp.vec4)
+    wp.launch(bk.resolve_levels_kernel, dim=(h, w), inputs=[n_levels, first, levels, support], outputs=[pixel])
+    wp.launch(bk.resolve_rows_kernel, dim=h, inputs=[n_levels, first, levels, support], outputs=[rows])
+    assert rows.numpy().tobytes() == pixel.numpy().tobytes()
+    yy, xx = np.mgrid[0:h, 0:w]
+    inside = support.mask.numpy()[(yy + support.oy) >> support.shift, (xx + support.ox) >> support.shift] != 0
+    np.testing.assert_array_equal(pixel.numpy()[~inside], start[~inside])  # nothing stored outside the support
+    if n_levels <= max(first, 1):  # no coarser level read: level 0 as it is
+        np.testing.assert_array_equal(pixel.numpy()[inside], bufs[0].numpy()[:, :w][inside])
+
+
+@given(h=st.integers(1, 30), w=st.integers(1, 30), seed=st.integers(0, 2**32 - 1))
+def test_composite_kernels_match_reference(h, w, seed):
+    """composite_kernel and its row-a-thread twin (the CPU's launch) against the reference's "over", within a random
+    support (the accumulator untouched outside it), the twins bit for bit."""
+    rng = np.random.default_rng(seed)
+    layer = rng.random((h, w, 4)).astype(np.float32) * 2
+    layer[rng.random((h, w)) < 0.2] = 0.0  # no light there
+    acc0 = rng.random((h + 5, w + 7, 4)).astype(np.float32)
+    support = _random_support(rng, h, w, 3)
+    got = {}
+    for kernel, dim in ((bk.composite_kernel, (h, w)), (bk.composite_rows_kernel, h)):
+        acc = wp.array(acc0, dtype=wp.vec4)
+        wp.launch(kernel, dim=dim, inputs=[wp.array(layer, dtype=wp.vec4), support.struct(), 7, 5], outputs=[acc])
+        got[kernel.key] = acc.numpy()
+    assert got["composite_rows_kernel"].tobytes() == got["composite_kernel"].tobytes()
+    yy, xx = np.mgrid[0:h, 0:w]
+    inside = support.mask.numpy()[(yy + support.oy) >> support.shift, (xx + support.ox) >> support.shift] != 0
+    want = acc0.astype(np.float64)
+    want[5:, 7:] = np.where(inside[..., None], scatter_ref.over(layer, want[5:, 7:]), want[5:, 7:])
+    np.testing.assert_allclose(got["composite_kernel"], want, rtol=1e-5, atol=1e-6)
+
+
 @given(
     radius=st.floats(0.0, 40.0),
     blades=st.sampled_from([0, 3, 5, 6, 8]),

@@ -484,3 +484,14 @@ def merged_sources(src: np.ndarray, coc: np.ndarray, r0: float, n_levels: int, l
                 if part:
                     out += _merged(part, src, coc, cy, cx, s, split)
     return out
+
+
+def over(layer: np.ndarray, acc: np.ndarray) -> np.ndarray:
+    """One scattered layer (sum of premultiplied RGB, sum of coverage) over the accumulator (RGB, opacity)
+    (docs/renderer.md, "compositing rule"): opacity min(coverage, 1), colour normalised by the coverage; where the
+    coverage is at most 1e-6 the accumulator stays."""
+    cov = layer[..., 3:4].astype(np.float64)
+    alpha = np.minimum(cov, 1.0)
+    colour = layer[..., :3] / np.maximum(cov, 1e-30)
+    out = np.concatenate([colour * alpha + (1 - alpha) * acc[..., :3], alpha + (1 - alpha) * acc[..., 3:4]], -1)
+    return np.where(cov > 1e-6, out, acc)

@@ -469,8 +469,9 @@ def render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatt
         if lv == 0 or lv >= first:  # level 0 is read at the support's pixels only, the coarser levels everywhere
             prefix_rows(bufs[lv], device, support if lv == 0 else None, w if lv == 0 else None)
     out = src  # the sources are scattered: reuse their memory for the result (zero outside the support)
-    wp.launch(bk.resolve_levels_kernel, dim=(h, w), inputs=[n_levels, first, levels, support.struct()], outputs=[out],
-              device=device)
+    on_cpu = wp.get_device(device).is_cpu  # a row a thread on a CPU (its per-thread call), a pixel on a GPU
+    wp.launch(bk.resolve_rows_kernel if on_cpu else bk.resolve_levels_kernel, dim=h if on_cpu else (h, w),
+              inputs=[n_levels, first, levels, support.struct()], outputs=[out], device=device)
     return out
 
 
@@ -553,7 +554,9 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
             out = fut.result()
             del started[head]
             y0, y1, x0, x1 = layers[head].bbox
-            wp.launch(bk.composite_kernel, dim=(y1 - y0, x1 - x0),
+            on_cpu = wp.get_device(device).is_cpu  # a row a thread on a CPU, a pixel on a GPU
+            wp.launch(bk.composite_rows_kernel if on_cpu else bk.composite_kernel,
+                      dim=y1 - y0 if on_cpu else (y1 - y0, x1 - x0),
                       inputs=[out, sc.LayerSupport.of(layers[head], device).struct(), x0, y0], outputs=[acc],
                       device=device)
             del out
