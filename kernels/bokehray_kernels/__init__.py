@@ -38,6 +38,7 @@ from .pyramid import resolve_levels_kernel as resolve_levels_kernel
 from .pyramid import resolve_rows_kernel as resolve_rows_kernel
 from .pyramid import scatter_kernel as scatter_kernel
 from .pyramid import scatter_merged_kernel as scatter_merged_kernel
+from .pyramid import scatter_rows_kernel as scatter_rows_kernel
 from .raytrace import raytrace_kernel as raytrace_kernel
 from .routing import Routing as Routing
 from .routing import Salience as Salience
@@ -86,4 +87,5 @@ __all__ = [
     "scatter_clusters_kernel",
     "scatter_kernel",
     "scatter_merged_kernel",
+    "scatter_rows_kernel",
 ]

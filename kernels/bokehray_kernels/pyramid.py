@@ -103,36 +103,10 @@ def _sign(s: float) -> float:
     return 1.0
 
 
-@wp.kernel
-def scatter_kernel(
-    src: wp.array2d(dtype=wp.vec4),
-    coc: wp.array2d(dtype=float),
-    support: Support,
-    routing: Routing,
-    shape: Shape,
-    r0: float,
-    n_levels: int,
-    levels: Levels,
-    merged: int,
-):
-    """Scatter every source of ``src`` (local coordinates) with radius ``|coc|`` [px]; with ``merged`` != 0 only
-    those of level 0, :func:`scatter_merged_kernel` scattering the others.
-
-    Pixels outside the layer's ``support`` hold no source and are not read (a lazily zeroed ``src`` keeps its
-    pages there untouched).
-
-    ``shape`` is the aperture (its blades, vertical extent and area at unit circumradius). A positive (in-front-of-focus) ``coc`` draws the shape
-    point-reflected, as a thin lens does: the aperture's orientation is that of background bokeh.
-    ``routing.exact[y, x] != 0`` routes a salient source: the light it carries beyond its coverage of the
-    local colour of the layer's other sources around it (``routing.cell_total``, ``routing.cell_pixels``: the
-    neighbourhoods ``route_cells_kernel`` stored) is scattered at level 0 (full resolution) whatever its radius, the rest (its coverage, and
-    the local colour over it) on its pyramid level like its neighbours. A constant colour thus
-    stays on the pyramid, exactly as smooth as its coverage. ``routing.exact`` may be a 1 x 1 array when
-    nothing is routed (then nothing else of ``routing`` is read).
-
-    ``levels.l<l>`` is the difference buffer of level ``l``, ``(ceil(H/2^l), ceil(W/2^l) + 2)``.
-    """
-    y, x = wp.tid()
+@wp.func
+def _scatter_source(src: wp.array2d(dtype=wp.vec4), coc: wp.array2d(dtype=float), support: Support, routing: Routing,
+                    shape: Shape, r0: float, n_levels: int, levels: Levels, merged: int, y: int, x: int):
+    # one source of scatter_kernel
     if not in_support(support, y, x):
         return
     buf0 = levels.l0
@@ -165,6 +139,58 @@ def scatter_kernel(
         scatter_exact(buf0, xc, yc, rho, v, shape, sgn)
     else:
         _scatter_scaled(levels, lev, xc, yc, rho, v, shape, sgn)
+
+
+@wp.kernel
+def scatter_kernel(
+    src: wp.array2d(dtype=wp.vec4),
+    coc: wp.array2d(dtype=float),
+    support: Support,
+    routing: Routing,
+    shape: Shape,
+    r0: float,
+    n_levels: int,
+    levels: Levels,
+    merged: int,
+):
+    """Scatter every source of ``src`` (local coordinates) with radius ``|coc|`` [px]; with ``merged`` != 0 only
+    those of level 0, :func:`scatter_merged_kernel` scattering the others.
+
+    Pixels outside the layer's ``support`` hold no source and are not read (a lazily zeroed ``src`` keeps its
+    pages there untouched).
+
+    ``shape`` is the aperture (its blades, vertical extent and area at unit circumradius). A positive (in-front-of-focus) ``coc`` draws the shape
+    point-reflected, as a thin lens does: the aperture's orientation is that of background bokeh.
+    ``routing.exact[y, x] != 0`` routes a salient source: the light it carries beyond its coverage of the
+    local colour of the layer's other sources around it (``routing.cell_total``, ``routing.cell_pixels``: the
+    neighbourhoods ``route_cells_kernel`` stored) is scattered at level 0 (full resolution) whatever its radius, the rest (its coverage, and
+    the local colour over it) on its pyramid level like its neighbours. A constant colour thus
+    stays on the pyramid, exactly as smooth as its coverage. ``routing.exact`` may be a 1 x 1 array when
+    nothing is routed (then nothing else of ``routing`` is read).
+
+    ``levels.l<l>`` is the difference buffer of level ``l``, ``(ceil(H/2^l), ceil(W/2^l) + 2)``.
+    """
+    y, x = wp.tid()
+    _scatter_source(src, coc, support, routing, shape, r0, n_levels, levels, merged, y, x)
+
+
+@wp.kernel
+def scatter_rows_kernel(
+    src: wp.array2d(dtype=wp.vec4),
+    coc: wp.array2d(dtype=float),
+    support: Support,
+    routing: Routing,
+    shape: Shape,
+    r0: float,
+    n_levels: int,
+    levels: Levels,
+    merged: int,
+):
+    """:func:`scatter_kernel` with one thread a row (the same deposits in the same order within a row): on a CPU,
+    where a thread a pixel costs its call for every pixel, most of which hold no level-0 source."""
+    y = wp.tid()
+    for x in range(src.shape[1]):
+        _scatter_source(src, coc, support, routing, shape, r0, n_levels, levels, merged, y, x)
 
 
 @wp.struct

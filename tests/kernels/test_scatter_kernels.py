@@ -281,6 +281,30 @@ def _random_support(rng, h: int, w: int, shift: int) -> LayerSupport:
     return LayerSupport(wp.array(mask, dtype=wp.uint8), shift, oy, ox)
 
 
+@given(h=st.integers(1, 30), w=st.integers(1, 30), merged=st.integers(0, 1), routed=st.booleans(),
+       seed=st.integers(0, 2**32 - 1))
+def test_scatter_rows_deposits_what_the_pixel_kernel_deposits(h, w, merged, routed, seed):
+    """scatter_rows_kernel (the CPU's launch, a thread a row) against scatter_kernel, bit for bit (the same deposits in
+    the same order), on levels 0-2, with and without routed lights, in a random support."""
+    from bokehray.levels.preview import route_salient
+
+    rng = np.random.default_rng(seed)
+    src = rng.random((h, w, 4)).astype(np.float32)
+    src[rng.random((h, w)) < 0.05, :3] *= 300.0  # lights
+    coc = (rng.uniform(0.0, 30.0, (h, w)) * rng.choice([-1.0, 1.0], (h, w))).astype(np.float32)
+    src_wp, coc_wp = wp.array(src, dtype=wp.vec4), wp.array(coc)
+    routing = route_salient(src_wp, coc_wp, 3, 8.0, "cpu") if routed else no_routing("cpu")
+    support = _random_support(rng, h, w, 2).struct()
+    got = []
+    for kernel, dim in ((bk.scatter_kernel, (h, w)), (bk.scatter_rows_kernel, h)):
+        bufs = [wp.zeros(((h + (1 << lv) - 1) >> lv, ((w + (1 << lv) - 1) >> lv) + 2), dtype=wp.vec4) for lv in range(3)]
+        wp.launch(kernel, dim=dim, inputs=[src_wp, coc_wp, support, routing.struct(),
+                                           aperture_shape(Aperture(), np.zeros((0, 4)), "cpu"), 8.0, 3,
+                                           pyramid_buffers(bufs + [bufs[0]] * (bk.MAX_LEVELS - 3)), merged])
+        got.append(b"".join(b.numpy().tobytes() for b in bufs))
+    assert got[0] == got[1]
+
+
 @given(h=st.integers(1, 40), w=st.integers(1, 40), n_levels=st.integers(1, 4), first=st.integers(0, 3),
        seed=st.integers(0, 2**32 - 1))
 def test_resolve_rows_stores_what_the_pixel_kernel_stores(h, w, n_levels, first, seed):

@@ -480,7 +480,8 @@ def _scatter_sources(src: wp.array, coc: wp.array, support: sc.LayerSupport, rou
     """Scatter a layer's sources (``bk.scatter_kernel``), those of the pyramid levels ``first`` (at least 1) and up
     merged per cell (:func:`scatter_merged`) unless ``scatter.merge_sources`` is off."""
     h, w = src.shape
-    wp.launch(bk.scatter_kernel, dim=(h, w),
+    rows = wp.get_device(scatter.device).is_cpu  # a row a thread on a CPU (its per-thread call), a pixel on a GPU
+    wp.launch(bk.scatter_rows_kernel if rows else bk.scatter_kernel, dim=h if rows else (h, w),
               inputs=[src, coc, support.struct(), routing.struct(), scatter.shape, scatter.level_radius_px, n_levels,
                       levels, int(scatter.merge_sources)],
               device=scatter.device)
