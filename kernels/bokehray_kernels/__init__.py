@@ -33,6 +33,7 @@ from .matting import matting_band_kernel as matting_band_kernel
 from .pyramid import MAX_LEVELS as MAX_LEVELS
 from .pyramid import Levels as Levels
 from .pyramid import clear_support_kernel as clear_support_kernel
+from .pyramid import clear_support_rows_kernel as clear_support_rows_kernel
 from .pyramid import prefix_rows_kernel as prefix_rows_kernel
 from .pyramid import resolve_levels_kernel as resolve_levels_kernel
 from .pyramid import resolve_rows_kernel as resolve_rows_kernel
@@ -44,6 +45,7 @@ from .routing import Routing as Routing
 from .routing import Salience as Salience
 from .routing import halve_mean_kernel as halve_mean_kernel
 from .routing import radiance_mean_kernel as radiance_mean_kernel
+from .routing import radiance_mean_rows_kernel as radiance_mean_rows_kernel
 from .routing import route_cells_kernel as route_cells_kernel
 from .routing import scatter_clusters_kernel as scatter_clusters_kernel
 from .soft import near_sources_kernel as near_sources_kernel
@@ -61,6 +63,7 @@ __all__ = [
     "Support",
     "chord",
     "clear_support_kernel",
+    "clear_support_rows_kernel",
     "column_distance_kernel",
     "composite_kernel",
     "composite_rows_kernel",
@@ -79,6 +82,7 @@ __all__ = [
     "push_kernel",
     "push_rows_kernel",
     "radiance_mean_kernel",
+    "radiance_mean_rows_kernel",
     "raytrace_kernel",
     "resolve_levels_kernel",
     "resolve_rows_kernel",

@@ -467,3 +467,13 @@ def clear_support_kernel(support: Support, buf: wp.array2d(dtype=wp.vec4)):
     y, x = wp.tid()
     if in_support(support, y, x):
         buf[y, x] = wp.vec4()
+
+
+@wp.kernel
+def clear_support_rows_kernel(support: Support, width: int, buf: wp.array2d(dtype=wp.vec4)):
+    """:func:`clear_support_kernel` with one thread a row over the first ``width`` columns (the same stores): on a
+    CPU, where a thread a pixel costs its call for every pixel."""
+    y = wp.tid()
+    for x in range(width):
+        if in_support(support, y, x):
+            buf[y, x] = wp.vec4()

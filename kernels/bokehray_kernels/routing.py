@@ -37,6 +37,16 @@ class Salience:
     floor: float
 
 
+@wp.func
+def _radiance_mean(src: wp.array2d(dtype=wp.vec4), support: Support, means: wp.array3d(dtype=wp.vec4),
+                   counts: wp.array3d(dtype=float), cy: int, cx: int):
+    # one cell of radiance_mean_kernel
+    n = children_2x2(src.shape[0], src.shape[1], cy, cx)
+    if span_in_support(support, 2 * cy, wp.min(2 * cy + 2, src.shape[0]), 2 * cx, wp.min(2 * cx + 2, src.shape[1])):
+        means[0, cy, cx] = sum_2x2_vec4(src, cy, cx) / n
+    counts[0, cy, cx] = n
+
+
 @wp.kernel
 def radiance_mean_kernel(src: wp.array2d(dtype=wp.vec4), support: Support, means: wp.array3d(dtype=wp.vec4),
                          counts: wp.array3d(dtype=float)):
@@ -47,10 +57,16 @@ def radiance_mean_kernel(src: wp.array2d(dtype=wp.vec4), support: Support, means
     its mean is zero (``means`` comes zeroed) and ``src`` is not read there.
     """
     cy, cx = wp.tid()
-    n = children_2x2(src.shape[0], src.shape[1], cy, cx)
-    if span_in_support(support, 2 * cy, wp.min(2 * cy + 2, src.shape[0]), 2 * cx, wp.min(2 * cx + 2, src.shape[1])):
-        means[0, cy, cx] = sum_2x2_vec4(src, cy, cx) / n
-    counts[0, cy, cx] = n
+    _radiance_mean(src, support, means, counts, cy, cx)
+
+
+@wp.kernel
+def radiance_mean_rows_kernel(src: wp.array2d(dtype=wp.vec4), support: Support, means: wp.array3d(dtype=wp.vec4),
+                              counts: wp.array3d(dtype=float)):
+    """:func:`radiance_mean_kernel` with one thread a row of level 1 (the same values): on a CPU."""
+    cy = wp.tid()
+    for cx in range((src.shape[1] + 1) // 2):
+        _radiance_mean(src, support, means, counts, cy, cx)
 
 
 @wp.kernel

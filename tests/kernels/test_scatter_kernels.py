@@ -634,15 +634,17 @@ def test_prefix_sums_store_the_running_sums_within_the_support_only(rows, mask, 
 @given(mask=st.lists(st.lists(st.booleans(), min_size=5, max_size=5), min_size=4, max_size=4),
        oy=st.integers(0, 7), ox=st.integers(0, 7), h=st.integers(1, 24), w=st.integers(1, 32))
 def test_clear_support_zeroes_the_support_and_nothing_else(mask, oy, ox, h, w):
-    """``clear_support_kernel`` against the mask blown up to pixels (8 px tiles, the box at an offset)."""
+    """``clear_support_kernel`` and its row-a-thread twin (the CPU's launch) against the mask blown up to pixels
+    (8 px tiles, the box at an offset)."""
     tiles = np.array(mask, bool)
     support = LayerSupport(wp.array(tiles.astype(np.uint8), dtype=wp.uint8, device="cpu"), 3, oy, ox)
     before = np.arange(h * (w + 2) * 4, dtype=np.float32).reshape(h, w + 2, 4) + 1.0
-    buf = wp.array(before, dtype=wp.vec4, device="cpu")
-    wp.launch(bk.clear_support_kernel, dim=(h, w), inputs=[support.struct()], outputs=[buf], device="cpu")
     inside = np.zeros((h, w + 2), bool)
     inside[:, :w] = np.repeat(np.repeat(tiles, 8, 0), 8, 1)[oy : oy + h, ox : ox + w]
-    np.testing.assert_array_equal(buf.numpy(), np.where(inside[..., None], 0.0, before))
+    for kernel, dim, args in ((bk.clear_support_kernel, (h, w), []), (bk.clear_support_rows_kernel, h, [w])):
+        buf = wp.array(before, dtype=wp.vec4, device="cpu")
+        wp.launch(kernel, dim=dim, inputs=[support.struct(), *args], outputs=[buf], device="cpu")
+        np.testing.assert_array_equal(buf.numpy(), np.where(inside[..., None], 0.0, before))
 
 
 def _anonymous_kb(ptr: int) -> int | None:

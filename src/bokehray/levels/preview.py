@@ -196,7 +196,9 @@ def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device
     h1, w1 = (h + 1) // 2, (w + 1) // 2
     means = lazy_zeros((n_means, h1, w1), wp.vec4, device, lazy)
     counts = lazy_zeros((n_means, h1, w1), float, device, lazy)
-    wp.launch(bk.radiance_mean_kernel, dim=(h1, w1), inputs=[src, where], outputs=[means, counts], device=device)
+    rows = wp.get_device(device).is_cpu  # a row a thread on a CPU (its per-thread call), a cell on a GPU
+    wp.launch(bk.radiance_mean_rows_kernel if rows else bk.radiance_mean_kernel, dim=h1 if rows else (h1, w1),
+              inputs=[src, where], outputs=[means, counts], device=device)
     fh, fw = h1, w1
     for k in range(1, n_means):
         ch, cw = (fh + 1) // 2, (fw + 1) // 2
@@ -436,7 +438,7 @@ def render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatt
         fewer, 3 s of CPU on this machine; doing the same to level 0 saves 0.03 M more and raises the peak 0.1 GB)."""
         a = lazy_zeros(shape, dtype, device, lazy)
         if dtype is wp.vec4 and is_lazy(a):  # (``wp.zeros`` wrote every page already)
-            wp.launch(bk.clear_support_kernel, dim=(h, w), inputs=[support.struct()], outputs=[a], device=device)
+            wp.launch(bk.clear_support_rows_kernel, dim=h, inputs=[support.struct(), w], outputs=[a], device=device)
         return a
 
     # One worker fills at a time (the pull-push levels above level 0 and the distance map, on the whole box), so two
