@@ -245,6 +245,14 @@ def border_pad(signed_coc: np.ndarray, tile_px: int) -> tuple[int, int, int, int
     return tuple(-(-(int(math.ceil(r)) + 1) // tile_px) * tile_px if r >= 0.5 else 0 for r in radii)
 
 
+def _border_reach(signed_coc: np.ndarray, soft: sc.SoftEdges | None) -> float:
+    """The largest CoC radius [px] on the frame's rim (a split pixel's parts included): 0 for an empty frame."""
+    if signed_coc.size == 0:
+        return 0.0
+    r = np.abs(signed_coc if soft is None else sc.soft_radius(signed_coc, soft))
+    return float(max(r[0].max(), r[-1].max(), r[:, 0].max(), r[:, -1].max()))
+
+
 def _area(box: tiling.Box) -> int:
     return (box[1] - box[0]) * (box[3] - box[2])
 
@@ -293,6 +301,9 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
     # before the padding allocates anything
     if (h, w) != (h0, w0) and (WHOLE_IMAGE_B + TILED_B) * h * w + SOFT_B * n_soft > tiling.budget_bytes(ctx.memory):
         (pt, pb, pl, pr), h, w = (0, 0, 0, 0), h0, w0  # the clamped border does not fit: the frame alone
+    # merged sources put a textured cell's light apart from its coverage, which only the coverage a clamped border
+    # completes keeps out of the colours (an unclamped border's coverage is cut, and divided out: docs/renderer.md)
+    merge = options.merge_sources and ((h, w) != (h0, w0) or _border_reach(s, soft) < 0.5)
     if (h, w) != (h0, w0):
         image = np.pad(image, ((pt, pb), (pl, pr), (0, 0)), mode="edge")
         s = np.pad(s, ((pt, pb), (pl, pr)), mode="edge")
@@ -350,7 +361,7 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
         photo = None  # the padded input is read by tiled renders only
     blade_rows = ctx.aperture.blade_discs()
     scatter = _Scatter(aperture_shape(ctx.aperture, blade_rows, ctx.device), float(options.level_radius_px),
-                       bool(options.exact_highlights), bool(options.merge_sources), threads, ctx.device)
+                       bool(options.exact_highlights), merge, threads, ctx.device)
     t_plan = time.perf_counter()
     stats.stage_seconds["plan"] = t_plan - t_start
 
