@@ -7,6 +7,22 @@ from .support import Support, in_support
 wp.set_module_options({"enable_backward": False})
 
 
+@wp.func
+def _composite_at(layer: wp.array2d(dtype=wp.vec4), y: int, x: int, x0: int, y0: int, acc: wp.array2d(dtype=wp.vec4)):
+    # the layer's pixel (y, x) over the accumulator's (y + y0, x + x0)
+    l = layer[y, x]
+    cov = l[3]
+    if cov <= 1.0e-6:
+        return
+    alpha = wp.min(cov, 1.0)
+    k = alpha / cov
+    gy = y + y0
+    gx = x + x0
+    a = acc[gy, gx]
+    t = 1.0 - alpha
+    acc[gy, gx] = wp.vec4(l[0] * k + t * a[0], l[1] * k + t * a[1], l[2] * k + t * a[2], alpha + t * a[3])
+
+
 @wp.kernel
 def composite_kernel(layer: wp.array2d(dtype=wp.vec4), support: Support, x0: int, y0: int,
                      acc: wp.array2d(dtype=wp.vec4)):
@@ -19,19 +35,19 @@ def composite_kernel(layer: wp.array2d(dtype=wp.vec4), support: Support, x0: int
     no light and is not read.
     """
     y, x = wp.tid()
-    if not in_support(support, y, x):
-        return
-    l = layer[y, x]
-    cov = l[3]
-    if cov <= 1.0e-6:
-        return
-    alpha = wp.min(cov, 1.0)
-    k = alpha / cov
-    gy = y + y0
-    gx = x + x0
-    a = acc[gy, gx]
-    t = 1.0 - alpha
-    acc[gy, gx] = wp.vec4(l[0] * k + t * a[0], l[1] * k + t * a[1], l[2] * k + t * a[2], alpha + t * a[3])
+    if in_support(support, y, x):
+        _composite_at(layer, y, x, x0, y0, acc)
+
+
+@wp.kernel
+def composite_rows_kernel(layer: wp.array2d(dtype=wp.vec4), support: Support, x0: int, y0: int,
+                          acc: wp.array2d(dtype=wp.vec4)):
+    """:func:`composite_kernel` with one thread a row (the same values): on a CPU, where a thread a pixel costs its
+    call for every pixel."""
+    y = wp.tid()
+    for x in range(layer.shape[1]):
+        if in_support(support, y, x):
+            _composite_at(layer, y, x, x0, y0, acc)
 
 
 @wp.kernel

@@ -50,6 +50,27 @@ def _untonemap(t: float) -> float:
     return t / (1.0 - t)
 
 
+@wp.func
+def _layer_source(image: wp.array2d(dtype=wp.vec3), signed_coc: wp.array2d(dtype=float),
+                  slice_id: wp.array2d(dtype=wp.int32), layer: int, x0: int, y0: int, with_fill: int,
+                  src: wp.array2d(dtype=wp.vec4), coc: wp.array2d(dtype=float), fill: PullPushLevel, y: int, x: int):
+    # one pixel of layer_sources_kernel
+    gy = y + y0
+    gx = x + x0
+    sid = slice_id[gy, gx]
+    if sid < 0 or sid > layer:
+        return  # copied, or hidden by a nearer layer: the arrays' zeros stand
+    if with_fill != 0:
+        fill.known[y, x] = 1.0
+    if sid == layer:
+        c = image[gy, gx]
+        src[y, x] = wp.vec4(c[0], c[1], c[2], 1.0)
+        coc[y, x] = signed_coc[gy, gx]
+        if with_fill != 0:
+            fill.total[y, x] = _fill_texel(image, signed_coc, gy, gx)
+            fill.weight[y, x] = 1.0
+
+
 @wp.kernel
 def layer_sources_kernel(
     image: wp.array2d(dtype=wp.vec3),
@@ -73,21 +94,27 @@ def layer_sources_kernel(
     photo shows this layer or something behind it (not hidden by a nearer layer).
     """
     y, x = wp.tid()
-    gy = y + y0
-    gx = x + x0
-    sid = slice_id[gy, gx]
-    if sid < 0 or sid > layer:
-        return  # copied, or hidden by a nearer layer: the arrays' zeros stand
-    if with_fill != 0:
-        fill.known[y, x] = 1.0
-    if sid == layer:
-        c = image[gy, gx]
-        s = signed_coc[gy, gx]
-        src[y, x] = wp.vec4(c[0], c[1], c[2], 1.0)
-        coc[y, x] = s
-        if with_fill != 0:
-            fill.total[y, x] = _fill_texel(image, signed_coc, gy, gx)
-            fill.weight[y, x] = 1.0
+    _layer_source(image, signed_coc, slice_id, layer, x0, y0, with_fill, src, coc, fill, y, x)
+
+
+@wp.kernel
+def layer_sources_rows_kernel(
+    image: wp.array2d(dtype=wp.vec3),
+    signed_coc: wp.array2d(dtype=float),
+    slice_id: wp.array2d(dtype=wp.int32),
+    layer: int,
+    x0: int,
+    y0: int,
+    with_fill: int,
+    src: wp.array2d(dtype=wp.vec4),
+    coc: wp.array2d(dtype=float),
+    fill: PullPushLevel,
+):
+    """:func:`layer_sources_kernel` with one thread a row (the same values): on a CPU, where a thread a pixel costs
+    its call for every pixel."""
+    y = wp.tid()
+    for x in range(src.shape[1]):
+        _layer_source(image, signed_coc, slice_id, layer, x0, y0, with_fill, src, coc, fill, y, x)
 
 
 @wp.kernel
@@ -99,22 +126,11 @@ def pull_kernel(fine: PullPushLevel, coarse: PullPushLevel):
     coarse.known[y, x] = sum_2x2_float(fine.known, y, x)
 
 
-@wp.kernel
-def layer_pull_kernel(
-    image: wp.array2d(dtype=wp.vec3),
-    signed_coc: wp.array2d(dtype=float),
-    slice_id: wp.array2d(dtype=wp.int32),
-    layer: int,
-    x0: int,
-    y0: int,
-    h: int,
-    w: int,
-    coarse: PullPushLevel,
-):
-    """Level 1 of the pull-push pyramid of the ``h x w`` window at ``(y0, x0)``, straight from the photo: bit for bit
-    :func:`pull_kernel` of the level 0 that :func:`layer_sources_kernel` writes with ``with_fill != 0`` (the same
-    texels, summed in the same order), without storing level 0 (24 bytes a pixel of the layer's box)."""
-    cy, cx = wp.tid()
+@wp.func
+def _layer_pull(image: wp.array2d(dtype=wp.vec3), signed_coc: wp.array2d(dtype=float),
+                slice_id: wp.array2d(dtype=wp.int32), layer: int, x0: int, y0: int, h: int, w: int,
+                coarse: PullPushLevel, cy: int, cx: int):
+    # one texel of layer_pull_kernel
     total = wp.vec4()
     weight = float(0.0)
     known = float(0.0)
@@ -138,6 +154,44 @@ def layer_pull_kernel(
     coarse.total[cy, cx] = total
     coarse.weight[cy, cx] = weight
     coarse.known[cy, cx] = known
+
+
+
+@wp.kernel
+def layer_pull_kernel(
+    image: wp.array2d(dtype=wp.vec3),
+    signed_coc: wp.array2d(dtype=float),
+    slice_id: wp.array2d(dtype=wp.int32),
+    layer: int,
+    x0: int,
+    y0: int,
+    h: int,
+    w: int,
+    coarse: PullPushLevel,
+):
+    """Level 1 of the pull-push pyramid of the ``h x w`` window at ``(y0, x0)``, straight from the photo: bit for bit
+    :func:`pull_kernel` of the level 0 that :func:`layer_sources_kernel` writes with ``with_fill != 0`` (the same
+    texels, summed in the same order), without storing level 0 (24 bytes a pixel of the layer's box)."""
+    cy, cx = wp.tid()
+    _layer_pull(image, signed_coc, slice_id, layer, x0, y0, h, w, coarse, cy, cx)
+
+
+@wp.kernel
+def layer_pull_rows_kernel(
+    image: wp.array2d(dtype=wp.vec3),
+    signed_coc: wp.array2d(dtype=float),
+    slice_id: wp.array2d(dtype=wp.int32),
+    layer: int,
+    x0: int,
+    y0: int,
+    h: int,
+    w: int,
+    coarse: PullPushLevel,
+):
+    """:func:`layer_pull_kernel` with one thread a row of level 1 (the same values): on a CPU."""
+    cy = wp.tid()
+    for cx in range(coarse.total.shape[1]):
+        _layer_pull(image, signed_coc, slice_id, layer, x0, y0, h, w, coarse, cy, cx)
 
 
 @wp.struct
@@ -207,6 +261,15 @@ def push_texel(coarse: PullPushLevel, top: int, x: int, y: int, total: wp.vec4, 
     return p
 
 
+@wp.func
+def _push(coarse: PullPushLevel, top: int, level: PullPushLevel, y: int, x: int):
+    # one texel of push_kernel
+    p = push_texel(coarse, top, x, y, level.total[y, x], level.weight[y, x], level.known[y, x])
+    level.total[y, x] = p.value
+    level.weight[y, x] = p.density
+    level.known[y, x] = p.has
+
+
 @wp.kernel
 def push_kernel(coarse: PullPushLevel, top: int, level: PullPushLevel):
     """Turn one level's sums into (value, density, has) in place, interpolating what it lacks (:func:`push_texel`).
@@ -214,10 +277,35 @@ def push_kernel(coarse: PullPushLevel, top: int, level: PullPushLevel):
     The preview pushes levels down to 1 only: :func:`fill_sources_kernel` pushes the level-0 texels it fills.
     """
     y, x = wp.tid()
-    p = push_texel(coarse, top, x, y, level.total[y, x], level.weight[y, x], level.known[y, x])
-    level.total[y, x] = p.value
-    level.weight[y, x] = p.density
-    level.known[y, x] = p.has
+    _push(coarse, top, level, y, x)
+
+
+@wp.kernel
+def push_rows_kernel(coarse: PullPushLevel, top: int, level: PullPushLevel):
+    """:func:`push_kernel` with one thread a row (the same values): on a CPU."""
+    y = wp.tid()
+    for x in range(level.total.shape[1]):
+        _push(coarse, top, level, y, x)
+
+
+@wp.func
+def _fill_source(slice_id: wp.array2d(dtype=wp.int32), layer: int, x0: int, y0: int, coarse: PullPushLevel,
+                 dist_l1: wp.array2d(dtype=float), signed_coc: wp.array2d(dtype=float), s_lo: float, s_hi: float,
+                 src: wp.array2d(dtype=wp.vec4), coc: wp.array2d(dtype=float), n_filled: wp.array(dtype=wp.int32),
+                 y: int, x: int):
+    # one pixel of fill_sources_kernel
+    gy = y + y0
+    gx = x + x0
+    if slice_id[gy, gx] <= layer or dist_l1[y, x] > _GATE * wp.abs(signed_coc[gy, gx]) + 1.0:
+        return  # not hidden, or behind a hider too sharp to reveal it
+    p = push_texel(coarse, 0, x, y, wp.vec4(), 0.0, 0.0)  # a hidden pixel's level-0 sums: all zero
+    density = p.density
+    if density >= 0.02:
+        v = p.value
+        a = wp.min(density, 1.0)
+        src[y, x] = wp.vec4(_untonemap(v[0]) * a, _untonemap(v[1]) * a, _untonemap(v[2]) * a, a)
+        coc[y, x] = wp.clamp(v[3], s_lo, s_hi)
+        wp.atomic_add(n_filled, layer, 1)
 
 
 @wp.kernel
@@ -250,18 +338,29 @@ def fill_sources_kernel(
     nothing is filled; the coverage normalisation of the layer handles it.
     """
     y, x = wp.tid()
-    gy = y + y0
-    gx = x + x0
-    if slice_id[gy, gx] <= layer or dist_l1[y, x] > _GATE * wp.abs(signed_coc[gy, gx]) + 1.0:
-        return  # not hidden, or behind a hider too sharp to reveal it
-    p = push_texel(coarse, 0, x, y, wp.vec4(), 0.0, 0.0)  # a hidden pixel's level-0 sums: all zero
-    density = p.density
-    if density >= 0.02:
-        v = p.value
-        a = wp.min(density, 1.0)
-        src[y, x] = wp.vec4(_untonemap(v[0]) * a, _untonemap(v[1]) * a, _untonemap(v[2]) * a, a)
-        coc[y, x] = wp.clamp(v[3], s_lo, s_hi)
-        wp.atomic_add(n_filled, layer, 1)
+    _fill_source(slice_id, layer, x0, y0, coarse, dist_l1, signed_coc, s_lo, s_hi, src, coc, n_filled, y, x)
+
+
+@wp.kernel
+def fill_sources_rows_kernel(
+    slice_id: wp.array2d(dtype=wp.int32),
+    layer: int,
+    x0: int,
+    y0: int,
+    coarse: PullPushLevel,
+    dist_l1: wp.array2d(dtype=float),
+    signed_coc: wp.array2d(dtype=float),
+    s_lo: float,
+    s_hi: float,
+    src: wp.array2d(dtype=wp.vec4),
+    coc: wp.array2d(dtype=float),
+    n_filled: wp.array(dtype=wp.int32),
+):
+    """:func:`fill_sources_kernel` with one thread a row (the same values): on a CPU, where a thread a pixel costs
+    its call for every pixel."""
+    y = wp.tid()
+    for x in range(src.shape[1]):
+        _fill_source(slice_id, layer, x0, y0, coarse, dist_l1, signed_coc, s_lo, s_hi, src, coc, n_filled, y, x)
 
 
 @wp.kernel

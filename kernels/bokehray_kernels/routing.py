@@ -37,6 +37,16 @@ class Salience:
     floor: float
 
 
+@wp.func
+def _radiance_mean(src: wp.array2d(dtype=wp.vec4), support: Support, means: wp.array3d(dtype=wp.vec4),
+                   counts: wp.array3d(dtype=float), cy: int, cx: int):
+    # one cell of radiance_mean_kernel
+    n = children_2x2(src.shape[0], src.shape[1], cy, cx)
+    if span_in_support(support, 2 * cy, wp.min(2 * cy + 2, src.shape[0]), 2 * cx, wp.min(2 * cx + 2, src.shape[1])):
+        means[0, cy, cx] = sum_2x2_vec4(src, cy, cx) / n
+    counts[0, cy, cx] = n
+
+
 @wp.kernel
 def radiance_mean_kernel(src: wp.array2d(dtype=wp.vec4), support: Support, means: wp.array3d(dtype=wp.vec4),
                          counts: wp.array3d(dtype=float)):
@@ -47,10 +57,16 @@ def radiance_mean_kernel(src: wp.array2d(dtype=wp.vec4), support: Support, means
     its mean is zero (``means`` comes zeroed) and ``src`` is not read there.
     """
     cy, cx = wp.tid()
-    n = children_2x2(src.shape[0], src.shape[1], cy, cx)
-    if span_in_support(support, 2 * cy, wp.min(2 * cy + 2, src.shape[0]), 2 * cx, wp.min(2 * cx + 2, src.shape[1])):
-        means[0, cy, cx] = sum_2x2_vec4(src, cy, cx) / n
-    counts[0, cy, cx] = n
+    _radiance_mean(src, support, means, counts, cy, cx)
+
+
+@wp.kernel
+def radiance_mean_rows_kernel(src: wp.array2d(dtype=wp.vec4), support: Support, means: wp.array3d(dtype=wp.vec4),
+                              counts: wp.array3d(dtype=float)):
+    """:func:`radiance_mean_kernel` with one thread a row of level 1 (the same values): on a CPU."""
+    cy = wp.tid()
+    for cx in range((src.shape[1] + 1) // 2):
+        _radiance_mean(src, support, means, counts, cy, cx)
 
 
 @wp.kernel
@@ -144,13 +160,13 @@ def _excess(v: wp.vec4, r: float, mean: wp.vec2, visible: float, floor: float) -
 def _cluster_excess(v: wp.vec4, r: float, flag: wp.uint8, mean: wp.vec2, r0: float, n_levels: int,
                     lev: int) -> float:
     # a cluster member's excess (> 0): a source of level lev, not routed alone, brighter than the local colour
-    if flag == wp.uint8(0) and _on_level(v, r, r0, n_levels, lev):
+    if flag == wp.uint8(0) and on_level(v, r, r0, n_levels, lev):
         return wp.max(_raw_excess(v, mean), 0.0)
     return 0.0
 
 
 @wp.func
-def _on_level(v: wp.vec4, r: float, r0: float, n_levels: int, lev: int) -> bool:
+def on_level(v: wp.vec4, r: float, r0: float, n_levels: int, lev: int) -> bool:
     # the source has coverage and scatters on pyramid level ``lev`` >= 1 (level_of(r) == lev, without its loop:
     # r * 2^-l is exact in binary floating point, as in level_of)
     if v[3] == 0.0 or r < 0.5:
@@ -235,7 +251,7 @@ def route_cells_kernel(  # noqa: C901
         for x in range(x0, x1):
             v = src[y, x]
             r = wp.abs(coc[y, x])
-            if _on_level(v, r, r0, n_levels, lev):
+            if on_level(v, r, r0, n_levels, lev):
                 e = _raw_excess(v, mean)
                 if e > 0.0:
                     e_all += wp.float64(e)
@@ -252,7 +268,7 @@ def route_cells_kernel(  # noqa: C901
                 for x in range(x0, x1):
                     v = src[y, x]
                     r = wp.abs(coc[y, x])
-                    if _on_level(v, r, r0, n_levels, lev):
+                    if on_level(v, r, r0, n_levels, lev):
                         if _excess(v, r, mean, visible, floor) > 0.0:
                             exact[y, x] = wp.uint8(1)
     else:
@@ -269,7 +285,7 @@ def route_cells_kernel(  # noqa: C901
                 for x in range(x0, x1):
                     v = src[y, x]
                     r = wp.abs(coc[y, x])
-                    if _on_level(v, r, r0, n_levels, lev):
+                    if on_level(v, r, r0, n_levels, lev):
                         s = _excess(v, r, mean, visible, floor)
                         if s > best:
                             after = s < bound or (s == bound and (y > by or (y == by and x > bx)))

@@ -118,12 +118,16 @@ class PreviewOptions:
         clamp_border: take the unknown outside the frame as its edge pixels continued outwards
             (``levels.preview.border_pad``, the default); False divides by the coverage the frame got instead (the
             rule before, which brightens lights near the border).
+        merge_sources: on each pyramid level, scatter the sources of one cell whose CoCs are near-equal as one
+            (their summed light at their centroid: ``bk.scatter_merged_kernel``), the default; False scatters each
+            (the render before, for measurements: docs/renderer.md).
     """
 
     level_radius_px: float = 8.0
     threads: int | None = None
     exact_highlights: bool = True
     clamp_border: bool = True
+    merge_sources: bool = True
 
     def __post_init__(self) -> None:
         check_number(self.level_radius_px, "level_radius_px", 0.0, lo_open=True)
@@ -132,7 +136,7 @@ class PreviewOptions:
         if self.threads is not None and (isinstance(self.threads, bool) or not isinstance(self.threads, int)
                                          or self.threads < 1):
             raise InputError(f"threads: expected None (all cores) or an integer >= 1, got {shown(self.threads)}")
-        for name in ("exact_highlights", "clamp_border"):
+        for name in ("exact_highlights", "clamp_border", "merge_sources"):
             if not isinstance(getattr(self, name), bool):
                 raise InputError(f"{name}: expected True or False, got {getattr(self, name)!r}")
 

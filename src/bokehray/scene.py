@@ -736,9 +736,10 @@ def build_layer_sources(layer: LayerRecord, arrays: LayerSources, zeros=wp.zeros
     none = wp.zeros((1, 1), dtype=float, device=device)  # no level 0: the pyramid starts at level 1 (below)
     level0 = bk.PullPushLevel()
     level0.total, level0.weight, level0.known = wp.zeros((1, 1), dtype=wp.vec4, device=device), none, none
+    rows = wp.get_device(device).is_cpu  # a row a thread on a CPU (its per-thread call), a pixel on a GPU
     wp.launch(
-        bk.layer_sources_kernel,
-        dim=(h, w),
+        bk.layer_sources_rows_kernel if rows else bk.layer_sources_kernel,
+        dim=h if rows else (h, w),
         inputs=[arrays.image, arrays.signed_coc, arrays.ids, layer.index, x0, y0, 0],
         outputs=[src, coc, level0],
         device=device,
@@ -763,6 +764,7 @@ def _fill(layer: LayerRecord, arrays: LayerSources, src: wp.array, coc: wp.array
     device = arrays.device
     y0, y1, x0, x1 = layer.bbox
     h, w = y1 - y0, x1 - x0
+    rows = wp.get_device(device).is_cpu  # a row a thread on a CPU (its per-thread call), a texel on a GPU
     totals, weights, knowns = [], [], []
     for lv in range(1, pull_levels(layer.fill_reach) + 1):
         ch, cw = (h + (1 << lv) - 1) >> lv, (w + (1 << lv) - 1) >> lv
@@ -770,7 +772,7 @@ def _fill(layer: LayerRecord, arrays: LayerSources, src: wp.array, coc: wp.array
         weights.append(wp.empty((ch, cw), dtype=float, device=device))
         knowns.append(wp.empty((ch, cw), dtype=float, device=device))
         if lv == 1:
-            wp.launch(bk.layer_pull_kernel, dim=(ch, cw),
+            wp.launch(bk.layer_pull_rows_kernel if rows else bk.layer_pull_kernel, dim=ch if rows else (ch, cw),
                       inputs=[arrays.image, arrays.signed_coc, arrays.ids, layer.index, x0, y0, h, w],
                       outputs=[_pull_push(totals, weights, knowns, -1)], device=device)
         else:
@@ -779,7 +781,8 @@ def _fill(layer: LayerRecord, arrays: LayerSources, src: wp.array, coc: wp.array
     top = len(totals) - 1  # list index i holds level i + 1
     for i in range(top, -1, -1):  # down to level 1: the fill pushes the level-0 texels it needs
         c = min(i + 1, top)  # the top level has no coarser level (flag 1): it passes itself
-        wp.launch(bk.push_kernel, dim=totals[i].shape, inputs=[_pull_push(totals, weights, knowns, c), int(i == top)],
+        wp.launch(bk.push_rows_kernel if rows else bk.push_kernel, dim=totals[i].shape[0] if rows else totals[i].shape,
+                  inputs=[_pull_push(totals, weights, knowns, c), int(i == top)],
                   outputs=[_pull_push(totals, weights, knowns, i)], device=device)
         if i < top:  # nothing reads the coarser level any more
             totals[i + 1] = weights[i + 1] = knowns[i + 1] = None
@@ -788,11 +791,11 @@ def _fill(layer: LayerRecord, arrays: LayerSources, src: wp.array, coc: wp.array
     dist = wp.empty((h, w), dtype=float, device=device)
     wp.launch(bk.row_distance_kernel, dim=h, inputs=[arrays.ids, layer.index, x0, y0, w], outputs=[dist],
               device=device)
-    band = 1 if wp.get_device(device).is_cuda else 64
+    band = 64 if rows else 1  # a band of columns a thread on a CPU
     wp.launch(bk.column_distance_kernel, dim=(w + band - 1) // band, inputs=[dist, h, band], device=device)
     wp.launch(
-        bk.fill_sources_kernel,
-        dim=(h, w),
+        bk.fill_sources_rows_kernel if rows else bk.fill_sources_kernel,
+        dim=h if rows else (h, w),
         inputs=[arrays.ids, layer.index, x0, y0, level1, dist, arrays.signed_coc, layer.s_lo, layer.s_hi],
         outputs=[src, coc, arrays.filled],
         device=device,

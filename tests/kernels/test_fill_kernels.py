@@ -95,8 +95,14 @@ def scenes(draw, max_side: int = 12):
     }
 
 
-def _run_fill(scene, pull_levels, band: int = 64) -> dict:
-    """The kernel chain in the launch order of ``bokehray.scene.build_layer_sources``."""
+def _run_fill(scene, pull_levels, band: int = 64, rows: bool = False) -> dict:
+    """The kernel chain in the launch order of ``bokehray.scene.build_layer_sources``; ``rows``: with the row-a-thread
+    kernels the CPU launches."""
+
+    def launch(name: str, dim: tuple[int, int], **kw) -> None:  # the per-pixel kernel, or its row-a-thread twin
+        wp.launch(getattr(bk, name.replace("_kernel", "_rows_kernel")) if rows else getattr(bk, name),
+                  dim=dim[0] if rows else dim, device=DEVICE, **kw)
+
     y0, y1, x0, x1 = scene["bbox"]
     h, w = y1 - y0, x1 - x0
     layer = scene["layer"]
@@ -106,8 +112,8 @@ def _run_fill(scene, pull_levels, band: int = 64) -> dict:
     coc = wp.zeros((h, w), dtype=float, device=DEVICE)
     filled = wp.zeros(scene["n_layers"], dtype=wp.int32, device=DEVICE)
     none = wp.zeros((1, 1), dtype=float, device=DEVICE)
-    wp.launch(bk.layer_sources_kernel, dim=(h, w), inputs=[image, scoc, sid, layer, x0, y0, 0],
-              outputs=[src, coc, _pp(wp.zeros((1, 1), dtype=wp.vec4, device=DEVICE), none, none)], device=DEVICE)
+    launch("layer_sources_kernel", (h, w), inputs=[image, scoc, sid, layer, x0, y0, 0],
+           outputs=[src, coc, _pp(wp.zeros((1, 1), dtype=wp.vec4, device=DEVICE), none, none)])
     out = {}
     if fill:
         totals, weights, knowns = [], [], []  # index i: level i + 1 (level 0 is never stored)
@@ -117,23 +123,23 @@ def _run_fill(scene, pull_levels, band: int = 64) -> dict:
             weights.append(wp.empty(shape, dtype=float, device=DEVICE))
             knowns.append(wp.empty(shape, dtype=float, device=DEVICE))
             if lv == 1:
-                wp.launch(bk.layer_pull_kernel, dim=shape, inputs=[image, scoc, sid, layer, x0, y0, h, w],
-                          outputs=[_pp(totals[-1], weights[-1], knowns[-1])], device=DEVICE)
+                launch("layer_pull_kernel", shape, inputs=[image, scoc, sid, layer, x0, y0, h, w],
+                       outputs=[_pp(totals[-1], weights[-1], knowns[-1])])
             else:
                 wp.launch(bk.pull_kernel, dim=shape, inputs=[_pp(totals[-2], weights[-2], knowns[-2])],
                           outputs=[_pp(totals[-1], weights[-1], knowns[-1])], device=DEVICE)
         top = len(totals) - 1
         for i in range(top, -1, -1):  # as the preview: down to level 1
             c = min(i + 1, top)
-            wp.launch(bk.push_kernel, dim=totals[i].shape, inputs=[_pp(totals[c], weights[c], knowns[c]), int(i == top)],
-                      outputs=[_pp(totals[i], weights[i], knowns[i])], device=DEVICE)
+            launch("push_kernel", totals[i].shape, inputs=[_pp(totals[c], weights[c], knowns[c]), int(i == top)],
+                   outputs=[_pp(totals[i], weights[i], knowns[i])])
         dist = wp.empty((h, w), dtype=float, device=DEVICE)
         wp.launch(bk.row_distance_kernel, dim=h, inputs=[sid, layer, x0, y0, w], outputs=[dist], device=DEVICE)
         wp.launch(bk.column_distance_kernel, dim=(w + band - 1) // band, inputs=[dist, h, band], device=DEVICE)
-        wp.launch(bk.fill_sources_kernel, dim=(h, w),
-                  inputs=[sid, layer, x0, y0, _pp(totals[0], weights[0], knowns[0]), dist, scoc, scene["s_lo"],
-                          scene["s_hi"]],
-                  outputs=[src, coc, filled], device=DEVICE)
+        launch("fill_sources_kernel", (h, w),
+               inputs=[sid, layer, x0, y0, _pp(totals[0], weights[0], knowns[0]), dist, scoc, scene["s_lo"],
+                       scene["s_hi"]],
+               outputs=[src, coc, filled])
         # level 0 stored and pushed as a whole (what the fill pushed texel by texel), for the comparison with the
         # oracle
         lv0 = [wp.zeros((h, w), dtype=wp.vec4, device=DEVICE), wp.zeros((h, w), dtype=float, device=DEVICE),
@@ -211,6 +217,15 @@ def test_pull_kernel_matches_reference(h, w, depth, seed):
         np.testing.assert_allclose(got.numpy(), ref, rtol=1e-6, atol=ATOL)
     # nothing is lost between levels
     np.testing.assert_allclose(out[1].numpy().sum(), weight.sum(), rtol=1e-6)
+
+
+@given(scene=scenes(), pull_levels=st.sampled_from([None, 1, 2, 4]))
+def test_row_kernels_store_the_pixel_kernels_values(scene, pull_levels):
+    """The CPU's row-a-thread twins (layer sources, level 1's pull, push, fill sources) store what the kernels of a
+    thread a pixel store, bit for bit."""
+    got, want = _run_fill(scene, pull_levels, rows=True), _run_fill(scene, pull_levels)
+    for name, a in want.items():
+        assert got[name].tobytes() == a.tobytes(), name
 
 
 @given(scene=scenes())

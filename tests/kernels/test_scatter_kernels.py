@@ -11,6 +11,7 @@ from tolerances import (
     ENERGY_RTOL,
     FOOTPRINT_L1,
     POINT_LIGHT_L1,
+    PYRAMID_INNER_ENERGY_RTOL,
     PYRAMID_REL_MAE,
     SCATTER_VS_REFERENCE_ATOL,
     SHAPE_L1_LEVEL0,
@@ -18,7 +19,14 @@ from tolerances import (
 
 from bokehray import Aperture, LayerOptions, PreviewOptions
 from bokehray.lens import aperture_area
-from bokehray.levels.preview import aperture_shape, no_routing, prefix_rows, pyramid_buffers, render_signed_coc
+from bokehray.levels.preview import (
+    MERGE_COC_CELLS,
+    aperture_shape,
+    no_routing,
+    prefix_rows,
+    pyramid_buffers,
+    render_signed_coc,
+)
 from bokehray.scene import LayerSupport, layer_edges
 
 APERTURES = [
@@ -71,7 +79,7 @@ def _point_response(ap: Aperture, radius: float, size: int, device: str, offset=
     shape = aperture_shape(ap, ap.blade_discs(), device)
     wp.launch(bk.scatter_kernel, dim=(size, size),
               inputs=[wp.array(src, dtype=wp.vec4, device=device), wp.array(radius_map, device=device),
-                      LayerSupport.everywhere(device).struct(), no_routing(device).struct(), shape, r0, levels, pyramid_buffers(bufs)], device=device)
+                      LayerSupport.everywhere(device).struct(), no_routing(device).struct(), shape, r0, levels, pyramid_buffers(bufs), 0], device=device)
     for lv in range(levels):
         prefix_rows(bufs[lv], device)
     out = wp.empty((size, size), dtype=wp.vec4, device=device)
@@ -125,7 +133,7 @@ def test_scatter_matches_reference(ap, device, rng):
     wp.launch(bk.scatter_kernel, dim=(h, w),
               inputs=[wp.array(src, dtype=wp.vec4, device=device), wp.array(radius, device=device),
                       LayerSupport.everywhere(device).struct(), no_routing(device).struct(), aperture_shape(ap, ap.blade_discs(), device), 1e6, 1,
-                      pyramid_buffers(bufs)], device=device)
+                      pyramid_buffers(bufs), 0], device=device)
     prefix_rows(bufs[0], device)
     got = bufs[0].numpy()[:, :w]
     want = scatter_ref.scatter(src.astype(np.float64), radius, ap.blade_discs(), ap.vertical_extent())
@@ -163,7 +171,182 @@ def test_pyramid_levels_approximate_level_zero(device):
     inner = (slice(16, -16), slice(16, -16))
     mae = np.abs(exact[inner] - approx[inner]).mean() / image.mean()
     assert mae < PYRAMID_REL_MAE
-    np.testing.assert_allclose(approx[inner].sum(), exact[inner].sum(), rtol=2e-3)
+    np.testing.assert_allclose(approx[inner].sum(), exact[inner].sum(), rtol=PYRAMID_INNER_ENERGY_RTOL)
+
+
+def _merged_level(src: np.ndarray, coc: np.ndarray, ap: Aperture, r0: float, n_levels: int, lev: int,
+                  device: str) -> tuple[np.ndarray, np.ndarray]:
+    """(level ``lev``'s values, level 0's) after ``scatter_merged_kernel`` (nothing routed) and the prefix sums."""
+    h, w = coc.shape
+    bufs = [wp.zeros(((h + (1 << lv) - 1) >> lv, ((w + (1 << lv) - 1) >> lv) + 2), dtype=wp.vec4, device=device)
+            for lv in range(n_levels)]
+    bufs += [bufs[0]] * (bk.MAX_LEVELS - n_levels)
+    side = 1 << lev
+    wp.launch(bk.scatter_merged_kernel, dim=((h + side - 1) // side, (w + side - 1) // side),
+              inputs=[wp.array(src, dtype=wp.vec4, device=device), wp.array(coc, device=device),
+                      LayerSupport.everywhere(device).struct(), no_routing(device).struct(),
+                      aperture_shape(ap, ap.blade_discs(), device), r0, n_levels, lev, MERGE_COC_CELLS * side,
+                      pyramid_buffers(bufs)], device=device)
+    for lv in (0, lev):
+        prefix_rows(bufs[lv], device)
+    return bufs[lev].numpy()[:, : bufs[lev].shape[1] - 2], bufs[0].numpy()[:, :w]
+
+
+@pytest.mark.parametrize("ap", APERTURES[:3], ids=str)
+@pytest.mark.parametrize("lev", [1, 2])
+def test_merged_scatter_matches_reference(ap, lev, device, rng):
+    """scatter_merged_kernel against the reference's merged sources drawn with the sharp rule: cells of near-equal
+    CoCs merge (to one source or a few, a colour apart from the coverage where it is not centred with it),
+    cells of scattered CoCs (the right half) scatter every source."""
+    h, w, r0, n_levels = 27, 34, 4.0, 3
+    src = rng.random((h, w, 4)).astype(np.float32)
+    src[..., 3] = rng.uniform(0.2, 1.0, (h, w))
+    src[..., :3] *= src[..., 3:]
+    src[rng.random((h, w)) < 0.1] = 0.0  # holes: not sources
+    src[: h // 3] = (0.3, 0.2, 0.1, 1.0)  # one colour: light and coverage merge at one centroid
+    yy, xx = np.mgrid[0:h, 0:w]
+    coc = 3.5 + 11.0 * yy / h + rng.normal(0.0, 0.2, (h, w)) + np.where(xx >= w // 2, rng.uniform(-3, 3, (h, w)), 0.0)
+    coc = (coc * np.where(xx % 7 < 4, -1.0, 1.0)).astype(np.float32)  # in front of the focus and behind it
+    got, level0 = _merged_level(src, coc, ap, r0, n_levels, lev, device)
+    merged = scatter_ref.merged_sources(src, coc, r0, n_levels, lev, MERGE_COC_CELLS * (1 << lev))
+    on_level = sum(scatter_ref.level_of(abs(c), r0, n_levels) == lev for c in coc[(src[..., 3] > 0) & (abs(coc) >= 0.5)])
+    groups = sum(v[3] > 0 for *_, v in merged)  # a merged group's coverage is one source
+    assert 0.8 * on_level > groups > on_level / (1 << (2 * lev))  # merged where the CoCs agree, not elsewhere
+    assert 0 < len(merged) - groups < groups  # textured cells: a channel's light at its own centroid
+    scale = 1.0 / (1 << lev)
+    want = np.zeros(got.shape)
+    for x, y, c, v in merged:
+        fp = scatter_ref.sharp_footprint(x * scale, y * scale, c * scale, ap.blade_discs(), *got.shape[:2],
+                                         ap.vertical_extent(), aperture_area(ap))
+        want += fp[..., None] * v
+    np.testing.assert_allclose(got, want, atol=SCATTER_VS_REFERENCE_ATOL)
+    assert not level0.any()  # nothing routed: nothing at level 0
+
+
+def _each_level_sum(src: np.ndarray, coc: np.ndarray, r0: float, n_levels: int) -> np.ndarray:
+    """The summed values of every pyramid level after ``scatter_kernel`` scattering each source."""
+    h, w = coc.shape
+    bufs = [wp.zeros(((h + (1 << lv) - 1) >> lv, ((w + (1 << lv) - 1) >> lv) + 2), dtype=wp.vec4)
+            for lv in range(n_levels)]
+    bufs += [bufs[0]] * (bk.MAX_LEVELS - n_levels)
+    wp.launch(bk.scatter_kernel, dim=(h, w),
+              inputs=[wp.array(src, dtype=wp.vec4), wp.array(coc), LayerSupport.everywhere("cpu").struct(),
+                      no_routing("cpu").struct(), aperture_shape(Aperture(), np.zeros((0, 4)), "cpu"), r0, n_levels,
+                      pyramid_buffers(bufs), 0])
+    for lv in range(n_levels):
+        prefix_rows(bufs[lv], "cpu")
+    return sum(bufs[lv].numpy()[:, :-2].astype(np.float64).sum(axis=(0, 1)) for lv in range(n_levels))
+
+
+@given(lev=st.integers(1, 3), spread=st.floats(0.0, 30.0), seed=st.integers(0, 2**32 - 1))
+def test_merged_scatter_keeps_every_sources_value(lev, spread, seed):
+    """Whatever the cells' CoCs, the merged scatter deposits the level's sources' summed value (away from the
+    frame's edges), at every level: as closely as scattering each source does (the pyramid's float32 sums lose up
+    to a few 1e-4 either way, tolerances.PYRAMID_ENERGY_RTOL)."""
+    rng = np.random.default_rng(seed)
+    h = w = 24
+    src = np.zeros((72, 72, 4), np.float32)
+    src[24:48, 24:48] = rng.random((h, w, 4))
+    coc = np.zeros((72, 72), np.float32)
+    r = 8.0 * 2 ** (lev - 1) + 0.01 + rng.uniform(0.0, min(spread, 8.0 * 2 ** (lev - 1) - 0.02), (h, w))
+    coc[24:48, 24:48] = r * rng.choice([-1.0, 1.0], (h, w))
+    got, _ = _merged_level(src, coc, Aperture(), 8.0, 4, lev, "cpu")
+    total = src.astype(np.float64).sum(axis=(0, 1))
+    each = _each_level_sum(src, coc, 8.0, 4)
+    assert np.all(np.abs(got.sum(axis=(0, 1)) - total) <= np.abs(each - total) + 1e-4 * total)
+
+
+def test_merged_render_is_the_unmerged_one_where_lights_are_routed(device, rng):
+    """A textured layer with lights at R = 13 and 40: merging its pyramid sources changes the render by less than
+    the pyramid itself does (against every source exact), and each routed light keeps its exact outline."""
+    h, w = 150, 170
+    yy, xx = np.mgrid[0:h, 0:w]
+    image = np.stack([0.5 + 0.3 * np.sin(xx / 9.0), 0.5 + 0.3 * np.cos(yy / 7.0), 0.4 + 0.2 * rng.random((h, w))], -1)
+    image = image.astype(np.float32)
+    image[40, 50] = image[100, 120] = 60.0  # lights
+    for radius in (13.0, 40.0):
+        s = np.full((h, w), -radius, np.float32)
+        exact, _ = render_signed_coc(image, s, Aperture(), options=PreviewOptions(level_radius_px=1e6), device=device)
+        each, _ = render_signed_coc(image, s, Aperture(), options=PreviewOptions(merge_sources=False), device=device)
+        merged, _ = render_signed_coc(image, s, Aperture(), device=device)
+        pyramid_err = np.abs(each - exact).mean()
+        assert np.abs(merged - each).mean() < pyramid_err
+        assert np.abs(merged - exact).mean() < 1.5 * pyramid_err
+
+
+def _random_support(rng, h: int, w: int, shift: int) -> LayerSupport:
+    """A random tile mask of ``2^shift`` px tiles over an ``h x w`` box at a random scene offset."""
+    oy, ox = (int(v) for v in rng.integers(0, 1 << shift, 2))
+    mask = (rng.random((((h + oy) >> shift) + 1, ((w + ox) >> shift) + 1)) < 0.6).astype(np.uint8)
+    return LayerSupport(wp.array(mask, dtype=wp.uint8), shift, oy, ox)
+
+
+@given(h=st.integers(1, 30), w=st.integers(1, 30), merged=st.integers(0, 1), routed=st.booleans(),
+       seed=st.integers(0, 2**32 - 1))
+def test_scatter_rows_deposits_what_the_pixel_kernel_deposits(h, w, merged, routed, seed):
+    """scatter_rows_kernel (the CPU's launch, a thread a row) against scatter_kernel, bit for bit (the same deposits in
+    the same order), on levels 0-2, with and without routed lights, in a random support."""
+    from bokehray.levels.preview import route_salient
+
+    rng = np.random.default_rng(seed)
+    src = rng.random((h, w, 4)).astype(np.float32)
+    src[rng.random((h, w)) < 0.05, :3] *= 300.0  # lights
+    coc = (rng.uniform(0.0, 30.0, (h, w)) * rng.choice([-1.0, 1.0], (h, w))).astype(np.float32)
+    src_wp, coc_wp = wp.array(src, dtype=wp.vec4), wp.array(coc)
+    routing = route_salient(src_wp, coc_wp, 3, 8.0, "cpu") if routed else no_routing("cpu")
+    support = _random_support(rng, h, w, 2).struct()
+    got = []
+    for kernel, dim in ((bk.scatter_kernel, (h, w)), (bk.scatter_rows_kernel, h)):
+        bufs = [wp.zeros(((h + (1 << lv) - 1) >> lv, ((w + (1 << lv) - 1) >> lv) + 2), dtype=wp.vec4) for lv in range(3)]
+        wp.launch(kernel, dim=dim, inputs=[src_wp, coc_wp, support, routing.struct(),
+                                           aperture_shape(Aperture(), np.zeros((0, 4)), "cpu"), 8.0, 3,
+                                           pyramid_buffers(bufs + [bufs[0]] * (bk.MAX_LEVELS - 3)), merged])
+        got.append(b"".join(b.numpy().tobytes() for b in bufs))
+    assert got[0] == got[1]
+
+
+@given(h=st.integers(1, 40), w=st.integers(1, 40), n_levels=st.integers(1, 4), first=st.integers(0, 3),
+       seed=st.integers(0, 2**32 - 1))
+def test_resolve_rows_stores_what_the_pixel_kernel_stores(h, w, n_levels, first, seed):
+    """resolve_rows_kernel (the CPU's launch, a thread a row) against resolve_levels_kernel, bit for bit, within a
+    random support."""
+    rng = np.random.default_rng(seed)
+    bufs = [wp.array(rng.random(((h + (1 << lv) - 1) >> lv, ((w + (1 << lv) - 1) >> lv) + 2, 4)).astype(np.float32),
+                     dtype=wp.vec4) for lv in range(n_levels)]
+    levels = pyramid_buffers(bufs + [bufs[0]] * (bk.MAX_LEVELS - n_levels))
+    support = _random_support(rng, h, w, 2).struct()
+    start = rng.random((h, w, 4)).astype(np.float32)
+    pixel, rows = wp.array(start, dtype=wp.vec4), wp.array(start, dtype=wp.vec4)
+    wp.launch(bk.resolve_levels_kernel, dim=(h, w), inputs=[n_levels, first, levels, support], outputs=[pixel])
+    wp.launch(bk.resolve_rows_kernel, dim=h, inputs=[n_levels, first, levels, support], outputs=[rows])
+    assert rows.numpy().tobytes() == pixel.numpy().tobytes()
+    yy, xx = np.mgrid[0:h, 0:w]
+    inside = support.mask.numpy()[(yy + support.oy) >> support.shift, (xx + support.ox) >> support.shift] != 0
+    np.testing.assert_array_equal(pixel.numpy()[~inside], start[~inside])  # nothing stored outside the support
+    if n_levels <= max(first, 1):  # no coarser level read: level 0 as it is
+        np.testing.assert_array_equal(pixel.numpy()[inside], bufs[0].numpy()[:, :w][inside])
+
+
+@given(h=st.integers(1, 30), w=st.integers(1, 30), seed=st.integers(0, 2**32 - 1))
+def test_composite_kernels_match_reference(h, w, seed):
+    """composite_kernel and its row-a-thread twin (the CPU's launch) against the reference's "over", within a random
+    support (the accumulator untouched outside it), the twins bit for bit."""
+    rng = np.random.default_rng(seed)
+    layer = rng.random((h, w, 4)).astype(np.float32) * 2
+    layer[rng.random((h, w)) < 0.2] = 0.0  # no light there
+    acc0 = rng.random((h + 5, w + 7, 4)).astype(np.float32)
+    support = _random_support(rng, h, w, 3)
+    got = {}
+    for kernel, dim in ((bk.composite_kernel, (h, w)), (bk.composite_rows_kernel, h)):
+        acc = wp.array(acc0, dtype=wp.vec4)
+        wp.launch(kernel, dim=dim, inputs=[wp.array(layer, dtype=wp.vec4), support.struct(), 7, 5], outputs=[acc])
+        got[kernel.key] = acc.numpy()
+    assert got["composite_rows_kernel"].tobytes() == got["composite_kernel"].tobytes()
+    yy, xx = np.mgrid[0:h, 0:w]
+    inside = support.mask.numpy()[(yy + support.oy) >> support.shift, (xx + support.ox) >> support.shift] != 0
+    want = acc0.astype(np.float64)
+    want[5:, 7:] = np.where(inside[..., None], scatter_ref.over(layer, want[5:, 7:]), want[5:, 7:])
+    np.testing.assert_allclose(got["composite_kernel"], want, rtol=1e-5, atol=1e-6)
 
 
 @given(
@@ -451,15 +634,17 @@ def test_prefix_sums_store_the_running_sums_within_the_support_only(rows, mask, 
 @given(mask=st.lists(st.lists(st.booleans(), min_size=5, max_size=5), min_size=4, max_size=4),
        oy=st.integers(0, 7), ox=st.integers(0, 7), h=st.integers(1, 24), w=st.integers(1, 32))
 def test_clear_support_zeroes_the_support_and_nothing_else(mask, oy, ox, h, w):
-    """``clear_support_kernel`` against the mask blown up to pixels (8 px tiles, the box at an offset)."""
+    """``clear_support_kernel`` and its row-a-thread twin (the CPU's launch) against the mask blown up to pixels
+    (8 px tiles, the box at an offset)."""
     tiles = np.array(mask, bool)
     support = LayerSupport(wp.array(tiles.astype(np.uint8), dtype=wp.uint8, device="cpu"), 3, oy, ox)
     before = np.arange(h * (w + 2) * 4, dtype=np.float32).reshape(h, w + 2, 4) + 1.0
-    buf = wp.array(before, dtype=wp.vec4, device="cpu")
-    wp.launch(bk.clear_support_kernel, dim=(h, w), inputs=[support.struct()], outputs=[buf], device="cpu")
     inside = np.zeros((h, w + 2), bool)
     inside[:, :w] = np.repeat(np.repeat(tiles, 8, 0), 8, 1)[oy : oy + h, ox : ox + w]
-    np.testing.assert_array_equal(buf.numpy(), np.where(inside[..., None], 0.0, before))
+    for kernel, dim, args in ((bk.clear_support_kernel, (h, w), []), (bk.clear_support_rows_kernel, h, [w])):
+        buf = wp.array(before, dtype=wp.vec4, device="cpu")
+        wp.launch(kernel, dim=dim, inputs=[support.struct(), *args], outputs=[buf], device="cpu")
+        np.testing.assert_array_equal(buf.numpy(), np.where(inside[..., None], 0.0, before))
 
 
 def _anonymous_kb(ptr: int) -> int | None:

@@ -393,3 +393,105 @@ def clusters(src: np.ndarray, coc: np.ndarray, routed: np.ndarray, r0: float, n_
                     sources.append((bx * b + math.floor(fx * 256 + 0.5) / 256, by * b + math.floor(fy * 256 + 0.5) / 256,
                                     sign * radius, sum(c[3] for c in part)))
     return members, sources
+
+
+def sharp_footprint(xc: float, yc: float, rho: float, blades: np.ndarray, h: int, w: int,
+                    extent: tuple[float, float] = (-1.0, 1.0), area: float | None = None) -> np.ndarray:
+    """Weights a source at (xc, yc) spreads over an h x w grid with the pyramid levels' cheap rule (docs/renderer.md,
+    "Large radii"): each pixel row the shape covers (clipped to its extent) holds one span, the chord at the row
+    part's mid-height, of that part's height; a pixel gets the span's overlap with it, over the shape's exact area;
+    what the rows miss of that area goes on the centre row's chord (at least one pixel wide). Spans are clipped to
+    the grid's columns. A positive ``rho`` draws the shape point-reflected."""
+    if rho > 0 and len(blades):
+        flipped = np.asarray(blades, np.float64).copy()
+        flipped[:, :2] *= -1
+        return sharp_footprint(xc, yc, -rho, flipped, h, w, (-extent[1], -extent[0]), area)
+    rho = abs(rho)
+    area = rows_area(blades) if area is None else area
+    out = np.zeros((h, w))
+    top, bot = yc + extent[0] * rho, yc + extent[1] * rho
+
+    def add(k: int, weight: float, a: float, b: float) -> None:
+        a, b = min(max(a, 0.0), w), min(max(b, 0.0), w)  # clipped to the grid
+        for x in range(w):
+            out[k, x] += weight * max(0.0, min(b, x + 1) - max(a, x))
+
+    covered = 0.0
+    for k in range(math.floor(top), math.floor(bot) + 1):
+        t0, t1 = max(k, top), min(k + 1, bot)
+        if t1 <= t0:
+            continue
+        lo, hi = chord(0.5 * (t0 + t1) - yc, rho, blades)
+        if hi <= lo:
+            continue
+        covered += (t1 - t0) * (hi - lo)
+        if 0 <= k < h:
+            add(k, (t1 - t0) / (area * rho * rho), xc + lo, xc + hi)
+    lo, hi = chord(0.0, rho, blades)
+    a, b = xc + lo, xc + hi
+    if b - a < 1.0:
+        a, b = math.floor(xc), math.floor(xc) + 1.0
+    add(min(max(math.floor(yc), 0), h - 1), (1.0 - covered / (area * rho * rho)) / (b - a), a, b)
+    return out
+
+
+def _merged(part: list, src: np.ndarray, coc: np.ndarray, cy: int, cx: int, s: int, split: float) -> list:
+    """One bin's sources of a cell as one or two merged sources (:func:`merged_sources`)."""
+    total = sum(src[p].astype(np.float64) for p in part)
+    c = sum(float(src[p][3]) * float(coc[p]) for p in part) / total[3]
+
+    def centroid(k: int) -> tuple[float, float]:  # channel k's, within the cell, on the 1/256 px grid
+        cw = [float(src[p][k]) for p in part]
+        return tuple(math.floor(sum(wi * (p[i] - o + 0.5) for wi, p in zip(cw, part)) / sum(cw) * 256 + 0.5) / 256
+                     for i, o in ((1, cx), (0, cy)))
+
+    a = centroid(3)
+    cents = [centroid(k) if total[k] > 0 else a for k in range(3)]
+    apart = [max(abs(q[0] - a[0]), abs(q[1] - a[1])) for q in cents]
+    if max(apart) <= split * s:
+        return [(cx + a[0], cy + a[1], c, total)]
+    far = cents[int(np.argmax(apart))]
+    moved = np.array([max(abs(q[0] - far[0]), abs(q[1] - far[1])) < d for q, d in zip(cents, apart)] + [False])
+    return [(cx + far[0], cy + far[1], c, np.where(moved, total, 0.0)),
+            (cx + a[0], cy + a[1], c, np.where(moved, 0.0, total))]
+
+
+def merged_sources(src: np.ndarray, coc: np.ndarray, r0: float, n_levels: int, lev: int, tol: float,
+                   groups: int = 4, split: float = 0.0625) -> list[tuple[float, float, float, np.ndarray]]:
+    """The sources of pyramid level ``lev`` >= 1 merged per cell of 2^lev px (docs/renderer.md), by plain loops:
+    the cell's sources of that level (coverage > 0, radius >= 0.5) are binned by signed CoC in bins of ``tol`` from
+    the smallest (the last bin taking the largest); at most ``groups`` bins, each a source of the summed value at
+    the coverage-weighted centroid (pixel centres, within the cell, rounded to 1/256 px) and mean signed CoC, or,
+    where a colour channel's centroid lies farther than ``split`` of the cell from it (in x or y), two sources: the
+    channels whose centroids lie nearer the farthest one's at that one, the others and the coverage at the
+    coverage's; more bins: every source alone. Returns (x, y, signed CoC, value) in pixels of level 0."""
+    h, w = coc.shape
+    s = 2 ** lev
+    out = []
+    for cy in range(0, h, s):
+        for cx in range(0, w, s):
+            cell = [(y, x) for y in range(cy, min(h, cy + s)) for x in range(cx, min(w, cx + s))
+                    if src[y, x, 3] != 0 and abs(coc[y, x]) >= 0.5 and level_of(abs(coc[y, x]), r0, n_levels) == lev]
+            if not cell:
+                continue
+            lo, hi = min(coc[p] for p in cell), max(coc[p] for p in cell)
+            n_bins = int((hi - lo) / tol) + 1
+            if n_bins > groups:
+                out += [(x + 0.5, y + 0.5, float(coc[y, x]), src[y, x].astype(np.float64)) for y, x in cell]
+                continue
+            for b in range(n_bins):
+                part = [p for p in cell if min(int((coc[p] - lo) / tol), n_bins - 1) == b]
+                if part:
+                    out += _merged(part, src, coc, cy, cx, s, split)
+    return out
+
+
+def over(layer: np.ndarray, acc: np.ndarray) -> np.ndarray:
+    """One scattered layer (sum of premultiplied RGB, sum of coverage) over the accumulator (RGB, opacity)
+    (docs/renderer.md, "compositing rule"): opacity min(coverage, 1), colour normalised by the coverage; where the
+    coverage is at most 1e-6 the accumulator stays."""
+    cov = layer[..., 3:4].astype(np.float64)
+    alpha = np.minimum(cov, 1.0)
+    colour = layer[..., :3] / np.maximum(cov, 1e-30)
+    out = np.concatenate([colour * alpha + (1 - alpha) * acc[..., :3], alpha + (1 - alpha) * acc[..., 3:4]], -1)
+    return np.where(cov > 1e-6, out, acc)

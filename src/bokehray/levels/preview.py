@@ -44,7 +44,7 @@ from .base import Progress, RenderContext
 from .buffers import is_lazy, lazy_for, lazy_zeros, reuse_buffers
 
 __all__ = ["aperture_shape", "border_pad", "no_routing", "prefix_rows", "pyramid_buffers", "render_preview",
-           "render_signed_coc", "route_salient"]
+           "render_signed_coc", "route_salient", "scatter_merged"]
 
 # Bytes per pixel, from the arrays each stage allocates (float32 = 4 bytes), calibrated on measured peaks (the
 # growth of the process during renders of 1.5 to 24 MP, within 15 %: docs/renderer.md, "The memory model");
@@ -157,6 +157,7 @@ class _Scatter:
     shape: bk.Shape
     level_radius_px: float
     exact_highlights: bool
+    merge_sources: bool
     threads: int
     device: str
     fill_gate: threading.Lock = dataclasses.field(default_factory=threading.Lock)
@@ -250,7 +251,9 @@ def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device
     h1, w1 = (h + 1) // 2, (w + 1) // 2
     means = lazy_zeros((n_means, h1, w1), wp.vec4, device, lazy)
     counts = lazy_zeros((n_means, h1, w1), float, device, lazy)
-    wp.launch(bk.radiance_mean_kernel, dim=(h1, w1), inputs=[src, where], outputs=[means, counts], device=device)
+    rows = wp.get_device(device).is_cpu  # a row a thread on a CPU (its per-thread call), a cell on a GPU
+    wp.launch(bk.radiance_mean_rows_kernel if rows else bk.radiance_mean_kernel, dim=h1 if rows else (h1, w1),
+              inputs=[src, where], outputs=[means, counts], device=device)
     fh, fw = h1, w1
     for k in range(1, n_means):
         ch, cw = (fh + 1) // 2, (fw + 1) // 2
@@ -297,6 +300,14 @@ def border_pad(signed_coc: np.ndarray, tile_px: int) -> tuple[int, int, int, int
     return tuple(-(-(int(math.ceil(r)) + 1) // tile_px) * tile_px if r >= 0.5 else 0 for r in radii)
 
 
+def _border_reach(signed_coc: np.ndarray, soft: sc.SoftEdges | None) -> float:
+    """The largest CoC radius [px] on the frame's rim (a split pixel's parts included): 0 for an empty frame."""
+    if signed_coc.size == 0:
+        return 0.0
+    r = np.abs(signed_coc if soft is None else sc.soft_radius(signed_coc, soft))
+    return float(max(r[0].max(), r[-1].max(), r[:, 0].max(), r[:, -1].max()))
+
+
 def _area(box: tiling.Box) -> int:
     return (box[1] - box[0]) * (box[3] - box[2])
 
@@ -338,6 +349,9 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
     soft = ctx.soft if ctx.soft is not None and len(ctx.soft) else None
     pt, pb, pl, pr = _clamped_border(s, soft, grid, options.clamp_border, ctx.memory)
     h, w = h0 + pt + pb, w0 + pl + pr
+    # merged sources put a textured cell's light apart from its coverage, which only the coverage a clamped border
+    # completes keeps out of the colours (an unclamped border's coverage is cut, and divided out: docs/renderer.md)
+    merge = options.merge_sources and ((h, w) != (h0, w0) or _border_reach(s, soft) < 0.5)
     if (h, w) != (h0, w0):
         image = np.pad(image, ((pt, pb), (pl, pr), (0, 0)), mode="edge")
         s = np.pad(s, ((pt, pb), (pl, pr)), mode="edge")
@@ -396,7 +410,7 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
         photo = None  # the padded input is read by tiled renders only
     blade_rows = ctx.aperture.blade_discs()
     scatter = _Scatter(aperture_shape(ctx.aperture, blade_rows, ctx.device), float(options.level_radius_px),
-                       bool(options.exact_highlights), threads, ctx.device)
+                       bool(options.exact_highlights), merge, threads, ctx.device)
     t_plan = time.perf_counter()
     stats.stage_seconds["plan"] = t_plan - t_start
 
@@ -484,7 +498,7 @@ def render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatt
         fewer, 3 s of CPU on this machine; doing the same to level 0 saves 0.03 M more and raises the peak 0.1 GB)."""
         a = lazy_zeros(shape, dtype, device, lazy)
         if dtype is wp.vec4 and is_lazy(a):  # (``wp.zeros`` wrote every page already)
-            wp.launch(bk.clear_support_kernel, dim=(h, w), inputs=[support.struct()], outputs=[a], device=device)
+            wp.launch(bk.clear_support_rows_kernel, dim=h, inputs=[support.struct(), w], outputs=[a], device=device)
         return a
 
     # One worker fills at a time (the pull-push levels above level 0 and the distance map, on the whole box), so two
@@ -507,10 +521,7 @@ def render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatt
     routing = (route_salient(src, coc, n_levels, scatter.level_radius_px, device, support, first, lazy) if routed
                else no_routing(device))
     levels = pyramid_buffers(bufs)
-    wp.launch(bk.scatter_kernel, dim=(h, w),
-              inputs=[src, coc, support.struct(), routing.struct(), scatter.shape, scatter.level_radius_px, n_levels,
-                      levels],
-              device=device)
+    _scatter_sources(src, coc, support, routing, scatter, n_levels, first, levels)
     if routed:
         for lev in range(max(1, first), n_levels):
             wp.launch(bk.scatter_clusters_kernel, dim=cluster_grid(h, w, lev),
@@ -520,9 +531,40 @@ def render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatt
         if lv == 0 or lv >= first:  # level 0 is read at the support's pixels only, the coarser levels everywhere
             prefix_rows(bufs[lv], device, support if lv == 0 else None, w if lv == 0 else None)
     out = src  # the sources are scattered: reuse their memory for the result (zero outside the support)
-    wp.launch(bk.resolve_levels_kernel, dim=(h, w), inputs=[n_levels, first, levels, support.struct()], outputs=[out],
-              device=device)
+    on_cpu = wp.get_device(device).is_cpu  # a row a thread on a CPU (its per-thread call), a pixel on a GPU
+    wp.launch(bk.resolve_rows_kernel if on_cpu else bk.resolve_levels_kernel, dim=h if on_cpu else (h, w),
+              inputs=[n_levels, first, levels, support.struct()], outputs=[out], device=device)
     return out
+
+
+def _scatter_sources(src: wp.array, coc: wp.array, support: sc.LayerSupport, routing: Routing, scatter: _Scatter,
+                     n_levels: int, first: int, levels: bk.Levels) -> None:
+    """Scatter a layer's sources (``bk.scatter_kernel``), those of the pyramid levels ``first`` (at least 1) and up
+    merged per cell (:func:`scatter_merged`) unless ``scatter.merge_sources`` is off."""
+    h, w = src.shape
+    rows = wp.get_device(scatter.device).is_cpu  # a row a thread on a CPU (its per-thread call), a pixel on a GPU
+    wp.launch(bk.scatter_rows_kernel if rows else bk.scatter_kernel, dim=h if rows else (h, w),
+              inputs=[src, coc, support.struct(), routing.struct(), scatter.shape, scatter.level_radius_px, n_levels,
+                      levels, int(scatter.merge_sources)],
+              device=scatter.device)
+    if scatter.merge_sources:
+        for lev in range(max(1, first), n_levels):
+            scatter_merged(src, coc, support, routing, scatter, n_levels, lev, levels)
+
+
+MERGE_COC_CELLS = 0.5
+"""Sources of one pyramid cell merge when their signed CoCs differ by less than this many of the level's pixels
+(``bk.scatter_merged_kernel``): the level's sharp spans and the upsampling blur their outlines by about one."""
+
+
+def scatter_merged(src: wp.array, coc: wp.array, support: sc.LayerSupport, routing: Routing, scatter: _Scatter,
+                   n_levels: int, lev: int, levels: bk.Levels) -> None:
+    """Scatter a layer's sources of pyramid level ``lev`` >= 1 merged per cell (``bk.scatter_merged_kernel``)."""
+    h, w = src.shape
+    side = 1 << lev
+    wp.launch(bk.scatter_merged_kernel, dim=((h + side - 1) // side, (w + side - 1) // side),
+              inputs=[src, coc, support.struct(), routing.struct(), scatter.shape, scatter.level_radius_px, n_levels,
+                      lev, MERGE_COC_CELLS * side, levels], device=scatter.device)
 
 
 def prefix_rows(buf: wp.array, device: str, support: sc.LayerSupport | None = None, width: int | None = None) -> None:
@@ -575,7 +617,9 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
             out = fut.result()
             del started[head]
             y0, y1, x0, x1 = layers[head].bbox
-            wp.launch(bk.composite_kernel, dim=(y1 - y0, x1 - x0),
+            on_cpu = wp.get_device(device).is_cpu  # a row a thread on a CPU, a pixel on a GPU
+            wp.launch(bk.composite_rows_kernel if on_cpu else bk.composite_kernel,
+                      dim=y1 - y0 if on_cpu else (y1 - y0, x1 - x0),
                       inputs=[out, sc.LayerSupport.of(layers[head], device).struct(), x0, y0], outputs=[acc],
                       device=device)
             del out
