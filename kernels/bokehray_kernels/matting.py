@@ -98,6 +98,15 @@ def _reach_weight(window: BandWindow, k: int, gy: int, gx: int, reach: int) -> f
 
 
 @wp.func
+def _reach_offset(window: BandWindow, k: int, side: int, reach: int) -> wp.vec2i:
+    """Offset ``k`` of the light's search: the window's offsets, then a ``side`` x ``side`` grid out to ``reach``."""
+    m = window.offset_y.shape[0]
+    if k < m:
+        return wp.vec2i(window.offset_y[k], window.offset_x[k])
+    return wp.vec2i((k - m) / side - reach, (k - m) % side - reach)
+
+
+@wp.func
 def _light_free(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), window: BandWindow, py: int,
                 px: int, mid: float, mu: wp.vec3, my: float, wv: wp.vec3, mb: wp.vec3, params: BandParams):
     """F of a near side lit from behind by a light of colour ``mb``: over the window and a full grid out to
@@ -120,14 +129,9 @@ def _light_free(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), 
     s0 = float(0.0)
     f0 = wp.vec3(0.0, 0.0, 0.0)
     for k in range(n):
-        gy = int(0)
-        gx = int(0)
-        if k < m:
-            gy = window.offset_y[k]
-            gx = window.offset_x[k]
-        else:
-            gy = (k - m) / side - reach
-            gx = (k - m) % side - reach
+        off = _reach_offset(window, k, side, reach)
+        gy = off[0]
+        gx = off[1]
         g = _reach_weight(window, k, gy, gx, reach)
         y = py + gy
         x = px + gx
@@ -150,14 +154,9 @@ def _light_free(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), 
     f1 = wp.vec3(0.0, 0.0, 0.0)
     f2 = wp.vec3(0.0, 0.0, 0.0)
     for k in range(n):
-        gy = int(0)
-        gx = int(0)
-        if k < m:
-            gy = window.offset_y[k]
-            gx = window.offset_x[k]
-        else:
-            gy = (k - m) / side - reach
-            gx = (k - m) % side - reach
+        off = _reach_offset(window, k, side, reach)
+        gy = off[0]
+        gx = off[1]
         g = _reach_weight(window, k, gy, gx, reach)
         y = py + gy
         x = px + gx
