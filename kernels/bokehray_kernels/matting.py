@@ -84,26 +84,30 @@ def purity_weight(a: float, params: BandParams) -> float:
 
 
 @wp.func
-def _reach_weight(window: BandWindow, k: int, gy: int, gx: int, reach: int) -> float:
-    """The Gaussian weight of window offset ``k`` (``k`` < the window's size), else of grid offset (gy, gx) out to
-    ``reach`` beyond the window (the window's smallest weight; 0 inside the window or beyond the reach)."""
+def _reach_tap(window: BandWindow, k: int, side: int, reach: int, py: int, px: int, h: int, w: int) -> wp.vec3:
+    """Tap ``k`` of the light's search around (py, px) as (y, x, weight): the window's taps at their Gaussian
+    weights, then a ``side`` x ``side`` grid out to ``reach`` at the window's smallest weight (0 inside the window,
+    beyond the reach or outside the image)."""
     m = window.offset_y.shape[0]
+    gy = int(0)
+    gx = int(0)
+    g = float(0.0)
     if k < m:
-        return window.offset_g[k]
-    r_in = float(window.offset_y[m - 1] * window.offset_y[m - 1] + window.offset_x[m - 1] * window.offset_x[m - 1])
-    dd = float(gy * gy + gx * gx)
-    if dd > r_in and dd <= float(reach * reach):
-        return window.offset_g[m - 1]
-    return 0.0
-
-
-@wp.func
-def _reach_offset(window: BandWindow, k: int, side: int, reach: int) -> wp.vec2i:
-    """Offset ``k`` of the light's search: the window's offsets, then a ``side`` x ``side`` grid out to ``reach``."""
-    m = window.offset_y.shape[0]
-    if k < m:
-        return wp.vec2i(window.offset_y[k], window.offset_x[k])
-    return wp.vec2i((k - m) / side - reach, (k - m) % side - reach)
+        gy = window.offset_y[k]
+        gx = window.offset_x[k]
+        g = window.offset_g[k]
+    else:
+        gy = (k - m) / side - reach
+        gx = (k - m) % side - reach
+        r_in = float(window.offset_y[m - 1] * window.offset_y[m - 1] + window.offset_x[m - 1] * window.offset_x[m - 1])
+        dd = float(gy * gy + gx * gx)
+        if dd > r_in and dd <= float(reach * reach):
+            g = window.offset_g[m - 1]
+    y = py + gy
+    x = px + gx
+    if y < 0 or y >= h or x < 0 or x >= w:
+        g = 0.0
+    return wp.vec3(float(y), float(x), g)
 
 
 @wp.func
@@ -129,22 +133,20 @@ def _light_free(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), 
     s0 = float(0.0)
     f0 = wp.vec3(0.0, 0.0, 0.0)
     for k in range(n):
-        off = _reach_offset(window, k, side, reach)
-        gy = off[0]
-        gx = off[1]
-        g = _reach_weight(window, k, gy, gx, reach)
-        y = py + gy
-        x = px + gx
-        if g > 0.0 and y >= 0 and y < h and x >= 0 and x < w:
+        tap = _reach_tap(window, k, side, reach, py, px, h, w)
+        g = tap[2]
+        y = int(tap[0])
+        x = int(tap[1])
+        if g > 0.0:
             c = image[y, x]
             lq = wp.clamp(wp.dot(c, mb) / bb, 0.0, 1.0)
             if coc[y, x] > mid:
                 aq = wp.clamp(my + wp.dot(c - mu, wv), 0.0, 1.0)
-                wf = g * wp.pow(aq * (1.0 - lq) * (1.0 - lq), params.purity)
+                wf = g * purity_weight(aq * (1.0 - lq) * (1.0 - lq), params)
                 s0 += wf
                 f0 += wf * c
             else:
-                wd = g * wp.pow(1.0 - lq, params.purity)
+                wd = g * purity_weight(1.0 - lq, params)
                 sd += wd
                 d1 += wd * c
     dk = d1 / wp.max(sd, 1.0e-30)
@@ -154,19 +156,17 @@ def _light_free(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), 
     f1 = wp.vec3(0.0, 0.0, 0.0)
     f2 = wp.vec3(0.0, 0.0, 0.0)
     for k in range(n):
-        off = _reach_offset(window, k, side, reach)
-        gy = off[0]
-        gx = off[1]
-        g = _reach_weight(window, k, gy, gx, reach)
-        y = py + gy
-        x = px + gx
-        if g > 0.0 and y >= 0 and y < h and x >= 0 and x < w:
+        tap = _reach_tap(window, k, side, reach, py, px, h, w)
+        g = tap[2]
+        y = int(tap[0])
+        x = int(tap[1])
+        if g > 0.0:
             if coc[y, x] > mid:
                 c = image[y, x]
                 lq = wp.clamp(wp.dot(c, mb) / bb, 0.0, 1.0)
                 aq = wp.clamp(my + wp.dot(c - mu, wv), 0.0, 1.0)
                 tq = wp.clamp(wp.dot(c - dk, fd) / ff, 0.0, 1.5)
-                wf = g * wp.pow(aq * (1.0 - lq) * (1.0 - lq) * tq, params.purity)
+                wf = g * purity_weight(aq * (1.0 - lq) * (1.0 - lq) * tq, params)
                 sf += wf
                 f1 += wf * c
                 f2 += wf * wp.cw_mul(c, c)
