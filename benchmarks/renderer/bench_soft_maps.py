@@ -66,8 +66,8 @@ def _scorer(data: Path):
     return mod
 
 
-def devset(data: Path, kinds=KINDS) -> dict:
-    """Mean whole and band PSNR over the 18 renders, per map kind and variant."""
+def load_devset(data: Path):
+    """The set's scorer and its scenes: (folder, info, image, exact disparity, the 8 px band at depth edges)."""
     sc = _scorer(data)
     scenes = []
     for info_path in sorted(data.glob("*/info.json")):
@@ -75,6 +75,12 @@ def devset(data: Path, kinds=KINDS) -> dict:
         scenes.append((sd, json.loads(info_path.read_text()), br.read_image(sd / "image.exr"),
                        br.read_disparity(sd / "disparity.exr"),
                        sc.discontinuity_band(sc.read_exr(str(sd / "depth.exr")), 8.0)))
+    return sc, scenes
+
+
+def devset(data: Path, kinds=KINDS) -> dict:
+    """Mean whole and band PSNR over the 18 renders, per map kind and variant."""
+    sc, scenes = load_devset(data)
     out = {}
     for kind in kinds:
         for variant, layers in VARIANTS:

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import argparse
 import ast
-import json
 import sys
 import time
 from pathlib import Path
@@ -20,24 +19,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import numpy as np  # noqa: E402
 
 import bokehray as br  # noqa: E402
-from benchmarks.renderer.bench_soft_maps import KINDS, _scorer, soften  # noqa: E402
+from benchmarks.renderer.bench_soft_maps import KINDS, load_devset, soften  # noqa: E402
 
 DATA = ROOT.parent.parent / "shared" / "data" / "pathtraced-dev"
 
 
-def load(data: Path):
-    sc = _scorer(data)
-    scenes = []
-    for info_path in sorted(data.glob("*/info.json")):
-        sd = info_path.parent
-        scenes.append((sd, json.loads(info_path.read_text()), br.read_image(sd / "image.exr"),
-                       br.read_disparity(sd / "disparity.exr"),
-                       sc.discontinuity_band(sc.read_exr(str(sd / "depth.exr")), 8.0)))
-    return sc, scenes
-
-
 def run(fix, kinds, maps_only=False, data: Path = DATA, renders=None, layers=None):
-    sc, scenes = load(data)
+    sc, scenes = load_devset(data)
     out = {}
     for kind in kinds:
         whole, band, mae, far, t_fix = [], [], [], [], 0.0
