@@ -21,7 +21,7 @@ import bokehray as br  # noqa: E402
 from benchmarks.renderer.bench_soft_maps import _scorer, soften  # noqa: E402
 from bokehray.thin_depth import restore_thin  # noqa: E402
 
-DATA = ROOT.parent.parent / "shared" / "data" / "pathtraced-dev"
+DATA = ROOT.parent / "shared" / "data" / "pathtraced-dev"
 CASES = (("d1_wire_mesh", "bokeh_f1_k2", (90, 90)), ("d3_lamps_ring_writing", "bokeh_f1_k2", (120, 100)))
 SIZE = 140
 

@@ -21,7 +21,7 @@ import numpy as np  # noqa: E402
 import bokehray as br  # noqa: E402
 from benchmarks.renderer.bench_soft_maps import KINDS, load_devset, soften  # noqa: E402
 
-DATA = ROOT.parent.parent / "shared" / "data" / "pathtraced-dev"
+DATA = ROOT.parent / "shared" / "data" / "pathtraced-dev"
 
 
 def run(fix, kinds, maps_only=False, data: Path = DATA, renders=None, layers=None):
