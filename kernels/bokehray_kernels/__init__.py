@@ -15,38 +15,29 @@ map's ramps read as edges), ``vote`` (the depth correction's colour vote), ``ray
 
 from .aperture import chord as chord
 from .composite import composite_kernel as composite_kernel
-from .composite import composite_rows_kernel as composite_rows_kernel
 from .composite import finalize_kernel as finalize_kernel
 from .fill import FILL_GATE_SLOPE as FILL_GATE_SLOPE
 from .fill import PullPushLevel as PullPushLevel
 from .fill import column_distance_kernel as column_distance_kernel
 from .fill import fill_sources_kernel as fill_sources_kernel
-from .fill import fill_sources_rows_kernel as fill_sources_rows_kernel
 from .fill import layer_pull_kernel as layer_pull_kernel
-from .fill import layer_pull_rows_kernel as layer_pull_rows_kernel
 from .fill import layer_sources_kernel as layer_sources_kernel
-from .fill import layer_sources_rows_kernel as layer_sources_rows_kernel
 from .fill import pull_kernel as pull_kernel
 from .fill import push_kernel as push_kernel
-from .fill import push_rows_kernel as push_rows_kernel
 from .fill import row_distance_kernel as row_distance_kernel
 from .matting import matting_band_kernel as matting_band_kernel
 from .pyramid import MAX_LEVELS as MAX_LEVELS
 from .pyramid import Levels as Levels
 from .pyramid import clear_support_kernel as clear_support_kernel
-from .pyramid import clear_support_rows_kernel as clear_support_rows_kernel
 from .pyramid import prefix_rows_kernel as prefix_rows_kernel
 from .pyramid import resolve_levels_kernel as resolve_levels_kernel
-from .pyramid import resolve_rows_kernel as resolve_rows_kernel
 from .pyramid import scatter_kernel as scatter_kernel
 from .pyramid import scatter_merged_kernel as scatter_merged_kernel
-from .pyramid import scatter_rows_kernel as scatter_rows_kernel
 from .raytrace import raytrace_kernel as raytrace_kernel
 from .routing import Routing as Routing
 from .routing import Salience as Salience
 from .routing import halve_mean_kernel as halve_mean_kernel
 from .routing import radiance_mean_kernel as radiance_mean_kernel
-from .routing import radiance_mean_rows_kernel as radiance_mean_rows_kernel
 from .routing import route_cells_kernel as route_cells_kernel
 from .routing import scatter_clusters_kernel as scatter_clusters_kernel
 from .soft import near_sources_kernel as near_sources_kernel
@@ -65,34 +56,25 @@ __all__ = [
     "Support",
     "chord",
     "clear_support_kernel",
-    "clear_support_rows_kernel",
     "column_distance_kernel",
     "composite_kernel",
-    "composite_rows_kernel",
     "fill_sources_kernel",
-    "fill_sources_rows_kernel",
     "finalize_kernel",
     "halve_mean_kernel",
     "layer_pull_kernel",
-    "layer_pull_rows_kernel",
     "layer_sources_kernel",
-    "layer_sources_rows_kernel",
     "matting_band_kernel",
     "near_sources_kernel",
     "prefix_rows_kernel",
     "pull_kernel",
     "push_kernel",
-    "push_rows_kernel",
     "radiance_mean_kernel",
-    "radiance_mean_rows_kernel",
     "raytrace_kernel",
     "resolve_levels_kernel",
-    "resolve_rows_kernel",
     "route_cells_kernel",
     "row_distance_kernel",
     "scatter_clusters_kernel",
     "scatter_kernel",
     "scatter_merged_kernel",
-    "scatter_rows_kernel",
     "split_kernel",
 ]

@@ -24,7 +24,7 @@ def _composite_at(layer: wp.array2d(dtype=wp.vec4), y: int, x: int, x0: int, y0:
 
 
 @wp.kernel
-def composite_kernel(layer: wp.array2d(dtype=wp.vec4), support: Support, x0: int, y0: int,
+def composite_kernel(span: int, layer: wp.array2d(dtype=wp.vec4), support: Support, x0: int, y0: int,
                      acc: wp.array2d(dtype=wp.vec4)):
     """Composite one scattered layer OVER the accumulator (back-to-front "over").
 
@@ -33,19 +33,12 @@ def composite_kernel(layer: wp.array2d(dtype=wp.vec4), support: Support, x0: int
     its colour is normalised by its coverage (so overlapping sources of one
     layer average instead of adding up). ``acc`` holds (RGB, opacity). Outside the layer's ``support`` it holds
     no light and is not read.
+
+    A thread takes ``span`` consecutive pixels of a row, a launch of (rows, ceil(width / span)): a row a thread
+    on a CPU, a pixel a thread on a GPU (``bokehray.scene.row_span``).
     """
-    y, x = wp.tid()
-    if in_support(support, y, x):
-        _composite_at(layer, y, x, x0, y0, acc)
-
-
-@wp.kernel
-def composite_rows_kernel(layer: wp.array2d(dtype=wp.vec4), support: Support, x0: int, y0: int,
-                          acc: wp.array2d(dtype=wp.vec4)):
-    """:func:`composite_kernel` with one thread a row (the same values): on a CPU, where a thread a pixel costs its
-    call for every pixel."""
-    y = wp.tid()
-    for x in range(layer.shape[1]):
+    y, j = wp.tid()
+    for x in range(j * span, wp.min(layer.shape[1], j * span + span)):
         if in_support(support, y, x):
             _composite_at(layer, y, x, x0, y0, acc)
 

@@ -73,6 +73,7 @@ def _layer_source(image: wp.array2d(dtype=wp.vec3), signed_coc: wp.array2d(dtype
 
 @wp.kernel
 def layer_sources_kernel(
+    span: int,
     image: wp.array2d(dtype=wp.vec3),
     signed_coc: wp.array2d(dtype=float),
     slice_id: wp.array2d(dtype=wp.int32),
@@ -92,28 +93,12 @@ def layer_sources_kernel(
     With ``with_fill != 0`` also ``fill``, level 0 of the pull-push pyramid: (tone-mapped
     RGB, signed CoC) with weight 1 on the layer, and ``known = 1`` wherever the
     photo shows this layer or something behind it (not hidden by a nearer layer).
+
+    A thread takes ``span`` consecutive pixels of a row, a launch of (rows, ceil(width / span)): a row a thread
+    on a CPU, a pixel a thread on a GPU (``bokehray.scene.row_span``).
     """
-    y, x = wp.tid()
-    _layer_source(image, signed_coc, slice_id, layer, x0, y0, with_fill, src, coc, fill, y, x)
-
-
-@wp.kernel
-def layer_sources_rows_kernel(
-    image: wp.array2d(dtype=wp.vec3),
-    signed_coc: wp.array2d(dtype=float),
-    slice_id: wp.array2d(dtype=wp.int32),
-    layer: int,
-    x0: int,
-    y0: int,
-    with_fill: int,
-    src: wp.array2d(dtype=wp.vec4),
-    coc: wp.array2d(dtype=float),
-    fill: PullPushLevel,
-):
-    """:func:`layer_sources_kernel` with one thread a row (the same values): on a CPU, where a thread a pixel costs
-    its call for every pixel."""
-    y = wp.tid()
-    for x in range(src.shape[1]):
+    y, j = wp.tid()
+    for x in range(j * span, wp.min(src.shape[1], j * span + span)):
         _layer_source(image, signed_coc, slice_id, layer, x0, y0, with_fill, src, coc, fill, y, x)
 
 
@@ -156,9 +141,9 @@ def _layer_pull(image: wp.array2d(dtype=wp.vec3), signed_coc: wp.array2d(dtype=f
     coarse.known[cy, cx] = known
 
 
-
 @wp.kernel
 def layer_pull_kernel(
+    span: int,
     image: wp.array2d(dtype=wp.vec3),
     signed_coc: wp.array2d(dtype=float),
     slice_id: wp.array2d(dtype=wp.int32),
@@ -171,26 +156,13 @@ def layer_pull_kernel(
 ):
     """Level 1 of the pull-push pyramid of the ``h x w`` window at ``(y0, x0)``, straight from the photo: bit for bit
     :func:`pull_kernel` of the level 0 that :func:`layer_sources_kernel` writes with ``with_fill != 0`` (the same
-    texels, summed in the same order), without storing level 0 (24 bytes a pixel of the layer's box)."""
-    cy, cx = wp.tid()
-    _layer_pull(image, signed_coc, slice_id, layer, x0, y0, h, w, coarse, cy, cx)
+    texels, summed in the same order), without storing level 0 (24 bytes a pixel of the layer's box).
 
-
-@wp.kernel
-def layer_pull_rows_kernel(
-    image: wp.array2d(dtype=wp.vec3),
-    signed_coc: wp.array2d(dtype=float),
-    slice_id: wp.array2d(dtype=wp.int32),
-    layer: int,
-    x0: int,
-    y0: int,
-    h: int,
-    w: int,
-    coarse: PullPushLevel,
-):
-    """:func:`layer_pull_kernel` with one thread a row of level 1 (the same values): on a CPU."""
-    cy = wp.tid()
-    for cx in range(coarse.total.shape[1]):
+    A thread takes ``span`` consecutive cells of a row, a launch of (rows, ceil(width / span)): a row a thread
+    on a CPU, a pixel a thread on a GPU (``bokehray.scene.row_span``).
+    """
+    cy, j = wp.tid()
+    for cx in range(j * span, wp.min(coarse.total.shape[1], j * span + span)):
         _layer_pull(image, signed_coc, slice_id, layer, x0, y0, h, w, coarse, cy, cx)
 
 
@@ -271,20 +243,16 @@ def _push(coarse: PullPushLevel, top: int, level: PullPushLevel, y: int, x: int)
 
 
 @wp.kernel
-def push_kernel(coarse: PullPushLevel, top: int, level: PullPushLevel):
+def push_kernel(span: int, coarse: PullPushLevel, top: int, level: PullPushLevel):
     """Turn one level's sums into (value, density, has) in place, interpolating what it lacks (:func:`push_texel`).
 
     The preview pushes levels down to 1 only: :func:`fill_sources_kernel` pushes the level-0 texels it fills.
+
+    A thread takes ``span`` consecutive pixels of a row, a launch of (rows, ceil(width / span)): a row a thread
+    on a CPU, a pixel a thread on a GPU (``bokehray.scene.row_span``).
     """
-    y, x = wp.tid()
-    _push(coarse, top, level, y, x)
-
-
-@wp.kernel
-def push_rows_kernel(coarse: PullPushLevel, top: int, level: PullPushLevel):
-    """:func:`push_kernel` with one thread a row (the same values): on a CPU."""
-    y = wp.tid()
-    for x in range(level.total.shape[1]):
+    y, j = wp.tid()
+    for x in range(j * span, wp.min(level.total.shape[1], j * span + span)):
         _push(coarse, top, level, y, x)
 
 
@@ -310,6 +278,7 @@ def _fill_source(slice_id: wp.array2d(dtype=wp.int32), layer: int, x0: int, y0: 
 
 @wp.kernel
 def fill_sources_kernel(
+    span: int,
     slice_id: wp.array2d(dtype=wp.int32),
     layer: int,
     x0: int,
@@ -336,30 +305,12 @@ def fill_sources_kernel(
     distance to this layer's visible pixels is at most sqrt(2) times the
     hiding pixel's CoC radius (plus one pixel). Behind a sharp occluder
     nothing is filled; the coverage normalisation of the layer handles it.
+
+    A thread takes ``span`` consecutive pixels of a row, a launch of (rows, ceil(width / span)): a row a thread
+    on a CPU, a pixel a thread on a GPU (``bokehray.scene.row_span``).
     """
-    y, x = wp.tid()
-    _fill_source(slice_id, layer, x0, y0, coarse, dist_l1, signed_coc, s_lo, s_hi, src, coc, n_filled, y, x)
-
-
-@wp.kernel
-def fill_sources_rows_kernel(
-    slice_id: wp.array2d(dtype=wp.int32),
-    layer: int,
-    x0: int,
-    y0: int,
-    coarse: PullPushLevel,
-    dist_l1: wp.array2d(dtype=float),
-    signed_coc: wp.array2d(dtype=float),
-    s_lo: float,
-    s_hi: float,
-    src: wp.array2d(dtype=wp.vec4),
-    coc: wp.array2d(dtype=float),
-    n_filled: wp.array(dtype=wp.int32),
-):
-    """:func:`fill_sources_kernel` with one thread a row (the same values): on a CPU, where a thread a pixel costs
-    its call for every pixel."""
-    y = wp.tid()
-    for x in range(src.shape[1]):
+    y, j = wp.tid()
+    for x in range(j * span, wp.min(src.shape[1], j * span + span)):
         _fill_source(slice_id, layer, x0, y0, coarse, dist_l1, signed_coc, s_lo, s_hi, src, coc, n_filled, y, x)
 
 

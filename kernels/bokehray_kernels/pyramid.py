@@ -143,6 +143,7 @@ def _scatter_source(src: wp.array2d(dtype=wp.vec4), coc: wp.array2d(dtype=float)
 
 @wp.kernel
 def scatter_kernel(
+    span: int,
     src: wp.array2d(dtype=wp.vec4),
     coc: wp.array2d(dtype=float),
     support: Support,
@@ -169,27 +170,12 @@ def scatter_kernel(
     nothing is routed (then nothing else of ``routing`` is read).
 
     ``levels.l<l>`` is the difference buffer of level ``l``, ``(ceil(H/2^l), ceil(W/2^l) + 2)``.
+
+    A thread takes ``span`` consecutive pixels of a row, a launch of (rows, ceil(width / span)): a row a thread
+    on a CPU, a pixel a thread on a GPU (``bokehray.scene.row_span``).
     """
-    y, x = wp.tid()
-    _scatter_source(src, coc, support, routing, shape, r0, n_levels, levels, merged, y, x)
-
-
-@wp.kernel
-def scatter_rows_kernel(
-    src: wp.array2d(dtype=wp.vec4),
-    coc: wp.array2d(dtype=float),
-    support: Support,
-    routing: Routing,
-    shape: Shape,
-    r0: float,
-    n_levels: int,
-    levels: Levels,
-    merged: int,
-):
-    """:func:`scatter_kernel` with one thread a row (the same deposits in the same order within a row): on a CPU,
-    where a thread a pixel costs its call for every pixel, most of which hold no level-0 source."""
-    y = wp.tid()
-    for x in range(src.shape[1]):
+    y, j = wp.tid()
+    for x in range(j * span, wp.min(src.shape[1], j * span + span)):
         _scatter_source(src, coc, support, routing, shape, r0, n_levels, levels, merged, y, x)
 
 
@@ -435,45 +421,37 @@ def _resolve_at(n_levels: int, first: int, levels: Levels, y: int, x: int, h: in
 
 
 @wp.kernel
-def resolve_levels_kernel(n_levels: int, first: int, levels: Levels, support: Support, out: wp.array2d(dtype=wp.vec4)):
+def resolve_levels_kernel(span: int, n_levels: int, first: int, levels: Levels, support: Support,
+                          out: wp.array2d(dtype=wp.vec4)):
     """Sum level 0 and the bilinearly upsampled coarser levels ``first .. n_levels - 1`` (density-preserving)
     into ``out``; the levels between 0 and ``first`` hold no source (``bokehray.scene.lowest_level``).
 
     Pixels outside the layer's ``support`` are left as they are: the caller passes ``out`` zero there (the
     preview reuses the layer's sources, which are zero there).
+
+    A thread takes ``span`` consecutive pixels of a row, a launch of (rows, ceil(width / span)): a row a thread
+    on a CPU, a pixel a thread on a GPU (``bokehray.scene.row_span``).
     """
-    y, x = wp.tid()
-    if in_support(support, y, x):
-        out[y, x] = _resolve_at(n_levels, first, levels, y, x, out.shape[0], out.shape[1])
-
-
-@wp.kernel
-def resolve_rows_kernel(n_levels: int, first: int, levels: Levels, support: Support, out: wp.array2d(dtype=wp.vec4)):
-    """:func:`resolve_levels_kernel` with one thread a row (the same values): on a CPU, where a thread a pixel
-    costs its call for every pixel (1.7x the time at 1.8 MP)."""
-    y = wp.tid()
-    for x in range(out.shape[1]):
+    y, j = wp.tid()
+    for x in range(j * span, wp.min(out.shape[1], j * span + span)):
         if in_support(support, y, x):
             out[y, x] = _resolve_at(n_levels, first, levels, y, x, out.shape[0], out.shape[1])
 
 
 @wp.kernel
-def clear_support_kernel(support: Support, buf: wp.array2d(dtype=wp.vec4)):
-    """Store zero at the pixels of ``buf`` in the layer's ``support`` (columns beyond the support's mask are left).
+def clear_support_kernel(span: int, support: Support, width: int, buf: wp.array2d(dtype=wp.vec4)):
+    """Store zero at the pixels of ``buf``'s first ``width`` columns in the layer's ``support`` (columns beyond the
+    support's mask are left).
 
     The values do not change (``buf`` comes zeroed); on a lazily zeroed buffer the support's pages are then taken
     by a write, once, where a first read would map the shared zero page and the later write fault again to copy it.
+
+    A thread takes ``span`` consecutive pixels of a row, a launch of (rows, ceil(width / span)): a row a thread
+    on a CPU, a pixel a thread on a GPU (``bokehray.scene.row_span``).
     """
-    y, x = wp.tid()
-    if in_support(support, y, x):
-        buf[y, x] = wp.vec4()
-
-
-@wp.kernel
-def clear_support_rows_kernel(support: Support, width: int, buf: wp.array2d(dtype=wp.vec4)):
-    """:func:`clear_support_kernel` with one thread a row over the first ``width`` columns (the same stores): on a
-    CPU, where a thread a pixel costs its call for every pixel."""
-    y = wp.tid()
-    for x in range(width):
+    y, j = wp.tid()
+    for x in range(j * span, wp.min(width, j * span + span)):
         if in_support(support, y, x):
             buf[y, x] = wp.vec4()
+
+

@@ -48,24 +48,19 @@ def _radiance_mean(src: wp.array2d(dtype=wp.vec4), support: Support, means: wp.a
 
 
 @wp.kernel
-def radiance_mean_kernel(src: wp.array2d(dtype=wp.vec4), support: Support, means: wp.array3d(dtype=wp.vec4),
+def radiance_mean_kernel(span: int, src: wp.array2d(dtype=wp.vec4), support: Support, means: wp.array3d(dtype=wp.vec4),
                          counts: wp.array3d(dtype=float)):
     """Level 1 of the radiance pyramid: mean over each 2 x 2 cell of the sources (premultiplied RGB, coverage).
 
     Sources of zero coverage count as black; cells cut by the array's edge average the pixels they hold
     (``counts``). Level ``k`` lives in ``means[k - 1]``. A cell outside the layer's ``support`` holds no source:
     its mean is zero (``means`` comes zeroed) and ``src`` is not read there.
+
+    A thread takes ``span`` consecutive cells of a row, a launch of (rows, ceil(width / span)): a row a thread
+    on a CPU, a pixel a thread on a GPU (``bokehray.scene.row_span``).
     """
-    cy, cx = wp.tid()
-    _radiance_mean(src, support, means, counts, cy, cx)
-
-
-@wp.kernel
-def radiance_mean_rows_kernel(src: wp.array2d(dtype=wp.vec4), support: Support, means: wp.array3d(dtype=wp.vec4),
-                              counts: wp.array3d(dtype=float)):
-    """:func:`radiance_mean_kernel` with one thread a row of level 1 (the same values): on a CPU."""
-    cy = wp.tid()
-    for cx in range((src.shape[1] + 1) // 2):
+    cy, j = wp.tid()
+    for cx in range(j * span, wp.min((src.shape[1] + 1) // 2, j * span + span)):
         _radiance_mean(src, support, means, counts, cy, cx)
 
 

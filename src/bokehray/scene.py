@@ -37,8 +37,17 @@ from .options import LayerOptions
 __all__ = [
     "FILL_MIN_REACH_PX", "LayerRecord", "LayerSources", "LayeredScene", "NearParts", "SoftEdges", "build_layer_sources",
     "build_scene", "cap_coc", "check_soft_edges", "copy_tiles", "fill_halo", "layer_edges", "pad_soft_edges",
-    "pyramid_levels", "scatter_halo", "soft_radius", "soft_replicas", "split_scene", "tile_max", "tile_reduce",
+    "pyramid_levels", "row_span", "scatter_halo", "soft_radius", "soft_replicas", "split_scene", "tile_max",
+    "tile_reduce",
 ]  # fmt: skip
+
+def row_span(device, width: int) -> tuple[int, int]:
+    """``(threads a row, pixels a thread)`` for the per-pixel kernels that take a ``span`` (a launch of ``(rows,
+    threads a row)``): a row a thread on a CPU, where Warp calls a kernel once a thread (a thread a pixel cost
+    1.5-2x the time), a pixel a thread on a GPU."""
+    span = max(1, int(width)) if wp.get_device(device).is_cpu else 1
+    return -(-int(width) // span), span
+
 
 FILL_MIN_REACH_PX = 0.5
 """A layer is filled only when nearer layers blur by at least this much (below it nothing behind them shows)."""
@@ -736,11 +745,11 @@ def build_layer_sources(layer: LayerRecord, arrays: LayerSources, zeros=wp.zeros
     none = wp.zeros((1, 1), dtype=float, device=device)  # no level 0: the pyramid starts at level 1 (below)
     level0 = bk.PullPushLevel()
     level0.total, level0.weight, level0.known = wp.zeros((1, 1), dtype=wp.vec4, device=device), none, none
-    rows = wp.get_device(device).is_cpu  # a row a thread on a CPU (its per-thread call), a pixel on a GPU
+    n, span = row_span(device, w)
     wp.launch(
-        bk.layer_sources_rows_kernel if rows else bk.layer_sources_kernel,
-        dim=h if rows else (h, w),
-        inputs=[arrays.image, arrays.signed_coc, arrays.ids, layer.index, x0, y0, 0],
+        bk.layer_sources_kernel,
+        dim=(h, n),
+        inputs=[span, arrays.image, arrays.signed_coc, arrays.ids, layer.index, x0, y0, 0],
         outputs=[src, coc, level0],
         device=device,
     )
@@ -772,8 +781,9 @@ def _fill(layer: LayerRecord, arrays: LayerSources, src: wp.array, coc: wp.array
         weights.append(wp.empty((ch, cw), dtype=float, device=device))
         knowns.append(wp.empty((ch, cw), dtype=float, device=device))
         if lv == 1:
-            wp.launch(bk.layer_pull_rows_kernel if rows else bk.layer_pull_kernel, dim=ch if rows else (ch, cw),
-                      inputs=[arrays.image, arrays.signed_coc, arrays.ids, layer.index, x0, y0, h, w],
+            n, span = row_span(device, cw)
+            wp.launch(bk.layer_pull_kernel, dim=(ch, n),
+                      inputs=[span, arrays.image, arrays.signed_coc, arrays.ids, layer.index, x0, y0, h, w],
                       outputs=[_pull_push(totals, weights, knowns, -1)], device=device)
         else:
             wp.launch(bk.pull_kernel, dim=(ch, cw), inputs=[_pull_push(totals, weights, knowns, -2)],
@@ -781,8 +791,9 @@ def _fill(layer: LayerRecord, arrays: LayerSources, src: wp.array, coc: wp.array
     top = len(totals) - 1  # list index i holds level i + 1
     for i in range(top, -1, -1):  # down to level 1: the fill pushes the level-0 texels it needs
         c = min(i + 1, top)  # the top level has no coarser level (flag 1): it passes itself
-        wp.launch(bk.push_rows_kernel if rows else bk.push_kernel, dim=totals[i].shape[0] if rows else totals[i].shape,
-                  inputs=[_pull_push(totals, weights, knowns, c), int(i == top)],
+        n, span = row_span(device, totals[i].shape[1])
+        wp.launch(bk.push_kernel, dim=(totals[i].shape[0], n),
+                  inputs=[span, _pull_push(totals, weights, knowns, c), int(i == top)],
                   outputs=[_pull_push(totals, weights, knowns, i)], device=device)
         if i < top:  # nothing reads the coarser level any more
             totals[i + 1] = weights[i + 1] = knowns[i + 1] = None
@@ -793,10 +804,11 @@ def _fill(layer: LayerRecord, arrays: LayerSources, src: wp.array, coc: wp.array
               device=device)
     band = 64 if rows else 1  # a band of columns a thread on a CPU
     wp.launch(bk.column_distance_kernel, dim=(w + band - 1) // band, inputs=[dist, h, band], device=device)
+    n, span = row_span(device, w)
     wp.launch(
-        bk.fill_sources_rows_kernel if rows else bk.fill_sources_kernel,
-        dim=h if rows else (h, w),
-        inputs=[arrays.ids, layer.index, x0, y0, level1, dist, arrays.signed_coc, layer.s_lo, layer.s_hi],
+        bk.fill_sources_kernel,
+        dim=(h, n),
+        inputs=[span, arrays.ids, layer.index, x0, y0, level1, dist, arrays.signed_coc, layer.s_lo, layer.s_hi],
         outputs=[src, coc, arrays.filled],
         device=device,
     )

@@ -96,12 +96,12 @@ def scenes(draw, max_side: int = 12):
 
 
 def _run_fill(scene, pull_levels, band: int = 64, rows: bool = False) -> dict:
-    """The kernel chain in the launch order of ``bokehray.scene.build_layer_sources``; ``rows``: with the row-a-thread
-    kernels the CPU launches."""
+    """The kernel chain in the launch order of ``bokehray.scene.build_layer_sources``; ``rows``: a row a thread, as
+    the CPU launches them, else a pixel a thread."""
 
-    def launch(name: str, dim: tuple[int, int], **kw) -> None:  # the per-pixel kernel, or its row-a-thread twin
-        wp.launch(getattr(bk, name.replace("_kernel", "_rows_kernel")) if rows else getattr(bk, name),
-                  dim=dim[0] if rows else dim, device=DEVICE, **kw)
+    def launch(name: str, dim: tuple[int, int], inputs: list, **kw) -> None:  # a pixel a thread, or a row
+        span = max(1, dim[1]) if rows else 1
+        wp.launch(getattr(bk, name), dim=(dim[0], -(-dim[1] // span)), inputs=[span, *inputs], device=DEVICE, **kw)
 
     y0, y1, x0, x1 = scene["bbox"]
     h, w = y1 - y0, x1 - x0
@@ -144,10 +144,10 @@ def _run_fill(scene, pull_levels, band: int = 64, rows: bool = False) -> dict:
         # oracle
         lv0 = [wp.zeros((h, w), dtype=wp.vec4, device=DEVICE), wp.zeros((h, w), dtype=float, device=DEVICE),
                wp.zeros((h, w), dtype=float, device=DEVICE)]
-        wp.launch(bk.layer_sources_kernel, dim=(h, w), inputs=[image, scoc, sid, layer, x0, y0, 1],
+        wp.launch(bk.layer_sources_kernel, dim=(h, w), inputs=[1, image, scoc, sid, layer, x0, y0, 1],
                   outputs=[wp.zeros((h, w), dtype=wp.vec4, device=DEVICE), wp.zeros((h, w), dtype=float, device=DEVICE),
                            _pp(*lv0)], device=DEVICE)
-        wp.launch(bk.push_kernel, dim=(h, w), inputs=[_pp(totals[0], weights[0], knowns[0]), 0],
+        wp.launch(bk.push_kernel, dim=(h, w), inputs=[1, _pp(totals[0], weights[0], knowns[0]), 0],
                   outputs=[_pp(*lv0)], device=DEVICE)
         out.update(value=lv0[0].numpy(), density=lv0[1].numpy(), has=lv0[2].numpy(), distance=dist.numpy())
     out.update(src=src.numpy(), coc=coc.numpy(), n_filled=filled.numpy())
@@ -181,7 +181,7 @@ def test_layer_sources_kernel_matches_reference(scene, with_fill):
     total = wp.zeros((h, w), dtype=wp.vec4, device=DEVICE)
     weight, known = wp.zeros((h, w), dtype=float, device=DEVICE), wp.zeros((h, w), dtype=float, device=DEVICE)
     wp.launch(bk.layer_sources_kernel, dim=(h, w),
-              inputs=[_wp(scene["image"], wp.vec3), _wp(scene["scoc"], float), _wp(scene["sid"], wp.int32), layer,
+              inputs=[1, _wp(scene["image"], wp.vec3), _wp(scene["scoc"], float), _wp(scene["sid"], wp.int32), layer,
                       x0, y0, int(with_fill)],
               outputs=[src, coc, _pp(total, weight, known)], device=DEVICE)
     want = fill_ref.layer_sources(scene["image"], scene["scoc"], scene["sid"], layer, x0, y0, h, w, with_fill)
@@ -243,10 +243,10 @@ def test_layer_pull_kernel_matches_reference(scene):
                 wp.zeros(shape, dtype=float, device=DEVICE)]
 
     got = level((ch, cw))
-    wp.launch(bk.layer_pull_kernel, dim=(ch, cw), inputs=[image, scoc, sid, layer, x0, y0, h, w],
+    wp.launch(bk.layer_pull_kernel, dim=(ch, cw), inputs=[1, image, scoc, sid, layer, x0, y0, h, w],
               outputs=[_pp(*got)], device=DEVICE)
     lv0, pulled = level((h, w)), level((ch, cw))
-    wp.launch(bk.layer_sources_kernel, dim=(h, w), inputs=[image, scoc, sid, layer, x0, y0, 1],
+    wp.launch(bk.layer_sources_kernel, dim=(h, w), inputs=[1, image, scoc, sid, layer, x0, y0, 1],
               outputs=[wp.zeros((h, w), dtype=wp.vec4, device=DEVICE), wp.zeros((h, w), dtype=float, device=DEVICE),
                        _pp(*lv0)], device=DEVICE)
     wp.launch(bk.pull_kernel, dim=(ch, cw), inputs=[_pp(*lv0)], outputs=[_pp(*pulled)], device=DEVICE)
@@ -272,7 +272,7 @@ def test_push_kernel_matches_reference(h, w, depth, top, seed):
     c_density = np.where(rng.random((ch, cw)) < 0.3, 0.0, rng.uniform(0.01, 1.0, (ch, cw)))
     c_has = (rng.random((ch, cw)) < 0.7).astype(np.float64)
     arrays = [_wp(total, wp.vec4), _wp(weight, float), _wp(known, float)]
-    wp.launch(bk.push_kernel, dim=(h, w), inputs=[_pp(_wp(c_value, wp.vec4), _wp(c_density, float), _wp(c_has, float)),
+    wp.launch(bk.push_kernel, dim=(h, w), inputs=[1, _pp(_wp(c_value, wp.vec4), _wp(c_density, float), _wp(c_has, float)),
                                                   int(top)], outputs=[_pp(*arrays)], device=DEVICE)
     value, density, has = fill_ref.push(c_value, c_density, c_has, top, total, weight, known)
     np.testing.assert_allclose(arrays[0].numpy(), value, rtol=1e-6, atol=ATOL)
@@ -343,7 +343,7 @@ def test_fill_sources_kernel_matches_reference(scene, seed):
     assume(not np.any(np.abs(density - fill_ref.MIN_FILL_DENSITY) <= 1e-5))
     src, coc, filled = _wp(src0, wp.vec4), _wp(coc0, float), wp.array(n0.astype(np.int32), device=DEVICE)
     wp.launch(bk.fill_sources_kernel, dim=(h, w),
-              inputs=[_wp(scene["sid"], wp.int32), layer, x0, y0,
+              inputs=[1, _wp(scene["sid"], wp.int32), layer, x0, y0,
                       _pp(_wp(c_value, wp.vec4), _wp(c_density, float), _wp(c_has, float)),
                       _wp(dist, float), _wp(scene["scoc"], float), scene["s_lo"], scene["s_hi"]],
               outputs=[src, coc, filled], device=DEVICE)

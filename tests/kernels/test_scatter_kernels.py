@@ -78,13 +78,13 @@ def _point_response(ap: Aperture, radius: float, size: int, device: str, offset=
     bufs += [bufs[0]] * (bk.MAX_LEVELS - levels)
     shape = aperture_shape(ap, ap.blade_discs(), device)
     wp.launch(bk.scatter_kernel, dim=(size, size),
-              inputs=[wp.array(src, dtype=wp.vec4, device=device), wp.array(radius_map, device=device),
+              inputs=[1, wp.array(src, dtype=wp.vec4, device=device), wp.array(radius_map, device=device),
                       LayerSupport.everywhere(device).struct(), no_routing(device).struct(), shape, r0, levels, pyramid_buffers(bufs), 0], device=device)
     for lv in range(levels):
         prefix_rows(bufs[lv], device)
     out = wp.empty((size, size), dtype=wp.vec4, device=device)
     wp.launch(bk.resolve_levels_kernel, dim=(size, size),
-              inputs=[levels, 0, pyramid_buffers(bufs), LayerSupport.everywhere(device).struct()], outputs=[out],
+              inputs=[1, levels, 0, pyramid_buffers(bufs), LayerSupport.everywhere(device).struct()], outputs=[out],
               device=device)
     return out.numpy()[..., 0]
 
@@ -131,7 +131,7 @@ def test_scatter_matches_reference(ap, device, rng):
     bufs = [wp.zeros((h, w + 2), dtype=wp.vec4, device=device)]
     bufs += [bufs[0]] * (bk.MAX_LEVELS - 1)
     wp.launch(bk.scatter_kernel, dim=(h, w),
-              inputs=[wp.array(src, dtype=wp.vec4, device=device), wp.array(radius, device=device),
+              inputs=[1, wp.array(src, dtype=wp.vec4, device=device), wp.array(radius, device=device),
                       LayerSupport.everywhere(device).struct(), no_routing(device).struct(), aperture_shape(ap, ap.blade_discs(), device), 1e6, 1,
                       pyramid_buffers(bufs), 0], device=device)
     prefix_rows(bufs[0], device)
@@ -230,7 +230,7 @@ def _each_level_sum(src: np.ndarray, coc: np.ndarray, r0: float, n_levels: int) 
             for lv in range(n_levels)]
     bufs += [bufs[0]] * (bk.MAX_LEVELS - n_levels)
     wp.launch(bk.scatter_kernel, dim=(h, w),
-              inputs=[wp.array(src, dtype=wp.vec4), wp.array(coc), LayerSupport.everywhere("cpu").struct(),
+              inputs=[1, wp.array(src, dtype=wp.vec4), wp.array(coc), LayerSupport.everywhere("cpu").struct(),
                       no_routing("cpu").struct(), aperture_shape(Aperture(), np.zeros((0, 4)), "cpu"), r0, n_levels,
                       pyramid_buffers(bufs), 0])
     for lv in range(n_levels):
@@ -284,8 +284,9 @@ def _random_support(rng, h: int, w: int, shift: int) -> LayerSupport:
 @given(h=st.integers(1, 30), w=st.integers(1, 30), merged=st.integers(0, 1), routed=st.booleans(),
        seed=st.integers(0, 2**32 - 1))
 def test_scatter_rows_deposits_what_the_pixel_kernel_deposits(h, w, merged, routed, seed):
-    """scatter_rows_kernel (the CPU's launch, a thread a row) against scatter_kernel, bit for bit (the same deposits in
-    the same order), on levels 0-2, with and without routed lights, in a random support."""
+    """scatter_kernel a row a thread (the CPU's launch, span = w) and 3 pixels a thread against a pixel a thread, bit
+    for bit (the same deposits in the same order), on levels 0-2, with and without routed lights, in a random
+    support."""
     from bokehray.levels.preview import route_salient
 
     rng = np.random.default_rng(seed)
@@ -296,20 +297,20 @@ def test_scatter_rows_deposits_what_the_pixel_kernel_deposits(h, w, merged, rout
     routing = route_salient(src_wp, coc_wp, 3, 8.0, "cpu") if routed else no_routing("cpu")
     support = _random_support(rng, h, w, 2).struct()
     got = []
-    for kernel, dim in ((bk.scatter_kernel, (h, w)), (bk.scatter_rows_kernel, h)):
+    for span in (1, w, 3):
         bufs = [wp.zeros(((h + (1 << lv) - 1) >> lv, ((w + (1 << lv) - 1) >> lv) + 2), dtype=wp.vec4) for lv in range(3)]
-        wp.launch(kernel, dim=dim, inputs=[src_wp, coc_wp, support, routing.struct(),
+        wp.launch(bk.scatter_kernel, dim=(h, -(-w // span)), inputs=[span, src_wp, coc_wp, support, routing.struct(),
                                            aperture_shape(Aperture(), np.zeros((0, 4)), "cpu"), 8.0, 3,
                                            pyramid_buffers(bufs + [bufs[0]] * (bk.MAX_LEVELS - 3)), merged])
         got.append(b"".join(b.numpy().tobytes() for b in bufs))
-    assert got[0] == got[1]
+    assert got[0] == got[1] == got[2]
 
 
 @given(h=st.integers(1, 40), w=st.integers(1, 40), n_levels=st.integers(1, 4), first=st.integers(0, 3),
        seed=st.integers(0, 2**32 - 1))
 def test_resolve_rows_stores_what_the_pixel_kernel_stores(h, w, n_levels, first, seed):
-    """resolve_rows_kernel (the CPU's launch, a thread a row) against resolve_levels_kernel, bit for bit, within a
-    random support."""
+    """resolve_levels_kernel a row a thread (the CPU's launch, span = w) against a pixel a thread, bit for bit,
+    within a random support."""
     rng = np.random.default_rng(seed)
     bufs = [wp.array(rng.random(((h + (1 << lv) - 1) >> lv, ((w + (1 << lv) - 1) >> lv) + 2, 4)).astype(np.float32),
                      dtype=wp.vec4) for lv in range(n_levels)]
@@ -317,8 +318,8 @@ def test_resolve_rows_stores_what_the_pixel_kernel_stores(h, w, n_levels, first,
     support = _random_support(rng, h, w, 2).struct()
     start = rng.random((h, w, 4)).astype(np.float32)
     pixel, rows = wp.array(start, dtype=wp.vec4), wp.array(start, dtype=wp.vec4)
-    wp.launch(bk.resolve_levels_kernel, dim=(h, w), inputs=[n_levels, first, levels, support], outputs=[pixel])
-    wp.launch(bk.resolve_rows_kernel, dim=h, inputs=[n_levels, first, levels, support], outputs=[rows])
+    wp.launch(bk.resolve_levels_kernel, dim=(h, w), inputs=[1, n_levels, first, levels, support], outputs=[pixel])
+    wp.launch(bk.resolve_levels_kernel, dim=(h, 1), inputs=[w, n_levels, first, levels, support], outputs=[rows])
     assert rows.numpy().tobytes() == pixel.numpy().tobytes()
     yy, xx = np.mgrid[0:h, 0:w]
     inside = support.mask.numpy()[(yy + support.oy) >> support.shift, (xx + support.ox) >> support.shift] != 0
@@ -329,24 +330,25 @@ def test_resolve_rows_stores_what_the_pixel_kernel_stores(h, w, n_levels, first,
 
 @given(h=st.integers(1, 30), w=st.integers(1, 30), seed=st.integers(0, 2**32 - 1))
 def test_composite_kernels_match_reference(h, w, seed):
-    """composite_kernel and its row-a-thread twin (the CPU's launch) against the reference's "over", within a random
-    support (the accumulator untouched outside it), the twins bit for bit."""
+    """composite_kernel a pixel a thread and a row a thread (the CPU's launch, span = w) against the reference's
+    "over", within a random support (the accumulator untouched outside it), the two launches bit for bit."""
     rng = np.random.default_rng(seed)
     layer = rng.random((h, w, 4)).astype(np.float32) * 2
     layer[rng.random((h, w)) < 0.2] = 0.0  # no light there
     acc0 = rng.random((h + 5, w + 7, 4)).astype(np.float32)
     support = _random_support(rng, h, w, 3)
     got = {}
-    for kernel, dim in ((bk.composite_kernel, (h, w)), (bk.composite_rows_kernel, h)):
+    for span in (1, w):
         acc = wp.array(acc0, dtype=wp.vec4)
-        wp.launch(kernel, dim=dim, inputs=[wp.array(layer, dtype=wp.vec4), support.struct(), 7, 5], outputs=[acc])
-        got[kernel.key] = acc.numpy()
-    assert got["composite_rows_kernel"].tobytes() == got["composite_kernel"].tobytes()
+        wp.launch(bk.composite_kernel, dim=(h, -(-w // span)),
+                  inputs=[span, wp.array(layer, dtype=wp.vec4), support.struct(), 7, 5], outputs=[acc])
+        got[span] = acc.numpy()
+    assert got[w].tobytes() == got[1].tobytes()
     yy, xx = np.mgrid[0:h, 0:w]
     inside = support.mask.numpy()[(yy + support.oy) >> support.shift, (xx + support.ox) >> support.shift] != 0
     want = acc0.astype(np.float64)
     want[5:, 7:] = np.where(inside[..., None], scatter_ref.over(layer, want[5:, 7:]), want[5:, 7:])
-    np.testing.assert_allclose(got["composite_kernel"], want, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(got[1], want, rtol=1e-5, atol=1e-6)
 
 
 @given(
@@ -634,16 +636,17 @@ def test_prefix_sums_store_the_running_sums_within_the_support_only(rows, mask, 
 @given(mask=st.lists(st.lists(st.booleans(), min_size=5, max_size=5), min_size=4, max_size=4),
        oy=st.integers(0, 7), ox=st.integers(0, 7), h=st.integers(1, 24), w=st.integers(1, 32))
 def test_clear_support_zeroes_the_support_and_nothing_else(mask, oy, ox, h, w):
-    """``clear_support_kernel`` and its row-a-thread twin (the CPU's launch) against the mask blown up to pixels
-    (8 px tiles, the box at an offset)."""
+    """``clear_support_kernel`` a pixel a thread and a row a thread (the CPU's launch) against the mask blown up to
+    pixels (8 px tiles, the box at an offset)."""
     tiles = np.array(mask, bool)
     support = LayerSupport(wp.array(tiles.astype(np.uint8), dtype=wp.uint8, device="cpu"), 3, oy, ox)
     before = np.arange(h * (w + 2) * 4, dtype=np.float32).reshape(h, w + 2, 4) + 1.0
     inside = np.zeros((h, w + 2), bool)
     inside[:, :w] = np.repeat(np.repeat(tiles, 8, 0), 8, 1)[oy : oy + h, ox : ox + w]
-    for kernel, dim, args in ((bk.clear_support_kernel, (h, w), []), (bk.clear_support_rows_kernel, h, [w])):
+    for span in (1, w):
         buf = wp.array(before, dtype=wp.vec4, device="cpu")
-        wp.launch(kernel, dim=dim, inputs=[support.struct(), *args], outputs=[buf], device="cpu")
+        wp.launch(bk.clear_support_kernel, dim=(h, -(-w // span)), inputs=[span, support.struct(), w], outputs=[buf],
+                  device="cpu")
         np.testing.assert_array_equal(buf.numpy(), np.where(inside[..., None], 0.0, before))
 
 

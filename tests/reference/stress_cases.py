@@ -72,7 +72,7 @@ def scatter_case(seed: int, device: str = "cpu") -> tuple[float, float, str]:
     bufs += [bufs[0]] * (bk.MAX_LEVELS - 1)
     rows = ap.blade_discs()
     wp.launch(bk.scatter_kernel, dim=(h, w),
-              inputs=[wp.array(src, dtype=wp.vec4, device=device), wp.array(radius, device=device),
+              inputs=[1, wp.array(src, dtype=wp.vec4, device=device), wp.array(radius, device=device),
                       LayerSupport.everywhere(device).struct(), no_routing(device).struct(),
                       aperture_shape(ap, rows, device), 1e6, 1, pyramid_buffers(bufs), 0],
               device=device)

@@ -251,9 +251,8 @@ def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device
     h1, w1 = (h + 1) // 2, (w + 1) // 2
     means = lazy_zeros((n_means, h1, w1), wp.vec4, device, lazy)
     counts = lazy_zeros((n_means, h1, w1), float, device, lazy)
-    rows = wp.get_device(device).is_cpu  # a row a thread on a CPU (its per-thread call), a cell on a GPU
-    wp.launch(bk.radiance_mean_rows_kernel if rows else bk.radiance_mean_kernel, dim=h1 if rows else (h1, w1),
-              inputs=[src, where], outputs=[means, counts], device=device)
+    n, span = sc.row_span(device, w1)
+    wp.launch(bk.radiance_mean_kernel, dim=(h1, n), inputs=[span, src, where], outputs=[means, counts], device=device)
     fh, fw = h1, w1
     for k in range(1, n_means):
         ch, cw = (fh + 1) // 2, (fw + 1) // 2
@@ -498,7 +497,9 @@ def render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatt
         fewer, 3 s of CPU on this machine; doing the same to level 0 saves 0.03 M more and raises the peak 0.1 GB)."""
         a = lazy_zeros(shape, dtype, device, lazy)
         if dtype is wp.vec4 and is_lazy(a):  # (``wp.zeros`` wrote every page already)
-            wp.launch(bk.clear_support_rows_kernel, dim=h, inputs=[support.struct(), w], outputs=[a], device=device)
+            n, span = sc.row_span(device, w)
+            wp.launch(bk.clear_support_kernel, dim=(h, n), inputs=[span, support.struct(), w], outputs=[a],
+                      device=device)
         return a
 
     # One worker fills at a time (the pull-push levels above level 0 and the distance map, on the whole box), so two
@@ -531,9 +532,9 @@ def render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatt
         if lv == 0 or lv >= first:  # level 0 is read at the support's pixels only, the coarser levels everywhere
             prefix_rows(bufs[lv], device, support if lv == 0 else None, w if lv == 0 else None)
     out = src  # the sources are scattered: reuse their memory for the result (zero outside the support)
-    on_cpu = wp.get_device(device).is_cpu  # a row a thread on a CPU (its per-thread call), a pixel on a GPU
-    wp.launch(bk.resolve_rows_kernel if on_cpu else bk.resolve_levels_kernel, dim=h if on_cpu else (h, w),
-              inputs=[n_levels, first, levels, support.struct()], outputs=[out], device=device)
+    n, span = sc.row_span(device, w)
+    wp.launch(bk.resolve_levels_kernel, dim=(h, n), inputs=[span, n_levels, first, levels, support.struct()],
+              outputs=[out], device=device)
     return out
 
 
@@ -542,9 +543,9 @@ def _scatter_sources(src: wp.array, coc: wp.array, support: sc.LayerSupport, rou
     """Scatter a layer's sources (``bk.scatter_kernel``), those of the pyramid levels ``first`` (at least 1) and up
     merged per cell (:func:`scatter_merged`) unless ``scatter.merge_sources`` is off."""
     h, w = src.shape
-    rows = wp.get_device(scatter.device).is_cpu  # a row a thread on a CPU (its per-thread call), a pixel on a GPU
-    wp.launch(bk.scatter_rows_kernel if rows else bk.scatter_kernel, dim=h if rows else (h, w),
-              inputs=[src, coc, support.struct(), routing.struct(), scatter.shape, scatter.level_radius_px, n_levels,
+    n, span = sc.row_span(scatter.device, w)
+    wp.launch(bk.scatter_kernel, dim=(h, n),
+              inputs=[span, src, coc, support.struct(), routing.struct(), scatter.shape, scatter.level_radius_px, n_levels,
                       levels, int(scatter.merge_sources)],
               device=scatter.device)
     if scatter.merge_sources:
@@ -617,10 +618,9 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
             out = fut.result()
             del started[head]
             y0, y1, x0, x1 = layers[head].bbox
-            on_cpu = wp.get_device(device).is_cpu  # a row a thread on a CPU, a pixel on a GPU
-            wp.launch(bk.composite_rows_kernel if on_cpu else bk.composite_kernel,
-                      dim=y1 - y0 if on_cpu else (y1 - y0, x1 - x0),
-                      inputs=[out, sc.LayerSupport.of(layers[head], device).struct(), x0, y0], outputs=[acc],
+            n, span = sc.row_span(device, x1 - x0)
+            wp.launch(bk.composite_kernel, dim=(y1 - y0, n),
+                      inputs=[span, out, sc.LayerSupport.of(layers[head], device).struct(), x0, y0], outputs=[acc],
                       device=device)
             del out
             head += 1
