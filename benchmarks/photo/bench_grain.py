@@ -8,9 +8,14 @@ minus a Gaussian of sigma 2 px, in codes) over a box of backdrop between the hea
 blurred: CoC about 32 px at 1024 px), against the same box of the photo. Also saved: 100 % crops (photo, without
 grain, with grain) for docs/usage.md.
 
+``--time MP``: the step's cost on a frame of that size (random photo, a CoC of 12 px everywhere: the grain restored
+on every pixel, its worst case): medians of three warm runs of planning (measure and the share to restore) and of
+the restore, wall and CPU (all threads), with the load.
+
 Usage (from the repository root)::
 
     python benchmarks/photo/bench_grain.py --figure docs/img/grain_crops.png   # JSON to benchmarks/results/grain.json
+    python benchmarks/photo/bench_grain.py --time 12                          # the cost at 12 MP only
 """
 
 from __future__ import annotations
@@ -43,13 +48,43 @@ def highpass_std(codes: np.ndarray, box: tuple[int, int, int, int]) -> float:
     return float(hp[y0:y1, x0:x1].std())
 
 
+def time_step(megapixels: float) -> dict:
+    """Medians of three warm runs of the grain step's planning and restore on a ``megapixels`` frame."""
+    import os
+    import statistics
+    import time
+
+    from bokehray.photo.grain import plan_grain, restore_grain
+
+    h = int(round((megapixels * 1e6 * 3 / 4) ** 0.5))
+    w = int(round(h * 4 / 3))
+    img = np.random.default_rng(0).random((h, w, 3), dtype=np.float32)
+    coc = np.full((h, w), 12.0, np.float32)
+    plan = plan_grain(img, coc)
+    rows = {}
+    for name, step in (("plan", lambda: plan_grain(img, coc)),
+                       ("restore", lambda: restore_grain(img.copy(), plan.grain, plan.removed, dither_bits=8))):
+        times = []
+        for _ in range(4):
+            t, c = time.perf_counter(), time.process_time()
+            step()
+            times.append((time.perf_counter() - t, time.process_time() - c))
+        rows[name] = {"wall_s": round(statistics.median(x[0] for x in times[1:]), 3),
+                      "cpu_s": round(statistics.median(x[1] for x in times[1:]), 3)}
+    return {"frame": [w, h], "cores": os.cpu_count(), "load": round(os.getloadavg()[0], 1), **rows}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--side", type=int, default=1024)
     ap.add_argument("--noise", type=float, nargs="+", default=[0.6, 1.5], help="grain added, in 8-bit codes")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks/results/grain.json")
     ap.add_argument("--figure", type=Path)
+    ap.add_argument("--time", type=float, metavar="MP", help="only time the step on a frame of MP megapixels")
     args = ap.parse_args()
+    if args.time:
+        print(json.dumps(time_step(args.time)))
+        return
     from PIL import Image
 
     img, d = portrait(args.side)

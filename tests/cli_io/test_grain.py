@@ -173,3 +173,27 @@ def test_grey_and_alpha_arrays_get_grain_too(shape):
     assert g.luma > 0
     out = gr.restore_grain(arr.copy(), g, np.ones(img.shape[:2], np.float32))
     assert out.shape == arr.shape and not np.array_equal(out, arr) and (out >= 0).all()
+
+
+def test_the_grain_does_not_depend_on_the_number_of_cores(monkeypatch):
+    """Each band of rows draws from its own generator: one core or many give the same pixels."""
+    _, img = _grainy((700, 900))  # several row bands
+    g = gr.measure_grain(img)
+    removed = gr.removed_share(np.full(img.shape[:2], 12.0, np.float32))
+    many = gr.restore_grain(img.copy(), g, removed, dither_bits=8)
+    monkeypatch.setattr(gr.os, "cpu_count", lambda: 1)
+    one = gr.restore_grain(img.copy(), g, removed, dither_bits=8)
+    assert np.array_equal(one, many) and not np.array_equal(one, img)
+
+
+def test_unit_noise_has_a_unit_highpass():
+    n = np.random.default_rng(3).standard_normal((1024, 1024), dtype=np.float32)
+    assert float(gr._highpass(n * np.float32(gr._unit_gain())).std()) == pytest.approx(1.0, rel=0.01)
+
+
+@given(st.floats(-1.0, 4.0, allow_nan=False, width=32))
+def test_the_srgb_slope_table_follows_the_curve(x):
+    got = float(gr._srgb_slope(np.array([x], np.float32))[0])
+    lin = min(max(x, 0.0), 1.0)
+    want = 0.0 if x >= 1.0 else (2.4 / 1.055 * lin ** (1.4 / 2.4) if lin > 0.0031308 else 1 / 12.92)
+    assert got == pytest.approx(want, rel=0.018, abs=1e-12)

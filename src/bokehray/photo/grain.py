@@ -24,7 +24,11 @@ the accuracy benchmarks score against exact references, stays free of it.
 from __future__ import annotations
 
 import math
+import os
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from functools import cache
 
 import numpy as np
 
@@ -124,14 +128,28 @@ def removed_share(coc: np.ndarray) -> np.ndarray:
     return np.sqrt(np.maximum(0.0, 1.0 - kept * kept)).astype(np.float32)
 
 
-def _unit_noise(rng: np.random.Generator, shape: tuple[int, int]) -> np.ndarray:
-    """Gaussian noise whose high-pass has a standard deviation of 1 (white noise, so the factor is exact enough on a
-    256 x 256 sample)."""
-    n = rng.standard_normal(shape, dtype=np.float32)
-    probe = n[: min(256, shape[0]), : min(256, shape[1])]
-    s = float(_highpass(np.ascontiguousarray(probe)).std()) if probe.size > 64 else 1.0
-    n *= np.float32(1.0 / max(s, 1e-6))
-    return n
+def _in_bands(h: int, w: int, run: Callable[[int, int, int], None]) -> None:
+    """``run(i, y0, y1)`` over the row bands of an ``h x w`` frame (:func:`~bokehray._memory.row_bands`, band
+    ``i``), on every core: NumPy's arithmetic and random fills release the GIL on arrays this large."""
+    bands = list(row_bands(h, w))
+    workers = max(1, min(len(bands), os.cpu_count() or 1))
+    if workers == 1:
+        for i, (y0, y1) in enumerate(bands):
+            run(i, y0, y1)
+        return
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        for f in [pool.submit(run, i, y0, y1) for i, (y0, y1) in enumerate(bands)]:
+            f.result()
+
+
+@cache
+def _unit_gain() -> float:
+    """The factor that gives white Gaussian noise of standard deviation 1 a high-pass (:func:`_highpass`) of
+    standard deviation 1: ``1 / sqrt(sum (delta - G)^2)``, the sum over the high-pass's own response to an impulse
+    (exact away from the frame's border)."""
+    impulse = np.zeros((8 * _MARGIN + 1,) * 2, np.float32)
+    impulse[4 * _MARGIN, 4 * _MARGIN] = 1.0
+    return 1.0 / math.sqrt(float(np.square(_highpass(impulse).astype(np.float64)).sum()))
 
 
 def _split(grain: Grain) -> tuple[float, tuple[float, float, float]]:
@@ -145,43 +163,73 @@ def _split(grain: Grain) -> tuple[float, tuple[float, float, float]]:
     return math.sqrt(a2), tuple(math.sqrt(max(0.0, v - a2)) for v in ch2)
 
 
+_SLOPE_SHIFT = 15
+""":func:`_srgb_slope`'s table is indexed by a float32's top 17 bits: buckets of relative width 1/256 or less, over
+which the slope (a power 0.58 of the value) varies by 0.3 % at most (1.7 % in the bucket of the toe's end, where
+the curve's own slope jumps by as much)."""
+
+
+@cache
+def _slope_table() -> np.ndarray:
+    """d(linear)/d(sRGB) at the middle of each float32 bucket of [0, 1] (:data:`_SLOPE_SHIFT`): ``2.4 / 1.055 *
+    lin^(1.4 / 2.4)``, ``1 / 12.92`` on the toe; 0 at 1 (a clipped value gets no grain)."""
+    one = int(np.float32(1.0).view(np.uint32)) >> _SLOPE_SHIFT
+    starts = (np.arange(one + 2, dtype=np.uint32) << _SLOPE_SHIFT).view(np.float32).astype(np.float64)
+    mid = (starts[:-1] + starts[1:]) / 2
+    slope = np.where(mid > 0.0031308, 2.4 / 1.055 * np.power(mid, 1.4 / 2.4), 1.0 / 12.92).astype(np.float32)
+    slope[one] = 0.0
+    slope.flags.writeable = False
+    return slope
+
+
+def _srgb_slope(v: np.ndarray) -> np.ndarray:
+    """d(linear)/d(sRGB) at linear values ``v`` (clipped to [0, 1]; 0 at 1 and above), from :func:`_slope_table`."""
+    x = np.clip(v, np.float32(0.0), np.float32(1.0))
+    x += np.float32(0.0)  # -0.0 -> +0.0 (its bit pattern would index past the table)
+    return _slope_table()[x.view(np.uint32) >> _SLOPE_SHIFT]
+
+
 def restore_grain(rendered: np.ndarray, grain: Grain, removed: np.ndarray, *, seed: int = 0,
                   dither_bits: int | None = None) -> np.ndarray:
     """``rendered`` (linear RGB[A], written in place when float32 and writable) with the photo's ``grain`` added in
     sRGB where the blur ``removed`` it (:func:`removed_share`), and a triangular dither of one code for an output
-    of ``dither_bits`` (8: an 8-bit file; None: none). Seeded: the same inputs give the same pixels. Values stay
-    non-negative; alpha is not touched."""
+    of ``dither_bits`` (8: an 8-bit file; None: none). Seeded: the same inputs give the same pixels (each band of
+    rows draws from its own generator, spawned from ``seed``, so the bands run on every core in any order). Values
+    stay non-negative; alpha is not touched."""
     out = rendered if rendered.dtype == np.float32 and rendered.flags.writeable else rendered.astype(np.float32)
     if grain.luma <= 0.0 and not dither_bits:
         return out
-    rng = np.random.default_rng(seed)
-    shape = out.shape[:2]
-    w = np.asarray(removed, np.float32)
+    h, w = out.shape[:2]
+    gain = _unit_gain()
     shared_std, own_std = _split(grain)
-    shared = _unit_noise(rng, shape) * np.float32(shared_std)
-    dither = None
-    if dither_bits and grain.luma * (2**dither_bits - 1) < 0.5:  # grain of half a code or more dithers already
-        q = 1.0 / (2**dither_bits - 1)
-        dither = (rng.random(shape, dtype=np.float32) - rng.random(shape, dtype=np.float32)) * np.float32(q)
     planes = out[..., None] if out.ndim == 2 else out
-    for c in range(min(3, planes.shape[2])):  # grey (one plane): the luma's grain
-        own = own_std[c] if planes.shape[2] >= 3 else 0.0
-        own_noise = _unit_noise(rng, shape) * np.float32(own) if own > 0.0 else None  # drawn whole: seeded alike
-        for y0, y1 in row_bands(*shape):  # the arithmetic a band at a time: its temporaries stay small
-            noise = shared[y0:y1].copy()
-            if own_noise is not None:
-                noise += own_noise[y0:y1]
-            if dither is not None:
-                noise += dither[y0:y1]
-            noise *= w[y0:y1]
+    own = [own_std[c] if planes.shape[2] >= 3 else 0.0 for c in range(min(3, planes.shape[2]))]  # grey: the luma's
+    dither_q = None
+    if dither_bits and grain.luma * (2**dither_bits - 1) < 0.5:  # grain of half a code or more dithers already
+        dither_q = np.float32(1.0 / (2**dither_bits - 1))
+    seeds = np.random.SeedSequence(seed).spawn(len(list(row_bands(h, w))))
+
+    def band(i: int, y0: int, y1: int) -> None:
+        share = np.asarray(removed[y0:y1], np.float32)
+        if not share.any():  # sharp: nothing removed, nothing to restore
+            return
+        rng = np.random.default_rng(seeds[i])
+        shape = (y1 - y0, w)
+        shared = rng.standard_normal(shape, dtype=np.float32)
+        shared *= np.float32(gain * shared_std)
+        if dither_q is not None:
+            shared += (rng.random(shape, dtype=np.float32) - rng.random(shape, dtype=np.float32)) * dither_q
+        for c, own_c in enumerate(own):
+            noise = shared.copy()
+            if own_c > 0.0:
+                noise += rng.standard_normal(shape, dtype=np.float32) * np.float32(gain * own_c)
+            noise *= share
             v = planes[y0:y1, :, c]
-            # d(linear)/d(sRGB) at the pixel's value: 2.4 / 1.055 * lin^(1/2.4 * 1.4); 1/12.92 on the linear toe
-            lin = np.clip(v, 0.0, 1.0)
-            noise *= np.where(lin > 0.0031308, np.float32(2.4 / 1.055) * np.power(lin, np.float32(1.4 / 2.4)),
-                              np.float32(1.0 / 12.92))
-            noise[v >= 1.0] = 0.0
+            noise *= _srgb_slope(v)  # through the sRGB curve's slope: the grain is in sRGB codes
             v += noise
             np.maximum(v, 0.0, out=v)
+
+    _in_bands(h, w, band)
     return out
 
 
@@ -212,7 +260,14 @@ class GrainPlan:
 
 def plan_grain(image: np.ndarray, coc: np.ndarray) -> GrainPlan:
     """The grain of ``image`` and the share to restore for the CoC radii ``coc`` (pixels)."""
-    return GrainPlan(measure_grain(image), removed_share(coc).astype(np.float16))
+    coc = np.asarray(coc, np.float32)
+    removed = np.empty(coc.shape, np.float16)
+
+    def band(_i: int, y0: int, y1: int) -> None:
+        removed[y0:y1] = removed_share(coc[y0:y1])
+
+    _in_bands(*coc.shape, band)
+    return GrainPlan(measure_grain(image), removed)
 
 
 def keep_grain(rendered: np.ndarray, photo: np.ndarray, disparity: np.ndarray, blur, *, seed: int = 0,
