@@ -151,25 +151,31 @@ def _stats(values: list[float]) -> dict:
             "p90_s": round(float(np.percentile(values, 90)), 3), "max_s": round(max(values), 3)}
 
 
-def page_protocol(args) -> int:
-    import subprocess
-    import tempfile
-
+def write_photo(folder: Path, w: int, h: int) -> tuple[Path, Path]:
+    """The demo scene at ``w`` x ``h`` as a display-referred JPEG and its 16-bit disparity PNG in ``folder``."""
     from PIL import Image
 
     import bokehray as br
     from bokehray.app.demo import build_demo_scene
+    from bokehray.colour import linear_to_srgb
+
+    scene = build_demo_scene(width=w, height=h)
+    srgb = (np.clip(linear_to_srgb(np.clip(scene.image, 0, 1)), 0, 1) * 255 + 0.5).astype(np.uint8)
+    Image.fromarray(srgb).save(folder / "photo.jpg", quality=92)
+    br.write_disparity(folder / "disparity.png", scene.disparity)
+    return folder / "photo.jpg", folder / "disparity.png"
+
+
+def page_protocol(args) -> int:
+    import subprocess
+    import tempfile
+
 
     w, h = (2000, 1500) if args.quick else (4000, 3000)
     reps = 2 if args.quick else args.reps
     changes = 4 if args.quick else args.changes
     tmp = Path(tempfile.mkdtemp(prefix="bench-view-"))
-    scene = build_demo_scene(width=w, height=h)
-    from bokehray.colour import linear_to_srgb
-
-    srgb = (np.clip(linear_to_srgb(np.clip(scene.image, 0, 1)), 0, 1) * 255 + 0.5).astype(np.uint8)
-    Image.fromarray(srgb).save(tmp / "photo.jpg", quality=92)
-    br.write_disparity(tmp / "disparity.png", scene.disparity)
+    write_photo(tmp, w, h)
     result: dict = {"benchmark": "view-page", "quick": args.quick, "machine": common.machine_info(),
                     "image": [w, h], "megapixels": round(w * h / 1e6, 2), "screen_long_side": args.screen,
                     "reps": reps, "changes_per_rep": changes, "load_avg_at_start": list(os.getloadavg())}
