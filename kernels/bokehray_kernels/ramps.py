@@ -7,7 +7,8 @@ each ramp pixel carries a depth no surface has. Two kernels:
 2. :func:`snap_ramps_kernel`, one thread a candidate pixel (gradient above ``grad_min``): from the pixel, walk
    along the gradient both ways, one pixel a step (nearest sample), to the first pixel whose gradient is at most
    ``grad_min`` (a plateau) within ``max_walk`` steps. A pixel strictly inside such a ramp (its value rises
-   through it by steps of less than half the range, between the two plateaus, over at least ``min_len`` steps) takes the value of one plateau: the
+   through it by steps of more than 2 % of the range or ``grad_min``, whichever is less, and of less than half the
+   range, between the two plateaus, over at least ``min_len`` steps) takes the value of one plateau: the
    side its colour is closer to along the line between the plateaus' colours (the mean of ``samples`` pixels
    from each plateau's start), weighed against its place in the ramp (``place_weight``). A ramp that does not
    end within ``max_walk`` on both sides is a slope (a floor, a wall going away) and stays.
@@ -123,11 +124,13 @@ def snap_ramps_kernel(
     span = v_near - v_far
     if span <= params.min_range:
         return
-    # strictly inside the ramp: the value rises through the pixel by steps of more than 2 % and less than half of
-    # the range (a hard map's pixel between two others, where three depths meet, has one step of half or more)
+    # strictly inside the ramp: the value rises through the pixel by steps of more than 2 % of the range, or than a
+    # plateau's gradient where that is less (a wide ramp's tails: kept, they were a step inside the subject beside
+    # their snapped neighbours), and less than half of the range (a hard map's pixel between two others, where
+    # three depths meet, has one step of half or more)
     up = coc[_clamp_at(y + ny, h), _clamp_at(x + nx, w)] - own
     down = own - coc[_clamp_at(y - ny, h), _clamp_at(x - nx, w)]
-    if wp.min(up, down) <= 0.02 * span or wp.max(up, down) >= 0.5 * span:
+    if wp.min(up, down) <= wp.min(0.02 * span, params.grad_min) or wp.max(up, down) >= 0.5 * span:
         return
     t = (own - v_far) / span
     if t <= params.place or t >= 1.0 - params.place:

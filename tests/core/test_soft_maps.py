@@ -78,6 +78,26 @@ def test_snapped_pixels_take_a_plateau_s_value(sigma, k, focus, seed):
     assert mid.sum() <= (np.abs(s - k * (0.5 - focus)) < 0.1 * k).sum() * 0.2
 
 
+@settings(max_examples=12, deadline=None)
+@given(sigma=st.floats(3.0, 10.0), k=st.floats(24.0, 60.0), seed=st.integers(0, 2**16))
+def test_a_wide_ramp_leaves_no_step_inside_a_plateau(sigma, k, seed):
+    """A Gaussian ramp's tails (steps below 2 % of its range a pixel, yet steeper than a plateau) go with the ramp:
+    across the edge the snapped map has one jump, and no step of more than three times a plateau's gradient on either
+    side (a tail kept beside its snapped neighbours was a step of a tenth of the range inside the subject: a torn
+    seam)."""
+    n = int(12 * sigma) + 16
+    rng = np.random.default_rng(seed)
+    x = np.arange(n, dtype=np.float32) + 0.5
+    hard = (x < n / 2).astype(np.float32)
+    soft = ndimage.gaussian_filter1d(hard, sigma, mode="nearest")
+    s = np.repeat((k * (soft - 1.0))[None, :], 24, axis=0).astype(np.float32)  # the near side in focus
+    fg, bg = rng.uniform(0.05, 1.0, 3), rng.uniform(0.05, 1.0, 3)
+    img = np.where(hard[None, :, None] > 0, fg, bg).repeat(24, axis=0).astype(np.float32)
+    out, _ = snap_ramps(img, s)
+    steps = np.sort(np.abs(np.diff(out[12])))[::-1]
+    assert steps[0] >= 0.8 * k and steps[1] <= 3 * RampRule().grad_min
+
+
 def _band_psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray) -> float:
     def srgb(x):
         x = np.clip(x, 0.0, 1.0)

@@ -67,7 +67,7 @@ def _snapped(img, s, grad, y, x, rule) -> float | None:
     own = s[y, x]
     up, down = s[_at(y + ny, h), _at(x + nx, w)] - own, own - s[_at(y - ny, h), _at(x - nx, w)]
     t = (own - vf) / span if span > 0 else 0.0
-    if span <= rule.min_range or min(up, down) <= 0.02 * span or max(up, down) >= 0.5 * span \
+    if span <= rule.min_range or min(up, down) <= min(0.02 * span, rule.grad_min) or max(up, down) >= 0.5 * span \
             or not rule.place < t < 1 - rule.place:
         return None
     cn, cf = _colour(img, y, x, ny, nx, kn, rule), _colour(img, y, x, -ny, -nx, kf, rule)
