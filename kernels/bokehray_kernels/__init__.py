@@ -7,7 +7,7 @@ NumPy oracle in ``tests/reference/`` and a test comparing them.
 
 By concern: ``aperture`` (the shape's chords), ``spans`` (a source's row-span deposits), ``pyramid`` (the radius
 pyramid: scatter, prefix sums, resolve), ``routing`` (salient lights to level 0), ``composite`` (layers back to
-front), ``fill`` (layer sources and the pull-push fill), ``soft`` (the near parts of split pixels), ``matting``
+front), ``interior`` (a layer's interior opaque), ``fill`` (layer sources and the pull-push fill), ``soft`` (the near parts of split pixels), ``matting``
 (soft edges at depth edges), ``split`` (a band pixel's near and far parts from its estimate), ``ramps`` (a soft
 map's ramps read as edges), ``vote`` (the depth correction's colour vote), ``raytrace`` (the layered ray tracer),
 ``pisa`` (the refiner's attention masks); ``support``, ``reduce`` and ``sampling`` hold what several of them share.
@@ -25,6 +25,10 @@ from .fill import layer_sources_kernel as layer_sources_kernel
 from .fill import pull_kernel as pull_kernel
 from .fill import push_kernel as push_kernel
 from .fill import row_distance_kernel as row_distance_kernel
+from .interior import boundary_kernel as boundary_kernel
+from .interior import mark_split_kernel as mark_split_kernel
+from .interior import opaque_flag_kernel as opaque_flag_kernel
+from .interior import row_sweep_kernel as row_sweep_kernel
 from .matting import matting_band_kernel as matting_band_kernel
 from .pyramid import MAX_LEVELS as MAX_LEVELS
 from .pyramid import Levels as Levels
@@ -54,6 +58,7 @@ __all__ = [
     "Salience",
     "Shape",
     "Support",
+    "boundary_kernel",
     "chord",
     "clear_support_kernel",
     "column_distance_kernel",
@@ -63,8 +68,10 @@ __all__ = [
     "halve_mean_kernel",
     "layer_pull_kernel",
     "layer_sources_kernel",
+    "mark_split_kernel",
     "matting_band_kernel",
     "near_sources_kernel",
+    "opaque_flag_kernel",
     "prefix_rows_kernel",
     "pull_kernel",
     "push_kernel",
@@ -73,6 +80,7 @@ __all__ = [
     "resolve_levels_kernel",
     "route_cells_kernel",
     "row_distance_kernel",
+    "row_sweep_kernel",
     "scatter_clusters_kernel",
     "scatter_kernel",
     "scatter_merged_kernel",

@@ -336,18 +336,22 @@ def test_composite_kernels_match_reference(h, w, seed):
     layer = rng.random((h, w, 4)).astype(np.float32) * 2
     layer[rng.random((h, w)) < 0.2] = 0.0  # no light there
     acc0 = rng.random((h + 5, w + 7, 4)).astype(np.float32)
+    opaque = (rng.random(acc0.shape[:2]) < 0.3).astype(np.uint8)  # the frame's opaque map and layer ids
+    ids = rng.integers(0, 2, acc0.shape[:2]).astype(np.int32)
     support = _random_support(rng, h, w, 3)
     got = {}
     for span in (1, w):
         acc = wp.array(acc0, dtype=wp.vec4)
         wp.launch(bk.composite_kernel, dim=(h, -(-w // span)),
-                  inputs=[span, wp.array(layer, dtype=wp.vec4), support.struct(), 7, 5], outputs=[acc])
+                  inputs=[span, wp.array(layer, dtype=wp.vec4), support.struct(), 7, 5,
+                          wp.array(opaque, dtype=wp.uint8), wp.array(ids, dtype=wp.int32), 1], outputs=[acc])
         got[span] = acc.numpy()
     assert got[w].tobytes() == got[1].tobytes()
     yy, xx = np.mgrid[0:h, 0:w]
     inside = support.mask.numpy()[(yy + support.oy) >> support.shift, (xx + support.ox) >> support.shift] != 0
+    whole = ((opaque != 0) & (ids == 1))[5:, 7:]
     want = acc0.astype(np.float64)
-    want[5:, 7:] = np.where(inside[..., None], scatter_ref.over(layer, want[5:, 7:]), want[5:, 7:])
+    want[5:, 7:] = np.where(inside[..., None], scatter_ref.over(layer, want[5:, 7:], whole), want[5:, 7:])
     np.testing.assert_allclose(got[1], want, rtol=1e-5, atol=1e-6)
 
 

@@ -223,8 +223,9 @@ def layered(image: np.ndarray, signed_coc: np.ndarray, edges: np.ndarray, blades
     replicated outwards) on each side as far as the largest CoC on that side reaches, rendered, and cropped;
     not when that CoC exceeds half the frame's longer side (then only the final division applies).
     Layer ``i`` holds the pixels with ``edges[i] <= s < edges[i + 1]``; each layer scatters (RGB, 1) of its own
-    pixels; layers are composited back to front with opacity ``min(coverage, 1)``
-    and colour ``sum / coverage``; the result is divided by the total opacity.
+    pixels; layers are composited back to front with opacity ``min(coverage, 1)`` (1 at the layer's own pixels whose
+    cone meets no farther surface, ``interior_ref.opaque_pixels``) and colour ``sum / coverage``; the result is
+    divided by the total opacity.
     """
     if border:
         rims = (signed_coc[0], signed_coc[-1], signed_coc[:, 0], signed_coc[:, -1])
@@ -235,8 +236,11 @@ def layered(image: np.ndarray, signed_coc: np.ndarray, edges: np.ndarray, blades
                 big = layered(np.pad(image, ((t, b), (l, r), (0, 0)), mode="edge"),
                               np.pad(signed_coc, ((t, b), (l, r)), mode="edge"), edges, blades, extent, border=False)
                 return big[t:t + image.shape[0], l:l + image.shape[1]]
+    from .interior_ref import opaque_pixels
+
     ids = np.searchsorted(edges, signed_coc, side="right") - 1
     h, w, _ = image.shape
+    whole = opaque_pixels(ids, np.zeros((h, w), bool), signed_coc)
     acc = np.zeros((h, w, 3))
     opacity = np.zeros((h, w))
     for lid in sorted(set(ids.ravel().tolist())):
@@ -244,7 +248,7 @@ def layered(image: np.ndarray, signed_coc: np.ndarray, edges: np.ndarray, blades
         src = np.concatenate([image * member[..., None], member[..., None].astype(np.float64)], axis=2)
         lay = scatter(src, signed_coc * member, blades, extent)
         cov = lay[..., 3]
-        alpha = np.minimum(cov, 1.0)
+        alpha = np.where(whole & member & (cov > 1e-6), 1.0, np.minimum(cov, 1.0))
         colour = np.where(cov[..., None] > 1e-6, lay[..., :3] / np.maximum(cov, 1e-12)[..., None], 0.0)
         acc = colour * alpha[..., None] + (1 - alpha[..., None]) * acc
         opacity = alpha + (1 - alpha) * opacity
@@ -486,12 +490,15 @@ def merged_sources(src: np.ndarray, coc: np.ndarray, r0: float, n_levels: int, l
     return out
 
 
-def over(layer: np.ndarray, acc: np.ndarray) -> np.ndarray:
+def over(layer: np.ndarray, acc: np.ndarray, whole: np.ndarray | None = None) -> np.ndarray:
     """One scattered layer (sum of premultiplied RGB, sum of coverage) over the accumulator (RGB, opacity)
-    (docs/renderer.md, "compositing rule"): opacity min(coverage, 1), colour normalised by the coverage; where the
+    (docs/renderer.md, "compositing rule"): opacity min(coverage, 1), 1 where ``whole`` (the layer covers the pixel
+    whole: ``interior_ref.opaque_pixels`` at the layer's own pixels), colour normalised by the coverage; where the
     coverage is at most 1e-6 the accumulator stays."""
     cov = layer[..., 3:4].astype(np.float64)
     alpha = np.minimum(cov, 1.0)
+    if whole is not None:
+        alpha = np.where(whole[..., None], 1.0, alpha)
     colour = layer[..., :3] / np.maximum(cov, 1e-30)
     out = np.concatenate([colour * alpha + (1 - alpha) * acc[..., :3], alpha + (1 - alpha) * acc[..., 3:4]], -1)
     return np.where(cov > 1e-6, out, acc)

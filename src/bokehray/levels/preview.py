@@ -586,6 +586,7 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
     device = scatter.device
     h, w = s.shape
     arrays = sc.LayerSources.upload(image, s, ids, n_slots, device, near)
+    opaque = opaque_pixels(arrays, device)
     acc = lazy_zeros((h, w), wp.vec4, device, lazy_for(h, w))  # pages taken at the first composite, when lazy
 
     # Layers render independently (Warp CPU launches release the GIL) on ``threads`` workers and are composited
@@ -620,8 +621,8 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
             y0, y1, x0, x1 = layers[head].bbox
             n, span = sc.row_span(device, x1 - x0)
             wp.launch(bk.composite_kernel, dim=(y1 - y0, n),
-                      inputs=[span, out, sc.LayerSupport.of(layers[head], device).struct(), x0, y0], outputs=[acc],
-                      device=device)
+                      inputs=[span, out, sc.LayerSupport.of(layers[head], device).struct(), x0, y0, opaque,
+                              arrays.ids, layers[head].index], outputs=[acc], device=device)
             del out
             head += 1
             done += 1
@@ -637,6 +638,27 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
     result = wp.empty((h, w), dtype=wp.vec3, device=device)
     wp.launch(bk.finalize_kernel, dim=(h, w), inputs=[acc, arrays.image, arrays.ids], outputs=[result], device=device)
     return result.numpy(), arrays.filled_count()
+
+
+def opaque_pixels(arrays: sc.LayerSources, device: str) -> wp.array:
+    """The window's pixels whose cone, of their CoC radius plus one, meets no farther surface, no split and no copied
+    pixel (``bokehray_kernels.interior``): 1 there, 0 elsewhere. The composite takes their own layer's coverage as
+    1 there, where the footprints of sources of unequal radii need not sum to 1."""
+    h, w = arrays.ids.shape
+    dist = wp.empty((h, w), dtype=float, device=device)
+    n, span = sc.row_span(device, w)
+    wp.launch(bk.boundary_kernel, dim=(h, n), inputs=[span, arrays.ids, arrays.signed_coc], outputs=[dist],
+              device=device)
+    if arrays.near is not None:
+        wp.launch(bk.mark_split_kernel, dim=arrays.near[0].shape[0], inputs=[arrays.near[0], arrays.near[1]],
+                  outputs=[dist], device=device)
+    wp.launch(bk.row_sweep_kernel, dim=h, inputs=[dist], device=device)
+    band = w if wp.get_device(device).is_cpu else 1
+    wp.launch(bk.column_distance_kernel, dim=-(-w // band), inputs=[dist, h, band], device=device)
+    flag = wp.empty((h, w), dtype=wp.uint8, device=device)
+    wp.launch(bk.opaque_flag_kernel, dim=(h, n), inputs=[span, dist, arrays.signed_coc], outputs=[flag],
+              device=device)
+    return flag
 
 
 def render_signed_coc(image: np.ndarray, signed_coc: np.ndarray, aperture, *, layers=None, memory=None,
