@@ -10,9 +10,10 @@ from hypothesis import strategies as st
 from scipy import ndimage
 
 import bokehray as br
+from bokehray import thin_depth
 from bokehray.thin_depth import ThinRule, restore_thin
 from tests.core.test_soft_maps import _band_psnr
-from tests.reference.thin_ref import interior, restore_thin_ref
+from tests.reference.thin_ref import restore_thin_ref
 from tests.reference.two_planes_ref import TwoPlanes
 
 
@@ -86,19 +87,17 @@ def test_a_smooth_slope_is_left_exactly_as_it_is(height, width, seed):
 
 
 @settings(max_examples=4, deadline=None)
-@given(seed=st.integers(0, 2**16), sigma=st.sampled_from([1.0, 2.0]), k=st.floats(8.0, 40.0))
+@given(seed=st.integers(0, 2**16), sigma=st.sampled_from([2.0, 4.0]), k=st.floats(8.0, 40.0))
 def test_the_restoration_matches_the_float64_oracle(seed, sigma, k):
-    rule = ThinRule(sigmas=(1.0, 2.0))
+    rule = ThinRule(sigmas=(2.0, 4.0))
     image, hard = _wires(64, seed, spacing=16)
     s = (k * (ndimage.gaussian_filter(hard, sigma, mode="nearest") - 0.5)).astype(np.float32)
     got, _ = restore_thin(image, s, rule)
     want, moved = restore_thin_ref(image, s, rule)
-    ys, xs = interior(rule, s.shape)
-    got, want, moved, s = got[ys, xs], want[ys, xs], moved[ys, xs], s[ys, xs]
     got_moved = got != s
     assert moved.any()
-    # float32 box filters against float64 windows: a threshold can fall either side at a pixel or two, and a
-    # window's near value is the largest of its neighbours' values (one more or one fewer moves it)
+    # float32 block means and model against float64 windows: a threshold can fall either side at a pixel or a
+    # block, and a window's near value is the largest of its blocks' values (one more or one fewer moves it)
     assert (got_moved != moved).mean() <= 0.03
     both = got_moved & moved
     assert (np.abs(got[both] - want[both]) <= 1e-3 * k).mean() >= 0.9
@@ -150,14 +149,17 @@ def test_the_two_plane_scene_stays_within_1_5_db_of_the_hard_map(focus):
     assert p_thin >= p_hard - 1.5, (p_hard, p_thin)
 
 
-def test_tiles_give_the_whole_image_s_result():
-    """The work goes tile by tile with a margin the fit reaches through: small tiles give what one tile does."""
+def test_tiles_give_the_whole_image_s_result(monkeypatch):
+    """The fit goes over its grid tile by tile with a margin its windows and blur reach through: small tiles give
+    what one tile does (the same pixels moved, to the same values up to float32 rounding)."""
     image, hard = _wires(160, 11, spacing=20)
     s = (24.0 * (ndimage.gaussian_filter(hard, 2.0, mode="nearest") - 0.5)).astype(np.float32)
     whole, n = restore_thin(image, s)
-    tiled, m = restore_thin(image, s, ThinRule(tile=48))
+    monkeypatch.setattr(thin_depth, "_TILE", 6)
+    tiled, m = restore_thin(image, s)
     assert n > 0 and m == n
-    np.testing.assert_array_equal(tiled, whole)
+    np.testing.assert_array_equal(tiled != s, whole != s)
+    np.testing.assert_allclose(tiled, whole, atol=1e-4)  # each tile centres its colours: rounding only
 
 
 def test_a_capped_map_is_not_restored():
