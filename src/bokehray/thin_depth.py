@@ -7,10 +7,10 @@ colour model). Blurring both sides, ``D = a . (G_s * I) + b``: a ridge regressio
 ``s`` over each window gives ``(a, b)``, and ``a . I + b`` is the map before the blur, with the 1-3 px wires and
 twigs a blur of 2-8 px flattened into a faint bump.
 
-Both sides of that model are blurred by ``s``: they hold nothing finer than about ``s`` px, so the regression is
-fitted on a grid of ``f ~ s`` px (each sample the mean of its ``f x f`` block of map and photo; block means keep the
-linear model exact) with windows of ``2 k + 1`` samples, a ``f^2``-th of the work of a per-pixel fit. Only the
-output, ``a . I + b`` on the sharp photo, is per pixel. :func:`restore_thin` tries the blurs ``ThinRule.sigmas`` and
+Both sides of that model are blurred by ``s``: they hold little finer than ``s`` px, so the regression is fitted on
+a grid of ``f ~ s`` px (each sample the mean of its ``f x f`` block of map and photo; block means keep the linear
+model exact), a ``f^2``-th of the work of a per-pixel fit (a blur of 2 px is fitted per pixel). Only the output, ``a . I + b`` on the sharp photo,
+is per pixel. :func:`restore_thin` tries the blurs ``ThinRule.sigmas`` and
 keeps, for the whole image, the one whose colour model explains its usable windows best (the median residual):
 one map, one blur. A window is usable where its colour model explains it clearly better than a plane does (tilted
 planes and smooth slopes stay exactly as they are) and it holds no hard step (a hard map's step is no blur: hard
@@ -42,9 +42,14 @@ class ThinRule:
     (1 px was almost never usable: such a map keeps steps of half its range, which the hard-step test refuses)."""
     sample: float = 1.0
     """A blur ``s`` is fitted on a grid of ``f`` px, the power of two nearest ``sample * s`` (a sample is the mean
-    of its ``f x f`` block): the blurred photo then aliases by less than 1 % (``exp(-2 pi^2 s^2 / (2 f)^2)``)."""
-    window: int = 2
-    """The fit's window: ``2 window + 1`` samples across, ``(2 window + 1) f`` px (10 / 20 / 40 px for 2 / 4 / 8)."""
+    of its ``f x f`` block): the blurred photo aliases by less than 1 % (``exp(-2 pi^2 s^2 / (2 f)^2)``). Half
+    that spacing lost 4.4 dB on the two-plane scene at focus 0.5 (its wider windows of 18 - 28 px overshoot)."""
+    fine: float = 2.0
+    """... except blurs of at most this many px, fitted per pixel (``f = 1``) once the image's blur is chosen
+    among the grids' fits: on a grid of 2 px the dev set's Gaussian 2 px maps lost 0.47 dB (whole)."""
+    window: float = 1.5
+    """A blur ``s`` is fitted over windows of radius ``ceil(window * s) + 1`` px, rounded to whole samples (at
+    least 2): 9, 20 and 40 px across for 2, 4 and 8 px."""
     profile: float = 4.0
     """A blur ``s`` is fitted only where the window's map spans between ``s / profile`` and ``profile * s`` of its
     steepest 4-neighbour step (a step blurred by ``s`` spans about ``2.5 s`` of its steepest step): a window
@@ -77,9 +82,16 @@ class ThinRule:
     """Only maps with a ramp somewhere are looked at: two steps in a row of the same sign, each above this (CoC px
     per px; ``ramps.RampRule.grad_min``)."""
 
-    def factor(self, sigma: float) -> int:
-        """The fit's grid spacing (px) for a blur ``sigma``."""
+    def factor(self, sigma: float, choosing: bool = False) -> int:
+        """The fit's grid spacing (px) for a blur ``sigma`` (``choosing``: the grid the image's blur is chosen on,
+        where the fine blurs are fitted on the grid of their size too)."""
+        if sigma <= self.fine and not choosing:
+            return 1
         return 1 << max(0, round(math.log2(max(1.0, self.sample * sigma))))
+
+    def samples(self, sigma: float, f: int) -> int:
+        """The fit's window radius (samples) for a blur ``sigma`` on a grid of ``f`` px."""
+        return max(2, round((math.ceil(self.window * sigma) + 1) / f))
 
 
 def restore_thin(image: np.ndarray, signed_coc: np.ndarray, rule: ThinRule | None = None, *,
@@ -157,29 +169,42 @@ def _restore(image: np.ndarray, s: np.ndarray, rule: ThinRule, check) -> np.ndar
     mean = float(s.mean())
     d = (s - np.float32(mean)) / np.float32(scale)
     photo = np.ascontiguousarray(image[..., :3], np.float32)
-    level = _Level(1, photo, d, d, d, _steps(d))
-    levels = {1: level}
-    for f in sorted({rule.factor(x) for x in rule.sigmas}):
-        while level.f < f:
-            level = _pad_even(level).halved()
-            levels[level.f] = level
-    fits = []
-    for sigma in rule.sigmas:
-        if check is not None:
-            check()
-        fit = _fit(levels[rule.factor(sigma)], sigma, rule, scale)
-        if fit is not None:
-            fits.append(fit)
-    if not fits:
-        return None
-    best = min(fits, key=lambda x: float(np.median(x.rel[x.ok])))  # one map, one blur: the best explained
-    moved = _harden(best, photo, d, rule, scale)
+    levels = _levels(_Level(1, photo, d, d, d, _steps(d)), {rule.factor(x, choosing=True) for x in rule.sigmas})
+    best = _best_fit(levels, rule, scale, check)
+    moved = None if best is None else _harden(best, photo, d, rule, scale)
     if moved is None or not moved[0].size:
         return None
     ys, xs, value = moved
     out = s.copy()
     out[ys, xs] = value * np.float32(scale) + np.float32(mean)  # a block at the edge repeats a pixel: same value
     return out
+
+
+def _levels(level: _Level, spacings: set[int]) -> dict[int, _Level]:
+    """The full-resolution level and those of the grid ``spacings`` (powers of two), each halved from the last."""
+    levels = {1: level}
+    while level.f < max(spacings):
+        level = _pad_even(level).halved()
+        levels[level.f] = level
+    return levels
+
+
+def _best_fit(levels: dict[int, _Level], rule: ThinRule, scale: float, check) -> _Fit | None:
+    """The fit of the blur whose usable windows' median relative residual is lowest (one map, one blur), each
+    blur fitted on its own grid; a fine blur, chosen on its coarse grid, is applied from its per-pixel fit."""
+    fits = []
+    for sigma in rule.sigmas:
+        if check is not None:
+            check()
+        fit = _fit(levels[rule.factor(sigma, choosing=True)], sigma, rule, scale)
+        if fit is not None:
+            fits.append(fit)
+    if not fits:
+        return None
+    best = min(fits, key=lambda x: float(np.median(x.rel[x.ok])))
+    if rule.factor(best.sigma) != best.f:
+        best = _fit(levels[rule.factor(best.sigma)], best.sigma, rule, scale)
+    return best
 
 
 def _steps(d: np.ndarray) -> np.ndarray:
@@ -243,7 +268,7 @@ def _fit(level: _Level, sigma: float, rule: ThinRule, scale: float) -> _Fit | No
     """The colour model of one blur on its level's grid, where its windows may be used; None where none may (no
     window varies by a pixel of blur, or every one that does holds a hard step: nothing is fitted). The grid goes
     tile by tile: a tile with no window that may be used costs nothing."""
-    f, k = level.f, rule.window
+    f, k = level.f, rule.samples(sigma, level.f)
     far, near = _erode(level.low, k), _dilate(level.high, k)
     span = near - far
     steepest = _dilate(level.step, k)

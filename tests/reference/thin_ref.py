@@ -52,9 +52,9 @@ def _fit_sample(gb, dm, low, high, step, i, j, k, sigma, rule):
     return a, b, ok, res / max(var, 1e-12)
 
 
-def _fit(tone_blocks_mean, d, sigma, rule):
+def _fit(tone_blocks_mean, d, sigma, rule, choosing):
     """One blur's fits on its grid: dict of per-sample arrays (a, b, ok, rel) and the grid's block min / max."""
-    f = rule.factor(sigma)
+    f = rule.factor(sigma, choosing)
     gm = tone_blocks_mean(f)
     dm = _blocks(d, f).mean((2, 3))
     low, high = _blocks(d, f).min((2, 3)), _blocks(d, f).max((2, 3))
@@ -66,15 +66,15 @@ def _fit(tone_blocks_mean, d, sigma, rule):
     ok, rel = np.zeros((hl, wl), bool), np.full((hl, wl), np.inf)
     for i in range(hl):
         for j in range(wl):
-            got = _fit_sample(gb, dm, low, high, step, i, j, rule.window, sigma, rule)
+            got = _fit_sample(gb, dm, low, high, step, i, j, rule.samples(sigma, f), sigma, rule)
             if got is not None:
                 a[i, j], b[i, j], ok[i, j], rel[i, j] = got
-    return {"f": f, "a": a, "b": b, "ok": ok, "rel": rel, "low": low, "high": high}
+    return {"f": f, "k": rule.samples(sigma, f), "sigma": sigma, "a": a, "b": b, "ok": ok, "rel": rel, "low": low, "high": high}
 
 
 def _harden(fit, guide, d, rule):
     """The restored map (and which pixels it moved) from the image's chosen fit."""
-    f, k, ok = fit["f"], rule.window, fit["ok"]
+    f, k, ok = fit["f"], fit["k"], fit["ok"]
     hl, wl = ok.shape
     est = np.einsum("ijc,ijxyc->ijxy", fit["a"], _blocks(guide, f)) + fit["b"][..., None, None]
     top, low_est = np.full((hl, wl), -np.inf), np.full((hl, wl), np.inf)
@@ -118,7 +118,7 @@ def _harden(fit, guide, d, rule):
 
 def restore_thin_ref(image: np.ndarray, s: np.ndarray, rule) -> tuple[np.ndarray, np.ndarray]:
     """(the restored map, which pixels changed): each blur fitted on its grid, the blur whose usable windows' median
-    relative residual is lowest applied to the whole image."""
+    relative residual is lowest applied to the whole image (a fine blur from its per-pixel fit)."""
     d = s.astype(np.float64)
     photo = image[..., :3].astype(np.float64)
 
@@ -126,10 +126,14 @@ def restore_thin_ref(image: np.ndarray, s: np.ndarray, rule) -> tuple[np.ndarray
         m = _blocks(photo, f).mean((2, 3))
         return m / (1 + np.maximum(m, 0))
 
-    fits = [_fit(tone_blocks_mean, d, sigma, rule) for sigma in rule.sigmas]
+    fits = [_fit(tone_blocks_mean, d, sigma, rule, True) for sigma in rule.sigmas]
     fits = [x for x in fits if x["ok"].any()]
     if not fits:
         return d, np.zeros(d.shape, bool)
     best = min(fits, key=lambda x: float(np.median(x["rel"][x["ok"]])))
+    if rule.factor(best["sigma"]) != best["f"]:  # a fine blur: applied from its per-pixel fit
+        best = _fit(tone_blocks_mean, d, best["sigma"], rule, False)
+        if not best["ok"].any():
+            return d, np.zeros(d.shape, bool)
     out = _harden(best, photo / (1 + np.maximum(photo, 0)), d, rule)
     return out, out != d
