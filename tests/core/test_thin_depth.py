@@ -172,3 +172,42 @@ def test_a_capped_map_is_not_restored():
     np.testing.assert_array_equal(on, br.render(image, soft, blur))
     _, stats = br.render_with_stats(image, soft, br.BlurParams(16.0, 0.0), layers=br.LayerOptions(thin_depth=True))
     assert "thin depth" in stats.stage_seconds
+
+
+def _chosen_blurs(monkeypatch) -> list:
+    """The blur each restore_thin call keeps for its image (recorded from its choice)."""
+    chosen = []
+    best_fit = thin_depth._best_fit
+
+    def spy(*args):
+        fit = best_fit(*args)
+        chosen.append(None if fit is None else fit.sigma)
+        return fit
+
+    monkeypatch.setattr(thin_depth, "_best_fit", spy)
+    return chosen
+
+
+@settings(max_examples=6, deadline=None)
+@given(seed=st.integers(0, 2**16), sigma=st.sampled_from([2.0, 4.0, 8.0]))
+def test_the_image_keeps_the_blur_its_map_has(seed, sigma):
+    """One map, one blur: wires 3 px wide, their map blurred by 2, 4 or 8 px, are read with that blur."""
+    with pytest.MonkeyPatch.context() as mp:
+        chosen = _chosen_blurs(mp)
+        image, hard = _wires(192, seed, spacing=40, width=3.0)
+        s = (24.0 * (ndimage.gaussian_filter(hard, sigma, mode="nearest") - 0.5)).astype(np.float32)
+        _, n = restore_thin(image, s)
+    assert chosen == [sigma] and n > 0
+
+
+def test_a_map_blurred_beyond_the_blurs_tried_is_read_with_the_largest(monkeypatch):
+    """The demo with its map blurred by 11 px: the 2 px blur explains a handful of windows best (its median
+    residual is the lowest) but is not the map's; the image is read with 8 px, the one most of it fits, and its
+    thin structures move (read with 2 px, nothing did)."""
+    from bokehray.app.demo import build_demo_scene
+
+    chosen = _chosen_blurs(monkeypatch)
+    sc = build_demo_scene(768, 512)
+    d = ndimage.gaussian_filter(sc.disparity, 11.0, mode="nearest").astype(np.float32)
+    _, n = restore_thin(sc.image, (30.0 * (d - 0.1)).astype(np.float32), bounds=(-3.0, 27.0))
+    assert chosen == [8.0] and n > 0
