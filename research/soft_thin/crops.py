@@ -21,7 +21,9 @@ import bokehray as br  # noqa: E402
 from benchmarks.renderer.bench_soft_maps import _scorer, soften  # noqa: E402
 from bokehray.thin_depth import restore_thin  # noqa: E402
 
-DATA = ROOT.parent / "shared" / "data" / "pathtraced-dev"
+# the dev set beside the checkout (a worktree one folder deeper finds it one level further up)
+DATA = next((p / "shared" / "data" / "pathtraced-dev" for p in (ROOT.parent, ROOT.parent.parent)
+             if (p / "shared" / "data" / "pathtraced-dev").is_dir()), ROOT.parent / "shared" / "data" / "pathtraced-dev")
 CASES = (("d1_wire_mesh", "bokeh_f1_k2", (90, 90)), ("d3_lamps_ring_writing", "bokeh_f1_k2", (120, 100)))
 SIZE = 140
 

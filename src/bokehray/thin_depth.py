@@ -5,18 +5,21 @@ A soft map is close to the true map blurred, ``D = G_s * D_true``, and the true 
 boundary is the photo's colour boundary: ``D_true = a . I + b`` over a small window (the matting's local linear
 colour model). Blurring both sides, ``D = a . (G_s * I) + b``: a ridge regression of the map on the photo blurred by
 ``s`` over each window gives ``(a, b)``, and ``a . I + b`` is the map before the blur, with the 1-3 px wires and
-twigs a blur of 2-8 px flattened into a faint bump. Every window's regression comes from box filters of products
-(as in the guided filter), so the step is a fixed number of image passes per blur tried.
+twigs a blur of 2-8 px flattened into a faint bump.
 
-:func:`restore_thin` tries the blurs ``ThinRule.sigmas`` and keeps, per pixel, the one whose colour model explains
-its window best, among the fits that explain it clearly better than a plane does (tilted planes and smooth slopes
-stay exactly as they are) and whose window holds no hard step (a hard map's step is no blur: hard maps stay exactly
-as they are). The restored value is made hard, each pixel at the window's far plateau (its smallest map value) or
-at its near value (the largest restored value around), and used only where that is a structure: the far value is
-a plateau of the map, and so is the near value unless the structure is thin (a wide object's ramp is the ramp
-snap's, ``bokehray.ramps``, which runs next); the restoration does not undershoot the far plateau as a texture's
-amplified noise would; and enough of the window lies on the near side. The matting then splits the mixed pixels of
-the step this leaves, as on a hard map.
+Both sides of that model are blurred by ``s``: they hold little finer than ``s`` px, so the regression is fitted on
+a grid of ``f ~ s`` px (each sample the mean of its ``f x f`` block of map and photo; block means keep the linear
+model exact), a ``f^2``-th of the work of a per-pixel fit (a blur of 2 px is fitted per pixel). Only the output, ``a . I + b`` on the sharp photo,
+is per pixel. :func:`restore_thin` tries the blurs ``ThinRule.sigmas`` and
+keeps, for the whole image, the one whose colour model explains its usable windows best (the median residual):
+one map, one blur. A window is usable where its colour model explains it clearly better than a plane does (tilted
+planes and smooth slopes stay exactly as they are) and it holds no hard step (a hard map's step is no blur: hard
+maps stay exactly as they are). The restored value is made hard, each pixel at its window's far plateau (its
+smallest map value) or at its near value (the largest restored value around), and used only where that is a
+structure: the far value is a plateau of the map, and so is the near value unless the structure is thin (a wide
+object's ramp is the ramp snap's, ``bokehray.ramps``, which runs next); the restoration does not undershoot the far
+plateau as a texture's amplified noise would; enough of the window lies on the near side; and the step is worth a
+pixel of blur. The matting then splits the mixed pixels of the step this leaves, as on a hard map.
 """
 
 from __future__ import annotations
@@ -35,10 +38,26 @@ class ThinRule:
     """The constants of :func:`restore_thin` (chosen on the dev set's soft maps: docs/design/thin-depth.md)."""
 
     sigmas: tuple[float, ...] = (2.0, 4.0, 8.0)
-    """The map blurs tried (Gaussian sigma, px); each pixel keeps the one whose model fits its window best (1 px
-    was almost never usable: such a map keeps steps of half its range, which the hard-step test refuses)."""
+    """The map blurs tried (Gaussian sigma, px); the image keeps the one whose colour model fits its windows best
+    (1 px was almost never usable: such a map keeps steps of half its range, which the hard-step test refuses)."""
+    sample: float = 1.0
+    """A blur ``s`` is fitted on a grid of ``f`` px, the power of two nearest ``sample * s`` (a sample is the mean
+    of its ``f x f`` block): the blurred photo aliases by less than 1 % (``exp(-2 pi^2 s^2 / (2 f)^2)``). Half
+    that spacing lost 4.4 dB on the two-plane scene at focus 0.5 (its wider windows of 18 - 28 px overshoot)."""
+    fine: float = 2.0
+    """... except blurs of at most this many px, fitted per pixel (``f = 1``) once the image's blur is chosen
+    among the grids' fits: on a grid of 2 px the dev set's Gaussian 2 px maps lost 0.47 dB (whole)."""
     window: float = 1.5
-    """A blur ``s`` is fitted over windows of radius ``ceil(window * s) + 1`` px (at least 2)."""
+    """A blur ``s`` is fitted over windows of radius ``ceil(window * s) + 1`` px, rounded to whole samples (at
+    least 2): 9, 20 and 40 px across for 2, 4 and 8 px."""
+    share: float = 0.25
+    """The image's blur is chosen among those whose usable windows cover at least this share of the pixels the
+    most usable blur's cover (a blur that explains a few windows best is not the map's: the demo at 12 MP, its
+    map blurred by 11 px, chose 2 px from 0.2 % of its pixels)."""
+    profile: float = 4.0
+    """A blur ``s`` is fitted only where the window's map spans between ``s / profile`` and ``profile * s`` of its
+    steepest 4-neighbour step (a step blurred by ``s`` spans about ``2.5 s`` of its steepest step): a window
+    blurred far more or far less is no fit of it (2 lost 0.03 - 0.08 in the dev set's map error, 4 nothing)."""
     ridge: float = 1e-6
     """Ridge on the colour slopes, in squared tone-mapped colour units (the window's colour covariance is about
     1e-3 to 1e-2: the ridge only keeps flat windows solvable; 1e-4 halved what the fit gives back on the wires)."""
@@ -60,19 +79,23 @@ class ThinRule:
     share of its range; and so must its near value, unless the structure is thin."""
     min_sd: float = 0.05
     """A window whose map varies by less than this (CoC px, rms) is flat: left alone."""
+    min_step: float = 1.0
+    """A window whose map, or restored step, spans less than this (CoC px) is left alone: the two sides' blurs
+    differ by less than a pixel (the matting's own depth edge, ``MattingRule.jump_px``)."""
     grad_min: float = 0.2
-    """Only tiles with a ramp somewhere are looked at: two steps in a row of the same sign, each above this (CoC px
+    """Only maps with a ramp somewhere are looked at: two steps in a row of the same sign, each above this (CoC px
     per px; ``ramps.RampRule.grad_min``)."""
-    tile: int = 512
-    """The work goes tile by tile (px), with a margin the fit reaches through; tiles with no ramp are skipped."""
 
-    def radius(self, sigma: float) -> int:
-        return max(2, math.ceil(self.window * sigma) + 1)
+    def factor(self, sigma: float, choosing: bool = False) -> int:
+        """The fit's grid spacing (px) for a blur ``sigma`` (``choosing``: the grid the image's blur is chosen on,
+        where the fine blurs are fitted on the grid of their size too)."""
+        if sigma <= self.fine and not choosing:
+            return 1
+        return 1 << max(0, round(math.log2(max(1.0, self.sample * sigma))))
 
-    def margin(self) -> int:
-        """How far a pixel's result reaches: the blur's kernel (4 sigma), the fit's window, the hardening's."""
-        s = max(self.sigmas)
-        return math.ceil(4 * s) + 3 * self.radius(s) + 2
+    def samples(self, sigma: float, f: int) -> int:
+        """The fit's window radius (samples) for a blur ``sigma`` on a grid of ``f`` px."""
+        return max(2, round((math.ceil(self.window * sigma) + 1) / f))
 
 
 def restore_thin(image: np.ndarray, signed_coc: np.ndarray, rule: ThinRule | None = None, *,
@@ -80,26 +103,15 @@ def restore_thin(image: np.ndarray, signed_coc: np.ndarray, rule: ThinRule | Non
     """The signed CoC map with the depth of structures its blur flattened given back from the photo, and how many
     pixels changed. ``image``: ``H x W x 3`` float32 linear RGB; ``signed_coc``: ``H x W`` float32, both finite.
     ``bounds``: the CoC of the farthest and the nearest disparity (0 and 1): restored values stay within them.
-    The map is returned as given (not copied) when nothing changes. ``check()``: called between tiles."""
+    The map is returned as given (not copied) when nothing changes. ``check()``: called between the blurs tried."""
     rule = rule or ThinRule()
     s = np.ascontiguousarray(signed_coc, np.float32)
     h, w = s.shape
-    if h < 3 or w < 3:
+    if h < 3 or w < 3 or not _has_ramp(s, rule.grad_min):
         return signed_coc, 0
-    ramp = _ramps(s, rule.grad_min)
-    if not ramp.any():
+    out = _restore(image, s, rule, check)
+    if out is None:
         return signed_coc, 0
-    out, m, t = s.copy(), rule.margin(), rule.tile
-    for y0 in range(0, h, t):
-        for x0 in range(0, w, t):
-            if not ramp[y0 : y0 + t, x0 : x0 + t].any():
-                continue
-            if check is not None:
-                check()
-            ya, xa = max(0, y0 - m), max(0, x0 - m)
-            yb, xb = min(h, y0 + t + m), min(w, x0 + t + m)
-            part = _restore(image[ya:yb, xa:xb], s[ya:yb, xa:xb], rule)
-            out[y0 : y0 + t, x0 : x0 + t] = part[y0 - ya : y0 - ya + t, x0 - xa : x0 - xa + t]
     if bounds is not None:
         lo, hi = min(bounds), max(bounds)
         np.clip(out, min(lo, float(s.min())), max(hi, float(s.max())), out=out)
@@ -107,27 +119,135 @@ def restore_thin(image: np.ndarray, signed_coc: np.ndarray, rule: ThinRule | Non
     return (out, n) if n else (signed_coc, 0)
 
 
-def _ramps(s: np.ndarray, grad_min: float) -> np.ndarray:
-    """Pixels between two steps of the same sign above ``grad_min`` along a row or a column: a ramp (a hard map's
-    steps stand alone, so its tiles are not fitted)."""
-    out = np.zeros(s.shape, bool)
-    dy, dx = np.diff(s, axis=0), np.diff(s, axis=1)
-    out[1:-1] |= (np.abs(dy[:-1]) > grad_min) & (np.abs(dy[1:]) > grad_min) & (dy[:-1] * dy[1:] > 0)
-    out[:, 1:-1] |= (np.abs(dx[:, :-1]) > grad_min) & (np.abs(dx[:, 1:]) > grad_min) & (dx[:, :-1] * dx[:, 1:] > 0)
+def _has_ramp(s: np.ndarray, grad_min: float) -> bool:
+    """Whether two steps of the same sign above ``grad_min`` follow each other along a row or a column somewhere (a
+    hard map's steps stand alone: it is not fitted at all)."""
+    g = np.float32(grad_min)
+    for dv in (np.diff(s, axis=0), np.diff(s, axis=1).T):
+        up, down = dv > g, dv < -g
+        if (up[:-1] & up[1:]).any() or (down[:-1] & down[1:]).any():
+            return True
+    return False
+
+
+@dataclass(slots=True)
+class _Level:
+    """The map and the photo on a grid of ``f`` px: block means (the fit's samples), the map's block minimum and
+    maximum and its largest 4-neighbour step within the block (the hard-step test's, exact at any ``f``)."""
+
+    f: int
+    photo: np.ndarray
+    mean: np.ndarray
+    low: np.ndarray
+    high: np.ndarray
+    step: np.ndarray
+
+    def halved(self) -> _Level:
+        return _Level(2 * self.f, _mean2(self.photo), _mean2(self.mean), _pool2(self.low, np.minimum),
+                      _pool2(self.high, np.maximum), _pool2(self.step, np.maximum))
+
+
+@dataclass(slots=True)
+class _Fit:
+    """One blur's fit on its level's grid: the model ``a . photo + b``, where it may be used, its windows' relative
+    residual, the map's smallest and largest value over each window and over twice it."""
+
+    sigma: float
+    f: int
+    k: int
+    a: np.ndarray
+    b: np.ndarray
+    ok: np.ndarray
+    rel: np.ndarray
+    far: np.ndarray
+    near: np.ndarray
+    far_wide: np.ndarray
+    near_wide: np.ndarray
+
+
+def _restore(image: np.ndarray, s: np.ndarray, rule: ThinRule, check) -> np.ndarray | None:
+    """The map normalised (mean 0, range 1), each blur fitted on its grid, the image's best blur applied."""
+    scale = float(s.max() - s.min())
+    if scale <= 0:
+        return None
+    mean = float(s.mean())
+    d = (s - np.float32(mean)) / np.float32(scale)
+    photo = np.ascontiguousarray(image[..., :3], np.float32)
+    levels = _levels(_Level(1, photo, d, d, d, _steps(d)), {rule.factor(x, choosing=True) for x in rule.sigmas})
+    best = _best_fit(levels, rule, scale, check)
+    moved = None if best is None else _harden(best, photo, d, rule, scale)
+    if moved is None or not moved[0].size:
+        return None
+    ys, xs, value = moved
+    out = s.copy()
+    out[ys, xs] = value * np.float32(scale) + np.float32(mean)  # a block at the edge repeats a pixel: same value
     return out
 
 
-def _gradient(s: np.ndarray) -> np.ndarray:
-    gy = np.abs(np.diff(s, axis=0, append=s[-1:]))
-    gx = np.abs(np.diff(s, axis=1, append=s[:, -1:]))
-    return np.maximum(gy, gx)
+def _levels(level: _Level, spacings: set[int]) -> dict[int, _Level]:
+    """The full-resolution level and those of the grid ``spacings`` (powers of two), each halved from the last."""
+    levels = {1: level}
+    while level.f < max(spacings):
+        level = _pad_even(level).halved()
+        levels[level.f] = level
+    return levels
+
+
+def _best_fit(levels: dict[int, _Level], rule: ThinRule, scale: float, check) -> _Fit | None:
+    """The fit of the blur whose usable windows' median relative residual is lowest (one map, one blur), among
+    those whose usable windows cover ``rule.share`` of the most any blur's do, each blur fitted on its own grid; a
+    fine blur, chosen on its coarse grid, is applied from its per-pixel fit."""
+    fits = []
+    for sigma in rule.sigmas:
+        if check is not None:
+            check()
+        fit = _fit(levels[rule.factor(sigma, choosing=True)], sigma, rule, scale)
+        if fit is not None:
+            fits.append(fit)
+    if not fits:
+        return None
+    area = [int(x.ok.sum()) * x.f * x.f for x in fits]  # px whose windows each blur explains
+    fits = [x for x, n in zip(fits, area) if n >= rule.share * max(area)]
+    best = min(fits, key=lambda x: float(np.median(x.rel[x.ok])))
+    if rule.factor(best.sigma) != best.f:
+        best = _fit(levels[rule.factor(best.sigma)], best.sigma, rule, scale)
+    return best
+
+
+def _steps(d: np.ndarray) -> np.ndarray:
+    """Each pixel's larger step to its right and lower neighbour."""
+    step = np.zeros_like(d)
+    np.abs(np.diff(d, axis=0), out=step[:-1])
+    np.maximum(step[:, :-1], np.abs(np.diff(d, axis=1)), out=step[:, :-1])
+    return step
+
+
+def _pad_even(level: _Level) -> _Level:
+    """The level with a replicated last row / column where a side is odd (a block at the edge is the mean of the
+    pixels it holds, weighted towards the last)."""
+    h, w = level.mean.shape
+    if h % 2 == 0 and w % 2 == 0:
+        return level
+
+    def pad(x):
+        return cv2.copyMakeBorder(x, 0, h % 2, 0, w % 2, cv2.BORDER_REPLICATE)
+
+    return _Level(level.f, pad(level.photo), pad(level.mean), pad(level.low), pad(level.high), pad(level.step))
+
+
+def _mean2(x: np.ndarray) -> np.ndarray:
+    return cv2.resize(x, (x.shape[1] // 2, x.shape[0] // 2), interpolation=cv2.INTER_AREA)
+
+
+def _pool2(x: np.ndarray, op) -> np.ndarray:
+    return op(op(x[0::2, 0::2], x[1::2, 0::2]), op(x[0::2, 1::2], x[1::2, 1::2]))
 
 
 def _box(x: np.ndarray, r: int) -> np.ndarray:
-    """The mean over each (2r+1)^2 window, cut at the image's borders (a mirrored slope is no plane)."""
+    """The mean over each (2r+1)^2 window, cut at the grid's borders (a mirrored slope is no plane)."""
     h, w = x.shape[:2]
     total = cv2.boxFilter(x, -1, (2 * r + 1, 2 * r + 1), normalize=False, borderType=cv2.BORDER_CONSTANT)
-    count = np.outer(_extent(h, r)[2], _extent(w, r)[2]).astype(np.float64)
+    count = np.outer(_extent(h, r)[2], _extent(w, r)[2]).astype(x.dtype)
     return total / (count if x.ndim == 2 else count[..., None])
 
 
@@ -138,77 +258,109 @@ def _extent(n: int, r: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return lo, hi, hi - lo + 1
 
 
-def _restore(image: np.ndarray, s: np.ndarray, rule: ThinRule) -> np.ndarray:
-    """One tile: the map normalised (mean 0, range 1), each blur fitted, the best explained window kept."""
-    scale = float(s.max() - s.min())
-    if scale <= 0:
-        return s
-    mean = float(s.mean())
-    d = (s.astype(np.float64) - mean) / scale  # float64: the 3 x 3 solve is ill-conditioned where colours align
-    guide = np.ascontiguousarray(image[..., :3], np.float64)
-    guide = guide / (1 + np.maximum(guide, 0))  # tone-mapped: a lamp's value does not swamp the regression
-    guide -= guide.reshape(-1, 3).mean(0)
-    step = _gradient(d)
-    best = np.full(d.shape, np.inf)
-    out, use = d.copy(), np.zeros(d.shape, bool)
+def _erode(x: np.ndarray, k: int) -> np.ndarray:
+    return cv2.erode(x, np.ones((2 * k + 1, 2 * k + 1), np.uint8), borderType=cv2.BORDER_REPLICATE)
+
+
+def _dilate(x: np.ndarray, k: int) -> np.ndarray:
+    return cv2.dilate(x, np.ones((2 * k + 1, 2 * k + 1), np.uint8), borderType=cv2.BORDER_REPLICATE)
+
+
+def tone(photo: np.ndarray) -> np.ndarray:
+    """The regression's colour: ``c / (1 + c)`` (a lamp's value does not swamp the fit)."""
+    return photo / (1 + np.maximum(photo, 0))
+
+
+def _fit(level: _Level, sigma: float, rule: ThinRule, scale: float) -> _Fit | None:
+    """The colour model of one blur on its level's grid, where its windows may be used; None where none may (no
+    window varies by a pixel of blur, or every one that does holds a hard step: nothing is fitted). The grid goes
+    tile by tile: a tile with no window that may be used costs nothing."""
+    f, k = level.f, rule.samples(sigma, level.f)
+    far, near = _erode(level.low, k), _dilate(level.high, k)
+    span = near - far
+    steepest = _dilate(level.step, k)
+    maybe = (steepest < rule.jump * span) & (span >= rule.min_step / scale)
+    # the blur the window's profile shows: a step blurred by s spans about 2.5 s of its steepest steps
+    maybe &= (span >= sigma / rule.profile * steepest) & (span <= rule.profile * sigma * steepest)
+    if not maybe.any():
+        return None
+    h, w = maybe.shape
+    a, b = np.zeros((h, w, 3), np.float32), np.zeros((h, w), np.float32)
+    ok, rel = np.zeros((h, w), bool), np.full((h, w), np.inf, np.float32)
+    # the block means are a box of f px (variance (f^2 - 1) / 12): the rest of the blur on the grid
+    rest = math.sqrt(max(sigma * sigma - (f * f - 1) / 12, 0.0)) / f
+    t, margin = _TILE, k + math.ceil(4 * rest) + 1  # the windows and the blur's kernel reach this far
     floor = (rule.min_sd / scale) ** 2
-    for sigma in rule.sigmas:  # the blur that explains the window best decides
-        est, rel, ok, usable = _fit_blur(guide, d, step, sigma, rule, floor)
-        better = ok & (rel < best)
-        best[better] = rel[better]
-        out[better] = est[better]
-        use[better] = usable[better]
-    return np.where(use & (out != d), out * scale + mean, s).astype(np.float32)
+    for y0 in range(0, h, t):
+        for x0 in range(0, w, t):
+            core = (slice(y0, y0 + t), slice(x0, x0 + t))
+            if not maybe[core].any():
+                continue
+            ya, xa, yb, xb = max(0, y0 - margin), max(0, x0 - margin), min(h, y0 + t + margin), min(w, x0 + t + margin)
+            part = (slice(ya, yb), slice(xa, xb))
+            inner = np.zeros((yb - ya, xb - xa), bool)
+            inner[y0 - ya : y0 - ya + t, x0 - xa : x0 - xa + t] = maybe[core]
+            iy, ix = np.nonzero(inner)
+            fa, fb, fok, frel = _fit_part(level.photo[part], level.mean[part], inner, rest, k, rule, floor)
+            a[iy + ya, ix + xa], b[iy + ya, ix + xa], ok[iy + ya, ix + xa], rel[iy + ya, ix + xa] = fa, fb, fok, frel
+    if not ok.any():
+        return None
+    return _Fit(sigma, f, k, a, b, ok, rel, far, near, _erode(level.low, 2 * k), _dilate(level.high, 2 * k))
 
 
-def _fit_blur(guide: np.ndarray, d: np.ndarray, step: np.ndarray, sigma: float, rule: ThinRule, floor: float):
-    """The map restored under a blur ``sigma`` (hardened), its colour model's relative residual, where the model
-    may be used (the colour explains the window better than a plane, and the window holds no hard step), and where
-    its restoration is (``_harden``)."""
-    r = rule.radius(sigma)
-    gb = cv2.GaussianBlur(guide, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
-    a, b, res, var = _colour_fit(gb, d, r, rule.ridge)
-    kernel = np.ones((2 * r + 1, 2 * r + 1), np.uint8)
-    far, near_d = cv2.erode(d, kernel), cv2.dilate(d, kernel)
-    plane = _plane_residual(d, r)
-    ok = (res < rule.ratio * plane) & (var > floor)
-    ok &= cv2.dilate(step, kernel) < rule.jump * (near_d - far)
-    est = np.einsum("...i,...i->...", a, guide) + b
-    hard, use = _harden(est, d, ok, far, near_d, r, rule)
-    return hard, res / np.maximum(var, 1e-12), ok, use
+_TILE = 128
+"""The fit goes over its grid in tiles of this many samples (and the margin its windows and blur reach)."""
 
 
-def _harden(est: np.ndarray, d: np.ndarray, ok: np.ndarray, far: np.ndarray, near_d: np.ndarray, r: int,
-            rule: ThinRule) -> tuple[np.ndarray, np.ndarray]:
-    """Each pixel at its window's far value (the map's smallest) or near value (the largest restored value), and
-    where that is to be used: the far value is a plateau of the map, and so is the near value unless the structure
-    is thin (its restored near depth beyond the map's nearest value within twice the window)."""
-    top, near, count = _near_value(est, far, ok, r)
-    wide = np.ones((4 * r + 1, 4 * r + 1), np.uint8)
-    far_wide, near_wide = cv2.erode(d, wide), cv2.dilate(d, wide)
-    tol = rule.plateau_tol * (near_wide - far_wide)
-    thin = near > near_wide + rule.thin * (near - far)
-    use = (far - far_wide <= tol) & (thin | (near_wide - near_d <= tol))
-    # a restoration that falls as far below the far plateau as it rises above the map is the photo's noise
-    # amplified (a smooth slope fitted by a texture blurred smooth), not a structure
-    low = cv2.erode(np.where(ok, est, np.inf), np.ones((2 * r + 1, 2 * r + 1), np.uint8))
-    use &= far - low <= rule.undershoot * (top - far)
-    use &= count * (2 * r + 1) ** 2 >= r + 1  # a structure, not a speck: half a line across the window at least
-    place = (d - far) / np.maximum(near_d - far, 1e-12)  # the pixel's place in the map's own window range
-    to_near = (np.maximum(est, far) > 0.5 * (far + top)) & (place > rule.keep) | (place > 1 - rule.keep)
-    return np.where(to_near, top, far), use
+def _fit_part(photo: np.ndarray, d: np.ndarray, where: np.ndarray, rest: float, k: int, rule: ThinRule,
+              floor: float):
+    """The regression at the samples ``where`` of a part of the grid: (a, b, usable, relative residual), 1-D."""
+    guide = tone(photo).astype(np.float64)  # float64: the 3 x 3 solve is ill-conditioned where colours align
+    centre = guide.reshape(-1, 3).mean(0)
+    guide -= centre
+    gb = cv2.GaussianBlur(guide, (0, 0), rest, borderType=cv2.BORDER_REFLECT) if rest > 0 else guide
+    m = _window_means(gb, d.astype(np.float64), k, where)
+    a, b, res, var = _colour_fit(m, rule.ridge)
+    ok = (res < rule.ratio * _plane_residual(m)) & (var > floor)
+    return a, b - a @ centre, ok, res / np.maximum(var, 1e-12)  # b: the model on the photo as it is, not centred
 
 
-def _colour_fit(gb: np.ndarray, d: np.ndarray, r: int, ridge: float):
-    """Per window: ``d ~ a . gb + b`` by ridge regression; (a, b, residual variance, variance of d)."""
-    md = _box(d, r)
-    mg = _box(gb, r)
-    var = np.maximum(_box(d * d, r) - md * md, 0)
-    c = _box(gb * d[..., None], r) - mg * md[..., None]
+def _window_means(gb: np.ndarray, d: np.ndarray, k: int, where: np.ndarray) -> dict[str, np.ndarray]:
+    """The means over the windows of radius ``k`` (cut at the borders) that the regression needs, at the samples
+    ``where`` (1-D): of the map, its square, the colours, their products with the map and each other, and of the
+    map times x and y (the plane's), with the windows' mean x, y and their variances."""
+    h, w = d.shape
+    sel = np.nonzero(where)
+    (_, _, cy), (_, _, cx) = _extent(h, k), _extent(w, k)
+    count = (cy[sel[0]] * cx[sel[1]]).astype(np.float64)
+
+    def mean(x):
+        return cv2.boxFilter(x, -1, (2 * k + 1, 2 * k + 1), normalize=False, borderType=cv2.BORDER_CONSTANT)[sel] / count
+
+    out = {"d": mean(d), "dd": mean(d * d), "g": np.stack([mean(gb[..., i]) for i in range(3)], -1),
+           "gd": np.stack([mean(gb[..., i] * d) for i in range(3)], -1)}
+    for i, j in _PAIRS:
+        out[f"g{i}{j}"] = mean(gb[..., i] * gb[..., j])
+    for n, axis, name in ((w, 1, "x"), (h, 0, "y")):
+        lo, hi, cnt = _extent(n, k)
+        pos = np.arange(n, dtype=np.float64) - n / 2
+        shape = (1, n) if axis == 1 else (n, 1)
+        out["d" + name] = mean(d * pos.reshape(shape))
+        idx = sel[1] if axis == 1 else sel[0]
+        out["m" + name] = ((lo + hi) / 2 - n / 2)[idx]
+        out["v" + name] = ((cnt.astype(np.float64) ** 2 - 1) / 12)[idx]
+    return out
+
+
+def _colour_fit(m: dict[str, np.ndarray], ridge: float):
+    """Per window: ``d ~ a . gb + b`` by ridge regression, from the window means ``m``; (a, b, residual variance,
+    variance of d)."""
+    md, mg = m["d"], m["g"]
+    var = np.maximum(m["dd"] - md * md, 0)
+    c = m["gd"] - mg * md[:, None]
     cov = {}
-    for i in range(3):
-        for j in range(i, 3):
-            cov[i, j] = cov[j, i] = _box(gb[..., i] * gb[..., j], r) - mg[..., i] * mg[..., j]
+    for i, j in _PAIRS:
+        cov[i, j] = cov[j, i] = m[f"g{i}{j}"] - mg[:, i] * mg[:, j]
     a = _solve3(cov, c, ridge)
     b = md - np.einsum("...i,...i->...", a, mg)
     fit = sum(a[..., i] * cov[i, j] * a[..., j] for i in range(3) for j in range(3))
@@ -216,8 +368,11 @@ def _colour_fit(gb: np.ndarray, d: np.ndarray, r: int, ridge: float):
     return a, b, res, var
 
 
+_PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+
+
 def _solve3(cov: dict, c: np.ndarray, ridge: float) -> np.ndarray:
-    """``(cov + ridge I)^-1 c`` per pixel for the symmetric 3 x 3 ``cov`` (by cofactors, elementwise)."""
+    """``(cov + ridge I)^-1 c`` per window for the symmetric 3 x 3 ``cov`` (by cofactors, elementwise)."""
     a00, a11, a22 = cov[0, 0] + ridge, cov[1, 1] + ridge, cov[2, 2] + ridge
     a01, a02, a12 = cov[0, 1], cov[0, 2], cov[1, 2]
     i00 = a11 * a22 - a12 * a12
@@ -233,32 +388,76 @@ def _solve3(cov: dict, c: np.ndarray, ridge: float) -> np.ndarray:
                      (i02 * c0 + i12 * c1 + i22 * c2) * inv], -1)
 
 
-def _plane_residual(d: np.ndarray, r: int) -> np.ndarray:
-    """The residual variance of the best plane over each window (cut at the borders: a rectangle of pixels, whose
-    x and y are uncorrelated, with the mean and variance of a run of integers along each axis)."""
-    h, w = d.shape
-    md = _box(d, r)
-    var = _box(d * d, r) - md * md
-    terms = []
-    for n, axis in ((w, 1), (h, 0)):
-        lo, hi, count = _extent(n, r)
-        pos = (np.arange(n) - n / 2).astype(np.float64)
-        mean = ((lo + hi) / 2 - n / 2).astype(np.float64)
-        v = ((count.astype(np.float64) ** 2 - 1) / 12).astype(np.float64)
-        shape = (1, n) if axis == 1 else (n, 1)
-        cov = _box(d * pos.reshape(shape), r) - md * mean.reshape(shape)
-        terms.append(cov * cov / v.reshape(shape))
-    return np.maximum(var - terms[0] - terms[1], 0)
+def _plane_residual(m: dict[str, np.ndarray]) -> np.ndarray:
+    """The residual variance of the best plane over each window (a rectangle of samples, whose x and y are
+    uncorrelated, with the mean and variance of a run of integers along each axis)."""
+    md = m["d"]
+    var = m["dd"] - md * md
+    cx = m["dx"] - md * m["mx"]
+    cy = m["dy"] - md * m["my"]
+    return np.maximum(var - cx * cx / m["vx"] - cy * cy / m["vy"], 0)
 
 
-def _near_value(est: np.ndarray, far: np.ndarray, ok: np.ndarray, r: int) -> tuple[np.ndarray, np.ndarray]:
-    """The window's near depth two ways: the largest restored value of its usable pixels (what the near side is
-    set to: the fit's slope is biased low by the texture, its top is not), and the mean of those above the middle
-    between it and the far value (what the thin test reads: robust to a single overshoot); and the share of the
-    window's pixels above that middle."""
-    top = cv2.dilate(np.where(ok, est, -np.inf), np.ones((2 * r + 1, 2 * r + 1), np.uint8))
-    high = (ok & (est > 0.5 * (far + top))).astype(np.float64)
-    count = _box(high, r)
-    mean = _box(est * high, r) / np.maximum(count, 1e-6)
-    return top, np.where(count > 0, mean, top), count
+class _Blocks:
+    """The ``f x f`` blocks of the full-resolution image whose samples are usable: their pixels' indices (a block
+    at the image's edge repeats its last row / column) and their place on the grid."""
 
+    def __init__(self, ok: np.ndarray, f: int, shape: tuple[int, int]):
+        self.iy, self.ix = np.nonzero(ok)
+        off = np.arange(f)
+        ys = np.minimum(self.iy[:, None] * f + off, shape[0] - 1)
+        xs = np.minimum(self.ix[:, None] * f + off, shape[1] - 1)
+        self.ys, self.xs = ys[:, :, None], xs[:, None, :]  # N x f x 1 and N x 1 x f
+        self.grid = ok.shape
+
+    def take(self, x: np.ndarray) -> np.ndarray:
+        return x[self.ys, self.xs]
+
+    def scatter(self, per_block: np.ndarray, fill: float) -> np.ndarray:
+        out = np.full(self.grid, fill, np.float32)
+        out[self.iy, self.ix] = per_block
+        return out
+
+    def at(self, grid: np.ndarray) -> np.ndarray:
+        """A grid's value at each block, broadcast over its pixels (N x 1 x 1)."""
+        return grid[self.iy, self.ix][:, None, None]
+
+
+def _harden(fit: _Fit, photo: np.ndarray, d: np.ndarray, rule: ThinRule, scale: float):
+    """Each pixel of a usable block at its window's far value (the map's smallest) or near value (the largest
+    restored value), where that is a structure: the far value is a plateau of the map, and so is the near value
+    unless the structure is thin (its restored near depth beyond the map's nearest value within twice the window);
+    the restoration does not undershoot the far value; enough of the window is on the near side; the step is worth
+    a pixel of blur. Only the usable blocks' pixels are computed (the rest of the image costs nothing): the rows,
+    columns and (normalised) values of the pixels that move by a pixel of blur or more, or None."""
+    blk = _Blocks(fit.ok, fit.f, d.shape)
+    a = [blk.at(fit.a[..., i]) for i in range(3)]
+    g = tone(blk.take(photo))
+    est = a[0] * g[..., 0] + a[1] * g[..., 1] + a[2] * g[..., 2] + blk.at(fit.b)  # N x f x f, the sharp model
+    k = fit.k
+    top = _dilate(blk.scatter(est.max((1, 2)), -np.inf), k)
+    low = _erode(blk.scatter(est.min((1, 2)), np.inf), k)
+    far = fit.far
+    high = est > blk.at(0.5 * (far + top))
+    n_high = _box(blk.scatter(high.sum((1, 2)), 0.0), k)
+    s_high = _box(blk.scatter(np.where(high, est, 0).sum((1, 2)), 0.0), k)
+    near = np.where(n_high > 0, s_high / np.maximum(n_high, 1e-12), top)  # the near side's mean (the thin test's)
+    tol = rule.plateau_tol * (fit.near_wide - fit.far_wide)
+    thin = near > fit.near_wide + rule.thin * (near - far)
+    use = fit.ok & (far - fit.far_wide <= tol) & (thin | (fit.near_wide - fit.near <= tol))
+    use &= far - low <= rule.undershoot * (top - far)
+    use &= top - far >= rule.min_step / scale
+    r = (2 * k + 1) * fit.f // 2  # the window's radius in px: a structure holds half a line across it
+    use &= n_high * ((2 * k + 1) ** 2) >= r + 1
+    pick = use[blk.iy, blk.ix]
+    if not pick.any():
+        return None
+    sel = (blk.ys[pick], blk.xs[pick])
+    far_p, top_p, near_p = blk.at(far)[pick], blk.at(top)[pick], blk.at(fit.near)[pick]
+    dp, ep = d[sel], est[pick]
+    place = (dp - far_p) / np.maximum(near_p - far_p, 1e-12)  # the pixel's place in the map's own window range
+    to_near = (np.maximum(ep, far_p) > 0.5 * (far_p + top_p)) & (place > rule.keep) | (place > 1 - rule.keep)
+    hard = np.where(to_near, top_p, far_p)
+    moved = hard != dp
+    ys, xs = np.broadcast_to(sel[0], hard.shape)[moved], np.broadcast_to(sel[1], hard.shape)[moved]
+    return ys, xs, hard[moved]

@@ -1,22 +1,24 @@
-"""Float64 NumPy oracle of ``bokehray.thin_depth.restore_thin``: the same rule, one pixel and one window at a time
-(a least-squares fit per window), written for reading, not speed. It answers for the pixels whose whole reach lies
-inside the image (``interior``); the implementation's box filters reflect at the borders."""
+"""Float64 NumPy oracle of ``bokehray.thin_depth.restore_thin``: the same rule, one sample, one window and one pixel
+at a time (a least-squares fit per window), written for reading, not speed. It answers for images whose sides are
+multiples of the largest grid spacing (the implementation pads the others)."""
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from scipy import ndimage
 
 
-def interior(rule, shape) -> tuple[slice, slice]:
-    """The pixels the oracle answers for: the blur's kernel, the fit's window and the hardening's two windows."""
-    s = max(rule.sigmas)
-    m = int(4 * s + 0.5) + 3 * rule.radius(s) + 1
-    return slice(m, shape[0] - m), slice(m, shape[1] - m)
+def _blocks(a: np.ndarray, f: int) -> np.ndarray:
+    """``a`` (H x W x ...) as blocks: (H / f) x (W / f) x f x f x ..."""
+    h, w = a.shape[:2]
+    return a.reshape(h // f, f, w // f, f, *a.shape[2:]).swapaxes(1, 2)
 
 
-def _window(a: np.ndarray, y: int, x: int, r: int) -> np.ndarray:
-    return a[y - r : y + r + 1, x - r : x + r + 1]
+def _window(a: np.ndarray, i: int, j: int, k: int) -> np.ndarray:
+    """The samples within ``k`` of (i, j), cut at the grid's borders."""
+    return a[max(0, i - k) : i + k + 1, max(0, j - k) : j + k + 1]
 
 
 def _steps(d: np.ndarray) -> np.ndarray:
@@ -26,69 +28,112 @@ def _steps(d: np.ndarray) -> np.ndarray:
     return step
 
 
-def _fit_pixel(gb, d, step, guide, y, x, r, rule, floor):
-    """(restored value before hardening, relative residual, usable) of the window around (y, x)."""
-    g = _window(gb, y, x, r).reshape(-1, 3)
-    v = _window(d, y, x, r).ravel()
+def _fit_sample(gb, dm, low, high, step, i, j, k, sigma, rule):
+    """(a, b, usable, relative residual) of the window around sample (i, j); None where it may not be fitted."""
+    far, near = _window(low, i, j, k).min(), _window(high, i, j, k).max()
+    span, steepest = near - far, _window(step, i, j, k).max()
+    if not (steepest < rule.jump * span and span >= rule.min_step):
+        return None
+    if not (sigma / rule.profile * steepest <= span <= rule.profile * sigma * steepest):
+        return None
+    g = _window(gb, i, j, k).reshape(-1, 3)
+    v = _window(dm, i, j, k).ravel()
     n = v.size
     gc, vc = g - g.mean(0), v - v.mean()
     a = np.linalg.solve(gc.T @ gc / n + rule.ridge * np.eye(3), gc.T @ vc / n)
     b = v.mean() - a @ g.mean(0)
     res = float(np.mean((vc - gc @ a) ** 2))
-    yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
+    yy, xx = np.meshgrid(np.arange(max(0, i - k), min(dm.shape[0], i + k + 1)),
+                         np.arange(max(0, j - k), min(dm.shape[1], j + k + 1)), indexing="ij")
     design = np.stack([np.ones(n), yy.ravel(), xx.ravel()], 1)
     plane = float(np.mean((v - design @ np.linalg.lstsq(design, v, rcond=None)[0]) ** 2))
     var = float(np.var(v))
-    hard_step = _window(step, y, x, r).max() >= rule.jump * (v.max() - v.min())
-    ok = res < rule.ratio * plane and var > floor and not hard_step
-    return float(a @ guide[y, x] + b), res / max(var, 1e-12), ok
+    ok = res < rule.ratio * plane and var > rule.min_sd**2
+    return a, b, ok, res / max(var, 1e-12)
 
 
-def _harden_pixel(d, est, ok, top, high, y, x, r, rule):
-    """(hardened value, whether it is used) at (y, x), from the fits around it."""
-    dw = _window(d, y, x, r)
-    far, near_d = dw.min(), dw.max()
-    hw = _window(high, y, x, r)
-    near = _window(est, y, x, r)[hw].mean() if hw.any() else top[y, x]
-    dw2 = _window(d, y, x, 2 * r)
-    tol = rule.plateau_tol * (dw2.max() - dw2.min())
-    thin = near > dw2.max() + rule.thin * (near - far)
-    use = far - dw2.min() <= tol and (thin or dw2.max() - near_d <= tol)
-    low = _window(est, y, x, r)[_window(ok, y, x, r)].min()
-    use = use and far - low <= rule.undershoot * (top[y, x] - far) and hw.sum() >= r + 1
-    place = (d[y, x] - far) / max(near_d - far, 1e-12)
-    to_near = (max(est[y, x], far) > 0.5 * (far + top[y, x]) and place > rule.keep) or place > 1 - rule.keep
-    return (top[y, x] if to_near else far), use
+def _fit(tone_blocks_mean, d, sigma, rule, choosing):
+    """One blur's fits on its grid: dict of per-sample arrays (a, b, ok, rel) and the grid's block min / max."""
+    f = rule.factor(sigma, choosing)
+    gm = tone_blocks_mean(f)
+    dm = _blocks(d, f).mean((2, 3))
+    low, high = _blocks(d, f).min((2, 3)), _blocks(d, f).max((2, 3))
+    step = _blocks(_steps(d), f).max((2, 3))
+    rest = math.sqrt(max(sigma * sigma - (f * f - 1) / 12, 0.0)) / f
+    gb = np.stack([ndimage.gaussian_filter(gm[..., c], rest, mode="reflect", truncate=4.0) for c in range(3)], -1)
+    hl, wl = dm.shape
+    a, b = np.zeros((hl, wl, 3)), np.zeros((hl, wl))
+    ok, rel = np.zeros((hl, wl), bool), np.full((hl, wl), np.inf)
+    for i in range(hl):
+        for j in range(wl):
+            got = _fit_sample(gb, dm, low, high, step, i, j, rule.samples(sigma, f), sigma, rule)
+            if got is not None:
+                a[i, j], b[i, j], ok[i, j], rel[i, j] = got
+    return {"f": f, "k": rule.samples(sigma, f), "sigma": sigma, "a": a, "b": b, "ok": ok, "rel": rel, "low": low, "high": high}
+
+
+def _harden(fit, guide, d, rule):
+    """The restored map (and which pixels it moved) from the image's chosen fit."""
+    f, k, ok = fit["f"], fit["k"], fit["ok"]
+    hl, wl = ok.shape
+    est = np.einsum("ijc,ijxyc->ijxy", fit["a"], _blocks(guide, f)) + fit["b"][..., None, None]
+    top, low_est = np.full((hl, wl), -np.inf), np.full((hl, wl), np.inf)
+    far, near_d = np.zeros((hl, wl)), np.zeros((hl, wl))
+    for i in range(hl):
+        for j in range(wl):
+            okw = _window(ok, i, j, k)
+            if okw.any():
+                top[i, j] = _window(est, i, j, k)[okw].max()
+                low_est[i, j] = _window(est, i, j, k)[okw].min()
+            far[i, j] = _window(fit["low"], i, j, k).min()
+            near_d[i, j] = _window(fit["high"], i, j, k).max()
+    high = ok[..., None, None] & (est > (0.5 * (far + top))[..., None, None])
+    out = d.copy()
+    r = (2 * k + 1) * f // 2
+    for i in range(hl):
+        for j in range(wl):
+            if not ok[i, j]:
+                continue
+            hw, ew = _window(high, i, j, k), _window(est, i, j, k)
+            samples = hw.shape[0] * hw.shape[1]
+            n_high = hw.sum() / samples
+            near = ew[hw].mean() if hw.any() else top[i, j]
+            far_wide, near_wide = _window(fit["low"], i, j, 2 * k).min(), _window(fit["high"], i, j, 2 * k).max()
+            tol = rule.plateau_tol * (near_wide - far_wide)
+            thin = near > near_wide + rule.thin * (near - far[i, j])
+            use = far[i, j] - far_wide <= tol and (thin or near_wide - near_d[i, j] <= tol)
+            use = use and far[i, j] - low_est[i, j] <= rule.undershoot * (top[i, j] - far[i, j])
+            use = use and top[i, j] - far[i, j] >= rule.min_step and n_high * (2 * k + 1) ** 2 >= r + 1
+            if not use:
+                continue
+            for y in range(f):
+                for x in range(f):
+                    py, px = i * f + y, j * f + x
+                    place = (d[py, px] - far[i, j]) / max(near_d[i, j] - far[i, j], 1e-12)
+                    up = max(est[i, j, y, x], far[i, j]) > 0.5 * (far[i, j] + top[i, j])
+                    to_near = (up and place > rule.keep) or place > 1 - rule.keep
+                    out[py, px] = top[i, j] if to_near else far[i, j]
+    return out
 
 
 def restore_thin_ref(image: np.ndarray, s: np.ndarray, rule) -> tuple[np.ndarray, np.ndarray]:
-    """(the restored map, which pixels changed) over ``interior(rule, s.shape)`` (elsewhere: the input)."""
+    """(the restored map, which pixels changed): each blur fitted on its grid, the blur whose usable windows' median
+    relative residual is lowest applied to the whole image (a fine blur from its per-pixel fit)."""
     d = s.astype(np.float64)
-    guide = image[..., :3].astype(np.float64)
-    guide = guide / (1 + np.maximum(guide, 0))
-    h, w = d.shape
-    ys, xs = interior(rule, d.shape)
-    step = _steps(d)
-    out, best, use = d.copy(), np.full(d.shape, np.inf), np.zeros(d.shape, bool)
-    floor = rule.min_sd**2
-    for sigma in rule.sigmas:
-        r = rule.radius(sigma)
-        gb = np.stack([ndimage.gaussian_filter(guide[..., c], sigma, mode="reflect", truncate=4.0) for c in range(3)], -1)
-        est, rel, ok = np.zeros((h, w)), np.full((h, w), np.inf), np.zeros((h, w), bool)
-        top, high = np.full((h, w), -np.inf), np.zeros((h, w), bool)
-        for y in range(ys.start - 2 * r, ys.stop + 2 * r):
-            for x in range(xs.start - 2 * r, xs.stop + 2 * r):
-                est[y, x], rel[y, x], ok[y, x] = _fit_pixel(gb, d, step, guide, y, x, r, rule, floor)
-        for y in range(ys.start - r, ys.stop + r):
-            for x in range(xs.start - r, xs.stop + r):
-                ew, kw = _window(est, y, x, r), _window(ok, y, x, r)
-                top[y, x] = ew[kw].max() if kw.any() else -np.inf
-                high[y, x] = ok[y, x] and est[y, x] > 0.5 * (_window(d, y, x, r).min() + top[y, x])
-        for y in range(ys.start, ys.stop):
-            for x in range(xs.start, xs.stop):
-                if not ok[y, x] or rel[y, x] >= best[y, x]:
-                    continue
-                best[y, x] = rel[y, x]
-                out[y, x], use[y, x] = _harden_pixel(d, est, ok, top, high, y, x, r, rule)
-    out = np.where(use, out, d)
+    photo = image[..., :3].astype(np.float64)
+
+    def tone_blocks_mean(f):  # the regression's colour: the block's mean colour, tone-mapped
+        m = _blocks(photo, f).mean((2, 3))
+        return m / (1 + np.maximum(m, 0))
+
+    fits = [_fit(tone_blocks_mean, d, sigma, rule, True) for sigma in rule.sigmas]
+    fits = [x for x in fits if x["ok"].any()]
+    if not fits:
+        return d, np.zeros(d.shape, bool)
+    best = min(fits, key=lambda x: float(np.median(x["rel"][x["ok"]])))
+    if rule.factor(best["sigma"]) != best["f"]:  # a fine blur: applied from its per-pixel fit
+        best = _fit(tone_blocks_mean, d, best["sigma"], rule, False)
+        if not best["ok"].any():
+            return d, np.zeros(d.shape, bool)
+    out = _harden(best, photo / (1 + np.maximum(photo, 0)), d, rule)
     return out, out != d
