@@ -1,5 +1,7 @@
 """Warp kernels of the preview renderer against the float64 NumPy reference (tests/reference)."""
 
+import dataclasses
+
 import bokehray_kernels as bk
 import numpy as np
 import pytest
@@ -687,3 +689,91 @@ def test_prefix_sums_leave_a_lazy_buffers_empty_rows_untouched():
     # storing every element would take all 4096 kB, the empty rows' 3584 of them; a neighbouring mapping that shares
     # the smaps entry can grow by about a MB meanwhile (seen once in eight runs under xdist: 1048 kB)
     assert after - before < 2048
+
+
+def _cluster_deposit(xc: float, yc: float, s: float, shape: bk.Shape, h: int, w: int) -> np.ndarray:
+    """The level-0 difference buffer ``scatter_clusters_kernel`` leaves for one level-1 cluster source at
+    ``(xc, yc)`` with signed CoC ``s`` in an ``h x w`` box."""
+    routing = no_routing("cpu")
+    where = np.array([[[[xc, yc, s, 1.0]]]], np.float32)
+    routing = dataclasses.replace(routing, cluster_shape=wp.array(where, dtype=wp.vec4, device="cpu"),
+                                  cluster_light=wp.array(np.float32([[[[1.0, 2.0, 3.0, 1.0]]]]), dtype=wp.vec4,
+                                                         device="cpu"))
+    buf = wp.zeros((h, w + 2), dtype=wp.vec4, device="cpu")
+    wp.launch(bk.scatter_clusters_kernel, dim=(1, 1), inputs=[routing.struct(), 1, shape], outputs=[buf], device="cpu")
+    return buf.numpy()
+
+
+@given(m=st.integers(1, 40), frac=st.integers(0, 255), ulps=st.integers(-3, 3), end=st.sampled_from([-1, 1]),
+       sgn=st.sampled_from([-1.0, 1.0]), dy=st.integers(1, 3000), blades=st.sampled_from([0, 6]))
+def test_a_cluster_is_cut_into_the_same_rows_wherever_its_box_starts(m, frac, ulps, end, sgn, dy, blades):
+    """Regression (the strict xfail of test_stress_tiling's all-edges map): a cluster source's first or last row
+    came from ``floor(yc + u)``, which float32 rounds at ``yc``'s magnitude; with its end within a few ulps of a row
+    edge (a mean radius of 12.000002 at a centre on the 1/256 px grid) a tile's window cut it into other rows than
+    the whole frame (its graded end row one row off: 1e-4 of the brightest value). Moved down by whole rows, as a
+    tile's window moves it, it deposits the very same values."""
+    fy = frac / 256.0
+    rho = np.float32(m + (fy if end < 0 else -fy))  # the top (end -1) or bottom (+1) edge on a row edge ...
+    for _ in range(abs(ulps)):  # ... up to a few ulps
+        rho = np.nextafter(rho, np.float32(np.inf if ulps > 0 else -np.inf))
+    rho = max(float(rho), 0.5)
+    ap = Aperture(blades=blades) if blades else Aperture()
+    shape = aperture_shape(ap, ap.blade_discs(), "cpu")
+    yc = m + 2 + fy
+    h, w = 2 * m + 6, 2 * m + 6
+    near = _cluster_deposit(w / 2, yc, sgn * rho, shape, h, w)
+    far = _cluster_deposit(w / 2, yc + dy, sgn * rho, shape, h + dy, w)
+    np.testing.assert_array_equal(far[dy:], near)
+    assert not far[:dy].any()
+
+
+@given(seed=st.integers(0, 2**31 - 1), oy=st.integers(0, 3), ox=st.integers(0, 3), cut_y=st.integers(0, 20),
+       cut_x=st.integers(0, 20), mixed=st.booleans())
+def test_clusters_do_not_depend_on_where_a_tiles_window_starts(seed, oy, ox, cut_y, cut_x, mixed):
+    """A tile's window starts a multiple of the coarsest pyramid cell (8 px here) after the layer's box and may be cut
+    anywhere at its end: every routing decision of a cell whose 3 x 3 neighbourhood lies whole in both (the salient
+    sources, the clusters' members, positions, radii and light) is the same as in the whole box."""
+    from bokehray.levels.preview import route_salient
+
+    rng = np.random.default_rng(seed)
+    hh, ww, side = 72, 80, 8
+    src = np.zeros((hh, ww, 4), np.float32)
+    src[..., :3] = rng.random((hh, ww, 3)) ** 3 * 0.5
+    src[..., 3] = 1.0
+    for _ in range(6):  # lamps of dim-ish pixels: clusters
+        y, x, n = rng.integers(0, hh - 6), rng.integers(0, ww - 6), rng.integers(2, 7)
+        src[y:y + n, x:x + n, :3] += rng.uniform(0.5, 3.0, 3).astype(np.float32)
+    coc = rng.uniform(9.0, 60.0, (hh, ww)).astype(np.float32)
+    if mixed:  # near and far pixels in one layer (a checkerboard of signs, as soft edges on an all-edges map make)
+        coc *= np.where((np.add.outer(np.arange(hh), np.arange(ww)) % 2) == 0, 1.0, -1.0).astype(np.float32)
+    y0, x0 = oy * side, ox * side
+    y1, x1 = hh - cut_y, ww - cut_x
+
+    def route(a, c):
+        r = route_salient(wp.array(np.ascontiguousarray(a), dtype=wp.vec4, device="cpu"),
+                          wp.array(np.ascontiguousarray(c), device="cpu"), 4, 8.0, "cpu")
+        return r.exact.numpy(), r.cluster_shape.numpy(), r.cluster_light.numpy()
+
+    whole = route(src, coc)
+    level = np.minimum(np.ceil(np.log2(np.abs(coc) / 8.0)), 3)  # each source's pyramid level (all above 8 px)
+    part = route(src[y0:y1, x0:x1], coc[y0:y1, x0:x1])
+    for lev in (1, 2, 3):
+        s = 1 << lev
+        # cells whose 3 x 3 neighbours are whole cells of the window: not at its start (unless the box's), not within
+        # two cells of its cut end (unless the box's)
+        cy0, cx0 = (1 if y0 else 0), (1 if x0 else 0)
+        cy1 = -(-(y1 - y0) // s) if y1 == hh else (y1 - y0) // s - 1
+        cx1 = -(-(x1 - x0) // s) if x1 == ww else (x1 - x0) // s - 1
+        if cy1 <= cy0 or cx1 <= cx0:
+            continue
+        py0, py1, px0, px1 = cy0 * s, min(cy1 * s, y1 - y0), cx0 * s, min(cx1 * s, x1 - x0)
+        on = level[y0 + py0:y0 + py1, x0 + px0:x0 + px1] == lev
+        np.testing.assert_array_equal(part[0][py0:py1, px0:px1][on], whole[0][y0 + py0:y0 + py1, x0 + px0:x0 + px1][on])
+        b = max(1, lev - 2)
+        sl = (lev - 1, slice(py0 >> b, -(-py1 >> b)), slice(px0 >> b, -(-px1 >> b)))
+        wl = (lev - 1, slice((y0 + py0) >> b, -(-(y0 + py1) >> b)), slice((x0 + px0) >> b, -(-(x0 + px1) >> b)))
+        got, want = part[1][sl].copy(), whole[1][wl]
+        got[..., 0] += np.where(got[..., 3] == 1.0, x0, 0.0)
+        got[..., 1] += np.where(got[..., 3] == 1.0, y0, 0.0)
+        np.testing.assert_array_equal(got, want)
+        np.testing.assert_array_equal(part[2][sl], whole[2][wl])
