@@ -31,7 +31,6 @@ from dataclasses import dataclass
 import bokehray_kernels as bk
 import numpy as np
 import warp as wp
-from bokehray_kernels.routing import cluster_grid
 
 from .. import scene as sc
 from .. import tiling
@@ -209,26 +208,23 @@ class Routing:
     exact: wp.array  # uint8 per source: 1 routed alone, 2 in its cell's cluster, 0 on the pyramid
     cell_total: wp.array  # per level-l cell: its 3 x 3 cells' sum of sources (the routed sources' local colour)
     cell_pixels: wp.array  # and how many pixels they hold
-    cluster_light: wp.array  # per level and 2 x 2 block: the cluster's excess light there (RGB, summed excess)
-    cluster_shape: wp.array  # per level and 2 x 2 block: (x, y, signed CoC, 1 if it holds cluster members)
 
     def struct(self) -> bk.Routing:
         """The routing as the kernels take it."""
         r = bk.Routing()
         r.exact, r.cell_total, r.cell_pixels = self.exact, self.cell_total, self.cell_pixels
-        r.cluster_light, r.cluster_shape = self.cluster_light, self.cluster_shape
         return r
 
 
 def no_routing(device: str) -> Routing:
     """``bk.scatter_kernel``'s routing when nothing is routed: 1-element placeholders it does not read."""
-    cells = wp.zeros((1, 1, 1), dtype=wp.vec4, device=device)
-    return Routing(wp.zeros((1, 1), dtype=wp.uint8, device=device), cells, wp.zeros((1, 1, 1), dtype=float, device=device),
-                   cells, cells)
+    return Routing(wp.zeros((1, 1), dtype=wp.uint8, device=device), wp.zeros((1, 1, 1), dtype=wp.vec4, device=device),
+                   wp.zeros((1, 1, 1), dtype=float, device=device))
 
 
-def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device: str,
-                  support: sc.LayerSupport | None = None, first: int = 1, lazy: bool = True) -> Routing:
+def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device: str, shape: bk.Shape,
+                  buf0: wp.array, support: sc.LayerSupport | None = None, first: int = 1,
+                  lazy: bool = True) -> Routing:
     """Which pyramid-level sources send their excess light to level 0: alone, or as their cell's cluster.
 
     A source on pyramid level ``l`` gets its outline blurred by about ``2^l`` px. That is
@@ -239,8 +235,9 @@ def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device
     the ``max(1, 2^(l-1))`` best-scored of them, so the level-0 work stays below half of the
     pyramid work whatever the radius (flat cost in R). In the same pass it gathers the rest of each cell's
     excess light into one source a block when together it is visible (an extended light: each of its pixels
-    is too faint alone). Every decision depends only on pyramid-aligned cells of the layer's box, so
-    tiled renders route the same sources. Cells outside the layer's ``support`` (None: everywhere) are skipped,
+    is too faint alone) and scatters those into ``buf0``, level 0's difference plane, with the aperture
+    ``shape``: the clusters hold no memory of their own. Every decision depends only on pyramid-aligned cells of
+    the layer's box, so tiled renders route the same sources. Cells outside the layer's ``support`` (None: everywhere) are skipped,
     and so are the levels below ``first``, which hold no source (``bokehray.scene.lowest_level``).
     """
     h, w = src.shape
@@ -260,16 +257,14 @@ def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device
         fh, fw = ch, cw
     cell_total = lazy_zeros((n_means, h1, w1), wp.vec4, device, lazy)
     cell_pixels = lazy_zeros((n_means, h1, w1), float, device, lazy)
-    light = lazy_zeros((n_means, h1, w1), wp.vec4, device, lazy)
-    shape = lazy_zeros((n_means, h1, w1), wp.vec4, device, lazy)
-    routing = Routing(exact, cell_total, cell_pixels, light, shape)
+    routing = Routing(exact, cell_total, cell_pixels)
     for lev in range(max(1, first), n_levels):
         side = 1 << lev
         salience = bk.Salience()
         salience.per_cell, salience.visible, salience.floor = max(1, side // 2), SALIENT_VISIBLE, SALIENT_FLOOR
         wp.launch(bk.route_cells_kernel, dim=((h + side - 1) // side, (w + side - 1) // side),
                   inputs=[src, coc, means, counts, float(r0), n_levels, lev, salience, where],
-                  outputs=[routing.struct()], device=device)
+                  outputs=[routing.struct(), shape, buf0], device=device)
     return routing
 
 
@@ -519,14 +514,10 @@ def render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatt
         else:
             bufs.append(bufs[0] if lv > 0 else None)
     routed = scatter.exact_highlights and n_levels > 1
-    routing = (route_salient(src, coc, n_levels, scatter.level_radius_px, device, support, first, lazy) if routed
-               else no_routing(device))
+    routing = (route_salient(src, coc, n_levels, scatter.level_radius_px, device, scatter.shape, bufs[0], support,
+                             first, lazy) if routed else no_routing(device))
     levels = pyramid_buffers(bufs)
     _scatter_sources(src, coc, support, routing, scatter, n_levels, first, levels)
-    if routed:
-        for lev in range(max(1, first), n_levels):
-            wp.launch(bk.scatter_clusters_kernel, dim=cluster_grid(h, w, lev),
-                      inputs=[routing.struct(), lev, scatter.shape], outputs=[bufs[0]], device=device)
     del routing, coc  # scattered: their pages go before the prefix sums and the resolve (a layer's last stages)
     for lv in range(n_levels):
         if lv == 0 or lv >= first:  # level 0 is read at the support's pixels only, the coarser levels everywhere
