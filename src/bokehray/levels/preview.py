@@ -72,10 +72,11 @@ DENSE_LAYER_B = 48
 """Per pixel of a layer's box in work on a GPU, where every array is dense (``buffers.lazy_zeros`` allocates
 whole): sources (16 + 4), the radius pyramid's difference buffers (16 x 4/3) and the routing's arrays (as the CPU
 model was calibrated before its pages followed the support; not measured on a GPU)."""
-SMALL_BOX_B = 70
+SMALL_BOX_B = 58
 """Per pixel of the box of a layer whose arrays are zeroed at once on the CPU (a box below ``buffers.LAZY_MIN_BYTES``
 of vec4): its sources, level 0, the routing's planes and flags, dense; calibrated on measured growth at 1.5 MP
-(the demo, exact and soft maps, two workers: 0.92-0.98 of the growth at 1.5 and 6 MP; docs/robustness.md)."""
+(the demo, exact, Gaussian 4 px and all-edges maps, two workers: 1.01-1.04 of the growth; 70 while the routing kept
+a dense plane of its clusters' light and shape a pyramid level; docs/design/memory-model.md)."""
 TILED_B = 12
 """Per pixel of the frame in a tiled render: the output the tiles' cores are copied into (``_render_tiled``); 12 more
 where the frame is not padded, for the photo it keeps for the copied tiles (padded, that photo is the scene's colour,
@@ -98,6 +99,12 @@ over its support as it starts, then its result) and its CoC (4). Its level 0 and
 its light is deposited, at the end of its scatter: beside the largest layer at its peak, the other workers' layers
 count this much (a dense box, zeroed whole as it starts, counts whole). Counted at their full rate, two workers'
 layers made the estimate 1.34 of the growth on a 6 MP all-edges map (one worker: 1.03; docs/design/memory-model.md)."""
+
+ROUTING_B = 9
+"""More per lit pixel a routed layer (exact highlights, pyramid levels above 0) holds from its routing to the end of
+its scatter, beside another layer's peak: the routing's flags (1) and its cells' neighbourhood sums and pixel counts
+(20 B a level-``l`` cell, 7-8 B a pixel in 4 KB pages; ``route_salient``). On a 20 000 x 2 noise strip, a light or
+a cluster in nearly every cell, two routed full-frame layers were at their peak at once (docs/design/memory-model.md)."""
 
 Footprint = tuple[int, int, int]
 """(pixels a layer's arrays take pages on, bytes per such pixel at its peak, bytes per such pixel it holds while in
@@ -138,14 +145,16 @@ def _clamped_border(s: np.ndarray, soft: sc.SoftEdges | None, grid: int, clamp: 
     return pads
 
 
-def _layer_footprint(layer: sc.LayerRecord, level_radius_px: float, on_cpu: bool) -> Footprint:
-    """A layer's :data:`Footprint`: dense arrays (a GPU's, a small box's) are taken whole as the layer starts."""
+def _layer_footprint(layer: sc.LayerRecord, level_radius_px: float, on_cpu: bool, routed: bool = True) -> Footprint:
+    """A layer's :data:`Footprint`: dense arrays (a GPU's, a small box's) are taken whole as the layer starts.
+    ``routed``: exact highlights on (the layer's sources above level 0 are routed, :func:`route_salient`)."""
     if not on_cpu:
         return _area(layer.bbox), DENSE_LAYER_B, DENSE_LAYER_B
     if not lazy_for(layer.bbox[1] - layer.bbox[0], layer.bbox[3] - layer.bbox[2]):  # a small box: dense arrays
         return _area(layer.bbox), SMALL_BOX_B, SMALL_BOX_B
     dense_level0 = sc.lowest_level(layer, level_radius_px) == 0
-    return _lit_area(layer), LIT_B + (LEVEL0_B if dense_level0 else 0), HELD_B
+    routing = ROUTING_B if routed and sc.pyramid_levels(layer.max_radius, level_radius_px) > 1 else 0
+    return _lit_area(layer), LIT_B + (LEVEL0_B if dense_level0 else 0), HELD_B + routing
 
 
 @dataclass(frozen=True, slots=True)
@@ -382,7 +391,8 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
     whole = (WHOLE_IMAGE_B + (0 if ctx.disposable else KEPT_CONTEXT_B)) * h * w + SOFT_B * n_split
     # a layer's arrays take pages where its light lies on the CPU (lazily zeroed), its whole box on a GPU
     on_cpu = wp.get_device(ctx.device).is_cpu
-    footprints = [_layer_footprint(lyr, options.level_radius_px, on_cpu) for lyr in scene.layers]
+    footprints = [_layer_footprint(lyr, options.level_radius_px, on_cpu, options.exact_highlights)
+                  for lyr in scene.layers]
     if ctx.memory.tile_size is None:
         # fewer layers in flight before tiles: where the budget does not hold a layer a worker but holds the frame
         # with fewer workers, those render it untiled (the same values, the layers' CPU time the same, less
