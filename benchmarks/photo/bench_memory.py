@@ -13,6 +13,8 @@ Usage (from the repository root)::
     python benchmarks/photo/bench_memory.py --model      # the preview's memory model against peaks, 1.5 to 24 MP
     python benchmarks/photo/bench_memory.py --soft --sizes 1.5,6 --maps exact,gauss4,edges --runs 4 --budget 1500
                                                          # the soft scene (split pixels) in the estimate
+    python benchmarks/photo/bench_memory.py --soft --sizes strip --maps noise,checker --runs 1
+                                                         # the soak's 20 000 x 2 strips (a frame of lights)
 
 ``--soft``: the default blur and focus of the command line (``--amount 50``, the subject's focus) on the demo
 scene's map as it is (``exact``), blurred by a Gaussian of 4 or 6 px (``gauss4``, ``gauss6``: soft maps, snapped
@@ -211,22 +213,44 @@ def soft_child(npz: str, kind: str, limit: str, heap: str) -> None:
     common.report_rss(peak=True)
 
 
-def run_soft(sizes: list[float], maps: list[str], runs: int, limit: float | None, heap: str, tmp: str) -> list[dict]:
+STRIP_W = 20_000
+"""``--sizes strip``: the soak's W x 2 strip (benchmarks/robustness/soak.py), its maps ``noise`` or ``checker``."""
+
+
+def _soft_cases(mp, maps: list[str], tmp: str):
+    """(npz, width, height, map, the child's map) of each case of one size: the demo scene's maps, or a strip's."""
+    if mp == "strip":
+        w, h = STRIP_W, 2
+        image = np.random.default_rng(w).random((h, w, 3)).astype(np.float32)
+        for kind in maps:
+            if kind not in ("noise", "checker"):
+                raise SystemExit(f"--maps: a strip's map is noise or checker, not {kind!r}")
+            x = np.indices((h, w)).sum(0)
+            d = (x % 2) if kind == "checker" else np.random.default_rng(1).random((h, w))
+            npz = f"{tmp}/strip-{w}-{kind}.npz"
+            np.savez(npz, image=image, disparity=d.astype(np.float32))
+            yield npz, w, h, kind, "exact"
+        return
+    from bokehray.app.demo import build_demo_scene
+
+    w, h = SIZES[mp]
+    npz = f"{tmp}/demo-{w}x{h}.npz"
+    scene = build_demo_scene(w, h)
+    np.savez(npz, image=scene.image, disparity=scene.disparity)
+    del scene
+    for kind in maps:
+        yield npz, w, h, kind, kind
+
+
+def run_soft(sizes: list, maps: list[str], runs: int, limit: float | None, heap: str, tmp: str) -> list[dict]:
     """One fresh process a (size, map, run)."""
     import subprocess
 
-    from bokehray.app.demo import build_demo_scene
-
     rows = []
     for mp in sizes:
-        w, h = SIZES[mp]
-        npz = f"{tmp}/demo-{w}x{h}.npz"
-        scene = build_demo_scene(w, h)
-        np.savez(npz, image=scene.image, disparity=scene.disparity)
-        del scene
-        for kind in maps:
+        for npz, w, h, kind, child_kind in _soft_cases(mp, maps, tmp):
             for k in range(runs):
-                args = [__file__, "--soft-child", npz, kind, str(limit or "-"), heap]
+                args = [__file__, "--soft-child", npz, child_kind, str(limit or "-"), heap]
                 p = subprocess.run([sys.executable, *args], cwd=common.REPO, capture_output=True, text=True,
                                    timeout=3600)
                 row = {"megapixels": mp, "width": w, "height": h, "map": kind, "run": k, "memory_limit_mb": limit,
@@ -262,15 +286,16 @@ def soft_table(rows: list[dict]) -> str:
         cases.setdefault((r["megapixels"], r["map"]), []).append(r)
     for (mp, kind), rs in cases.items():
         ok = [r for r in rs if "growth_mb" in r and r.get("memory_estimate_mb")]
+        size = f"{STRIP_W} x 2" if mp == "strip" else f"{mp:g} MP"
         if not ok:
-            out.append(f"| {mp:g} MP | {kind} | {len(rs)} | error: {rs[0].get('error') or rs[0].get('refused')} "
+            out.append(f"| {size} | {kind} | {len(rs)} | error: {rs[0].get('error') or rs[0].get('refused')} "
                        "| | | | |")
             continue
         g = [r["growth_mb"] for r in ok]
         est = statistics.median(r["memory_estimate_mb"] for r in ok)
         ratios = [est / x for x in g]
         before = sum(_peak_before_layers(r) for r in ok)
-        out.append(f"| {mp:g} MP | {kind} | {len(ok)} | {statistics.median(g):.0f} ({min(g):.0f}-{max(g):.0f}) | "
+        out.append(f"| {size} | {kind} | {len(ok)} | {statistics.median(g):.0f} ({min(g):.0f}-{max(g):.0f}) | "
                    f"{est:.0f} | {est / statistics.median(g):.2f} ({min(ratios):.2f}-{max(ratios):.2f}) | "
                    f"{ok[0].get('split_pixels') or ''} | {before} of {len(ok)} |")
     return "\n".join(out)
@@ -331,10 +356,11 @@ def table(rows: list[dict]) -> str:
 def soft_main(args) -> int:
     machine = common.machine_info()
     with tempfile.TemporaryDirectory(prefix="bokehray-mem-") as tmp:
-        rows = run_soft([float(v) for v in args.sizes.split(",")], args.maps.split(","), args.runs, args.budget,
-                        args.heap, tmp)
+        rows = run_soft([v if v == "strip" else float(v) for v in args.sizes.split(",")], args.maps.split(","),
+                        args.runs, args.budget, args.heap, tmp)
     print(soft_table(rows))
-    tag = "-" + args.sizes.replace(",", "-") + "mp" + ("" if args.heap == "bounded" else "-glibc-heap")
+    tag = "-" + args.sizes.replace(",", "-") + ("" if args.sizes == "strip" else "mp") + (
+        "" if args.heap == "bounded" else "-glibc-heap")
     path = common.write_json(args.out / f"memory-soft{tag}--{common.machine_tag(machine)}.json",
                              {"what": "demo scene, --amount 50 and the subject's focus, soft edges on; one fresh "
                                       "process a row; growth = peak (VmHWM, reset after a 256 x 256 warm-up of the "
@@ -350,7 +376,7 @@ def main() -> int:
     ap.add_argument("--model", action="store_true", help="the preview's memory model: estimate against growth")
     ap.add_argument("--out", type=Path, default=common.REPO / "benchmarks" / "results")
     ap.add_argument("--soft", action="store_true", help="the soft scene in the estimate (--sizes, --maps, --runs)")
-    ap.add_argument("--sizes", default="1.5,6", help="megapixels for --soft: 1.5, 6, 12, 24")
+    ap.add_argument("--sizes", default="1.5,6", help="megapixels for --soft: 1.5, 6, 12, 24; or strip (20 000 x 2)")
     ap.add_argument("--maps", default="exact,gauss4,edges", help="maps for --soft: exact, gauss4, gauss6, edges")
     ap.add_argument("--runs", type=int, default=3, help="fresh processes a case for --soft")
     ap.add_argument("--budget", type=float, default=None, help="memory_limit_mb for --soft (default: automatic)")

@@ -43,7 +43,6 @@ from .routing import Salience as Salience
 from .routing import halve_mean_kernel as halve_mean_kernel
 from .routing import radiance_mean_kernel as radiance_mean_kernel
 from .routing import route_cells_kernel as route_cells_kernel
-from .routing import scatter_clusters_kernel as scatter_clusters_kernel
 from .soft import near_sources_kernel as near_sources_kernel
 from .spans import Shape as Shape
 from .split import split_kernel as split_kernel
@@ -81,7 +80,6 @@ __all__ = [
     "route_cells_kernel",
     "row_distance_kernel",
     "row_sweep_kernel",
-    "scatter_clusters_kernel",
     "scatter_kernel",
     "scatter_merged_kernel",
     "split_kernel",

@@ -65,7 +65,7 @@ def pyramid_share(v: wp.vec4, routing: Routing, h: int, w: int, y: int, x: int, 
 def deposit_routed(v: wp.vec4, r: float, sgn: float, routing: Routing, h: int, w: int, y: int, x: int, lev: int,
                    shape: Shape, buf0: wp.array2d(dtype=wp.vec4)):
     """A source routed alone (``exact == 1``): its excess light over :func:`pyramid_share` at level 0, exactly (a
-    cluster member's excess is its cluster's, ``scatter_clusters_kernel``)."""
+    cluster member's excess is its cluster's, scattered by ``route_cells_kernel``)."""
     if _routed(routing, h, w, y, x) == wp.uint8(1):
         base = pyramid_share(v, routing, h, w, y, x, lev)
         scatter_exact(buf0, float(x) + 0.5, float(y) + 0.5, r,

@@ -16,15 +16,12 @@ class Routing:
 
     ``exact``: per source, 1 routed alone to level 0, 2 in its cell's cluster, 0 on the pyramid (a 1 x 1 array:
     nothing routed, and then nothing else is read); ``cell_total``, ``cell_pixels``: per level-``l`` cell, its
-    3 x 3 cells' sum of sources and their pixels (the routed sources' local colour); ``cluster_light``,
-    ``cluster_shape``: per level and block, a cluster's excess light (RGB, summed excess) and its source
-    (x, y, signed CoC, 1 where it holds members)."""
+    3 x 3 cells' sum of sources and their pixels (the routed sources' local colour). The clusters' light is
+    deposited at level 0 as they are found: nothing of them is stored."""
 
     exact: wp.array2d(dtype=wp.uint8)
     cell_total: wp.array3d(dtype=wp.vec4)
     cell_pixels: wp.array3d(dtype=float)
-    cluster_light: wp.array3d(dtype=wp.vec4)
-    cluster_shape: wp.array3d(dtype=wp.vec4)
 
 
 @wp.struct
@@ -172,6 +169,53 @@ def on_level(v: wp.vec4, r: float, r0: float, n_levels: int, lev: int) -> bool:
     return r * scale <= r0 or lev == n_levels - 1
 
 
+@wp.func
+def _scatter_blocks(src: wp.array2d(dtype=wp.vec4), coc: wp.array2d(dtype=float), exact: wp.array2d(dtype=wp.uint8),
+                    nb: Neighbourhood, mean: wp.vec2, r0: float, n_levels: int, lev: int, y0: int, y1: int, x0: int,
+                    x1: int, shape: Shape, buf0: wp.array2d(dtype=wp.vec4)):
+    """A visible cluster of cell ``[y0, y1) x [x0, x1)`` to level 0: its members (marked 2 in ``exact``) gathered per
+    block of ``2^b`` px, ``b = max(1, lev - 2)``, one source a block at their excess-weighted centroid with their
+    excess-weighted mean radius (signed as their mean signed CoC), carrying their excess light (what
+    ``routed_base`` does not keep on the pyramid), scattered with the exact spans of level 0 (a block is 2 px wide
+    up to level 3: the pyramid levels' sharp spans cost small lamps 2-3 dB).
+
+    A block's members lie within ``2^(b-1)`` px of its centroid, at most 1/32 of the radius, so the gathered
+    sources keep the cluster's own soft outline; at most 16 blocks a cell, so the cost stays flat in R."""
+    b = wp.max(1, lev - 2)
+    bs = 1 << b
+    for by in range(y0 >> b, (y1 + bs - 1) >> b):
+        for bx in range(x0 >> b, (x1 + bs - 1) >> b):
+            b_e = float(0.0)
+            b_light = wp.vec3()
+            b_x = float(0.0)
+            b_y = float(0.0)
+            b_s = float(0.0)
+            b_sign = float(0.0)
+            for y in range(by * bs, wp.min(by * bs + bs, y1)):
+                for x in range(bx * bs, wp.min(bx * bs + bs, x1)):
+                    v = src[y, x]
+                    e = _cluster_excess(v, wp.abs(coc[y, x]), exact[y, x], mean, r0, n_levels, lev)
+                    if e > 0.0:
+                        base = routed_base(v, nb)
+                        b_light += wp.vec3(v[0] - base[0], v[1] - base[1], v[2] - base[2])
+                        b_e += e
+                        b_x += e * (float(x - bx * bs) + 0.5)  # relative to the block: the same sums
+                        b_y += e * (float(y - by * bs) + 0.5)  # in a tile's window as in the whole box
+                        b_s += e * wp.abs(coc[y, x])
+                        b_sign += e * coc[y, x]
+                        exact[y, x] = wp.uint8(2)
+            if b_e > 0.0:
+                # the centroid on a 1/256 px grid: exact in float32 in a window's coordinates and in the box's,
+                # so the scatter cuts the same sub-rows in both (tiled renders equal the untiled one)
+                cx_rel = wp.floor(b_x / b_e * 256.0 + 0.5) / 256.0
+                cy_rel = wp.floor(b_y / b_e * 256.0 + 0.5) / 256.0
+                sgn = float(1.0)
+                if b_sign >= 0.0:
+                    sgn = -1.0  # in front of the focus (or on it): the shape point-reflected
+                scatter_exact(buf0, float(bx * bs) + cx_rel, float(by * bs) + cy_rel, b_s / b_e,
+                              wp.vec4(b_light[0], b_light[1], b_light[2], 0.0), shape, sgn)
+
+
 @wp.kernel
 def route_cells_kernel(  # noqa: C901
     src: wp.array2d(dtype=wp.vec4),
@@ -184,6 +228,8 @@ def route_cells_kernel(  # noqa: C901
     salience: Salience,
     support: Support,
     routing: Routing,
+    shape: Shape,
+    buf0: wp.array2d(dtype=wp.vec4),
 ):
     """Route the level-``lev`` sources of each level cell: at most ``per_cell`` salient ones alone to level 0, and
     the rest of the cell's excess light, when together it is visible, as its cluster.
@@ -204,9 +250,9 @@ def route_cells_kernel(  # noqa: C901
     whose outlines coincide: together they draw a sharp-edged ball. The cell's sources of that level not
     routed alone and with positive excess are its *cluster*; when their summed excess ``E`` beats the
     visibility threshold at the excess-weighted mean radius, their excess light (what ``routed_base`` does
-    not keep on the pyramid) goes to level 0 gathered per block of ``2^b`` px, ``b = max(1, lev - 2)``, one
-    source at each block's excess-weighted centroid: ``cluster_light[lev - 1, by, bx] = (RGB, summed
-    excess)``, ``cluster_shape[...] = (x, y, signed CoC, 1)``, and the members are marked 2 in ``exact``. At
+    not keep on the pyramid) is scattered into ``buf0`` (level 0's difference plane) gathered per block of
+    ``2^b`` px, ``b = max(1, lev - 2)``, one source at each block's excess-weighted centroid
+    (:func:`_scatter_blocks`), and the members are marked 2 in ``exact``. At
     most 16 level-0 sources per cell, whose rows are at most twice those of the cell's pyramid sources
     (level 3), whatever the radius. ``E`` is the excess of all the cell's sources with a positive one less
     that of the routed ones, summed in float64 in the pass that counts the salient ones.
@@ -229,8 +275,6 @@ def route_cells_kernel(  # noqa: C901
     exact = routing.exact
     cell_total = routing.cell_total
     cell_pixels = routing.cell_pixels
-    cluster_light = routing.cluster_light
-    cluster_shape = routing.cluster_shape
     hl = (src.shape[0] + side - 1) >> lev
     wl = (src.shape[1] + side - 1) >> lev
     nb = neighbourhood(means, counts, lev, cy, cx, hl, wl)
@@ -303,63 +347,5 @@ def route_cells_kernel(  # noqa: C901
     s_mean = float((ps_all - ps_sal) / (e_all - e_sal))
     if e_sum - visible * wp.max(mean[0], floor) * 3.14159265 * s_mean * s_mean <= 0.0:
         return
-    # visible together: its members' excess goes to level 0, gathered per block of 2^b px, b = max(1, lev - 2)
-    # (a block's members lie within 2^(b-1) px of their centroid, at most 1/32 of the radius, so the gathered
-    # sources keep the cluster's own soft outline; at most 16 blocks a cell, so the cost stays flat in R)
-    b = wp.max(1, lev - 2)
-    bs = 1 << b
-    for by in range(y0 >> b, (y1 + bs - 1) >> b):
-        for bx in range(x0 >> b, (x1 + bs - 1) >> b):
-            b_e = float(0.0)
-            b_light = wp.vec3()
-            b_x = float(0.0)
-            b_y = float(0.0)
-            b_s = float(0.0)
-            b_sign = float(0.0)
-            for y in range(by * bs, wp.min(by * bs + bs, y1)):
-                for x in range(bx * bs, wp.min(bx * bs + bs, x1)):
-                    v = src[y, x]
-                    e = _cluster_excess(v, wp.abs(coc[y, x]), exact[y, x], mean, r0, n_levels, lev)
-                    if e > 0.0:
-                        base = routed_base(v, nb)
-                        b_light += wp.vec3(v[0] - base[0], v[1] - base[1], v[2] - base[2])
-                        b_e += e
-                        b_x += e * (float(x - bx * bs) + 0.5)  # relative to the block: the same sums
-                        b_y += e * (float(y - by * bs) + 0.5)  # in a tile's window as in the whole box
-                        b_s += e * wp.abs(coc[y, x])
-                        b_sign += e * coc[y, x]
-                        exact[y, x] = wp.uint8(2)
-            if b_e > 0.0:
-                # the centroid on a 1/256 px grid: exact in float32 in a window's coordinates and in the box's,
-                # so the scatter cuts the same sub-rows in both (tiled renders equal the untiled one)
-                cx_rel = wp.floor(b_x / b_e * 256.0 + 0.5) / 256.0
-                cy_rel = wp.floor(b_y / b_e * 256.0 + 0.5) / 256.0
-                cluster_light[lev - 1, by, bx] = wp.vec4(b_light[0], b_light[1], b_light[2], b_e)
-                s_block = b_s / b_e
-                if b_sign < 0.0:
-                    s_block = -s_block
-                cluster_shape[lev - 1, by, bx] = wp.vec4(float(bx * bs) + cx_rel, float(by * bs) + cy_rel,
-                                                         s_block, 1.0)
-
-
-def cluster_grid(h: int, w: int, lev: int) -> tuple[int, int]:
-    """The blocks of level ``lev``'s clusters in an ``h x w`` box (``route_cells_kernel``: blocks of ``2^b`` px,
-    ``b = max(1, lev - 2)``): the corner of the level-1 grid the cluster arrays are allocated at that level uses."""
-    b = max(1, lev - 2)
-    return (h + (1 << b) - 1) >> b, (w + (1 << b) - 1) >> b
-
-
-@wp.kernel
-def scatter_clusters_kernel(routing: Routing, lev: int, shape: Shape, buf0: wp.array2d(dtype=wp.vec4)):
-    """Scatter the level-``lev`` cluster sources (``route_cells_kernel``; one thread per block) at level 0:
-    light, no coverage, with the exact area-integrated spans (a block is 2 px wide up to level 3: the pyramid
-    levels' sharp spans cost small lamps 2-3 dB)."""
-    by, bx = wp.tid()
-    where = routing.cluster_shape[lev - 1, by, bx]
-    if where[3] == 0.0:
-        return
-    light = routing.cluster_light[lev - 1, by, bx]
-    sgn = float(1.0)
-    if where[2] > 0.0:
-        sgn = -1.0
-    scatter_exact(buf0, where[0], where[1], wp.abs(where[2]), wp.vec4(light[0], light[1], light[2], 0.0), shape, sgn)
+    # visible together: its members' excess goes to level 0, gathered per block
+    _scatter_blocks(src, coc, exact, nb, mean, r0, n_levels, lev, y0, y1, x0, x1, shape, buf0)

@@ -214,13 +214,20 @@ class Rows:
 
 @wp.func
 def rows_of(yc: float, rho: float, shape: Shape, sgn: float) -> Rows:
-    """The row walk both span rules take (point-reflected for ``sgn < 0``)."""
+    """The row walk both span rules take (point-reflected for ``sgn < 0``).
+
+    The first and last rows come from the centre's fraction (``yc = iy + fy``, both exact in float32): ``floor(yc +
+    u)`` rounds the sum at ``yc``'s magnitude, so a shape's end within a few ulps of a row edge fell in another row
+    in a tile's window than in the whole frame (the graded sub-rows of :func:`_sub_edge` on another row: tiled
+    renders 1e-4 off the untiled one)."""
     span = _signed_extent(shape.extent, rho, sgn)
     r = Rows()
     r.u_top = span[0]
     r.u_bot = span[1]
-    r.k0 = int(wp.floor(yc + r.u_top))
-    r.k1 = int(wp.floor(yc + r.u_bot))
+    iy = wp.floor(yc)
+    fy = yc - iy
+    r.k0 = int(iy) + int(wp.floor(fy + r.u_top))
+    r.k1 = int(iy) + int(wp.floor(fy + r.u_bot))
     return r
 
 

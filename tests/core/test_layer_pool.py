@@ -175,3 +175,17 @@ def test_a_layer_s_footprint_dense_when_small_lazy_when_large():
     px, rate, held = pv._layer_footprint(large, 8.0, True)
     assert px == 4_000_000 and rate in (pv.LIT_B, pv.LIT_B + pv.LEVEL0_B) and held == pv.HELD_B < rate
     assert pv._layer_footprint(large, 8.0, False) == (4_000_000, pv.DENSE_LAYER_B, pv.DENSE_LAYER_B)
+
+
+def test_a_routed_layer_holds_its_routing_beside_another_layer_s_peak():
+    """A layer with pyramid levels above 0 is routed (exact highlights on): from its routing to the end of its scatter
+    it holds the routing's flags and cell sums too, ROUTING_B a lit pixel (a 20 000 x 2 noise strip had two routed
+    full-frame layers at their peak at once); with exact highlights off, or no level above 0, it holds HELD_B."""
+    from bokehray.scene import LayerRecord
+
+    large = LayerRecord(0, -60.0, -20.0, (0, 2000, 0, 2000), 60.0, 0.0)
+    px, rate, held = pv._layer_footprint(large, 8.0, True)
+    assert held == pv.HELD_B + pv.ROUTING_B < rate
+    assert pv._layer_footprint(large, 8.0, True, routed=False) == (px, rate, pv.HELD_B)
+    flat = dataclasses.replace(large, s_lo=-4.0, s_hi=-1.0, max_radius=4.0)  # level 0 only: nothing to route
+    assert pv._layer_footprint(flat, 8.0, True)[2] == pv.HELD_B

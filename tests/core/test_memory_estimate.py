@@ -81,3 +81,34 @@ def test_split_pixels_that_cannot_be_planned_are_refused_before_the_split(monkey
     with pytest.raises(br.ResourceError, match=r"soft edges of the 200 x 200 px image: its \d+ split pixels need"):
         br.render(image, d, blur, options=options, memory=br.MemoryOptions(memory_limit_mb=0.9 * need / 2**20))
     assert not seen  # refused before the split
+
+
+def _written_bytes(a) -> int:
+    """The 4 KB pages of ``a`` holding anything but zeros: what a lazily zeroed array takes at least."""
+    b = a.numpy().view(np.uint8).reshape(-1)
+    n = b.size // 4096 * 4096
+    return (int(b[:n].reshape(-1, 4096).any(1).sum()) + int(b[n:].any())) * 4096
+
+
+def test_the_routing_of_a_frame_of_lights_takes_what_the_estimate_counts():
+    """Regression: on a 20 000 x 2 noise strip (nearly every pixel a light) a routed layer's routing took 30 B a pixel
+    (its clusters' light and shape, a plane a pyramid level), the estimate 0.76 of the growth. The clusters are
+    scattered as they are found now: the routing's arrays hold at most ROUTING_B a pixel on a frame where nearly
+    every cell has a light or a cluster."""
+    import dataclasses
+
+    import warp as wp
+
+    rng = np.random.default_rng(0)
+    h, w = 256, 2048
+    src = np.ones((h, w, 4), np.float32)
+    src[..., :3] = rng.random((h, w, 3)) ** 3 * 20
+    coc = (rng.uniform(9.0, 140.0, (h, w)) * rng.choice([-1.0, 1.0], (h, w))).astype(np.float32)  # levels 1-4
+    ap = br.Aperture()
+    buf0 = wp.zeros((h, w + 2), dtype=wp.vec4, device="cpu")
+    routing = pv.route_salient(wp.array(src, dtype=wp.vec4, device="cpu"), wp.array(coc, device="cpu"), 5, 8.0,
+                               "cpu", pv.aperture_shape(ap, ap.blade_discs(), "cpu"), buf0)
+    exact = routing.exact.numpy()
+    assert (exact == 2).sum() > 500 and (exact == 1).sum() > 2000  # clusters and lights everywhere
+    held = sum(_written_bytes(getattr(routing, f.name)) for f in dataclasses.fields(routing))
+    assert held <= pv.ROUTING_B * h * w

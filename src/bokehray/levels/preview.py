@@ -31,7 +31,6 @@ from dataclasses import dataclass
 import bokehray_kernels as bk
 import numpy as np
 import warp as wp
-from bokehray_kernels.routing import cluster_grid
 
 from .. import scene as sc
 from .. import tiling
@@ -73,10 +72,11 @@ DENSE_LAYER_B = 48
 """Per pixel of a layer's box in work on a GPU, where every array is dense (``buffers.lazy_zeros`` allocates
 whole): sources (16 + 4), the radius pyramid's difference buffers (16 x 4/3) and the routing's arrays (as the CPU
 model was calibrated before its pages followed the support; not measured on a GPU)."""
-SMALL_BOX_B = 70
+SMALL_BOX_B = 58
 """Per pixel of the box of a layer whose arrays are zeroed at once on the CPU (a box below ``buffers.LAZY_MIN_BYTES``
 of vec4): its sources, level 0, the routing's planes and flags, dense; calibrated on measured growth at 1.5 MP
-(the demo, exact and soft maps, two workers: 0.92-0.98 of the growth at 1.5 and 6 MP; docs/robustness.md)."""
+(the demo, exact, Gaussian 4 px and all-edges maps, two workers: 1.01-1.04 of the growth; 70 while the routing kept
+a dense plane of its clusters' light and shape a pyramid level; docs/design/memory-model.md)."""
 TILED_B = 12
 """Per pixel of the frame in a tiled render: the output the tiles' cores are copied into (``_render_tiled``); 12 more
 where the frame is not padded, for the photo it keeps for the copied tiles (padded, that photo is the scene's colour,
@@ -99,6 +99,12 @@ over its support as it starts, then its result) and its CoC (4). Its level 0 and
 its light is deposited, at the end of its scatter: beside the largest layer at its peak, the other workers' layers
 count this much (a dense box, zeroed whole as it starts, counts whole). Counted at their full rate, two workers'
 layers made the estimate 1.34 of the growth on a 6 MP all-edges map (one worker: 1.03; docs/design/memory-model.md)."""
+
+ROUTING_B = 9
+"""More per lit pixel a routed layer (exact highlights, pyramid levels above 0) holds from its routing to the end of
+its scatter, beside another layer's peak: the routing's flags (1) and its cells' neighbourhood sums and pixel counts
+(20 B a level-``l`` cell, 7-8 B a pixel in 4 KB pages; ``route_salient``). On a 20 000 x 2 noise strip, a light or
+a cluster in nearly every cell, two routed full-frame layers were at their peak at once (docs/design/memory-model.md)."""
 
 Footprint = tuple[int, int, int]
 """(pixels a layer's arrays take pages on, bytes per such pixel at its peak, bytes per such pixel it holds while in
@@ -139,14 +145,16 @@ def _clamped_border(s: np.ndarray, soft: sc.SoftEdges | None, grid: int, clamp: 
     return pads
 
 
-def _layer_footprint(layer: sc.LayerRecord, level_radius_px: float, on_cpu: bool) -> Footprint:
-    """A layer's :data:`Footprint`: dense arrays (a GPU's, a small box's) are taken whole as the layer starts."""
+def _layer_footprint(layer: sc.LayerRecord, level_radius_px: float, on_cpu: bool, routed: bool = True) -> Footprint:
+    """A layer's :data:`Footprint`: dense arrays (a GPU's, a small box's) are taken whole as the layer starts.
+    ``routed``: exact highlights on (the layer's sources above level 0 are routed, :func:`route_salient`)."""
     if not on_cpu:
         return _area(layer.bbox), DENSE_LAYER_B, DENSE_LAYER_B
     if not lazy_for(layer.bbox[1] - layer.bbox[0], layer.bbox[3] - layer.bbox[2]):  # a small box: dense arrays
         return _area(layer.bbox), SMALL_BOX_B, SMALL_BOX_B
     dense_level0 = sc.lowest_level(layer, level_radius_px) == 0
-    return _lit_area(layer), LIT_B + (LEVEL0_B if dense_level0 else 0), HELD_B
+    routing = ROUTING_B if routed and sc.pyramid_levels(layer.max_radius, level_radius_px) > 1 else 0
+    return _lit_area(layer), LIT_B + (LEVEL0_B if dense_level0 else 0), HELD_B + routing
 
 
 @dataclass(frozen=True, slots=True)
@@ -209,26 +217,23 @@ class Routing:
     exact: wp.array  # uint8 per source: 1 routed alone, 2 in its cell's cluster, 0 on the pyramid
     cell_total: wp.array  # per level-l cell: its 3 x 3 cells' sum of sources (the routed sources' local colour)
     cell_pixels: wp.array  # and how many pixels they hold
-    cluster_light: wp.array  # per level and 2 x 2 block: the cluster's excess light there (RGB, summed excess)
-    cluster_shape: wp.array  # per level and 2 x 2 block: (x, y, signed CoC, 1 if it holds cluster members)
 
     def struct(self) -> bk.Routing:
         """The routing as the kernels take it."""
         r = bk.Routing()
         r.exact, r.cell_total, r.cell_pixels = self.exact, self.cell_total, self.cell_pixels
-        r.cluster_light, r.cluster_shape = self.cluster_light, self.cluster_shape
         return r
 
 
 def no_routing(device: str) -> Routing:
     """``bk.scatter_kernel``'s routing when nothing is routed: 1-element placeholders it does not read."""
-    cells = wp.zeros((1, 1, 1), dtype=wp.vec4, device=device)
-    return Routing(wp.zeros((1, 1), dtype=wp.uint8, device=device), cells, wp.zeros((1, 1, 1), dtype=float, device=device),
-                   cells, cells)
+    return Routing(wp.zeros((1, 1), dtype=wp.uint8, device=device), wp.zeros((1, 1, 1), dtype=wp.vec4, device=device),
+                   wp.zeros((1, 1, 1), dtype=float, device=device))
 
 
-def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device: str,
-                  support: sc.LayerSupport | None = None, first: int = 1, lazy: bool = True) -> Routing:
+def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device: str, shape: bk.Shape,
+                  buf0: wp.array, support: sc.LayerSupport | None = None, first: int = 1,
+                  lazy: bool = True) -> Routing:
     """Which pyramid-level sources send their excess light to level 0: alone, or as their cell's cluster.
 
     A source on pyramid level ``l`` gets its outline blurred by about ``2^l`` px. That is
@@ -239,8 +244,9 @@ def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device
     the ``max(1, 2^(l-1))`` best-scored of them, so the level-0 work stays below half of the
     pyramid work whatever the radius (flat cost in R). In the same pass it gathers the rest of each cell's
     excess light into one source a block when together it is visible (an extended light: each of its pixels
-    is too faint alone). Every decision depends only on pyramid-aligned cells of the layer's box, so
-    tiled renders route the same sources. Cells outside the layer's ``support`` (None: everywhere) are skipped,
+    is too faint alone) and scatters those into ``buf0``, level 0's difference plane, with the aperture
+    ``shape``: the clusters hold no memory of their own. Every decision depends only on pyramid-aligned cells of
+    the layer's box, so tiled renders route the same sources. Cells outside the layer's ``support`` (None: everywhere) are skipped,
     and so are the levels below ``first``, which hold no source (``bokehray.scene.lowest_level``).
     """
     h, w = src.shape
@@ -260,16 +266,14 @@ def route_salient(src: wp.array, coc: wp.array, n_levels: int, r0: float, device
         fh, fw = ch, cw
     cell_total = lazy_zeros((n_means, h1, w1), wp.vec4, device, lazy)
     cell_pixels = lazy_zeros((n_means, h1, w1), float, device, lazy)
-    light = lazy_zeros((n_means, h1, w1), wp.vec4, device, lazy)
-    shape = lazy_zeros((n_means, h1, w1), wp.vec4, device, lazy)
-    routing = Routing(exact, cell_total, cell_pixels, light, shape)
+    routing = Routing(exact, cell_total, cell_pixels)
     for lev in range(max(1, first), n_levels):
         side = 1 << lev
         salience = bk.Salience()
         salience.per_cell, salience.visible, salience.floor = max(1, side // 2), SALIENT_VISIBLE, SALIENT_FLOOR
         wp.launch(bk.route_cells_kernel, dim=((h + side - 1) // side, (w + side - 1) // side),
                   inputs=[src, coc, means, counts, float(r0), n_levels, lev, salience, where],
-                  outputs=[routing.struct()], device=device)
+                  outputs=[routing.struct(), shape, buf0], device=device)
     return routing
 
 
@@ -387,7 +391,8 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
     whole = (WHOLE_IMAGE_B + (0 if ctx.disposable else KEPT_CONTEXT_B)) * h * w + SOFT_B * n_split
     # a layer's arrays take pages where its light lies on the CPU (lazily zeroed), its whole box on a GPU
     on_cpu = wp.get_device(ctx.device).is_cpu
-    footprints = [_layer_footprint(lyr, options.level_radius_px, on_cpu) for lyr in scene.layers]
+    footprints = [_layer_footprint(lyr, options.level_radius_px, on_cpu, options.exact_highlights)
+                  for lyr in scene.layers]
     if ctx.memory.tile_size is None:
         # fewer layers in flight before tiles: where the budget does not hold a layer a worker but holds the frame
         # with fewer workers, those render it untiled (the same values, the layers' CPU time the same, less
@@ -519,14 +524,10 @@ def render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatt
         else:
             bufs.append(bufs[0] if lv > 0 else None)
     routed = scatter.exact_highlights and n_levels > 1
-    routing = (route_salient(src, coc, n_levels, scatter.level_radius_px, device, support, first, lazy) if routed
-               else no_routing(device))
+    routing = (route_salient(src, coc, n_levels, scatter.level_radius_px, device, scatter.shape, bufs[0], support,
+                             first, lazy) if routed else no_routing(device))
     levels = pyramid_buffers(bufs)
     _scatter_sources(src, coc, support, routing, scatter, n_levels, first, levels)
-    if routed:
-        for lev in range(max(1, first), n_levels):
-            wp.launch(bk.scatter_clusters_kernel, dim=cluster_grid(h, w, lev),
-                      inputs=[routing.struct(), lev, scatter.shape], outputs=[bufs[0]], device=device)
     del routing, coc  # scattered: their pages go before the prefix sums and the resolve (a layer's last stages)
     for lv in range(n_levels):
         if lv == 0 or lv >= first:  # level 0 is read at the support's pixels only, the coarser levels everywhere
