@@ -45,7 +45,7 @@ def test_a_free_worker_takes_the_next_layer_else_the_costliest(monkeypatch, thre
     render_layer = pv.render_layer
     seen = []
 
-    def record(layer, arrays, scatter):
+    def record(layer, arrays, scatter, *kept):
         with lock:
             started.append(layer)
             first = len(started) == 1
@@ -55,7 +55,7 @@ def test_a_free_worker_takes_the_next_layer_else_the_costliest(monkeypatch, thre
             assert ahead.wait(60)
             time.sleep(0.3)  # a worker let through would start a layer now
             seen.append(len(started))
-        return render_layer(layer, arrays, scatter)
+        return render_layer(layer, arrays, scatter, *kept)
 
     monkeypatch.setattr(pv, "render_layer", record)
     pv.render_signed_coc(image, s, Aperture(), options=PreviewOptions(threads=threads))
