@@ -175,3 +175,26 @@ def test_a_layer_s_footprint_dense_when_small_lazy_when_large():
     px, rate, held = pv._layer_footprint(large, 8.0, True)
     assert px == 4_000_000 and rate in (pv.LIT_B, pv.LIT_B + pv.LEVEL0_B) and held == pv.HELD_B < rate
     assert pv._layer_footprint(large, 8.0, False) == (4_000_000, pv.DENSE_LAYER_B, pv.DENSE_LAYER_B)
+
+
+@given(r0=st.integers(0, 300), n=st.integers(0, 400), threads=st.integers(1, 4))
+def test_bands_cover_the_rows_once_each(r0, n, threads):
+    """``in_bands`` runs its pass on every row of the range exactly once, in at most ``threads`` bands, none below
+    ``BAND_MIN_ROWS`` rows unless the range is."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    seen, lock = [], threading.Lock()
+
+    def launch(a, b):
+        with lock:
+            seen.append((a, b))
+
+    helper = ThreadPoolExecutor(max_workers=threads - 1) if threads > 1 else None
+    try:
+        pv.in_bands(launch, r0, r0 + n, helper, threads)
+    finally:
+        if helper is not None:
+            helper.shutdown()
+    rows = sorted(y for a, b in seen for y in range(a, b))
+    assert rows == list(range(r0, r0 + n))
+    assert len(seen) <= threads and all(b - a >= min(n, pv.BAND_MIN_ROWS) for a, b in seen)

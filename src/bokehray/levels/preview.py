@@ -21,6 +21,7 @@ Large renders go tile by tile through ``bokehray.tiling`` with exact halos (``bo
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 import os
 import threading
@@ -647,6 +648,9 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
     done = 0
     order = sorted(range(len(layers)), key=lambda k: -layer_cost(layers[k]) if scatter.threads > 1 else k)
     pool = ThreadPoolExecutor(max_workers=scatter.threads)
+    # the composite and the final division in bands of rows, one on this thread and one on each other core: the
+    # layers still in work share the cores with them, and after the last one no core idles while they run
+    bands = ThreadPoolExecutor(max_workers=scatter.threads - 1) if scatter.threads > 1 else None
     try:
         started: dict[int, Future] = {}  # started and not yet composited
         head = 0  # the next layer to composite
@@ -667,7 +671,7 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
                 continue
             out = fut.result()
             del started[head]
-            _composite(out, layers[head].bbox, kept[head], box, acc, device)
+            _composite(out, layers[head].bbox, kept[head], box, acc, device, bands, scatter.threads)
             del out
             head += 1
             done += 1
@@ -677,28 +681,58 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
         # Ctrl-C, or a progress callback that abandons the render: return at once, not after the layers in
         # flight (their results are dropped; the command line then exits without waiting for them)
         pool.shutdown(wait=False, cancel_futures=True)
+        if bands is not None:
+            bands.shutdown(wait=False)  # (its bands are waited for where they are started)
         raise
     pool.shutdown(wait=True)
 
     ky0, ky1, kx0, kx1 = keep
     result = wp.empty((ky1 - ky0, kx1 - kx0), dtype=wp.vec3, device=device)
-    wp.launch(bk.finalize_kernel, dim=result.shape,
-              inputs=[acc[ky0 - ay0 : ky1 - ay0, kx0 - ax0 : kx1 - ax0], arrays.image[ky0:ky1, kx0:kx1],
-                      arrays.ids[ky0:ky1, kx0:kx1]], outputs=[result], device=device)
+
+    def finalize(a: int, b: int) -> None:  # rows [a, b) of the kept pixels
+        wp.launch(bk.finalize_kernel, dim=(b - a, kx1 - kx0),
+                  inputs=[acc[ky0 + a - ay0 : ky0 + b - ay0, kx0 - ax0 : kx1 - ax0], arrays.image[ky0 + a : ky0 + b, kx0:kx1],
+                          arrays.ids[ky0 + a : ky0 + b, kx0:kx1]], outputs=[result[a:b]], device=device)
+
+    in_bands(finalize, 0, ky1 - ky0, bands, scatter.threads)
+    if bands is not None:
+        bands.shutdown(wait=True)
     return result.numpy(), arrays.filled_count()
 
 
-def _composite(out: wp.array, bbox: tiling.Box, kept: _Kept, acc_box: tiling.Box, acc: wp.array, device: str) -> None:
+BAND_MIN_ROWS = 64
+"""Rows below which a per-pixel pass over a region runs in one band (:func:`in_bands`): handing a band to another
+thread costs about as much as a few thousand pixels."""
+
+
+def in_bands(launch, r0: int, r1: int, helper: ThreadPoolExecutor | None, threads: int) -> None:
+    """``launch(a, b)`` over the rows ``[r0, r1)`` cut into up to ``threads`` bands: the first on this thread, the
+    others on ``helper``'s ``threads - 1`` threads (None: one band here). Returns when every band is done; for passes
+    whose rows are independent (each band's values are those of one launch over all rows)."""
+    n = 1 if helper is None else min(threads, max(1, (r1 - r0) // BAND_MIN_ROWS))
+    cuts = [r0 + (r1 - r0) * i // n for i in range(n + 1)]
+    others = [helper.submit(launch, a, b) for a, b in itertools.pairwise(cuts[1:])] if n > 1 else []
+    try:
+        if cuts[1] > cuts[0]:
+            launch(cuts[0], cuts[1])
+    finally:
+        for f in others:
+            f.result()
+
+
+def _composite(out: wp.array, bbox: tiling.Box, kept: _Kept, acc_box: tiling.Box, acc: wp.array, device: str,
+               helper: ThreadPoolExecutor | None = None, threads: int = 1) -> None:
     """Composite a resolved layer (``render_layer``'s ``out`` on its ``bbox``) over the accumulator (on ``acc_box``)
-    at its kept pixels."""
+    at its kept pixels, in bands of rows on this thread and ``helper``'s (:func:`in_bands`)."""
     y0, _, x0, x1 = bbox
-    r0, r1 = kept.rows
-    if r1 <= r0:
-        return
     n, span = sc.row_span(device, x1 - x0)
-    wp.launch(bk.composite_kernel, dim=(r1 - r0, n),
-              inputs=[span, out[r0:r1], kept.support.down(r0).struct(), x0 - acc_box[2], y0 + r0 - acc_box[0]],
-              outputs=[acc], device=device)
+
+    def launch(a: int, b: int) -> None:
+        wp.launch(bk.composite_kernel, dim=(b - a, n),
+                  inputs=[span, out[a:b], kept.support.down(a).struct(), x0 - acc_box[2], y0 + a - acc_box[0]],
+                  outputs=[acc], device=device)
+
+    in_bands(launch, *kept.rows, helper, threads)
 
 
 def render_signed_coc(image: np.ndarray, signed_coc: np.ndarray, aperture, *, layers=None, memory=None,
