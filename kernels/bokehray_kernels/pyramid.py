@@ -358,9 +358,10 @@ def scatter_merged_kernel(
 
 
 @wp.kernel
-def prefix_rows_kernel(buf: wp.array2d(dtype=wp.vec4), support: Support, width: int):
+def prefix_rows_kernel(buf: wp.array2d(dtype=wp.vec4), support: Support, store: Support, width: int):
     """In-place running sum along each row's first ``width`` columns: differences -> per-pixel values, stored
-    where they are read.
+    where they are read (in ``support`` and in ``store``: the preview's output, the frame without its clamped
+    border; "everywhere" to store the whole support).
 
     While the running sum is zero an element already holds its sum (``0 + d == d``: the buffers start at +0 and
     only ever receive sums, so no -0 arises), so it is not stored. Nor is a sum outside the layer's ``support``
@@ -378,7 +379,7 @@ def prefix_rows_kernel(buf: wp.array2d(dtype=wp.vec4), support: Support, width: 
             d = buf[y, x]
             if acc[0] != 0.0 or acc[1] != 0.0 or acc[2] != 0.0 or acc[3] != 0.0:
                 acc = acc + d
-                if inside:
+                if inside and in_support(store, y, x):
                     buf[y, x] = acc
             else:
                 acc = d

@@ -534,6 +534,26 @@ class LayerSupport:
         return cls(wp.array(layer.support.astype(np.uint8), dtype=wp.uint8, device=device),
                    layer.tile_px.bit_length() - 1, layer.origin[0] + y0, layer.origin[1] + x0)
 
+    @classmethod
+    def within(cls, layer: LayerRecord, box: tuple[int, int, int, int], device: str) -> LayerSupport:
+        """The layer's support cut to the tiles that meet ``box`` (y0, y1, x0, x1 in the coordinates of the layer's
+        ``bbox``): where the preview keeps its light (the frame without its clamped border, a tile's core); the
+        support "everywhere" where the layer has none."""
+        if layer.support is None:
+            return cls.everywhere(device)
+        t, (oy, ox) = layer.tile_px, layer.origin
+        y0, y1, x0, x1 = box
+        mask = np.zeros(layer.support.shape, np.uint8)
+        rows = slice((y0 + oy) // t, -(-(y1 + oy) // t))
+        cols = slice((x0 + ox) // t, -(-(x1 + ox) // t))
+        mask[rows, cols] = layer.support[rows, cols]
+        by0, _, bx0, _ = layer.bbox
+        return cls(wp.array(mask, dtype=wp.uint8, device=device), t.bit_length() - 1, oy + by0, ox + bx0)
+
+    def down(self, rows: int) -> LayerSupport:
+        """The same support for the box's rows from ``rows`` on (a view of the box starting there)."""
+        return dataclasses.replace(self, oy=self.oy + rows)
+
     def struct(self) -> bk.Support:
         """The support as the kernels take it."""
         s = bk.Support()

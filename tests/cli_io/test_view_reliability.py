@@ -298,11 +298,11 @@ SLOW_LAYERS = """
 import time
 import bokehray.levels.preview as pv
 _render = pv.render_layer
-def _slow(layer, arrays, scatter):
+def _slow(layer, arrays, scatter, *kept):
     y0, y1, x0, x1 = layer.bbox
     if (y1 - y0) * (x1 - x0) > 200 * 140:
         time.sleep(1.0)
-    return _render(layer, arrays, scatter)
+    return _render(layer, arrays, scatter, *kept)
 pv.render_layer = _slow
 """
 

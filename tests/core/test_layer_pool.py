@@ -45,7 +45,7 @@ def test_a_free_worker_takes_the_next_layer_else_the_costliest(monkeypatch, thre
     render_layer = pv.render_layer
     seen = []
 
-    def record(layer, arrays, scatter):
+    def record(layer, arrays, scatter, *kept):
         with lock:
             started.append(layer)
             first = len(started) == 1
@@ -55,7 +55,7 @@ def test_a_free_worker_takes_the_next_layer_else_the_costliest(monkeypatch, thre
             assert ahead.wait(60)
             time.sleep(0.3)  # a worker let through would start a layer now
             seen.append(len(started))
-        return render_layer(layer, arrays, scatter)
+        return render_layer(layer, arrays, scatter, *kept)
 
     monkeypatch.setattr(pv, "render_layer", record)
     pv.render_signed_coc(image, s, Aperture(), options=PreviewOptions(threads=threads))
@@ -189,3 +189,26 @@ def test_a_routed_layer_holds_its_routing_beside_another_layer_s_peak():
     assert pv._layer_footprint(large, 8.0, True, routed=False) == (px, rate, pv.HELD_B)
     flat = dataclasses.replace(large, s_lo=-4.0, s_hi=-1.0, max_radius=4.0)  # level 0 only: nothing to route
     assert pv._layer_footprint(flat, 8.0, True)[2] == pv.HELD_B
+
+
+@given(r0=st.integers(0, 300), n=st.integers(0, 400), threads=st.integers(1, 4))
+def test_bands_cover_the_rows_once_each(r0, n, threads):
+    """``in_bands`` runs its pass on every row of the range exactly once, in at most ``threads`` bands, none below
+    ``BAND_MIN_ROWS`` rows unless the range is."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    seen, lock = [], threading.Lock()
+
+    def launch(a, b):
+        with lock:
+            seen.append((a, b))
+
+    helper = ThreadPoolExecutor(max_workers=threads - 1) if threads > 1 else None
+    try:
+        pv.in_bands(launch, r0, r0 + n, helper, threads)
+    finally:
+        if helper is not None:
+            helper.shutdown()
+    rows = sorted(y for a, b in seen for y in range(a, b))
+    assert rows == list(range(r0, r0 + n))
+    assert len(seen) <= threads and all(b - a >= min(n, pv.BAND_MIN_ROWS) for a, b in seen)

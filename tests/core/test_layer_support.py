@@ -50,7 +50,7 @@ def _layer_outputs(monkeypatch, image, s, tile_size=None):
     seen = []
     render_layer = pv.render_layer
 
-    def everywhere(layer, arrays, scatter):
+    def everywhere(layer, arrays, scatter, kept=None):  # resolved everywhere: composited where ``kept`` says
         out = render_layer(dataclasses.replace(layer, support=None), arrays, scatter)
         seen.append((layer, out.numpy()))
         return out
@@ -87,6 +87,32 @@ def test_skipping_outside_the_support_leaves_the_render(monkeypatch, seed):
     monkeypatch.undo()
     got, _ = pv.render_signed_coc(image, s, Aperture(), layers=LayerOptions(tile_px=16))
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("tile_size", [None, 64, 40])
+@pytest.mark.parametrize("tile_px", [16, 12])
+def test_the_clamped_border_is_resolved_and_composited_nowhere(monkeypatch, seed, tile_size, tile_px):
+    """The frame (a tile's core) is bit for bit the crop of its whole window rendered, clamped border and halo
+    resolved and composited (on a tile grid without support, 12 px, the accumulator is the whole window; cores of
+    40 px are not aligned to the 16 px tiles the accumulator spans)."""
+    image, s = _scene(seed)
+    options = LayerOptions(tile_px=tile_px)
+    memory = MemoryOptions(tile_size=tile_size)
+    got, _ = pv.render_signed_coc(image, s, Aperture(), layers=options, memory=memory)
+    window = pv._render_window
+    crops = []
+
+    def whole(*args):
+        out, filled = window(*args[:8])  # no box to keep: every pixel of the window
+        y0, y1, x0, x1 = args[8]
+        crops.append(out.shape != (y1 - y0, x1 - x0))
+        return np.ascontiguousarray(out[y0:y1, x0:x1]), filled
+
+    monkeypatch.setattr(pv, "_render_window", whole)
+    want, _ = pv.render_signed_coc(image, s, Aperture(), layers=options, memory=memory)
+    assert all(crops) and (len(crops) == 1) == (tile_size is None)  # a border (halos) cut away every time
+    assert got.tobytes() == want.tobytes()
 
 
 @pytest.mark.parametrize("tile_px", [12, 4])

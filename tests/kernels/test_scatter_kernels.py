@@ -596,25 +596,38 @@ def test_prefix_sums_are_the_sequential_running_sums(rows):
 
 @given(rows=st.lists(st.lists(st.tuples(st.integers(0, 40), st.integers(0, 40)), max_size=3), min_size=1,
                      max_size=6), mask=st.lists(st.lists(st.booleans(), min_size=7, max_size=7), min_size=1, max_size=1),
-       oy=st.integers(0, 7), ox=st.integers(0, 7), width=st.integers(0, 43))
-def test_prefix_sums_store_the_running_sums_within_the_support_only(rows, mask, oy, ox, width):
-    """With a support (8 px tiles, the box at an offset in the scene) and a width: where the light lies (in the
-    support, and the step down one column after a run of it), the stored elements are the running sums bit for
-    bit; the others keep their differences (``resolve_levels_kernel`` never reads them) and are not read."""
+       oy=st.integers(0, 7), ox=st.integers(0, 7), width=st.integers(0, 43),
+       store=st.one_of(st.none(), st.lists(st.booleans(), min_size=7, max_size=7)),
+       span=st.tuples(st.integers(0, 6), st.integers(0, 6)))
+def test_prefix_sums_store_the_running_sums_within_the_support_only(rows, mask, oy, ox, width, store, span):
+    """With a support (8 px tiles, the box at an offset in the scene), a width, a store mask (None: everywhere;
+    else some columns of tiles, as the frame without its clamped border) and a range of rows: where the light lies
+    (in the support, and the step down one column after a run of it), the elements of those rows in the support
+    and the store hold the running sums bit for bit; the others keep their differences (``resolve_levels_kernel``
+    never reads them) and are not read."""
     d = _sparse_differences(rows, 41)
     h, w = d.shape[:2]
     width = min(width, w)
-    tiles = np.array(mask * (-(-(h + oy) // 8)), bool)  # every tile row alike: the hypothesis draws one
+    r0, r1 = min(span[0], h), min(max(span), h)
+    n_ty = -(-(h + oy) // 8)
+    tiles = np.array(mask * n_ty, bool)  # every tile row alike: the hypothesis draws one
     inside = np.repeat(np.repeat(tiles, 8, 0), 8, 1)[oy : oy + h, ox : ox + w]
     inside[:, width:] = False
     lit = inside.copy()
     lit[:, 1:] |= inside[:, :-1]  # where deposits may lie
+    lit[: r0], lit[r1:] = False, False  # rows not summed
     d[~lit] = np.nan  # never read: a NaN there would spread through the sums
     support = LayerSupport(wp.array(tiles.astype(np.uint8), dtype=wp.uint8, device="cpu"), 3, oy, ox)
+    kept = None
+    stored = inside & lit
+    if store is not None:
+        keep_tiles = np.array([store] * n_ty, bool)
+        kept = LayerSupport(wp.array(keep_tiles.astype(np.uint8), dtype=wp.uint8, device="cpu"), 3, oy, ox)
+        stored &= np.repeat(np.repeat(keep_tiles, 8, 0), 8, 1)[oy : oy + h, ox : ox + w]
     buf = wp.array(d, dtype=wp.vec4, device="cpu")
-    prefix_rows(buf, "cpu", support, width)
+    prefix_rows(buf, "cpu", support, width, kept, (r0, r1))
     sums = np.cumsum(np.where(lit[..., None], d, 0), axis=1, dtype=np.float32)
-    np.testing.assert_array_equal(buf.numpy(), np.where(inside[..., None], sums, d))
+    np.testing.assert_array_equal(buf.numpy(), np.where(stored[..., None], sums, d))
 
 
 @given(mask=st.lists(st.lists(st.booleans(), min_size=5, max_size=5), min_size=4, max_size=4),

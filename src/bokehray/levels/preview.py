@@ -21,6 +21,7 @@ Large renders go tile by tile through ``bokehray.tiling`` with exact halos (``bo
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 import os
 import threading
@@ -421,16 +422,16 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
     with reuse_buffers(ctx.device):  # the layers' buffers: allocated once, reused by the next layers (buffers.py)
         if tile is None:
             out, n_filled = _render_window(image, s, scene.ids, scene.layers, scene.n_slots, scatter, ctx.progress,
-                                           scene.near)
+                                           scene.near, frame)
         else:
             out, n_filled, stats.image_tiles = _render_tiled(photo, image, s, scene, scatter, tile, frame,
                                                              ctx.progress)
+            out = np.ascontiguousarray(out[frame[0] : frame[1], frame[2] : frame[3]])
     stats.sources_filled = n_filled
     stats.sources_scattered += n_filled
     stats.stage_seconds["layers"] = time.perf_counter() - t_plan
     stats.stage_seconds["total"] = time.perf_counter() - t_start
-    y0, y1, x0, x1 = frame
-    return np.ascontiguousarray(out[y0:y1, x0:x1]), stats
+    return out, stats
 
 
 def _tile_layers(scene: sc.LayeredScene, core: tiling.Box) -> tuple[tiling.Box, list[sc.LayerRecord]]:
@@ -474,24 +475,46 @@ def _render_tiled(photo: np.ndarray, image: np.ndarray, s: np.ndarray, scene: sc
         (wy0, wy1, wx0, wx1), local = plans[core]
         if not local:
             return None
+        cy0, cy1, cx0, cx1 = core
         part, filled = _render_window(image[wy0:wy1, wx0:wx1], s[wy0:wy1, wx0:wx1], scene.ids[wy0:wy1, wx0:wx1],
-                                      local, scene.n_slots, scatter, report, scene.near.window((wy0, wy1, wx0, wx1)))
+                                      local, scene.n_slots, scatter, report, scene.near.window((wy0, wy1, wx0, wx1)),
+                                      (cy0 - wy0, cy1 - wy0, cx0 - wx0, cx1 - wx0))
         done += len(local)
         n_filled += filled
-        cy0, cy1, cx0, cx1 = core
-        return part[cy0 - wy0 : cy1 - wy0, cx0 - wx0 : cx1 - wx0]
+        return part
 
     n_tiles = tiling.render_tiles(out, tile, render_core, frame)
     return out, n_filled, n_tiles
 
 
-def render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatter) -> wp.array:
-    """Scatter one layer's sources on the radius pyramid and resolve it: (premultiplied RGB, coverage) on its box
-    (zero outside the layer's support)."""
+@dataclass(frozen=True, slots=True)
+class _Kept:
+    """Where a layer's light is kept (the frame without its clamped border, a tile's core; :func:`_kept`): its support
+    cut to the tiles that meet it, and the rows ``[start, stop)`` of the layer's box those tiles span."""
+
+    support: sc.LayerSupport
+    rows: tuple[int, int]
+
+
+def _kept(layer: sc.LayerRecord, acc_box: tiling.Box, keep: tiling.Box, device: str) -> _Kept:
+    """A layer's :class:`_Kept` for the pixels ``keep`` of its window, whose accumulator spans ``acc_box`` (the
+    tiles that meet ``keep``; the whole window where the layers have no support)."""
+    y0, y1 = layer.bbox[:2]
+    return _Kept(sc.LayerSupport.within(layer, keep, device),
+                 (min(max(acc_box[0] - y0, 0), y1 - y0), min(max(acc_box[1] - y0, 0), y1 - y0)))
+
+
+def render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatter, kept: _Kept | None = None
+                 ) -> wp.array:
+    """Scatter one layer's sources on the radius pyramid and resolve it: (premultiplied RGB, coverage) on its box,
+    at the pixels of ``kept.support`` (None: the layer's support); elsewhere the array holds what it held (zero
+    outside the layer's support, its sources elsewhere) and is not to be read. The clamped border's light is output
+    nowhere: there the level-0 sums are not stored and nothing is resolved."""
     device = scatter.device
     y0, y1, x0, x1 = layer.bbox
     h, w = y1 - y0, x1 - x0
     support = sc.LayerSupport.of(layer, device)
+    kept = kept or _Kept(support, (0, h))
     lazy = lazy_for(h, w)  # a small box's arrays are zeroed at once (buffers.LAZY_MIN_BYTES)
 
     def sources_zeros(shape, dtype, device):
@@ -529,12 +552,14 @@ def render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatt
     levels = pyramid_buffers(bufs)
     _scatter_sources(src, coc, support, routing, scatter, n_levels, first, levels)
     del routing, coc  # scattered: their pages go before the prefix sums and the resolve (a layer's last stages)
-    for lv in range(n_levels):
-        if lv == 0 or lv >= first:  # level 0 is read at the support's pixels only, the coarser levels everywhere
-            prefix_rows(bufs[lv], device, support if lv == 0 else None, w if lv == 0 else None)
-    out = src  # the sources are scattered: reuse their memory for the result (zero outside the support)
+    # level 0 is read at the kept pixels only (its sums stored there, on the rows that hold them), the coarser levels
+    # everywhere
+    prefix_rows(bufs[0], device, support, w, kept.support, kept.rows)
+    for lv in range(max(1, first), n_levels):
+        prefix_rows(bufs[lv], device)
+    out = src  # the sources are scattered: reuse their memory for the result at the kept pixels
     n, span = sc.row_span(device, w)
-    wp.launch(bk.resolve_levels_kernel, dim=(h, n), inputs=[span, n_levels, first, levels, support.struct()],
+    wp.launch(bk.resolve_levels_kernel, dim=(h, n), inputs=[span, n_levels, first, levels, kept.support.struct()],
               outputs=[out], device=device)
     return out
 
@@ -569,26 +594,53 @@ def scatter_merged(src: wp.array, coc: wp.array, support: sc.LayerSupport, routi
                       lev, MERGE_COC_CELLS * side, levels], device=scatter.device)
 
 
-def prefix_rows(buf: wp.array, device: str, support: sc.LayerSupport | None = None, width: int | None = None) -> None:
-    """The running sums of a difference buffer's rows, in place (``prefix_rows_kernel``), stored within
-    ``support`` (None: everywhere) and the first ``width`` columns (None: all) only."""
-    inside = (support or sc.LayerSupport.everywhere(device)).struct()
-    wp.launch(bk.prefix_rows_kernel, dim=buf.shape[0], inputs=[buf, inside, buf.shape[1] if width is None else width],
-              device=device)
+def prefix_rows(buf: wp.array, device: str, support: sc.LayerSupport | None = None, width: int | None = None,
+                store: sc.LayerSupport | None = None, rows: tuple[int, int] | None = None) -> None:
+    """The running sums of a difference buffer's rows, in place (``prefix_rows_kernel``), read within ``support``,
+    stored within it and ``store`` (None: everywhere), in the first ``width`` columns (None: all) of the rows
+    ``rows`` (start, stop; None: all) only."""
+    everywhere = sc.LayerSupport.everywhere(device) if support is None or store is None else None
+    inside, keep = support or everywhere, store or everywhere
+    r0, r1 = rows or (0, buf.shape[0])
+    if r1 <= r0:
+        return
+    if (r0, r1) != (0, buf.shape[0]):
+        buf, inside, keep = buf[r0:r1], inside.down(r0), keep.down(r0)
+    wp.launch(bk.prefix_rows_kernel, dim=buf.shape[0],
+              inputs=[buf, inside.struct(), keep.struct(), buf.shape[1] if width is None else width], device=device)
+
+
+def _acc_box(layers, keep: tiling.Box, shape: tuple[int, int]) -> tiling.Box:
+    """The window's pixels the accumulator spans: the tiles that meet ``keep`` (the layers' supports cut to them,
+    :meth:`bokehray.scene.LayerSupport.within`), within the window; the whole window where the layers have no
+    support (they composite their whole box)."""
+    if not layers or layers[0].support is None:
+        return 0, shape[0], 0, shape[1]
+    t, (oy, ox) = layers[0].tile_px, layers[0].origin
+    y0, y1, x0, x1 = keep
+    return (max(0, (y0 + oy) // t * t - oy), min(shape[0], -(-(y1 + oy) // t) * t - oy),
+            max(0, (x0 + ox) // t * t - ox), min(shape[1], -(-(x1 + ox) // t) * t - ox))
 
 
 def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_slots: int, scatter: _Scatter,
-                   progress: Progress | None, near: sc.NearParts | None = None) -> tuple[np.ndarray, int]:
-    """Scatter and composite ``layers`` (boxes in the window's coordinates), then finalise. ``near``: the near
-    parts of split pixels, in the window's coordinates.
+                   progress: Progress | None, near: sc.NearParts | None = None, keep: tiling.Box | None = None
+                   ) -> tuple[np.ndarray, int]:
+    """Scatter and composite ``layers`` (boxes in the window's coordinates), then finalise the pixels ``keep`` of
+    the window (None: all; the frame without its clamped border, a tile's core): the layers resolve and composite
+    no more than the tiles that meet it. ``near``: the near parts of split pixels, in the window's coordinates.
 
-    Returns the rendered RGB and the number of filled sources.
+    Returns the rendered RGB of ``keep`` and the number of filled sources.
     """
     device = scatter.device
     h, w = s.shape
+    keep = keep or (0, h, 0, w)
     arrays = sc.LayerSources.upload(image, s, ids, n_slots, device, near)
-    opaque = opaque_pixels(arrays, device)
-    acc = lazy_zeros((h, w), wp.vec4, device, lazy_for(h, w))  # pages taken at the first composite, when lazy
+    ay0, ay1, ax0, ax1 = box = _acc_box(layers, keep, (h, w))
+    # pages taken at the first composite, when lazy
+    acc = lazy_zeros((ay1 - ay0, ax1 - ax0), wp.vec4, device, lazy_for(ay1 - ay0, ax1 - ax0))
+    kept = [_kept(lyr, box, keep, device) for lyr in layers]
+    # the pixels each layer covers whole, and the layers' ids, on the accumulator's pixels
+    whole = (opaque_pixels(arrays, device)[ay0:ay1, ax0:ax1], arrays.ids[ay0:ay1, ax0:ax1])
 
     # Layers render independently (Warp CPU launches release the GIL) on ``threads`` workers and are composited
     # strictly back to front as they complete. A free worker takes the next layer to composite if it has not
@@ -599,6 +651,9 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
     done = 0
     order = sorted(range(len(layers)), key=lambda k: -layer_cost(layers[k]) if scatter.threads > 1 else k)
     pool = ThreadPoolExecutor(max_workers=scatter.threads)
+    # the composite and the final division in bands of rows, one on this thread and one on each other core: the
+    # layers still in work share the cores with them, and after the last one no core idles while they run
+    bands = ThreadPoolExecutor(max_workers=scatter.threads - 1) if scatter.threads > 1 else None
     try:
         started: dict[int, Future] = {}  # started and not yet composited
         head = 0  # the next layer to composite
@@ -611,7 +666,7 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
                 pick = head if head not in started else next(
                     (k for k in order if k > head and k not in started and waiting < scatter.threads), None)
                 if pick is not None:
-                    started[pick] = pool.submit(render_layer, layers[pick], arrays, scatter)
+                    started[pick] = pool.submit(render_layer, layers[pick], arrays, scatter, kept[pick])
                     continue
             fut = started.get(head)  # None: every worker busy with layers further front
             if fut is None or not fut.done():
@@ -619,11 +674,7 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
                 continue
             out = fut.result()
             del started[head]
-            y0, y1, x0, x1 = layers[head].bbox
-            n, span = sc.row_span(device, x1 - x0)
-            wp.launch(bk.composite_kernel, dim=(y1 - y0, n),
-                      inputs=[span, out, sc.LayerSupport.of(layers[head], device).struct(), x0, y0, opaque,
-                              arrays.ids, layers[head].index], outputs=[acc], device=device)
+            _composite(out, layers[head], kept[head], box, acc, whole, device, bands, scatter.threads)
             del out
             head += 1
             done += 1
@@ -633,12 +684,60 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
         # Ctrl-C, or a progress callback that abandons the render: return at once, not after the layers in
         # flight (their results are dropped; the command line then exits without waiting for them)
         pool.shutdown(wait=False, cancel_futures=True)
+        if bands is not None:
+            bands.shutdown(wait=False)  # (its bands are waited for where they are started)
         raise
     pool.shutdown(wait=True)
 
-    result = wp.empty((h, w), dtype=wp.vec3, device=device)
-    wp.launch(bk.finalize_kernel, dim=(h, w), inputs=[acc, arrays.image, arrays.ids], outputs=[result], device=device)
+    ky0, ky1, kx0, kx1 = keep
+    result = wp.empty((ky1 - ky0, kx1 - kx0), dtype=wp.vec3, device=device)
+
+    def finalize(a: int, b: int) -> None:  # rows [a, b) of the kept pixels
+        wp.launch(bk.finalize_kernel, dim=(b - a, kx1 - kx0),
+                  inputs=[acc[ky0 + a - ay0 : ky0 + b - ay0, kx0 - ax0 : kx1 - ax0], arrays.image[ky0 + a : ky0 + b, kx0:kx1],
+                          arrays.ids[ky0 + a : ky0 + b, kx0:kx1]], outputs=[result[a:b]], device=device)
+
+    in_bands(finalize, 0, ky1 - ky0, bands, scatter.threads)
+    if bands is not None:
+        bands.shutdown(wait=True)
     return result.numpy(), arrays.filled_count()
+
+
+BAND_MIN_ROWS = 64
+"""Rows below which a per-pixel pass over a region runs in one band (:func:`in_bands`): handing a band to another
+thread costs about as much as a few thousand pixels."""
+
+
+def in_bands(launch, r0: int, r1: int, helper: ThreadPoolExecutor | None, threads: int) -> None:
+    """``launch(a, b)`` over the rows ``[r0, r1)`` cut into up to ``threads`` bands: the first on this thread, the
+    others on ``helper``'s ``threads - 1`` threads (None: one band here). Returns when every band is done; for passes
+    whose rows are independent (each band's values are those of one launch over all rows)."""
+    n = 1 if helper is None else min(threads, max(1, (r1 - r0) // BAND_MIN_ROWS))
+    cuts = [r0 + (r1 - r0) * i // n for i in range(n + 1)]
+    others = [helper.submit(launch, a, b) for a, b in itertools.pairwise(cuts[1:])] if n > 1 else []
+    try:
+        if cuts[1] > cuts[0]:
+            launch(cuts[0], cuts[1])
+    finally:
+        for f in others:
+            f.result()
+
+
+def _composite(out: wp.array, layer: sc.LayerRecord, kept: _Kept, acc_box: tiling.Box, acc: wp.array,
+               whole: tuple[wp.array, wp.array], device: str, helper: ThreadPoolExecutor | None = None,
+               threads: int = 1) -> None:
+    """Composite a resolved layer (``render_layer``'s ``out`` on its box) over the accumulator (on ``acc_box``) at
+    its kept pixels, in bands of rows on this thread and ``helper``'s (:func:`in_bands`). ``whole``: the pixels
+    their own layer covers whole (:func:`opaque_pixels`) and the layers' ids, on the accumulator's pixels."""
+    y0, _, x0, x1 = layer.bbox
+    n, span = sc.row_span(device, x1 - x0)
+
+    def launch(a: int, b: int) -> None:
+        wp.launch(bk.composite_kernel, dim=(b - a, n),
+                  inputs=[span, out[a:b], kept.support.down(a).struct(), x0 - acc_box[2], y0 + a - acc_box[0],
+                          whole[0], whole[1], layer.index], outputs=[acc], device=device)
+
+    in_bands(launch, *kept.rows, helper, threads)
 
 
 def opaque_pixels(arrays: sc.LayerSources, device: str) -> wp.array:
