@@ -57,9 +57,11 @@ context's pixels when it is disposable (``RenderContext.release_pixels``). 32 wh
 KEPT_CONTEXT_B = 4
 """The context's signed CoC, kept through the layers when the context is not disposable (an RGBA input's alpha or
 the refiner reads it after the level)."""
-REGION_B = 16
-"""Per pixel of the rendered region: the accumulator (the image, CoC and layer ids are read in place on the CPU; the
-accumulator's pages are taken from the first composite on, ``buffers.lazy_zeros``: counted whole all the same)."""
+REGION_B = 17
+"""Per pixel of the rendered region: the accumulator (16; the image, CoC and layer ids are read in place on the CPU;
+the accumulator's pages are taken from the first composite on, ``buffers.lazy_zeros``: counted whole all the same)
+and the map of the pixels their own layer covers whole (1, :func:`opaque_pixels`; its float distances, 4, are gone
+before the first layer)."""
 LIT_B = 30
 """Per pixel of a layer's lit area (its box's pixels in its support's tiles, :func:`_lit_area`) while it is in work
 on the CPU: its sources (16) and signed CoC (4), lazily zeroed, take pages where its sources and then its result
