@@ -46,10 +46,19 @@ class StrandRule:
     """A strand whose colour differs from the background's by less than this share of the brighter is not bridged
     (its colour cannot tell a gap from the strand)."""
 
+    end_px: int = 6
+    """A dash end is extended along its strand, over the pixels the photo shows holding it, by at most this many px
+    (a tip the map cut short, a strand leaving the frame; 0: no extension)."""
+
+    light_level: float = 1.0
+    """No pixel is bridged or extended where the strand's colour (its ends') or the background beside it is brighter
+    than this (mean of linear RGB; 1: a white surface): a light's, which the colour test cannot read."""
+
     def struct(self) -> bk_strands.StrandParams:
         p = bk_strands.StrandParams()
         p.jump_px, p.thin_px, p.min_share = float(self.jump_px), int(self.thin_px), float(self.min_share)
-        p.max_off, p.min_contrast = float(self.max_off), float(self.min_contrast)
+        p.max_off, p.min_contrast, p.end_px = float(self.max_off), float(self.min_contrast), int(self.end_px)
+        p.light_level = float(self.light_level)
         return p
 
 
@@ -132,7 +141,7 @@ def bridge_strands(image: np.ndarray, signed_coc: np.ndarray, rule: StrandRule |
     in_parts(len(tiles), launch_tiles, threads=threads, cpu=dev.is_cpu, check=check)
     t = strand.numpy()
     ends = np.flatnonzero(t)
-    if ends.size < 2:
+    if ends.size == 0:
         return signed_coc, 0
     ty, tx = (v.astype(np.int32) for v in np.divmod(ends, w))
     img = wp.array(np.ascontiguousarray(image, np.float32), dtype=wp.vec3, device=dev, copy=copy)

@@ -40,6 +40,25 @@ def _strand_scene(n: int, seed: int, width: float = 0.6, gap_colour: bool = Fals
     return img, disp, alpha, whole
 
 
+def _edge_scene(n: int, seed: int, width: float = 0.9, light: float = 0.0):
+    """A bright strand ``width`` px wide entering the frame through its right border at a shallow angle (the
+    demo's blade at the frame's edge), over a dark textured background (its mean lifted by ``light``). Returns the
+    photo, the map by the alpha >= 0.5 rule, the strand's coverage and the map with the strand whole."""
+    rng = np.random.default_rng(seed)
+    tex = ndimage.gaussian_filter(rng.uniform(0.02, 0.06, (n, n, 3)), (1.5, 1.5, 0)) + np.float32(light)
+    pts = np.array([[n + 2.5, -4.0], [n - 12.0, n + 2.0]])
+    sl, a = stroke(pts, np.full(2, width), n, n)
+    alpha = np.zeros((n, n), np.float32)
+    alpha[sl] = a
+    disp = np.where(alpha >= 0.5, D_STRAND, D_BG).astype(np.float32)
+    colour = np.float32([0.45, 0.5, 0.3])
+    img = (alpha[..., None] * colour + (1 - alpha[..., None]) * tex).astype(np.float32)
+    whole = disp.copy()
+    rows = np.flatnonzero(alpha.max(1) > 0.1)
+    whole[rows, alpha[rows].argmax(1)] = D_STRAND
+    return img, disp, alpha, whole
+
+
 def _coc(disp: np.ndarray) -> np.ndarray:
     return (K * (disp - FOCUS)).astype(np.float32)
 
@@ -58,6 +77,62 @@ def test_the_kernel_matches_the_float64_oracle(seed):
     want = bridge_strands_ref(img, s, rule, gap_offsets(rule.max_gap))
     assert n == int((want != s).sum()) and n > 0
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-4)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_kernel_extends_ends_as_the_oracle_does(seed):
+    """Dash ends extended along their strands (a strand entering the frame, the tips of a tapered one): the same
+    pixels and values as the float64 oracle, and some there are."""
+    img, disp, _, _ = _edge_scene(48, seed)
+    sl, a = stroke(np.array([[8.0, 6.0], [20.0, 40.0]]), np.array([1.6, 0.0]), 48, 48)  # a tapered blade
+    tip = np.zeros((48, 48), np.float32)
+    tip[sl] = a
+    disp = np.where(tip >= 0.5, 0.7, disp).astype(np.float32)
+    img = (tip[..., None] * np.float32([0.6, 0.3, 0.2]) + (1 - tip[..., None]) * img).astype(np.float32)
+    s = _coc(disp)
+    for rule in (StrandRule(), StrandRule(end_px=0)):
+        got, _ = bridge_strands(img, s, rule)
+        np.testing.assert_allclose(got, bridge_strands_ref(img, s, rule, gap_offsets(rule.max_gap)), rtol=0, atol=1e-4)
+    ends = bridge_strands(img, s)[0] != bridge_strands(img, s, StrandRule(end_px=0))[0]
+    assert ends.sum() >= 2
+
+
+def test_a_strand_entering_the_frame_takes_its_depth_up_to_the_border():
+    """The regression (the demo's blade at the frame's right edge): a strand whose core lies beyond the border
+    covers the last column by less than 1/2 for a few rows before its first dash; those pixels kept the
+    background's depth and stayed sharp when the strand blurred in front. They now take the strand's depth as far
+    as the photo shows a quarter of the strand's colour."""
+    img, disp, alpha, _ = _edge_scene(64, 0)
+    s = _coc(disp)
+    out, _ = bridge_strands(img, s)
+    first = int(np.flatnonzero(disp[:, -1] > D_BG)[0])  # the strand's first dash in the last column
+    lead = np.arange(first)
+    held = lead[alpha[lead, -1] >= 0.15]  # a quarter of the first dash's share of the strand, or more
+    assert held.size >= 2
+    assert np.allclose(out[held, -1], K * (D_STRAND - FOCUS))
+    assert (out[lead[alpha[lead, -1] < 0.05]] == s[lead[alpha[lead, -1] < 0.05]]).all()
+
+
+def test_a_strand_entering_the_frame_blurred_in_front_leaves_no_speck():
+    """Its faint start at the border rendered +47 in 8-bit sRGB over the render with the strand whole."""
+    img, disp, alpha, whole = _edge_scene(96, 1)
+    blur = br.BlurParams(K, FOCUS)
+    ref = br.render(img, whole, blur)
+    on = br.render(img, disp, blur)
+    entry = alpha >= 0.05
+    entry[int(np.flatnonzero(disp[:, -1] > D_BG)[0]) + 2 :] = False  # down to just below its first dash
+    assert _speck(on, ref, entry) <= 3.0
+
+
+def test_no_gap_or_end_is_taken_over_a_light():
+    """Over a light (the background brighter than a white surface), the colour test cannot read the strand's
+    share: a gap pixel there keeps its depth (the fur's bridges over a lamp's rim split the lamp into the blur)."""
+    img, disp, _, _ = _strand_scene(64, 1)
+    lit = (img + np.float32(1.5)).astype(np.float32)
+    s = _coc(disp)
+    assert bridge_strands(img, s)[1] > 10
+    out, n = bridge_strands(lit, s)
+    assert n == 0 and out is s
 
 
 def test_a_dashed_strand_s_gaps_take_its_depth():

@@ -50,16 +50,21 @@ def _segment(y1: int, x1: int, oy: int, ox: int) -> list[tuple[int, int]]:
     return [(y1 + _round(k / steps * oy), x1 + _round(k / steps * ox)) for k in range(1, steps)]
 
 
-def _gap_ok(img, s, py, px, ny, nx, level, f, rule) -> bool:
+def _gap_ok(img, s, py, px, ny, nx, level, f, rule, flat=None) -> bool:
+    """``flat``: the background 2 px across must lie within this of the pixel's CoC (None: no such test)."""
     for m in (1, 2):
         for sg in (1, -1):
             if not _farther(s, py + sg * _round(m * ny), px + sg * _round(m * nx), level):
                 return False
-    across = [(py + sg * _round(2 * ny), px + sg * _round(2 * nx)) for sg in (1, -1)]
-    across = [img[q] for q in across if _inside(s, *q)]
+    across = [q for q in ((py + sg * _round(2 * ny), px + sg * _round(2 * nx)) for sg in (1, -1)) if _inside(s, *q)]
+    if flat is not None and any(abs(s[q] - s[py, px]) > flat for q in across):
+        return False
+    across = [img[q] for q in across]
     if not across:
         return False
     b = np.mean(across, 0)
+    if max(f.mean(), b.mean()) > rule.light_level:
+        return False  # a light's colour: the test cannot read the strand's share
     d = f - b
     den = float(d @ d)
     if den <= rule.min_contrast ** 2 * max(float(f @ f), float(b @ b)) or den <= 1e-20:
@@ -68,6 +73,43 @@ def _gap_ok(img, s, py, px, ny, nx, level, f, rule) -> bool:
     a = float(r @ d) / den
     off = r - a * d
     return a >= rule.min_share and float(off @ off) <= rule.max_off ** 2 * den
+
+
+def _extend_end_ref(img, s, y1, x1, rule, out) -> None:
+    """Walk from a dash end away from its own-depth 8-neighbours (their mean offset) over the pixels behind it whose
+    colour shows the strand (``_gap_ok`` with F the end's colour and one surface across), giving each the end's
+    value."""
+    v = s[y1, x1]
+
+    def own(dy, dx):
+        return (dy, dx) != (0, 0) and _inside(s, y1 + dy, x1 + dx) and abs(s[y1 + dy, x1 + dx] - v) <= rule.jump_px
+
+    near = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if own(dy, dx)]
+    # within 2 px, of its depth and joined to it (an 8-neighbour, or next to one): its own dash, not the next one
+    joined = [(dy, dx) for dy in range(-2, 3) for dx in range(-2, 3) if own(dy, dx)
+              and (max(abs(dy), abs(dx)) == 1 or any(max(abs(dy - my), abs(dx - mx)) <= 1 for my, mx in near))]
+    sy, sx = sum(o[0] for o in joined), sum(o[1] for o in joined)
+    if not joined or len(joined) > 8 or (sy, sx) == (0, 0) or not _ends_towards(s, y1, x1, -sy, -sx, rule.jump_px):
+        return
+    steps = max(abs(sy), abs(sx))
+    uy, ux = -sy / steps, -sx / steps
+    level = v - rule.jump_px
+    by, bx = y1 - _round(uy), x1 - _round(ux)  # the pixel before the end: of its depth
+    if not _inside(s, by, bx) or abs(s[by, bx] - v) > rule.jump_px:
+        return
+    ny, nx = _round(ux), -_round(uy)  # across the way out: the end and the pixel before it thin there (a tip)
+    n = rule.thin_px
+    for cy, cx in ((y1, x1), (by, bx)):
+        if not (any(_farther(s, cy + k * ny, cx + k * nx, level) for k in range(1, n + 1))
+                and any(_farther(s, cy - k * ny, cx - k * nx, level) for k in range(1, n + 1))):
+            return
+    for k in range(1, rule.end_px + 1):
+        py, px = y1 + _round(k * uy), x1 + _round(k * ux)
+        if not _inside(s, py, px) or s[py, px] >= level:
+            return
+        if not _gap_ok(img, s, py, px, ux, -uy, level, img[y1, x1], rule, flat=rule.jump_px):
+            return
+        out[py, px] = max(out[py, px], v)
 
 
 def bridge_strands_ref(image: np.ndarray, s: np.ndarray, rule, offsets: np.ndarray) -> np.ndarray:
@@ -92,4 +134,6 @@ def bridge_strands_ref(image: np.ndarray, s: np.ndarray, rule, offsets: np.ndarr
             if gaps and all(_gap_ok(img, s, py, px, ny, nx, level, f, rule) for py, px in gaps):
                 for p in gaps:
                     out[p] = max(out[p], 0.5 * (s[y1, x1] + s[y2, x2]))
+        if rule.end_px > 0:
+            _extend_end_ref(img, s, y1, x1, rule, out)
     return out
