@@ -67,9 +67,11 @@ def _thin_along(coc: wp.array2d(dtype=float), y: int, x: int, dy: int, dx: int, 
 
 @wp.kernel
 def strand_pixels_kernel(coc: wp.array2d(dtype=float), params: StrandParams, tile_y: wp.array(dtype=wp.int32),
-                         tile_x: wp.array(dtype=wp.int32), tile: int, strand: wp.array2d(dtype=wp.uint8)):
+                         tile_x: wp.array(dtype=wp.int32), tile: int, strand: wp.array2d(dtype=wp.uint8),
+                         slot: wp.array2d(dtype=wp.uint8)):
     """The pixels of the ``tile`` x ``tile`` tiles whose corners are (``tile_y``, ``tile_x``) (a launch of (tiles,
-    tile * tile)); pixels outside the map are skipped."""
+    tile * tile)), in the map ``strand`` and a tile's slot ``slot[i, j]`` (so that the host finds them among the
+    tiles' pixels, not the frame's); pixels outside the map are skipped."""
     i, j = wp.tid()
     y = tile_y[i] + j / tile
     x = tile_x[i] + j % tile
@@ -83,6 +85,7 @@ def strand_pixels_kernel(coc: wp.array2d(dtype=float), params: StrandParams, til
     elif _thin_along(coc, y, x, 1, 1, level, n) == 1 or _thin_along(coc, y, x, 1, -1, level, n) == 1:
         t = 1
     strand[y, x] = wp.uint8(t)
+    slot[i, j] = wp.uint8(t)
 
 
 @wp.func
@@ -175,8 +178,17 @@ def _ends_towards(coc: wp.array2d(dtype=float), y: int, x: int, oy: int, ox: int
 
 
 @wp.func
+def _raise(out: wp.array2d(dtype=float), changed: wp.array(dtype=wp.int32), y: int, x: int, v: float, was: float):
+    """``out[y, x] = max(out[y, x], v)`` (the nearest wins, whatever the threads' order); ``changed[0]`` counts the
+    pixel once, at the first raise above its map value ``was``."""
+    old = wp.atomic_max(out, y, x, v)
+    if old == was and v > old:
+        wp.atomic_add(changed, 0, 1)
+
+
+@wp.func
 def _bridge(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), y1: int, x1: int, oy: int, ox: int,
-            params: StrandParams, out: wp.array2d(dtype=float)):
+            params: StrandParams, out: wp.array2d(dtype=float), changed: wp.array(dtype=wp.int32)):
     """Bridge the gap between strand pixels (y1, x1) and (y1 + oy, x1 + ox) when the photo shows it whole."""
     y2 = y1 + oy
     x2 = x1 + ox
@@ -202,7 +214,7 @@ def _bridge(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), y1: 
         py = y1 + _round(t * float(oy))
         px = x1 + _round(t * float(ox))
         if coc[py, px] < level:
-            wp.atomic_max(out, py, px, v)
+            _raise(out, changed, py, px, v, coc[py, px])
 
 
 @wp.func
@@ -216,38 +228,43 @@ def _own(coc: wp.array2d(dtype=float), y: int, x: int, v: float, jump: float) ->
 
 
 @wp.func
-def _own_and_joined(coc: wp.array2d(dtype=float), y1: int, x1: int, dy: int, dx: int, jump: float) -> int:
-    """1 when the pixel (dy, dx) from (y1, x1) (within 2 px, not itself) is of its depth and joined to it: an
-    8-neighbour, or 8-adjacent to an 8-neighbour of its depth (the same dash, not the next one)."""
+def _joined(near: int, dy: int, dx: int) -> int:
+    """1 when offset (dy, dx) (within 2 px, not 0) is an 8-neighbour or 8-adjacent to one set in ``near``."""
     if dy == 0 and dx == 0:
-        return 0
-    v = coc[y1, x1]
-    if _own(coc, y1 + dy, x1 + dx, v, jump) == 0:
         return 0
     if wp.abs(dy) <= 1 and wp.abs(dx) <= 1:
         return 1
     for my in range(wp.max(dy - 1, -1), wp.min(dy + 1, 1) + 1):
         for mx in range(wp.max(dx - 1, -1), wp.min(dx + 1, 1) + 1):
-            if (my != 0 or mx != 0) and _own(coc, y1 + my, x1 + mx, v, jump) == 1:
+            if (near >> ((my + 1) * 3 + mx + 1)) & 1 == 1:
                 return 1
     return 0
 
 
 @wp.func
 def _way_out(coc: wp.array2d(dtype=float), y1: int, x1: int, jump: float) -> wp.vec2i:
-    """The summed offset of the pixels of (y1, x1)'s dash within 2 px (of its depth and joined to it), negated: the
-    way out of a dash end; (0, 0) for a lone pixel, a pixel inside a strand or of a body (more than 8 such pixels),
-    and one with a pixel of its depth among its 8-neighbours on that side."""
+    """The summed offset of the pixels of (y1, x1)'s dash within 2 px (of its depth and joined to it: an
+    8-neighbour, or 8-adjacent to one), negated: the way out of a dash end; (0, 0) for a lone pixel, a pixel inside
+    a strand or of a body (more than 8 such pixels), and one with a pixel of its depth among its 8-neighbours on
+    that side."""
+    v = coc[y1, x1]
+    near = int(0)  # the 8-neighbours of its depth, bit (dy + 1) * 3 + (dx + 1)
+    for dy in range(-1, 2):
+        for dx in range(-1, 2):
+            if (dy != 0 or dx != 0) and _own(coc, y1 + dy, x1 + dx, v, jump) == 1:
+                near = near | (1 << ((dy + 1) * 3 + dx + 1))
+    if near == 0:
+        return wp.vec2i(0, 0)
     sy = int(0)
     sx = int(0)
     count = int(0)
     for dy in range(-2, 3):
         for dx in range(-2, 3):
-            if _own_and_joined(coc, y1, x1, dy, dx, jump) == 1:
+            if _joined(near, dy, dx) == 1 and _own(coc, y1 + dy, x1 + dx, v, jump) == 1:
                 sy += dy
                 sx += dx
                 count += 1
-    if count == 0 or count > 8 or (sy == 0 and sx == 0):
+    if count > 8 or (sy == 0 and sx == 0):
         return wp.vec2i(0, 0)
     if _ends_towards(coc, y1, x1, -sy, -sx, jump) == 0:
         return wp.vec2i(0, 0)
@@ -275,7 +292,7 @@ def _is_tip(coc: wp.array2d(dtype=float), y1: int, x1: int, uy: float, ux: float
 
 @wp.func
 def _extend_end(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), y1: int, x1: int,
-                params: StrandParams, out: wp.array2d(dtype=float)):
+                params: StrandParams, out: wp.array2d(dtype=float), changed: wp.array(dtype=wp.int32)):
     """Extend the dash ending at strand pixel (y1, x1) along its strand (:func:`_way_out`, :func:`_is_tip`) over the
     pixels behind it that the photo shows holding the strand (the end's colour over the background across, one
     surface there), up to ``end_px`` steps: each given the end's value."""
@@ -299,7 +316,7 @@ def _extend_end(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), 
             return  # another dash (the bridges' business) or something nearer
         if _gap_pixel_ok(image, coc, py, px, ux, -uy, level, f, params.jump_px, params) == 0:
             return
-        wp.atomic_max(out, py, px, v)
+        _raise(out, changed, py, px, v, coc[py, px])
 
 
 @wp.kernel
@@ -313,6 +330,7 @@ def bridge_strands_kernel(
     offset_x: wp.array(dtype=wp.int32),
     params: StrandParams,
     out: wp.array2d(dtype=float),
+    changed: wp.array(dtype=wp.int32),
 ):
     i = wp.tid()
     h = coc.shape[0]
@@ -328,6 +346,6 @@ def bridge_strands_kernel(
                 # two dash ends facing each other: a chord along a whole (kinked) strand is no gap
                 if _ends_towards(coc, y1, x1, offset_y[k], offset_x[k], params.jump_px) == 1:
                     if _ends_towards(coc, y2, x2, -offset_y[k], -offset_x[k], params.jump_px) == 1:
-                        _bridge(image, coc, y1, x1, offset_y[k], offset_x[k], params, out)
+                        _bridge(image, coc, y1, x1, offset_y[k], offset_x[k], params, out, changed)
     if params.end_px > 0:
-        _extend_end(image, coc, y1, x1, params, out)
+        _extend_end(image, coc, y1, x1, params, out, changed)

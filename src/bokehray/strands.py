@@ -132,34 +132,37 @@ def bridge_strands(image: np.ndarray, signed_coc: np.ndarray, rule: StrandRule |
     strand = wp.zeros((h, w), dtype=wp.uint8, device=dev)
     tiles = varied_tiles(s, rule.jump_px, rule.thin_px)  # elsewhere no pixel has a farther one within reach
     ty0, tx0 = (wp.array(np.ascontiguousarray(tiles[:, k]), dtype=wp.int32, device=dev) for k in (0, 1))
+    slot = wp.zeros((len(tiles), TILE_PX * TILE_PX), dtype=wp.uint8, device=dev)
 
     def launch_tiles(a: int, b: int) -> None:
         if b > a:
             wp.launch(bk_strands.strand_pixels_kernel, dim=(b - a, TILE_PX * TILE_PX),
-                      inputs=[coc, params, ty0[a:b], tx0[a:b], TILE_PX], outputs=[strand], device=dev)
+                      inputs=[coc, params, ty0[a:b], tx0[a:b], TILE_PX], outputs=[strand, slot[a:b]], device=dev)
 
     in_parts(len(tiles), launch_tiles, threads=threads, cpu=dev.is_cpu, check=check)
-    t = strand.numpy()
-    ends = np.flatnonzero(t)
-    if ends.size == 0:
+    i, j = np.divmod(np.flatnonzero(slot.numpy()), TILE_PX * TILE_PX)  # among the tiles' pixels, not the frame's
+    if i.size == 0:
         return signed_coc, 0
-    ty, tx = (v.astype(np.int32) for v in np.divmod(ends, w))
+    ty = (tiles[i, 0] + j // TILE_PX).astype(np.int32)
+    tx = (tiles[i, 1] + j % TILE_PX).astype(np.int32)
     img = wp.array(np.ascontiguousarray(image, np.float32), dtype=wp.vec3, device=dev, copy=copy)
     offs = gap_offsets(rule.max_gap)
     oy = wp.array(offs[:, 0], dtype=wp.int32, device=dev)
     ox = wp.array(offs[:, 1], dtype=wp.int32, device=dev)
     out = wp.array(s, dtype=float, device=dev, copy=True)
 
-    def launch(a: int, b: int) -> None:
-        if b > a:
-            wp.launch(bk_strands.bridge_strands_kernel, dim=b - a,
-                      inputs=[img, coc, strand, wp.array(ty[a:b], dtype=wp.int32, device=dev),
-                              wp.array(tx[a:b], dtype=wp.int32, device=dev), oy, ox, params],
-                      outputs=[out], device=dev)
+    def launch(a: int, b: int) -> wp.array | None:
+        if b <= a:
+            return None
+        changed = wp.zeros(1, dtype=wp.int32, device=dev)  # one counter a part: CPU atomics are plain there
+        wp.launch(bk_strands.bridge_strands_kernel, dim=b - a,
+                  inputs=[img, coc, strand, wp.array(ty[a:b], dtype=wp.int32, device=dev),
+                          wp.array(tx[a:b], dtype=wp.int32, device=dev), oy, ox, params],
+                  outputs=[out, changed], device=dev)
+        return changed
 
-    in_parts(ends.size, launch, threads=threads, cpu=dev.is_cpu, check=check)
-    bridged = out.numpy()
-    n = int(np.count_nonzero(bridged != s))
+    counts = in_parts(ty.size, launch, threads=threads, cpu=dev.is_cpu, check=check)
+    n = sum(int(c.numpy()[0]) for c in counts if c is not None)  # each pixel once, at its first raise
     if n == 0:
         return signed_coc, 0
-    return bridged, n
+    return out.numpy(), n
