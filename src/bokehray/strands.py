@@ -24,8 +24,9 @@ import numpy as np
 from scipy import ndimage
 
 from .edge_estimate import in_parts
+from .scene import SoftEdges
 
-__all__ = ["TILE_PX", "StrandRule", "bridge_strands", "gap_offsets", "varied_tiles"]
+__all__ = ["TILE_PX", "HiddenLightRule", "StrandRule", "bridge_strands", "gap_offsets", "hidden_lights", "varied_tiles"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -166,3 +167,122 @@ def bridge_strands(image: np.ndarray, signed_coc: np.ndarray, rule: StrandRule |
     if n == 0:
         return signed_coc, 0
     return out.numpy(), n
+
+
+@dataclass(frozen=True, slots=True)
+class HiddenLightRule:
+    """The constants of :func:`hidden_lights` (docs/soft-scene.md, "A light behind an opaque strand")."""
+
+    light_level: float = 1.0
+    """A far colour whose mean of linear RGB is above this is a light's (1: a white surface)."""
+    reach: int = 3
+    """A light is looked for at most this many px from the hidden pixel on each side along an axis (strands up to
+    5 px across)."""
+    jump_px: float = 1.0
+    """The light lies behind the strand: its CoC lower than the strand pixel's by more than this."""
+    alpha: float = 0.999
+    """The strand's coverage given to a hidden pixel (it is opaque; the split needs alpha below 1)."""
+
+
+_AXES = np.array([(0, 1), (1, 0), (1, 1), (1, -1)], np.int64)
+
+
+def hidden_lights(image: np.ndarray, signed_coc: np.ndarray, soft: SoftEdges,
+                  rule: HiddenLightRule | None = None) -> tuple[SoftEdges, int]:
+    """``soft`` with the opaque pixels of thin strands across a light split too, and how many were added.
+
+    A pixel that the split leaves whole and that is not lit itself, with a light behind the strand on both sides of
+    it along one of the four axes within ``reach`` px (a split pixel whose far part ``B`` is a light, or a whole
+    pixel lit in the photo, farther than the pixel by more than ``jump_px``; only pixels of the strand between), hides
+    that light: the photo shows the light on both sides of a strand thinner than the light. It becomes a split pixel
+    of coverage ``alpha`` whose far part is the light interpolated across it (linear in the distance to the two
+    sides, nearest axis first), so that once the strand blurs the light shows whole behind it, as it does through a
+    real lens, instead of the dim tone-mapped fill of a hidden region. Nothing is looked at unless a split pixel's
+    ``B`` is a light: the search runs within ``reach`` px of those."""
+    rule = rule or HiddenLightRule()
+    if len(soft) == 0:
+        return soft, 0
+    lit_split = soft.background.mean(1) > rule.light_level
+    if not lit_split.any():
+        return soft, 0
+    h, w = signed_coc.shape
+    r = int(rule.reach)
+    cand = _near_seeds(soft.index[lit_split], h, w, r)
+    k = np.searchsorted(soft.index, cand).clip(0, len(soft) - 1)
+    cand = cand[(soft.index[k] != cand) & (image.reshape(-1, 3)[cand].mean(1) <= rule.light_level)]
+    if cand.size == 0:
+        return soft, 0
+    found = _lights_across(image, signed_coc, soft, cand, rule)
+    if found is None:
+        return soft, 0
+    keep, b, far = found
+    return _with_hidden(image, signed_coc, soft, cand[keep], b, far, rule.alpha), int(keep.sum())
+
+
+def _near_seeds(seeds: np.ndarray, h: int, w: int, r: int) -> np.ndarray:
+    """The flat indices within ``r`` px (Chebyshev) of the ``seeds``, inside the frame, sorted and unique."""
+    sy, sx = np.divmod(seeds, w)
+    g = np.arange(-r, r + 1)
+    y = (sy[:, None, None] + g[None, :, None]).repeat(g.size, 2)
+    x = (sx[:, None, None] + g[None, None, :]).repeat(g.size, 1)
+    ok = (y >= 0) & (y < h) & (x >= 0) & (x < w)
+    return np.unique(y[ok] * w + x[ok])
+
+
+def _lights_across(image, s, soft, cand, rule):
+    """Per candidate: whether a light lies behind it on both sides along an axis, the light's colour there
+    (interpolated) and CoC; None when no candidate has one."""
+    h, w = s.shape
+    r = int(rule.reach)
+    cy, cx = np.divmod(cand, w)
+    own = s.ravel()[cand][:, None, None, None]
+    steps = np.arange(1, r + 1)
+    sides = np.array([1, -1])
+    y = cy[:, None, None, None] + sides[None, None, :, None] * _AXES[None, :, 0, None, None] * steps
+    x = cx[:, None, None, None] + sides[None, None, :, None] * _AXES[None, :, 1, None, None] * steps
+    inside = (y >= 0) & (y < h) & (x >= 0) & (x < w)
+    q = np.where(inside, y.clip(0, h - 1) * w + x.clip(0, w - 1), 0)
+    k = np.searchsorted(soft.index, q).clip(0, len(soft) - 1)
+    split = inside & (soft.index[k] == q)
+    colour = np.where(split[..., None], soft.background[k], image.reshape(-1, 3)[q])
+    coc = np.where(split, soft.far_coc[k], s.ravel()[q])
+    light = inside & (colour.mean(-1) > rule.light_level) & (coc < own - rule.jump_px)
+    strand = inside & ~split & ~light & (s.ravel()[q] >= own - rule.jump_px)  # the strand goes on there
+    # the first light along each way, with only the strand's pixels before it
+    passable = np.cumprod(np.concatenate([np.ones_like(strand[..., :1]), strand[..., :-1]], -1), -1).astype(bool)
+    hit = light & passable
+    first = np.where(hit.any(-1), hit.argmax(-1), r)  # (C, 4 axes, 2 sides): step index, r = none
+    both = (first < r).all(-1)  # (C, 4)
+    if not both.any():
+        return None
+    dist = np.where(both, first.sum(-1) + 2, 4 * r)
+    axis = dist.argmin(1)
+    keep = both[np.arange(len(cand)), axis]
+    ax = axis[keep]
+    f = first[keep][np.arange(keep.sum()), ax]  # (n, 2)
+    idx = np.flatnonzero(keep)
+    c2 = colour[idx, ax]  # (n, 2 sides, r, 3)
+    k2 = coc[idx, ax]
+    d1, d2 = (f[:, 0] + 1).astype(np.float32), (f[:, 1] + 1).astype(np.float32)
+    b1, b2 = c2[np.arange(idx.size), 0, f[:, 0]], c2[np.arange(idx.size), 1, f[:, 1]]
+    wt = (d2 / (d1 + d2))[:, None]  # the nearer side weighs more
+    b = (wt * b1 + (1 - wt) * b2).astype(np.float32)
+    far = (wt[:, 0] * k2[np.arange(idx.size), 0, f[:, 0]] + (1 - wt[:, 0]) * k2[np.arange(idx.size), 1, f[:, 1]])
+    return keep, b, far.astype(np.float32)
+
+
+def _with_hidden(image, s, soft, add, b, far, alpha):
+    """``soft`` with the pixels ``add`` split: coverage ``alpha``, far part ``b`` at CoC ``far``, near part solved
+    from the photo's pixel (``alpha F + (1 - alpha) b``, F kept non-negative) at the pixel's own CoC."""
+    a = np.float32(alpha)
+    photo = image.reshape(-1, 3)[add]
+    fg = np.clip((photo - (1 - a) * b) / a, 0, None).astype(np.float32)
+    idx = np.concatenate([soft.index, add])
+    o = np.argsort(idx, kind="stable")
+
+    def cat(x, y):
+        return np.concatenate([x, y])[o]
+
+    return SoftEdges(idx[o], cat(soft.alpha, np.full(add.size, a, np.float32)), cat(soft.foreground, fg),
+                     cat(soft.background, b), cat(soft.near_coc, s.ravel()[add].astype(np.float32)),
+                     cat(soft.far_coc, far))

@@ -137,3 +137,50 @@ def bridge_strands_ref(image: np.ndarray, s: np.ndarray, rule, offsets: np.ndarr
         if rule.end_px > 0:
             _extend_end_ref(img, s, y1, x1, rule, out)
     return out
+
+
+def hidden_lights_ref(image: np.ndarray, s: np.ndarray, soft, rule) -> dict[int, tuple[np.ndarray, float]]:
+    """The pixels ``bokehray.strands.hidden_lights`` adds, one at a time: flat index -> (the light's colour behind
+    it, its CoC). A pixel qualifies when it is not split, not lit itself and lies within ``reach`` (Chebyshev) of
+    a split pixel with a lit far part; along each axis and side the first light within ``reach`` (a split pixel's
+    lit B or a whole lit pixel, farther by more than ``jump_px``) counts when only unsplit, unlit pixels of the
+    strand's depth lie before it; the axis with lights on both sides nearest in all wins, the light interpolated
+    linearly in the distances."""
+    h, w = s.shape
+    img = image.astype(np.float64)
+    where = {int(i): k for k, i in enumerate(soft.index)}
+    seeds = [int(i) for k, i in enumerate(soft.index) if soft.background[k].mean() > rule.light_level]
+    out = {}
+    for c in range(h * w):
+        cy, cx = divmod(c, w)
+        if c in where or img[cy, cx].mean() > rule.light_level:
+            continue
+        if not any(max(abs(cy - sy), abs(cx - sx)) <= rule.reach for sy, sx in (divmod(q, w) for q in seeds)):
+            continue
+        best = None
+        for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
+            found = [_first_light(img, s, soft, where, rule, cy, cx, sg * dy, sg * dx) for sg in (1, -1)]
+            if None not in found and (best is None or found[0][0] + found[1][0] < best[0]):
+                (k1, b1, f1), (k2, b2, f2) = found
+                best = (k1 + k2, (k2 * b1 + k1 * b2) / (k1 + k2), (k2 * f1 + k1 * f2) / (k1 + k2))
+        if best is not None:
+            out[c] = (best[1], best[2])
+    return out
+
+
+def _first_light(img, s, soft, where, rule, cy, cx, dy, dx):
+    """(steps, colour, CoC) of the first light from (cy, cx) along (dy, dx) within ``reach`` with only the strand's
+    unsplit pixels before it; None if there is none."""
+    w = s.shape[1]
+    for k in range(1, rule.reach + 1):
+        y, x = cy + k * dy, cx + k * dx
+        if not _inside(s, y, x):
+            return None
+        q = y * w + x
+        colour = soft.background[where[q]].astype(np.float64) if q in where else img[y, x]
+        coc = float(soft.far_coc[where[q]]) if q in where else float(s[y, x])
+        if colour.mean() > rule.light_level and coc < s[cy, cx] - rule.jump_px:
+            return k, colour, coc
+        if q in where or s[y, x] < s[cy, cx] - rule.jump_px:
+            return None  # not the strand going on
+    return None
