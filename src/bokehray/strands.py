@@ -198,18 +198,18 @@ def hidden_lights(image: np.ndarray, signed_coc: np.ndarray, soft: SoftEdges,
     of coverage ``alpha`` whose far part is the light interpolated across it (linear in the distance to the two
     sides, nearest axis first), so that once the strand blurs the light shows whole behind it, as it does through a
     real lens, instead of the dim tone-mapped fill of a hidden region. Nothing is looked at unless a split pixel's
-    ``B`` is a light: the search runs within ``reach`` px of those."""
+    ``B`` is a light: the search runs along the axes within ``reach`` px of those."""
     rule = rule or HiddenLightRule()
     if len(soft) == 0:
         return soft, 0
-    lit_split = soft.background.mean(1) > rule.light_level
+    bg = soft.background
+    lit_split = (bg[:, 0] + bg[:, 1] + bg[:, 2]) > 3.0 * rule.light_level  # channel columns: no small-axis reduce
     if not lit_split.any():
         return soft, 0
-    h, w = signed_coc.shape
-    r = int(rule.reach)
-    cand = _near_seeds(soft.index[lit_split], h, w, r)
-    k = np.searchsorted(soft.index, cand).clip(0, len(soft) - 1)
-    cand = cand[(soft.index[k] != cand) & (image.reshape(-1, 3)[cand].mean(1) <= rule.light_level)]
+    cand = _near_seeds(soft.index[lit_split], soft.far_coc[lit_split], signed_coc, int(rule.reach), rule.jump_px)
+    if cand.size:
+        k = np.searchsorted(soft.index, cand).clip(0, len(soft) - 1)
+        cand = cand[(soft.index[k] != cand) & (image.reshape(-1, 3)[cand].mean(1) <= rule.light_level)]
     if cand.size == 0:
         return soft, 0
     found = _lights_across(image, signed_coc, soft, cand, rule)
@@ -219,14 +219,21 @@ def hidden_lights(image: np.ndarray, signed_coc: np.ndarray, soft: SoftEdges,
     return _with_hidden(image, signed_coc, soft, cand[keep], b, far, rule.alpha), int(keep.sum())
 
 
-def _near_seeds(seeds: np.ndarray, h: int, w: int, r: int) -> np.ndarray:
-    """The flat indices within ``r`` px (Chebyshev) of the ``seeds``, inside the frame, sorted and unique."""
+def _near_seeds(seeds: np.ndarray, far: np.ndarray, s: np.ndarray, r: int, jump: float) -> np.ndarray:
+    """The flat indices, sorted and unique, of the pixels up to ``r`` px from the ``seeds`` along the four axes (the
+    only places a seed can be the light beside them) that are nearer than the seed's far part ``far`` by more
+    than ``jump`` (a strand in front of the light)."""
+    h, w = s.shape
     sy, sx = np.divmod(seeds, w)
-    g = np.arange(-r, r + 1)
-    y = (sy[:, None, None] + g[None, :, None]).repeat(g.size, 2)
-    x = (sx[:, None, None] + g[None, None, :]).repeat(g.size, 1)
+    k = np.arange(1, r + 1)
+    oy = np.concatenate([np.outer(sg * _AXES[:, 0], k).ravel() for sg in (1, -1)])
+    ox = np.concatenate([np.outer(sg * _AXES[:, 1], k).ravel() for sg in (1, -1)])
+    y, x = sy[:, None] + oy, sx[:, None] + ox
     ok = (y >= 0) & (y < h) & (x >= 0) & (x < w)
-    return np.unique(y[ok] * w + x[ok])
+    q = np.where(ok, y * w + x, 0)
+    ok &= s.ravel()[q] > (far[:, None] + jump)
+    q = np.sort(q[ok])
+    return q[np.concatenate([[True], q[1:] != q[:-1]])] if q.size else q
 
 
 def _lights_across(image, s, soft, cand, rule):
@@ -246,7 +253,8 @@ def _lights_across(image, s, soft, cand, rule):
     split = inside & (soft.index[k] == q)
     colour = np.where(split[..., None], soft.background[k], image.reshape(-1, 3)[q])
     coc = np.where(split, soft.far_coc[k], s.ravel()[q])
-    light = inside & (colour.mean(-1) > rule.light_level) & (coc < own - rule.jump_px)
+    lit = (colour[..., 0] + colour[..., 1] + colour[..., 2]) > 3.0 * rule.light_level
+    light = inside & lit & (coc < own - rule.jump_px)
     strand = inside & ~split & ~light & (s.ravel()[q] >= own - rule.jump_px)  # the strand goes on there
     # the first light along each way, with only the strand's pixels before it
     passable = np.cumprod(np.concatenate([np.ones_like(strand[..., :1]), strand[..., :-1]], -1), -1).astype(bool)
@@ -277,12 +285,15 @@ def _with_hidden(image, s, soft, add, b, far, alpha):
     a = np.float32(alpha)
     photo = image.reshape(-1, 3)[add]
     fg = np.clip((photo - (1 - a) * b) / a, 0, None).astype(np.float32)
-    idx = np.concatenate([soft.index, add])
-    o = np.argsort(idx, kind="stable")
+    at = np.searchsorted(soft.index, add)  # ``add`` is sorted and holds no split pixel
+    cuts = np.concatenate([[0], at, [len(soft)]])
 
-    def cat(x, y):
-        return np.concatenate([x, y])[o]
+    def put(x, y):  # one copy of each field: its runs between the insertions, interleaved with the new entries
+        parts = []
+        for j in range(add.size):
+            parts += [x[cuts[j]:cuts[j + 1]], y[j:j + 1]]
+        return np.concatenate([*parts, x[cuts[-2]:]])
 
-    return SoftEdges(idx[o], cat(soft.alpha, np.full(add.size, a, np.float32)), cat(soft.foreground, fg),
-                     cat(soft.background, b), cat(soft.near_coc, s.ravel()[add].astype(np.float32)),
-                     cat(soft.far_coc, far))
+    return SoftEdges(put(soft.index, add), put(soft.alpha, np.full(add.size, a, np.float32)), put(soft.foreground, fg),
+                     put(soft.background, b), put(soft.near_coc, s.ravel()[add].astype(np.float32)),
+                     put(soft.far_coc, far))

@@ -141,8 +141,8 @@ def bridge_strands_ref(image: np.ndarray, s: np.ndarray, rule, offsets: np.ndarr
 
 def hidden_lights_ref(image: np.ndarray, s: np.ndarray, soft, rule) -> dict[int, tuple[np.ndarray, float]]:
     """The pixels ``bokehray.strands.hidden_lights`` adds, one at a time: flat index -> (the light's colour behind
-    it, its CoC). A pixel qualifies when it is not split, not lit itself and lies within ``reach`` (Chebyshev) of
-    a split pixel with a lit far part; along each axis and side the first light within ``reach`` (a split pixel's
+    it, its CoC). A pixel qualifies when it is not split, not lit itself and lies within ``reach`` along one of the
+    four axes of a split pixel with a lit far part, nearer than that far part by more than ``jump_px``; along each axis and side the first light within ``reach`` (a split pixel's
     lit B or a whole lit pixel, farther by more than ``jump_px``) counts when only unsplit, unlit pixels of the
     strand's depth lie before it; the axis with lights on both sides nearest in all wins, the light interpolated
     linearly in the distances."""
@@ -155,7 +155,8 @@ def hidden_lights_ref(image: np.ndarray, s: np.ndarray, soft, rule) -> dict[int,
         cy, cx = divmod(c, w)
         if c in where or img[cy, cx].mean() > rule.light_level:
             continue
-        if not any(max(abs(cy - sy), abs(cx - sx)) <= rule.reach for sy, sx in (divmod(q, w) for q in seeds)):
+        if not any(_on_an_axis(cy - sy, cx - sx, rule.reach) and s[cy, cx] > soft.far_coc[where[q]] + rule.jump_px
+                   for q, (sy, sx) in ((q, divmod(q, w)) for q in seeds)):
             continue
         best = None
         for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
@@ -184,3 +185,8 @@ def _first_light(img, s, soft, where, rule, cy, cx, dy, dx):
         if q in where or s[y, x] < s[cy, cx] - rule.jump_px:
             return None  # not the strand going on
     return None
+
+
+def _on_an_axis(dy: int, dx: int, reach: int) -> bool:
+    """(dy, dx) is 1 to ``reach`` steps along a row, a column or a diagonal."""
+    return (dy, dx) != (0, 0) and max(abs(dy), abs(dx)) <= reach and (dy == 0 or dx == 0 or abs(dy) == abs(dx))
