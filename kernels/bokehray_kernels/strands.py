@@ -20,7 +20,13 @@ share of the strand's colour. Two kernels:
    * the photo shows the strand there: ``p``'s colour, on the line from the background ``B`` (the mean of the two
      pixels 2 px across) to the strand ``F`` (the mean of the ends' colours), lies at least ``min_share`` of the
      way to ``F`` and at most ``max_off`` of ``|F - B|`` off the line (``B``: the one inside the frame at a border); ``|F - B|`` must exceed ``min_contrast``
-     of the brighter of the two. A gap the photo shows as background (a hole in a mesh) stays.
+     of the brighter of the two, and neither ``F`` nor ``B`` may be a light's colour (mean above ``light_level``).
+     A gap the photo shows as background (a hole in a mesh) stays.
+
+   The same thread then extends ``q1`` if it ends a dash (:func:`_extend_end`): away from its dash's pixels within
+   2 px, when it and the pixel before it are thin across that way, over at most ``end_px`` pixels behind it, each
+   passing the same test with ``F`` the end's colour and ``B`` on one surface with the pixel. Every raise above a
+   pixel's map value is counted once, in ``changed`` (the host's count of changed pixels).
 
 Oracle: ``tests/reference/strands_ref.py``.
 """

@@ -12,7 +12,12 @@ space between two letters) keeps its depth, and so does every pixel of a map wit
 The rule (``bokehray_kernels.strands``): strand pixels are nearer than a pixel within ``thin_px`` on both sides
 along one axis; two strand pixels of the same depth, 2 to ``max_gap`` px apart, whose segment crosses pixels behind
 them, bridge those pixels when every one of them is thin across the segment and its colour lies on the line from
-the background beside it towards the strand's colour, at least ``min_share`` of the way.
+the background beside it towards the strand's colour, at least ``min_share`` of the way. A dash end is also walked
+out along its strand over the pixels behind it whose colour shows the strand (a tip the map cut short, a strand
+entering the frame), and nothing is taken over a light.
+
+:func:`hidden_lights` runs after the matting: a light the photo shows on both sides of an opaque strand is taken as
+going on behind it (the hidden pixels split, the light their far part).
 """
 
 from __future__ import annotations
@@ -116,7 +121,7 @@ def _tile_reduce(a: np.ndarray, t: int, op) -> np.ndarray:
 def bridge_strands(image: np.ndarray, signed_coc: np.ndarray, rule: StrandRule | None = None, *,
                    device: str = "cpu", threads: int | None = None, check=None) -> tuple[np.ndarray, int]:
     """The signed CoC map with the gaps of thin strands bridged (each gap pixel given the mean depth of the two
-    dashes it joins), and how many pixels changed. ``image``: ``H x W x 3`` float32 linear RGB; ``signed_coc``:
+    dashes it joins) and their cut ends extended (each pixel given the end's depth), and how many pixels changed. ``image``: ``H x W x 3`` float32 linear RGB; ``signed_coc``:
     ``H x W`` float32, both finite (checked by the caller). The map is returned as given (not copied) when nothing
     changes. ``check()``: called between rounds of the kernel (it raises to stop)."""
     import warp as wp
