@@ -121,8 +121,9 @@ def _tile_reduce(a: np.ndarray, t: int, op) -> np.ndarray:
 def bridge_strands(image: np.ndarray, signed_coc: np.ndarray, rule: StrandRule | None = None, *,
                    device: str = "cpu", threads: int | None = None, check=None) -> tuple[np.ndarray, int]:
     """The signed CoC map with the gaps of thin strands bridged (each gap pixel given the mean depth of the two
-    dashes it joins) and their cut ends extended (each pixel given the end's depth), and how many pixels changed. ``image``: ``H x W x 3`` float32 linear RGB; ``signed_coc``:
-    ``H x W`` float32, both finite (checked by the caller). The map is returned as given (not copied) when nothing
+    dashes it joins) and their cut ends extended (each pixel given the end's depth), and how many pixels changed.
+    ``image``: ``H x W x 3`` float32 linear RGB; ``signed_coc``: ``H x W`` float32, both finite (checked by the
+    caller). The map is returned as given (not copied) when nothing
     changes. ``check()``: called between rounds of the kernel (it raises to stop)."""
     import warp as wp
 
@@ -198,12 +199,13 @@ def hidden_lights(image: np.ndarray, signed_coc: np.ndarray, soft: SoftEdges,
 
     A pixel that the split leaves whole and that is not lit itself, with a light behind the strand on both sides of
     it along one of the four axes within ``reach`` px (a split pixel whose far part ``B`` is a light, or a whole
-    pixel lit in the photo, farther than the pixel by more than ``jump_px``; only pixels of the strand between), hides
-    that light: the photo shows the light on both sides of a strand thinner than the light. It becomes a split pixel
-    of coverage ``alpha`` whose far part is the light interpolated across it (linear in the distance to the two
-    sides, nearest axis first), so that once the strand blurs the light shows whole behind it, as it does through a
-    real lens, instead of the dim tone-mapped fill of a hidden region. Nothing is looked at unless a split pixel's
-    ``B`` is a light: the search runs along the axes within ``reach`` px of those."""
+    pixel lit in the photo, farther than the pixel by more than ``jump_px``; only pixels of the strand between; the
+    two within ``jump_px`` of each other's CoC: one light), hides that light: the photo shows it on both sides of a
+    strand thinner than the light. It becomes a split pixel of coverage ``alpha`` whose far part is the light
+    interpolated across it (linear in the distance to the two sides, nearest axis first), so that once the strand
+    blurs the light shows whole behind it, as it does through a real lens, instead of the dim tone-mapped fill of a
+    hidden region. Nothing is looked at unless a split pixel's ``B`` is a light: the search runs along the axes
+    within ``reach`` px of those."""
     rule = rule or HiddenLightRule()
     if len(soft) == 0:
         return soft, 0
@@ -266,6 +268,8 @@ def _lights_across(image, s, soft, cand, rule):
     hit = light & passable
     first = np.where(hit.any(-1), hit.argmax(-1), r)  # (C, 4 axes, 2 sides): step index, r = none
     both = (first < r).all(-1)  # (C, 4)
+    fc = np.take_along_axis(coc, first.clip(0, r - 1)[..., None], -1)[..., 0]  # (C, 4, 2): the lights' CoC
+    both &= np.abs(fc[..., 0] - fc[..., 1]) <= rule.jump_px  # one light: the same depth on both sides
     if not both.any():
         return None
     dist = np.where(both, first.sum(-1) + 2, 4 * r)

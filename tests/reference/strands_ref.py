@@ -144,8 +144,8 @@ def hidden_lights_ref(image: np.ndarray, s: np.ndarray, soft, rule) -> dict[int,
     it, its CoC). A pixel qualifies when it is not split, not lit itself and lies within ``reach`` along one of the
     four axes of a split pixel with a lit far part, nearer than that far part by more than ``jump_px``; along each axis and side the first light within ``reach`` (a split pixel's
     lit B or a whole lit pixel, farther by more than ``jump_px``) counts when only unsplit, unlit pixels of the
-    strand's depth lie before it; the axis with lights on both sides nearest in all wins, the light interpolated
-    linearly in the distances."""
+    strand's depth lie before it; the axis with lights on both sides (within ``jump_px`` of each other's CoC)
+    nearest in all wins, the light interpolated linearly in the distances."""
     h, w = s.shape
     img = image.astype(np.float64)
     where = {int(i): k for k, i in enumerate(soft.index)}
@@ -161,7 +161,9 @@ def hidden_lights_ref(image: np.ndarray, s: np.ndarray, soft, rule) -> dict[int,
         best = None
         for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
             found = [_first_light(img, s, soft, where, rule, cy, cx, sg * dy, sg * dx) for sg in (1, -1)]
-            if None not in found and (best is None or found[0][0] + found[1][0] < best[0]):
+            if None in found or abs(found[0][2] - found[1][2]) > rule.jump_px:
+                continue  # a light on both sides, at one depth
+            if best is None or found[0][0] + found[1][0] < best[0]:
                 (k1, b1, f1), (k2, b2, f2) = found
                 best = (k1 + k2, (k2 * b1 + k1 * b2) / (k1 + k2), (k2 * f1 + k1 * f2) / (k1 + k2))
         if best is not None:
