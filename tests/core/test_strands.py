@@ -309,5 +309,5 @@ def test_a_light_at_two_depths_either_side_is_not_taken_behind_the_strand():
     above = (a < 0.5) & (yy < 20)  # the far side above the strand, lifted by 3 jumps
     s2 = np.where(above, s + np.float32(3.0), s).astype(np.float32)
     soft2 = split_mixed_pixels(photo, s2)
-    out, n = hidden_lights(photo, s2, soft2)
+    _, n = hidden_lights(photo, s2, soft2)
     assert n == len(hidden_lights_ref(photo, s2, soft2, HiddenLightRule())) == 0
