@@ -5,9 +5,10 @@ than about a pixel gets its depth only where it covers half a pixel or more, so 
 far, the blade blurs in front, and each gap's share of the blade stayed sharp: a column of specks.
 
 The scene is built with its layers recorded, so each blade's coverage is known. A blade is *dashed* when its
-alpha >= 0.5 pixels fall into more than 3 pieces (8-connected). The reference is the same render with every dashed
-blade's map made whole (each row's most covered pixel given the blade's depth too, the rest split by the matting
-as usual). The **speck** of a render over a blade is the largest, over the blade's pixels (coverage >= 0.05), of
+alpha >= 0.5 pixels fall into more than 3 pieces (8-connected). The reference is the same render (defaults) with
+every dashed blade's map made whole (each row's most covered pixel given the blade's depth too, the rest split by
+the matting as usual), so that it differs from the render only by the map's breaks (a light a blade hides, which
+``bokehray.strands.hidden_lights`` shows behind it, is in both). The **speck** of a render over a blade is the largest, over the blade's pixels (coverage >= 0.05), of
 the render minus the reference, in 8-bit sRGB (largest channel), less that difference's median over 9 x 9 px (a
 broad difference is the blur's level, not a speck).
 
@@ -132,8 +133,7 @@ def main(argv: list[str] | None = None) -> None:
     blur = br.BlurParams(scene.k_px, scene.focus_far)
     renders = {"before": br.render(scene.image, scene.disparity, blur, layers=br.LayerOptions(strand_gaps=False)),
                "after": br.render(scene.image, scene.disparity, blur),
-               "reference": br.render(scene.image, whole_map(scene, blades), blur,
-                                      layers=br.LayerOptions(strand_gaps=False))}
+               "reference": br.render(scene.image, whole_map(scene, blades), blur)}
     s = cap_coc(blur.signed_coc(scene.disparity))
     bridged, n = bridge_strands(scene.image, s)
     rows = []

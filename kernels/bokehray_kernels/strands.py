@@ -20,7 +20,13 @@ share of the strand's colour. Two kernels:
    * the photo shows the strand there: ``p``'s colour, on the line from the background ``B`` (the mean of the two
      pixels 2 px across) to the strand ``F`` (the mean of the ends' colours), lies at least ``min_share`` of the
      way to ``F`` and at most ``max_off`` of ``|F - B|`` off the line (``B``: the one inside the frame at a border); ``|F - B|`` must exceed ``min_contrast``
-     of the brighter of the two. A gap the photo shows as background (a hole in a mesh) stays.
+     of the brighter of the two, and neither ``F`` nor ``B`` may be a light's colour (mean above ``light_level``).
+     A gap the photo shows as background (a hole in a mesh) stays.
+
+   The same thread then extends ``q1`` if it ends a dash (:func:`_extend_end`): away from its dash's pixels within
+   2 px, when it and the pixel before it are thin across that way, over at most ``end_px`` pixels behind it, each
+   passing the same test with ``F`` the end's colour and ``B`` on one surface with the pixel. Every raise above a
+   pixel's map value is counted once, in ``changed`` (the host's count of changed pixels).
 
 Oracle: ``tests/reference/strands_ref.py``.
 """
@@ -39,6 +45,8 @@ class StrandParams:
     min_share: float  # a gap pixel's colour lies at least this far from B towards F
     max_off: float  # ... and at most this share of |F - B| off the B-F line
     min_contrast: float  # |F - B| above this share of the brighter of the two
+    end_px: int  # a dash end is extended along its strand by at most this many px
+    light_level: float  # a colour whose mean of RGB is above this is a light's (linear; 1: a white surface)
 
 
 @wp.func
@@ -65,9 +73,11 @@ def _thin_along(coc: wp.array2d(dtype=float), y: int, x: int, dy: int, dx: int, 
 
 @wp.kernel
 def strand_pixels_kernel(coc: wp.array2d(dtype=float), params: StrandParams, tile_y: wp.array(dtype=wp.int32),
-                         tile_x: wp.array(dtype=wp.int32), tile: int, strand: wp.array2d(dtype=wp.uint8)):
+                         tile_x: wp.array(dtype=wp.int32), tile: int, strand: wp.array2d(dtype=wp.uint8),
+                         slot: wp.array2d(dtype=wp.uint8)):
     """The pixels of the ``tile`` x ``tile`` tiles whose corners are (``tile_y``, ``tile_x``) (a launch of (tiles,
-    tile * tile)); pixels outside the map are skipped."""
+    tile * tile)), in the map ``strand`` and a tile's slot ``slot[i, j]`` (so that the host finds them among the
+    tiles' pixels, not the frame's); pixels outside the map are skipped."""
     i, j = wp.tid()
     y = tile_y[i] + j / tile
     x = tile_x[i] + j % tile
@@ -81,6 +91,7 @@ def strand_pixels_kernel(coc: wp.array2d(dtype=float), params: StrandParams, til
     elif _thin_along(coc, y, x, 1, 1, level, n) == 1 or _thin_along(coc, y, x, 1, -1, level, n) == 1:
         t = 1
     strand[y, x] = wp.uint8(t)
+    slot[i, j] = wp.uint8(t)
 
 
 @wp.func
@@ -89,16 +100,22 @@ def _round(v: float) -> int:
 
 
 @wp.func
-def _gap_pixel_ok(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), py: int, px: int, ny: float,
-                  nx: float, level: float, f: wp.vec3, params: StrandParams) -> int:
-    """1 when gap pixel (py, px) is thin across the segment (normal (ny, nx), Chebyshev length 1) and its colour
-    continues the strand's ``f`` over the background 2 px across."""
+def _thin_across(coc: wp.array2d(dtype=float), py: int, px: int, ny: float, nx: float, level: float) -> int:
+    """1 when the pixels 1 and 2 px from (py, px) on both sides along (ny, nx) are behind ``level`` (or outside)."""
     for m in range(1, 3):
         fm = float(m)
         if _farther(coc, py + _round(fm * ny), px + _round(fm * nx), level) == 0:
             return 0
         if _farther(coc, py - _round(fm * ny), px - _round(fm * nx), level) == 0:
             return 0
+    return 1
+
+
+@wp.func
+def _background_across(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), py: int, px: int, ny: float,
+                       nx: float, flat: float) -> wp.vec4:
+    """The mean colour of the pixels 2 px from (py, px) on both sides along (ny, nx) inside the frame, and their
+    count (0: none, or with ``flat`` >= 0 one of them further than ``flat`` from the pixel's CoC)."""
     b = wp.vec3(0.0, 0.0, 0.0)
     nb = float(0.0)
     for side in range(2):
@@ -106,22 +123,48 @@ def _gap_pixel_ok(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float)
         qy = py + _round(sg * 2.0 * ny)
         qx = px + _round(sg * 2.0 * nx)
         if qy >= 0 and qy < coc.shape[0] and qx >= 0 and qx < coc.shape[1]:
+            if flat >= 0.0 and wp.abs(coc[qy, qx] - coc[py, px]) > flat:
+                return wp.vec4(0.0, 0.0, 0.0, 0.0)
             b += image[qy, qx]
             nb += 1.0
     if nb == 0.0:
+        return wp.vec4(0.0, 0.0, 0.0, 0.0)
+    return wp.vec4(b[0] / nb, b[1] / nb, b[2] / nb, nb)
+
+
+@wp.func
+def _shows_strand(c: wp.vec3, f: wp.vec3, b: wp.vec3, params: StrandParams) -> int:
+    """1 when colour ``c`` lies on the line from the background ``b`` to the strand ``f``, at least ``min_share``
+    of the way and at most ``max_off`` of ``|f - b|`` off it, ``|f - b|`` above ``min_contrast`` of the brighter,
+    and neither ``f`` nor ``b`` a light's colour (over a light the test cannot read the strand's share)."""
+    lit = params.light_level * 3.0
+    if f[0] + f[1] + f[2] > lit or b[0] + b[1] + b[2] > lit:
         return 0
-    b = b / nb
     d = f - b
     den = wp.dot(d, d)
     bright = wp.max(wp.dot(f, f), wp.dot(b, b))
     if den <= params.min_contrast * params.min_contrast * bright or den <= 1.0e-20:
         return 0
-    r = image[py, px] - b
+    r = c - b
     a = wp.dot(r, d) / den
     off = r - a * d
     if a < params.min_share or wp.dot(off, off) > params.max_off * params.max_off * den:
         return 0
     return 1
+
+
+@wp.func
+def _gap_pixel_ok(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), py: int, px: int, ny: float,
+                  nx: float, level: float, f: wp.vec3, flat: float, params: StrandParams) -> int:
+    """1 when gap pixel (py, px) is thin across the segment (normal (ny, nx), Chebyshev length 1) and its colour
+    continues the strand's ``f`` over the background 2 px across; with ``flat`` >= 0 that background must also lie
+    within ``flat`` of the pixel's own CoC (one surface behind the strand, not a third object's edge)."""
+    if _thin_across(coc, py, px, ny, nx, level) == 0:
+        return 0
+    bq = _background_across(image, coc, py, px, ny, nx, flat)
+    if bq[3] == 0.0:
+        return 0
+    return _shows_strand(image[py, px], f, wp.vec3(bq[0], bq[1], bq[2]), params)
 
 
 @wp.func
@@ -141,8 +184,17 @@ def _ends_towards(coc: wp.array2d(dtype=float), y: int, x: int, oy: int, ox: int
 
 
 @wp.func
+def _raise(out: wp.array2d(dtype=float), changed: wp.array(dtype=wp.int32), y: int, x: int, v: float, was: float):
+    """``out[y, x] = max(out[y, x], v)`` (the nearest wins, whatever the threads' order); ``changed[0]`` counts the
+    pixel once, at the first raise above its map value ``was``."""
+    old = wp.atomic_max(out, y, x, v)
+    if old == was and v > old:
+        wp.atomic_add(changed, 0, 1)
+
+
+@wp.func
 def _bridge(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), y1: int, x1: int, oy: int, ox: int,
-            params: StrandParams, out: wp.array2d(dtype=float)):
+            params: StrandParams, out: wp.array2d(dtype=float), changed: wp.array(dtype=wp.int32)):
     """Bridge the gap between strand pixels (y1, x1) and (y1 + oy, x1 + ox) when the photo shows it whole."""
     y2 = y1 + oy
     x2 = x1 + ox
@@ -158,7 +210,7 @@ def _bridge(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), y1: 
         py = y1 + _round(t * float(oy))
         px = x1 + _round(t * float(ox))
         if coc[py, px] < level:
-            if _gap_pixel_ok(image, coc, py, px, ny, nx, level, f, params) == 0:
+            if _gap_pixel_ok(image, coc, py, px, ny, nx, level, f, -1.0, params) == 0:
                 return
             gaps += 1
     if gaps == 0:
@@ -168,7 +220,109 @@ def _bridge(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), y1: 
         py = y1 + _round(t * float(oy))
         px = x1 + _round(t * float(ox))
         if coc[py, px] < level:
-            wp.atomic_max(out, py, px, v)
+            _raise(out, changed, py, px, v, coc[py, px])
+
+
+@wp.func
+def _own(coc: wp.array2d(dtype=float), y: int, x: int, v: float, jump: float) -> int:
+    """1 when (y, x) lies inside the map within ``jump`` of ``v``."""
+    if y < 0 or y >= coc.shape[0] or x < 0 or x >= coc.shape[1]:
+        return 0
+    if wp.abs(coc[y, x] - v) <= jump:
+        return 1
+    return 0
+
+
+@wp.func
+def _joined(near: int, dy: int, dx: int) -> int:
+    """1 when offset (dy, dx) (within 2 px, not 0) is an 8-neighbour or 8-adjacent to one set in ``near``."""
+    if dy == 0 and dx == 0:
+        return 0
+    if wp.abs(dy) <= 1 and wp.abs(dx) <= 1:
+        return 1
+    for my in range(wp.max(dy - 1, -1), wp.min(dy + 1, 1) + 1):
+        for mx in range(wp.max(dx - 1, -1), wp.min(dx + 1, 1) + 1):
+            if (near >> ((my + 1) * 3 + mx + 1)) & 1 == 1:
+                return 1
+    return 0
+
+
+@wp.func
+def _way_out(coc: wp.array2d(dtype=float), y1: int, x1: int, jump: float) -> wp.vec2i:
+    """The summed offset of the pixels of (y1, x1)'s dash within 2 px (of its depth and joined to it: an
+    8-neighbour, or 8-adjacent to one), negated: the way out of a dash end; (0, 0) for a lone pixel, a pixel inside
+    a strand or of a body (more than 8 such pixels), and one with a pixel of its depth among its 8-neighbours on
+    that side."""
+    v = coc[y1, x1]
+    near = int(0)  # the 8-neighbours of its depth, bit (dy + 1) * 3 + (dx + 1)
+    for dy in range(-1, 2):
+        for dx in range(-1, 2):
+            if (dy != 0 or dx != 0) and _own(coc, y1 + dy, x1 + dx, v, jump) == 1:
+                near = near | (1 << ((dy + 1) * 3 + dx + 1))
+    if near == 0:
+        return wp.vec2i(0, 0)
+    sy = int(0)
+    sx = int(0)
+    count = int(0)
+    for dy in range(-2, 3):
+        for dx in range(-2, 3):
+            if _joined(near, dy, dx) == 1 and _own(coc, y1 + dy, x1 + dx, v, jump) == 1:
+                sy += dy
+                sx += dx
+                count += 1
+    if count > 8 or (sy == 0 and sx == 0):
+        return wp.vec2i(0, 0)
+    if _ends_towards(coc, y1, x1, -sy, -sx, jump) == 0:
+        return wp.vec2i(0, 0)
+    return wp.vec2i(-sy, -sx)
+
+
+@wp.func
+def _is_tip(coc: wp.array2d(dtype=float), y1: int, x1: int, uy: float, ux: float, params: StrandParams) -> int:
+    """1 when the pixel before (y1, x1) along the way out (uy, ux) is of its depth and both are thin across that
+    way: a strand's tip, not the side of a wider strand, a step of a whole one or a notch in a solid outline."""
+    by = y1 - _round(uy)
+    bx = x1 - _round(ux)
+    if by < 0 or by >= coc.shape[0] or bx < 0 or bx >= coc.shape[1]:
+        return 0
+    v = coc[y1, x1]
+    if wp.abs(coc[by, bx] - v) > params.jump_px:
+        return 0
+    level = v - params.jump_px
+    ny = _round(ux)
+    nx = -_round(uy)
+    if _thin_along(coc, y1, x1, ny, nx, level, params.thin_px) == 0:
+        return 0
+    return _thin_along(coc, by, bx, ny, nx, level, params.thin_px)
+
+
+@wp.func
+def _extend_end(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), y1: int, x1: int,
+                params: StrandParams, out: wp.array2d(dtype=float), changed: wp.array(dtype=wp.int32)):
+    """Extend the dash ending at strand pixel (y1, x1) along its strand (:func:`_way_out`, :func:`_is_tip`) over the
+    pixels behind it that the photo shows holding the strand (the end's colour over the background across, one
+    surface there), up to ``end_px`` steps: each given the end's value."""
+    way = _way_out(coc, y1, x1, params.jump_px)
+    if way[0] == 0 and way[1] == 0:
+        return
+    steps = wp.max(wp.abs(way[0]), wp.abs(way[1]))
+    uy = float(way[0]) / float(steps)  # Chebyshev length 1
+    ux = float(way[1]) / float(steps)
+    if _is_tip(coc, y1, x1, uy, ux, params) == 0:
+        return
+    v = coc[y1, x1]
+    level = v - params.jump_px
+    f = image[y1, x1]
+    for k in range(1, params.end_px + 1):
+        py = y1 + _round(float(k) * uy)
+        px = x1 + _round(float(k) * ux)
+        if py < 0 or py >= coc.shape[0] or px < 0 or px >= coc.shape[1]:
+            return
+        if coc[py, px] >= level:
+            return  # another dash (the bridges' business) or something nearer
+        if _gap_pixel_ok(image, coc, py, px, ux, -uy, level, f, params.jump_px, params) == 0:
+            return
+        _raise(out, changed, py, px, v, coc[py, px])
 
 
 @wp.kernel
@@ -182,6 +336,7 @@ def bridge_strands_kernel(
     offset_x: wp.array(dtype=wp.int32),
     params: StrandParams,
     out: wp.array2d(dtype=float),
+    changed: wp.array(dtype=wp.int32),
 ):
     i = wp.tid()
     h = coc.shape[0]
@@ -197,4 +352,6 @@ def bridge_strands_kernel(
                 # two dash ends facing each other: a chord along a whole (kinked) strand is no gap
                 if _ends_towards(coc, y1, x1, offset_y[k], offset_x[k], params.jump_px) == 1:
                     if _ends_towards(coc, y2, x2, -offset_y[k], -offset_x[k], params.jump_px) == 1:
-                        _bridge(image, coc, y1, x1, offset_y[k], offset_x[k], params, out)
+                        _bridge(image, coc, y1, x1, offset_y[k], offset_x[k], params, out, changed)
+    if params.end_px > 0:
+        _extend_end(image, coc, y1, x1, params, out, changed)

@@ -50,7 +50,9 @@ class LayerOptions:
         strand_gaps: bridge the gaps of a strand the map breaks into dashes (``bokehray.strands.bridge_strands``):
             a pixel between two dashes of the same depth takes the strand's depth where the photo shows the strand
             going on there, so the matting splits it instead of leaving its share of the strand sharp inside the
-            strand's blur. With ``soft_edges``.
+            strand's blur; so do the pixels beyond a dash end the photo shows holding the strand. After the matting,
+            a light seen on both sides of an opaque strand is split behind it (``bokehray.strands.hidden_lights``).
+            With ``soft_edges``.
     """
 
     max_layers: int = 8

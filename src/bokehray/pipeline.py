@@ -145,6 +145,10 @@ def _soft_scene(image: np.ndarray, signed_coc: np.ndarray, layers: LayerOptions,
     budget = None if memory is None else tiling.budget_bytes(memory) - HELD_DURING_SPLIT_B * signed_coc.size
     soft = split_mixed_pixels(image, signed_coc, rule, finite_checked=finite_checked, check=check,
                               budget_bytes=budget)
+    if layers.strand_gaps:  # lights an opaque strand hides, from the split's lit far parts beside it
+        from .strands import hidden_lights
+
+        soft, _ = hidden_lights(image, signed_coc, soft)
     scene.check_soft_edges(soft, signed_coc.shape)
     clock.lap("edges")
     return signed_coc, soft
