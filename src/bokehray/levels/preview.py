@@ -21,6 +21,7 @@ Large renders go tile by tile through ``bokehray.tiling`` with exact halos (``bo
 from __future__ import annotations
 
 import dataclasses
+import functools
 import itertools
 import math
 import os
@@ -641,8 +642,6 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
     # pages taken at the first composite, when lazy
     acc = lazy_zeros((ay1 - ay0, ax1 - ax0), wp.vec4, device, lazy_for(ay1 - ay0, ax1 - ax0))
     kept = [_kept(lyr, box, keep, device) for lyr in layers]
-    # the pixels each layer covers whole, and the layers' ids, on the accumulator's pixels
-    whole = (opaque_pixels(arrays, device)[ay0:ay1, ax0:ax1], arrays.ids[ay0:ay1, ax0:ax1])
 
     # Layers render independently (Warp CPU launches release the GIL) on ``threads`` workers and are composited
     # strictly back to front as they complete. A free worker takes the next layer to composite if it has not
@@ -656,6 +655,7 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
     # the composite and the final division in bands of rows, one on this thread and one on each other core: the
     # layers still in work share the cores with them, and after the last one no core idles while they run
     bands = ThreadPoolExecutor(max_workers=scatter.threads - 1) if scatter.threads > 1 else None
+    whole = _soon(functools.partial(_whole, arrays, box, device), bands)  # while the first layers render
     try:
         started: dict[int, Future] = {}  # started and not yet composited
         head = 0  # the next layer to composite
@@ -676,7 +676,7 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
                 continue
             out = fut.result()
             del started[head]
-            _composite(out, layers[head], kept[head], box, acc, whole, device, bands, scatter.threads)
+            _composite(out, layers[head], kept[head], box, acc, whole.result(), device, bands, scatter.threads)
             del out
             head += 1
             done += 1
@@ -740,6 +740,22 @@ def _composite(out: wp.array, layer: sc.LayerRecord, kept: _Kept, acc_box: tilin
                           whole[0], whole[1], layer.index], outputs=[acc], device=device)
 
     in_bands(launch, *kept.rows, helper, threads)
+
+
+def _whole(arrays: sc.LayerSources, box: tiling.Box, device: str) -> tuple[wp.array, wp.array]:
+    """The pixels their own layer covers whole (:func:`opaque_pixels`) and the layers' ids, on the accumulator's
+    ``box``."""
+    y0, y1, x0, x1 = box
+    return opaque_pixels(arrays, device)[y0:y1, x0:x1], arrays.ids[y0:y1, x0:x1]
+
+
+def _soon(fn, executor: ThreadPoolExecutor | None) -> Future:
+    """``fn()`` on ``executor`` (None: here, now), as a future."""
+    if executor is not None:
+        return executor.submit(fn)
+    f: Future = Future()
+    f.set_result(fn())
+    return f
 
 
 def opaque_pixels(arrays: sc.LayerSources, device: str) -> wp.array:
