@@ -5,10 +5,10 @@ little, a depth model's noise near the focus), the footprints no longer tile: a 
 radius 0.5 gathers 0.9, and the blurred layer behind shows through by a tenth, although a continuous opaque surface
 blocks every ray of the pixel's cone. The cone of pixel ``p`` meets the scene within its own CoC radius ``r_p`` of
 ``p``; where no pixel within ``r_p + 1`` (Euclidean) lies beside a farther surface (a 4-neighbour farther by more
-than ``JUMP_PX`` of CoC: a depth edge, as the matting reads one), none is split or copied, every ray of the cone
-stops at ``p``'s surface or nearer: ``p``'s own layer covers it whole (the composite takes its coverage as 1 and its
-colour as its sources' coverage-weighted mean, ``composite._composite_at``), and nearer layers go over it as
-always. A smooth surface cut by a layer boundary is no edge: its two layers' pixels may interleave.
+than ``jump`` of CoC, the matting's ``jump_px``: a depth edge, as the matting reads one), none is split or copied,
+every ray of the cone stops at ``p``'s surface or nearer: ``p``'s own layer covers it whole (the composite takes
+its coverage as 1 and its colour as its sources' coverage-weighted mean, ``composite._composite_at``), and nearer
+layers go over it as always. A smooth surface cut by a layer boundary is no edge: its two layers' pixels may interleave.
 
 The frame's map of such pixels, once per window: :func:`boundary_kernel` (0 at a pixel beside a farther surface or
 copied, a large value elsewhere), :func:`mark_split_kernel` (0 at the split pixels), :func:`row_sweep_kernel` and
@@ -25,21 +25,16 @@ wp.set_module_options({"enable_backward": False})
 FAR = wp.constant(1.0e9)
 
 
-JUMP_PX = wp.constant(1.0)
-"""A 4-neighbour farther by more than this much signed CoC (px) is another surface: a depth edge (the matting's
-``MattingRule.jump_px``)."""
-
-
 @wp.func
-def _beside_farther(coc: wp.array2d(dtype=float), c: float, y: int, x: int) -> bool:
-    return coc[y, x] < c - JUMP_PX
+def _beside_farther(coc: wp.array2d(dtype=float), c: float, y: int, x: int, jump: float) -> bool:
+    return coc[y, x] < c - jump
 
 
 @wp.kernel
-def boundary_kernel(span: int, ids: wp.array2d(dtype=wp.int32), coc: wp.array2d(dtype=float),
+def boundary_kernel(span: int, ids: wp.array2d(dtype=wp.int32), coc: wp.array2d(dtype=float), jump: float,
                     dist: wp.array2d(dtype=float)):
-    """0 at a copied pixel (``ids < 0``) or one with a 4-neighbour farther by more than ``JUMP_PX`` (the frame's
-    outside is no neighbour), ``FAR`` elsewhere. A launch of ``(rows, ceil(W / span))``."""
+    """0 at a copied pixel (``ids < 0``) or one with a 4-neighbour farther by more than ``jump`` of signed CoC (a
+    depth edge; the frame's outside is no neighbour), ``FAR`` elsewhere. A launch of ``(rows, ceil(W / span))``."""
     y, j = wp.tid()
     h = coc.shape[0]
     w = coc.shape[1]
@@ -47,13 +42,13 @@ def boundary_kernel(span: int, ids: wp.array2d(dtype=wp.int32), coc: wp.array2d(
         c = coc[y, x]
         edge = ids[y, x] < 0
         if x > 0:
-            edge = edge or _beside_farther(coc, c, y, x - 1)
+            edge = edge or _beside_farther(coc, c, y, x - 1, jump)
         if x + 1 < w:
-            edge = edge or _beside_farther(coc, c, y, x + 1)
+            edge = edge or _beside_farther(coc, c, y, x + 1, jump)
         if y > 0:
-            edge = edge or _beside_farther(coc, c, y - 1, x)
+            edge = edge or _beside_farther(coc, c, y - 1, x, jump)
         if y + 1 < h:
-            edge = edge or _beside_farther(coc, c, y + 1, x)
+            edge = edge or _beside_farther(coc, c, y + 1, x, jump)
         if edge:
             dist[y, x] = 0.0
         else:

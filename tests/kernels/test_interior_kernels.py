@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 
 import bokehray as br
 from bokehray import scene as sc
+from bokehray.edge_estimate import MattingRule
 from bokehray.levels.preview import opaque_pixels, render_signed_coc
 from tests.reference import interior_ref
 
@@ -31,7 +32,7 @@ def test_the_opaque_map_matches_the_oracle(seed, h, w, n_layers):
                              wp.array(ids, dtype=wp.int32), wp.zeros(1, dtype=wp.int32), DEVICE,
                              parts if len(sy) else None)
     got = opaque_pixels(arrays, DEVICE).numpy() != 0
-    want = interior_ref.opaque_pixels(ids, split, coc)
+    want = interior_ref.opaque_pixels(ids, split, coc, MattingRule().jump_px)
     # float32 against float64 at a threshold only: a distance is an integer, the reach sqrt(2) (|coc| + 1) not;
     # a CoC step of exactly the jump
     reach = np.sqrt(2.0) * (np.abs(coc.astype(np.float64)) + 1.0)

@@ -12,6 +12,8 @@ import math
 
 import numpy as np
 
+from .interior_ref import opaque_pixels
+
 
 def chord(y: float, rho: float, blades: np.ndarray) -> tuple[float, float]:
     """Interval of the aperture of circumradius ``rho`` on the horizontal line at height ``y``."""
@@ -236,8 +238,6 @@ def layered(image: np.ndarray, signed_coc: np.ndarray, edges: np.ndarray, blades
                 big = layered(np.pad(image, ((t, b), (l, r), (0, 0)), mode="edge"),
                               np.pad(signed_coc, ((t, b), (l, r)), mode="edge"), edges, blades, extent, border=False)
                 return big[t:t + image.shape[0], l:l + image.shape[1]]
-    from .interior_ref import opaque_pixels
-
     ids = np.searchsorted(edges, signed_coc, side="right") - 1
     h, w, _ = image.shape
     whole = opaque_pixels(ids, np.zeros((h, w), bool), signed_coc)

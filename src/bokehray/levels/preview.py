@@ -37,6 +37,7 @@ import warp as wp
 from .. import scene as sc
 from .. import tiling
 from .._memory import bound_heap
+from ..edge_estimate import MattingRule
 from ..errors import ResourceError
 from ..lens import Aperture, aperture_area
 from ..options import PreviewOptions
@@ -760,13 +761,14 @@ def _soon(fn, executor: ThreadPoolExecutor | None) -> Future:
 
 def opaque_pixels(arrays: sc.LayerSources, device: str) -> wp.array:
     """The window's pixels whose cone, of their CoC radius plus one, meets no farther surface, no split and no copied
-    pixel (``bokehray_kernels.interior``): 1 there, 0 elsewhere. The composite takes their own layer's coverage as
+    pixel (``bokehray_kernels.interior``; a farther surface is one beyond the matting's depth-edge jump,
+    ``MattingRule.jump_px``): 1 there, 0 elsewhere. The composite takes their own layer's coverage as
     1 there, where the footprints of sources of unequal radii need not sum to 1."""
     h, w = arrays.ids.shape
     dist = wp.empty((h, w), dtype=float, device=device)
     n, span = sc.row_span(device, w)
-    wp.launch(bk.boundary_kernel, dim=(h, n), inputs=[span, arrays.ids, arrays.signed_coc], outputs=[dist],
-              device=device)
+    wp.launch(bk.boundary_kernel, dim=(h, n), inputs=[span, arrays.ids, arrays.signed_coc, MattingRule().jump_px],
+              outputs=[dist], device=device)
     if arrays.near is not None:
         wp.launch(bk.mark_split_kernel, dim=arrays.near[0].shape[0], inputs=[arrays.near[0], arrays.near[1]],
                   outputs=[dist], device=device)
