@@ -128,16 +128,10 @@ def removed_share(coc: np.ndarray) -> np.ndarray:
     return np.sqrt(np.maximum(0.0, 1.0 - kept * kept)).astype(np.float32)
 
 
-def _in_bands(h: int, w: int, run: Callable[[int, int, int], None]) -> None:
-    """``run(i, y0, y1)`` over the row bands of an ``h x w`` frame (:func:`~bokehray._memory.row_bands`, band
-    ``i``), on every core: NumPy's arithmetic and random fills release the GIL on arrays this large."""
-    bands = list(row_bands(h, w))
-    workers = max(1, min(len(bands), os.cpu_count() or 1))
-    if workers == 1:
-        for i, (y0, y1) in enumerate(bands):
-            run(i, y0, y1)
-        return
-    with ThreadPoolExecutor(max_workers=workers) as pool:
+def _in_bands(bands: list[tuple[int, int]], run: Callable[[int, int, int], None]) -> None:
+    """``run(i, y0, y1)`` over the row ``bands`` (:func:`~bokehray._memory.row_bands`, band ``i``) on every core:
+    NumPy's arithmetic and random fills release the GIL on arrays this large."""
+    with ThreadPoolExecutor(max_workers=max(1, min(len(bands), os.cpu_count() or 1))) as pool:
         for f in [pool.submit(run, i, y0, y1) for i, (y0, y1) in enumerate(bands)]:
             f.result()
 
@@ -207,7 +201,8 @@ def restore_grain(rendered: np.ndarray, grain: Grain, removed: np.ndarray, *, se
     dither_q = None
     if dither_bits and grain.luma * (2**dither_bits - 1) < 0.5:  # grain of half a code or more dithers already
         dither_q = np.float32(1.0 / (2**dither_bits - 1))
-    seeds = np.random.SeedSequence(seed).spawn(len(list(row_bands(h, w))))
+    bands = list(row_bands(h, w))
+    seeds = np.random.SeedSequence(seed).spawn(len(bands))
 
     def band(i: int, y0: int, y1: int) -> None:
         share = np.asarray(removed[y0:y1], np.float32)
@@ -229,7 +224,7 @@ def restore_grain(rendered: np.ndarray, grain: Grain, removed: np.ndarray, *, se
             v += noise
             np.maximum(v, 0.0, out=v)
 
-    _in_bands(h, w, band)
+    _in_bands(bands, band)
     return out
 
 
@@ -266,7 +261,7 @@ def plan_grain(image: np.ndarray, coc: np.ndarray) -> GrainPlan:
     def band(_i: int, y0: int, y1: int) -> None:
         removed[y0:y1] = removed_share(coc[y0:y1])
 
-    _in_bands(*coc.shape, band)
+    _in_bands(list(row_bands(*coc.shape)), band)
     return GrainPlan(measure_grain(image), removed)
 
 
