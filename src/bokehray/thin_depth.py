@@ -243,12 +243,16 @@ def _pool2(x: np.ndarray, op) -> np.ndarray:
     return op(op(x[0::2, 0::2], x[1::2, 0::2]), op(x[0::2, 1::2], x[1::2, 1::2]))
 
 
+def _box_sum(x: np.ndarray, r: int) -> np.ndarray:
+    """The sum over each (2r+1)^2 window, nothing beyond the grid's borders (a mirrored slope is no plane)."""
+    return cv2.boxFilter(x, -1, (2 * r + 1, 2 * r + 1), normalize=False, borderType=cv2.BORDER_CONSTANT)
+
+
 def _box(x: np.ndarray, r: int) -> np.ndarray:
-    """The mean over each (2r+1)^2 window, cut at the grid's borders (a mirrored slope is no plane)."""
+    """The mean over each (2r+1)^2 window, cut at the grid's borders."""
     h, w = x.shape[:2]
-    total = cv2.boxFilter(x, -1, (2 * r + 1, 2 * r + 1), normalize=False, borderType=cv2.BORDER_CONSTANT)
     count = np.outer(_extent(h, r)[2], _extent(w, r)[2]).astype(x.dtype)
-    return total / (count if x.ndim == 2 else count[..., None])
+    return _box_sum(x, r) / (count if x.ndim == 2 else count[..., None])
 
 
 def _extent(n: int, r: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -335,7 +339,7 @@ def _window_means(gb: np.ndarray, d: np.ndarray, k: int, where: np.ndarray) -> d
     count = (cy[sel[0]] * cx[sel[1]]).astype(np.float64)
 
     def mean(x):
-        return cv2.boxFilter(x, -1, (2 * k + 1, 2 * k + 1), normalize=False, borderType=cv2.BORDER_CONSTANT)[sel] / count
+        return _box_sum(x, k)[sel] / count
 
     out = {"d": mean(d), "dd": mean(d * d), "g": np.stack([mean(gb[..., i]) for i in range(3)], -1),
            "gd": np.stack([mean(gb[..., i] * d) for i in range(3)], -1)}
