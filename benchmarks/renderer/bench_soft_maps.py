@@ -160,7 +160,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data" / "pathtraced-dev")
     ap.add_argument("--out", type=Path, help="folder for soft-maps.json (default: print only)")
-    ap.add_argument("--figure", type=Path, help="only draw the demo's 100 % crops into this PNG")
+    ap.add_argument("--figure", type=Path, help="only draw the demo's 100 %% crops into this PNG")
     args = ap.parse_args()
     if args.figure:
         figure(args.figure)
