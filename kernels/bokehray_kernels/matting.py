@@ -110,6 +110,67 @@ def _reach_tap(window: BandWindow, k: int, side: int, reach: int, py: int, px: i
     return wp.vec3(float(y), float(x), g)
 
 
+XS_LIT = wp.constant(0.75)
+"""A cross-section is lit when both its ends hold at least this share of the light's colour ..."""
+XS_UNLIT = wp.constant(0.05)
+"""... and unlit when both hold less than this."""
+XS_MIN_W = wp.constant(0.05)
+"""A strand's measured width (px across a pixel column or row) must exceed this ..."""
+XS_MAX_W = wp.constant(2.5)
+"""... and be at most this (the cross-section holds 3 px)."""
+
+
+@wp.func
+def _cross_section(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), y: int, x: int, ey: int,
+                   ex: int, mid: float, mb: wp.vec3, bb: float):
+    """The strand's cross-section through its map pixel (y, x) along (ey, ex): the sum over the pixels 1 px either
+    side and itself of the photo less the background interpolated linearly between the pixels 2 px either side, and
+    that background's mean; the kind: 1 lit (both ends hold at least ``XS_LIT`` of the light ``mb``), -1 unlit
+    (both below ``XS_UNLIT``), 0 neither or no cross-section (an end outside the image or on the near side: no
+    strand up to 3 px across there)."""
+    y1 = y - 2 * ey
+    x1 = x - 2 * ex
+    y2 = y + 2 * ey
+    x2 = x + 2 * ex
+    zero = wp.vec3(0.0, 0.0, 0.0)
+    if y1 < 0 or x1 < 0 or y2 >= coc.shape[0] or x2 >= coc.shape[1]:  # (ey, ex) is (1, 0) or (0, 1)
+        return zero, zero, 0
+    if coc[y1, x1] > mid or coc[y2, x2] > mid:
+        return zero, zero, 0
+    c1 = image[y1, x1]
+    c2 = image[y2, x2]
+    s = image[y - ey, x - ex] + image[y, x] + image[y + ey, x + ex] - 1.5 * (c1 + c2)
+    l1 = wp.dot(c1, mb) / bb
+    l2 = wp.dot(c2, mb) / bb
+    kind = int(0)
+    if wp.min(l1, l2) >= XS_LIT:
+        kind = 1
+    elif wp.max(l1, l2) < XS_UNLIT:
+        kind = -1
+    return s, 0.5 * (c1 + c2), kind
+
+
+@wp.func
+def _strand_colour(su: wp.vec3, sl: wp.vec3, n: wp.vec2, d: wp.vec3, lt: wp.vec3) -> wp.vec4:
+    """The strand's colour from its mean unlit cross-section ``su`` (over ``d``: ``W (F - D)``) and lit one ``sl``
+    (over ``lt``: ``W (F - L)``), ``n`` the counts: its width ``W = (su - sl) . (L - D) / |L - D|^2`` (the light
+    measures it), ``F = D + su / W``, and 1 as the fourth entry; 0 there without both kinds or a width in
+    (``XS_MIN_W``, ``XS_MAX_W``]."""
+    if n[0] < 1.0 or n[1] < 1.0:
+        return wp.vec4(0.0, 0.0, 0.0, 0.0)
+    u = su / n[0]
+    dd = d / n[0]
+    ld = lt / n[1] - dd
+    den = wp.dot(ld, ld)
+    if den <= 1.0e-30:
+        return wp.vec4(0.0, 0.0, 0.0, 0.0)
+    width = wp.dot(u - sl / n[1], ld) / den
+    if width <= XS_MIN_W or width > XS_MAX_W:
+        return wp.vec4(0.0, 0.0, 0.0, 0.0)
+    f = wp.max(dd + u / width, wp.vec3(0.0, 0.0, 0.0))
+    return wp.vec4(f[0], f[1], f[2], 1.0)
+
+
 @wp.func
 def _light_free(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), window: BandWindow, py: int,
                 px: int, mid: float, mu: wp.vec3, my: float, wv: wp.vec3, mb: wp.vec3, params: BandParams):
@@ -119,8 +180,11 @@ def _light_free(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), 
     alpha), their mean ``F0``; (3) F: their mean weighted by ``(alpha (1 - l)^2 t)^purity``, ``t`` the sample's place
     from ``D`` towards ``F0`` (clamped to [0, 1.5], so that a lit sample's brightness does not count as cover): the
     most covered of the unlit near samples (a strand thinner than a
-    pixel is nowhere pure: the mean of its unlit samples is its colour times its mean coverage). Returns (the weight sum as a vec3's first
-    entry, the weighted sum, the weighted sum of squares)."""
+    pixel is nowhere pure: the mean of its unlit samples is its colour times its mean coverage). (4) Where the near
+    samples' cross-sections (:func:`_cross_section`, across the axis the near samples spread along least) show the
+    strand both over the light and over an unlit background, its colour from them instead
+    (:func:`_strand_colour`). Returns (the weight sum as a vec3's first entry, the weighted sum, the weighted sum of
+    squares, the cross-sections' colour with 1 as its fourth entry, or 0 there)."""
     h = coc.shape[0]
     w = coc.shape[1]
     m = window.offset_y.shape[0]
@@ -132,6 +196,7 @@ def _light_free(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), 
     d1 = wp.vec3(0.0, 0.0, 0.0)
     s0 = float(0.0)
     f0 = wp.vec3(0.0, 0.0, 0.0)
+    spread = wp.vec2(0.0, 0.0)  # the near samples' squared offsets along y and x
     for k in range(n):
         tap = _reach_tap(window, k, side, reach, py, px, h, w)
         g = tap[2]
@@ -145,16 +210,25 @@ def _light_free(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), 
                 wf = g * purity_weight(aq * (1.0 - lq) * (1.0 - lq), params)
                 s0 += wf
                 f0 += wf * c
+                spread += wp.vec2(float((y - py) * (y - py)), float((x - px) * (x - px)))
             else:
                 wd = g * purity_weight(1.0 - lq, params)
                 sd += wd
                 d1 += wd * c
+    ey = int(1)  # a strand along x: its cross-sections down the pixel columns
+    if spread[0] > spread[1]:
+        ey = 0
     dk = d1 / wp.max(sd, 1.0e-30)
     fd = f0 / wp.max(s0, 1.0e-30) - dk
     ff = wp.max(wp.dot(fd, fd), 1.0e-30)
     sf = float(0.0)
     f1 = wp.vec3(0.0, 0.0, 0.0)
     f2 = wp.vec3(0.0, 0.0, 0.0)
+    su = wp.vec3(0.0, 0.0, 0.0)  # the unlit cross-sections' sums and backgrounds, then the lit ones'
+    du = wp.vec3(0.0, 0.0, 0.0)
+    sl = wp.vec3(0.0, 0.0, 0.0)
+    dl = wp.vec3(0.0, 0.0, 0.0)
+    nx = wp.vec2(0.0, 0.0)
     for k in range(n):
         tap = _reach_tap(window, k, side, reach, py, px, h, w)
         g = tap[2]
@@ -170,7 +244,16 @@ def _light_free(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), 
                 sf += wf
                 f1 += wf * c
                 f2 += wf * wp.cw_mul(c, c)
-    return wp.vec3(sf, 0.0, 0.0), f1, f2
+                xs, xb, kind = _cross_section(image, coc, y, x, ey, 1 - ey, mid, mb, bb)
+                if kind < 0:
+                    su += xs
+                    du += xb
+                    nx += wp.vec2(1.0, 0.0)
+                elif kind > 0:
+                    sl += xs
+                    dl += xb
+                    nx += wp.vec2(0.0, 1.0)
+    return wp.vec3(sf, 0.0, 0.0), f1, f2, _strand_colour(su, sl, nx, du, dl)
 
 
 @wp.kernel
@@ -303,8 +386,12 @@ def matting_band_kernel(  # noqa: C901
             # a light behind the near side (a strand across a lamp): every near sample of the window holds some of
             # it and looks pure to the model. F is taken again where the near side crosses a darker background
             # (``_light_free``), and the pixel's alpha is its place on the line from B to that F
-            lw, l1, l2 = _light_free(image, coc, window, py, px, mid, mu, my, wv, mb, params)
+            lw, l1, l2, xf = _light_free(image, coc, window, py, px, mid, mu, my, wv, mb, params)
             lf = l1 / wp.max(lw[0], 1.0e-30)
+            var_f = l2 / wp.max(lw[0], 1.0e-30) - wp.cw_mul(lf, lf)
+            if xf[3] > 0.0:  # the strand's colour from its cross-sections over the light and beside it
+                lf = wp.vec3(xf[0], xf[1], xf[2])
+                l2 = wp.max(lw[0], 1.0e-30) * (var_f + wp.cw_mul(lf, lf))  # the unlit samples' spread about it
             # only where the window's F holds clearly more of the light than the unlit one (an opaque wire's core
             # is its own colour over any light: its F stays)
             if wp.dot(mf - lf, mb) / wp.max(wp.dot(mb, mb), 1.0e-30) > params.light_share:
