@@ -388,13 +388,15 @@ def matting_band_kernel(  # noqa: C901
             # (``_light_free``), and the pixel's alpha is its place on the line from B to that F
             lw, l1, l2, xf = _light_free(image, coc, window, py, px, mid, mu, my, wv, mb, params)
             lf = l1 / wp.max(lw[0], 1.0e-30)
-            var_f = l2 / wp.max(lw[0], 1.0e-30) - wp.cw_mul(lf, lf)
+            # only where the window's F holds clearly more of the light than the unlit one (an opaque wire's core
+            # is its own colour over any light: its F stays), unless the strand's cross-sections measured its colour
+            share = wp.dot(mf - lf, mb) / wp.max(wp.dot(mb, mb), 1.0e-30)
             if xf[3] > 0.0:  # the strand's colour from its cross-sections over the light and beside it
+                var_f = l2 / wp.max(lw[0], 1.0e-30) - wp.cw_mul(lf, lf)
                 lf = wp.vec3(xf[0], xf[1], xf[2])
                 l2 = wp.max(lw[0], 1.0e-30) * (var_f + wp.cw_mul(lf, lf))  # the unlit samples' spread about it
-            # only where the window's F holds clearly more of the light than the unlit one (an opaque wire's core
-            # is its own colour over any light: its F stays)
-            if wp.dot(mf - lf, mb) / wp.max(wp.dot(mb, mb), 1.0e-30) > params.light_share:
+                share = 1.0
+            if share > params.light_share:
                 sf = wp.max(lw[0], 1.0e-30)
                 mf = lf
                 f2 = l2

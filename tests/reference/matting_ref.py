@@ -120,8 +120,8 @@ def _light_behind(image, coc, y, x, offsets, weights, mid, mu, my, wv, purity, m
     var = np.maximum(sum((wt * c * c for wt, c in pairs), np.zeros(3)) / sw - f * f, 0.0)
     across = _strand_colour_ref(image, coc, y, x, samples, mid, mb)
     if across is not None:
-        f = across  # the variance stays the unlit samples' spread, now about this F
-    if float((mf - f) @ mb) / bb <= light_share:
+        f = across  # measured: it is F (the variance stays the unlit samples' spread, now about it)
+    elif float((mf - f) @ mb) / bb <= light_share:
         return None  # the window's F holds hardly more of the light than the unlit one: it stays
     fb = f - mb
     alpha = min(1.0, max(0.0, float((image[y, x] - mb) @ fb) / max(float(fb @ fb), 1e-30)))
