@@ -297,6 +297,23 @@ def test_a_light_behind_an_opaque_strand_shows_once_the_strand_blurs():
     assert err(after) < 0.4 * err(before)
 
 
+@pytest.mark.parametrize(("width", "radius"), [(0.6, 6.0), (0.7, 6.0), (0.7, 3.5)])
+def test_a_strand_thinner_than_a_pixel_across_a_light_in_focus_shows_its_own_colour(width, radius):
+    """The regression (the dev set's lamp spoke): a strand thinner than a pixel across a light, focused on the
+    strand (the light blurred behind it). Through a pixel it shows ``(1 - c) L + c F``: sharp, its share ``c F``
+    and the light's share blurred away. The matting took F from the strand's most covered samples over the dark
+    plane (its colour times their coverage), or kept the window's lamp-bright F where that one held too little
+    more of the light: pixels of the strand rendered at the lamp's brightness (1.1 - 1.4 against 0.3 - 0.4).
+    Against the exact thin-lens trace, in linear light, at the strand's map pixels over the light."""
+    photo, disp, _, layers = _lamp_scene(64, width, radius=radius, radiance=6.0)
+    blur = br.BlurParams(24.0, 0.85)
+    truth, _ = raytrace_layers(layers, blur, options=br.RaytraceOptions(max_spp=64))
+    over = (disp == 0.85) & (photo.mean(2) > 1.0)
+    assert over.sum() >= 4
+    err = np.abs(br.render(photo, disp, blur) - truth[..., :3])[over]
+    assert err.max() < 0.15 and err.mean() < 0.05
+
+
 def test_a_light_at_two_depths_either_side_is_not_taken_behind_the_strand():
     """On a map blurred like an estimator's a light's own pixels carry depths along the map's ramp; lit pixels at
     two depths on the two sides of a strand are not one light behind it (bench_thin's estimated strands lost 0.65 dB
