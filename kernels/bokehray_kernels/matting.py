@@ -256,6 +256,39 @@ def _light_free(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), 
     return wp.vec3(sf, 0.0, 0.0), f1, f2, _strand_colour(su, sl, nx, du, dl)
 
 
+@wp.func
+def _lit_far(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), window: BandWindow, py: int, px: int,
+             mid: float, params: BandParams):
+    """The window's far samples weighted by their brightness relative to the brightest (summed RGB), to the power
+    ``purity``: a light's colour where the far side holds one. Returns (the weight sum, the weighted sum, the
+    weighted sum of squares)."""
+    h = coc.shape[0]
+    w = coc.shape[1]
+    m = window.offset_y.shape[0]
+    top = float(0.0)
+    for k in range(m):
+        y = py + window.offset_y[k]
+        x = px + window.offset_x[k]
+        if y >= 0 and y < h and x >= 0 and x < w:
+            if coc[y, x] <= mid:
+                c = image[y, x]
+                top = wp.max(top, c[0] + c[1] + c[2])
+    sw = float(0.0)
+    s1 = wp.vec3(0.0, 0.0, 0.0)
+    s2 = wp.vec3(0.0, 0.0, 0.0)
+    for k in range(m):
+        y = py + window.offset_y[k]
+        x = px + window.offset_x[k]
+        if y >= 0 and y < h and x >= 0 and x < w:
+            if coc[y, x] <= mid:
+                c = image[y, x]
+                wt = window.offset_g[k] * purity_weight((c[0] + c[1] + c[2]) / wp.max(top, 1.0e-30), params)
+                sw += wt
+                s1 += wt * c
+                s2 += wt * wp.cw_mul(c, c)
+    return sw, s1, s2
+
+
 @wp.kernel
 def matting_band_kernel(  # noqa: C901
     image: wp.array2d(dtype=wp.vec3),
@@ -379,6 +412,20 @@ def matting_band_kernel(  # noqa: C901
     sb = wp.max(sb, 1.0e-30)
     mf = f1 / sf
     mb = b1 / sb
+    own = image[py, px]
+    osum = own[0] + own[1] + own[2]
+    if params.light_reach > 0 and best_b > 0.0 and coc[py, px] > mid and osum > 3.0 * params.light_level:
+        if osum > params.light_ratio * wp.max(mf[0] + mf[1] + mf[2], mb[0] + mb[1] + mb[2]):
+            # a pixel of the near side brighter than both its parts, which ``alpha F + (1 - alpha) B`` cannot be: a
+            # light is behind it and B, from the purest far samples, is the dark side's. B is the brightest far samples'
+            bw, bs1, bs2 = _lit_far(image, coc, window, py, px, mid, params)
+            lb = bs1 / wp.max(bw, 1.0e-30)
+            if lb[0] + lb[1] + lb[2] > osum:
+                sb = wp.max(bw, 1.0e-30)
+                mb = lb
+                b2 = bs2
+                fb = mf - mb
+                out.alpha[i] = wp.clamp(wp.dot(own - mb, fb) / wp.max(wp.dot(fb, fb), 1.0e-30), 0.0, 1.0)
     if params.light_reach > 0 and hi - lo > params.jump_px and best_f > 0.0 and best_b > 0.0:
         bsum = mb[0] + mb[1] + mb[2]
         thin = my < params.light_thin  # a strand's share of the window, not a body's

@@ -70,12 +70,33 @@ def band_pixel_ref(image, coc, unknown, y, x, offsets, weights, jump_px, unknown
         out.append((mean, np.maximum(sums[side][2] / sw - mean * mean, 0.0)))
     ok = (hi - lo) > jump_px and best["f"] > 0.0 and best["b"] > 0.0
     own_near = float(coc[y, x]) > mid
+    own = image[y, x].astype(np.float64)
+    brighter = float(own.sum()) > max(3.0 * light_level, light_ratio * max(float(out[0][0].sum()), float(out[1][0].sum())))
+    if light_reach > 0 and best["b"] > 0.0 and own_near and brighter:
+        lit = _lit_far_ref(win, mid, purity)  # near, brighter than both parts: a light behind, B the dark side's
+        if lit is not None and float(lit[0].sum()) > float(own.sum()):
+            out[1] = lit
+            fb = out[0][0] - lit[0]
+            alpha = min(1.0, max(0.0, float((own - lit[0]) @ fb) / max(float(fb @ fb), 1e-30)))
     fb_light = _light_behind(image, coc, y, x, offsets, weights, mid, mu, my, wv, purity, out[0][0], out[1][0],
                              light_level, light_ratio, light_reach, light_share) if light_reach > 0 and ok and my < light_thin else None
     if fb_light is not None:
         (mean_f, var_f), alpha = fb_light
         out[0] = (mean_f, var_f)
     return alpha, out[0][0], out[1][0], out[0][1], out[1][1], hi, lo, ok, own_near
+
+
+def _lit_far_ref(win, mid, purity):
+    """The window's far samples weighted by their summed RGB over the brightest one's, to the power ``purity``:
+    (mean, variance), or None without far samples."""
+    far = [(g, c) for g, c, v, _ in win if v <= mid]
+    top = max((float(c.sum()) for _, c in far), default=0.0)
+    pairs = [(g * (float(c.sum()) / max(top, 1e-30)) ** purity, c) for g, c in far]
+    sw = sum(wt for wt, _ in pairs)
+    if not far or sw <= 0.0:
+        return None
+    mean = sum((wt * c for wt, c in pairs), np.zeros(3)) / max(sw, 1e-30)
+    return mean, np.maximum(sum((wt * c * c for wt, c in pairs), np.zeros(3)) / max(sw, 1e-30) - mean * mean, 0.0)
 
 
 def _light_behind(image, coc, y, x, offsets, weights, mid, mu, my, wv, purity, mf, mb, light_level, light_ratio,
