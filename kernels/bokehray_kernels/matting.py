@@ -256,33 +256,32 @@ def _light_free(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), 
     return wp.vec3(sf, 0.0, 0.0), f1, f2, _strand_colour(su, sl, nx, du, dl)
 
 
+LIT_REACH = wp.constant(4)
+"""A near pixel's light behind it is looked for this many px around it (a small light's disc)."""
+
+
 @wp.func
-def _lit_far(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), window: BandWindow, py: int, px: int,
-             mid: float, params: BandParams):
-    """The window's far samples weighted by their brightness relative to the brightest (summed RGB), to the power
-    ``purity``: a light's colour where the far side holds one. Returns (the weight sum, the weighted sum, the
-    weighted sum of squares)."""
+def _lit_far(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), py: int, px: int, mid: float,
+             params: BandParams):
+    """The far samples within ``LIT_REACH`` px of (py, px) (a square) weighted by their brightness over the
+    brightest's (summed RGB), to the power ``purity``: a light's colour where the far side holds one. Returns (the
+    weight sum, the weighted sum, the weighted sum of squares)."""
     h = coc.shape[0]
     w = coc.shape[1]
-    m = window.offset_y.shape[0]
     top = float(0.0)
-    for k in range(m):
-        y = py + window.offset_y[k]
-        x = px + window.offset_x[k]
-        if y >= 0 and y < h and x >= 0 and x < w:
+    for y in range(wp.max(py - LIT_REACH, 0), wp.min(py + LIT_REACH + 1, h)):
+        for x in range(wp.max(px - LIT_REACH, 0), wp.min(px + LIT_REACH + 1, w)):
             if coc[y, x] <= mid:
                 c = image[y, x]
                 top = wp.max(top, c[0] + c[1] + c[2])
     sw = float(0.0)
     s1 = wp.vec3(0.0, 0.0, 0.0)
     s2 = wp.vec3(0.0, 0.0, 0.0)
-    for k in range(m):
-        y = py + window.offset_y[k]
-        x = px + window.offset_x[k]
-        if y >= 0 and y < h and x >= 0 and x < w:
+    for y in range(wp.max(py - LIT_REACH, 0), wp.min(py + LIT_REACH + 1, h)):
+        for x in range(wp.max(px - LIT_REACH, 0), wp.min(px + LIT_REACH + 1, w)):
             if coc[y, x] <= mid:
                 c = image[y, x]
-                wt = window.offset_g[k] * purity_weight((c[0] + c[1] + c[2]) / wp.max(top, 1.0e-30), params)
+                wt = purity_weight((c[0] + c[1] + c[2]) / wp.max(top, 1.0e-30), params)
                 sw += wt
                 s1 += wt * c
                 s2 += wt * wp.cw_mul(c, c)
@@ -418,7 +417,8 @@ def matting_band_kernel(  # noqa: C901
         if osum > params.light_ratio * wp.max(mf[0] + mf[1] + mf[2], mb[0] + mb[1] + mb[2]):
             # a pixel of the near side brighter than both its parts, which ``alpha F + (1 - alpha) B`` cannot be: a
             # light is behind it and B, from the purest far samples, is the dark side's. B is the brightest far samples'
-            bw, bs1, bs2 = _lit_far(image, coc, window, py, px, mid, params)
+            # within ``LIT_REACH`` px
+            bw, bs1, bs2 = _lit_far(image, coc, py, px, mid, params)
             lb = bs1 / wp.max(bw, 1.0e-30)
             if lb[0] + lb[1] + lb[2] > osum:
                 sb = wp.max(bw, 1.0e-30)

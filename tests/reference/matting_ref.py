@@ -73,7 +73,7 @@ def band_pixel_ref(image, coc, unknown, y, x, offsets, weights, jump_px, unknown
     own = image[y, x].astype(np.float64)
     brighter = float(own.sum()) > max(3.0 * light_level, light_ratio * max(float(out[0][0].sum()), float(out[1][0].sum())))
     if light_reach > 0 and best["b"] > 0.0 and own_near and brighter:
-        lit = _lit_far_ref(win, mid, purity)  # near, brighter than both parts: a light behind, B the dark side's
+        lit = _lit_far_ref(image, coc, y, x, mid, purity)  # near, brighter than both parts: a light behind, B the dark side's
         if lit is not None and float(lit[0].sum()) > float(own.sum()):
             out[1] = lit
             fb = out[0][0] - lit[0]
@@ -86,12 +86,14 @@ def band_pixel_ref(image, coc, unknown, y, x, offsets, weights, jump_px, unknown
     return alpha, out[0][0], out[1][0], out[0][1], out[1][1], hi, lo, ok, own_near
 
 
-def _lit_far_ref(win, mid, purity):
-    """The window's far samples weighted by their summed RGB over the brightest one's, to the power ``purity``:
-    (mean, variance), or None without far samples."""
-    far = [(g, c) for g, c, v, _ in win if v <= mid]
-    top = max((float(c.sum()) for _, c in far), default=0.0)
-    pairs = [(g * (float(c.sum()) / max(top, 1e-30)) ** purity, c) for g, c in far]
+def _lit_far_ref(image, coc, y, x, mid, purity, reach=4):
+    """The far samples within ``reach`` px of (y, x) (a square), each weighted by its summed RGB over the brightest
+    one's, to the power ``purity``: (mean, variance), or None without far samples."""
+    h, w = coc.shape
+    far = [image[yy, xx].astype(np.float64) for yy in range(max(y - reach, 0), min(y + reach + 1, h))
+           for xx in range(max(x - reach, 0), min(x + reach + 1, w)) if float(coc[yy, xx]) <= mid]
+    top = max((float(c.sum()) for c in far), default=0.0)
+    pairs = [((float(c.sum()) / max(top, 1e-30)) ** purity, c) for c in far]
     sw = sum(wt for wt, _ in pairs)
     if not far or sw <= 0.0:
         return None
