@@ -8,11 +8,16 @@ One thread a band pixel, over its window (``offset_y``, ``offset_x``; Gaussian w
 3. the model's alpha of every window pixel weights the side means: F from the near side by ``alpha^purity``,
    B from the far side by ``(1 - alpha)^purity``; the parts' CoC are the window's largest and smallest CoC
    (the plateaus on either side of the edge, not the pixel's own, mixed or ramp value);
-4. a light behind a strand (B brighter than ``light_level`` and ``light_ratio`` times F, the near side under
+4. a near pixel brighter than both its parts (above ``light_level`` and ``light_ratio`` times F and B): B is the
+   dark side's and a light is behind the pixel, so B is the brightest far samples within ``LIT_REACH`` px
+   (``_lit_far``) and alpha the pixel's place on the line from B to F;
+5. a light behind a strand (B brighter than ``light_level`` and ``light_ratio`` times F, the near side under
    ``light_thin`` of the window's weight): every near sample of the window holds some of the light and the model
-   calls them pure, so F is taken again from the near samples out to ``light_reach`` px that hold the least of the
-   light's colour and the most of the strand (``_light_free``); where the window's F holds over ``light_share``
-   more of the light than that F, it is F, and alpha is the pixel's place on the line from B to it.
+   calls them pure, so F is taken again: the strand's colour from its cross-sections over the light and over an
+   unlit background within ``light_reach`` px where it crosses both (``_strand_colour``: the light measures its
+   width), else the near samples that hold the least of the light's colour and the most of the strand
+   (``_light_free``), used where the window's F holds over ``light_share`` more of the light than that F; alpha
+   is the pixel's place on the line from B to F.
 
 Oracle: ``tests/reference/matting_ref.py``.
 """
