@@ -8,11 +8,16 @@ One thread a band pixel, over its window (``offset_y``, ``offset_x``; Gaussian w
 3. the model's alpha of every window pixel weights the side means: F from the near side by ``alpha^purity``,
    B from the far side by ``(1 - alpha)^purity``; the parts' CoC are the window's largest and smallest CoC
    (the plateaus on either side of the edge, not the pixel's own, mixed or ramp value);
-4. a light behind a strand (B brighter than ``light_level`` and ``light_ratio`` times F, the near side under
+4. a near pixel brighter than both its parts (above ``light_level`` and ``light_ratio`` times F and B): B is the
+   dark side's and a light is behind the pixel, so B is the brightest far samples within ``LIT_REACH`` px
+   (``_lit_far``) and alpha the pixel's place on the line from B to F;
+5. a light behind a strand (B brighter than ``light_level`` and ``light_ratio`` times F, the near side under
    ``light_thin`` of the window's weight): every near sample of the window holds some of the light and the model
-   calls them pure, so F is taken again from the near samples out to ``light_reach`` px that hold the least of the
-   light's colour and the most of the strand (``_light_free``); where the window's F holds over ``light_share``
-   more of the light than that F, it is F, and alpha is the pixel's place on the line from B to it.
+   calls them pure, so F is taken again: the strand's colour from its cross-sections over the light and over an
+   unlit background within ``light_reach`` px where it crosses both (``_strand_colour``: the light measures its
+   width), else the near samples that hold the least of the light's colour and the most of the strand
+   (``_light_free``), used where the window's F holds over ``light_share`` more of the light than that F; alpha
+   is the pixel's place on the line from B to F.
 
 Oracle: ``tests/reference/matting_ref.py``.
 """
@@ -110,6 +115,67 @@ def _reach_tap(window: BandWindow, k: int, side: int, reach: int, py: int, px: i
     return wp.vec3(float(y), float(x), g)
 
 
+XS_LIT = wp.constant(0.75)
+"""A cross-section is lit when both its ends hold at least this share of the light's colour ..."""
+XS_UNLIT = wp.constant(0.05)
+"""... and unlit when both hold less than this."""
+XS_MIN_W = wp.constant(0.05)
+"""A strand's measured width (px across a pixel column or row) must exceed this ..."""
+XS_MAX_W = wp.constant(2.5)
+"""... and be at most this (the cross-section holds 3 px)."""
+
+
+@wp.func
+def _cross_section(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), y: int, x: int, ey: int,
+                   ex: int, mid: float, mb: wp.vec3, bb: float):
+    """The strand's cross-section through its map pixel (y, x) along (ey, ex): the sum over the pixels 1 px either
+    side and itself of the photo less the background interpolated linearly between the pixels 2 px either side, and
+    that background's mean; the kind: 1 lit (both ends hold at least ``XS_LIT`` of the light ``mb``), -1 unlit
+    (both below ``XS_UNLIT``), 0 neither or no cross-section (an end outside the image or on the near side: no
+    strand up to 3 px across there)."""
+    y1 = y - 2 * ey
+    x1 = x - 2 * ex
+    y2 = y + 2 * ey
+    x2 = x + 2 * ex
+    zero = wp.vec3(0.0, 0.0, 0.0)
+    if y1 < 0 or x1 < 0 or y2 >= coc.shape[0] or x2 >= coc.shape[1]:  # (ey, ex) is (1, 0) or (0, 1)
+        return zero, zero, 0
+    if coc[y1, x1] > mid or coc[y2, x2] > mid:
+        return zero, zero, 0
+    c1 = image[y1, x1]
+    c2 = image[y2, x2]
+    s = image[y - ey, x - ex] + image[y, x] + image[y + ey, x + ex] - 1.5 * (c1 + c2)
+    l1 = wp.dot(c1, mb) / bb
+    l2 = wp.dot(c2, mb) / bb
+    kind = int(0)
+    if wp.min(l1, l2) >= XS_LIT:
+        kind = 1
+    elif wp.max(l1, l2) < XS_UNLIT:
+        kind = -1
+    return s, 0.5 * (c1 + c2), kind
+
+
+@wp.func
+def _strand_colour(su: wp.vec3, sl: wp.vec3, n: wp.vec2, d: wp.vec3, lt: wp.vec3) -> wp.vec4:
+    """The strand's colour from its mean unlit cross-section ``su`` (over ``d``: ``W (F - D)``) and lit one ``sl``
+    (over ``lt``: ``W (F - L)``), ``n`` the counts: its width ``W = (su - sl) . (L - D) / |L - D|^2`` (the light
+    measures it), ``F = D + su / W``, and 1 as the fourth entry; 0 there without both kinds or a width in
+    (``XS_MIN_W``, ``XS_MAX_W``]."""
+    if n[0] < 1.0 or n[1] < 1.0:
+        return wp.vec4(0.0, 0.0, 0.0, 0.0)
+    u = su / n[0]
+    dd = d / n[0]
+    ld = lt / n[1] - dd
+    den = wp.dot(ld, ld)
+    if den <= 1.0e-30:
+        return wp.vec4(0.0, 0.0, 0.0, 0.0)
+    width = wp.dot(u - sl / n[1], ld) / den
+    if width <= XS_MIN_W or width > XS_MAX_W:
+        return wp.vec4(0.0, 0.0, 0.0, 0.0)
+    f = wp.max(dd + u / width, wp.vec3(0.0, 0.0, 0.0))
+    return wp.vec4(f[0], f[1], f[2], 1.0)
+
+
 @wp.func
 def _light_free(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), window: BandWindow, py: int,
                 px: int, mid: float, mu: wp.vec3, my: float, wv: wp.vec3, mb: wp.vec3, params: BandParams):
@@ -119,8 +185,11 @@ def _light_free(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), 
     alpha), their mean ``F0``; (3) F: their mean weighted by ``(alpha (1 - l)^2 t)^purity``, ``t`` the sample's place
     from ``D`` towards ``F0`` (clamped to [0, 1.5], so that a lit sample's brightness does not count as cover): the
     most covered of the unlit near samples (a strand thinner than a
-    pixel is nowhere pure: the mean of its unlit samples is its colour times its mean coverage). Returns (the weight sum as a vec3's first
-    entry, the weighted sum, the weighted sum of squares)."""
+    pixel is nowhere pure: the mean of its unlit samples is its colour times its mean coverage). (4) Where the near
+    samples' cross-sections (:func:`_cross_section`, across the axis the near samples spread along least) show the
+    strand both over the light and over an unlit background, its colour from them instead
+    (:func:`_strand_colour`). Returns (the weight sum as a vec3's first entry, the weighted sum, the weighted sum of
+    squares, the cross-sections' colour with 1 as its fourth entry, or 0 there)."""
     h = coc.shape[0]
     w = coc.shape[1]
     m = window.offset_y.shape[0]
@@ -132,6 +201,7 @@ def _light_free(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), 
     d1 = wp.vec3(0.0, 0.0, 0.0)
     s0 = float(0.0)
     f0 = wp.vec3(0.0, 0.0, 0.0)
+    spread = wp.vec2(0.0, 0.0)  # the near samples' squared offsets along y and x
     for k in range(n):
         tap = _reach_tap(window, k, side, reach, py, px, h, w)
         g = tap[2]
@@ -145,16 +215,25 @@ def _light_free(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), 
                 wf = g * purity_weight(aq * (1.0 - lq) * (1.0 - lq), params)
                 s0 += wf
                 f0 += wf * c
+                spread += wp.vec2(float((y - py) * (y - py)), float((x - px) * (x - px)))
             else:
                 wd = g * purity_weight(1.0 - lq, params)
                 sd += wd
                 d1 += wd * c
+    ey = int(1)  # a strand along x: its cross-sections down the pixel columns
+    if spread[0] > spread[1]:
+        ey = 0
     dk = d1 / wp.max(sd, 1.0e-30)
     fd = f0 / wp.max(s0, 1.0e-30) - dk
     ff = wp.max(wp.dot(fd, fd), 1.0e-30)
     sf = float(0.0)
     f1 = wp.vec3(0.0, 0.0, 0.0)
     f2 = wp.vec3(0.0, 0.0, 0.0)
+    su = wp.vec3(0.0, 0.0, 0.0)  # the unlit cross-sections' sums and backgrounds, then the lit ones'
+    du = wp.vec3(0.0, 0.0, 0.0)
+    sl = wp.vec3(0.0, 0.0, 0.0)
+    dl = wp.vec3(0.0, 0.0, 0.0)
+    nx = wp.vec2(0.0, 0.0)
     for k in range(n):
         tap = _reach_tap(window, k, side, reach, py, px, h, w)
         g = tap[2]
@@ -170,7 +249,48 @@ def _light_free(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), 
                 sf += wf
                 f1 += wf * c
                 f2 += wf * wp.cw_mul(c, c)
-    return wp.vec3(sf, 0.0, 0.0), f1, f2
+                xs, xb, kind = _cross_section(image, coc, y, x, ey, 1 - ey, mid, mb, bb)
+                if kind < 0:
+                    su += xs
+                    du += xb
+                    nx += wp.vec2(1.0, 0.0)
+                elif kind > 0:
+                    sl += xs
+                    dl += xb
+                    nx += wp.vec2(0.0, 1.0)
+    return wp.vec3(sf, 0.0, 0.0), f1, f2, _strand_colour(su, sl, nx, du, dl)
+
+
+LIT_REACH = wp.constant(4)
+"""A near pixel's light behind it is looked for this many px around it (a small light's disc)."""
+
+
+@wp.func
+def _lit_far(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), py: int, px: int, mid: float,
+             params: BandParams):
+    """The far samples within ``LIT_REACH`` px of (py, px) (a square) weighted by their brightness over the
+    brightest's (summed RGB), to the power ``purity``: a light's colour where the far side holds one. Returns (the
+    weight sum, the weighted sum, the weighted sum of squares)."""
+    h = coc.shape[0]
+    w = coc.shape[1]
+    top = float(0.0)
+    for y in range(wp.max(py - LIT_REACH, 0), wp.min(py + LIT_REACH + 1, h)):
+        for x in range(wp.max(px - LIT_REACH, 0), wp.min(px + LIT_REACH + 1, w)):
+            if coc[y, x] <= mid:
+                c = image[y, x]
+                top = wp.max(top, c[0] + c[1] + c[2])
+    sw = float(0.0)
+    s1 = wp.vec3(0.0, 0.0, 0.0)
+    s2 = wp.vec3(0.0, 0.0, 0.0)
+    for y in range(wp.max(py - LIT_REACH, 0), wp.min(py + LIT_REACH + 1, h)):
+        for x in range(wp.max(px - LIT_REACH, 0), wp.min(px + LIT_REACH + 1, w)):
+            if coc[y, x] <= mid:
+                c = image[y, x]
+                wt = purity_weight((c[0] + c[1] + c[2]) / wp.max(top, 1.0e-30), params)
+                sw += wt
+                s1 += wt * c
+                s2 += wt * wp.cw_mul(c, c)
+    return sw, s1, s2
 
 
 @wp.kernel
@@ -296,6 +416,21 @@ def matting_band_kernel(  # noqa: C901
     sb = wp.max(sb, 1.0e-30)
     mf = f1 / sf
     mb = b1 / sb
+    own = image[py, px]
+    osum = own[0] + own[1] + own[2]
+    if params.light_reach > 0 and best_b > 0.0 and coc[py, px] > mid and osum > 3.0 * params.light_level:
+        if osum > params.light_ratio * wp.max(mf[0] + mf[1] + mf[2], mb[0] + mb[1] + mb[2]):
+            # a pixel of the near side brighter than both its parts, which ``alpha F + (1 - alpha) B`` cannot be: a
+            # light is behind it and B, from the purest far samples, is the dark side's. B is the brightest far samples'
+            # within ``LIT_REACH`` px
+            bw, bs1, bs2 = _lit_far(image, coc, py, px, mid, params)
+            lb = bs1 / wp.max(bw, 1.0e-30)
+            if lb[0] + lb[1] + lb[2] > osum:
+                sb = wp.max(bw, 1.0e-30)
+                mb = lb
+                b2 = bs2
+                fb = mf - mb
+                out.alpha[i] = wp.clamp(wp.dot(own - mb, fb) / wp.max(wp.dot(fb, fb), 1.0e-30), 0.0, 1.0)
     if params.light_reach > 0 and hi - lo > params.jump_px and best_f > 0.0 and best_b > 0.0:
         bsum = mb[0] + mb[1] + mb[2]
         thin = my < params.light_thin  # a strand's share of the window, not a body's
@@ -303,11 +438,17 @@ def matting_band_kernel(  # noqa: C901
             # a light behind the near side (a strand across a lamp): every near sample of the window holds some of
             # it and looks pure to the model. F is taken again where the near side crosses a darker background
             # (``_light_free``), and the pixel's alpha is its place on the line from B to that F
-            lw, l1, l2 = _light_free(image, coc, window, py, px, mid, mu, my, wv, mb, params)
+            lw, l1, l2, xf = _light_free(image, coc, window, py, px, mid, mu, my, wv, mb, params)
             lf = l1 / wp.max(lw[0], 1.0e-30)
             # only where the window's F holds clearly more of the light than the unlit one (an opaque wire's core
-            # is its own colour over any light: its F stays)
-            if wp.dot(mf - lf, mb) / wp.max(wp.dot(mb, mb), 1.0e-30) > params.light_share:
+            # is its own colour over any light: its F stays), unless the strand's cross-sections measured its colour
+            share = wp.dot(mf - lf, mb) / wp.max(wp.dot(mb, mb), 1.0e-30)
+            if xf[3] > 0.0:  # the strand's colour from its cross-sections over the light and beside it
+                var_f = l2 / wp.max(lw[0], 1.0e-30) - wp.cw_mul(lf, lf)
+                lf = wp.vec3(xf[0], xf[1], xf[2])
+                l2 = wp.max(lw[0], 1.0e-30) * (var_f + wp.cw_mul(lf, lf))  # the unlit samples' spread about it
+                share = 1.0
+            if share > params.light_share:
                 sf = wp.max(lw[0], 1.0e-30)
                 mf = lf
                 f2 = l2

@@ -70,12 +70,35 @@ def band_pixel_ref(image, coc, unknown, y, x, offsets, weights, jump_px, unknown
         out.append((mean, np.maximum(sums[side][2] / sw - mean * mean, 0.0)))
     ok = (hi - lo) > jump_px and best["f"] > 0.0 and best["b"] > 0.0
     own_near = float(coc[y, x]) > mid
+    own = image[y, x].astype(np.float64)
+    brighter = float(own.sum()) > max(3.0 * light_level, light_ratio * max(float(out[0][0].sum()), float(out[1][0].sum())))
+    if light_reach > 0 and best["b"] > 0.0 and own_near and brighter:
+        lit = _lit_far_ref(image, coc, y, x, mid, purity)  # near, brighter than both parts: a light behind, B the dark side's
+        if lit is not None and float(lit[0].sum()) > float(own.sum()):
+            out[1] = lit
+            fb = out[0][0] - lit[0]
+            alpha = min(1.0, max(0.0, float((own - lit[0]) @ fb) / max(float(fb @ fb), 1e-30)))
     fb_light = _light_behind(image, coc, y, x, offsets, weights, mid, mu, my, wv, purity, out[0][0], out[1][0],
                              light_level, light_ratio, light_reach, light_share) if light_reach > 0 and ok and my < light_thin else None
     if fb_light is not None:
         (mean_f, var_f), alpha = fb_light
         out[0] = (mean_f, var_f)
     return alpha, out[0][0], out[1][0], out[0][1], out[1][1], hi, lo, ok, own_near
+
+
+def _lit_far_ref(image, coc, y, x, mid, purity, reach=4):
+    """The far samples within ``reach`` px of (y, x) (a square), each weighted by its summed RGB over the brightest
+    one's, to the power ``purity``: (mean, variance), or None without far samples."""
+    h, w = coc.shape
+    far = [image[yy, xx].astype(np.float64) for yy in range(max(y - reach, 0), min(y + reach + 1, h))
+           for xx in range(max(x - reach, 0), min(x + reach + 1, w)) if float(coc[yy, xx]) <= mid]
+    top = max((float(c.sum()) for c in far), default=0.0)
+    pairs = [((float(c.sum()) / max(top, 1e-30)) ** purity, c) for c in far]
+    sw = sum(wt for wt, _ in pairs)
+    if not far or sw <= 0.0:
+        return None
+    mean = sum((wt * c for wt, c in pairs), np.zeros(3)) / max(sw, 1e-30)
+    return mean, np.maximum(sum((wt * c * c for wt, c in pairs), np.zeros(3)) / max(sw, 1e-30) - mean * mean, 0.0)
 
 
 def _light_behind(image, coc, y, x, offsets, weights, mid, mu, my, wv, purity, mf, mb, light_level, light_ratio,
@@ -118,11 +141,58 @@ def _light_behind(image, coc, y, x, offsets, weights, mid, mu, my, wv, purity, m
     sw = max(sum(wt for wt, _ in pairs), 1e-30)
     f = sum((wt * c for wt, c in pairs), np.zeros(3)) / sw
     var = np.maximum(sum((wt * c * c for wt, c in pairs), np.zeros(3)) / sw - f * f, 0.0)
-    if float((mf - f) @ mb) / bb <= light_share:
+    across = _strand_colour_ref(image, coc, y, x, samples, mid, mb)
+    if across is not None:
+        f = across  # measured: it is F (the variance stays the unlit samples' spread, now about it)
+    elif float((mf - f) @ mb) / bb <= light_share:
         return None  # the window's F holds hardly more of the light than the unlit one: it stays
     fb = f - mb
     alpha = min(1.0, max(0.0, float((image[y, x] - mb) @ fb) / max(float(fb @ fb), 1e-30)))
     return (f, var), alpha
+
+
+def _strand_colour_ref(image, coc, y, x, samples, mid, mb):
+    """The strand's colour from its cross-sections: the near samples' axis of least spread is the one across the
+    strand (columns when they spread more along x); along it, through every near sample with both pixels 2 px away
+    inside the image and on the far side, the sum over the sample and its two neighbours of the photo less the line
+    between those two ends. Both ends' projections on the light ``mb`` at least 0.75: lit (the sum is ``W (F -
+    L)``); both below 0.05: unlit (``W (F - D)``). With both kinds, ``W = (mean unlit - mean lit) . (L - D) / |L -
+    D|^2`` (L, D: the mean of the ends' means); F = D + mean unlit / W, clipped at 0, for W in (0.05, 2.5]; else
+    None."""
+    h, w = coc.shape
+    bb = max(float(mb @ mb), 1e-30)
+    near = [(y + dy, x + dx) for _, dy, dx in samples
+            if 0 <= y + dy < h and 0 <= x + dx < w and float(coc[y + dy, x + dx]) > mid]
+    along_y = sum((q[0] - y) ** 2 for q in near)
+    along_x = sum((q[1] - x) ** 2 for q in near)
+    ey, ex = (0, 1) if along_y > along_x else (1, 0)
+    kinds = {1: [], -1: []}
+    for qy, qx in near:
+        y1, x1, y2, x2 = qy - 2 * ey, qx - 2 * ex, qy + 2 * ey, qx + 2 * ex
+        if not (0 <= y1 and 0 <= x1 and y2 < h and x2 < w):
+            continue
+        if float(coc[y1, x1]) > mid or float(coc[y2, x2]) > mid:
+            continue
+        c1, c2 = image[y1, x1].astype(np.float64), image[y2, x2].astype(np.float64)
+        total = np.zeros(3)
+        for k in (-1, 0, 1):
+            total += image[qy + k * ey, qx + k * ex].astype(np.float64) - (c1 + (k + 2) / 4.0 * (c2 - c1))
+        l1, l2 = float(c1 @ mb) / bb, float(c2 @ mb) / bb
+        if min(l1, l2) >= 0.75:
+            kinds[1].append((total, 0.5 * (c1 + c2)))
+        elif max(l1, l2) < 0.05:
+            kinds[-1].append((total, 0.5 * (c1 + c2)))
+    if not kinds[1] or not kinds[-1]:
+        return None
+    su, d = (np.mean([v[i] for v in kinds[-1]], 0) for i in (0, 1))
+    sl, lt = (np.mean([v[i] for v in kinds[1]], 0) for i in (0, 1))
+    ld = lt - d
+    if float(ld @ ld) <= 1e-30:
+        return None
+    width = float((su - sl) @ ld) / float(ld @ ld)
+    if not 0.05 < width <= 2.5:
+        return None
+    return np.maximum(d + su / width, 0.0)
 
 
 def gaussian_weights(dist: np.ndarray, radius: int) -> np.ndarray:
