@@ -18,11 +18,12 @@ maps stay exactly as they are). The restored value is made hard, each pixel at i
 smallest map value) or at its near value, and used only where that is a structure. The near value follows the
 blur model: a thin structure's blurred peak no longer tells its depth, so its near value is the largest restored
 value around; a wide object (the map holds its nearest value over a square of 1.5 blurs' radius: an object 4.5
-blurs wide or more, whose blurred peak is within 2.5 % of its depth) keeps the map's own nearest value, which
-the restoration over a texture overshoots. The far value is a plateau of the map, and so is a wide object's near
+blurs wide or more, whose blurred peak is within 2.5 % of its depth) keeps the map's own plateau, which the
+restoration over a texture overshoots. The far value is a plateau of the map, and so is a wide object's near
 value (a ramp that does not reach one is the ramp snap's, ``bokehray.ramps``, which runs next); the restoration
 does not undershoot the far plateau as a texture's amplified noise would; enough of the window lies on the near
-side; and the step is worth a pixel of blur. The matting then splits the mixed pixels of the step this leaves, as on a hard map.
+side; and the step is worth a pixel of blur. The matting then splits the mixed pixels of the step this leaves, as
+on a hard map.
 """
 
 from __future__ import annotations
@@ -80,10 +81,12 @@ class ThinRule:
     flat_tol: float = 0.2
     """A bar of width ``w`` blurred by ``s`` holds its peak within 0.2 of the step over +-1.5 s only where ``w`` is
     4.5 s or more, and its blurred peak is then within 2.5 % of its depth: such an object's near value is the map's
-    own largest value in the window (the restored values overshoot over a texture: the demo at 12 MP, its cat's rim
-    10 - 16 CoC px nearer than the cat); a narrower one's blurred peak no longer tells its depth, which the colour
-    does (the largest restored value of the window). Wire crossings are peaks, no plateaus: thin. 0.1 / 0.3 moved
-    the dev set's map errors by up to 0.001 / 0.003."""
+    own plateau, its largest value within twice the window (the restored values overshoot over a texture: the demo
+    at 12 MP, its cat's rim 10 - 16 CoC px nearer than the cat; the window's own largest value can lie on the
+    ramp's tail, a step of 0.01 CoC px from the plateau: the two-plane scene lost 0.44 dB at focus 0.85); a
+    narrower one's blurred peak no longer tells its depth, which the colour does (the largest restored value of the
+    window). Wire crossings are peaks, no plateaus: thin. 0.1 / 0.3 moved the dev set's map errors by up to 0.001 /
+    0.003."""
     plateau_tol: float = 0.3
     """The window's far value must be a plateau: twice as wide, the map's smallest value is lower by at most this
     share of its range; and so must its near value, where the object is wide (``flat_tol``)."""
@@ -443,11 +446,11 @@ class _Blocks:
 
 def _harden(fit: _Fit, photo: np.ndarray, d: np.ndarray, rule: ThinRule, scale: float):
     """Each pixel of a usable block at its window's far value (the map's smallest) or near value (a thin
-    structure's: the largest restored value; a wide object's, whose map holds its peak as a plateau: the map's
-    largest value, if lower), where that is a structure: the far value is a plateau of the map, and so is a wide
-    object's near value; the restoration does not undershoot the far value; enough of the window is on the near
-    side; the step is worth a pixel of blur. Only the usable blocks' pixels are computed (the rest of the image costs nothing): the rows,
-    columns and (normalised) values of the pixels that move by a pixel of blur or more, or None."""
+    structure's: the largest restored value; a wide object's, whose map holds its peak as a plateau: that plateau,
+    if lower), where that is a structure: the far value is a plateau of the map, and so is a wide object's near
+    value; the restoration does not undershoot the far value; enough of the window is on the near side; the step
+    is worth a pixel of blur. Only the usable blocks' pixels are computed (the rest of the image costs nothing): the
+    rows, columns and (normalised) values of the pixels that move by a pixel of blur or more, or None."""
     blk = _Blocks(fit.ok, fit.f, d.shape)
     a = [blk.at(fit.a[..., i]) for i in range(3)]
     g = tone(blk.take(photo))
@@ -457,7 +460,7 @@ def _harden(fit: _Fit, photo: np.ndarray, d: np.ndarray, rule: ThinRule, scale: 
     low = _erode(blk.scatter(est.min((1, 2)), np.inf), k)
     far = fit.far
     wide = fit.near_wide - fit.flat <= rule.flat_tol * (fit.near_wide - far)  # the map's peak is a plateau
-    nearv = np.where(wide, np.minimum(top, fit.near), top)  # the near value
+    nearv = np.where(wide, np.minimum(top, fit.near_wide), top)  # the near value: a wide object's, its plateau
     high = est > blk.at(0.5 * (far + nearv))
     n_high = _box(blk.scatter(high.sum((1, 2)), 0.0), k)
     tol = rule.plateau_tol * (fit.near_wide - fit.far_wide)

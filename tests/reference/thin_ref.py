@@ -86,13 +86,13 @@ def _flat(low, i, j, k, e):
 
 def _near_value(fit, top, far, i, j, rule):
     """A thin structure's near value is the largest restored value of its window; a wide object's (the map holds its
-    largest value within twice the window as a plateau, over a square of ``flat_reach`` blurs) the map's largest
-    value in the window where that is lower. (near value, wide)."""
+    largest value within twice the window as a plateau, over a square of ``flat_reach`` blurs) that plateau where
+    it is lower. (near value, wide)."""
     k, f = fit["k"], fit["f"]
     e = max(1, int(rule.flat_reach * fit["sigma"] / f))
     near_wide = _window(fit["high"], i, j, 2 * k).max()
     wide = near_wide - _flat(fit["low"], i, j, 2 * k, e) <= rule.flat_tol * (near_wide - far)
-    return (min(top, _window(fit["high"], i, j, k).max()) if wide else top), wide
+    return (min(top, near_wide) if wide else top), wide
 
 
 def _harden(fit, guide, d, rule):
