@@ -29,6 +29,8 @@ on a hard map.
 from __future__ import annotations
 
 import math
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -120,9 +122,10 @@ def restore_thin(image: np.ndarray, signed_coc: np.ndarray, rule: ThinRule | Non
     rule = rule or ThinRule()
     s = np.ascontiguousarray(signed_coc, np.float32)
     h, w = s.shape
-    if h < 3 or w < 3 or not _has_ramp(s, rule.grad_min):
+    steps = _ramp_steps(s, rule.grad_min) if h >= 3 and w >= 3 else None
+    if steps is None:
         return signed_coc, 0
-    out = _restore(image, s, rule, check)
+    out = _restore(image, s, steps, rule, check)
     if out is None:
         return signed_coc, 0
     if bounds is not None:
@@ -132,15 +135,18 @@ def restore_thin(image: np.ndarray, signed_coc: np.ndarray, rule: ThinRule | Non
     return (out, n) if n else (signed_coc, 0)
 
 
-def _has_ramp(s: np.ndarray, grad_min: float) -> bool:
-    """Whether two steps of the same sign above ``grad_min`` follow each other along a row or a column somewhere (a
-    hard map's steps stand alone: it is not fitted at all)."""
+def _ramp_steps(s: np.ndarray, grad_min: float) -> np.ndarray | None:
+    """Each pixel's larger step to its right and lower neighbour, or None where no two steps of the same sign above
+    ``grad_min`` follow each other along a row or a column (a hard map's steps stand alone: it is not fitted)."""
     g = np.float32(grad_min)
-    for dv in (np.diff(s, axis=0), np.diff(s, axis=1).T):
-        up, down = dv > g, dv < -g
-        if (up[:-1] & up[1:]).any() or (down[:-1] & down[1:]).any():
-            return True
-    return False
+    dy, dx = np.diff(s, axis=0), np.diff(s, axis=1)
+    if not any((up[:-1] & up[1:]).any() or (down[:-1] & down[1:]).any()
+               for up, down in ((dy > g, dy < -g), ((dx > g).T, (dx < -g).T))):
+        return None
+    step = np.zeros_like(s)
+    np.abs(dy, out=step[:-1])
+    np.maximum(step[:, :-1], np.abs(dx), out=step[:, :-1])
+    return step
 
 
 @dataclass(slots=True)
@@ -163,8 +169,9 @@ class _Level:
 @dataclass(slots=True)
 class _Fit:
     """One blur's fit on its level's grid: the model ``a . photo + b``, where it may be used, its windows' relative
-    residual, the map's smallest and largest value over each window and over twice it, and the largest value the
-    map holds over a whole square of ``ThinRule.flat_reach`` blurs within twice the window."""
+    residual, the map's smallest and largest value over each window and (once chosen: :func:`_plateaus`) over
+    twice it, and the largest value the map holds over a whole square of ``ThinRule.flat_reach`` blurs within twice
+    the window."""
 
     sigma: float
     f: int
@@ -175,20 +182,22 @@ class _Fit:
     rel: np.ndarray
     far: np.ndarray
     near: np.ndarray
-    far_wide: np.ndarray
-    near_wide: np.ndarray
-    flat: np.ndarray
+    far_wide: np.ndarray | None = None
+    near_wide: np.ndarray | None = None
+    flat: np.ndarray | None = None
 
 
-def _restore(image: np.ndarray, s: np.ndarray, rule: ThinRule, check) -> np.ndarray | None:
-    """The map normalised (mean 0, range 1), each blur fitted on its grid, the image's best blur applied."""
+def _restore(image: np.ndarray, s: np.ndarray, steps: np.ndarray, rule: ThinRule, check) -> np.ndarray | None:
+    """The map normalised (mean 0, range 1; ``steps``: its pixels' larger step, not normalised), each blur fitted
+    on its grid, the image's best blur applied."""
     scale = float(s.max() - s.min())
     if scale <= 0:
         return None
     mean = float(s.mean())
     d = (s - np.float32(mean)) / np.float32(scale)
     photo = np.ascontiguousarray(image[..., :3], np.float32)
-    levels = _levels(_Level(1, photo, d, d, d, _steps(d)), {rule.factor(x, choosing=True) for x in rule.sigmas})
+    steps *= np.float32(1 / scale)
+    levels = _levels(_Level(1, photo, d, d, d, steps), {rule.factor(x, choosing=True) for x in rule.sigmas})
     best = _best_fit(levels, rule, scale, check)
     moved = None if best is None else _harden(best, photo, d, rule, scale)
     if moved is None or not moved[0].size:
@@ -226,15 +235,7 @@ def _best_fit(levels: dict[int, _Level], rule: ThinRule, scale: float, check) ->
     best = min(fits, key=lambda x: float(np.median(x.rel[x.ok])))
     if rule.factor(best.sigma) != best.f:
         best = _fit(levels[rule.factor(best.sigma)], best.sigma, rule, scale)
-    return best
-
-
-def _steps(d: np.ndarray) -> np.ndarray:
-    """Each pixel's larger step to its right and lower neighbour."""
-    step = np.zeros_like(d)
-    np.abs(np.diff(d, axis=0), out=step[:-1])
-    np.maximum(step[:, :-1], np.abs(np.diff(d, axis=1)), out=step[:, :-1])
-    return step
+    return None if best is None else _plateaus(best, levels[best.f], rule)
 
 
 def _pad_even(level: _Level) -> _Level:
@@ -255,7 +256,8 @@ def _mean2(x: np.ndarray) -> np.ndarray:
 
 
 def _pool2(x: np.ndarray, op) -> np.ndarray:
-    return op(op(x[0::2, 0::2], x[1::2, 0::2]), op(x[0::2, 1::2], x[1::2, 1::2]))
+    rows = op(x[0::2], x[1::2])  # whole rows first: contiguous, half the strided work
+    return op(rows[:, 0::2], rows[:, 1::2])
 
 
 def _box_sum(x: np.ndarray, r: int) -> np.ndarray:
@@ -308,36 +310,59 @@ def _fit(level: _Level, sigma: float, rule: ThinRule, scale: float) -> _Fit | No
     ok, rel = np.zeros((h, w), bool), np.full((h, w), np.inf, np.float32)
     # the block means are a box of f px (variance (f^2 - 1) / 12): the rest of the blur on the grid
     rest = math.sqrt(max(sigma * sigma - (f * f - 1) / 12, 0.0)) / f
-    t, margin = _TILE, k + math.ceil(4 * rest) + 1  # the windows and the blur's kernel reach this far
+    margin = k + math.ceil(4 * rest) + 1  # the windows and the blur's kernel reach this far
     floor = (rule.min_sd / scale) ** 2
-    for y0 in range(0, h, t):
-        for x0 in range(0, w, t):
-            core = (slice(y0, y0 + t), slice(x0, x0 + t))
-            if not maybe[core].any():
-                continue
-            ya, xa, yb, xb = max(0, y0 - margin), max(0, x0 - margin), min(h, y0 + t + margin), min(w, x0 + t + margin)
-            part = (slice(ya, yb), slice(xa, xb))
-            inner = np.zeros((yb - ya, xb - xa), bool)
-            inner[y0 - ya : y0 - ya + t, x0 - xa : x0 - xa + t] = maybe[core]
-            iy, ix = np.nonzero(inner)
-            fa, fb, fok, frel = _fit_part(level.photo[part], level.mean[part], inner, rest, k, rule, floor)
-            a[iy + ya, ix + xa], b[iy + ya, ix + xa], ok[iy + ya, ix + xa], rel[iy + ya, ix + xa] = fa, fb, fok, frel
+    # the colours are centred for the float64 sums (any one centre keeps the fit exact: a coarse mean of the grid)
+    centre = tone(level.photo[::8, ::8]).reshape(-1, 3).mean(0).astype(np.float64)
+
+    def tile(y0: int, x0: int) -> None:
+        core = (slice(y0, y0 + _TILE), slice(x0, x0 + _TILE))
+        ya, xa, yb, xb = max(0, y0 - margin), max(0, x0 - margin), min(h, y0 + _TILE + margin), min(w, x0 + _TILE + margin)
+        part = (slice(ya, yb), slice(xa, xb))
+        inner = np.zeros((yb - ya, xb - xa), bool)
+        inner[y0 - ya : y0 - ya + _TILE, x0 - xa : x0 - xa + _TILE] = maybe[core]
+        iy, ix = np.nonzero(inner)
+        fa, fb, fok, frel = _fit_part(level.photo[part], level.mean[part], inner, rest, k, rule, floor, centre)
+        a[iy + ya, ix + xa], b[iy + ya, ix + xa], ok[iy + ya, ix + xa], rel[iy + ya, ix + xa] = fa, fb, fok, frel
+
+    tiles = [(y0, x0) for y0 in range(0, h, _TILE) for x0 in range(0, w, _TILE)
+             if maybe[y0 : y0 + _TILE, x0 : x0 + _TILE].any()]  # a tile with no window that may be used: skipped
+    _each(tile, tiles)
     if not ok.any():
         return None
-    e = max(1, int(rule.flat_reach * sigma / f))  # a square of radius flat_reach * sigma px, in samples
-    return _Fit(sigma, f, k, a, b, ok, rel, far, near, _erode(level.low, 2 * k), _dilate(level.high, 2 * k),
-                _dilate(_erode(level.low, e), 2 * k))
+    return _Fit(sigma, f, k, a, b, ok, rel, far, near)
+
+
+def _plateaus(fit: _Fit, level: _Level, rule: ThinRule) -> _Fit:
+    """The chosen fit with the map's smallest and largest value over twice each window, and the largest value the
+    map holds over a whole square of ``rule.flat_reach`` blurs within it."""
+    e = max(1, int(rule.flat_reach * fit.sigma / fit.f))  # the square's radius in samples
+    fit.far_wide, fit.near_wide = _erode(level.low, 2 * fit.k), _dilate(level.high, 2 * fit.k)
+    fit.flat = _dilate(_erode(level.low, e), 2 * fit.k)
+    return fit
 
 
 _TILE = 128
 """The fit goes over its grid in tiles of this many samples (and the margin its windows and blur reach)."""
 
 
+def _each(run, items: list) -> None:
+    """``run(*item)`` for each item, on all cores (the tiles write disjoint parts of the grid; NumPy and OpenCV
+    release the interpreter's lock while they work)."""
+    workers = min(len(items), os.cpu_count() or 1)
+    if workers <= 1:
+        for item in items:
+            run(*item)
+        return
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        for _ in pool.map(lambda item: run(*item), items):
+            pass
+
+
 def _fit_part(photo: np.ndarray, d: np.ndarray, where: np.ndarray, rest: float, k: int, rule: ThinRule,
-              floor: float):
+              floor: float, centre: np.ndarray):
     """The regression at the samples ``where`` of a part of the grid: (a, b, usable, relative residual), 1-D."""
     guide = tone(photo).astype(np.float64)  # float64: the 3 x 3 solve is ill-conditioned where colours align
-    centre = guide.reshape(-1, 3).mean(0)
     guide -= centre
     gb = cv2.GaussianBlur(guide, (0, 0), rest, borderType=cv2.BORDER_REFLECT) if rest > 0 else guide
     m = _window_means(gb, d.astype(np.float64), k, where)
