@@ -380,18 +380,18 @@ def _window_means(gb: np.ndarray, d: np.ndarray, k: int, where: np.ndarray) -> d
     (_, _, cy), (_, _, cx) = _extent(h, k), _extent(w, k)
     count = (cy[sel[0]] * cx[sel[1]]).astype(np.float64)
 
-    def mean(x):
-        return _box_sum(x, k)[sel] / count
-
-    out = {"d": mean(d), "dd": mean(d * d), "g": np.stack([mean(gb[..., i]) for i in range(3)], -1),
-           "gd": np.stack([mean(gb[..., i] * d) for i in range(3)], -1)}
-    for i, j in _PAIRS:
-        out[f"g{i}{j}"] = mean(gb[..., i] * gb[..., j])
+    # the 16 quantities as the channels of one array: one box filter, one gather
+    ii, jj = zip(*_PAIRS)
+    pos = [np.arange(n, dtype=np.float64) - n / 2 for n in (w, h)]
+    stack = np.concatenate([d[..., None], (d * d)[..., None], gb, gb * d[..., None], gb[..., ii] * gb[..., jj],
+                            (d * pos[0])[..., None], (d * pos[1][:, None])[..., None]], -1)
+    sums = _box_sum(stack, k)[sel] / count[:, None]
+    out = {"d": sums[:, 0], "dd": sums[:, 1], "g": sums[:, 2:5], "gd": sums[:, 5:8], "dx": sums[:, 14],
+           "dy": sums[:, 15]}
+    for c, (i, j) in enumerate(_PAIRS):
+        out[f"g{i}{j}"] = sums[:, 8 + c]
     for n, axis, name in ((w, 1, "x"), (h, 0, "y")):
         lo, hi, cnt = _extent(n, k)
-        pos = np.arange(n, dtype=np.float64) - n / 2
-        shape = (1, n) if axis == 1 else (n, 1)
-        out["d" + name] = mean(d * pos.reshape(shape))
         idx = sel[1] if axis == 1 else sel[0]
         out["m" + name] = ((lo + hi) / 2 - n / 2)[idx]
         out["v" + name] = ((cnt.astype(np.float64) ** 2 - 1) / 12)[idx]
