@@ -29,8 +29,6 @@ on a hard map.
 from __future__ import annotations
 
 import math
-import os
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -327,7 +325,8 @@ def _fit(level: _Level, sigma: float, rule: ThinRule, scale: float) -> _Fit | No
 
     tiles = [(y0, x0) for y0 in range(0, h, _TILE) for x0 in range(0, w, _TILE)
              if maybe[y0 : y0 + _TILE, x0 : x0 + _TILE].any()]  # a tile with no window that may be used: skipped
-    _each(tile, tiles)
+    for y0, x0 in tiles:
+        tile(y0, x0)
     if not ok.any():
         return None
     return _Fit(sigma, f, k, a, b, ok, rel, far, near)
@@ -344,19 +343,6 @@ def _plateaus(fit: _Fit, level: _Level, rule: ThinRule) -> _Fit:
 
 _TILE = 128
 """The fit goes over its grid in tiles of this many samples (and the margin its windows and blur reach)."""
-
-
-def _each(run, items: list) -> None:
-    """``run(*item)`` for each item, on all cores (the tiles write disjoint parts of the grid; NumPy and OpenCV
-    release the interpreter's lock while they work)."""
-    workers = min(len(items), os.cpu_count() or 1)
-    if workers <= 1:
-        for item in items:
-            run(*item)
-        return
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        for _ in pool.map(lambda item: run(*item), items):
-            pass
 
 
 def _fit_part(photo: np.ndarray, d: np.ndarray, where: np.ndarray, rest: float, k: int, rule: ThinRule,
