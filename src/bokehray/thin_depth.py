@@ -180,6 +180,7 @@ class _Fit:
     rel: np.ndarray
     far: np.ndarray
     near: np.ndarray
+    part: float = 1.0
     far_wide: np.ndarray | None = None
     near_wide: np.ndarray | None = None
     flat: np.ndarray | None = None
@@ -223,15 +224,15 @@ def _best_fit(levels: dict[int, _Level], rule: ThinRule, scale: float, check) ->
     for sigma in rule.sigmas:
         if check is not None:
             check()
-        fit = _fit(levels[rule.factor(sigma, choosing=True)], sigma, rule, scale)
+        fit = _fit(levels[rule.factor(sigma, choosing=True)], sigma, rule, scale, every=2)
         if fit is not None:
             fits.append(fit)
     if not fits:
         return None
-    area = [int(x.ok.sum()) * x.f * x.f for x in fits]  # px whose windows each blur explains
+    area = [int(x.ok.sum()) * x.f * x.f / x.part for x in fits]  # px whose windows each blur explains
     fits = [x for x, n in zip(fits, area) if n >= rule.share * max(area)]
     best = min(fits, key=lambda x: float(np.median(x.rel[x.ok])))
-    if rule.factor(best.sigma) != best.f:
+    if rule.factor(best.sigma) != best.f or best.part < 1:
         best = _fit(levels[rule.factor(best.sigma)], best.sigma, rule, scale)
     return None if best is None else _plateaus(best, levels[best.f], rule)
 
@@ -290,10 +291,12 @@ def tone(photo: np.ndarray) -> np.ndarray:
     return photo / (1 + np.maximum(photo, 0))
 
 
-def _fit(level: _Level, sigma: float, rule: ThinRule, scale: float) -> _Fit | None:
+def _fit(level: _Level, sigma: float, rule: ThinRule, scale: float, every: int = 1) -> _Fit | None:
     """The colour model of one blur on its level's grid, where its windows may be used; None where none may (no
     window varies by a pixel of blur, or every one that does holds a hard step: nothing is fitted). The grid goes
-    tile by tile: a tile with no window that may be used costs nothing."""
+    tile by tile: a tile with no window that may be used costs nothing. ``every = 2``: only the tiles of one colour
+    of a checkerboard are fitted, where there are ``_SPARE`` tiles or more to fit (enough to choose the image's
+    blur from: :class:`_Fit`'s ``part``)."""
     f, k = level.f, rule.samples(sigma, level.f)
     far, near = _erode(level.low, k), _dilate(level.high, k)
     span = near - far
@@ -325,11 +328,15 @@ def _fit(level: _Level, sigma: float, rule: ThinRule, scale: float) -> _Fit | No
 
     tiles = [(y0, x0) for y0 in range(0, h, _TILE) for x0 in range(0, w, _TILE)
              if maybe[y0 : y0 + _TILE, x0 : x0 + _TILE].any()]  # a tile with no window that may be used: skipped
+    part = 1.0
+    if every > 1 and len(tiles) >= _SPARE:
+        kept = [(y0, x0) for y0, x0 in tiles if (y0 // _TILE + x0 // _TILE) % every == 0]
+        part, tiles = len(kept) / len(tiles), kept
     for y0, x0 in tiles:
         tile(y0, x0)
     if not ok.any():
         return None
-    return _Fit(sigma, f, k, a, b, ok, rel, far, near)
+    return _Fit(sigma, f, k, a, b, ok, rel, far, near, part)
 
 
 def _plateaus(fit: _Fit, level: _Level, rule: ThinRule) -> _Fit:
@@ -343,6 +350,8 @@ def _plateaus(fit: _Fit, level: _Level, rule: ThinRule) -> _Fit:
 
 _TILE = 128
 """The fit goes over its grid in tiles of this many samples (and the margin its windows and blur reach)."""
+_SPARE = 8
+"""The image's blur is chosen from half of a grid's tiles where it has this many to fit."""
 
 
 def _fit_part(photo: np.ndarray, d: np.ndarray, where: np.ndarray, rest: float, k: int, rule: ThinRule,

@@ -243,3 +243,19 @@ def test_a_map_blurred_beyond_the_blurs_tried_is_read_with_the_largest(monkeypat
     d = ndimage.gaussian_filter(sc.disparity, 11.0, mode="nearest").astype(np.float32)
     _, n = restore_thin(sc.image, (30.0 * (d - 0.1)).astype(np.float32), bounds=(-3.0, 27.0))
     assert chosen == [8.0] and n > 0
+
+
+@settings(max_examples=4, deadline=None)
+@given(seed=st.integers(0, 2**16), sigma=st.sampled_from([2.0, 4.0, 8.0]))
+def test_the_blur_chosen_from_half_the_tiles_is_the_one_all_of_them_choose(seed, sigma):
+    """The image's blur is chosen from one colour of a checkerboard of the grid's tiles (where there are enough), and
+    the chosen blur then fitted on all of them: the same map as a choice from every tile."""
+    image, hard = _wires(192, seed, spacing=40, width=3.0)
+    s = (24.0 * (ndimage.gaussian_filter(hard, sigma, mode="nearest") - 0.5)).astype(np.float32)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(thin_depth, "_TILE", 12)  # 8 - 64 tiles a grid: the choice from half of them
+        half, n = restore_thin(image, s)
+        mp.setattr(thin_depth, "_SPARE", 10**9)
+        every, m = restore_thin(image, s)
+    assert n > 0 and m == n
+    np.testing.assert_array_equal(half, every)
