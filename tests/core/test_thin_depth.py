@@ -247,13 +247,13 @@ def test_a_map_blurred_beyond_the_blurs_tried_is_read_with_the_largest(monkeypat
 
 @settings(max_examples=4, deadline=None)
 @given(seed=st.integers(0, 2**16), sigma=st.sampled_from([2.0, 4.0, 8.0]))
-def test_the_blur_chosen_from_half_the_tiles_is_the_one_all_of_them_choose(seed, sigma):
-    """The image's blur is chosen from one colour of a checkerboard of the grid's tiles (where there are enough), and
-    the chosen blur then fitted on all of them: the same map as a choice from every tile."""
+def test_the_blur_chosen_from_part_of_the_tiles_is_the_one_all_of_them_choose(seed, sigma):
+    """The image's blur is chosen from a lattice of the grid's tiles (where there are enough), and the chosen blur
+    then fitted on all of them: the same map as a choice from every tile."""
     image, hard = _wires(192, seed, spacing=40, width=3.0)
     s = (24.0 * (ndimage.gaussian_filter(hard, sigma, mode="nearest") - 0.5)).astype(np.float32)
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(thin_depth, "_TILE", 12)  # 8 - 64 tiles a grid: the choice from half of them
+        mp.setattr(thin_depth, "_TILE", 12)  # 4 - 64 tiles a grid: the choice from a half or a quarter of them
         half, n = restore_thin(image, s)
         mp.setattr(thin_depth, "_SPARE", 10**9)
         every, m = restore_thin(image, s)
