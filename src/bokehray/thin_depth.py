@@ -15,11 +15,15 @@ keeps, for the whole image, the one whose colour model explains its usable windo
 one map, one blur. A window is usable where its colour model explains it clearly better than a plane does (tilted
 planes and smooth slopes stay exactly as they are) and it holds no hard step (a hard map's step is no blur: hard
 maps stay exactly as they are). The restored value is made hard, each pixel at its window's far plateau (its
-smallest map value) or at its near value (the largest restored value around), and used only where that is a
-structure: the far value is a plateau of the map, and so is the near value unless the structure is thin (a wide
-object's ramp is the ramp snap's, ``bokehray.ramps``, which runs next); the restoration does not undershoot the far
-plateau as a texture's amplified noise would; enough of the window lies on the near side; and the step is worth a
-pixel of blur. The matting then splits the mixed pixels of the step this leaves, as on a hard map.
+smallest map value) or at its near value, and used only where that is a structure. The near value follows the
+blur model: a thin structure's blurred peak no longer tells its depth, so its near value is the largest restored
+value around; a wide object (the map holds its nearest value over a square of 1.5 blurs' radius: an object 4.5
+blurs wide or more, whose blurred peak is within 2.5 % of its depth) keeps the map's own plateau, which the
+restoration over a texture overshoots. The far value is a plateau of the map, and so is a wide object's near
+value (a ramp that does not reach one is the ramp snap's, ``bokehray.ramps``, which runs next); the restoration
+does not undershoot the far plateau as a texture's amplified noise would; enough of the window lies on the near
+side; and the step is worth a pixel of blur. The matting then splits the mixed pixels of the step this leaves, as
+on a hard map.
 """
 
 from __future__ import annotations
@@ -65,18 +69,27 @@ class ThinRule:
     """The colour model must leave less than this share of a plane's residual over the window."""
     jump: float = 0.5
     """A window with a 4-neighbour step of this share of its range or more holds a hard edge: left alone."""
-    thin: float = 0.25
-    """A thin structure: its restored near depth lies beyond the map's nearest value within twice the window by
-    at least this share of its step (a wide object keeps its near plateau in the map: ``bokehray.ramps`` snaps
-    its ramp to it)."""
     undershoot: float = 0.5
     """The restored values may fall below the window's far value by at most this share of the restored step."""
     keep: float = 0.1
     """A pixel in the top (bottom) share of its window's map range is not moved to the far (near) value, whatever
     its colour says (a blob of texture in a plateau is no structure)."""
+    flat_reach: float = 1.5
+    """A wide object or a thin structure, from the map's blur model: the map's nearest value within twice the window
+    is a plateau where the map holds it (within ``flat_tol`` of the step) over a whole square of radius
+    ``flat_reach * s`` px (a box of ``2 * flat_reach * s``, to the grid's samples)."""
+    flat_tol: float = 0.2
+    """A bar of width ``w`` blurred by ``s`` holds its peak within 0.2 of the step over +-1.5 s only where ``w`` is
+    4.5 s or more, and its blurred peak is then within 2.5 % of its depth: such an object's near value is the map's
+    own plateau, its largest value within twice the window (the restored values overshoot over a texture: the demo
+    at 12 MP, its cat's rim 10 - 16 CoC px nearer than the cat; the window's own largest value can lie on the
+    ramp's tail, a step of 0.01 CoC px from the plateau: the two-plane scene lost 0.44 dB at focus 0.85); a
+    narrower one's blurred peak no longer tells its depth, which the colour does (the largest restored value of the
+    window). Wire crossings are peaks, no plateaus: thin. 0.1 / 0.3 moved the dev set's map errors by up to 0.001 /
+    0.003."""
     plateau_tol: float = 0.3
     """The window's far value must be a plateau: twice as wide, the map's smallest value is lower by at most this
-    share of its range; and so must its near value, unless the structure is thin."""
+    share of its range; and so must its near value, where the object is wide (``flat_tol``)."""
     min_sd: float = 0.05
     """A window whose map varies by less than this (CoC px, rms) is flat: left alone."""
     min_step: float = 1.0
@@ -107,9 +120,10 @@ def restore_thin(image: np.ndarray, signed_coc: np.ndarray, rule: ThinRule | Non
     rule = rule or ThinRule()
     s = np.ascontiguousarray(signed_coc, np.float32)
     h, w = s.shape
-    if h < 3 or w < 3 or not _has_ramp(s, rule.grad_min):
+    steps = _ramp_steps(s, rule.grad_min) if h >= 3 and w >= 3 else None
+    if steps is None:
         return signed_coc, 0
-    out = _restore(image, s, rule, check)
+    out = _restore(image, s, steps, rule, check)
     if out is None:
         return signed_coc, 0
     if bounds is not None:
@@ -119,15 +133,18 @@ def restore_thin(image: np.ndarray, signed_coc: np.ndarray, rule: ThinRule | Non
     return (out, n) if n else (signed_coc, 0)
 
 
-def _has_ramp(s: np.ndarray, grad_min: float) -> bool:
-    """Whether two steps of the same sign above ``grad_min`` follow each other along a row or a column somewhere (a
-    hard map's steps stand alone: it is not fitted at all)."""
+def _ramp_steps(s: np.ndarray, grad_min: float) -> np.ndarray | None:
+    """Each pixel's larger step to its right and lower neighbour, or None where no two steps of the same sign above
+    ``grad_min`` follow each other along a row or a column (a hard map's steps stand alone: it is not fitted)."""
     g = np.float32(grad_min)
-    for dv in (np.diff(s, axis=0), np.diff(s, axis=1).T):
-        up, down = dv > g, dv < -g
-        if (up[:-1] & up[1:]).any() or (down[:-1] & down[1:]).any():
-            return True
-    return False
+    dy, dx = np.diff(s, axis=0), np.diff(s, axis=1)
+    if not any((up[:-1] & up[1:]).any() or (down[:-1] & down[1:]).any()
+               for up, down in ((dy > g, dy < -g), ((dx > g).T, (dx < -g).T))):
+        return None
+    step = np.zeros_like(s)
+    np.abs(dy, out=step[:-1])
+    np.maximum(step[:, :-1], np.abs(dx), out=step[:, :-1])
+    return step
 
 
 @dataclass(slots=True)
@@ -150,7 +167,9 @@ class _Level:
 @dataclass(slots=True)
 class _Fit:
     """One blur's fit on its level's grid: the model ``a . photo + b``, where it may be used, its windows' relative
-    residual, the map's smallest and largest value over each window and over twice it."""
+    residual, the map's smallest and largest value over each window and (once chosen: :func:`_plateaus`) over
+    twice it, and the largest value the map holds over a whole square of ``ThinRule.flat_reach`` blurs within twice
+    the window."""
 
     sigma: float
     f: int
@@ -161,19 +180,23 @@ class _Fit:
     rel: np.ndarray
     far: np.ndarray
     near: np.ndarray
-    far_wide: np.ndarray
-    near_wide: np.ndarray
+    part: float = 1.0
+    far_wide: np.ndarray | None = None
+    near_wide: np.ndarray | None = None
+    flat: np.ndarray | None = None
 
 
-def _restore(image: np.ndarray, s: np.ndarray, rule: ThinRule, check) -> np.ndarray | None:
-    """The map normalised (mean 0, range 1), each blur fitted on its grid, the image's best blur applied."""
+def _restore(image: np.ndarray, s: np.ndarray, steps: np.ndarray, rule: ThinRule, check) -> np.ndarray | None:
+    """The map normalised (mean 0, range 1; ``steps``: its pixels' larger step, not normalised), each blur fitted
+    on its grid, the image's best blur applied."""
     scale = float(s.max() - s.min())
     if scale <= 0:
         return None
     mean = float(s.mean())
     d = (s - np.float32(mean)) / np.float32(scale)
     photo = np.ascontiguousarray(image[..., :3], np.float32)
-    levels = _levels(_Level(1, photo, d, d, d, _steps(d)), {rule.factor(x, choosing=True) for x in rule.sigmas})
+    steps *= np.float32(1 / scale)
+    levels = _levels(_Level(1, photo, d, d, d, steps), {rule.factor(x, choosing=True) for x in rule.sigmas})
     best = _best_fit(levels, rule, scale, check)
     moved = None if best is None else _harden(best, photo, d, rule, scale)
     if moved is None or not moved[0].size:
@@ -201,25 +224,17 @@ def _best_fit(levels: dict[int, _Level], rule: ThinRule, scale: float, check) ->
     for sigma in rule.sigmas:
         if check is not None:
             check()
-        fit = _fit(levels[rule.factor(sigma, choosing=True)], sigma, rule, scale)
+        fit = _fit(levels[rule.factor(sigma, choosing=True)], sigma, rule, scale, every=2)
         if fit is not None:
             fits.append(fit)
     if not fits:
         return None
-    area = [int(x.ok.sum()) * x.f * x.f for x in fits]  # px whose windows each blur explains
+    area = [int(x.ok.sum()) * x.f * x.f / x.part for x in fits]  # px whose windows each blur explains
     fits = [x for x, n in zip(fits, area) if n >= rule.share * max(area)]
     best = min(fits, key=lambda x: float(np.median(x.rel[x.ok])))
-    if rule.factor(best.sigma) != best.f:
+    if rule.factor(best.sigma) != best.f or best.part < 1:
         best = _fit(levels[rule.factor(best.sigma)], best.sigma, rule, scale)
-    return best
-
-
-def _steps(d: np.ndarray) -> np.ndarray:
-    """Each pixel's larger step to its right and lower neighbour."""
-    step = np.zeros_like(d)
-    np.abs(np.diff(d, axis=0), out=step[:-1])
-    np.maximum(step[:, :-1], np.abs(np.diff(d, axis=1)), out=step[:, :-1])
-    return step
+    return None if best is None else _plateaus(best, levels[best.f], rule)
 
 
 def _pad_even(level: _Level) -> _Level:
@@ -240,7 +255,8 @@ def _mean2(x: np.ndarray) -> np.ndarray:
 
 
 def _pool2(x: np.ndarray, op) -> np.ndarray:
-    return op(op(x[0::2, 0::2], x[1::2, 0::2]), op(x[0::2, 1::2], x[1::2, 1::2]))
+    rows = op(x[0::2], x[1::2])  # whole rows first: contiguous, half the strided work
+    return op(rows[:, 0::2], rows[:, 1::2])
 
 
 def _box_sum(x: np.ndarray, r: int) -> np.ndarray:
@@ -275,10 +291,14 @@ def tone(photo: np.ndarray) -> np.ndarray:
     return photo / (1 + np.maximum(photo, 0))
 
 
-def _fit(level: _Level, sigma: float, rule: ThinRule, scale: float) -> _Fit | None:
+def _fit(level: _Level, sigma: float, rule: ThinRule, scale: float, every: int = 1) -> _Fit | None:
     """The colour model of one blur on its level's grid, where its windows may be used; None where none may (no
     window varies by a pixel of blur, or every one that does holds a hard step: nothing is fitted). The grid goes
-    tile by tile: a tile with no window that may be used costs nothing."""
+    tile by tile: a tile with no window that may be used costs nothing. ``every = 2``: where there are ``_SPARE``
+    tiles or more to fit, only a lattice of them is, one of every ``m``, ``m`` at least 2 and enough to leave about
+    ``_CHOOSE`` (enough to choose the image's blur from; :class:`_Fit`'s ``part`` is the share fitted). The lattice,
+    ``7 ty + 3 tx = 0 (mod m)`` over the tiles' rows and columns, is a checkerboard at ``m = 2`` and spreads over
+    both rows and columns at any ``m``."""
     f, k = level.f, rule.samples(sigma, level.f)
     far, near = _erode(level.low, k), _dilate(level.high, k)
     span = near - far
@@ -293,34 +313,57 @@ def _fit(level: _Level, sigma: float, rule: ThinRule, scale: float) -> _Fit | No
     ok, rel = np.zeros((h, w), bool), np.full((h, w), np.inf, np.float32)
     # the block means are a box of f px (variance (f^2 - 1) / 12): the rest of the blur on the grid
     rest = math.sqrt(max(sigma * sigma - (f * f - 1) / 12, 0.0)) / f
-    t, margin = _TILE, k + math.ceil(4 * rest) + 1  # the windows and the blur's kernel reach this far
+    margin = k + math.ceil(4 * rest) + 1  # the windows and the blur's kernel reach this far
     floor = (rule.min_sd / scale) ** 2
-    for y0 in range(0, h, t):
-        for x0 in range(0, w, t):
-            core = (slice(y0, y0 + t), slice(x0, x0 + t))
-            if not maybe[core].any():
-                continue
-            ya, xa, yb, xb = max(0, y0 - margin), max(0, x0 - margin), min(h, y0 + t + margin), min(w, x0 + t + margin)
-            part = (slice(ya, yb), slice(xa, xb))
-            inner = np.zeros((yb - ya, xb - xa), bool)
-            inner[y0 - ya : y0 - ya + t, x0 - xa : x0 - xa + t] = maybe[core]
-            iy, ix = np.nonzero(inner)
-            fa, fb, fok, frel = _fit_part(level.photo[part], level.mean[part], inner, rest, k, rule, floor)
-            a[iy + ya, ix + xa], b[iy + ya, ix + xa], ok[iy + ya, ix + xa], rel[iy + ya, ix + xa] = fa, fb, fok, frel
+    # the colours are centred for the float64 sums (any one centre keeps the fit exact: a coarse mean of the grid)
+    centre = tone(level.photo[::8, ::8]).reshape(-1, 3).mean(0).astype(np.float64)
+
+    def tile(y0: int, x0: int) -> None:
+        core = (slice(y0, y0 + _TILE), slice(x0, x0 + _TILE))
+        ya, xa, yb, xb = max(0, y0 - margin), max(0, x0 - margin), min(h, y0 + _TILE + margin), min(w, x0 + _TILE + margin)
+        part = (slice(ya, yb), slice(xa, xb))
+        inner = np.zeros((yb - ya, xb - xa), bool)
+        inner[y0 - ya : y0 - ya + _TILE, x0 - xa : x0 - xa + _TILE] = maybe[core]
+        iy, ix = np.nonzero(inner)
+        fa, fb, fok, frel = _fit_part(level.photo[part], level.mean[part], inner, rest, k, rule, floor, centre)
+        a[iy + ya, ix + xa], b[iy + ya, ix + xa], ok[iy + ya, ix + xa], rel[iy + ya, ix + xa] = fa, fb, fok, frel
+
+    tiles = [(y0, x0) for y0 in range(0, h, _TILE) for x0 in range(0, w, _TILE)
+             if maybe[y0 : y0 + _TILE, x0 : x0 + _TILE].any()]  # a tile with no window that may be used: skipped
+    part = 1.0
+    if every > 1 and len(tiles) >= _SPARE:
+        m = max(every, -(-len(tiles) // _CHOOSE))
+        kept = [(y0, x0) for y0, x0 in tiles if (7 * (y0 // _TILE) + 3 * (x0 // _TILE)) % m == 0]
+        part, tiles = len(kept) / len(tiles), kept
+    for y0, x0 in tiles:
+        tile(y0, x0)
     if not ok.any():
         return None
-    return _Fit(sigma, f, k, a, b, ok, rel, far, near, _erode(level.low, 2 * k), _dilate(level.high, 2 * k))
+    return _Fit(sigma, f, k, a, b, ok, rel, far, near, part)
+
+
+def _plateaus(fit: _Fit, level: _Level, rule: ThinRule) -> _Fit:
+    """The chosen fit with the map's smallest and largest value over twice each window, and the largest value the
+    map holds over a whole square of ``rule.flat_reach`` blurs within it."""
+    e = max(1, int(rule.flat_reach * fit.sigma / fit.f))  # the square's radius in samples
+    fit.far_wide, fit.near_wide = _erode(level.low, 2 * fit.k), _dilate(level.high, 2 * fit.k)
+    fit.flat = _dilate(_erode(level.low, e), 2 * fit.k)
+    return fit
 
 
 _TILE = 128
 """The fit goes over its grid in tiles of this many samples (and the margin its windows and blur reach)."""
+_SPARE = 8
+"""The image's blur is chosen from a part of a grid's tiles where it has this many to fit ..."""
+_CHOOSE = 16
+"""... about this many, or half of them where that is more (the same choice as from all on the demo at 1.5, 3.5
+and 12 MP, every soft kind)."""
 
 
 def _fit_part(photo: np.ndarray, d: np.ndarray, where: np.ndarray, rest: float, k: int, rule: ThinRule,
-              floor: float):
+              floor: float, centre: np.ndarray):
     """The regression at the samples ``where`` of a part of the grid: (a, b, usable, relative residual), 1-D."""
     guide = tone(photo).astype(np.float64)  # float64: the 3 x 3 solve is ill-conditioned where colours align
-    centre = guide.reshape(-1, 3).mean(0)
     guide -= centre
     gb = cv2.GaussianBlur(guide, (0, 0), rest, borderType=cv2.BORDER_REFLECT) if rest > 0 else guide
     m = _window_means(gb, d.astype(np.float64), k, where)
@@ -338,18 +381,18 @@ def _window_means(gb: np.ndarray, d: np.ndarray, k: int, where: np.ndarray) -> d
     (_, _, cy), (_, _, cx) = _extent(h, k), _extent(w, k)
     count = (cy[sel[0]] * cx[sel[1]]).astype(np.float64)
 
-    def mean(x):
-        return _box_sum(x, k)[sel] / count
-
-    out = {"d": mean(d), "dd": mean(d * d), "g": np.stack([mean(gb[..., i]) for i in range(3)], -1),
-           "gd": np.stack([mean(gb[..., i] * d) for i in range(3)], -1)}
-    for i, j in _PAIRS:
-        out[f"g{i}{j}"] = mean(gb[..., i] * gb[..., j])
+    # the 16 quantities as the channels of one array: one box filter, one gather
+    ii, jj = zip(*_PAIRS)
+    pos = [np.arange(n, dtype=np.float64) - n / 2 for n in (w, h)]
+    stack = np.concatenate([d[..., None], (d * d)[..., None], gb, gb * d[..., None], gb[..., ii] * gb[..., jj],
+                            (d * pos[0])[..., None], (d * pos[1][:, None])[..., None]], -1)
+    sums = _box_sum(stack, k)[sel] / count[:, None]
+    out = {"d": sums[:, 0], "dd": sums[:, 1], "g": sums[:, 2:5], "gd": sums[:, 5:8], "dx": sums[:, 14],
+           "dy": sums[:, 15]}
+    for c, (i, j) in enumerate(_PAIRS):
+        out[f"g{i}{j}"] = sums[:, 8 + c]
     for n, axis, name in ((w, 1, "x"), (h, 0, "y")):
         lo, hi, cnt = _extent(n, k)
-        pos = np.arange(n, dtype=np.float64) - n / 2
-        shape = (1, n) if axis == 1 else (n, 1)
-        out["d" + name] = mean(d * pos.reshape(shape))
         idx = sel[1] if axis == 1 else sel[0]
         out["m" + name] = ((lo + hi) / 2 - n / 2)[idx]
         out["v" + name] = ((cnt.astype(np.float64) ** 2 - 1) / 12)[idx]
@@ -428,12 +471,12 @@ class _Blocks:
 
 
 def _harden(fit: _Fit, photo: np.ndarray, d: np.ndarray, rule: ThinRule, scale: float):
-    """Each pixel of a usable block at its window's far value (the map's smallest) or near value (the largest
-    restored value), where that is a structure: the far value is a plateau of the map, and so is the near value
-    unless the structure is thin (its restored near depth beyond the map's nearest value within twice the window);
-    the restoration does not undershoot the far value; enough of the window is on the near side; the step is worth
-    a pixel of blur. Only the usable blocks' pixels are computed (the rest of the image costs nothing): the rows,
-    columns and (normalised) values of the pixels that move by a pixel of blur or more, or None."""
+    """Each pixel of a usable block at its window's far value (the map's smallest) or near value (a thin
+    structure's: the largest restored value; a wide object's, whose map holds its peak as a plateau: that plateau,
+    if lower), where that is a structure: the far value is a plateau of the map, and so is a wide object's near
+    value; the restoration does not undershoot the far value; enough of the window is on the near side; the step
+    is worth a pixel of blur. Only the usable blocks' pixels are computed (the rest of the image costs nothing): the
+    rows, columns and (normalised) values of the pixels that move by a pixel of blur or more, or None."""
     blk = _Blocks(fit.ok, fit.f, d.shape)
     a = [blk.at(fit.a[..., i]) for i in range(3)]
     g = tone(blk.take(photo))
@@ -442,26 +485,25 @@ def _harden(fit: _Fit, photo: np.ndarray, d: np.ndarray, rule: ThinRule, scale: 
     top = _dilate(blk.scatter(est.max((1, 2)), -np.inf), k)
     low = _erode(blk.scatter(est.min((1, 2)), np.inf), k)
     far = fit.far
-    high = est > blk.at(0.5 * (far + top))
+    wide = fit.near_wide - fit.flat <= rule.flat_tol * (fit.near_wide - far)  # the map's peak is a plateau
+    nearv = np.where(wide, np.minimum(top, fit.near_wide), top)  # the near value: a wide object's, its plateau
+    high = est > blk.at(0.5 * (far + nearv))
     n_high = _box(blk.scatter(high.sum((1, 2)), 0.0), k)
-    s_high = _box(blk.scatter(np.where(high, est, 0).sum((1, 2)), 0.0), k)
-    near = np.where(n_high > 0, s_high / np.maximum(n_high, 1e-12), top)  # the near side's mean (the thin test's)
     tol = rule.plateau_tol * (fit.near_wide - fit.far_wide)
-    thin = near > fit.near_wide + rule.thin * (near - far)
-    use = fit.ok & (far - fit.far_wide <= tol) & (thin | (fit.near_wide - fit.near <= tol))
+    use = fit.ok & (far - fit.far_wide <= tol) & (~wide | (fit.near_wide - fit.near <= tol))
     use &= far - low <= rule.undershoot * (top - far)
-    use &= top - far >= rule.min_step / scale
+    use &= nearv - far >= rule.min_step / scale
     r = (2 * k + 1) * fit.f // 2  # the window's radius in px: a structure holds half a line across it
     use &= n_high * ((2 * k + 1) ** 2) >= r + 1
     pick = use[blk.iy, blk.ix]
     if not pick.any():
         return None
     sel = (blk.ys[pick], blk.xs[pick])
-    far_p, top_p, near_p = blk.at(far)[pick], blk.at(top)[pick], blk.at(fit.near)[pick]
+    far_p, near_p, map_p = blk.at(far)[pick], blk.at(nearv)[pick], blk.at(fit.near)[pick]
     dp, ep = d[sel], est[pick]
-    place = (dp - far_p) / np.maximum(near_p - far_p, 1e-12)  # the pixel's place in the map's own window range
-    to_near = (np.maximum(ep, far_p) > 0.5 * (far_p + top_p)) & (place > rule.keep) | (place > 1 - rule.keep)
-    hard = np.where(to_near, top_p, far_p)
+    place = (dp - far_p) / np.maximum(map_p - far_p, 1e-12)  # the pixel's place in the map's own window range
+    to_near = (np.maximum(ep, far_p) > 0.5 * (far_p + near_p)) & (place > rule.keep) | (place > 1 - rule.keep)
+    hard = np.where(to_near, near_p, far_p)
     moved = hard != dp
     ys, xs = np.broadcast_to(sel[0], hard.shape)[moved], np.broadcast_to(sel[1], hard.shape)[moved]
     return ys, xs, hard[moved]

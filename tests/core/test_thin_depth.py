@@ -32,6 +32,36 @@ def _wires(n: int, seed: int, width: float = 2.0, spacing: int = 24):
     return image, (alpha[..., 0] >= 0.5).astype(np.float32)
 
 
+def _disc(n: int, seed: int, radius: float = 36.0):
+    """A wide object: a disc (disparity 1) with a strong fine texture (fur, grass: +-60 % of its colour) over a
+    textured background (disparity 0); the photo and the exact map."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:n, 0:n] + 0.5
+    c = n / 2 + rng.uniform(-4, 4, 2)
+    alpha = np.clip(radius + 0.5 - np.hypot(yy - c[0], xx - c[1]), 0, 1)[..., None]
+
+    def texture():
+        t = ndimage.gaussian_filter(rng.uniform(0, 1, (n, n, 3)), (1.0, 1.0, 0))
+        return (t - t.mean()) / t.std()
+
+    fur, ground = texture(), texture()
+    fg = rng.uniform(0.2, 0.5, 3) * (1 + 0.6 * fur[..., :1])
+    bg = rng.uniform(0.05, 0.3, 3) * (1 + 0.3 * ground)
+    image = np.clip(alpha * fg + (1 - alpha) * bg, 0, None).astype(np.float32)
+    return image, (alpha[..., 0] >= 0.5).astype(np.float32)
+
+
+@settings(max_examples=8, deadline=None)
+@given(seed=st.integers(0, 2**16), sigma=st.sampled_from([2.0, 4.0]), k=st.floats(8.0, 40.0))
+def test_a_wide_object_is_not_restored_nearer_than_itself(seed, sigma, k):
+    """A wide object's blurred map keeps its depth as a plateau: its rim is restored no nearer than that (the
+    colour model over a texture overshoots: the window's largest restored value lay up to 2.8 K nearer)."""
+    image, hard = _disc(128, seed)
+    s = (k * (ndimage.gaussian_filter(hard, sigma, mode="nearest") - 0.5)).astype(np.float32)
+    out, _ = restore_thin(image, s)
+    assert out.max() <= 0.5 * k + 0.5, out.max() - 0.5 * k
+
+
 @settings(max_examples=8, deadline=None)
 @given(seed=st.integers(0, 2**16), sigma=st.sampled_from([2.0, 4.0]), k=st.floats(8.0, 40.0))
 def test_blurred_wires_get_their_depth_back(seed, sigma, k):
@@ -87,10 +117,12 @@ def test_a_smooth_slope_is_left_exactly_as_it_is(height, width, seed):
 
 
 @settings(max_examples=4, deadline=None)
-@given(seed=st.integers(0, 2**16), sigma=st.sampled_from([2.0, 4.0]), k=st.floats(8.0, 40.0))
-def test_the_restoration_matches_the_float64_oracle(seed, sigma, k):
+@given(seed=st.integers(0, 2**16), sigma=st.sampled_from([2.0, 4.0]), k=st.floats(8.0, 40.0),
+       wide=st.booleans())
+def test_the_restoration_matches_the_float64_oracle(seed, sigma, k, wide):
+    """Wires (thin: the largest restored value) or a textured disc (wide: the map's plateau)."""
     rule = ThinRule(sigmas=(2.0, 4.0))
-    image, hard = _wires(64, seed, spacing=16)
+    image, hard = _disc(64, seed, radius=18.0) if wide else _wires(64, seed, spacing=16)
     s = (k * (ndimage.gaussian_filter(hard, sigma, mode="nearest") - 0.5)).astype(np.float32)
     got, _ = restore_thin(image, s, rule)
     want, moved = restore_thin_ref(image, s, rule)
@@ -211,3 +243,19 @@ def test_a_map_blurred_beyond_the_blurs_tried_is_read_with_the_largest(monkeypat
     d = ndimage.gaussian_filter(sc.disparity, 11.0, mode="nearest").astype(np.float32)
     _, n = restore_thin(sc.image, (30.0 * (d - 0.1)).astype(np.float32), bounds=(-3.0, 27.0))
     assert chosen == [8.0] and n > 0
+
+
+@settings(max_examples=4, deadline=None)
+@given(seed=st.integers(0, 2**16), sigma=st.sampled_from([2.0, 4.0, 8.0]))
+def test_the_blur_chosen_from_part_of_the_tiles_is_the_one_all_of_them_choose(seed, sigma):
+    """The image's blur is chosen from a lattice of the grid's tiles (where there are enough), and the chosen blur
+    then fitted on all of them: the same map as a choice from every tile."""
+    image, hard = _wires(192, seed, spacing=40, width=3.0)
+    s = (24.0 * (ndimage.gaussian_filter(hard, sigma, mode="nearest") - 0.5)).astype(np.float32)
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(thin_depth, "_TILE", 12)  # 4 - 64 tiles a grid: the choice from a half or a quarter of them
+        half, n = restore_thin(image, s)
+        mp.setattr(thin_depth, "_SPARE", 10**9)
+        every, m = restore_thin(image, s)
+    assert n > 0 and m == n
+    np.testing.assert_array_equal(half, every)

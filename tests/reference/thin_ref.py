@@ -72,6 +72,29 @@ def _fit(tone_blocks_mean, d, sigma, rule, choosing):
     return {"f": f, "k": rule.samples(sigma, f), "sigma": sigma, "a": a, "b": b, "ok": ok, "rel": rel, "low": low, "high": high}
 
 
+def _flat(low, i, j, k, e):
+    """The largest value the map holds over a whole square of ``e`` samples around a sample within ``k`` of (i, j)
+    (each sample's own value there: its block's smallest)."""
+    hl, wl = low.shape
+    best = -np.inf
+    for y in range(max(0, i - k), min(hl, i + k + 1)):
+        for x in range(max(0, j - k), min(wl, j + k + 1)):
+            # the square is cut at the grid's borders (its border samples repeat: the same minimum)
+            best = max(best, _window(low, y, x, e).min())
+    return best
+
+
+def _near_value(fit, top, far, i, j, rule):
+    """A thin structure's near value is the largest restored value of its window; a wide object's (the map holds its
+    largest value within twice the window as a plateau, over a square of ``flat_reach`` blurs) that plateau where
+    it is lower. (near value, wide)."""
+    k, f = fit["k"], fit["f"]
+    e = max(1, int(rule.flat_reach * fit["sigma"] / f))
+    near_wide = _window(fit["high"], i, j, 2 * k).max()
+    wide = near_wide - _flat(fit["low"], i, j, 2 * k, e) <= rule.flat_tol * (near_wide - far)
+    return (min(top, near_wide) if wide else top), wide
+
+
 def _harden(fit, guide, d, rule):
     """The restored map (and which pixels it moved) from the image's chosen fit."""
     f, k, ok = fit["f"], fit["k"], fit["ok"]
@@ -79,40 +102,39 @@ def _harden(fit, guide, d, rule):
     est = np.einsum("ijc,ijxyc->ijxy", fit["a"], _blocks(guide, f)) + fit["b"][..., None, None]
     top, low_est = np.full((hl, wl), -np.inf), np.full((hl, wl), np.inf)
     far, near_d = np.zeros((hl, wl)), np.zeros((hl, wl))
+    near_v, wide = np.full((hl, wl), -np.inf), np.zeros((hl, wl), bool)
     for i in range(hl):
         for j in range(wl):
             okw = _window(ok, i, j, k)
+            far[i, j] = _window(fit["low"], i, j, k).min()
+            near_d[i, j] = _window(fit["high"], i, j, k).max()
             if okw.any():
                 top[i, j] = _window(est, i, j, k)[okw].max()
                 low_est[i, j] = _window(est, i, j, k)[okw].min()
-            far[i, j] = _window(fit["low"], i, j, k).min()
-            near_d[i, j] = _window(fit["high"], i, j, k).max()
-    high = ok[..., None, None] & (est > (0.5 * (far + top))[..., None, None])
+                near_v[i, j], wide[i, j] = _near_value(fit, top[i, j], far[i, j], i, j, rule)
+    high = ok[..., None, None] & (est > (0.5 * (far + near_v))[..., None, None])
     out = d.copy()
     r = (2 * k + 1) * f // 2
     for i in range(hl):
         for j in range(wl):
             if not ok[i, j]:
                 continue
-            hw, ew = _window(high, i, j, k), _window(est, i, j, k)
-            samples = hw.shape[0] * hw.shape[1]
-            n_high = hw.sum() / samples
-            near = ew[hw].mean() if hw.any() else top[i, j]
+            hw = _window(high, i, j, k)
+            n_high = hw.sum() / (hw.shape[0] * hw.shape[1])
             far_wide, near_wide = _window(fit["low"], i, j, 2 * k).min(), _window(fit["high"], i, j, 2 * k).max()
             tol = rule.plateau_tol * (near_wide - far_wide)
-            thin = near > near_wide + rule.thin * (near - far[i, j])
-            use = far[i, j] - far_wide <= tol and (thin or near_wide - near_d[i, j] <= tol)
+            use = far[i, j] - far_wide <= tol and (not wide[i, j] or near_wide - near_d[i, j] <= tol)
             use = use and far[i, j] - low_est[i, j] <= rule.undershoot * (top[i, j] - far[i, j])
-            use = use and top[i, j] - far[i, j] >= rule.min_step and n_high * (2 * k + 1) ** 2 >= r + 1
+            use = use and near_v[i, j] - far[i, j] >= rule.min_step and n_high * (2 * k + 1) ** 2 >= r + 1
             if not use:
                 continue
             for y in range(f):
                 for x in range(f):
                     py, px = i * f + y, j * f + x
                     place = (d[py, px] - far[i, j]) / max(near_d[i, j] - far[i, j], 1e-12)
-                    up = max(est[i, j, y, x], far[i, j]) > 0.5 * (far[i, j] + top[i, j])
+                    up = max(est[i, j, y, x], far[i, j]) > 0.5 * (far[i, j] + near_v[i, j])
                     to_near = (up and place > rule.keep) or place > 1 - rule.keep
-                    out[py, px] = top[i, j] if to_near else far[i, j]
+                    out[py, px] = near_v[i, j] if to_near else far[i, j]
     return out
 
 
