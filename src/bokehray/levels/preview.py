@@ -43,7 +43,7 @@ from ..lens import Aperture, aperture_area
 from ..options import PreviewOptions
 from ..stats import PreviewStats
 from .base import Progress, RenderContext
-from .buffers import is_lazy, lazy_for, lazy_zeros, reuse_buffers
+from .buffers import is_lazy, lazy_for, lazy_zeros, release_cached, reuse_buffers
 
 __all__ = ["aperture_shape", "border_pad", "no_routing", "prefix_rows", "pyramid_buffers", "render_preview",
            "render_signed_coc", "route_salient", "scatter_merged"]
@@ -538,6 +538,8 @@ def render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatt
     # workers' fills never overlap; the layer's own sources are written before, outside the lock (a worker waiting
     # for it holds only those). Nothing else is shared: values do not depend on it.
     src, coc = sc.build_layer_sources(layer, arrays, zeros=sources_zeros, fill_gate=scatter.fill_gate)
+    if lazy:  # a large box: its fill's buffers and transients handed back, not kept beside the layers' peak
+        _hand_back(device)
     n_levels = sc.pyramid_levels(layer.max_radius, scatter.level_radius_px)
     first = sc.lowest_level(layer, scatter.level_radius_px)  # levels 1 .. first - 1 stay empty
     bufs = []
@@ -565,7 +567,17 @@ def render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatt
     n, span = sc.row_span(device, w)
     wp.launch(bk.resolve_levels_kernel, dim=(h, n), inputs=[span, n_levels, first, levels, kept.support.struct()],
               outputs=[out], device=device)
+    if lazy:
+        bound_heap()  # the layer's freed transients (the C heap's pages of its threads) before its result waits
     return out
+
+
+def _hand_back(device: str) -> None:
+    """After a large layer's fill: the cache's blocks (its fill buffers, reused by the next fill only) and the C heap's
+    freed pages go back to the system, so that they do not lie beside the peak of the layers in work (12 MP, a soft
+    map: a peak of 1.72 GB without, docs/design/memory-model.md). Nothing changes a value."""
+    release_cached(device)
+    bound_heap()
 
 
 def _scatter_sources(src: wp.array, coc: wp.array, support: sc.LayerSupport, routing: Routing, scatter: _Scatter,
