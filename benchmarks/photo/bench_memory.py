@@ -160,10 +160,11 @@ def _record_plan() -> dict:
     plan: dict = {}
     inner = preview._region_bytes
 
-    def wrapped(window_px, layers, threads):
+    def wrapped(window_px, layers, threads, lazy_acc=False):
         if not plan:
-            plan.update(frame_px=int(window_px), layers=[[int(v) for v in x] for x in layers], threads=int(threads))
-        return inner(window_px, layers, threads)
+            plan.update(frame_px=int(window_px), layers=[[int(v) for v in x] for x in layers], threads=int(threads),
+                        lazy_acc=bool(lazy_acc))
+        return inner(window_px, layers, threads, lazy_acc)
 
     preview._region_bytes = wrapped
     return plan
