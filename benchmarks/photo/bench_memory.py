@@ -61,7 +61,7 @@ FULL = [
 # one layer a worker untiled for one worker only (fewer workers instead of tiles)
 MODEL = [(1.5, "preview", 64, None, None, None), (6, "preview", 64, None, None, None),
          (12, "preview", 64, None, None, None), (24, "preview", 64, None, None, None),
-         (12, "preview", 64, None, 950, None)]
+         (12, "preview", 64, None, 800, None)]
 QUICK = [(1.5, "preview", 64, None, None, None), (1.5, "preview", 16, 512, None, None),
          (1.5, "raytrace", 16, None, None, 4), (1.5, "preview", 64, None, 50, None)]
 
