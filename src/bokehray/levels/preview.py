@@ -61,8 +61,8 @@ KEPT_CONTEXT_B = 4
 the refiner reads it after the level)."""
 REGION_B = 17
 """Per pixel of the rendered region: the accumulator (16; the image, CoC and layer ids are read in place on the CPU;
-the accumulator's pages are taken from the first composite on, ``buffers.lazy_zeros``: counted whole all the same)
-and the map of the pixels their own layer covers whole (1, :func:`opaque_pixels`; its float distances, 4, are gone
+the accumulator's pages are taken from the first composite on, ``buffers.lazy_zeros``, so a lazily zeroed one
+counts from the back layer's composite on, ``ACC_B``) and the map of the pixels their own layer covers whole (1, :func:`opaque_pixels`; its float distances, 4, are gone
 before the first layer)."""
 ACC_B = 16
 """Of ``REGION_B``, the accumulator's (vec4): a lazily zeroed one takes its pages from the first composite on (the back
