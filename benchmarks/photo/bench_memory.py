@@ -61,7 +61,7 @@ FULL = [
 # one layer a worker untiled for one worker only (fewer workers instead of tiles)
 MODEL = [(1.5, "preview", 64, None, None, None), (6, "preview", 64, None, None, None),
          (12, "preview", 64, None, None, None), (24, "preview", 64, None, None, None),
-         (12, "preview", 64, None, 950, None)]
+         (12, "preview", 64, None, 800, None)]
 QUICK = [(1.5, "preview", 64, None, None, None), (1.5, "preview", 16, 512, None, None),
          (1.5, "raytrace", 16, None, None, 4), (1.5, "preview", 64, None, 50, None)]
 
@@ -160,10 +160,11 @@ def _record_plan() -> dict:
     plan: dict = {}
     inner = preview._region_bytes
 
-    def wrapped(window_px, layers, threads):
+    def wrapped(window_px, layers, threads, lazy_acc=False):
         if not plan:
-            plan.update(frame_px=int(window_px), layers=[[int(v) for v in x] for x in layers], threads=int(threads))
-        return inner(window_px, layers, threads)
+            plan.update(frame_px=int(window_px), layers=[[int(v) for v in x] for x in layers], threads=int(threads),
+                        lazy_acc=bool(lazy_acc))
+        return inner(window_px, layers, threads, lazy_acc)
 
     preview._region_bytes = wrapped
     return plan

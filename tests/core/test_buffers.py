@@ -78,3 +78,51 @@ def test_a_slightly_larger_request_reuses_a_freed_block():
         assert b.ptr == ptr and cache.hits == 1 and cache.misses == 1
         assert not b.numpy().any()
         del b
+
+
+def test_release_hands_back_the_cached_blocks_and_caching_goes_on():
+    with buffers.reuse_buffers("cpu") as cache:
+        a = wp.zeros((512, 1024), dtype=wp.vec4, device="cpu")  # 8 MB
+        del a
+        assert len(cache.free) == 1
+        assert buffers.release_cached("cpu") >= 8 << 20 and not cache.free
+        b = wp.zeros((512, 1024), dtype=wp.vec4, device="cpu")
+        del b
+        assert len(cache.free) == 1  # still caching
+    assert buffers.release_cached("cpu") == 0  # no cache installed
+
+
+def _cached_at_scatter(monkeypatch, hand_back: bool) -> tuple[np.ndarray, list[int]]:
+    """A render whose every box is lazily zeroed (a large box's), one worker: the bytes the cache keeps as each
+    layer starts its scatter (after its fill), and the output."""
+    import bokehray as br
+    from bokehray.levels import preview
+
+    monkeypatch.setattr(buffers, "LAZY_MIN_BYTES", 1)
+    if not hand_back:
+        monkeypatch.setattr(preview, "_hand_back", lambda device: None)
+    seen = []
+    scatter = preview._scatter_sources
+
+    def spy(*a, **k):
+        alloc = wp.get_device("cpu").default_allocator
+        seen.append(sum(size for size, _ in alloc.free))
+        return scatter(*a, **k)
+
+    monkeypatch.setattr(preview, "_scatter_sources", spy)
+    rng = np.random.default_rng(5)
+    img = rng.random((480, 720, 3), dtype=np.float32)
+    s = np.linspace(-14, 10, 480 * 720, dtype=np.float32).reshape(480, 720)
+    out, _ = preview.render_signed_coc(img, s, br.Aperture(), options=br.PreviewOptions(threads=1))
+    return out, seen
+
+
+def test_a_large_layer_s_fill_buffers_are_not_kept_beside_its_scatter(monkeypatch):
+    """The fill's buffers (reused only by the next layer's fill) are handed back before a large layer scatters, so
+    they do not lie beside the layers' peak; the same pixels as when they are kept."""
+    kept_out, kept = _cached_at_scatter(monkeypatch, hand_back=False)
+    monkeypatch.undo()
+    out, cached = _cached_at_scatter(monkeypatch, hand_back=True)
+    assert max(kept) > 0  # without the hand-back the fill's blocks wait in the cache
+    assert cached and max(cached) == 0
+    np.testing.assert_array_equal(out, kept_out)

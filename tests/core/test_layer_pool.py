@@ -151,6 +151,29 @@ _footprints = st.lists(st.tuples(st.integers(0, 10**6), st.sampled_from([30, 46,
                        .map(lambda t: (t[0], t[1], pv.HELD_B if t[1] in (30, 46) else t[1])), min_size=1, max_size=12)
 
 
+def test_a_lazy_accumulator_counts_from_the_back_layer_s_composite_on():
+    """A lazily zeroed accumulator takes its pages when the back layer (the first composited) is done: the estimate is
+    the larger of the layers before it without the accumulator, the back layer's result composited beside it and
+    the other worker's layer, and the layers after it beside it."""
+    layers = [(1000, 30, 29), (900, 30, 29), (800, 30, 29), (100, 46, 29)]
+    window = 1200
+    before = 1000 * 30 + 900 * 29 + pv.RESULT_B * 800
+    at_back = pv.RESULT_B * 1000 + 900 * 29 + pv.RESULT_B * 800
+    after = 900 * 30 + 800 * 29 + pv.RESULT_B * 100
+    flag = (pv.REGION_B - pv.ACC_B) * window
+    assert pv._region_bytes(window, layers, 2, lazy_acc=True) == flag + max(before, pv.ACC_B * window + max(at_back, after))
+    assert pv._region_bytes(window, layers, 2) == pv.REGION_B * window + before  # dense: there all along
+
+
+@given(layers=_footprints, threads=st.integers(1, 6), window=st.integers(0, 10**7))
+def test_a_lazy_accumulator_never_counts_more_than_a_dense_one(layers, threads, window):
+    """Counting the accumulator from the back layer's composite on lowers the estimate at most to the layers' own
+    peak (with the opaque map), never below, and never raises it."""
+    dense = pv._region_bytes(window, layers, threads)
+    lazy = pv._region_bytes(window, layers, threads, lazy_acc=True)
+    assert (pv.REGION_B - pv.ACC_B) * window + pv._layers_bytes(layers, threads) <= lazy <= dense
+
+
 @given(layers=_footprints, threads=st.integers(1, 6), window=st.integers(0, 10**7))
 def test_the_estimate_lies_between_one_worker_and_every_worker_at_its_peak(layers, threads, window):
     """More workers never lower it; one worker is its largest layer at its peak; it never exceeds every worker's

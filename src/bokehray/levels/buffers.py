@@ -23,7 +23,8 @@ from contextlib import contextmanager
 import numpy as np
 import warp as wp
 
-__all__ = ["LAZY_MIN_BYTES", "MIN_BYTES", "CachingHostAllocator", "is_lazy", "lazy_for", "lazy_zeros", "reuse_buffers"]
+__all__ = ["LAZY_MIN_BYTES", "MIN_BYTES", "CachingHostAllocator", "is_lazy", "lazy_for", "lazy_zeros", "release_cached",
+           "reuse_buffers"]
 
 MIN_BYTES = 1 << 20
 LAZY_MIN_BYTES = 32 << 20
@@ -98,13 +99,19 @@ class CachingHostAllocator:
                     return
         self.inner.deallocate(ptr, size_in_bytes if size is None else size)
 
+    def release(self) -> int:
+        """Hand the cached blocks back to ``inner`` (caching goes on for blocks freed later); returns their bytes."""
+        with self.lock:
+            blocks, self.free = self.free, []
+        for size, ptr in blocks:
+            self.inner.deallocate(ptr, size)
+        return sum(size for size, _ in blocks)
+
     def close(self) -> None:
         """Stop caching and release the cached blocks (blocks still in use are released when their arrays go)."""
         with self.lock:
             self.active = False
-            blocks, self.free = self.free, []
-        for size, ptr in blocks:
-            self.inner.deallocate(ptr, size)
+        self.release()
 
 
 _install = threading.Lock()
@@ -128,6 +135,15 @@ def reuse_buffers(device: str) -> Iterator[CachingHostAllocator | None]:
             with _install:
                 dev.default_allocator = cache.inner
             cache.close()
+
+
+def release_cached(device: str) -> int:
+    """Release the blocks the CPU ``device``'s cache (:func:`reuse_buffers`) keeps, if one is installed; returns their
+    bytes (0: none, or not a CPU device). A large layer's fill buffers are reused by the next layer's fill only, and
+    kept until then they lay beside the peak of the layers in work (at 12 MP: 140-190 MB of the 1.7 GB peak,
+    docs/design/memory-model.md); released when the fill is done, they come back as fresh pages at the next fill."""
+    alloc = wp.get_device(device).default_allocator
+    return alloc.release() if isinstance(alloc, CachingHostAllocator) else 0
 
 
 _LAYOUTS = {wp.vec4: (np.float32, 4), float: (np.float32, 1), wp.float32: (np.float32, 1), wp.uint8: (np.uint8, 1)}

@@ -43,7 +43,7 @@ from ..lens import Aperture, aperture_area
 from ..options import PreviewOptions
 from ..stats import PreviewStats
 from .base import Progress, RenderContext
-from .buffers import is_lazy, lazy_for, lazy_zeros, reuse_buffers
+from .buffers import is_lazy, lazy_for, lazy_zeros, release_cached, reuse_buffers
 
 __all__ = ["aperture_shape", "border_pad", "no_routing", "prefix_rows", "pyramid_buffers", "render_preview",
            "render_signed_coc", "route_salient", "scatter_merged"]
@@ -61,9 +61,12 @@ KEPT_CONTEXT_B = 4
 the refiner reads it after the level)."""
 REGION_B = 17
 """Per pixel of the rendered region: the accumulator (16; the image, CoC and layer ids are read in place on the CPU;
-the accumulator's pages are taken from the first composite on, ``buffers.lazy_zeros``: counted whole all the same)
-and the map of the pixels their own layer covers whole (1, :func:`opaque_pixels`; its float distances, 4, are gone
+the accumulator's pages are taken from the first composite on, ``buffers.lazy_zeros``, so a lazily zeroed one
+counts from the back layer's composite on, ``ACC_B``) and the map of the pixels their own layer covers whole (1, :func:`opaque_pixels`; its float distances, 4, are gone
 before the first layer)."""
+ACC_B = 16
+"""Of ``REGION_B``, the accumulator's (vec4): a lazily zeroed one takes its pages from the first composite on (the back
+layer's), so it is counted beside the layers from then on (:func:`_region_bytes`)."""
 LIT_B = 30
 """Per pixel of a layer's lit area (its box's pixels in its support's tiles, :func:`_lit_area`) while it is in work
 on the CPU: its sources (16) and signed CoC (4), lazily zeroed, take pages where its sources and then its result
@@ -196,17 +199,33 @@ def pyramid_buffers(bufs: list[wp.array]) -> bk.Levels:
     return levels
 
 
-def _region_bytes(window_px: int, layers: list[Footprint], threads: int) -> int:
+def _region_bytes(window_px: int, layers: list[Footprint], threads: int, lazy_acc: bool = False) -> int:
     """The peak beyond the whole-image arrays of rendering a region of ``window_px`` pixels whose layers take
-    ``layers`` (:func:`_layer_footprint`) on ``threads`` workers."""
-    # one layer at its peak and each other worker's layer at what it holds while in work (the choice that makes the
-    # sum largest), and threads - 1 others finished, waiting to be composited behind a slower one (the next largest)
+    ``layers`` (:func:`_layer_footprint`, back to front) on ``threads`` workers. ``lazy_acc``: the accumulator is
+    lazily zeroed (a CPU window of ``buffers.LAZY_MIN_BYTES`` or more), so it takes its pages at the first composite,
+    the back layer's: the larger of the layers before it (the accumulator not yet there), the back layer's result
+    composited beside the accumulator and the other workers' layers, and the layers after it beside the accumulator.
+    Otherwise (a dense accumulator) it is there all along."""
+    if not lazy_acc or not layers:
+        return REGION_B * window_px + _layers_bytes(layers, threads)
+    acc, rest = ACC_B * window_px, layers[1:]
+    held = sorted((p * h for p, _, h in rest), reverse=True)
+    results = sorted((px for px, _, _ in rest), reverse=True)
+    back_composited = RESULT_B * layers[0][0] + sum(held[: threads - 1]) + RESULT_B * sum(results[threads - 1 : 2 * threads - 2])
+    return (REGION_B - ACC_B) * window_px + max(_layers_bytes(layers, threads),
+                                                acc + max(back_composited, _layers_bytes(rest, threads)))
+
+
+def _layers_bytes(layers: list[Footprint], threads: int) -> int:
+    """Layers in work: one at its peak and each other worker's at what it holds while in work (the choice that makes
+    the sum largest), and threads - 1 others finished, waiting to be composited behind a slower one (the next
+    largest)."""
     work = 0
     for i, (px, rate, _) in enumerate(layers):
         held = sorted((p * h for j, (p, _, h) in enumerate(layers) if j != i), reverse=True)
         work = max(work, px * rate + sum(held[: threads - 1]))
     results = sorted((px for px, _, _ in layers), reverse=True)
-    return REGION_B * window_px + work + RESULT_B * sum(results[threads : 2 * threads - 1])
+    return work + RESULT_B * sum(results[threads : 2 * threads - 1])
 
 
 SALIENT_VISIBLE = 0.002
@@ -398,20 +417,21 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
     on_cpu = wp.get_device(ctx.device).is_cpu
     footprints = [_layer_footprint(lyr, options.level_radius_px, on_cpu, options.exact_highlights)
                   for lyr in scene.layers]
+    lazy_acc = on_cpu and lazy_for(h, w)  # the accumulator's pages taken from the first composite on
     if ctx.memory.tile_size is None:
         # fewer layers in flight before tiles: where the budget does not hold a layer a worker but holds the frame
         # with fewer workers, those render it untiled (the same values, the layers' CPU time the same, less
         # parallel), where tiles would repeat every window's halo work or be refused
         budget = tiling.budget_bytes(ctx.memory)
         threads = next((k for k in range(threads, 0, -1)
-                        if whole + _region_bytes(h * w, footprints, k) <= budget), threads)
+                        if whole + _region_bytes(h * w, footprints, k, lazy_acc) <= budget), threads)
     stats.threads = threads
     margin = 2 * max(sum(sc.scatter_halo(lyr, options.level_radius_px)) for lyr in scene.layers)
     tiled = (TILED_B if (h, w) != (h0, w0) else 2 * TILED_B) * h * w
     tile, need = tiling.choose_tile(
-        h, w, ctx.memory, untiled_bytes=whole + _region_bytes(h * w, footprints, threads), margin=margin,
-        window_bytes=lambda hy, wx: whole + tiled + _region_bytes(hy * wx, [(min(px, hy * wx), rate, held)
-                                                                            for px, rate, held in footprints], threads),
+        h, w, ctx.memory, untiled_bytes=whole + _region_bytes(h * w, footprints, threads, lazy_acc), margin=margin,
+        window_bytes=lambda hy, wx: whole + tiled + _region_bytes(
+            hy * wx, [(min(px, hy * wx), rate, held) for px, rate, held in footprints], threads, on_cpu and lazy_for(hy, wx)),
         what=f"preview render at a largest CoC of {stats.max_coc_px:.0f} px", frame=(h0, w0),
     )
     stats.memory_estimate_mb = max(need, _plan_bytes(h * w, n_split)) / tiling.MB  # the plan's peak is past
@@ -538,6 +558,8 @@ def render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatt
     # workers' fills never overlap; the layer's own sources are written before, outside the lock (a worker waiting
     # for it holds only those). Nothing else is shared: values do not depend on it.
     src, coc = sc.build_layer_sources(layer, arrays, zeros=sources_zeros, fill_gate=scatter.fill_gate)
+    if lazy:  # a large box: its fill's buffers and transients handed back, not kept beside the layers' peak
+        _hand_back(device)
     n_levels = sc.pyramid_levels(layer.max_radius, scatter.level_radius_px)
     first = sc.lowest_level(layer, scatter.level_radius_px)  # levels 1 .. first - 1 stay empty
     bufs = []
@@ -565,7 +587,17 @@ def render_layer(layer: sc.LayerRecord, arrays: sc.LayerSources, scatter: _Scatt
     n, span = sc.row_span(device, w)
     wp.launch(bk.resolve_levels_kernel, dim=(h, n), inputs=[span, n_levels, first, levels, kept.support.struct()],
               outputs=[out], device=device)
+    if lazy:
+        bound_heap()  # the layer's freed transients (the C heap's pages of its threads) before its result waits
     return out
+
+
+def _hand_back(device: str) -> None:
+    """After a large layer's fill: the cache's blocks (its fill buffers, reused by the next fill only) and the C heap's
+    freed pages go back to the system, so that they do not lie beside the peak of the layers in work (12 MP, a soft
+    map: a peak of 1.72 GB without, docs/design/memory-model.md). Nothing changes a value."""
+    release_cached(device)
+    bound_heap()
 
 
 def _scatter_sources(src: wp.array, coc: wp.array, support: sc.LayerSupport, routing: Routing, scatter: _Scatter,
