@@ -201,9 +201,8 @@ def hidden_lights(image: np.ndarray, signed_coc: np.ndarray, soft: SoftEdges,
     it along one of the four axes within ``reach`` px (a split pixel whose far part ``B`` is a light, or a whole
     pixel lit in the photo, farther than the pixel by more than ``jump_px``; only pixels of the strand between; the
     two within ``jump_px`` of each other's CoC: one light), hides that light: the photo shows it on both sides of a
-    strand thinner than the light. It becomes a split pixel of coverage ``alpha`` whose far part is the light at
-    the brighter of its two sides (nearest axis first; a light's disc is flat-topped and the side beside the strand
-    is often its dimmer rim), at the CoC interpolated between them, so that once the strand
+    strand thinner than the light. It becomes a split pixel of coverage ``alpha`` whose far part is the light
+    interpolated across it (linear in the distance to the two sides, nearest axis first), so that once the strand
     blurs the light shows whole behind it, as it does through a real lens, instead of the dim tone-mapped fill of a
     hidden region. Nothing is looked at unless a split pixel's ``B`` is a light: the search runs along the axes
     within ``reach`` px of those."""
@@ -245,8 +244,8 @@ def _near_seeds(seeds: np.ndarray, far: np.ndarray, s: np.ndarray, r: int, jump:
 
 
 def _lights_across(image, s, soft, cand, rule):
-    """Per candidate: whether a light lies behind it on both sides along an axis, the light's colour there (the
-    brighter side's) and CoC (interpolated); None when no candidate has one."""
+    """Per candidate: whether a light lies behind it on both sides along an axis, the light's colour there
+    (interpolated) and CoC; None when no candidate has one."""
     h, w = s.shape
     r = int(rule.reach)
     cy, cx = np.divmod(cand, w)
@@ -283,8 +282,8 @@ def _lights_across(image, s, soft, cand, rule):
     k2 = coc[idx, ax]
     d1, d2 = (f[:, 0] + 1).astype(np.float32), (f[:, 1] + 1).astype(np.float32)
     b1, b2 = c2[np.arange(idx.size), 0, f[:, 0]], c2[np.arange(idx.size), 1, f[:, 1]]
-    wt = (d2 / (d1 + d2))[:, None]  # the nearer side weighs more (the light's CoC)
-    b = np.where((b1.sum(1) >= b2.sum(1))[:, None], b1, b2).astype(np.float32)  # a light's disc is flat-topped
+    wt = (d2 / (d1 + d2))[:, None]  # the nearer side weighs more
+    b = (wt * b1 + (1 - wt) * b2).astype(np.float32)
     far = (wt[:, 0] * k2[np.arange(idx.size), 0, f[:, 0]] + (1 - wt[:, 0]) * k2[np.arange(idx.size), 1, f[:, 1]])
     return keep, b, far.astype(np.float32)
 

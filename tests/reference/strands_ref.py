@@ -145,8 +145,7 @@ def hidden_lights_ref(image: np.ndarray, s: np.ndarray, soft, rule) -> dict[int,
     four axes of a split pixel with a lit far part, nearer than that far part by more than ``jump_px``; along each axis and side the first light within ``reach`` (a split pixel's
     lit B or a whole lit pixel, farther by more than ``jump_px``) counts when only unsplit, unlit pixels of the
     strand's depth lie before it; the axis with lights on both sides (within ``jump_px`` of each other's CoC)
-    nearest in all wins: the light's colour the brighter side's (summed RGB; the first side on a tie), its CoC
-    interpolated linearly in the distances."""
+    nearest in all wins, the light interpolated linearly in the distances."""
     h, w = s.shape
     img = image.astype(np.float64)
     where = {int(i): k for k, i in enumerate(soft.index)}
@@ -166,7 +165,7 @@ def hidden_lights_ref(image: np.ndarray, s: np.ndarray, soft, rule) -> dict[int,
                 continue  # a light on both sides, at one depth
             if best is None or found[0][0] + found[1][0] < best[0]:
                 (k1, b1, f1), (k2, b2, f2) = found
-                best = (k1 + k2, b1 if b1.sum() >= b2.sum() else b2, (k2 * f1 + k1 * f2) / (k1 + k2))
+                best = (k1 + k2, (k2 * b1 + k1 * b2) / (k1 + k2), (k2 * f1 + k1 * f2) / (k1 + k2))
         if best is not None:
             out[c] = (best[1], best[2])
     return out
