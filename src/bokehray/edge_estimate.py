@@ -18,7 +18,10 @@ the matting), so both import it.
 
 from __future__ import annotations
 
+import functools
+import itertools
 import os
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -27,9 +30,28 @@ import numpy as np
 
 from ._memory import row_bands
 
-__all__ = ["PIXELS_PER_THREAD", "EdgeBand", "EdgeEstimate", "MattingRule", "Steps", "band_window", "depth_edges", "dilate", "edge_band",
-           "edges_of_steps",
-           "in_parts", "isolated_share", "launch_band_kernel", "map_steps", "ramp_of_steps", "ramp_width", "window_offsets"]
+__all__ = [
+    "PIXELS_PER_THREAD",
+    "EdgeBand",
+    "EdgeEstimate",
+    "MattingRule",
+    "Steps",
+    "band_window",
+    "depth_edges",
+    "dilate",
+    "edge_band",
+    "edges_of_steps",
+    "in_parts",
+    "in_row_parts",
+    "isolated_share",
+    "launch_band_kernel",
+    "map_steps",
+    "on_threads",
+    "ramp_of_steps",
+    "ramp_width",
+    "row_parts",
+    "window_offsets",
+]
 
 PIXELS_PER_THREAD = 4096
 """Fewest pixels a CPU thread of a per-pixel kernel gets (fewer are not worth a thread)."""
@@ -67,6 +89,34 @@ def in_parts(n: int, run, *, threads: int | None = None, cpu: bool = True, check
     return out
 
 
+def row_parts(h: int, w: int, *, align: int = 1, threads: int | None = None) -> list[tuple[int, int]]:
+    """The rows ``[0, h)`` of an ``h x w`` frame cut into consecutive parts ``(y0, y1)``, as many as :func:`in_parts`
+    runs at once on the CPU (``threads``, default the cores; each part at least ``PIXELS_PER_THREAD`` pixels), every
+    cut a multiple of ``align`` rows (a tile grid's). At least one part (``(0, 0)`` for no rows)."""
+    workers = max(1, min(int(threads or os.cpu_count() or 1), -(-h * w // PIXELS_PER_THREAD)))
+    step = max(1, int(align))
+    cuts = sorted({0, h} | {min(h, -(-(h * j // workers) // step) * step) for j in range(1, workers)})
+    return list(itertools.pairwise(cuts)) if h > 0 else [(0, 0)]
+
+
+def on_threads(tasks: list[Callable[[], object]]) -> list:
+    """Call each of ``tasks``, the first on this thread and each other on a thread of its own (NumPy's loops and Warp
+    CPU launches release the GIL: the cores share the work), and return their results in order."""
+    if len(tasks) <= 1:
+        return [task() for task in tasks]
+    with ThreadPoolExecutor(max_workers=len(tasks) - 1) as pool:
+        others = [pool.submit(task) for task in tasks[1:]]
+        first = tasks[0]()
+        return [first] + [f.result() for f in others]
+
+
+def in_row_parts(h: int, w: int, run: Callable[[int, int], object], *, align: int = 1,
+                 threads: int | None = None) -> list:
+    """``run(y0, y1)`` over the :func:`row_parts` of an ``h x w`` frame, one part a core (:func:`on_threads`), the
+    results in order: for whole-frame NumPy passes whose rows are independent (the values are those of one pass)."""
+    return on_threads([functools.partial(run, a, b) for a, b in row_parts(h, w, align=align, threads=threads)])
+
+
 Steps = tuple[np.ndarray, np.ndarray]
 """A map's steps (:func:`map_steps`): which 4-neighbour differences exceed the jump, down and across."""
 
@@ -75,15 +125,20 @@ def map_steps(coc: np.ndarray, jump_px: float) -> Steps:
     jump_px)``, (H - 1) x W and H x (W - 1) booleans. :func:`depth_edges` and :func:`ramp_width` both start from
     them; the edge estimate computes them once for both (:func:`edges_of_steps`, :func:`ramp_of_steps`). The
     differences are taken a band of rows at a time (``np.diff``'s subtraction, no frame-sized difference or
-    absolute value)."""
+    absolute value), the frame's rows in parts on the CPU's cores (:func:`in_row_parts`)."""
     h, w = coc.shape
     jy = np.empty((max(h - 1, 0), w), bool)
     jx = np.empty((h, max(w - 1, 0)), bool)
-    for y, y1 in row_bands(h, w):
-        for d, out in ((np.subtract(coc[y:y1, 1:], coc[y:y1, :-1]), jx[y:y1]),
-                       (np.subtract(coc[y + 1 : y1 + 1], coc[y : min(y1, h - 1)]), jy[y:y1])):
-            np.abs(d, out=d)
-            np.greater(d, jump_px, out=out)
+
+    def part(r0: int, r1: int) -> None:
+        for y, y1 in row_bands(r1 - r0, w):
+            y, y1 = y + r0, y1 + r0
+            for d, out in ((np.subtract(coc[y:y1, 1:], coc[y:y1, :-1]), jx[y:y1]),
+                           (np.subtract(coc[y + 1 : y1 + 1], coc[y : min(y1, h - 1)]), jy[y:y1])):
+                np.abs(d, out=d)
+                np.greater(d, jump_px, out=out)
+
+    in_row_parts(h, w, part)
     return jy, jx
 
 
