@@ -390,7 +390,7 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
     ctx.release_pixels()  # the scene holds what the layers read (a disposable context's pixels are freed here)
     bound_heap()  # the soft scene's and the plan's freed transients handed back before the layers
     stats.layers = len(scene.layers)
-    stats.sources_scattered = int((scene.ids >= 0).sum()) + len(scene.near)
+    stats.sources_scattered = sum(lyr.pixels for lyr in scene.layers)  # the layered pixels and the near parts
     stats.pyramid_levels = max(sc.pyramid_levels(lyr.max_radius, options.level_radius_px) for lyr in scene.layers)
     threads = cores
 
@@ -673,13 +673,7 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
     kept = [_kept(lyr, box, keep, device) for lyr in layers]
 
     # Layers render independently (Warp CPU launches release the GIL) on ``threads`` workers and are composited
-    # strictly back to front as they complete. A free worker takes the next layer to composite if it has not
-    # started, else the costliest one left (:func:`layer_cost`), so that a slow layer does not start last while the
-    # other workers idle. A finished layer waiting to be composited holds only its result (16 B/px); while as many
-    # results wait as there are workers, only the next layer to composite starts (:func:`_region_bytes` counts one
-    # working layer a thread and that many results).
-    done = 0
-    order = sorted(range(len(layers)), key=lambda k: -layer_cost(layers[k]) if scatter.threads > 1 else k)
+    # strictly back to front as they complete (:class:`_Starter` says which layer a free worker takes).
     pool = ThreadPoolExecutor(max_workers=scatter.threads)
     # the composite and the final division in bands of rows, one on this thread and one on each other core: the
     # layers still in work share the cores with them, and after the last one no core idles while they run
@@ -688,36 +682,26 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
     # the accumulator too (zeroed at once below 2 MP; when lazy, its pages are taken at the first composite)
     acc_job = _soon(functools.partial(lazy_zeros, (ay1 - ay0, ax1 - ax0), wp.vec4, device,
                                       lazy_for(ay1 - ay0, ax1 - ax0)), bands)
+    starter = _Starter(lambda layer, k: render_layer(layer, arrays, scatter, k), layers, kept, pool,
+                       scatter.threads)
     try:
-        started: dict[int, Future] = {}  # started and not yet composited
-        head = 0  # the next layer to composite
-        while head < len(layers):
-            running = [f for f in started.values() if not f.done()]
-            waiting = len(started) - len(running)  # finished, waiting for the layers behind them
-            if len(running) < scatter.threads:
-                # the next to composite always; another only while fewer results than workers wait (each holds
-                # 16 B a box pixel: workers far ahead of a slow back layer would stack them up)
-                pick = head if head not in started else next(
-                    (k for k in order if k > head and k not in started and waiting < scatter.threads), None)
-                if pick is not None:
-                    started[pick] = pool.submit(render_layer, layers[pick], arrays, scatter, kept[pick])
-                    continue
-            fut = started.get(head)  # None: every worker busy with layers further front
+        while (head := starter.head) < len(layers):
+            starter.top_up()
+            fut = starter.get(head)  # None: every worker busy with layers further front
             if fut is None or not fut.done():
-                wait(running, return_when=FIRST_COMPLETED)
+                wait([fut] if fut is not None else starter.running(), return_when=FIRST_COMPLETED)
                 continue
             out = fut.result()
-            del started[head]
+            starter.composited(head)
             _composite(out, layers[head], kept[head], box, acc_job.result(), whole.result(), device, bands,
                        scatter.threads)
             del out
-            head += 1
-            done += 1
             if progress is not None:
-                progress(done, len(layers))
+                progress(head + 1, len(layers))
     except BaseException:
         # Ctrl-C, or a progress callback that abandons the render: return at once, not after the layers in
         # flight (their results are dropped; the command line then exits without waiting for them)
+        starter.stop()
         pool.shutdown(wait=False, cancel_futures=True)
         if bands is not None:
             bands.shutdown(wait=False)  # (its bands are waited for where they are started)
@@ -737,6 +721,64 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
     if bands is not None:
         bands.shutdown(wait=True)
     return result.numpy(), arrays.filled_count()
+
+
+class _Starter:
+    """Which layers are in work on the pool's ``threads`` workers, and the next to composite (:attr:`head`): a free
+    worker takes the next layer to composite if it has not started, else the costliest one left
+    (:func:`layer_cost`), so that a slow layer does not start last while the other workers idle. A finished layer
+    waiting to be composited holds only its result (16 B/px); while as many results wait as there are workers, only
+    the next layer to composite starts (:func:`_region_bytes` counts one working layer a thread and that many
+    results). :meth:`top_up` runs on the compositing thread and on each worker as its layer finishes, so a worker
+    freed while the composite runs takes its next layer at once."""
+
+    def __init__(self, render, layers, kept, pool: ThreadPoolExecutor, threads: int) -> None:
+        self.render, self.layers, self.kept, self.pool, self.threads = render, layers, kept, pool, threads
+        self.order = sorted(range(len(layers)), key=lambda k: -layer_cost(layers[k]) if threads > 1 else k)
+        self.lock = threading.Lock()
+        self.started: dict[int, Future] = {}  # started and not yet composited
+        self.head = 0
+        self.stopped = False
+
+    def top_up(self, _finished: Future | None = None) -> None:
+        """Start layers while a worker is free and a layer may start (a future's done callback)."""
+        new = []
+        with self.lock:
+            while not self.stopped:
+                running = sum(not f.done() for f in self.started.values())
+                waiting = len(self.started) - running  # finished, waiting for the layers behind them
+                if running >= self.threads:
+                    break
+                # the next to composite always; another only while fewer results than workers wait (each holds
+                # 16 B a box pixel: workers far ahead of a slow back layer would stack them up)
+                pick = self.head if self.head not in self.started else next(
+                    (k for k in self.order if k > self.head and k not in self.started and waiting < self.threads),
+                    None)
+                if pick is None:
+                    break
+                self.started[pick] = fut = self.pool.submit(self.render, self.layers[pick], self.kept[pick])
+                new.append(fut)
+        for fut in new:  # outside the lock: a future already done calls back at once, on this thread
+            fut.add_done_callback(self.top_up)
+
+    def get(self, k: int) -> Future | None:
+        with self.lock:
+            return self.started.get(k)
+
+    def running(self) -> list[Future]:
+        with self.lock:
+            return [f for f in self.started.values() if not f.done()]
+
+    def composited(self, k: int) -> None:
+        """Layer ``k``, the head, leaves the workers' count: the next one is the head."""
+        with self.lock:
+            del self.started[k]
+            self.head = k + 1
+
+    def stop(self) -> None:
+        """Start nothing more (the render is abandoned)."""
+        with self.lock:
+            self.stopped = True
 
 
 BAND_MIN_ROWS = 64
