@@ -230,12 +230,28 @@ def depth_edges(coc: np.ndarray, jump_px: float) -> np.ndarray:
 def edges_of_steps(steps: Steps) -> np.ndarray:
     """:func:`depth_edges` of the map whose :func:`map_steps` are ``steps``."""
     jy, jx = steps
-    e = np.zeros((jx.shape[0], jy.shape[1]), bool)  # (H, W): jx is H x (W - 1), jy (H - 1) x W
-    e[:-1] |= jy
-    e[1:] |= jy
-    e[:, :-1] |= jx
-    e[:, 1:] |= jx
+    h, w = jx.shape[0], jy.shape[1]
+    e = np.zeros((h, w), bool)  # (H, W): jx is H x (W - 1), jy (H - 1) x W
+
+    def part(a: int, b: int) -> None:  # the rows [a, b) of the map, the steps either side of them
+        e[a : min(b, h - 1)] |= jy[a : min(b, h - 1)]
+        e[max(a, 1) : b] |= jy[max(a, 1) - 1 : b - 1]
+        e[a:b, :-1] |= jx[a:b]
+        e[a:b, 1:] |= jx[a:b]
+
+    in_row_parts(h, w, part)
     return e
+
+
+def _largest_magnitude(image: np.ndarray) -> float:
+    """``max(image.max(), -image.min())`` of a non-empty image, its rows' parts on the CPU's cores."""
+    h, w = image.shape[:2]
+
+    def part(a: int, b: int) -> tuple[float, float] | None:
+        return (float(image[a:b].max()), float(image[a:b].min())) if b > a else None
+
+    found = [v for v in in_row_parts(h, w, part) if v is not None]
+    return max(max(v[0] for v in found), -min(v[1] for v in found))
 
 
 @dataclass(frozen=True, slots=True)
@@ -415,7 +431,7 @@ def edge_band(image: np.ndarray, signed_coc: np.ndarray, rule: MattingRule | Non
     if edges.mean() > max_isolated_share and isolated_share(s, float(jump_px)) > max_isolated_share:
         return None  # noise in the map, not edges
     # max |v| as max(max v, -min v): the same value, without a frame-sized |image|
-    scale = max(float(image.max()), -float(image.min())) or 1.0
+    scale = _largest_magnitude(image) or 1.0
     ramp = ramp_of_steps(s, steps, int(max_ramp_px)) if max_ramp_px > 0 else 0  # capped at 0: not measured
     del steps
     check()
@@ -427,8 +443,16 @@ def edge_band(image: np.ndarray, signed_coc: np.ndarray, rule: MattingRule | Non
     y0, y1 = max(0, int(ey.min()) - pad), min(h, int(ey.max()) + pad + 1)
     x0, x1 = max(0, int(ex.min()) - pad), min(w, int(ex.max()) + pad + 1)
     band = dilate(edges[y0:y1, x0:x1], b)
-    by, bx = (v.astype(np.int32) for v in np.nonzero(band))
-    # every threshold is relative: the result does not depend on the exposure (the box only: nothing reads more)
-    box_img = image[y0:y1, x0:x1] / np.float32(scale)
+    # the band's pixels, row-major, and the box of the image divided by its scale (every threshold is relative: the
+    # result does not depend on the exposure; the box only: nothing reads more), its rows' parts on the CPU's cores
+    box_img = np.empty((y1 - y0, x1 - x0, *image.shape[2:]), (image[:0, :0] / np.float32(scale)).dtype)
+
+    def part(a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
+        np.divide(image[y0 + a : y0 + b, x0:x1], np.float32(scale), out=box_img[a:b])
+        py, px = np.nonzero(band[a:b])
+        return (py + a).astype(np.int32), px.astype(np.int32)
+
+    found = in_row_parts(y1 - y0, x1 - x0, part)
+    by, bx = (np.concatenate([f[k] for f in found]) for k in (0, 1))
     check()
     return EdgeBand((h, w), (y0, y1, x0, x1), by, bx, ramp, scale, box_img, s[y0:y1, x0:x1], band, radius)

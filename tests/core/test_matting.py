@@ -440,3 +440,24 @@ def test_a_strand_across_a_light_is_not_kept_light_bright(width):
     after = near_share(MattingRule(max_ramp_px=0))
     assert np.abs(before - truth).max() > 1.0  # lamp-bright
     assert np.abs(after - truth).max() < 0.2
+
+
+@pytest.mark.parametrize("kind", ["disc", "strands"])
+def test_the_edge_band_in_row_parts_is_the_band_in_one(kind, monkeypatch):
+    """The band's pixels, the scaled box and the scale found on row parts (three threads) are those of one pass."""
+    from bokehray import edge_estimate
+    from bokehray.edge_estimate import edge_band
+
+    photo, coc, _, _, _ = two_plane(n=40, seed=7, kind=kind)
+    img, s = np.ascontiguousarray(photo, np.float32), np.ascontiguousarray(coc, np.float32)
+    one = edge_band(img, s, MattingRule())
+    monkeypatch.setattr(edge_estimate, "PIXELS_PER_THREAD", 1)
+    monkeypatch.setattr(edge_estimate.os, "cpu_count", lambda: 3)
+    assert edge_estimate.row_parts(*s.shape) != [(0, s.shape[0])]
+    three = edge_band(img, s, MattingRule())
+    assert one is not None and one.size > 0 and (one.box, one.scale, one.radius) == (three.box, three.scale,
+                                                                                      three.radius)
+    for name in ("by", "bx", "image", "coc", "band"):
+        a, b = getattr(one, name), getattr(three, name)
+        assert a.dtype == b.dtype
+        np.testing.assert_array_equal(a, b)
