@@ -39,7 +39,7 @@ __all__ = [
     "FILL_MIN_REACH_PX", "LayerRecord", "LayerSources", "LayeredScene", "NearParts", "SoftEdges", "build_layer_sources",
     "build_scene", "cap_coc", "check_soft_edges", "copy_tiles", "copy_tiles_of", "fill_halo", "layer_edges", "pad_soft_edges",
     "pyramid_levels", "radius_tile_max", "rim_radii", "row_span", "scatter_halo", "soft_radius", "soft_replicas", "split_scene", "tile_max",
-    "tile_reduce",
+    "tile_reduce", "tile_reduce_in_parts",
 ]  # fmt: skip
 
 def row_span(device, width: int) -> tuple[int, int]:
@@ -352,6 +352,20 @@ def tile_reduce(values: np.ndarray, tile: int, fill: object, op: np.ufunc) -> np
     return op.reduce(rows.reshape(th, tw, tile), axis=2)
 
 
+def tile_reduce_in_parts(values: np.ndarray, tile: int, fill: object, op: np.ufunc) -> np.ndarray:
+    """:func:`tile_reduce`, whole tile rows a part, the parts on the CPU's cores (``edge_estimate.in_row_parts``):
+    the same values."""
+    h, w = values.shape
+    out = np.empty((-(-h // tile), -(-w // tile)), values.dtype)
+
+    def part(a: int, b: int) -> None:
+        if b > a:
+            out[a // tile : -(-b // tile)] = tile_reduce(values[a:b], tile, fill, op)
+
+    in_row_parts(h, w, part, align=tile)
+    return out
+
+
 def grid_to_pixels(grid: np.ndarray, tile: int, shape: tuple[int, int]) -> np.ndarray:
     """Expand a per-tile grid to pixels (cropped to ``shape``)."""
     return np.repeat(np.repeat(grid, tile, 0), tile, 1)[: shape[0], : shape[1]]
@@ -660,9 +674,9 @@ def build_scene(signed_coc: np.ndarray, active: np.ndarray, options: LayerOption
     # Per-layer extents on the tile grid (host side, on small arrays): a layer's
     # bounding box is the union of the tiles holding any of its pixels.
     t = options.tile_px
-    tile_lo = np.minimum(tile_reduce(sid.view(np.uint32), t, np.uint32(0xFFFFFFFF), np.minimum),
+    tile_lo = np.minimum(tile_reduce_in_parts(sid.view(np.uint32), t, np.uint32(0xFFFFFFFF), np.minimum),
                          n_slices)  # -1 (no layer, also the padding) as the largest
-    tile_hi = tile_reduce(sid, t, -1, np.maximum)
+    tile_hi = tile_reduce_in_parts(sid, t, -1, np.maximum)
     near_tiles = None
     if near is not None and len(near):
         counts = counts + np.bincount(near.layer, minlength=n_slices)

@@ -150,7 +150,7 @@ def test_float32_edges_assign_every_pixel_the_float64_layer(edges, seed):
 def test_tile_reduce_equals_padding_the_map(h, w, tile, dtype, seed):
     """Rows of each cell then columns: the values of the padded (th, tile, tw, tile) reduction, partial cells
     (padded with ``fill``), NaN and the uint32 view of -1 included."""
-    from bokehray.scene import tile_max, tile_reduce
+    from bokehray.scene import tile_max, tile_reduce, tile_reduce_in_parts
 
     rng = np.random.default_rng(seed)
     v = rng.integers(-3, 5, (h, w)).astype(dtype) if dtype != "bool" else rng.random((h, w)) < 0.1
@@ -165,6 +165,11 @@ def test_tile_reduce_equals_padding_the_map(h, w, tile, dtype, seed):
         got = tile_reduce(v, tile, fill, op)
         assert got.dtype == want.dtype
         np.testing.assert_array_equal(got, want)
+        with pytest.MonkeyPatch.context() as m:  # whole tile rows a part, on up to four threads
+            _in_parts(m, rng)
+            in_parts = tile_reduce_in_parts(v, tile, fill, op)
+        assert in_parts.dtype == want.dtype
+        np.testing.assert_array_equal(in_parts, want)
     np.testing.assert_array_equal(tile_max(v, tile), tile_reduce(v, tile, 0, np.maximum))
 
 
