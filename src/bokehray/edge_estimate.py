@@ -62,13 +62,14 @@ CHECK_ITEMS = 1 << 17
 second of the matting's kernel on one core)."""
 
 
-def in_parts(n: int, run, *, threads: int | None = None, cpu: bool = True, check=None) -> list:
+def in_parts(n: int, run, *, threads: int | None = None, cpu: bool = True, check=None, item_px: int = 1) -> list:
     """``run(a, b)`` over ``[0, n)`` cut into parts, their results in order: on the CPU as many parts at a time as
-    ``threads`` (default: the cores) with at least ``PIXELS_PER_THREAD`` items each, run in a thread pool (Warp CPU
-    launches release the GIL); one part at a time elsewhere. Always at least one part (``run(0, 0)`` for nothing).
-    ``check()``: called before each round of parts (at most ``CHECK_ITEMS`` items a part), so that a render can be
-    stopped there (it raises); None: one round."""
-    workers = 1 if not cpu else max(1, min(int(threads or os.cpu_count() or 1), -(-n // PIXELS_PER_THREAD)))
+    ``threads`` (default: the cores) with at least ``PIXELS_PER_THREAD`` pixels each (an item is ``item_px`` pixels:
+    a tile's), run in a thread pool (Warp CPU launches release the GIL); one part at a time elsewhere. Always at
+    least one part (``run(0, 0)`` for nothing). ``check()``: called before each round of parts (at most
+    ``CHECK_ITEMS`` items a part), so that a render can be stopped there (it raises); None: one round."""
+    workers = 1 if not cpu else max(1, min(int(threads or os.cpu_count() or 1),
+                                           -(-n * max(1, int(item_px)) // PIXELS_PER_THREAD)))
     parts = workers if check is None else max(workers, -(-n // CHECK_ITEMS))
     parts = -(-parts // workers) * workers  # whole rounds
     cuts = np.linspace(0, n, parts + 1).astype(np.int64)
