@@ -304,7 +304,7 @@ def _writable(a: np.ndarray, dtype: type, ndim: int) -> bool:
     return a.dtype == dtype and a.ndim == ndim and a.flags.c_contiguous and a.flags.writeable
 
 
-def cap_coc(signed_coc: np.ndarray) -> np.ndarray:
+def cap_coc(signed_coc: np.ndarray, largest: float | None = None) -> np.ndarray:
     """Compress CoC radii beyond twice the image diagonal (order kept): their light covers the frame uniformly.
 
     Every aperture (a triangle at worst) contains the disc of half its circumradius, so a
@@ -315,11 +315,16 @@ def cap_coc(signed_coc: np.ndarray) -> np.ndarray:
     unblurred input; the ray tracer's march would take O(K) steps per ray. Beyond the cap
     ``c`` a radius ``r`` becomes ``c + log1p(r - c)`` (still ordered, so layers keep their
     depth order; not idempotent, so the entry points apply it once). Renders whose CoC stays
-    within the cap are unchanged.
+    within the cap are unchanged. ``largest``: ``max(signed_coc.max(), -signed_coc.min())`` when the caller has it
+    (None: found here).
     """
     h, w = signed_coc.shape
     cap = np.float32(2.0 * math.hypot(h, w) + 2.0)
-    if signed_coc.size == 0 or max(float(signed_coc.max()), -float(signed_coc.min())) <= cap:
+    if signed_coc.size == 0:
+        return signed_coc
+    if largest is None:
+        largest = max(float(signed_coc.max()), -float(signed_coc.min()))
+    if largest <= cap:
         return signed_coc  # the normal case: no copy
     r = np.abs(signed_coc)
     big = r > cap
