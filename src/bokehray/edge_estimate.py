@@ -18,7 +18,10 @@ the matting), so both import it.
 
 from __future__ import annotations
 
+import functools
+import itertools
 import os
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -27,9 +30,28 @@ import numpy as np
 
 from ._memory import row_bands
 
-__all__ = ["PIXELS_PER_THREAD", "EdgeBand", "EdgeEstimate", "MattingRule", "Steps", "band_window", "depth_edges", "dilate", "edge_band",
-           "edges_of_steps",
-           "in_parts", "isolated_share", "launch_band_kernel", "map_steps", "ramp_of_steps", "ramp_width", "window_offsets"]
+__all__ = [
+    "PIXELS_PER_THREAD",
+    "EdgeBand",
+    "EdgeEstimate",
+    "MattingRule",
+    "Steps",
+    "band_window",
+    "depth_edges",
+    "dilate",
+    "edge_band",
+    "edges_of_steps",
+    "in_parts",
+    "in_row_parts",
+    "isolated_share",
+    "launch_band_kernel",
+    "map_steps",
+    "on_threads",
+    "ramp_of_steps",
+    "ramp_width",
+    "row_parts",
+    "window_offsets",
+]
 
 PIXELS_PER_THREAD = 4096
 """Fewest pixels a CPU thread of a per-pixel kernel gets (fewer are not worth a thread)."""
@@ -40,13 +62,14 @@ CHECK_ITEMS = 1 << 17
 second of the matting's kernel on one core)."""
 
 
-def in_parts(n: int, run, *, threads: int | None = None, cpu: bool = True, check=None) -> list:
+def in_parts(n: int, run, *, threads: int | None = None, cpu: bool = True, check=None, item_px: int = 1) -> list:
     """``run(a, b)`` over ``[0, n)`` cut into parts, their results in order: on the CPU as many parts at a time as
-    ``threads`` (default: the cores) with at least ``PIXELS_PER_THREAD`` items each, run in a thread pool (Warp CPU
-    launches release the GIL); one part at a time elsewhere. Always at least one part (``run(0, 0)`` for nothing).
-    ``check()``: called before each round of parts (at most ``CHECK_ITEMS`` items a part), so that a render can be
-    stopped there (it raises); None: one round."""
-    workers = 1 if not cpu else max(1, min(int(threads or os.cpu_count() or 1), -(-n // PIXELS_PER_THREAD)))
+    ``threads`` (default: the cores) with at least ``PIXELS_PER_THREAD`` pixels each (an item is ``item_px`` pixels:
+    a tile's), run in a thread pool (Warp CPU launches release the GIL); one part at a time elsewhere. Always at
+    least one part (``run(0, 0)`` for nothing). ``check()``: called before each round of parts (at most
+    ``CHECK_ITEMS`` items a part), so that a render can be stopped there (it raises); None: one round."""
+    workers = 1 if not cpu else max(1, min(int(threads or os.cpu_count() or 1),
+                                           -(-n * max(1, int(item_px)) // PIXELS_PER_THREAD)))
     parts = workers if check is None else max(workers, -(-n // CHECK_ITEMS))
     parts = -(-parts // workers) * workers  # whole rounds
     cuts = np.linspace(0, n, parts + 1).astype(np.int64)
@@ -67,6 +90,34 @@ def in_parts(n: int, run, *, threads: int | None = None, cpu: bool = True, check
     return out
 
 
+def row_parts(h: int, w: int, *, align: int = 1, threads: int | None = None) -> list[tuple[int, int]]:
+    """The rows ``[0, h)`` of an ``h x w`` frame cut into consecutive parts ``(y0, y1)``, as many as :func:`in_parts`
+    runs at once on the CPU (``threads``, default the cores; each part at least ``PIXELS_PER_THREAD`` pixels), every
+    cut a multiple of ``align`` rows (a tile grid's). At least one part (``(0, 0)`` for no rows)."""
+    workers = max(1, min(int(threads or os.cpu_count() or 1), -(-h * w // PIXELS_PER_THREAD)))
+    step = max(1, int(align))
+    cuts = sorted({0, h} | {min(h, -(-(h * j // workers) // step) * step) for j in range(1, workers)})
+    return list(itertools.pairwise(cuts)) if h > 0 else [(0, 0)]
+
+
+def on_threads(tasks: list[Callable[[], object]]) -> list:
+    """Call each of ``tasks``, the first on this thread and each other on a thread of its own (NumPy's loops and Warp
+    CPU launches release the GIL: the cores share the work), and return their results in order."""
+    if len(tasks) <= 1:
+        return [task() for task in tasks]
+    with ThreadPoolExecutor(max_workers=len(tasks) - 1) as pool:
+        others = [pool.submit(task) for task in tasks[1:]]
+        first = tasks[0]()
+        return [first] + [f.result() for f in others]
+
+
+def in_row_parts(h: int, w: int, run: Callable[[int, int], object], *, align: int = 1,
+                 threads: int | None = None) -> list:
+    """``run(y0, y1)`` over the :func:`row_parts` of an ``h x w`` frame, one part a core (:func:`on_threads`), the
+    results in order: for whole-frame NumPy passes whose rows are independent (the values are those of one pass)."""
+    return on_threads([functools.partial(run, a, b) for a, b in row_parts(h, w, align=align, threads=threads)])
+
+
 Steps = tuple[np.ndarray, np.ndarray]
 """A map's steps (:func:`map_steps`): which 4-neighbour differences exceed the jump, down and across."""
 
@@ -75,15 +126,20 @@ def map_steps(coc: np.ndarray, jump_px: float) -> Steps:
     jump_px)``, (H - 1) x W and H x (W - 1) booleans. :func:`depth_edges` and :func:`ramp_width` both start from
     them; the edge estimate computes them once for both (:func:`edges_of_steps`, :func:`ramp_of_steps`). The
     differences are taken a band of rows at a time (``np.diff``'s subtraction, no frame-sized difference or
-    absolute value)."""
+    absolute value), the frame's rows in parts on the CPU's cores (:func:`in_row_parts`)."""
     h, w = coc.shape
     jy = np.empty((max(h - 1, 0), w), bool)
     jx = np.empty((h, max(w - 1, 0)), bool)
-    for y, y1 in row_bands(h, w):
-        for d, out in ((np.subtract(coc[y:y1, 1:], coc[y:y1, :-1]), jx[y:y1]),
-                       (np.subtract(coc[y + 1 : y1 + 1], coc[y : min(y1, h - 1)]), jy[y:y1])):
-            np.abs(d, out=d)
-            np.greater(d, jump_px, out=out)
+
+    def part(r0: int, r1: int) -> None:
+        for y, y1 in row_bands(r1 - r0, w):
+            y, y1 = y + r0, y1 + r0
+            for d, out in ((np.subtract(coc[y:y1, 1:], coc[y:y1, :-1]), jx[y:y1]),
+                           (np.subtract(coc[y + 1 : y1 + 1], coc[y : min(y1, h - 1)]), jy[y:y1])):
+                np.abs(d, out=d)
+                np.greater(d, jump_px, out=out)
+
+    in_row_parts(h, w, part)
     return jy, jx
 
 
@@ -175,12 +231,28 @@ def depth_edges(coc: np.ndarray, jump_px: float) -> np.ndarray:
 def edges_of_steps(steps: Steps) -> np.ndarray:
     """:func:`depth_edges` of the map whose :func:`map_steps` are ``steps``."""
     jy, jx = steps
-    e = np.zeros((jx.shape[0], jy.shape[1]), bool)  # (H, W): jx is H x (W - 1), jy (H - 1) x W
-    e[:-1] |= jy
-    e[1:] |= jy
-    e[:, :-1] |= jx
-    e[:, 1:] |= jx
+    h, w = jx.shape[0], jy.shape[1]
+    e = np.zeros((h, w), bool)  # (H, W): jx is H x (W - 1), jy (H - 1) x W
+
+    def part(a: int, b: int) -> None:  # the rows [a, b) of the map, the steps either side of them
+        e[a : min(b, h - 1)] |= jy[a : min(b, h - 1)]
+        e[max(a, 1) : b] |= jy[max(a, 1) - 1 : b - 1]
+        e[a:b, :-1] |= jx[a:b]
+        e[a:b, 1:] |= jx[a:b]
+
+    in_row_parts(h, w, part)
     return e
+
+
+def _largest_magnitude(image: np.ndarray) -> float:
+    """``max(image.max(), -image.min())`` of a non-empty image, its rows' parts on the CPU's cores."""
+    h, w = image.shape[:2]
+
+    def part(a: int, b: int) -> tuple[float, float] | None:
+        return (float(image[a:b].max()), float(image[a:b].min())) if b > a else None
+
+    found = [v for v in in_row_parts(h, w, part) if v is not None]
+    return max(max(v[0] for v in found), -min(v[1] for v in found))
 
 
 @dataclass(frozen=True, slots=True)
@@ -360,7 +432,7 @@ def edge_band(image: np.ndarray, signed_coc: np.ndarray, rule: MattingRule | Non
     if edges.mean() > max_isolated_share and isolated_share(s, float(jump_px)) > max_isolated_share:
         return None  # noise in the map, not edges
     # max |v| as max(max v, -min v): the same value, without a frame-sized |image|
-    scale = max(float(image.max()), -float(image.min())) or 1.0
+    scale = _largest_magnitude(image) or 1.0
     ramp = ramp_of_steps(s, steps, int(max_ramp_px)) if max_ramp_px > 0 else 0  # capped at 0: not measured
     del steps
     check()
@@ -372,8 +444,16 @@ def edge_band(image: np.ndarray, signed_coc: np.ndarray, rule: MattingRule | Non
     y0, y1 = max(0, int(ey.min()) - pad), min(h, int(ey.max()) + pad + 1)
     x0, x1 = max(0, int(ex.min()) - pad), min(w, int(ex.max()) + pad + 1)
     band = dilate(edges[y0:y1, x0:x1], b)
-    by, bx = (v.astype(np.int32) for v in np.nonzero(band))
-    # every threshold is relative: the result does not depend on the exposure (the box only: nothing reads more)
-    box_img = image[y0:y1, x0:x1] / np.float32(scale)
+    # the band's pixels, row-major, and the box of the image divided by its scale (every threshold is relative: the
+    # result does not depend on the exposure; the box only: nothing reads more), its rows' parts on the CPU's cores
+    box_img = np.empty((y1 - y0, x1 - x0, *image.shape[2:]), (image[:0, :0] / np.float32(scale)).dtype)
+
+    def part(a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
+        np.divide(image[y0 + a : y0 + b, x0:x1], np.float32(scale), out=box_img[a:b])
+        py, px = np.nonzero(band[a:b])
+        return (py + a).astype(np.int32), px.astype(np.int32)
+
+    found = in_row_parts(y1 - y0, x1 - x0, part)
+    by, bx = (np.concatenate([f[k] for f in found]) for k in (0, 1))
     check()
     return EdgeBand((h, w), (y0, y1, x0, x1), by, bx, ramp, scale, box_img, s[y0:y1, x0:x1], band, radius)

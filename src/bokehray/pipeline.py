@@ -316,7 +316,7 @@ def _context(inputs: Handover, blur: BlurParams, aperture: Aperture, layers: Lay
         work[..., :3] = boost_highlights(work[..., :3], highlight_boost)  # colour only, never alpha
     s = blur.signed_coc(d)
     raw_max = max(float(s.max()), -float(s.min())) if s.size else 0.0
-    rgb, capped = np.ascontiguousarray(work[..., :3]), scene.cap_coc(s)
+    rgb, capped = np.ascontiguousarray(work[..., :3]), scene.cap_coc(s, raw_max)
     disposable = not keep_pixels and img.shape[2] != 4
     clock.lap("checks")
     capped, soft = _soft_scene(rgb, capped, layers, device, finite_checked=True, clock=clock, progress=progress,

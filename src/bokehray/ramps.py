@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import bokehray_kernels.ramps as bk_ramps
 import numpy as np
 
-from .edge_estimate import in_parts
+from .edge_estimate import in_parts, in_row_parts
 
 __all__ = ["RampRule", "snap_ramps"]
 
@@ -83,7 +83,11 @@ def snap_ramps(image: np.ndarray, signed_coc: np.ndarray, rule: RampRule | None 
 
     in_parts(h * w, gradient, threads=threads, cpu=dev.is_cpu)
     g = grad.numpy()
-    cand = np.flatnonzero(g > np.float32(rule.grad_min))
+
+    def candidates(a: int, b: int) -> np.ndarray:  # the rows [a, b)'s pixels steeper than a plateau, row-major
+        return np.flatnonzero(g[a:b] > np.float32(rule.grad_min)) + a * w
+
+    cand = np.concatenate(in_row_parts(h, w, candidates, threads=threads))
     if cand.size == 0:
         return signed_coc, 0
     cy, cx = np.divmod(cand, w)

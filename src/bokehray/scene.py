@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import math
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
@@ -31,14 +32,14 @@ import numpy as np
 import warp as wp
 
 from . import _memory
-from .edge_estimate import dilate
+from .edge_estimate import dilate, in_row_parts, on_threads, row_parts
 from .options import LayerOptions
 
 __all__ = [
     "FILL_MIN_REACH_PX", "LayerRecord", "LayerSources", "LayeredScene", "NearParts", "SoftEdges", "build_layer_sources",
-    "build_scene", "cap_coc", "check_soft_edges", "copy_tiles", "fill_halo", "layer_edges", "pad_soft_edges",
-    "pyramid_levels", "row_span", "scatter_halo", "soft_radius", "soft_replicas", "split_scene", "tile_max",
-    "tile_reduce",
+    "build_scene", "cap_coc", "check_soft_edges", "copy_tiles", "copy_tiles_of", "fill_halo", "layer_edges", "pad_soft_edges",
+    "pyramid_levels", "radius_tile_max", "rim_radii", "row_span", "scatter_halo", "soft_radius", "soft_replicas", "split_scene", "tile_max",
+    "tile_reduce", "tile_reduce_in_parts",
 ]  # fmt: skip
 
 def row_span(device, width: int) -> tuple[int, int]:
@@ -183,6 +184,19 @@ def soft_radius(signed_coc: np.ndarray, soft: SoftEdges | None) -> np.ndarray:
     return r
 
 
+def rim_radii(signed_coc: np.ndarray, soft: SoftEdges | None) -> tuple[np.ndarray, ...]:
+    """The frame's first and last row and first and last column of :func:`soft_radius` (top, bottom, left,
+    right), from the rims alone."""
+    h, w = signed_coc.shape
+    rims = tuple(np.abs(v) for v in (signed_coc[0, :], signed_coc[-1, :], signed_coc[:, 0], signed_coc[:, -1]))
+    if soft is not None and len(soft):
+        y, x = np.divmod(soft.index, w)
+        r = np.maximum(np.abs(soft.near_coc), np.abs(soft.far_coc))
+        for rim, on, at in zip(rims, (y == 0, y == h - 1, x == 0, x == w - 1), (x, x, y, y)):
+            rim[at[on]] = r[on]
+    return rims
+
+
 def check_soft_edges(soft: SoftEdges, shape: tuple[int, int]) -> None:
     """Refuse split pixels that are not what :class:`SoftEdges` promises (one clear line)."""
     from .errors import InputError
@@ -226,8 +240,8 @@ def within_range(alpha: np.ndarray, fg: np.ndarray, bg: np.ndarray, photo: np.nd
 
 
 def split_scene(image: np.ndarray, signed_coc: np.ndarray, soft: SoftEdges | None, active: np.ndarray,
-                options: LayerOptions, level_radius_px: float | None = None, *, overwrite: bool = False
-                ) -> tuple[np.ndarray, np.ndarray, LayeredScene]:
+                options: LayerOptions, level_radius_px: float | None = None, *, overwrite: bool = False,
+                photo_range: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray, LayeredScene]:
     """The layered scene with the mixed pixels of ``soft`` split: (colour, signed CoC, scene) to build sources on.
 
     A split pixel's far part replaces it (colour B, signed CoC ``far_coc``: it is a pixel of the far part's
@@ -241,7 +255,8 @@ def split_scene(image: np.ndarray, signed_coc: np.ndarray, soft: SoftEdges | Non
     ``overwrite=True``: ``image`` and ``signed_coc`` are the caller's to change (copies it made, such as a padded
     frame, that it reads no more as they were): the split pixels' far colour and CoC are written into them
     (when float32, C-contiguous and writeable; ``image`` of three channels) instead of into copies (226 MB at
-    12 MP), and they are returned. The same values either way.
+    12 MP), and they are returned. The same values either way. ``photo_range``: the image's per-channel smallest
+    and largest value (float32, of its first three channels) when the caller has them (None: found here).
     """
     if soft is None or len(soft) == 0:
         return image, signed_coc, build_scene(signed_coc, active, options, level_radius_px)
@@ -272,8 +287,8 @@ def split_scene(image: np.ndarray, signed_coc: np.ndarray, soft: SoftEdges | Non
     a = soft.alpha[keep_i].astype(np.float32)
     img = image if overwrite and _writable(image, np.float32, 3) and image.shape[2] == 3 else \
         np.array(image[..., :3], np.float32)
-    fg, bg = within_range(a, soft.foreground[keep_i], soft.background[keep_i], img.reshape(-1, 3)[idx],
-                           img.min(axis=0).min(axis=0), img.max(axis=0).max(axis=0))  # per axis: far faster than axis=(0, 1)
+    lo_c, hi_c = photo_range or (img.min(axis=0).min(axis=0), img.max(axis=0).max(axis=0))  # per axis: far faster than axis=(0, 1)
+    fg, bg = within_range(a, soft.foreground[keep_i], soft.background[keep_i], img.reshape(-1, 3)[idx], lo_c, hi_c)
     value = np.concatenate([fg * a[:, None], a[:, None]], axis=1).astype(np.float32)
     parts = NearParts((idx // w).astype(np.int32), (idx % w).astype(np.int32), value, near[split],
                       near_id[split].astype(np.int32))
@@ -289,7 +304,7 @@ def _writable(a: np.ndarray, dtype: type, ndim: int) -> bool:
     return a.dtype == dtype and a.ndim == ndim and a.flags.c_contiguous and a.flags.writeable
 
 
-def cap_coc(signed_coc: np.ndarray) -> np.ndarray:
+def cap_coc(signed_coc: np.ndarray, largest: float | None = None) -> np.ndarray:
     """Compress CoC radii beyond twice the image diagonal (order kept): their light covers the frame uniformly.
 
     Every aperture (a triangle at worst) contains the disc of half its circumradius, so a
@@ -300,11 +315,16 @@ def cap_coc(signed_coc: np.ndarray) -> np.ndarray:
     unblurred input; the ray tracer's march would take O(K) steps per ray. Beyond the cap
     ``c`` a radius ``r`` becomes ``c + log1p(r - c)`` (still ordered, so layers keep their
     depth order; not idempotent, so the entry points apply it once). Renders whose CoC stays
-    within the cap are unchanged.
+    within the cap are unchanged. ``largest``: ``max(signed_coc.max(), -signed_coc.min())`` when the caller has it
+    (None: found here).
     """
     h, w = signed_coc.shape
     cap = np.float32(2.0 * math.hypot(h, w) + 2.0)
-    if signed_coc.size == 0 or max(float(signed_coc.max()), -float(signed_coc.min())) <= cap:
+    if signed_coc.size == 0:
+        return signed_coc
+    if largest is None:
+        largest = max(float(signed_coc.max()), -float(signed_coc.min()))
+    if largest <= cap:
         return signed_coc  # the normal case: no copy
     r = np.abs(signed_coc)
     big = r > cap
@@ -337,6 +357,20 @@ def tile_reduce(values: np.ndarray, tile: int, fill: object, op: np.ufunc) -> np
     return op.reduce(rows.reshape(th, tw, tile), axis=2)
 
 
+def tile_reduce_in_parts(values: np.ndarray, tile: int, fill: object, op: np.ufunc) -> np.ndarray:
+    """:func:`tile_reduce`, whole tile rows a part, the parts on the CPU's cores (``edge_estimate.in_row_parts``):
+    the same values."""
+    h, w = values.shape
+    out = np.empty((-(-h // tile), -(-w // tile)), values.dtype)
+
+    def part(a: int, b: int) -> None:
+        if b > a:
+            out[a // tile : -(-b // tile)] = tile_reduce(values[a:b], tile, fill, op)
+
+    in_row_parts(h, w, part, align=tile)
+    return out
+
+
 def grid_to_pixels(grid: np.ndarray, tile: int, shape: tuple[int, int]) -> np.ndarray:
     """Expand a per-tile grid to pixels (cropped to ``shape``)."""
     return np.repeat(np.repeat(grid, tile, 0), tile, 1)[: shape[0], : shape[1]]
@@ -348,7 +382,34 @@ def copy_tiles(radius: np.ndarray, tile: int) -> np.ndarray:
     A tile is copied when no pixel whose CoC reaches into it has a radius of
     half a pixel or more (its own pixels included).
     """
-    tmax = tile_max(radius, tile)
+    return copy_tiles_of(tile_max(radius, tile), tile)
+
+
+def radius_tile_max(signed_coc: np.ndarray, soft: SoftEdges | None, tile: int) -> np.ndarray:
+    """``tile_max(soft_radius(signed_coc, soft), tile)``, a band of whole tile rows at a time, the rows' parts on
+    the CPU's cores (``edge_estimate.in_row_parts``): no frame-sized radius map. The same values."""
+    h, w = signed_coc.shape
+    out = np.empty((-(-h // tile), -(-w // tile)), np.abs(signed_coc[:0, :0]).dtype)
+    index, radius = None, None
+    if soft is not None and len(soft):
+        index, radius = soft.index, np.maximum(np.abs(soft.near_coc), np.abs(soft.far_coc))
+    rows = max(1, _memory.BAND_PX // max(1, w) // tile) * tile
+
+    def part(r0: int, r1: int) -> None:
+        for y0 in range(r0, r1, rows):
+            y1 = min(r1, y0 + rows)
+            r = np.abs(signed_coc[y0:y1])
+            if index is not None:  # the split pixels of these rows (their indices are sorted)
+                a, b = np.searchsorted(index, (y0 * w, y1 * w))
+                r.reshape(-1)[index[a:b] - y0 * w] = radius[a:b]
+            out[y0 // tile : -(-y1 // tile)] = tile_max(r, tile)
+
+    in_row_parts(h, w, part, align=tile)
+    return out
+
+
+def copy_tiles_of(tmax: np.ndarray, tile: int) -> np.ndarray:
+    """:func:`copy_tiles` of the radius map whose :func:`tile_max` is ``tmax``."""
     blurred = tmax >= 0.5
     needed = np.zeros_like(blurred)
     if blurred.any():
@@ -374,18 +435,25 @@ def layer_edges(signed_coc: np.ndarray, options: LayerOptions) -> np.ndarray:
     """
     signed_coc = np.asarray(signed_coc, np.float32).ravel()
     lo, hi = float(signed_coc.min()), float(signed_coc.max())
-    return _layer_edges_of(lambda: (signed_coc,), lo, hi, options)
+    return _layer_edges_of([lambda: (signed_coc,)], lo, hi, options)
 
 
-def _layer_edges_of(parts: Callable[[], Iterable[np.ndarray]], lo: float, hi: float,
-                    options: LayerOptions) -> np.ndarray:
-    """:func:`layer_edges` of the float32 values ``parts()`` yields (in pieces; each call yields them again),
-    whose smallest and largest are ``lo`` and ``hi``: the values need not be gathered into one array."""
+Groups = list[Callable[[], Iterable[np.ndarray]]]
+"""Values in groups of pieces: each group a callable yielding its float32 pieces (again at each call); the groups
+are read on the CPU's cores, one a thread (:func:`_active_values`)."""
+
+
+def _layer_edges_of(groups: Groups, lo: float, hi: float, options: LayerOptions) -> np.ndarray:
+    """:func:`layer_edges` of the float32 values the ``groups`` yield (:data:`Groups`), whose smallest and largest
+    are ``lo`` and ``hi``: the values need not be gathered into one array."""
     if hi - lo < options.min_layer_px:
         return np.array([lo - 0.5, hi + 0.5])
     bin_px = _HISTOGRAM_BIN_PX
     n_bins = int(math.ceil((hi - lo) / bin_px)) + 1
-    hist = _histogram(parts(), lo, bin_px, n_bins)
+    hists = on_threads([functools.partial(lambda g: _histogram(g(), lo, bin_px, n_bins), g) for g in groups])
+    hist = np.zeros(max(h.size for h in hists), np.int64)  # a group's may be longer (float32 rounding of the top)
+    for h in hists:
+        hist[: h.size] += h
     empty = hist == 0
     # runs of empty bins: candidate cuts at their centres, ranked by width
     change = np.flatnonzero(np.diff(np.concatenate([[0], empty.astype(np.int8), [0]])))
@@ -431,25 +499,34 @@ def _histogram(parts: Iterable[np.ndarray], lo: float, bin_px: float, n_bins: in
 
 
 def _active_values(s: np.ndarray, active: np.ndarray, extra: np.ndarray | None = None
-                   ) -> tuple[Callable[[], Iterator[np.ndarray]], float, float, float, float]:
+                   ) -> tuple[Groups, float, float, float, float]:
     """The values ``np.concatenate([s[active], extra])`` in pieces, without gathering them (two frame-sized
-    copies at 12 MP): ``(parts, lo, hi, lo32, hi32)``. ``parts()`` yields them as float32, a band of rows of
-    ``s[active]`` at a time, then ``extra``; ``lo`` and ``hi`` are the smallest and largest value as the
-    concatenation holds them, ``lo32`` and ``hi32`` as float32 holds them (:func:`layer_edges` casts to
-    float32; rounding is monotonic, so the float32 extremes are the extremes rounded)."""
+    copies at 12 MP): ``(groups, lo, hi, lo32, hi32)``. The :data:`Groups` yield them as float32, the rows' parts
+    (:func:`~bokehray.edge_estimate.row_parts`) one a group, a band of rows of ``s[active]`` at a time, then
+    ``extra`` (in the last group); ``lo`` and ``hi`` are the smallest and largest value as the concatenation holds
+    them, ``lo32`` and ``hi32`` as float32 holds them (:func:`layer_edges` casts to float32; rounding is monotonic,
+    so the float32 extremes are the extremes rounded). The extremes are found on the CPU's cores."""
     extra = np.zeros(0, np.float32) if extra is None else extra
+    h, w = s.shape
+    cuts = row_parts(h, w)
 
-    def native() -> Iterator[np.ndarray]:
-        for y0, y1 in _memory.row_bands(*s.shape):
-            yield s[y0:y1][active[y0:y1]]
-        yield extra
+    def native(r0: int, r1: int, last: bool) -> Iterator[np.ndarray]:
+        for y0, y1 in _memory.row_bands(r1 - r0, w):
+            yield s[r0 + y0 : r0 + y1][active[r0 + y0 : r0 + y1]]
+        if last:
+            yield extra
 
-    def parts() -> Iterator[np.ndarray]:
-        return (np.asarray(v, np.float32) for v in native())
+    def group(r0: int, r1: int, last: bool) -> Callable[[], Iterator[np.ndarray]]:
+        return lambda: (np.asarray(v, np.float32) for v in native(r0, r1, last))
 
-    lows, highs = zip(*((float(v.min()), float(v.max())) for v in native() if v.size))  # empty: as min() of none
+    def extremes(r0: int, r1: int, last: bool) -> list[tuple[float, float]]:
+        return [(float(v.min()), float(v.max())) for v in native(r0, r1, last) if v.size]
+
+    parts = [(r0, r1, k == len(cuts) - 1) for k, (r0, r1) in enumerate(cuts)]
+    found = [e for es in on_threads([functools.partial(extremes, *p) for p in parts]) for e in es]
+    lows, highs = zip(*found)  # empty: as min() of none
     lo, hi = min(lows), max(highs)
-    return parts, lo, hi, float(np.float32(lo)), float(np.float32(hi))
+    return [group(*p) for p in parts], lo, hi, float(np.float32(lo)), float(np.float32(hi))
 
 
 def pyramid_levels(max_radius: float, level_radius_px: float) -> int:
@@ -602,9 +679,9 @@ def build_scene(signed_coc: np.ndarray, active: np.ndarray, options: LayerOption
     # Per-layer extents on the tile grid (host side, on small arrays): a layer's
     # bounding box is the union of the tiles holding any of its pixels.
     t = options.tile_px
-    tile_lo = np.minimum(tile_reduce(sid.view(np.uint32), t, np.uint32(0xFFFFFFFF), np.minimum),
+    tile_lo = np.minimum(tile_reduce_in_parts(sid.view(np.uint32), t, np.uint32(0xFFFFFFFF), np.minimum),
                          n_slices)  # -1 (no layer, also the padding) as the largest
-    tile_hi = tile_reduce(sid, t, -1, np.maximum)
+    tile_hi = tile_reduce_in_parts(sid, t, -1, np.maximum)
     near_tiles = None
     if near is not None and len(near):
         counts = counts + np.bincount(near.layer, minlength=n_slices)
@@ -642,17 +719,22 @@ def _layer_ids(signed_coc: np.ndarray, active: np.ndarray, e32: np.ndarray, n_sl
     over the map a band of rows at a time: the layer of ``s`` is ``searchsorted(e32, s, "right") - 1`` clipped to
     ``[0, n_slices - 1]``. Each band's search result (int64: the id plus one, 0 for an inactive pixel) is counted
     as it is (``bincount`` takes int64 without a conversion) and cast into the ids; no frame-sized int64 or mask
-    temporary."""
+    temporary. The rows' parts run on the CPU's cores (``edge_estimate.in_row_parts``)."""
     h, w = signed_coc.shape
     sid = np.empty((h, w), np.int32)
-    counts = np.zeros(n_slices + 1, np.int64)
-    for y0, y1 in _memory.row_bands(h, w):
-        k = np.searchsorted(e32, signed_coc[y0:y1], side="right")
-        np.clip(k, 1, n_slices, out=k)
-        np.multiply(k, active[y0:y1], out=k)
-        counts += np.bincount(k.reshape(-1), minlength=n_slices + 1)
-        np.subtract(k, 1, out=sid[y0:y1], casting="unsafe")
-    return sid, counts[1:]
+
+    def part(r0: int, r1: int) -> np.ndarray:  # the rows [r0, r1): their ids, and their counts
+        counts = np.zeros(n_slices + 1, np.int64)
+        for y0, y1 in _memory.row_bands(r1 - r0, w):
+            y0, y1 = y0 + r0, y1 + r0
+            k = np.searchsorted(e32, signed_coc[y0:y1], side="right")
+            np.clip(k, 1, n_slices, out=k)
+            np.multiply(k, active[y0:y1], out=k)
+            counts += np.bincount(k.reshape(-1), minlength=n_slices + 1)
+            np.subtract(k, 1, out=sid[y0:y1], casting="unsafe")
+        return counts
+
+    return sid, sum(in_row_parts(h, w, part))[1:]
 
 
 def float32_edges(edges: np.ndarray) -> np.ndarray:

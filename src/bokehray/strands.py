@@ -146,7 +146,7 @@ def bridge_strands(image: np.ndarray, signed_coc: np.ndarray, rule: StrandRule |
             wp.launch(bk_strands.strand_pixels_kernel, dim=(b - a, TILE_PX * TILE_PX),
                       inputs=[coc, params, ty0[a:b], tx0[a:b], TILE_PX], outputs=[strand, slot[a:b]], device=dev)
 
-    in_parts(len(tiles), launch_tiles, threads=threads, cpu=dev.is_cpu, check=check)
+    in_parts(len(tiles), launch_tiles, threads=threads, cpu=dev.is_cpu, check=check, item_px=TILE_PX * TILE_PX)
     i, j = np.divmod(np.flatnonzero(slot.numpy()), TILE_PX * TILE_PX)  # among the tiles' pixels, not the frame's
     if i.size == 0:
         return signed_coc, 0

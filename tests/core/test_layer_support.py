@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bokehray import Aperture, LayerOptions, MemoryOptions
+from bokehray import Aperture, LayerOptions, MemoryOptions, edge_estimate
 from bokehray import _memory as memory
 from bokehray.edge_estimate import dilate
 from bokehray.levels import preview as pv
@@ -150,7 +150,7 @@ def test_float32_edges_assign_every_pixel_the_float64_layer(edges, seed):
 def test_tile_reduce_equals_padding_the_map(h, w, tile, dtype, seed):
     """Rows of each cell then columns: the values of the padded (th, tile, tw, tile) reduction, partial cells
     (padded with ``fill``), NaN and the uint32 view of -1 included."""
-    from bokehray.scene import tile_max, tile_reduce
+    from bokehray.scene import tile_max, tile_reduce, tile_reduce_in_parts
 
     rng = np.random.default_rng(seed)
     v = rng.integers(-3, 5, (h, w)).astype(dtype) if dtype != "bool" else rng.random((h, w)) < 0.1
@@ -165,7 +165,19 @@ def test_tile_reduce_equals_padding_the_map(h, w, tile, dtype, seed):
         got = tile_reduce(v, tile, fill, op)
         assert got.dtype == want.dtype
         np.testing.assert_array_equal(got, want)
+        with pytest.MonkeyPatch.context() as m:  # whole tile rows a part, on up to four threads
+            _in_parts(m, rng)
+            in_parts = tile_reduce_in_parts(v, tile, fill, op)
+        assert in_parts.dtype == want.dtype
+        np.testing.assert_array_equal(in_parts, want)
     np.testing.assert_array_equal(tile_max(v, tile), tile_reduce(v, tile, 0, np.maximum))
+
+
+def _in_parts(m: pytest.MonkeyPatch, rng: np.random.Generator) -> None:
+    """Small frames cut into 1 to 4 row parts on as many threads (``edge_estimate.row_parts``)."""
+    m.setattr(edge_estimate, "PIXELS_PER_THREAD", int(rng.integers(1, 300)))
+    cores = int(rng.integers(1, 5))
+    m.setattr(edge_estimate.os, "cpu_count", lambda: cores)
 
 
 @settings(max_examples=40, deadline=None)
@@ -186,6 +198,7 @@ def test_layer_ids_and_histogram_in_bands_equal_the_whole_map(h, w, n_edges, ban
     n_bins = int(np.ceil((float(s.max()) - lo) / 0.25)) + 1
     with pytest.MonkeyPatch.context() as m:
         m.setattr(memory, "BAND_PX", band_px)
+        _in_parts(m, rng)
         ids, counts = sc._layer_ids(s, active, e32, n_edges)
         hist = sc._histogram([values[:7], values[7:]], lo, 0.25, n_bins)
     assert ids.dtype == np.int32
@@ -211,10 +224,43 @@ def test_layer_edges_of_the_active_values_in_bands_equal_the_gathered_ones(h, w,
     opts = LayerOptions(max_layers=int(rng.integers(1, 12)), max_layer_px=float(rng.uniform(0.5, 10)))
     with pytest.MonkeyPatch.context() as m:
         m.setattr(memory, "BAND_PX", band_px)
+        _in_parts(m, rng)
         parts, lo, hi, lo32, hi32 = sc._active_values(s, active, extra)
         got = sc._layer_edges_of(parts, lo32, hi32, opts)
-        assert np.array_equal(np.concatenate(list(parts())), values.astype(np.float32))
+        assert np.array_equal(np.concatenate([v for group in parts for v in group()]), values.astype(np.float32))
     assert (lo, hi) == (float(values.min()), float(values.max()))
     v32 = values.astype(np.float32)
     assert (lo32, hi32) == (float(v32.min()), float(v32.max()))
     np.testing.assert_array_equal(got, sc.layer_edges(values, opts))
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(1, 70), st.integers(1, 50), st.sampled_from([1, 2, 4, 8, 16]), st.integers(1, 400),
+       st.integers(0, 40), st.integers(0, 2**31 - 1))
+def test_radius_tile_max_and_rims_equal_the_soft_radius_map(h, w, tile, band_px, n_split, seed):
+    """The copied tiles and the clamped border read the radius a pixel's light can have (``soft_radius``) without
+    the frame-sized map: its tile maxima in bands of tile rows on row parts, its rims from the rims."""
+    import bokehray.scene as sc
+
+    rng = np.random.default_rng(seed)
+    s = (rng.standard_normal((h, w)) * rng.uniform(0.1, 20)).astype(np.float32)
+    index = np.unique(rng.integers(0, h * w, n_split)).astype(np.int64)
+    n = index.size
+    f = rng.standard_normal(n).astype(np.float32) * 30
+    soft = sc.SoftEdges(index, np.full(n, 0.5, np.float32), np.zeros((n, 3), np.float32),
+                        np.zeros((n, 3), np.float32), f, f - 3) if n else None
+    r = sc.soft_radius(s, soft)
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(memory, "BAND_PX", band_px)
+        _in_parts(m, rng)
+        got = sc.radius_tile_max(s, soft, tile)
+        rims = sc.rim_radii(s, soft)
+    assert got.dtype == r.dtype
+    np.testing.assert_array_equal(got, sc.tile_max(r, tile))
+    np.testing.assert_array_equal(sc.copy_tiles_of(got, tile), sc.copy_tiles(r, tile))
+    for rim, want in zip(rims, (r[0], r[-1], r[:, 0], r[:, -1]), strict=True):
+        np.testing.assert_array_equal(rim, want)
+    radii = [float(np.abs(v).max()) for v in (s[0], s[-1], s[:, 0], s[:, -1])]  # the pads as the rims define them
+    want = (0,) * 4 if max(radii) > 0.5 * max(h, w) else tuple(
+        -(-(int(np.ceil(v)) + 1) // tile) * tile if v >= 0.5 else 0 for v in radii)
+    assert pv.border_pad(s, tile) == want

@@ -1,6 +1,8 @@
 """Soft edges at depth edges (``bokehray.matting.split_mixed_pixels``): the contract, accuracy on scenes whose
 true layers are known, and invariants on arbitrary input."""
 
+import itertools
+
 import numpy as np
 import pytest
 from hypothesis import assume, given, settings
@@ -245,12 +247,16 @@ def test_ramp_width_matches_the_reference():
     assert ramp_width(np.zeros((1, 1), np.float32), 1.0, 6) == 0
 
 
+@pytest.mark.parametrize("parts", [1, 3])
 @pytest.mark.parametrize("shape", [(1, 1), (1, 6), (6, 1), (2, 2), (19, 23)])
-def test_shared_steps_give_the_depth_edges_and_ramp_of_the_map(shape):
+def test_shared_steps_give_the_depth_edges_and_ramp_of_the_map(shape, parts, monkeypatch):
     """The edge estimate computes the steps once (map_steps) for both: the edges of a plain loop over the pairs,
-    and the reference's ramp width."""
+    and the reference's ramp width; the same with the rows in ``parts`` parts on as many threads."""
+    from bokehray import edge_estimate
     from bokehray.edge_estimate import edges_of_steps, map_steps, ramp_of_steps
 
+    monkeypatch.setattr(edge_estimate, "PIXELS_PER_THREAD", 1 if parts > 1 else 1 << 30)
+    monkeypatch.setattr(edge_estimate.os, "cpu_count", lambda: parts)
     rng = np.random.default_rng(shape[0] * 31 + shape[1])
     coc = ndimage.gaussian_filter(rng.choice([-8.0, 0.0, 9.0], shape), 0.7).astype(np.float32)
     want = np.zeros(shape, bool)
@@ -263,6 +269,22 @@ def test_shared_steps_give_the_depth_edges_and_ramp_of_the_map(shape):
     np.testing.assert_array_equal(edges_of_steps(steps), want)
     np.testing.assert_array_equal(depth_edges(coc, 1.0), want)
     assert ramp_of_steps(coc, steps, 6) == ramp_width(coc, 1.0, 6) == ramp_width_ref(coc, 1.0, 6)
+
+
+@given(st.integers(0, 70), st.integers(0, 9), st.integers(1, 20), st.integers(1, 5), st.integers(1, 200))
+def test_row_parts_tile_the_rows(h, w, align, threads, per_thread):
+    """Consecutive parts from row 0 to the last, every inner cut on the alignment, at most one a thread."""
+    from unittest import mock
+
+    from bokehray import edge_estimate
+
+    with mock.patch.object(edge_estimate, "PIXELS_PER_THREAD", per_thread):
+        parts = edge_estimate.row_parts(h, w, align=align, threads=threads)
+        got = edge_estimate.in_row_parts(h, w, lambda a, b: (a, b), align=align, threads=threads)
+    assert got == parts
+    assert 1 <= len(parts) <= threads and parts[0][0] == 0 and parts[-1][1] == h
+    assert all(a < b for a, b in parts) or parts == [(0, 0)]
+    assert all(p[1] == q[0] and p[1] % align == 0 for p, q in itertools.pairwise(parts))
 
 
 @pytest.mark.parametrize("soft", [False, True])
@@ -444,3 +466,24 @@ def test_a_strand_across_a_light_has_its_own_colour(width, slope, colour):
     k = np.searchsorted(soft.index, over).clip(0, len(soft) - 1)
     assert over.size >= 3 and (soft.index[k] == over).all()
     assert np.abs(soft.foreground[k] - f).max() < 0.06  # the coverage of a linear ramp is not exactly an area
+
+
+@pytest.mark.parametrize("kind", ["disc", "strands"])
+def test_the_edge_band_in_row_parts_is_the_band_in_one(kind, monkeypatch):
+    """The band's pixels, the scaled box and the scale found on row parts (three threads) are those of one pass."""
+    from bokehray import edge_estimate
+    from bokehray.edge_estimate import edge_band
+
+    photo, coc, _, _, _ = two_plane(n=40, seed=7, kind=kind)
+    img, s = np.ascontiguousarray(photo, np.float32), np.ascontiguousarray(coc, np.float32)
+    one = edge_band(img, s, MattingRule())
+    monkeypatch.setattr(edge_estimate, "PIXELS_PER_THREAD", 1)
+    monkeypatch.setattr(edge_estimate.os, "cpu_count", lambda: 3)
+    assert edge_estimate.row_parts(*s.shape) != [(0, s.shape[0])]
+    three = edge_band(img, s, MattingRule())
+    assert one is not None and one.size > 0 and (one.box, one.scale, one.radius) == (three.box, three.scale,
+                                                                                      three.radius)
+    for name in ("by", "bx", "image", "coc", "band"):
+        a, b = getattr(one, name), getattr(three, name)
+        assert a.dtype == b.dtype
+        np.testing.assert_array_equal(a, b)

@@ -165,16 +165,20 @@ def test_a_render_stops_in_its_scene_step_when_its_callback_says_so():
 
 
 @settings(max_examples=20, deadline=None)
-@given(n=st.integers(0, 700_000), threads=st.integers(1, 3))
-def test_in_parts_with_checks_covers_the_items_in_order(n, threads):
+@given(n=st.integers(0, 700_000), threads=st.integers(1, 3), item_px=st.sampled_from([1, 256]))
+def test_in_parts_with_checks_covers_the_items_in_order(n, threads, item_px):
+    """Parts of at least PIXELS_PER_THREAD pixels a thread (an item ``item_px`` pixels: the strands' tiles), at most
+    CHECK_ITEMS items a part, in order, one check a round."""
     from bokehray import edge_estimate as ee
 
     checks = []
-    spans = ee.in_parts(n, lambda a, b: (a, b), threads=threads, check=lambda: checks.append(1))
+    spans = ee.in_parts(n, lambda a, b: (a, b), threads=threads, check=lambda: checks.append(1), item_px=item_px)
     assert spans[0][0] == 0 and spans[-1][1] == n
     assert all(spans[i][1] == spans[i + 1][0] for i in range(len(spans) - 1))
     assert all(b - a <= ee.CHECK_ITEMS for a, b in spans)
-    assert len(checks) == -(-len(spans) // min(threads, max(1, -(-n // ee.PIXELS_PER_THREAD))))
+    assert len(checks) == -(-len(spans) // min(threads, max(1, -(-n * item_px // ee.PIXELS_PER_THREAD))))
+    if n and item_px > 1 and threads > 1 and n * item_px >= 2 * ee.PIXELS_PER_THREAD:
+        assert len(spans) >= 2  # a few hundred tiles are worth both cores
 
 
 def test_the_split_in_chunks_is_the_split_whole(monkeypatch):

@@ -128,6 +128,9 @@ def test_a_split_pixels_sources_sum_to_the_photo_and_its_layers_hold_them(seed, 
     assert (img >= lo).all() and (img <= hi).all() and (near.value[:, :3] >= lo * near.value[:, 3:] - 1e-6).all()
     assert (near.value[:, :3] <= hi * near.value[:, 3:] + 1e-6).all()
     np.testing.assert_array_equal(s2.reshape(-1)[soft.index], soft.far_coc)
+    img_r, _, scene_r = sc.split_scene(image, s, soft, active, options, 8.0, photo_range=(lo, hi))  # as the preview
+    np.testing.assert_array_equal(img_r, img)
+    np.testing.assert_array_equal(scene_r.near.value, near.value)
     counts = np.bincount(scene.ids[scene.ids >= 0], minlength=scene.n_slots) + np.bincount(near.layer,
                                                                                             minlength=scene.n_slots)
     for lyr in scene.layers:

@@ -150,6 +150,8 @@ def test_coc_cap_leaves_normal_renders_alone_and_keeps_depth_order():
     capped = cap_coc(big)
     assert (np.diff(capped[0]) > 0).all() and np.abs(capped).max() < 2 * np.hypot(1, 6) + 2 + 12
     np.testing.assert_array_equal(capped[0, 2:4], big[0, 2:4])
+    np.testing.assert_array_equal(cap_coc(big, 1e5), capped)  # the render passes the largest radius it found
+    assert cap_coc(s, 60.0) is s
 
 
 def test_denormal_and_zero_radiance_stay_finite_and_non_negative():

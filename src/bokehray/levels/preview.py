@@ -20,6 +20,7 @@ Large renders go tile by tile through ``bokehray.tiling`` with exact halos (``bo
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import itertools
@@ -137,7 +138,7 @@ def _clamped_border(s: np.ndarray, soft: sc.SoftEdges | None, grid: int, clamp: 
     does not fit the budget. Raises ResourceError where the frame's own split pixels cannot be planned within it
     (before anything is padded or split)."""
     h0, w0 = s.shape
-    pads = border_pad(s if soft is None else sc.soft_radius(s, soft), grid) if clamp else (0, 0, 0, 0)
+    pads = _pads_of_rims(sc.rim_radii(s, soft), s.shape, grid) if clamp and s.size else (0, 0, 0, 0)
     n_own = 0 if soft is None else len(soft)
     budget = tiling.budget_bytes(memory)
     if any(pads):
@@ -319,9 +320,14 @@ def border_pad(signed_coc: np.ndarray, tile_px: int) -> tuple[int, int, int, int
     """
     if signed_coc.size == 0:
         return 0, 0, 0, 0
-    limit = 0.5 * max(signed_coc.shape)
-    rims = (signed_coc[0, :], signed_coc[-1, :], signed_coc[:, 0], signed_coc[:, -1])
-    radii = [float(np.abs(rim).max()) for rim in rims]
+    return _pads_of_rims(sc.rim_radii(signed_coc, None), signed_coc.shape, tile_px)
+
+
+def _pads_of_rims(rims: tuple[np.ndarray, ...], shape: tuple[int, int], tile_px: int) -> tuple[int, int, int, int]:
+    """:func:`border_pad` of the frame of ``shape`` whose rims' radii (top, bottom, left, right: ``scene.rim_radii``)
+    are ``rims``."""
+    limit = 0.5 * max(shape)
+    radii = [float(rim.max()) for rim in rims]
     if max(radii) > limit:
         return 0, 0, 0, 0
     return tuple(-(-(int(math.ceil(r)) + 1) // tile_px) * tile_px if r >= 0.5 else 0 for r in radii)
@@ -331,8 +337,7 @@ def _border_reach(signed_coc: np.ndarray, soft: sc.SoftEdges | None) -> float:
     """The largest CoC radius [px] on the frame's rim (a split pixel's parts included): 0 for an empty frame."""
     if signed_coc.size == 0:
         return 0.0
-    r = np.abs(signed_coc if soft is None else sc.soft_radius(signed_coc, soft))
-    return float(max(r[0].max(), r[-1].max(), r[:, 0].max(), r[:, -1].max()))
+    return max(float(rim.max()) for rim in sc.rim_radii(signed_coc, soft))
 
 
 def _area(box: tiling.Box) -> int:
@@ -379,16 +384,12 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
     # merged sources put a textured cell's light apart from its coverage, which only the coverage a clamped border
     # completes keeps out of the colours (an unclamped border's coverage is cut, and divided out: docs/renderer.md)
     merge = options.merge_sources and ((h, w) != (h0, w0) or _border_reach(s, soft) < 0.5)
-    if (h, w) != (h0, w0):
-        image = np.pad(image, ((pt, pb), (pl, pr), (0, 0)), mode="edge")
-        s = np.pad(s, ((pt, pb), (pl, pr)), mode="edge")
+    cores = 1 if wp.get_device(ctx.device).is_cuda else max(1, options.threads or os.cpu_count() or 1)
+    image, s, soft, copy, photo_range = _padded_frame(image, s, soft, (pt, pb, pl, pr), grid, cores)
     frame = (pt, pt + h0, pl, pl + w0)
-    if soft is not None and (h, w) != (h0, w0):  # the split pixels in the padded frame
-        soft = sc.pad_soft_edges(soft, (h0, w0), (pt, pb, pl, pr))
 
     check = (lambda: ctx.progress(0, 1)) if ctx.progress is not None else (lambda: None)  # a stop, before a layer
     check()
-    copy = sc.copy_tiles(sc.soft_radius(s, soft), grid)
     frame_tiles = copy[pt // grid : pt // grid + -(-h0 // grid), pl // grid : pl // grid + -(-w0 // grid)]
     stats.tiles_total, stats.tiles_copied = int(frame_tiles.size), int(frame_tiles.sum())  # the frame's tiles
     active = ~sc.grid_to_pixels(copy, grid, (h, w))
@@ -401,16 +402,16 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
     # padded, the image and CoC are this function's copies: the split pixels' far parts are written into them (the
     # tiled path reads ``photo`` on copied tiles only, where no pixel is split)
     image, s, scene = sc.split_scene(image, s, soft, active, ctx.layers, options.level_radius_px,
-                                     overwrite=(h, w) != (h0, w0))
+                                     overwrite=(h, w) != (h0, w0), photo_range=photo_range)
     n_split = 0 if soft is None else len(soft)
     del active, soft
     check()
     ctx.release_pixels()  # the scene holds what the layers read (a disposable context's pixels are freed here)
     bound_heap()  # the soft scene's and the plan's freed transients handed back before the layers
     stats.layers = len(scene.layers)
-    stats.sources_scattered = int((scene.ids >= 0).sum()) + len(scene.near)
+    stats.sources_scattered = sum(lyr.pixels for lyr in scene.layers)  # the layered pixels and the near parts
     stats.pyramid_levels = max(sc.pyramid_levels(lyr.max_radius, options.level_radius_px) for lyr in scene.layers)
-    threads = 1 if wp.get_device(ctx.device).is_cuda else max(1, options.threads or os.cpu_count() or 1)
+    threads = cores
 
     whole = (WHOLE_IMAGE_B + (0 if ctx.disposable else KEPT_CONTEXT_B)) * h * w + SOFT_B * n_split
     # a layer's arrays take pages where its light lies on the CPU (lazily zeroed), its whole box on a GPU
@@ -456,6 +457,35 @@ def render_preview(ctx: RenderContext) -> tuple[np.ndarray, PreviewStats]:
     stats.stage_seconds["layers"] = time.perf_counter() - t_plan
     stats.stage_seconds["total"] = time.perf_counter() - t_start
     return out, stats
+
+
+def _padded_frame(image: np.ndarray, s: np.ndarray, soft: sc.SoftEdges | None, pads: tuple[int, int, int, int],
+                  grid: int, threads: int):
+    """The frame with its clamped border ``pads`` (top, bottom, left, right: the image and the CoC edge-replicated,
+    the split pixels replicated; as given where there is none) and its tiles to copy (``scene.copy_tiles``): (image,
+    CoC, split pixels, copy grid, the image's per-channel range for the split or None without split pixels). With
+    more than one of ``threads``, the image is padded and its range found on another thread while the CoC is padded
+    and its tiles reduced (on the cores, ``scene.radius_tile_max``)."""
+    pt, pb, pl, pr = pads
+    h0, w0 = s.shape
+    padded = any(pads)
+
+    def photo() -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
+        out = np.pad(image, ((pt, pb), (pl, pr), (0, 0)), mode="edge") if padded else image
+        if soft is None:
+            return out, None
+        rgb = np.asarray(image[..., :3], np.float32)  # the split's colours (the padded border repeats the frame's)
+        return out, (rgb.min(axis=0).min(axis=0), rgb.max(axis=0).max(axis=0))  # per axis: far faster than (0, 1)
+
+    with ThreadPoolExecutor(max_workers=1) if threads > 1 else contextlib.nullcontext() as helper:
+        job = _soon(photo, helper)
+        if padded:
+            s = np.pad(s, ((pt, pb), (pl, pr)), mode="edge")
+            if soft is not None:  # the split pixels in the padded frame
+                soft = sc.pad_soft_edges(soft, (h0, w0), pads)
+        copy = sc.copy_tiles_of(sc.radius_tile_max(s, soft, grid), grid)
+        out, photo_range = job.result()
+    return out, s, soft, copy, photo_range
 
 
 def _tile_layers(scene: sc.LayeredScene, core: tiling.Box) -> tuple[tiling.Box, list[sc.LayerRecord]]:
@@ -672,57 +702,44 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
     keep = keep or (0, h, 0, w)
     arrays = sc.LayerSources.upload(image, s, ids, n_slots, device, near)
     ay0, ay1, ax0, ax1 = box = _acc_box(layers, keep, (h, w))
-    # pages taken at the first composite, when lazy
-    acc = lazy_zeros((ay1 - ay0, ax1 - ax0), wp.vec4, device, lazy_for(ay1 - ay0, ax1 - ax0))
     kept = [_kept(lyr, box, keep, device) for lyr in layers]
 
     # Layers render independently (Warp CPU launches release the GIL) on ``threads`` workers and are composited
-    # strictly back to front as they complete. A free worker takes the next layer to composite if it has not
-    # started, else the costliest one left (:func:`layer_cost`), so that a slow layer does not start last while the
-    # other workers idle. A finished layer waiting to be composited holds only its result (16 B/px); while as many
-    # results wait as there are workers, only the next layer to composite starts (:func:`_region_bytes` counts one
-    # working layer a thread and that many results).
-    done = 0
-    order = sorted(range(len(layers)), key=lambda k: -layer_cost(layers[k]) if scatter.threads > 1 else k)
+    # strictly back to front as they complete (:class:`_Starter` says which layer a free worker takes).
     pool = ThreadPoolExecutor(max_workers=scatter.threads)
     # the composite and the final division in bands of rows, one on this thread and one on each other core: the
     # layers still in work share the cores with them, and after the last one no core idles while they run
     bands = ThreadPoolExecutor(max_workers=scatter.threads - 1) if scatter.threads > 1 else None
     whole = _soon(functools.partial(_whole, arrays, box, device), bands)  # while the first layers render
+    # the accumulator too (zeroed at once below 2 MP; when lazy, its pages are taken at the first composite)
+    acc_job = _soon(functools.partial(lazy_zeros, (ay1 - ay0, ax1 - ax0), wp.vec4, device,
+                                      lazy_for(ay1 - ay0, ax1 - ax0)), bands)
+    starter = _Starter(lambda layer, k: render_layer(layer, arrays, scatter, k), layers, kept, pool,
+                       scatter.threads)
     try:
-        started: dict[int, Future] = {}  # started and not yet composited
-        head = 0  # the next layer to composite
-        while head < len(layers):
-            running = [f for f in started.values() if not f.done()]
-            waiting = len(started) - len(running)  # finished, waiting for the layers behind them
-            if len(running) < scatter.threads:
-                # the next to composite always; another only while fewer results than workers wait (each holds
-                # 16 B a box pixel: workers far ahead of a slow back layer would stack them up)
-                pick = head if head not in started else next(
-                    (k for k in order if k > head and k not in started and waiting < scatter.threads), None)
-                if pick is not None:
-                    started[pick] = pool.submit(render_layer, layers[pick], arrays, scatter, kept[pick])
-                    continue
-            fut = started.get(head)  # None: every worker busy with layers further front
+        while (head := starter.head) < len(layers):
+            starter.top_up()
+            fut = starter.get(head)  # None: every worker busy with layers further front
             if fut is None or not fut.done():
-                wait(running, return_when=FIRST_COMPLETED)
+                wait([fut] if fut is not None else starter.running(), return_when=FIRST_COMPLETED)
                 continue
             out = fut.result()
-            del started[head]
-            _composite(out, layers[head], kept[head], box, acc, whole.result(), device, bands, scatter.threads)
+            starter.composited(head)
+            _composite(out, layers[head], kept[head], box, acc_job.result(), whole.result(), device, bands,
+                       scatter.threads)
             del out
-            head += 1
-            done += 1
             if progress is not None:
-                progress(done, len(layers))
+                progress(head + 1, len(layers))
     except BaseException:
         # Ctrl-C, or a progress callback that abandons the render: return at once, not after the layers in
         # flight (their results are dropped; the command line then exits without waiting for them)
+        starter.stop()
         pool.shutdown(wait=False, cancel_futures=True)
         if bands is not None:
             bands.shutdown(wait=False)  # (its bands are waited for where they are started)
         raise
     pool.shutdown(wait=True)
+    acc = acc_job.result()
 
     ky0, ky1, kx0, kx1 = keep
     result = wp.empty((ky1 - ky0, kx1 - kx0), dtype=wp.vec3, device=device)
@@ -736,6 +753,64 @@ def _render_window(image: np.ndarray, s: np.ndarray, ids: np.ndarray, layers, n_
     if bands is not None:
         bands.shutdown(wait=True)
     return result.numpy(), arrays.filled_count()
+
+
+class _Starter:
+    """Which layers are in work on the pool's ``threads`` workers, and the next to composite (:attr:`head`): a free
+    worker takes the next layer to composite if it has not started, else the costliest one left
+    (:func:`layer_cost`), so that a slow layer does not start last while the other workers idle. A finished layer
+    waiting to be composited holds only its result (16 B/px); while as many results wait as there are workers, only
+    the next layer to composite starts (:func:`_region_bytes` counts one working layer a thread and that many
+    results). :meth:`top_up` runs on the compositing thread and on each worker as its layer finishes, so a worker
+    freed while the composite runs takes its next layer at once."""
+
+    def __init__(self, render, layers, kept, pool: ThreadPoolExecutor, threads: int) -> None:
+        self.render, self.layers, self.kept, self.pool, self.threads = render, layers, kept, pool, threads
+        self.order = sorted(range(len(layers)), key=lambda k: -layer_cost(layers[k]) if threads > 1 else k)
+        self.lock = threading.Lock()
+        self.started: dict[int, Future] = {}  # started and not yet composited
+        self.head = 0
+        self.stopped = False
+
+    def top_up(self, _finished: Future | None = None) -> None:
+        """Start layers while a worker is free and a layer may start (a future's done callback)."""
+        new = []
+        with self.lock:
+            while not self.stopped:
+                running = sum(not f.done() for f in self.started.values())
+                waiting = len(self.started) - running  # finished, waiting for the layers behind them
+                if running >= self.threads:
+                    break
+                # the next to composite always; another only while fewer results than workers wait (each holds
+                # 16 B a box pixel: workers far ahead of a slow back layer would stack them up)
+                pick = self.head if self.head not in self.started else next(
+                    (k for k in self.order if k > self.head and k not in self.started and waiting < self.threads),
+                    None)
+                if pick is None:
+                    break
+                self.started[pick] = fut = self.pool.submit(self.render, self.layers[pick], self.kept[pick])
+                new.append(fut)
+        for fut in new:  # outside the lock: a future already done calls back at once, on this thread
+            fut.add_done_callback(self.top_up)
+
+    def get(self, k: int) -> Future | None:
+        with self.lock:
+            return self.started.get(k)
+
+    def running(self) -> list[Future]:
+        with self.lock:
+            return [f for f in self.started.values() if not f.done()]
+
+    def composited(self, k: int) -> None:
+        """Layer ``k``, the head, leaves the workers' count: the next one is the head."""
+        with self.lock:
+            del self.started[k]
+            self.head = k + 1
+
+    def stop(self) -> None:
+        """Start nothing more (the render is abandoned)."""
+        with self.lock:
+            self.stopped = True
 
 
 BAND_MIN_ROWS = 64
