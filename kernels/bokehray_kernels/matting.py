@@ -159,7 +159,7 @@ def _cross_section(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float
 def _strand_colour(su: wp.vec3, sl: wp.vec3, n: wp.vec2, d: wp.vec3, lt: wp.vec3) -> wp.vec4:
     """The strand's colour from its mean unlit cross-section ``su`` (over ``d``: ``W (F - D)``) and lit one ``sl``
     (over ``lt``: ``W (F - L)``), ``n`` the counts: its width ``W = (su - sl) . (L - D) / |L - D|^2`` (the light
-    measures it), ``F = D + su / W``, and ``W`` as the fourth entry; 0 there without both kinds or a width in
+    measures it), ``F = D + su / W``, and 1 as the fourth entry; 0 there without both kinds or a width in
     (``XS_MIN_W``, ``XS_MAX_W``]."""
     if n[0] < 1.0 or n[1] < 1.0:
         return wp.vec4(0.0, 0.0, 0.0, 0.0)
@@ -173,7 +173,7 @@ def _strand_colour(su: wp.vec3, sl: wp.vec3, n: wp.vec2, d: wp.vec3, lt: wp.vec3
     if width <= XS_MIN_W or width > XS_MAX_W:
         return wp.vec4(0.0, 0.0, 0.0, 0.0)
     f = wp.max(dd + u / width, wp.vec3(0.0, 0.0, 0.0))
-    return wp.vec4(f[0], f[1], f[2], width)
+    return wp.vec4(f[0], f[1], f[2], 1.0)
 
 
 @wp.func
@@ -189,8 +189,7 @@ def _light_free(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), 
     samples' cross-sections (:func:`_cross_section`, across the axis the near samples spread along least) show the
     strand both over the light and over an unlit background, its colour from them instead
     (:func:`_strand_colour`). Returns (the weight sum as a vec3's first entry, the weighted sum, the weighted sum of
-    squares, the cross-sections' colour with the strand's width as its fourth entry, or 0 there, the light's
-    colour at the lit cross-sections' ends, and their axis ``ey``: 1 down the columns, 0 along the rows)."""
+    squares, the cross-sections' colour with 1 as its fourth entry, or 0 there)."""
     h = coc.shape[0]
     w = coc.shape[1]
     m = window.offset_y.shape[0]
@@ -259,7 +258,7 @@ def _light_free(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), 
                     sl += xs
                     dl += xb
                     nx += wp.vec2(0.0, 1.0)
-    return wp.vec3(sf, 0.0, 0.0), f1, f2, _strand_colour(su, sl, nx, du, dl), dl / wp.max(nx[1], 1.0), ey
+    return wp.vec3(sf, 0.0, 0.0), f1, f2, _strand_colour(su, sl, nx, du, dl)
 
 
 LIT_REACH = wp.constant(4)
@@ -439,19 +438,12 @@ def matting_band_kernel(  # noqa: C901
             # a light behind the near side (a strand across a lamp): every near sample of the window holds some of
             # it and looks pure to the model. F is taken again where the near side crosses a darker background
             # (``_light_free``), and the pixel's alpha is its place on the line from B to that F
-            lw, l1, l2, xf, xl, ey = _light_free(image, coc, window, py, px, mid, mu, my, wv, mb, params)
+            lw, l1, l2, xf = _light_free(image, coc, window, py, px, mid, mu, my, wv, mb, params)
             lf = l1 / wp.max(lw[0], 1.0e-30)
             # only where the window's F holds clearly more of the light than the unlit one (an opaque wire's core
             # is its own colour over any light: its F stays), unless the strand's cross-sections measured its colour
             share = wp.dot(mf - lf, mb) / wp.max(wp.dot(mb, mb), 1.0e-30)
-            # the strand's colour from its cross-sections over the light and beside it, for a pixel with the light
-            # behind it: its own cross-section lit at both ends, or the pixel holding as much of the light as a strand
-            # of that width leaves (its projection on the light at the lit cross-sections at least 0.9 of ``1 - W``).
-            # Otherwise it is the light's rim beside the strand, dim because it is the light's edge
-            _xs, _xb, kind_own = _cross_section(image, coc, py, px, ey, 1 - ey, mid, mb,
-                                                wp.max(wp.dot(mb, mb), 1.0e-30))
-            own_lit = wp.dot(own, xl) / wp.max(wp.dot(xl, xl), 1.0e-30)
-            if xf[3] > 0.0 and (kind_own > 0 or own_lit >= 0.9 * (1.0 - xf[3])):
+            if xf[3] > 0.0:  # the strand's colour from its cross-sections over the light and beside it
                 var_f = l2 / wp.max(lw[0], 1.0e-30) - wp.cw_mul(lf, lf)
                 lf = wp.vec3(xf[0], xf[1], xf[2])
                 l2 = wp.max(lw[0], 1.0e-30) * (var_f + wp.cw_mul(lf, lf))  # the unlit samples' spread about it

@@ -108,10 +108,7 @@ def _light_behind(image, coc, y, x, offsets, weights, mid, mu, my, wv, purity, m
     weight): the unlit background D (far samples weighted by ``(1 - l)^purity``, ``l`` the projection on B); F0, the
     near samples weighted by ``(alpha (1 - l)^2)^purity``; F, the near samples weighted by ``(alpha (1 - l)^2
     t)^purity``, ``t`` the place from D towards F0 clipped to [0, 1.5]; alpha the pixel's place on the line from B to
-    F. The cross-sections' F (:func:`_strand_colour_ref`) is F where the pixel's own cross-section has both ends lit
-    (far, their projection on B at least 0.75) or its share of the light (its projection on their L) is at least 0.9
-    of ``1 - W`` (else: the light's rim beside the strand). Returns ((F, var F),
-    alpha); None when no light, or where the window's F holds at most ``light_share``
+    F. Returns ((F, var F), alpha); None when no light, or where the window's F holds at most ``light_share``
     more of the light's colour than that F."""
     if not (float(mb.sum()) > 3.0 * light_level and float(mb.sum()) > light_ratio * float(mf.sum())):
         return None
@@ -146,13 +143,7 @@ def _light_behind(image, coc, y, x, offsets, weights, mid, mu, my, wv, purity, m
     var = np.maximum(sum((wt * c * c for wt, c in pairs), np.zeros(3)) / sw - f * f, 0.0)
     across = _strand_colour_ref(image, coc, y, x, samples, mid, mb)
     if across is not None:
-        light, (ey, ex) = across[2], across[3]
-        own_lit = float(image[y, x].astype(np.float64) @ light) / max(float(light @ light), 1e-30)
-        y1, x1, y2, x2 = y - 2 * ey, x - 2 * ex, y + 2 * ey, x + 2 * ex
-        ends_lit = (0 <= y1 and 0 <= x1 and y2 < h and x2 < w and float(coc[y1, x1]) <= mid
-                    and float(coc[y2, x2]) <= mid and min(float(image[y1, x1] @ mb), float(image[y2, x2] @ mb)) / bb >= 0.75)
-    if across is not None and (ends_lit or own_lit >= 0.9 * (1.0 - across[1])):
-        f = across[0]  # measured: it is F (the variance stays the unlit samples' spread, now about it)
+        f = across  # measured: it is F (the variance stays the unlit samples' spread, now about it)
     elif float((mf - f) @ mb) / bb <= light_share:
         return None  # the window's F holds hardly more of the light than the unlit one: it stays
     fb = f - mb
@@ -166,8 +157,8 @@ def _strand_colour_ref(image, coc, y, x, samples, mid, mb):
     inside the image and on the far side, the sum over the sample and its two neighbours of the photo less the line
     between those two ends. Both ends' projections on the light ``mb`` at least 0.75: lit (the sum is ``W (F -
     L)``); both below 0.05: unlit (``W (F - D)``). With both kinds, ``W = (mean unlit - mean lit) . (L - D) / |L -
-    D|^2`` (L, D: the mean of the ends' means); (F = D + mean unlit / W, clipped at 0, W, L, the axis) for W in (0.05, 2.5];
-    else None."""
+    D|^2`` (L, D: the mean of the ends' means); F = D + mean unlit / W, clipped at 0, for W in (0.05, 2.5]; else
+    None."""
     h, w = coc.shape
     bb = max(float(mb @ mb), 1e-30)
     near = [(y + dy, x + dx) for _, dy, dx in samples
@@ -201,7 +192,7 @@ def _strand_colour_ref(image, coc, y, x, samples, mid, mb):
     width = float((su - sl) @ ld) / float(ld @ ld)
     if not 0.05 < width <= 2.5:
         return None
-    return np.maximum(d + su / width, 0.0), width, lt, (ey, ex)
+    return np.maximum(d + su / width, 0.0)
 
 
 def gaussian_weights(dist: np.ndarray, radius: int) -> np.ndarray:
