@@ -235,3 +235,22 @@ def test_bands_cover_the_rows_once_each(r0, n, threads):
     rows = sorted(y for a, b in seen for y in range(a, b))
     assert rows == list(range(r0, r0 + n))
     assert len(seen) <= threads and all(b - a >= min(n, pv.BAND_MIN_ROWS) for a, b in seen)
+
+
+def test_a_layer_callback_after_the_last_composite_starts_nothing(monkeypatch):
+    """A future's waiters are woken before its done callbacks run, so the compositing thread can take the last
+    layer's result and move the head past it before that layer's callback (``_Starter.top_up``) runs: it must start
+    nothing then (it indexed past the last layer: an IndexError logged from the callback)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from bokehray.levels.preview import _Starter
+
+    monkeypatch.setattr(pv, "layer_cost", lambda layer: 1.0)
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        starter = _Starter(lambda layer, kept: layer, ["a", "b"], [None, None], pool, 2)
+        starter.head = 2  # both composited
+        starter.top_up()
+        assert starter.started == {}
+        starter.head = 0
+        starter.top_up()
+        assert sorted(starter.started) == [0, 1]

@@ -776,7 +776,9 @@ class _Starter:
         """Start layers while a worker is free and a layer may start (a future's done callback)."""
         new = []
         with self.lock:
-            while not self.stopped:
+            # (a layer's callback may run after the compositing thread has taken its result and moved the head past
+            # the last layer: a future's waiters are woken before its callbacks run)
+            while not self.stopped and self.head < len(self.layers):
                 running = sum(not f.done() for f in self.started.values())
                 waiting = len(self.started) - running  # finished, waiting for the layers behind them
                 if running >= self.threads:
