@@ -307,8 +307,13 @@ pv.render_layer = _slow
 """
 
 
+HUP_DEFAULT = "import signal; signal.signal(signal.SIGHUP, signal.SIG_DFL)\n"
+"""A server started from a test run under ``nohup`` inherits SIGHUP ignored, and an ignored SIGHUP stays ignored (by
+design): it starts with the disposition of a terminal's session instead, whatever the test run's."""
+
+
 def _start_view(files, *extra, prelude=""):
-    proc = subprocess.Popen([sys.executable, "-c", prelude + CLI, "view", str(files / "img.png"), "--disparity",
+    proc = subprocess.Popen([sys.executable, "-c", HUP_DEFAULT + prelude + CLI, "view", str(files / "img.png"), "--disparity",
                              str(files / "d.png"), "--export-dir", str(files), *extra], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
     line = proc.stdout.readline()
