@@ -100,15 +100,21 @@ def row_parts(h: int, w: int, *, align: int = 1, threads: int | None = None) -> 
     return list(itertools.pairwise(cuts)) if h > 0 else [(0, 0)]
 
 
-def on_threads(tasks: list[Callable[[], object]]) -> list:
-    """Call each of ``tasks``, the first on this thread and each other on a thread of its own (NumPy's loops and Warp
-    CPU launches release the GIL: the cores share the work), and return their results in order."""
+def on_threads(tasks: list[Callable[[], object]], pool: ThreadPoolExecutor | None = None) -> list:
+    """Call each of ``tasks``, the first on this thread and each other on a thread of ``pool`` (None: a thread of its
+    own; NumPy's loops and Warp CPU launches release the GIL: the cores share the work), and return their results in
+    order once all are done (the others are waited for even when the first raises)."""
     if len(tasks) <= 1:
         return [task() for task in tasks]
-    with ThreadPoolExecutor(max_workers=len(tasks) - 1) as pool:
-        others = [pool.submit(task) for task in tasks[1:]]
+    if pool is None:
+        with ThreadPoolExecutor(max_workers=len(tasks) - 1) as own:
+            return on_threads(tasks, own)
+    others = [pool.submit(task) for task in tasks[1:]]
+    try:
         first = tasks[0]()
-        return [first] + [f.result() for f in others]
+    finally:
+        done = [f.result() for f in others]
+    return [first] + done
 
 
 def in_row_parts(h: int, w: int, run: Callable[[int, int], object], *, align: int = 1,

@@ -38,7 +38,7 @@ import warp as wp
 from .. import scene as sc
 from .. import tiling
 from .._memory import bound_heap
-from ..edge_estimate import MattingRule
+from ..edge_estimate import MattingRule, on_threads
 from ..errors import ResourceError
 from ..lens import Aperture, aperture_area
 from ..options import PreviewOptions
@@ -826,13 +826,7 @@ def in_bands(launch, r0: int, r1: int, helper: ThreadPoolExecutor | None, thread
     whose rows are independent (each band's values are those of one launch over all rows)."""
     n = 1 if helper is None else min(threads, max(1, (r1 - r0) // BAND_MIN_ROWS))
     cuts = [r0 + (r1 - r0) * i // n for i in range(n + 1)]
-    others = [helper.submit(launch, a, b) for a, b in itertools.pairwise(cuts[1:])] if n > 1 else []
-    try:
-        if cuts[1] > cuts[0]:
-            launch(cuts[0], cuts[1])
-    finally:
-        for f in others:
-            f.result()
+    on_threads([functools.partial(launch, a, b) for a, b in itertools.pairwise(cuts) if b > a], helper)
 
 
 def _composite(out: wp.array, layer: sc.LayerRecord, kept: _Kept, acc_box: tiling.Box, acc: wp.array,
