@@ -31,8 +31,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import bokehray_kernels.thin as bk_thin
 import cv2
 import numpy as np
+
+from .edge_estimate import in_parts, in_row_parts
 
 __all__ = ["ThinRule", "restore_thin"]
 
@@ -120,30 +123,25 @@ def restore_thin(image: np.ndarray, signed_coc: np.ndarray, rule: ThinRule | Non
     rule = rule or ThinRule()
     s = np.ascontiguousarray(signed_coc, np.float32)
     h, w = s.shape
-    steps = _ramp_steps(s, rule.grad_min) if h >= 3 and w >= 3 else None
-    if steps is None:
+    if h < 3 or w < 3:
         return signed_coc, 0
-    out = _restore(image, s, steps, rule, check)
-    if out is None:
+    photo = np.ascontiguousarray(image[..., :3], np.float32)
+    grids = _Grids.of(photo, s, rule.grad_min)
+    if grids is None:
         return signed_coc, 0
+    best = _best_fit(grids, rule, check)
+    lo, hi = -np.inf, np.inf
     if bounds is not None:
-        lo, hi = min(bounds), max(bounds)
-        np.clip(out, min(lo, float(s.min())), max(hi, float(s.max())), out=out)
-    n = int(np.count_nonzero(out != s))
-    return (out, n) if n else (signed_coc, 0)
+        lo, hi = min(grids.low_high[0], min(bounds)), max(grids.low_high[1], max(bounds))
+    done = None if best is None else _harden(best, grids, rule, (lo, hi))
+    return (signed_coc, 0) if done is None else done
 
 
-def _ramp_steps(s: np.ndarray, grad_min: float) -> np.ndarray | None:
-    """Each pixel's larger step to its right and lower neighbour, or None where no two steps of the same sign above
-    ``grad_min`` follow each other along a row or a column (a hard map's steps stand alone: it is not fitted)."""
-    g = np.float32(grad_min)
-    dy, dx = np.diff(s, axis=0), np.diff(s, axis=1)
-    if not any((up[:-1] & up[1:]).any() or (down[:-1] & down[1:]).any()
-               for up, down in ((dy > g, dy < -g), ((dx > g).T, (dx < -g).T))):
-        return None
-    step = np.zeros_like(s)
-    np.abs(dy, out=step[:-1])
-    np.maximum(step[:, :-1], np.abs(dx), out=step[:, :-1])
+def _full_steps(d: np.ndarray) -> np.ndarray:
+    """Each pixel's larger step to its right and lower neighbour."""
+    step = np.zeros_like(d)
+    np.abs(np.diff(d, axis=0), out=step[:-1])
+    np.maximum(step[:, :-1], np.abs(np.diff(d, axis=1)), out=step[:, :-1])
     return step
 
 
@@ -186,37 +184,74 @@ class _Fit:
     flat: np.ndarray | None = None
 
 
-def _restore(image: np.ndarray, s: np.ndarray, steps: np.ndarray, rule: ThinRule, check) -> np.ndarray | None:
-    """The map normalised (mean 0, range 1; ``steps``: its pixels' larger step, not normalised), each blur fitted
-    on its grid, the image's best blur applied."""
-    scale = float(s.max() - s.min())
-    if scale <= 0:
-        return None
-    mean = float(s.mean())
-    d = (s - np.float32(mean)) / np.float32(scale)
-    photo = np.ascontiguousarray(image[..., :3], np.float32)
-    steps *= np.float32(1 / scale)
-    levels = _levels(_Level(1, photo, d, d, d, steps), {rule.factor(x, choosing=True) for x in rule.sigmas})
-    best = _best_fit(levels, rule, scale, check)
-    moved = None if best is None else _harden(best, photo, d, rule, scale)
-    if moved is None or not moved[0].size:
-        return None
-    ys, xs, value = moved
-    out = s.copy()
-    out[ys, xs] = value * np.float32(scale) + np.float32(mean)  # a block at the edge repeats a pixel: same value
-    return out
+class _Grids:
+    """The map normalised (``(s - centre) / scale``: mean about 0, range 1) and the photo on the grids of the fits,
+    each made when first asked for: the half-resolution grid from the frame in one pass (a Warp kernel, which also
+    tells whether the map ramps anywhere), the coarser ones each halved from the last, the frame itself (``f = 1``:
+    a fine blur's per-pixel fit) only where a fit needs it."""
+
+    def __init__(self, photo: np.ndarray, s: np.ndarray, centre: float, scale: float, half: _Level,
+                 low_high: tuple[float, float]):
+        self.photo, self.s, self.centre, self.scale, self.low_high = photo, s, centre, scale, low_high
+        self.by_f = {2: half}
+
+    @classmethod
+    def of(cls, photo: np.ndarray, s: np.ndarray, grad_min: float) -> _Grids | None:
+        """The grids, or None where no two steps of the same sign above ``grad_min`` follow each other along a
+        row or a column (a hard map's steps stand alone: it is not fitted) or the map is flat."""
+        colour, mean, low, high, step, ramp = _half_level(photo, s, grad_min)
+        if not ramp.any():
+            return None
+        lo, hi = float(low.min()), float(high.max())
+        scale = hi - lo
+        if scale <= 0:
+            return None
+        centre = float(mean.mean())
+        c, inv = np.float32(centre), np.float32(1 / scale)
+        norm = [(x - c) * inv for x in (mean, low, high)]
+        return cls(photo, s, centre, scale, _Level(2, colour, *norm, step * inv), (lo, hi))
+
+    def __getitem__(self, f: int) -> _Level:
+        if f not in self.by_f:
+            if f == 1:
+                d = self.normalised(self.s)
+                self.by_f[1] = _Level(1, self.photo, d, d, d, _full_steps(d))
+            else:
+                self.by_f[f] = _pad_even(self[f // 2]).halved()
+        return self.by_f[f]
+
+    def normalised(self, s: np.ndarray) -> np.ndarray:
+        return (s - np.float32(self.centre)) / np.float32(self.scale)
 
 
-def _levels(level: _Level, spacings: set[int]) -> dict[int, _Level]:
-    """The full-resolution level and those of the grid ``spacings`` (powers of two), each halved from the last."""
-    levels = {1: level}
-    while level.f < max(spacings):
-        level = _pad_even(level).halved()
-        levels[level.f] = level
-    return levels
+def _half_level(photo: np.ndarray, s: np.ndarray, grad_min: float) -> tuple[np.ndarray, ...]:
+    """The frame's 2 x 2 blocks (the last row / column repeated at an odd side): their mean colour and map value,
+    the map's smallest and largest value and largest step to a right or lower neighbour, and whether a ramp starts
+    in the block (``bokehray_kernels.thin.thin_level_kernel``; bands of block rows on the CPU's cores)."""
+    import warp as wp
+
+    h, w = s.shape
+    gh, gw = (h + 1) // 2, (w + 1) // 2
+    dev = wp.get_device("cpu")
+    coc = wp.array(s, dtype=float, device=dev, copy=False)
+    img = wp.array(photo, dtype=wp.vec3, device=dev, copy=False)
+    colour = np.empty((gh, gw, 3), np.float32)
+    mean, low, high, step = (np.empty((gh, gw), np.float32) for _ in range(4))
+    ramp = np.empty((gh, gw), np.uint8)
+    outs = [wp.array(colour, dtype=wp.vec3, device=dev, copy=False)]
+    outs += [wp.array(x, dtype=float, device=dev, copy=False) for x in (mean, low, high, step)]
+    outs.append(wp.array(ramp, dtype=wp.uint8, device=dev, copy=False))
+
+    def band(y0: int, y1: int) -> None:
+        if y1 > y0:
+            wp.launch(bk_thin.thin_level_kernel, dim=y1 - y0, inputs=[coc, img, y0, float(grad_min)],
+                      outputs=outs, device=dev)
+
+    in_row_parts(gh, 4 * gw, band)
+    return colour, mean, low, high, step, ramp
 
 
-def _best_fit(levels: dict[int, _Level], rule: ThinRule, scale: float, check) -> _Fit | None:
+def _best_fit(levels: _Grids, rule: ThinRule, check) -> _Fit | None:
     """The fit of the blur whose usable windows' median relative residual is lowest (one map, one blur), among
     those whose usable windows cover ``rule.share`` of the most any blur's do, each blur fitted on its own grid; a
     fine blur, chosen on its coarse grid, is applied from its per-pixel fit."""
@@ -224,7 +259,7 @@ def _best_fit(levels: dict[int, _Level], rule: ThinRule, scale: float, check) ->
     for sigma in rule.sigmas:
         if check is not None:
             check()
-        fit = _fit(levels[rule.factor(sigma, choosing=True)], sigma, rule, scale, every=2)
+        fit = _fit(levels[rule.factor(sigma, choosing=True)], sigma, rule, levels.scale, every=2)
         if fit is not None:
             fits.append(fit)
     if not fits:
@@ -233,7 +268,7 @@ def _best_fit(levels: dict[int, _Level], rule: ThinRule, scale: float, check) ->
     fits = [x for x, n in zip(fits, area) if n >= rule.share * max(area)]
     best = min(fits, key=lambda x: float(np.median(x.rel[x.ok])))
     if rule.factor(best.sigma) != best.f or best.part < 1:
-        best = _fit(levels[rule.factor(best.sigma)], best.sigma, rule, scale)
+        best = _fit(levels[rule.factor(best.sigma)], best.sigma, rule, levels.scale)
     return None if best is None else _plateaus(best, levels[best.f], rule)
 
 
@@ -366,10 +401,34 @@ def _fit_part(photo: np.ndarray, d: np.ndarray, where: np.ndarray, rest: float, 
     guide = tone(photo).astype(np.float64)  # float64: the 3 x 3 solve is ill-conditioned where colours align
     guide -= centre
     gb = cv2.GaussianBlur(guide, (0, 0), rest, borderType=cv2.BORDER_REFLECT) if rest > 0 else guide
-    m = _window_means(gb, d.astype(np.float64), k, where)
-    a, b, res, var = _colour_fit(m, rule.ridge)
-    ok = (res < rule.ratio * _plane_residual(m)) & (var > floor)
+    a, b, res, var, plane = _window_fit(gb, d.astype(np.float64), np.nonzero(where), k, rule.ridge)
+    ok = (res < rule.ratio * plane) & (var > floor)
     return a, b - a @ centre, ok, res / np.maximum(var, 1e-12)  # b: the model on the photo as it is, not centred
+
+
+def _window_fit(gb: np.ndarray, d: np.ndarray, at: tuple[np.ndarray, np.ndarray], k: int, ridge: float):
+    """Per window of radius ``k`` around the samples ``at`` (cut at the grid's borders): ``d ~ a . gb + b`` by
+    ridge regression, its residual variance, the variance of ``d`` and the best plane's residual variance
+    (``bokehray_kernels.thin.thin_fit_kernel``, float64; the samples in parts on the CPU's cores)."""
+    import warp as wp
+
+    n = at[0].size
+    guide = wp.array(np.ascontiguousarray(gb), dtype=wp.vec3d, device="cpu", copy=False)
+    dm = wp.array(np.ascontiguousarray(d), dtype=wp.float64, device="cpu", copy=False)
+    ys, xs = at[0].astype(np.int32), at[1].astype(np.int32)
+    a = np.empty((n, 3), np.float64)
+    b, res, var, plane = (np.empty(n, np.float64) for _ in range(4))
+
+    def part(i: int, j: int) -> None:
+        if j > i:
+            outs = [wp.array(a[i:j], dtype=wp.vec3d, device="cpu", copy=False)]
+            outs += [wp.array(x[i:j], dtype=wp.float64, device="cpu", copy=False) for x in (b, res, var, plane)]
+            wp.launch(bk_thin.thin_fit_kernel, dim=j - i,
+                      inputs=[guide, dm, wp.array(ys[i:j], dtype=wp.int32, device="cpu"),
+                              wp.array(xs[i:j], dtype=wp.int32, device="cpu"), k, ridge], outputs=outs, device="cpu")
+
+    in_parts(n, part, item_px=(2 * k + 1) ** 2)
+    return a, b, res, var, plane
 
 
 def _window_means(gb: np.ndarray, d: np.ndarray, k: int, where: np.ndarray) -> dict[str, np.ndarray]:
@@ -445,65 +504,99 @@ def _plane_residual(m: dict[str, np.ndarray]) -> np.ndarray:
     return np.maximum(var - cx * cx / m["vx"] - cy * cy / m["vy"], 0)
 
 
-class _Blocks:
-    """The ``f x f`` blocks of the full-resolution image whose samples are usable: their pixels' indices (a block
-    at the image's edge repeats its last row / column) and their place on the grid."""
-
-    def __init__(self, ok: np.ndarray, f: int, shape: tuple[int, int]):
-        self.iy, self.ix = np.nonzero(ok)
-        off = np.arange(f)
-        ys = np.minimum(self.iy[:, None] * f + off, shape[0] - 1)
-        xs = np.minimum(self.ix[:, None] * f + off, shape[1] - 1)
-        self.ys, self.xs = ys[:, :, None], xs[:, None, :]  # N x f x 1 and N x 1 x f
-        self.grid = ok.shape
-
-    def take(self, x: np.ndarray) -> np.ndarray:
-        return x[self.ys, self.xs]
-
-    def scatter(self, per_block: np.ndarray, fill: float) -> np.ndarray:
-        out = np.full(self.grid, fill, np.float32)
-        out[self.iy, self.ix] = per_block
-        return out
-
-    def at(self, grid: np.ndarray) -> np.ndarray:
-        """A grid's value at each block, broadcast over its pixels (N x 1 x 1)."""
-        return grid[self.iy, self.ix][:, None, None]
-
-
-def _harden(fit: _Fit, photo: np.ndarray, d: np.ndarray, rule: ThinRule, scale: float):
+def _harden(fit: _Fit, grids: _Grids, rule: ThinRule, bounds: tuple[float, float]):
     """Each pixel of a usable block at its window's far value (the map's smallest) or near value (a thin
     structure's: the largest restored value; a wide object's, whose map holds its peak as a plateau: that plateau,
     if lower), where that is a structure: the far value is a plateau of the map, and so is a wide object's near
     value; the restoration does not undershoot the far value; enough of the window is on the near side; the step
-    is worth a pixel of blur. Only the usable blocks' pixels are computed (the rest of the image costs nothing): the
-    rows, columns and (normalised) values of the pixels that move by a pixel of blur or more, or None."""
-    blk = _Blocks(fit.ok, fit.f, d.shape)
-    a = [blk.at(fit.a[..., i]) for i in range(3)]
-    g = tone(blk.take(photo))
-    est = a[0] * g[..., 0] + a[1] * g[..., 1] + a[2] * g[..., 2] + blk.at(fit.b)  # N x f x f, the sharp model
+    is worth a pixel of blur. Only the usable blocks' pixels are computed (the rest of the image costs nothing;
+    ``bokehray_kernels.thin``): the map with those pixels moved (values clamped to ``bounds``, in CoC px) and how
+    many moved, or None."""
+    iy, ix = np.nonzero(fit.ok)
     k = fit.k
-    top = _dilate(blk.scatter(est.max((1, 2)), -np.inf), k)
-    low = _erode(blk.scatter(est.min((1, 2)), np.inf), k)
+    blocks = _BlockArgs(grids, fit, iy, ix)
+    top, low, _ = blocks.extremes(None)
+    top = _dilate(_scatter(fit.ok.shape, iy, ix, top, -np.inf), k)
+    low = _erode(_scatter(fit.ok.shape, iy, ix, low, np.inf), k)
     far = fit.far
     wide = fit.near_wide - fit.flat <= rule.flat_tol * (fit.near_wide - far)  # the map's peak is a plateau
     nearv = np.where(wide, np.minimum(top, fit.near_wide), top)  # the near value: a wide object's, its plateau
-    high = est > blk.at(0.5 * (far + nearv))
-    n_high = _box(blk.scatter(high.sum((1, 2)), 0.0), k)
+    n_high = _box(_scatter(fit.ok.shape, iy, ix, blocks.extremes(0.5 * (far + nearv)[iy, ix])[2], 0.0), k)
     tol = rule.plateau_tol * (fit.near_wide - fit.far_wide)
     use = fit.ok & (far - fit.far_wide <= tol) & (~wide | (fit.near_wide - fit.near <= tol))
     use &= far - low <= rule.undershoot * (top - far)
-    use &= nearv - far >= rule.min_step / scale
+    use &= nearv - far >= rule.min_step / grids.scale
     r = (2 * k + 1) * fit.f // 2  # the window's radius in px: a structure holds half a line across it
     use &= n_high * ((2 * k + 1) ** 2) >= r + 1
-    pick = use[blk.iy, blk.ix]
+    pick = use[iy, ix]
     if not pick.any():
         return None
-    sel = (blk.ys[pick], blk.xs[pick])
-    far_p, near_p, map_p = blk.at(far)[pick], blk.at(nearv)[pick], blk.at(fit.near)[pick]
-    dp, ep = d[sel], est[pick]
-    place = (dp - far_p) / np.maximum(map_p - far_p, 1e-12)  # the pixel's place in the map's own window range
-    to_near = (np.maximum(ep, far_p) > 0.5 * (far_p + near_p)) & (place > rule.keep) | (place > 1 - rule.keep)
-    hard = np.where(to_near, near_p, far_p)
-    moved = hard != dp
-    ys, xs = np.broadcast_to(sel[0], hard.shape)[moved], np.broadcast_to(sel[1], hard.shape)[moved]
-    return ys, xs, hard[moved]
+    return blocks.harden(pick, far, nearv, fit.near, rule, bounds)
+
+
+def _scatter(shape: tuple[int, int], iy: np.ndarray, ix: np.ndarray, per_block: np.ndarray, fill: float) -> np.ndarray:
+    out = np.full(shape, fill, np.float32)
+    out[iy, ix] = per_block
+    return out
+
+
+class _BlockArgs:
+    """The usable blocks of a fit as the hardening kernels' arguments (the blocks cut into parts on the CPU's
+    cores)."""
+
+    def __init__(self, grids: _Grids, fit: _Fit, iy: np.ndarray, ix: np.ndarray):
+        import warp as wp
+
+        self.wp, self.grids, self.f = wp, grids, fit.f
+        self.iy, self.ix = iy.astype(np.int32), ix.astype(np.int32)
+        self.a = np.ascontiguousarray(fit.a[iy, ix], np.float32)
+        self.b = np.ascontiguousarray(fit.b[iy, ix], np.float32)
+        self.photo = wp.array(grids.photo, dtype=wp.vec3, device="cpu", copy=False)
+        self.coc = wp.array(grids.s, dtype=float, device="cpu", copy=False)
+
+    def _arrays(self, a: int, b: int, *extra: np.ndarray) -> list:
+        wp = self.wp
+        out = [wp.array(self.iy[a:b], dtype=wp.int32, device="cpu"), wp.array(self.ix[a:b], dtype=wp.int32, device="cpu"),
+               wp.array(self.a[a:b], dtype=wp.vec3, device="cpu"), wp.array(self.b[a:b], dtype=float, device="cpu")]
+        return out + [wp.array(np.ascontiguousarray(x[a:b], np.float32), dtype=float, device="cpu") for x in extra]
+
+    def extremes(self, thr: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Each block's largest and smallest sharp-model value, and how many of its pixels exceed ``thr``."""
+        wp, n = self.wp, self.iy.size
+        thr = np.full(n, np.inf, np.float32) if thr is None else thr
+        top, low, above = (np.empty(n, np.float32) for _ in range(3))
+
+        def part(a: int, b: int) -> None:
+            if b > a:
+                iy, ix, ca, cb, ct = self._arrays(a, b, thr)
+                outs = [wp.array(x[a:b], dtype=float, device="cpu", copy=False) for x in (top, low, above)]
+                wp.launch(bk_thin.thin_extremes_kernel, dim=b - a, inputs=[self.photo, iy, ix, self.f, ca, cb, ct],
+                          outputs=outs, device="cpu")
+
+        in_parts(n, part, item_px=self.f * self.f)
+        return top, low, above
+
+    def harden(self, pick: np.ndarray, far: np.ndarray, nearv: np.ndarray, top: np.ndarray, rule: ThinRule,
+               bounds: tuple[float, float]):
+        """The map with the picked blocks' pixels at their far or near value, and how many moved; None if none."""
+        wp, g = self.wp, self.grids
+        idx = np.flatnonzero(pick)
+        self.iy, self.ix, self.a, self.b = self.iy[idx], self.ix[idx], self.a[idx], self.b[idx]
+        per = [x[self.iy, self.ix] for x in (far, nearv, top)]
+        out = g.s.copy()
+        wout = wp.array(out, dtype=float, device="cpu", copy=False)
+        params = bk_thin.HardenParams()
+        params.f, params.centre, params.scale = self.f, g.centre, g.scale
+        params.keep, params.keep_top = rule.keep, 1 - rule.keep
+        params.lo, params.hi = bounds
+
+        def part(a: int, b: int) -> int:
+            moved = wp.zeros(1, dtype=wp.int32, device="cpu")
+            if b > a:
+                wp.launch(bk_thin.thin_harden_kernel, dim=b - a,
+                          inputs=[self.photo, self.coc, *self._arrays(a, b, *per), params], outputs=[wout, moved],
+                          device="cpu")
+            return int(moved.numpy()[0])
+
+        n = sum(in_parts(idx.size, part, item_px=self.f * self.f))
+        return (out, n) if n else None
