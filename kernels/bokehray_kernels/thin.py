@@ -190,28 +190,24 @@ def _estimate(photo: wp.array2d(dtype=wp.vec3), y: int, x: int, a: wp.vec3, b: f
 
 @wp.kernel
 def thin_extremes_kernel(photo: wp.array2d(dtype=wp.vec3), iy: wp.array(dtype=wp.int32), ix: wp.array(dtype=wp.int32),
-                         f: int, a: wp.array(dtype=wp.vec3), b: wp.array(dtype=float), thr: wp.array(dtype=float),
-                         top: wp.array(dtype=float), bottom: wp.array(dtype=float), above: wp.array(dtype=float)):
+                         a: wp.array(dtype=wp.vec3), b: wp.array(dtype=float), f: int, est: wp.array3d(dtype=float),
+                         top: wp.array(dtype=float), bottom: wp.array(dtype=float)):
     """Block ``t`` (grid sample ``(iy[t], ix[t])``, ``f x f`` pixels, the last row / column repeated at the image's
-    edge): the largest and smallest value of the sharp model ``a . tone(photo) + b`` over its pixels, and how many
-    exceed ``thr[t]``."""
+    edge): the sharp model ``a . tone(photo) + b`` at its pixels, and its largest and smallest value."""
     t = wp.tid()
     h = photo.shape[0]
     w = photo.shape[1]
     hi = float(-1.0e30)
     lo = float(1.0e30)
-    n = float(0.0)
     for p in range(f):
         y = wp.min(iy[t] * f + p, h - 1)
         for q in range(f):
             e = _estimate(photo, y, wp.min(ix[t] * f + q, w - 1), a[t], b[t])
+            est[t, p, q] = e
             hi = wp.max(hi, e)
             lo = wp.min(lo, e)
-            if e > thr[t]:
-                n = n + 1.0
     top[t] = hi
     bottom[t] = lo
-    above[t] = n
 
 
 @wp.struct

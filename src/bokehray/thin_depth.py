@@ -208,8 +208,11 @@ class _Grids:
             return None
         centre = float(mean.mean())
         c, inv = np.float32(centre), np.float32(1 / scale)
-        norm = [(x - c) * inv for x in (mean, low, high)]
-        return cls(photo, s, centre, scale, _Level(2, colour, *norm, step * inv), (lo, hi))
+        for x in (mean, low, high):  # in place: no new frame-sized arrays
+            np.subtract(x, c, out=x)
+            np.multiply(x, inv, out=x)
+        np.multiply(step, inv, out=step)
+        return cls(photo, s, centre, scale, _Level(2, colour, mean, low, high, step), (lo, hi))
 
     def __getitem__(self, f: int) -> _Level:
         if f not in self.by_f:
@@ -406,6 +409,15 @@ def _fit_part(photo: np.ndarray, d: np.ndarray, where: np.ndarray, rest: float, 
     return a, b - a @ centre, ok, res / np.maximum(var, 1e-12)  # b: the model on the photo as it is, not centred
 
 
+def _in_parts(n: int, run, item_px: int) -> list:
+    """``edge_estimate.in_parts`` over ``n`` items of ``item_px`` pixels' work each, on one thread where that is
+    under ``_PARALLEL_PX`` (a thread costs more than it saves there)."""
+    return in_parts(n, run, item_px=item_px, threads=None if n * item_px >= _PARALLEL_PX else 1)
+
+
+_PARALLEL_PX = 1 << 17
+
+
 def _window_fit(gb: np.ndarray, d: np.ndarray, at: tuple[np.ndarray, np.ndarray], k: int, ridge: float):
     """Per window of radius ``k`` around the samples ``at`` (cut at the grid's borders): ``d ~ a . gb + b`` by
     ridge regression, its residual variance, the variance of ``d`` and the best plane's residual variance
@@ -427,7 +439,7 @@ def _window_fit(gb: np.ndarray, d: np.ndarray, at: tuple[np.ndarray, np.ndarray]
                       inputs=[guide, dm, wp.array(ys[i:j], dtype=wp.int32, device="cpu"),
                               wp.array(xs[i:j], dtype=wp.int32, device="cpu"), k, ridge], outputs=outs, device="cpu")
 
-    in_parts(n, part, item_px=(2 * k + 1) ** 2)
+    _in_parts(n, part, (2 * k + 1) ** 2)
     return a, b, res, var, plane
 
 
@@ -515,13 +527,14 @@ def _harden(fit: _Fit, grids: _Grids, rule: ThinRule, bounds: tuple[float, float
     iy, ix = np.nonzero(fit.ok)
     k = fit.k
     blocks = _BlockArgs(grids, fit, iy, ix)
-    top, low, _ = blocks.extremes(None)
+    est, top, low = blocks.extremes()
     top = _dilate(_scatter(fit.ok.shape, iy, ix, top, -np.inf), k)
     low = _erode(_scatter(fit.ok.shape, iy, ix, low, np.inf), k)
     far = fit.far
     wide = fit.near_wide - fit.flat <= rule.flat_tol * (fit.near_wide - far)  # the map's peak is a plateau
     nearv = np.where(wide, np.minimum(top, fit.near_wide), top)  # the near value: a wide object's, its plateau
-    n_high = _box(_scatter(fit.ok.shape, iy, ix, blocks.extremes(0.5 * (far + nearv)[iy, ix])[2], 0.0), k)
+    above = (est > (0.5 * (far + nearv))[iy, ix][:, None, None]).sum((1, 2))
+    n_high = _box(_scatter(fit.ok.shape, iy, ix, above, 0.0), k)
     tol = rule.plateau_tol * (fit.near_wide - fit.far_wide)
     use = fit.ok & (far - fit.far_wide <= tol) & (~wide | (fit.near_wide - fit.near <= tol))
     use &= far - low <= rule.undershoot * (top - far)
@@ -560,21 +573,21 @@ class _BlockArgs:
                wp.array(self.a[a:b], dtype=wp.vec3, device="cpu"), wp.array(self.b[a:b], dtype=float, device="cpu")]
         return out + [wp.array(np.ascontiguousarray(x[a:b], np.float32), dtype=float, device="cpu") for x in extra]
 
-    def extremes(self, thr: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Each block's largest and smallest sharp-model value, and how many of its pixels exceed ``thr``."""
+    def extremes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The sharp model at each block's pixels (N x f x f), and each block's largest and smallest value."""
         wp, n = self.wp, self.iy.size
-        thr = np.full(n, np.inf, np.float32) if thr is None else thr
-        top, low, above = (np.empty(n, np.float32) for _ in range(3))
+        est = np.empty((n, self.f, self.f), np.float32)
+        top, low = np.empty(n, np.float32), np.empty(n, np.float32)
 
         def part(a: int, b: int) -> None:
             if b > a:
-                iy, ix, ca, cb, ct = self._arrays(a, b, thr)
-                outs = [wp.array(x[a:b], dtype=float, device="cpu", copy=False) for x in (top, low, above)]
-                wp.launch(bk_thin.thin_extremes_kernel, dim=b - a, inputs=[self.photo, iy, ix, self.f, ca, cb, ct],
+                outs = [wp.array(est[a:b], dtype=float, device="cpu", copy=False)]
+                outs += [wp.array(x[a:b], dtype=float, device="cpu", copy=False) for x in (top, low)]
+                wp.launch(bk_thin.thin_extremes_kernel, dim=b - a, inputs=[self.photo, *self._arrays(a, b), self.f],
                           outputs=outs, device="cpu")
 
-        in_parts(n, part, item_px=self.f * self.f)
-        return top, low, above
+        _in_parts(n, part, self.f * self.f)
+        return est, top, low
 
     def harden(self, pick: np.ndarray, far: np.ndarray, nearv: np.ndarray, top: np.ndarray, rule: ThinRule,
                bounds: tuple[float, float]):
@@ -598,5 +611,5 @@ class _BlockArgs:
                           device="cpu")
             return int(moved.numpy()[0])
 
-        n = sum(in_parts(idx.size, part, item_px=self.f * self.f))
+        n = sum(_in_parts(idx.size, part, self.f * self.f))
         return (out, n) if n else None

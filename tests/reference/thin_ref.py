@@ -223,15 +223,14 @@ def block_pixels(iy: int, ix: int, f: int, shape: tuple[int, int], own: bool = F
             yield min(y, shape[0] - 1), min(x, shape[1] - 1)
 
 
-def extremes_ref(photo, iy, ix, f, a, b, thr):
-    """``thin_extremes_kernel``: per block the largest and smallest ``a . tone(photo) + b`` and how many exceed
-    ``thr``."""
-    out = []
+def extremes_ref(photo, iy, ix, f, a, b):
+    """``thin_extremes_kernel``: per block the model ``a . tone(photo) + b`` at its pixels (f x f, the edge's
+    repeats included), its largest and smallest value."""
+    est = np.zeros((len(iy), f, f))
     for t in range(len(iy)):
-        est = [float(np.dot(a[t], _tone(photo[y, x].astype(np.float64)))) + float(b[t])
-               for y, x in block_pixels(iy[t], ix[t], f, photo.shape[:2])]
-        out.append((max(est), min(est), sum(e > thr[t] for e in est)))
-    return out
+        for n, (y, x) in enumerate(block_pixels(iy[t], ix[t], f, photo.shape[:2])):
+            est[t, n // f, n % f] = float(np.dot(a[t], _tone(photo[y, x].astype(np.float64)))) + float(b[t])
+    return est, est.max((1, 2)), est.min((1, 2))
 
 
 def harden_ref(photo, coc, iy, ix, f, a, b, far, near, top, centre, scale, keep, lo, hi):
