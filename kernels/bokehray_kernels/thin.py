@@ -70,88 +70,85 @@ def thin_level_kernel(coc: wp.array2d(dtype=float), photo: wp.array2d(dtype=wp.v
         _level_block(coc, photo, i, j, grad_min, colour, mean, low, high, step, ramp)
 
 
+@wp.func
+def _column(guide: wp.array2d(dtype=wp.vec3d), d: wp.array2d(dtype=wp.float64), y0: int, y1: int, x: int,
+            y: int) -> wp.mat44d:
+    """The sums over rows ``y0..y1`` of column ``x`` that a window's regression needs, as a 4 x 4 matrix: of the
+    map, its square, the map times x and times the row's offset from ``y``; the colours; the colours times the map;
+    the colours' six products."""
+    zero = wp.float64(0.0)
+    m = wp.mat44d(zero, zero, zero, zero, zero, zero, zero, zero, zero, zero, zero, zero, zero, zero, zero, zero)
+    fx = wp.float64(x)
+    for yy in range(y0, y1 + 1):
+        v = d[yy, x]
+        g = guide[yy, x]
+        m += wp.mat44d(v, v * v, v * fx, v * wp.float64(yy - y), g[0], g[1], g[2], g[0] * v, g[1] * v, g[2] * v,
+                       g[0] * g[0], g[0] * g[1], g[0] * g[2], g[1] * g[1], g[1] * g[2], g[2] * g[2])
+    return m
+
+
 @wp.kernel
 def thin_fit_kernel(guide: wp.array2d(dtype=wp.vec3d), d: wp.array2d(dtype=wp.float64), ys: wp.array(dtype=wp.int32),
-                    xs: wp.array(dtype=wp.int32), k: int, ridge: wp.float64, a: wp.array(dtype=wp.vec3d),
-                    b: wp.array(dtype=wp.float64), res: wp.array(dtype=wp.float64), var: wp.array(dtype=wp.float64),
+                    xs: wp.array(dtype=wp.int32), runs: wp.array(dtype=wp.int32), first: wp.array(dtype=wp.int32),
+                    k: int, ridge: wp.float64, a: wp.array(dtype=wp.vec3d), b: wp.array(dtype=wp.float64),
+                    res: wp.array(dtype=wp.float64), var: wp.array(dtype=wp.float64),
                     plane: wp.array(dtype=wp.float64)):
-    """The window of radius ``k`` (cut at the grid's borders) around sample ``(ys[t], xs[t])``: the ridge
-    regression ``d ~ a . guide + b``, its residual variance, the variance of ``d`` and the residual variance of the
-    best plane."""
+    """A run of ``runs[t]`` samples along a row, from sample ``first[t]`` (``ys``, ``xs``: the samples in row-major
+    order): for each, over its window of radius ``k`` (cut at the grid's borders), the ridge regression
+    ``d ~ a . guide + b``, its residual variance, the variance of ``d`` and the residual variance of the best plane.
+    The window's sums slide along the run: a column added on the right, one taken off on the left."""
     t = wp.tid()
-    y = ys[t]
-    x = xs[t]
+    i0 = first[t]
+    y = ys[i0]
+    x0 = xs[i0]
+    w = d.shape[1]
     y0 = wp.max(y - k, 0)
     y1 = wp.min(y + k, d.shape[0] - 1)
-    x0 = wp.max(x - k, 0)
-    x1 = wp.min(x + k, d.shape[1] - 1)
     zero = wp.float64(0.0)
-    sd = zero
-    sdd = zero
-    sdx = zero
-    sdy = zero
-    s0 = zero
-    s1 = zero
-    s2 = zero
-    s0d = zero
-    s1d = zero
-    s2d = zero
-    s00 = zero
-    s01 = zero
-    s02 = zero
-    s11 = zero
-    s12 = zero
-    s22 = zero
-    for yy in range(y0, y1 + 1):
-        ry = wp.float64(yy - y)
-        for xx in range(x0, x1 + 1):
-            v = d[yy, xx]
-            g = guide[yy, xx]
-            g0 = g[0]
-            g1 = g[1]
-            g2 = g[2]
-            sd += v
-            sdd += v * v
-            sdx += v * wp.float64(xx - x)
-            sdy += v * ry
-            s0 += g0
-            s1 += g1
-            s2 += g2
-            s0d += g0 * v
-            s1d += g1 * v
-            s2d += g2 * v
-            s00 += g0 * g0
-            s01 += g0 * g1
-            s02 += g0 * g2
-            s11 += g1 * g1
-            s12 += g1 * g2
-            s22 += g2 * g2
+    sums = wp.mat44d(zero, zero, zero, zero, zero, zero, zero, zero, zero, zero, zero, zero, zero, zero, zero, zero)
+    for xx in range(wp.max(x0 - k, 0), wp.min(x0 + k, w - 1) + 1):
+        sums += _column(guide, d, y0, y1, xx, y)
+    for i in range(runs[t]):
+        x = x0 + i
+        if i > 0:
+            if x + k < w:
+                sums += _column(guide, d, y0, y1, x + k, y)
+            if x - k - 1 >= 0:
+                sums -= _column(guide, d, y0, y1, x - k - 1, y)
+        _window_fit(sums, wp.max(x - k, 0), wp.min(x + k, w - 1), x, y0, y1, y, ridge, i0 + i, a, b, res, var, plane)
+
+
+@wp.func
+def _window_fit(sums: wp.mat44d, x0: int, x1: int, x: int, y0: int, y1: int, y: int, ridge: wp.float64, o: int,
+                a: wp.array(dtype=wp.vec3d), b: wp.array(dtype=wp.float64), res: wp.array(dtype=wp.float64),
+                var: wp.array(dtype=wp.float64), plane: wp.array(dtype=wp.float64)):
+    """The regression and the plane of one window from its sums (:func:`_column`'s), written at output ``o``."""
+    zero = wp.float64(0.0)
     ny = y1 - y0 + 1
     nx = x1 - x0 + 1
     inv_n = wp.float64(1.0) / wp.float64(ny * nx)
-    md = sd * inv_n
-    mg = wp.vec3d(s0, s1, s2) * inv_n
-    v_d = wp.max(sdd * inv_n - md * md, zero)
-    c = wp.vec3d(s0d, s1d, s2d) * inv_n - mg * md
-    c01 = s01 * inv_n - mg[0] * mg[1]
-    c02 = s02 * inv_n - mg[0] * mg[2]
-    c12 = s12 * inv_n - mg[1] * mg[2]
-    cov = wp.mat33d(s00 * inv_n - mg[0] * mg[0], c01, c02, c01, s11 * inv_n - mg[1] * mg[1], c12, c02, c12,
-                    s22 * inv_n - mg[2] * mg[2])
+    md = sums[0, 0] * inv_n
+    mg = wp.vec3d(sums[1, 0], sums[1, 1], sums[1, 2]) * inv_n
+    v_d = wp.max(sums[0, 1] * inv_n - md * md, zero)
+    c = wp.vec3d(sums[1, 3], sums[2, 0], sums[2, 1]) * inv_n - mg * md
+    c01 = sums[2, 3] * inv_n - mg[0] * mg[1]
+    c02 = sums[3, 0] * inv_n - mg[0] * mg[2]
+    c12 = sums[3, 2] * inv_n - mg[1] * mg[2]
+    cov = wp.mat33d(sums[2, 2] * inv_n - mg[0] * mg[0], c01, c02, c01, sums[3, 1] * inv_n - mg[1] * mg[1], c12, c02,
+                    c12, sums[3, 3] * inv_n - mg[2] * mg[2])
     coef = _solve3(cov, c, ridge)
-    fit = wp.dot(coef, cov * coef)
-    a[t] = coef
-    b[t] = md - wp.dot(coef, mg)
-    res[t] = wp.max(v_d - wp.float64(2.0) * wp.dot(coef, c) + fit, zero)
-    var[t] = v_d
+    a[o] = coef
+    b[o] = md - wp.dot(coef, mg)
+    res[o] = wp.max(v_d - wp.float64(2.0) * wp.dot(coef, c) + wp.dot(coef, cov * coef), zero)
+    var[o] = v_d
     # the plane: x and y over a rectangle are uncorrelated; their means and variances are a run of integers'
-    mx = wp.float64(x0 + x1) * wp.float64(0.5) - wp.float64(x)
+    mx = wp.float64(x0 + x1) * wp.float64(0.5)
     my = wp.float64(y0 + y1) * wp.float64(0.5) - wp.float64(y)
     vx = wp.float64(nx * nx - 1) / wp.float64(12.0)
     vy = wp.float64(ny * ny - 1) / wp.float64(12.0)
-    cx = sdx * inv_n - md * mx
-    cy = sdy * inv_n - md * my
-    plane[t] = wp.max(v_d - cx * cx / vx - cy * cy / vy, zero)
+    cx = sums[0, 2] * inv_n - md * mx
+    cy = sums[0, 3] * inv_n - md * my
+    plane[o] = wp.max(v_d - cx * cx / vx - cy * cy / vy, zero)
 
 
 @wp.func

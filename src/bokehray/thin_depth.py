@@ -431,15 +431,22 @@ def _window_fit(gb: np.ndarray, d: np.ndarray, at: tuple[np.ndarray, np.ndarray]
     a = np.empty((n, 3), np.float64)
     b, res, var, plane = (np.empty(n, np.float64) for _ in range(4))
 
+    # runs of consecutive samples along a row: a thread a run, its windows' sums sliding along it
+    cut = np.flatnonzero((np.diff(ys) != 0) | (np.diff(xs) != 1)) + 1
+    first = np.concatenate([[0], cut]).astype(np.int32) if n else np.zeros(0, np.int32)
+    runs = np.diff(np.append(first, n)).astype(np.int32)
+    wys, wxs = wp.array(ys, dtype=wp.int32, device="cpu"), wp.array(xs, dtype=wp.int32, device="cpu")
+    outs = [wp.array(a, dtype=wp.vec3d, device="cpu", copy=False)]
+    outs += [wp.array(x, dtype=wp.float64, device="cpu", copy=False) for x in (b, res, var, plane)]
+
     def part(i: int, j: int) -> None:
         if j > i:
-            outs = [wp.array(a[i:j], dtype=wp.vec3d, device="cpu", copy=False)]
-            outs += [wp.array(x[i:j], dtype=wp.float64, device="cpu", copy=False) for x in (b, res, var, plane)]
             wp.launch(bk_thin.thin_fit_kernel, dim=j - i,
-                      inputs=[guide, dm, wp.array(ys[i:j], dtype=wp.int32, device="cpu"),
-                              wp.array(xs[i:j], dtype=wp.int32, device="cpu"), k, ridge], outputs=outs, device="cpu")
+                      inputs=[guide, dm, wys, wxs, wp.array(runs[i:j], dtype=wp.int32, device="cpu"),
+                              wp.array(first[i:j], dtype=wp.int32, device="cpu"), k, ridge], outputs=outs,
+                      device="cpu")
 
-    _in_parts(n, part, (2 * k + 1) ** 2)
+    _in_parts(first.size, part, (2 * k + 1) * max(1, n // max(1, first.size)) * 4)
     return a, b, res, var, plane
 
 
