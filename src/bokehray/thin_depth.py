@@ -435,15 +435,15 @@ def _window_fit(gb: np.ndarray, d: np.ndarray, at: tuple[np.ndarray, np.ndarray]
     cut = np.flatnonzero((np.diff(ys) != 0) | (np.diff(xs) != 1)) + 1
     first = np.concatenate([[0], cut]).astype(np.int32) if n else np.zeros(0, np.int32)
     runs = np.diff(np.append(first, n)).astype(np.int32)
-    wys, wxs = wp.array(ys, dtype=wp.int32, device="cpu"), wp.array(xs, dtype=wp.int32, device="cpu")
+    wys, wxs = (wp.array(v, dtype=wp.int32, device="cpu", copy=False) for v in (ys, xs))
     outs = [wp.array(a, dtype=wp.vec3d, device="cpu", copy=False)]
     outs += [wp.array(x, dtype=wp.float64, device="cpu", copy=False) for x in (b, res, var, plane)]
 
     def part(i: int, j: int) -> None:
         if j > i:
             wp.launch(bk_thin.thin_fit_kernel, dim=j - i,
-                      inputs=[guide, dm, wys, wxs, wp.array(runs[i:j], dtype=wp.int32, device="cpu"),
-                              wp.array(first[i:j], dtype=wp.int32, device="cpu"), k, ridge], outputs=outs,
+                      inputs=[guide, dm, wys, wxs, wp.array(runs[i:j], dtype=wp.int32, device="cpu", copy=False),
+                              wp.array(first[i:j], dtype=wp.int32, device="cpu", copy=False), k, ridge], outputs=outs,
                       device="cpu")
 
     _in_parts(first.size, part, (2 * k + 1) * max(1, n // max(1, first.size)) * 4)
@@ -576,9 +576,12 @@ class _BlockArgs:
 
     def _arrays(self, a: int, b: int, *extra: np.ndarray) -> list:
         wp = self.wp
-        out = [wp.array(self.iy[a:b], dtype=wp.int32, device="cpu"), wp.array(self.ix[a:b], dtype=wp.int32, device="cpu"),
-               wp.array(self.a[a:b], dtype=wp.vec3, device="cpu"), wp.array(self.b[a:b], dtype=float, device="cpu")]
-        return out + [wp.array(np.ascontiguousarray(x[a:b], np.float32), dtype=float, device="cpu") for x in extra]
+        out = [wp.array(self.iy[a:b], dtype=wp.int32, device="cpu", copy=False),
+               wp.array(self.ix[a:b], dtype=wp.int32, device="cpu", copy=False),
+               wp.array(self.a[a:b], dtype=wp.vec3, device="cpu", copy=False),
+               wp.array(self.b[a:b], dtype=float, device="cpu", copy=False)]
+        return out + [wp.array(np.ascontiguousarray(x[a:b], np.float32), dtype=float, device="cpu", copy=False)
+                      for x in extra]
 
     def extremes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The sharp model at each block's pixels (N x f x f), and each block's largest and smallest value."""
