@@ -1,12 +1,19 @@
 """Soft maps' thin structures given back their depth (``bokehray.thin_depth.restore_thin``): the passes over the
-full-resolution frame.
+frame, the window regressions and the hardening, each over what needs it only.
 
-1. :func:`thin_level_kernel`, one thread a 2 x 2 block (a launch of ``(rows, W / 2)``: a band of block rows a CPU
-   thread): the block's mean colour and map value, the map's smallest and largest value in it, its largest step to
-   a right or lower neighbour, and whether a ramp starts in it (two steps in a row, along a row or a column, of the
-   same sign and above ``grad_min``). A block at an odd side repeats the last row / column (the index is clamped).
+1. :func:`thin_level_kernel`, a thread a row of 2 x 2 blocks: the block's mean colour and map value, the map's
+   smallest and largest value in it, its largest step to a right or lower neighbour, and whether a ramp starts in it
+   (two steps in a row, along a row or a column, of the same sign and above ``grad_min``). A block at an odd side
+   repeats the last row / column (the index is clamped).
+2. :func:`thin_fit_kernel`, a thread a run of samples along a row of a fit's grid (the samples whose window may be
+   used): per window, the ridge regression of the map on the blurred colours, in float64 from the window's sums
+   (the 3 x 3 solve is ill-conditioned where colours align), which slide along the run a column at a time.
+3. :func:`thin_extremes_kernel`, a thread a usable block: the sharp model ``a . tone(photo) + b`` at its pixels,
+   its largest and smallest value.
+4. :func:`thin_harden_kernel`, a thread a block that holds a structure: each of its pixels at the far or the near
+   value, written to the map where that moves it.
 
-Oracle: ``tests/reference/thin_ref.py`` (``level_ref``).
+Oracles: ``tests/reference/thin_ref.py`` (``level_ref``, ``window_fit_ref``, ``extremes_ref``, ``harden_ref``).
 """
 
 import warp as wp
