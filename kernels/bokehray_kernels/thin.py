@@ -1,9 +1,10 @@
 """Soft maps' thin structures given back their depth (``bokehray.thin_depth.restore_thin``): the passes over the
 frame, the window regressions and the hardening, each over what needs it only.
 
+0. :func:`thin_ramp_kernel`, a thread a row: whether the map ramps anywhere (two steps in a row, along a row or a
+   column, of the same sign and above ``grad_min``); rows started after a ramp is found are not read.
 1. :func:`thin_level_kernel`, a thread a row of 2 x 2 blocks: the block's mean colour and map value, the map's
-   smallest and largest value in it, its largest step to a right or lower neighbour, and whether a ramp starts in it
-   (two steps in a row, along a row or a column, of the same sign and above ``grad_min``). A block at an odd side
+   smallest and largest value in it and its largest step to a right or lower neighbour. A block at an odd side
    repeats the last row / column (the index is clamped).
 2. :func:`thin_fit_kernel`, a thread a run of samples along a row of a fit's grid (the samples whose window may be
    used): per window, the ridge regression of the map on the blurred colours, in float64 from the window's sums
@@ -13,7 +14,8 @@ frame, the window regressions and the hardening, each over what needs it only.
 4. :func:`thin_harden_kernel`, a thread a block that holds a structure: each of its pixels at the far or the near
    value, written to the map where that moves it.
 
-Oracles: ``tests/reference/thin_ref.py`` (``level_ref``, ``window_fit_ref``, ``extremes_ref``, ``harden_ref``).
+Oracles: ``tests/reference/thin_ref.py`` (``ramps_ref``, ``level_ref``, ``window_fit_ref``, ``extremes_ref``,
+``harden_ref``).
 """
 
 import warp as wp
@@ -29,10 +31,32 @@ def _rising(d1: float, d2: float, g: float) -> int:
     return 0
 
 
+@wp.kernel
+def thin_ramp_kernel(coc: wp.array2d(dtype=float), row0: int, grad_min: float, found: wp.array(dtype=wp.int32)):
+    """Row ``row0 + t`` (a thread a row): ``found[0] = 1`` where two steps in a row start in it, along the row or down
+    the columns, both above ``grad_min`` or both below ``-grad_min``; a row started once a ramp is found is not read
+    (a soft map is known at its first ramp, a hard one is read once)."""
+    y = row0 + wp.tid()
+    if found[0] != 0:
+        return
+    h = coc.shape[0]
+    w = coc.shape[1]
+    for x in range(w):
+        v = coc[y, x]
+        if x + 2 < w:
+            if _rising(coc[y, x + 1] - v, coc[y, x + 2] - coc[y, x + 1], grad_min) != 0:
+                found[0] = 1
+                return
+        if y + 2 < h:
+            if _rising(coc[y + 1, x] - v, coc[y + 2, x] - coc[y + 1, x], grad_min) != 0:
+                found[0] = 1
+                return
+
+
 @wp.func
-def _level_block(coc: wp.array2d(dtype=float), photo: wp.array2d(dtype=wp.vec3), i: int, j: int, grad_min: float,
+def _level_block(coc: wp.array2d(dtype=float), photo: wp.array2d(dtype=wp.vec3), i: int, j: int,
                  colour: wp.array2d(dtype=wp.vec3), mean: wp.array2d(dtype=float), low: wp.array2d(dtype=float),
-                 high: wp.array2d(dtype=float), step: wp.array2d(dtype=float), ramp: wp.array2d(dtype=wp.uint8)):
+                 high: wp.array2d(dtype=float), step: wp.array2d(dtype=float)):
     h = coc.shape[0]
     w = coc.shape[1]
     c = wp.vec3(0.0)
@@ -40,7 +64,6 @@ def _level_block(coc: wp.array2d(dtype=float), photo: wp.array2d(dtype=wp.vec3),
     lo = coc[wp.min(2 * i, h - 1), wp.min(2 * j, w - 1)]
     hi = lo
     st = float(0.0)
-    r = int(0)
     for a in range(2):
         y = wp.min(2 * i + a, h - 1)
         for b in range(2):
@@ -52,29 +75,24 @@ def _level_block(coc: wp.array2d(dtype=float), photo: wp.array2d(dtype=wp.vec3),
             hi = wp.max(hi, v)
             if y + 1 < h:
                 st = wp.max(st, wp.abs(coc[y + 1, x] - v))
-                if y + 2 < h:
-                    r = wp.max(r, _rising(coc[y + 1, x] - v, coc[y + 2, x] - coc[y + 1, x], grad_min))
             if x + 1 < w:
                 st = wp.max(st, wp.abs(coc[y, x + 1] - v))
-                if x + 2 < w:
-                    r = wp.max(r, _rising(coc[y, x + 1] - v, coc[y, x + 2] - coc[y, x + 1], grad_min))
     colour[i, j] = c * 0.25
     mean[i, j] = m * 0.25
     low[i, j] = lo
     high[i, j] = hi
     step[i, j] = st
-    ramp[i, j] = wp.uint8(r)
 
 
 @wp.kernel
-def thin_level_kernel(coc: wp.array2d(dtype=float), photo: wp.array2d(dtype=wp.vec3), row0: int, grad_min: float,
+def thin_level_kernel(coc: wp.array2d(dtype=float), photo: wp.array2d(dtype=wp.vec3), row0: int,
                       colour: wp.array2d(dtype=wp.vec3), mean: wp.array2d(dtype=float), low: wp.array2d(dtype=float),
-                      high: wp.array2d(dtype=float), step: wp.array2d(dtype=float), ramp: wp.array2d(dtype=wp.uint8)):
+                      high: wp.array2d(dtype=float), step: wp.array2d(dtype=float)):
     """The 2 x 2 blocks of row ``row0 + t`` of the half-resolution grid (a thread a row: no per-block overhead)."""
     t = wp.tid()
     i = row0 + t
     for j in range(colour.shape[1]):
-        _level_block(coc, photo, i, j, grad_min, colour, mean, low, high, step, ramp)
+        _level_block(coc, photo, i, j, colour, mean, low, high, step)
 
 
 @wp.func

@@ -186,8 +186,8 @@ class _Fit:
 
 class _Grids:
     """The map normalised (``(s - centre) / scale``: mean about 0, range 1) and the photo on the grids of the fits,
-    each made when first asked for: the half-resolution grid from the frame in one pass (a Warp kernel, which also
-    tells whether the map ramps anywhere), the coarser ones each halved from the last, the frame itself (``f = 1``:
+    each made when first asked for: the half-resolution grid from the frame in one pass (a Warp kernel, once
+    another has found that the map ramps somewhere), the coarser ones each halved from the last, the frame itself (``f = 1``:
     a fine blur's per-pixel fit) only where a fit needs it."""
 
     def __init__(self, photo: np.ndarray, s: np.ndarray, centre: float, scale: float, half: _Level,
@@ -199,9 +199,9 @@ class _Grids:
     def of(cls, photo: np.ndarray, s: np.ndarray, grad_min: float) -> _Grids | None:
         """The grids, or None where no two steps of the same sign above ``grad_min`` follow each other along a
         row or a column (a hard map's steps stand alone: it is not fitted) or the map is flat."""
-        colour, mean, low, high, step, ramp = _half_level(photo, s, grad_min)
-        if not ramp.any():
+        if not _ramps(s, grad_min):
             return None
+        colour, mean, low, high, step = _half_level(photo, s)
         lo, hi = float(low.min()), float(high.max())
         scale = hi - lo
         if scale <= 0:
@@ -227,10 +227,30 @@ class _Grids:
         return (s - np.float32(self.centre)) / np.float32(self.scale)
 
 
-def _half_level(photo: np.ndarray, s: np.ndarray, grad_min: float) -> tuple[np.ndarray, ...]:
+def _ramps(s: np.ndarray, grad_min: float) -> bool:
+    """Whether two steps of the same sign above ``grad_min`` follow each other somewhere along a row or a column
+    (``bokehray_kernels.thin.thin_ramp_kernel``: bands of rows on the CPU's cores, each row's thread done once one
+    is found)."""
+    import warp as wp
+
+    h, w = s.shape
+    coc = wp.array(s, dtype=float, device="cpu", copy=False)
+    found = np.zeros(1, np.int32)
+    flag = wp.array(found, dtype=wp.int32, device="cpu", copy=False)
+
+    def band(y0: int, y1: int) -> None:
+        if y1 > y0:
+            wp.launch(bk_thin.thin_ramp_kernel, dim=y1 - y0, inputs=[coc, y0, float(grad_min)], outputs=[flag],
+                      device="cpu")
+
+    in_row_parts(h, w, band)
+    return bool(found[0])
+
+
+def _half_level(photo: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, ...]:
     """The frame's 2 x 2 blocks (the last row / column repeated at an odd side): their mean colour and map value,
-    the map's smallest and largest value and largest step to a right or lower neighbour, and whether a ramp starts
-    in the block (``bokehray_kernels.thin.thin_level_kernel``; bands of block rows on the CPU's cores)."""
+    the map's smallest and largest value and largest step to a right or lower neighbour
+    (``bokehray_kernels.thin.thin_level_kernel``; bands of block rows on the CPU's cores)."""
     import warp as wp
 
     h, w = s.shape
@@ -240,18 +260,16 @@ def _half_level(photo: np.ndarray, s: np.ndarray, grad_min: float) -> tuple[np.n
     img = wp.array(photo, dtype=wp.vec3, device=dev, copy=False)
     colour = np.empty((gh, gw, 3), np.float32)
     mean, low, high, step = (np.empty((gh, gw), np.float32) for _ in range(4))
-    ramp = np.empty((gh, gw), np.uint8)
     outs = [wp.array(colour, dtype=wp.vec3, device=dev, copy=False)]
     outs += [wp.array(x, dtype=float, device=dev, copy=False) for x in (mean, low, high, step)]
-    outs.append(wp.array(ramp, dtype=wp.uint8, device=dev, copy=False))
 
     def band(y0: int, y1: int) -> None:
         if y1 > y0:
-            wp.launch(bk_thin.thin_level_kernel, dim=y1 - y0, inputs=[coc, img, y0, float(grad_min)],
-                      outputs=outs, device=dev)
+            wp.launch(bk_thin.thin_level_kernel, dim=y1 - y0, inputs=[coc, img, y0], outputs=outs,
+                      device=dev)
 
     in_row_parts(gh, 4 * gw, band)
-    return colour, mean, low, high, step, ramp
+    return colour, mean, low, high, step
 
 
 def _best_fit(levels: _Grids, rule: ThinRule, check) -> _Fit | None:

@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from reference import thin_ref
 
-from bokehray.thin_depth import _BlockArgs, _half_level, _window_fit
+from bokehray.thin_depth import _BlockArgs, _half_level, _ramps, _window_fit
 
 
 def _map(seed: int, h: int, w: int):
@@ -23,11 +23,17 @@ def _map(seed: int, h: int, w: int):
 @given(seed=st.integers(0, 2**16), h=st.integers(3, 21), w=st.integers(3, 21))
 def test_the_level_kernel_matches_the_oracle(seed, h, w):
     _, photo, s = _map(seed, h, w)
-    got = _half_level(photo, s, 0.2)
-    want = thin_ref.level_ref(photo, s, 0.2)
-    for g, x in zip(got[:5], want[:5]):
+    for g, x in zip(_half_level(photo, s), thin_ref.level_ref(photo, s), strict=True):
         np.testing.assert_allclose(g, x, rtol=1e-6, atol=1e-5)
-    assert np.array_equal(got[5].astype(bool), want[5])
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**16), h=st.integers(3, 21), w=st.integers(3, 21), grad_min=st.sampled_from([0.2, 0.6]),
+       flip=st.booleans())
+def test_the_ramp_kernel_matches_the_oracle(seed, h, w, grad_min, flip):
+    _, _, s = _map(seed, h, w)
+    s = np.ascontiguousarray(s.T if flip else s)  # ramps down the columns too
+    assert _ramps(s, grad_min) == thin_ref.ramps_ref(s, grad_min)
 
 
 @settings(max_examples=20, deadline=None)

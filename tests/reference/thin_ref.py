@@ -164,29 +164,28 @@ def restore_thin_ref(image: np.ndarray, s: np.ndarray, rule) -> tuple[np.ndarray
 # --- the kernels of ``bokehray_kernels.thin``, one at a time ---------------------------------------------------
 
 
-def level_ref(photo: np.ndarray, s: np.ndarray, grad_min: float):
+def ramps_ref(s: np.ndarray, grad_min: float) -> bool:
+    """``thin_ramp_kernel``: whether two steps in a row (along a row or a column) are both above ``grad_min`` or
+    both below ``-grad_min``, the steps as the map's float32 differences (the kernel's)."""
+    g = np.float32(grad_min)
+    for d in (np.diff(s, axis=1), np.diff(s, axis=0).T):
+        for i in range(d.shape[0]):
+            for j in range(d.shape[1] - 1):
+                if (d[i, j] > g and d[i, j + 1] > g) or (d[i, j] < -g and d[i, j + 1] < -g):
+                    return True
+    return False
+
+
+def level_ref(photo: np.ndarray, s: np.ndarray):
     """``thin_level_kernel``: the 2 x 2 blocks (the last row / column repeated at an odd side) of the photo and the
-    map: mean colour, mean, smallest and largest value, largest step to a right or lower neighbour, and whether two
-    steps in a row (along a row or a column, from a pixel of the block) are both above ``grad_min`` or both below
-    ``-grad_min``."""
+    map: mean colour, mean, smallest and largest value, largest step to a right or lower neighbour."""
     h, w = s.shape
     ph, pw = h + h % 2, w + w % 2
     rows, cols = np.minimum(np.arange(ph), h - 1), np.minimum(np.arange(pw), w - 1)
     sp, pp = s[rows][:, cols].astype(np.float64), photo[rows][:, cols].astype(np.float64)
     step = _steps(s.astype(np.float64))[rows][:, cols]
-    ramp = np.zeros((h, w), bool)
-    g = float(np.float32(grad_min))
-    for y in range(h):
-        for x in range(w):
-            for dy, dx in ((0, 1), (1, 0)):
-                if y + 2 * dy < h and x + 2 * dx < w:
-                    # the steps as the map's float32 differences (the kernel's)
-                    d1 = float(np.float32(s[y + dy, x + dx]) - np.float32(s[y, x]))
-                    d2 = float(np.float32(s[y + 2 * dy, x + 2 * dx]) - np.float32(s[y + dy, x + dx]))
-                    ramp[y, x] |= (d1 > g and d2 > g) or (d1 < -g and d2 < -g)
-    ramp = ramp[rows][:, cols]
     return (_blocks(pp, 2).mean((2, 3)), _blocks(sp, 2).mean((2, 3)), _blocks(sp, 2).min((2, 3)),
-            _blocks(sp, 2).max((2, 3)), _blocks(step, 2).max((2, 3)), _blocks(ramp, 2).any((2, 3)))
+            _blocks(sp, 2).max((2, 3)), _blocks(step, 2).max((2, 3)))
 
 
 def window_fit_ref(gb: np.ndarray, d: np.ndarray, ys: np.ndarray, xs: np.ndarray, k: int, ridge: float):
