@@ -9,7 +9,8 @@ By concern: ``aperture`` (the shape's chords), ``spans`` (a source's row-span de
 pyramid: scatter, prefix sums, resolve), ``routing`` (salient lights to level 0), ``composite`` (layers back to
 front), ``interior`` (a layer's interior opaque), ``fill`` (layer sources and the pull-push fill), ``soft`` (the near parts of split pixels), ``matting``
 (soft edges at depth edges), ``split`` (a band pixel's near and far parts from its estimate), ``ramps`` (a soft
-map's ramps read as edges), ``vote`` (the depth correction's colour vote), ``raytrace`` (the layered ray tracer),
+map's ramps read as edges), ``thin`` (a soft map's thin structures: the frame's grid, the window regressions,
+the hardening), ``vote`` (the depth correction's colour vote), ``raytrace`` (the layered ray tracer),
 ``pisa`` (the refiner's attention masks); ``support``, ``reduce`` and ``sampling`` hold what several of them share.
 """
 

@@ -54,9 +54,9 @@ def main() -> int:
     ap.add_argument("--runs", type=int, default=3)
     args = ap.parse_args()
     if args.module:
-        spec = importlib.util.spec_from_file_location("thin_other", args.module)
+        spec = importlib.util.spec_from_file_location("bokehray.thin_other", args.module)  # its relative imports
         mod = importlib.util.module_from_spec(spec)
-        sys.modules["thin_other"] = mod
+        sys.modules["bokehray.thin_other"] = mod
         spec.loader.exec_module(mod)
         restore_thin = mod.restore_thin
     else:

@@ -31,9 +31,9 @@ def _module(path: str | None):
         from bokehray import thin_depth
 
         return thin_depth
-    spec = importlib.util.spec_from_file_location("thin_other", path)
+    spec = importlib.util.spec_from_file_location("bokehray.thin_other", path)  # its relative imports
     mod = importlib.util.module_from_spec(spec)
-    sys.modules["thin_other"] = mod
+    sys.modules["bokehray.thin_other"] = mod
     spec.loader.exec_module(mod)
     return mod
 

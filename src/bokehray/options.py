@@ -45,8 +45,9 @@ class LayerOptions:
             depth no surface has; slopes that do not end within 40 px (floors, walls) stay. With ``soft_edges``.
         thin_depth: before the ramps, give the structures a soft map's blur flattened (wires, twigs, strokes)
             their depth back from the photo's colour (``bokehray.thin_depth.restore_thin``); hard maps, tilted
-            planes and smooth slopes stay as they are. With ``soft_maps``. Off by default: it costs about 0.1 CPU-s
-            a megapixel of soft map, 4-5x the edge step's share of a render (docs/soft-scene.md, "Soft maps").
+            planes and smooth slopes stay as they are. With ``soft_maps``. Off by default: it costs about 0.04 CPU-s
+            a megapixel of soft map (0.06 at 1.5 MP, 0.3 at 12 MP), twice the edge step's share of a 1.5 MP render
+            (docs/soft-scene.md, "Soft maps").
         strand_gaps: bridge the gaps of a strand the map breaks into dashes (``bokehray.strands.bridge_strands``):
             a pixel between two dashes of the same depth takes the strand's depth where the photo shows the strand
             going on there, so the matting splits it instead of leaving its share of the strand sharp inside the

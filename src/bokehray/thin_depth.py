@@ -31,8 +31,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import bokehray_kernels.thin as bk_thin
 import cv2
 import numpy as np
+
+from .edge_estimate import in_parts, in_row_parts
 
 __all__ = ["ThinRule", "restore_thin"]
 
@@ -120,30 +123,25 @@ def restore_thin(image: np.ndarray, signed_coc: np.ndarray, rule: ThinRule | Non
     rule = rule or ThinRule()
     s = np.ascontiguousarray(signed_coc, np.float32)
     h, w = s.shape
-    steps = _ramp_steps(s, rule.grad_min) if h >= 3 and w >= 3 else None
-    if steps is None:
+    if h < 3 or w < 3:
         return signed_coc, 0
-    out = _restore(image, s, steps, rule, check)
-    if out is None:
+    photo = np.ascontiguousarray(image[..., :3], np.float32)
+    grids = _Grids.of(photo, s, rule.grad_min)
+    if grids is None:
         return signed_coc, 0
+    best = _best_fit(grids, rule, check)
+    lo, hi = -np.inf, np.inf
     if bounds is not None:
-        lo, hi = min(bounds), max(bounds)
-        np.clip(out, min(lo, float(s.min())), max(hi, float(s.max())), out=out)
-    n = int(np.count_nonzero(out != s))
-    return (out, n) if n else (signed_coc, 0)
+        lo, hi = min(grids.low_high[0], min(bounds)), max(grids.low_high[1], max(bounds))
+    done = None if best is None else _harden(best, grids, rule, (lo, hi))
+    return (signed_coc, 0) if done is None else done
 
 
-def _ramp_steps(s: np.ndarray, grad_min: float) -> np.ndarray | None:
-    """Each pixel's larger step to its right and lower neighbour, or None where no two steps of the same sign above
-    ``grad_min`` follow each other along a row or a column (a hard map's steps stand alone: it is not fitted)."""
-    g = np.float32(grad_min)
-    dy, dx = np.diff(s, axis=0), np.diff(s, axis=1)
-    if not any((up[:-1] & up[1:]).any() or (down[:-1] & down[1:]).any()
-               for up, down in ((dy > g, dy < -g), ((dx > g).T, (dx < -g).T))):
-        return None
-    step = np.zeros_like(s)
-    np.abs(dy, out=step[:-1])
-    np.maximum(step[:, :-1], np.abs(dx), out=step[:, :-1])
+def _full_steps(d: np.ndarray) -> np.ndarray:
+    """Each pixel's larger step to its right and lower neighbour."""
+    step = np.zeros_like(d)
+    np.abs(np.diff(d, axis=0), out=step[:-1])
+    np.maximum(step[:, :-1], np.abs(np.diff(d, axis=1)), out=step[:, :-1])
     return step
 
 
@@ -186,37 +184,95 @@ class _Fit:
     flat: np.ndarray | None = None
 
 
-def _restore(image: np.ndarray, s: np.ndarray, steps: np.ndarray, rule: ThinRule, check) -> np.ndarray | None:
-    """The map normalised (mean 0, range 1; ``steps``: its pixels' larger step, not normalised), each blur fitted
-    on its grid, the image's best blur applied."""
-    scale = float(s.max() - s.min())
-    if scale <= 0:
-        return None
-    mean = float(s.mean())
-    d = (s - np.float32(mean)) / np.float32(scale)
-    photo = np.ascontiguousarray(image[..., :3], np.float32)
-    steps *= np.float32(1 / scale)
-    levels = _levels(_Level(1, photo, d, d, d, steps), {rule.factor(x, choosing=True) for x in rule.sigmas})
-    best = _best_fit(levels, rule, scale, check)
-    moved = None if best is None else _harden(best, photo, d, rule, scale)
-    if moved is None or not moved[0].size:
-        return None
-    ys, xs, value = moved
-    out = s.copy()
-    out[ys, xs] = value * np.float32(scale) + np.float32(mean)  # a block at the edge repeats a pixel: same value
-    return out
+class _Grids:
+    """The map normalised (``(s - centre) / scale``: mean about 0, range 1) and the photo on the grids of the fits,
+    each made when first asked for: the half-resolution grid from the frame in one pass (a Warp kernel, once
+    another has found that the map ramps somewhere), the coarser ones each halved from the last, the frame itself (``f = 1``:
+    a fine blur's per-pixel fit) only where a fit needs it."""
+
+    def __init__(self, photo: np.ndarray, s: np.ndarray, centre: float, scale: float, half: _Level,
+                 low_high: tuple[float, float]):
+        self.photo, self.s, self.centre, self.scale, self.low_high = photo, s, centre, scale, low_high
+        self.by_f = {2: half}
+
+    @classmethod
+    def of(cls, photo: np.ndarray, s: np.ndarray, grad_min: float) -> _Grids | None:
+        """The grids, or None where no two steps of the same sign above ``grad_min`` follow each other along a
+        row or a column (a hard map's steps stand alone: it is not fitted) or the map is flat."""
+        if not _ramps(s, grad_min):
+            return None
+        colour, mean, low, high, step = _half_level(photo, s)
+        lo, hi = float(low.min()), float(high.max())
+        scale = hi - lo
+        if scale <= 0:
+            return None
+        centre = float(mean.mean())
+        c, inv = np.float32(centre), np.float32(1 / scale)
+        for x in (mean, low, high):  # in place: no new frame-sized arrays
+            np.subtract(x, c, out=x)
+            np.multiply(x, inv, out=x)
+        np.multiply(step, inv, out=step)
+        return cls(photo, s, centre, scale, _Level(2, colour, mean, low, high, step), (lo, hi))
+
+    def __getitem__(self, f: int) -> _Level:
+        if f not in self.by_f:
+            if f == 1:
+                d = self.normalised(self.s)
+                self.by_f[1] = _Level(1, self.photo, d, d, d, _full_steps(d))
+            else:
+                self.by_f[f] = _pad_even(self[f // 2]).halved()
+        return self.by_f[f]
+
+    def normalised(self, s: np.ndarray) -> np.ndarray:
+        return (s - np.float32(self.centre)) / np.float32(self.scale)
 
 
-def _levels(level: _Level, spacings: set[int]) -> dict[int, _Level]:
-    """The full-resolution level and those of the grid ``spacings`` (powers of two), each halved from the last."""
-    levels = {1: level}
-    while level.f < max(spacings):
-        level = _pad_even(level).halved()
-        levels[level.f] = level
-    return levels
+def _ramps(s: np.ndarray, grad_min: float) -> bool:
+    """Whether two steps of the same sign above ``grad_min`` follow each other somewhere along a row or a column
+    (``bokehray_kernels.thin.thin_ramp_kernel``: bands of rows on the CPU's cores, each row's thread done once one
+    is found)."""
+    import warp as wp
+
+    h, w = s.shape
+    coc = wp.array(s, dtype=float, device="cpu", copy=False)
+    found = np.zeros(1, np.int32)
+    flag = wp.array(found, dtype=wp.int32, device="cpu", copy=False)
+
+    def band(y0: int, y1: int) -> None:
+        if y1 > y0:
+            wp.launch(bk_thin.thin_ramp_kernel, dim=y1 - y0, inputs=[coc, y0, float(grad_min)], outputs=[flag],
+                      device="cpu")
+
+    in_row_parts(h, w, band)
+    return bool(found[0])
 
 
-def _best_fit(levels: dict[int, _Level], rule: ThinRule, scale: float, check) -> _Fit | None:
+def _half_level(photo: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The frame's 2 x 2 blocks (the last row / column repeated at an odd side): their mean colour and map value,
+    the map's smallest and largest value and largest step to a right or lower neighbour
+    (``bokehray_kernels.thin.thin_level_kernel``; bands of block rows on the CPU's cores)."""
+    import warp as wp
+
+    h, w = s.shape
+    gh, gw = (h + 1) // 2, (w + 1) // 2
+    dev = wp.get_device("cpu")
+    coc = wp.array(s, dtype=float, device=dev, copy=False)
+    img = wp.array(photo, dtype=wp.vec3, device=dev, copy=False)
+    colour = np.empty((gh, gw, 3), np.float32)
+    mean, low, high, step = (np.empty((gh, gw), np.float32) for _ in range(4))
+    outs = [wp.array(colour, dtype=wp.vec3, device=dev, copy=False)]
+    outs += [wp.array(x, dtype=float, device=dev, copy=False) for x in (mean, low, high, step)]
+
+    def band(y0: int, y1: int) -> None:
+        if y1 > y0:
+            wp.launch(bk_thin.thin_level_kernel, dim=y1 - y0, inputs=[coc, img, y0], outputs=outs,
+                      device=dev)
+
+    in_row_parts(gh, 4 * gw, band)
+    return colour, mean, low, high, step
+
+
+def _best_fit(levels: _Grids, rule: ThinRule, check) -> _Fit | None:
     """The fit of the blur whose usable windows' median relative residual is lowest (one map, one blur), among
     those whose usable windows cover ``rule.share`` of the most any blur's do, each blur fitted on its own grid; a
     fine blur, chosen on its coarse grid, is applied from its per-pixel fit."""
@@ -224,7 +280,7 @@ def _best_fit(levels: dict[int, _Level], rule: ThinRule, scale: float, check) ->
     for sigma in rule.sigmas:
         if check is not None:
             check()
-        fit = _fit(levels[rule.factor(sigma, choosing=True)], sigma, rule, scale, every=2)
+        fit = _fit(levels[rule.factor(sigma, choosing=True)], sigma, rule, levels.scale, every=2)
         if fit is not None:
             fits.append(fit)
     if not fits:
@@ -233,7 +289,7 @@ def _best_fit(levels: dict[int, _Level], rule: ThinRule, scale: float, check) ->
     fits = [x for x, n in zip(fits, area) if n >= rule.share * max(area)]
     best = min(fits, key=lambda x: float(np.median(x.rel[x.ok])))
     if rule.factor(best.sigma) != best.f or best.part < 1:
-        best = _fit(levels[rule.factor(best.sigma)], best.sigma, rule, scale)
+        best = _fit(levels[rule.factor(best.sigma)], best.sigma, rule, levels.scale)
     return None if best is None else _plateaus(best, levels[best.f], rule)
 
 
@@ -366,144 +422,149 @@ def _fit_part(photo: np.ndarray, d: np.ndarray, where: np.ndarray, rest: float, 
     guide = tone(photo).astype(np.float64)  # float64: the 3 x 3 solve is ill-conditioned where colours align
     guide -= centre
     gb = cv2.GaussianBlur(guide, (0, 0), rest, borderType=cv2.BORDER_REFLECT) if rest > 0 else guide
-    m = _window_means(gb, d.astype(np.float64), k, where)
-    a, b, res, var = _colour_fit(m, rule.ridge)
-    ok = (res < rule.ratio * _plane_residual(m)) & (var > floor)
+    a, b, res, var, plane = _window_fit(gb, d.astype(np.float64), np.nonzero(where), k, rule.ridge)
+    ok = (res < rule.ratio * plane) & (var > floor)
     return a, b - a @ centre, ok, res / np.maximum(var, 1e-12)  # b: the model on the photo as it is, not centred
 
 
-def _window_means(gb: np.ndarray, d: np.ndarray, k: int, where: np.ndarray) -> dict[str, np.ndarray]:
-    """The means over the windows of radius ``k`` (cut at the borders) that the regression needs, at the samples
-    ``where`` (1-D): of the map, its square, the colours, their products with the map and each other, and of the
-    map times x and y (the plane's), with the windows' mean x, y and their variances."""
-    h, w = d.shape
-    sel = np.nonzero(where)
-    (_, _, cy), (_, _, cx) = _extent(h, k), _extent(w, k)
-    count = (cy[sel[0]] * cx[sel[1]]).astype(np.float64)
-
-    # the 16 quantities as the channels of one array: one box filter, one gather
-    ii, jj = zip(*_PAIRS)
-    pos = [np.arange(n, dtype=np.float64) - n / 2 for n in (w, h)]
-    stack = np.concatenate([d[..., None], (d * d)[..., None], gb, gb * d[..., None], gb[..., ii] * gb[..., jj],
-                            (d * pos[0])[..., None], (d * pos[1][:, None])[..., None]], -1)
-    sums = _box_sum(stack, k)[sel] / count[:, None]
-    out = {"d": sums[:, 0], "dd": sums[:, 1], "g": sums[:, 2:5], "gd": sums[:, 5:8], "dx": sums[:, 14],
-           "dy": sums[:, 15]}
-    for c, (i, j) in enumerate(_PAIRS):
-        out[f"g{i}{j}"] = sums[:, 8 + c]
-    for n, axis, name in ((w, 1, "x"), (h, 0, "y")):
-        lo, hi, cnt = _extent(n, k)
-        idx = sel[1] if axis == 1 else sel[0]
-        out["m" + name] = ((lo + hi) / 2 - n / 2)[idx]
-        out["v" + name] = ((cnt.astype(np.float64) ** 2 - 1) / 12)[idx]
-    return out
+def _in_parts(n: int, run, item_px: int) -> list:
+    """``edge_estimate.in_parts`` over ``n`` items of ``item_px`` pixels' work each, on one thread where that is
+    under ``_PARALLEL_PX`` (a thread costs more than it saves there)."""
+    return in_parts(n, run, item_px=item_px, threads=None if n * item_px >= _PARALLEL_PX else 1)
 
 
-def _colour_fit(m: dict[str, np.ndarray], ridge: float):
-    """Per window: ``d ~ a . gb + b`` by ridge regression, from the window means ``m``; (a, b, residual variance,
-    variance of d)."""
-    md, mg = m["d"], m["g"]
-    var = np.maximum(m["dd"] - md * md, 0)
-    c = m["gd"] - mg * md[:, None]
-    cov = {}
-    for i, j in _PAIRS:
-        cov[i, j] = cov[j, i] = m[f"g{i}{j}"] - mg[:, i] * mg[:, j]
-    a = _solve3(cov, c, ridge)
-    b = md - np.einsum("...i,...i->...", a, mg)
-    fit = sum(a[..., i] * cov[i, j] * a[..., j] for i in range(3) for j in range(3))
-    res = np.maximum(var - 2 * np.einsum("...i,...i->...", a, c) + fit, 0)
-    return a, b, res, var
+_PARALLEL_PX = 1 << 17
 
 
-_PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+def _window_fit(gb: np.ndarray, d: np.ndarray, at: tuple[np.ndarray, np.ndarray], k: int, ridge: float):
+    """Per window of radius ``k`` around the samples ``at`` (cut at the grid's borders): ``d ~ a . gb + b`` by
+    ridge regression, its residual variance, the variance of ``d`` and the best plane's residual variance
+    (``bokehray_kernels.thin.thin_fit_kernel``, float64; the samples in parts on the CPU's cores)."""
+    import warp as wp
+
+    n = at[0].size
+    guide = wp.array(np.ascontiguousarray(gb), dtype=wp.vec3d, device="cpu", copy=False)
+    dm = wp.array(np.ascontiguousarray(d), dtype=wp.float64, device="cpu", copy=False)
+    ys, xs = at[0].astype(np.int32), at[1].astype(np.int32)
+    a = np.empty((n, 3), np.float64)
+    b, res, var, plane = (np.empty(n, np.float64) for _ in range(4))
+
+    # runs of consecutive samples along a row: a thread a run, its windows' sums sliding along it
+    cut = np.flatnonzero((np.diff(ys) != 0) | (np.diff(xs) != 1)) + 1
+    first = np.concatenate([[0], cut]).astype(np.int32) if n else np.zeros(0, np.int32)
+    runs = np.diff(np.append(first, n)).astype(np.int32)
+    wys, wxs = (wp.array(v, dtype=wp.int32, device="cpu", copy=False) for v in (ys, xs))
+    outs = [wp.array(a, dtype=wp.vec3d, device="cpu", copy=False)]
+    outs += [wp.array(x, dtype=wp.float64, device="cpu", copy=False) for x in (b, res, var, plane)]
+
+    def part(i: int, j: int) -> None:
+        if j > i:
+            wp.launch(bk_thin.thin_fit_kernel, dim=j - i,
+                      inputs=[guide, dm, wys, wxs, wp.array(runs[i:j], dtype=wp.int32, device="cpu", copy=False),
+                              wp.array(first[i:j], dtype=wp.int32, device="cpu", copy=False), k, ridge], outputs=outs,
+                      device="cpu")
+
+    _in_parts(first.size, part, (2 * k + 1) * max(1, n // max(1, first.size)) * 4)
+    return a, b, res, var, plane
 
 
-def _solve3(cov: dict, c: np.ndarray, ridge: float) -> np.ndarray:
-    """``(cov + ridge I)^-1 c`` per window for the symmetric 3 x 3 ``cov`` (by cofactors, elementwise)."""
-    a00, a11, a22 = cov[0, 0] + ridge, cov[1, 1] + ridge, cov[2, 2] + ridge
-    a01, a02, a12 = cov[0, 1], cov[0, 2], cov[1, 2]
-    i00 = a11 * a22 - a12 * a12
-    i01 = a02 * a12 - a01 * a22
-    i02 = a01 * a12 - a02 * a11
-    i11 = a00 * a22 - a02 * a02
-    i12 = a01 * a02 - a00 * a12
-    i22 = a00 * a11 - a01 * a01
-    det = a00 * i00 + a01 * i01 + a02 * i02
-    inv = 1.0 / np.maximum(det, ridge**3)  # cov is positive semi-definite: the ridge bounds the determinant
-    c0, c1, c2 = c[..., 0], c[..., 1], c[..., 2]
-    return np.stack([(i00 * c0 + i01 * c1 + i02 * c2) * inv, (i01 * c0 + i11 * c1 + i12 * c2) * inv,
-                     (i02 * c0 + i12 * c1 + i22 * c2) * inv], -1)
-
-
-def _plane_residual(m: dict[str, np.ndarray]) -> np.ndarray:
-    """The residual variance of the best plane over each window (a rectangle of samples, whose x and y are
-    uncorrelated, with the mean and variance of a run of integers along each axis)."""
-    md = m["d"]
-    var = m["dd"] - md * md
-    cx = m["dx"] - md * m["mx"]
-    cy = m["dy"] - md * m["my"]
-    return np.maximum(var - cx * cx / m["vx"] - cy * cy / m["vy"], 0)
-
-
-class _Blocks:
-    """The ``f x f`` blocks of the full-resolution image whose samples are usable: their pixels' indices (a block
-    at the image's edge repeats its last row / column) and their place on the grid."""
-
-    def __init__(self, ok: np.ndarray, f: int, shape: tuple[int, int]):
-        self.iy, self.ix = np.nonzero(ok)
-        off = np.arange(f)
-        ys = np.minimum(self.iy[:, None] * f + off, shape[0] - 1)
-        xs = np.minimum(self.ix[:, None] * f + off, shape[1] - 1)
-        self.ys, self.xs = ys[:, :, None], xs[:, None, :]  # N x f x 1 and N x 1 x f
-        self.grid = ok.shape
-
-    def take(self, x: np.ndarray) -> np.ndarray:
-        return x[self.ys, self.xs]
-
-    def scatter(self, per_block: np.ndarray, fill: float) -> np.ndarray:
-        out = np.full(self.grid, fill, np.float32)
-        out[self.iy, self.ix] = per_block
-        return out
-
-    def at(self, grid: np.ndarray) -> np.ndarray:
-        """A grid's value at each block, broadcast over its pixels (N x 1 x 1)."""
-        return grid[self.iy, self.ix][:, None, None]
-
-
-def _harden(fit: _Fit, photo: np.ndarray, d: np.ndarray, rule: ThinRule, scale: float):
+def _harden(fit: _Fit, grids: _Grids, rule: ThinRule, bounds: tuple[float, float]):
     """Each pixel of a usable block at its window's far value (the map's smallest) or near value (a thin
     structure's: the largest restored value; a wide object's, whose map holds its peak as a plateau: that plateau,
     if lower), where that is a structure: the far value is a plateau of the map, and so is a wide object's near
     value; the restoration does not undershoot the far value; enough of the window is on the near side; the step
-    is worth a pixel of blur. Only the usable blocks' pixels are computed (the rest of the image costs nothing): the
-    rows, columns and (normalised) values of the pixels that move by a pixel of blur or more, or None."""
-    blk = _Blocks(fit.ok, fit.f, d.shape)
-    a = [blk.at(fit.a[..., i]) for i in range(3)]
-    g = tone(blk.take(photo))
-    est = a[0] * g[..., 0] + a[1] * g[..., 1] + a[2] * g[..., 2] + blk.at(fit.b)  # N x f x f, the sharp model
+    is worth a pixel of blur. Only the usable blocks' pixels are computed (the rest of the image costs nothing;
+    ``bokehray_kernels.thin``): the map with those pixels moved (values clamped to ``bounds``, in CoC px) and how
+    many moved, or None."""
+    iy, ix = np.nonzero(fit.ok)
     k = fit.k
-    top = _dilate(blk.scatter(est.max((1, 2)), -np.inf), k)
-    low = _erode(blk.scatter(est.min((1, 2)), np.inf), k)
+    blocks = _BlockArgs(grids, fit, iy, ix)
+    est, top, low = blocks.extremes()
+    top = _dilate(_scatter(fit.ok.shape, iy, ix, top, -np.inf), k)
+    low = _erode(_scatter(fit.ok.shape, iy, ix, low, np.inf), k)
     far = fit.far
     wide = fit.near_wide - fit.flat <= rule.flat_tol * (fit.near_wide - far)  # the map's peak is a plateau
     nearv = np.where(wide, np.minimum(top, fit.near_wide), top)  # the near value: a wide object's, its plateau
-    high = est > blk.at(0.5 * (far + nearv))
-    n_high = _box(blk.scatter(high.sum((1, 2)), 0.0), k)
+    above = (est > (0.5 * (far + nearv))[iy, ix][:, None, None]).sum((1, 2))
+    n_high = _box(_scatter(fit.ok.shape, iy, ix, above, 0.0), k)
     tol = rule.plateau_tol * (fit.near_wide - fit.far_wide)
     use = fit.ok & (far - fit.far_wide <= tol) & (~wide | (fit.near_wide - fit.near <= tol))
     use &= far - low <= rule.undershoot * (top - far)
-    use &= nearv - far >= rule.min_step / scale
+    use &= nearv - far >= rule.min_step / grids.scale
     r = (2 * k + 1) * fit.f // 2  # the window's radius in px: a structure holds half a line across it
     use &= n_high * ((2 * k + 1) ** 2) >= r + 1
-    pick = use[blk.iy, blk.ix]
+    pick = use[iy, ix]
     if not pick.any():
         return None
-    sel = (blk.ys[pick], blk.xs[pick])
-    far_p, near_p, map_p = blk.at(far)[pick], blk.at(nearv)[pick], blk.at(fit.near)[pick]
-    dp, ep = d[sel], est[pick]
-    place = (dp - far_p) / np.maximum(map_p - far_p, 1e-12)  # the pixel's place in the map's own window range
-    to_near = (np.maximum(ep, far_p) > 0.5 * (far_p + near_p)) & (place > rule.keep) | (place > 1 - rule.keep)
-    hard = np.where(to_near, near_p, far_p)
-    moved = hard != dp
-    ys, xs = np.broadcast_to(sel[0], hard.shape)[moved], np.broadcast_to(sel[1], hard.shape)[moved]
-    return ys, xs, hard[moved]
+    return blocks.harden(pick, far, nearv, fit.near, rule, bounds)
+
+
+def _scatter(shape: tuple[int, int], iy: np.ndarray, ix: np.ndarray, per_block: np.ndarray, fill: float) -> np.ndarray:
+    out = np.full(shape, fill, np.float32)
+    out[iy, ix] = per_block
+    return out
+
+
+class _BlockArgs:
+    """The usable blocks of a fit as the hardening kernels' arguments (the blocks cut into parts on the CPU's
+    cores)."""
+
+    def __init__(self, grids: _Grids, fit: _Fit, iy: np.ndarray, ix: np.ndarray):
+        import warp as wp
+
+        self.wp, self.grids, self.f = wp, grids, fit.f
+        self.iy, self.ix = iy.astype(np.int32), ix.astype(np.int32)
+        self.a = np.ascontiguousarray(fit.a[iy, ix], np.float32)
+        self.b = np.ascontiguousarray(fit.b[iy, ix], np.float32)
+        self.photo = wp.array(grids.photo, dtype=wp.vec3, device="cpu", copy=False)
+        self.coc = wp.array(grids.s, dtype=float, device="cpu", copy=False)
+
+    def _arrays(self, a: int, b: int, *extra: np.ndarray) -> list:
+        wp = self.wp
+        out = [wp.array(self.iy[a:b], dtype=wp.int32, device="cpu", copy=False),
+               wp.array(self.ix[a:b], dtype=wp.int32, device="cpu", copy=False),
+               wp.array(self.a[a:b], dtype=wp.vec3, device="cpu", copy=False),
+               wp.array(self.b[a:b], dtype=float, device="cpu", copy=False)]
+        return out + [wp.array(np.ascontiguousarray(x[a:b], np.float32), dtype=float, device="cpu", copy=False)
+                      for x in extra]
+
+    def extremes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The sharp model at each block's pixels (N x f x f), and each block's largest and smallest value."""
+        wp, n = self.wp, self.iy.size
+        est = np.empty((n, self.f, self.f), np.float32)
+        top, low = np.empty(n, np.float32), np.empty(n, np.float32)
+
+        def part(a: int, b: int) -> None:
+            if b > a:
+                outs = [wp.array(est[a:b], dtype=float, device="cpu", copy=False)]
+                outs += [wp.array(x[a:b], dtype=float, device="cpu", copy=False) for x in (top, low)]
+                wp.launch(bk_thin.thin_extremes_kernel, dim=b - a, inputs=[self.photo, *self._arrays(a, b), self.f],
+                          outputs=outs, device="cpu")
+
+        _in_parts(n, part, self.f * self.f)
+        return est, top, low
+
+    def harden(self, pick: np.ndarray, far: np.ndarray, nearv: np.ndarray, top: np.ndarray, rule: ThinRule,
+               bounds: tuple[float, float]):
+        """The map with the picked blocks' pixels at their far or near value, and how many moved; None if none."""
+        wp, g = self.wp, self.grids
+        idx = np.flatnonzero(pick)
+        self.iy, self.ix, self.a, self.b = self.iy[idx], self.ix[idx], self.a[idx], self.b[idx]
+        per = [x[self.iy, self.ix] for x in (far, nearv, top)]
+        out = g.s.copy()
+        wout = wp.array(out, dtype=float, device="cpu", copy=False)
+        params = bk_thin.HardenParams()
+        params.f, params.centre, params.scale = self.f, g.centre, g.scale
+        params.keep, params.keep_top = rule.keep, 1 - rule.keep
+        params.lo, params.hi = bounds
+
+        def part(a: int, b: int) -> int:
+            moved = wp.zeros(1, dtype=wp.int32, device="cpu")
+            if b > a:
+                wp.launch(bk_thin.thin_harden_kernel, dim=b - a,
+                          inputs=[self.photo, self.coc, *self._arrays(a, b, *per), params], outputs=[wout, moved],
+                          device="cpu")
+            return int(moved.numpy()[0])
+
+        n = sum(_in_parts(idx.size, part, self.f * self.f))
+        return (out, n) if n else None

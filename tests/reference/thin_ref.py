@@ -159,3 +159,88 @@ def restore_thin_ref(image: np.ndarray, s: np.ndarray, rule) -> tuple[np.ndarray
             return d, np.zeros(d.shape, bool)
     out = _harden(best, photo / (1 + np.maximum(photo, 0)), d, rule)
     return out, out != d
+
+
+# --- the kernels of ``bokehray_kernels.thin``, one at a time ---------------------------------------------------
+
+
+def ramps_ref(s: np.ndarray, grad_min: float) -> bool:
+    """``thin_ramp_kernel``: whether two steps in a row (along a row or a column) are both above ``grad_min`` or
+    both below ``-grad_min``, the steps as the map's float32 differences (the kernel's)."""
+    g = np.float32(grad_min)
+    for d in (np.diff(s, axis=1), np.diff(s, axis=0).T):
+        for i in range(d.shape[0]):
+            for j in range(d.shape[1] - 1):
+                if (d[i, j] > g and d[i, j + 1] > g) or (d[i, j] < -g and d[i, j + 1] < -g):
+                    return True
+    return False
+
+
+def level_ref(photo: np.ndarray, s: np.ndarray):
+    """``thin_level_kernel``: the 2 x 2 blocks (the last row / column repeated at an odd side) of the photo and the
+    map: mean colour, mean, smallest and largest value, largest step to a right or lower neighbour."""
+    h, w = s.shape
+    ph, pw = h + h % 2, w + w % 2
+    rows, cols = np.minimum(np.arange(ph), h - 1), np.minimum(np.arange(pw), w - 1)
+    sp, pp = s[rows][:, cols].astype(np.float64), photo[rows][:, cols].astype(np.float64)
+    step = _steps(s.astype(np.float64))[rows][:, cols]
+    return (_blocks(pp, 2).mean((2, 3)), _blocks(sp, 2).mean((2, 3)), _blocks(sp, 2).min((2, 3)),
+            _blocks(sp, 2).max((2, 3)), _blocks(step, 2).max((2, 3)))
+
+
+def window_fit_ref(gb: np.ndarray, d: np.ndarray, ys: np.ndarray, xs: np.ndarray, k: int, ridge: float):
+    """``thin_fit_kernel``: per sample, over its window of radius ``k`` (cut at the grid's borders), the ridge
+    regression of ``d`` on ``gb`` (a, b, residual variance), the variance of ``d`` and the residual variance of the
+    least-squares plane."""
+    out = []
+    for y, x in zip(ys, xs):
+        g = _window(gb, y, x, k).reshape(-1, 3).astype(np.float64)
+        v = _window(d, y, x, k).ravel().astype(np.float64)
+        n = v.size
+        gc, vc = g - g.mean(0), v - v.mean()
+        a = np.linalg.solve(gc.T @ gc / n + ridge * np.eye(3), gc.T @ vc / n)
+        res = max(float(np.mean((vc - gc @ a) ** 2)), 0.0)
+        yy, xx = np.meshgrid(np.arange(max(0, y - k), min(d.shape[0], y + k + 1)),
+                             np.arange(max(0, x - k), min(d.shape[1], x + k + 1)), indexing="ij")
+        design = np.stack([np.ones(n), yy.ravel(), xx.ravel()], 1)
+        plane = float(np.mean((v - design @ np.linalg.lstsq(design, v, rcond=None)[0]) ** 2))
+        out.append((a, v.mean() - a @ g.mean(0), res, float(np.var(v)), plane))
+    return out
+
+
+def _tone(c: np.ndarray) -> np.ndarray:
+    return c / (1 + np.maximum(c, 0))
+
+
+def block_pixels(iy: int, ix: int, f: int, shape: tuple[int, int], own: bool = False):
+    """The pixels of block (iy, ix): the last row / column repeated at the image's edge, or (``own``) left out."""
+    for p in range(f):
+        for q in range(f):
+            y, x = iy * f + p, ix * f + q
+            if own and (y >= shape[0] or x >= shape[1]):
+                continue
+            yield min(y, shape[0] - 1), min(x, shape[1] - 1)
+
+
+def extremes_ref(photo, iy, ix, f, a, b):
+    """``thin_extremes_kernel``: per block the model ``a . tone(photo) + b`` at its pixels (f x f, the edge's
+    repeats included), its largest and smallest value."""
+    est = np.zeros((len(iy), f, f))
+    for t in range(len(iy)):
+        for n, (y, x) in enumerate(block_pixels(iy[t], ix[t], f, photo.shape[:2])):
+            est[t, n // f, n % f] = float(np.dot(a[t], _tone(photo[y, x].astype(np.float64)))) + float(b[t])
+    return est, est.max((1, 2)), est.min((1, 2))
+
+
+def harden_ref(photo, coc, iy, ix, f, a, b, far, near, top, centre, scale, keep, lo, hi):
+    """``thin_harden_kernel``: the map with each pixel a block holds at its far or near value (normalised
+    ``(coc - centre) / scale``), back in CoC px and clamped to [lo, hi]."""
+    out = coc.astype(np.float64).copy()
+    for t in range(len(iy)):
+        for y, x in block_pixels(iy[t], ix[t], f, coc.shape, own=True):
+            d = (float(coc[y, x]) - centre) / scale
+            place = (d - far[t]) / max(top[t] - far[t], 1e-12)
+            e = float(np.dot(a[t], _tone(photo[y, x].astype(np.float64)))) + float(b[t])
+            to_near = (max(e, far[t]) > 0.5 * (far[t] + near[t]) and place > keep) or place > 1 - keep
+            out[y, x] = min(max((near[t] if to_near else far[t]) * scale + centre, lo), hi)
+    return out

@@ -81,7 +81,7 @@ def _add_device_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-fill", action="store_true", help="do not fill the regions hidden behind nearer layers")
     p.add_argument("--thin-depth", action="store_true",
                    help="give wires, twigs and strokes a soft map flattened their depth back from the photo (about "
-                        "0.1 CPU-s a megapixel; docs/soft-scene.md)")
+                        "0.04 CPU-s a megapixel; docs/soft-scene.md)")
     p.add_argument("--debug", action="store_true", help="show tracebacks")
     p.add_argument("--quiet", action="store_true", help="print nothing but errors")
 
