@@ -12,7 +12,7 @@ from pathlib import Path
 import psutil
 
 __all__ = ["BAND_PX", "HEAP_MMAP_BYTES", "UNLIMITED", "address_space_headroom", "available_bytes", "bound_heap",
-           "cgroup_headroom", "row_bands"]
+           "cgroup_headroom", "on_cores", "row_bands"]
 
 UNLIMITED = 1 << 62
 """What :func:`available_bytes` and its parts say where nothing limits the process."""
@@ -67,6 +67,20 @@ def row_bands(h: int, w: int) -> Iterator[tuple[int, int]]:
     rows = max(1, BAND_PX // max(1, w))
     for y0 in range(0, h, rows):
         yield y0, min(h, y0 + rows)
+
+
+def on_cores(run, spans: list[tuple[int, int]]) -> list:
+    """``run(a, b)`` for each of ``spans`` (independent parts of a frame: bands of rows), spread over the CPU's cores
+    on a thread pool (NumPy's loops, Pillow's colour transforms release the GIL), the results in order."""
+    import os
+
+    workers = min(len(spans), os.cpu_count() or 1)
+    if workers <= 1:
+        return [run(*span) for span in spans]
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        return [f.result() for f in [pool.submit(run, *span) for span in spans]]
 
 
 def available_bytes() -> int:

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._memory import on_cores
 from ..errors import InputError
 from ..formats import first_index, format_of
 from ..validate import check_path
@@ -163,22 +164,8 @@ def normalize_relative(values: np.ndarray, *, invert: bool = False, source: str 
             np.subtract(1.0, d, out=d)
         out[a:b] = d
 
-    _on_cores(band, _row_bands(v))  # (a 0-d map is one value: refused as constant above)
+    on_cores(band, _row_bands(v))  # (a 0-d map is one value: refused as constant above)
     return (out, bounds) if with_bounds else out
-
-
-def _on_cores(run, spans: list[tuple[int, int]]) -> None:
-    """``run(a, b)`` for every span, spread over the CPU's cores (the spans are independent)."""
-    workers = min(len(spans), os.cpu_count() or 1)
-    if workers <= 1:
-        for span in spans:
-            run(*span)
-        return
-    from concurrent.futures import ThreadPoolExecutor
-
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        for f in [pool.submit(run, *span) for span in spans]:
-            f.result()
 
 
 def missing_depth_share(depth_m: np.ndarray) -> float:
