@@ -41,7 +41,6 @@ __all__ = [
     "dilate",
     "edge_band",
     "edges_of_steps",
-    "frame_array",
     "in_parts",
     "in_row_parts",
     "isolated_share",
@@ -89,21 +88,6 @@ def in_parts(n: int, run, *, threads: int | None = None, cpu: bool = True, check
                 check()
             out.extend(pool.map(lambda span: run(*span), spans[r : r + workers]))
     return out
-
-
-def frame_array(shape: tuple[int, ...], dtype, device, *, zero: bool = False):
-    """A Warp array of ``shape`` (``float``, ``wp.uint8``, ``wp.int32``) for a frame-sized pass: on the CPU over a
-    NumPy buffer (NumPy asks the kernel for huge pages for blocks this large: a 48 MB map is about a hundred page
-    faults instead of twelve thousand, which cost 2-5 us each on the VMs measured), elsewhere ``wp.empty`` /
-    ``wp.zeros``. ``zero``: zeroed, else uninitialised (every element written before it is read)."""
-    import warp as wp
-
-    dev = wp.get_device(device)
-    if not dev.is_cpu:
-        return (wp.zeros if zero else wp.empty)(shape, dtype=dtype, device=dev)
-    types = {float: np.float32, wp.float32: np.float32, wp.uint8: np.uint8, wp.int32: np.int32}
-    host = (np.zeros if zero else np.empty)(shape, types[dtype])
-    return wp.array(host, dtype=dtype, device=dev, copy=False)  # aliases ``host`` (and keeps it alive)
 
 
 def row_parts(h: int, w: int, *, align: int = 1, threads: int | None = None) -> list[tuple[int, int]]:

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import bokehray_kernels.ramps as bk_ramps
 import numpy as np
 
-from .edge_estimate import frame_array, in_parts, in_row_parts
+from .edge_estimate import in_parts, in_row_parts
 
 __all__ = ["RampRule", "snap_ramps"]
 
@@ -74,7 +74,7 @@ def snap_ramps(image: np.ndarray, signed_coc: np.ndarray, rule: RampRule | None 
     dev = wp.get_device(device)
     copy = not dev.is_cpu  # on the CPU the kernels read the (contiguous) arrays in place
     coc = wp.array(s, dtype=float, device=dev, copy=copy)
-    grad = frame_array((h, w), float, dev)  # every pixel written by the gradient's parts
+    grad = wp.empty((h, w), dtype=float, device=dev)
 
     def gradient(a: int, b: int) -> None:  # pixels a to b: the rows from ceil(a / w) on (the parts tile the rows)
         y0, y1 = -(-a // w), -(-b // w)

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import bokehray_kernels.strands as bk_strands
 import numpy as np
 
-from .edge_estimate import frame_array, in_parts
+from .edge_estimate import in_parts
 from .scene import SoftEdges
 
 __all__ = ["TILE_PX", "HiddenLightRule", "StrandRule", "bridge_strands", "gap_offsets", "hidden_lights", "varied_tiles"]
@@ -152,10 +152,10 @@ def bridge_strands(image: np.ndarray, signed_coc: np.ndarray, rule: StrandRule |
     copy = not dev.is_cpu  # on the CPU the kernels read the (contiguous) arrays in place
     coc = wp.array(s, dtype=float, device=dev, copy=copy)
     params = rule.struct()
-    strand = frame_array((h, w), wp.uint8, dev, zero=True)
+    strand = wp.zeros((h, w), dtype=wp.uint8, device=dev)
     tiles = varied_tiles(s, rule.jump_px, rule.thin_px)  # elsewhere no pixel has a farther one within reach
     ty0, tx0 = (wp.array(np.ascontiguousarray(tiles[:, k]), dtype=wp.int32, device=dev) for k in (0, 1))
-    slot = frame_array((len(tiles), TILE_PX * TILE_PX), wp.uint8, dev, zero=True)
+    slot = wp.zeros((len(tiles), TILE_PX * TILE_PX), dtype=wp.uint8, device=dev)
 
     def launch_tiles(a: int, b: int) -> None:
         if b > a:
@@ -172,8 +172,8 @@ def bridge_strands(image: np.ndarray, signed_coc: np.ndarray, rule: StrandRule |
     offs = gap_offsets(rule.max_gap)
     oy = wp.array(offs[:, 0], dtype=wp.int32, device=dev)
     ox = wp.array(offs[:, 1], dtype=wp.int32, device=dev)
-    out = frame_array((h, w), float, dev)
-    out.assign(coc)  # the map, then its bridged pixels
+    out = wp.array(s, dtype=float, device=dev, copy=True)
+
     def launch(a: int, b: int) -> wp.array | None:
         if b <= a:
             return None
