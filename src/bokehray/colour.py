@@ -3,6 +3,7 @@ say so in an output (its primaries for EXR, an ICC profile for PNG, JPEG and TIF
 
 from __future__ import annotations
 
+import os
 import struct
 from functools import cache
 
@@ -99,12 +100,13 @@ def quantize(img: np.ndarray, bits: int, *, rows: int = 256) -> np.ndarray:
     """sRGB-encode the colour channels (the first three; a fourth, alpha, stays linear) of a float32 H x W x C
     image and round to ``bits``-bit codes: ``round(clip(linear_to_srgb(x), 0, 1) * (2^bits - 1))``, the same codes
     as that formula (8 bits through an exact table, :func:`_u8_table`; 16 bits through the formula itself), a band
-    of ``rows`` rows at a time so that no full-frame float64 temporary exists."""
+    of ``rows`` rows at a time so that no full-frame float64 temporary exists, the bands on the CPU's cores."""
     img = np.asarray(img, np.float32)
     h, w, c = img.shape
     out = np.empty((h, w, c), np.uint8 if bits == 8 else np.uint16)
     n_colour = min(c, 3)
-    for y in range(0, h, rows):
+
+    def band_rows(y: int) -> None:
         band = img[y : y + rows]
         for ch0, ch1, srgb in ((0, n_colour, True), (n_colour, c, False)):
             if ch1 <= ch0:
@@ -118,6 +120,21 @@ def quantize(img: np.ndarray, bits: int, *, rows: int = 256) -> np.ndarray:
             x += np.float32(0.0)  # -0.0 -> +0.0 (its bit pattern would index past the table)
             b = x.view(np.uint32) >> _BUCKET_SHIFT
             out[y : y + rows, :, ch0:ch1] = base[b] + (x >= nxt[b])
+
+    starts = range(0, h, rows)
+    workers = min(len(starts), os.cpu_count() or 1)
+    if workers <= 1:
+        for y in starts:
+            band_rows(y)
+    else:  # the bands on the CPU's cores: NumPy's loops release the GIL
+        from concurrent.futures import ThreadPoolExecutor
+
+        if bits == 8:  # the cached tables made once, before the threads
+            _u8_table(True)
+            _u8_table(False)
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            for f in [pool.submit(band_rows, y) for y in starts]:
+                f.result()
     return out
 
 

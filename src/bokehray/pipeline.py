@@ -14,7 +14,7 @@ from numbers import Integral, Real
 import numpy as np
 
 from . import scene, tiling
-from ._memory import bound_heap
+from ._memory import bound_heap, small_pages
 from .errors import InputError, NumericalError
 from .lens import Aperture, BlurParams
 from .levels import LEVELS, RenderContext, get_level
@@ -258,6 +258,7 @@ def _render_with_stats(inputs: Handover, blur: BlurParams, aperture: Aperture | 
     refining = _check_refine(refine, quality, refine_options)
     _check_shape_fits(inputs.image, level.whole_image_bytes(), memory)
     bound_heap()  # the C heap held to what is in use (the estimate counts arrays, not freed pages kept)
+    small_pages()  # NumPy's large arrays on 4 KB pages: less CPU here than its huge pages
     # the context takes the arrays out of the holder: from here only the context (and the caller) holds them
     ctx, work, raw_max, channels, lowest = _context(inputs, blur, aperture, layers, memory, options, device,
                                                     progress, highlight_boost, keep_pixels=refining, clock=clock)

@@ -26,7 +26,6 @@ from dataclasses import dataclass
 
 import bokehray_kernels.strands as bk_strands
 import numpy as np
-from scipy import ndimage
 
 from .edge_estimate import in_parts
 from .scene import SoftEdges
@@ -99,13 +98,30 @@ def varied_tiles(s: np.ndarray, jump_px: float, reach: int) -> np.ndarray:
         whole = s[: hq * t, : wq * t]
         hi[:hq, :wq], lo[:hq, :wq] = _tile_reduce(whole, t, np.maximum), _tile_reduce(whole, t, np.minimum)
     size = 2 * -(-int(reach) // t) + 1
-    hi = ndimage.maximum_filter(hi, size, mode="nearest")
-    lo = ndimage.minimum_filter(lo, size, mode="nearest")
+    hi = _grid_filter(hi, size // 2, np.maximum)
+    lo = _grid_filter(lo, size // 2, np.minimum)
     varied = hi - lo > np.float32(jump_px)
     varied[[0, -1]] = True  # outside the frame counts as farther: the frame's corners hold strand pixels
     varied[:, [0, -1]] = True
     ty, tx = np.nonzero(varied)
     return np.stack([ty * t, tx * t], 1).astype(np.int32)
+
+
+def _grid_filter(a: np.ndarray, k: int, op) -> np.ndarray:
+    """``op`` (np.maximum, np.minimum) over the ``(2k+1)^2`` square around each cell of the 2-D grid ``a``, the
+    border's cells repeated beyond it: ``scipy.ndimage.maximum_filter(a, 2k+1, mode="nearest")`` (and minimum), the
+    same values, without importing ``scipy.ndimage`` (0.3 s of a command's start) for a tile grid."""
+    if k <= 0:
+        return a.copy()
+    h, w = a.shape
+    p = np.pad(a, k, mode="edge")
+    rows = p[: h, :].copy()
+    for dy in range(1, 2 * k + 1):
+        op(rows, p[dy : dy + h, :], out=rows)
+    out = rows[:, :w].copy()
+    for dx in range(1, 2 * k + 1):
+        op(out, rows[:, dx : dx + w], out=out)
+    return out
 
 
 def _tile_reduce(a: np.ndarray, t: int, op) -> np.ndarray:

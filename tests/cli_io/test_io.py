@@ -904,3 +904,16 @@ def test_an_exclusive_write_tries_the_next_names_without_encoding_again(tmp_path
         with pytest.raises(OutputError, match="encoded as .png"):
             at.atomic_write(tmp_path / "o-001.png", encode, exclusive=True, next_name=lambda taken, o=other: o)
     assert sorted(f.name for f in tmp_path.iterdir()) == ["o-001.png", "o-002.png", "o-003.png"]
+
+
+@pytest.mark.parametrize("ext", ["png", "jpg", "tif", "exr"])
+def test_writing_leaves_the_caller_s_float32_image_as_it_was(tmp_path, ext):
+    """to_float32 hands float32 pixels on without a copy: no writer may change them (RGBA EXR premultiplies, the
+    integer formats clip and encode, all into arrays of their own)."""
+    rng = np.random.default_rng(3)
+    img = (rng.random((37, 53, 4), dtype=np.float32) * 1.4 - 0.2)
+    img[..., 3] = np.clip(img[..., 3], 0, 1)
+    img = img if ext in ("png", "tif", "exr") else np.ascontiguousarray(img[..., :3])
+    before = img.copy()
+    br.write_image(tmp_path / f"o.{ext}", img)
+    assert np.array_equal(img, before)

@@ -231,6 +231,35 @@ def test_normalize_is_in_range_and_keeps_the_order(v, invert):
     assert (steps <= 1e-6).all() if invert else (steps >= -1e-6).all()
 
 
+_MAP_DTYPES = st.sampled_from([np.float32, np.float64, np.uint8, np.uint16, np.int32])
+
+
+@given(st.data(), _MAP_DTYPES, st.tuples(st.integers(1, 40), st.integers(1, 40)),
+       st.lists(st.floats(0, 100), min_size=1, max_size=3))
+def test_percentiles_are_numpys_bit_for_bit(data, dtype, shape, q):
+    """The partition in the map's own dtype gives np.percentile's float64 result exactly (ties, few values, any q)."""
+    elements = st.floats(-1e4, 1e4, width=32) if np.dtype(dtype).kind == "f" else st.integers(0, 9)
+    v = data.draw(hnp.arrays(dtype, shape, elements=elements))
+    assert depth.percentiles(v, tuple(q)) == tuple(float(x) for x in np.percentile(np.asarray(v, np.float64), q))
+
+
+@given(st.data(), _MAP_DTYPES, st.tuples(st.integers(1, 700), st.integers(1, 600)), st.booleans())
+def test_normalize_is_the_float64_expression_bit_for_bit(data, dtype, shape, invert):
+    """Bands on threads, percentiles by partition: the values of the whole-frame float64 expression it replaced."""
+    elements = st.floats(-1e4, 1e4, width=32) if np.dtype(dtype).kind == "f" else st.integers(0, 9)
+    v = data.draw(hnp.arrays(dtype, shape, elements=elements))
+    w = np.asarray(v, np.float64)
+    lo, hi = (float(x) for x in np.percentile(w, depth.NORMALIZE_PERCENTILES))
+    if not hi > lo:
+        lo, hi = float(w.min()), float(w.max())
+    if not hi > lo:
+        return
+    d = np.clip((w - lo) / (hi - lo), 0.0, 1.0)
+    want = (1.0 - d if invert else d).astype(np.float32)
+    got, (glo, ghi, _) = depth.normalize_relative(v, invert=invert, with_bounds=True)
+    assert (glo, ghi) == (lo, hi) and got.dtype == np.float32 and np.array_equal(got, want)
+
+
 def test_normalize_uses_robust_percentiles():
     rng = np.random.default_rng(0)
     v = rng.uniform(0.39, 6.87, (200, 200))  # a raw relative inverse-depth map

@@ -96,3 +96,21 @@ def test_all_lists_exactly_the_lazy_exports():
     import bokehray as br
 
     assert set(br.__all__) == set(br._EXPORTS) | {"__version__"}
+
+
+def test_the_render_s_imports_beside_the_reading_load_what_a_render_needs_and_swallow_nothing_else():
+    """prefetch_imports loads the renderer's modules on its thread (a fresh interpreter: none loaded before), and a
+    module that cannot be imported stops the thread quietly (the import that needs it raises, not this one)."""
+    code = (
+        "import sys\n"
+        "from bokehray.app.render_job import RENDER_MODULES, prefetch_imports\n"
+        "assert not any(m in sys.modules for m in RENDER_MODULES)\n"
+        "prefetch_imports().join()\n"
+        "assert all(m in sys.modules for m in RENDER_MODULES), [m for m in RENDER_MODULES if m not in sys.modules]\n"
+        "t = prefetch_imports(('bokehray_no_such_module', 'json'))\n"
+        "t.join()\n"
+        "assert not t.is_alive()\n"
+        "print('ok')\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr

@@ -376,3 +376,17 @@ def test_a_light_at_two_depths_either_side_is_not_taken_behind_the_strand():
     soft2 = split_mixed_pixels(photo, s2)
     _, n = hidden_lights(photo, s2, soft2)
     assert n == len(hidden_lights_ref(photo, s2, soft2, HiddenLightRule())) == 0
+
+
+@given(st.integers(0, 2**32 - 1), st.integers(1, 24), st.integers(1, 24), st.integers(0, 4))
+def test_the_tile_grid_filter_is_scipys(seed, h, w, k):
+    """The varied tiles' max and min filters (NumPy, no scipy.ndimage import on the command's path) give
+    ndimage's values, the border repeated, infinities (the ragged tiles) included."""
+    from bokehray.strands import _grid_filter
+
+    rng = np.random.default_rng(seed)
+    a = rng.normal(size=(h, w)).astype(np.float32)
+    a[rng.random((h, w)) < 0.1] = np.inf
+    a[rng.random((h, w)) < 0.1] = -np.inf
+    assert np.array_equal(_grid_filter(a, k, np.maximum), ndimage.maximum_filter(a, 2 * k + 1, mode="nearest"))
+    assert np.array_equal(_grid_filter(a, k, np.minimum), ndimage.minimum_filter(a, 2 * k + 1, mode="nearest"))

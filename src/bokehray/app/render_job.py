@@ -11,11 +11,13 @@ import json
 import math
 import os
 import sys
+import threading
 import time
 from pathlib import Path
 
 import numpy as np
 
+from .._memory import small_pages
 from .._quiet import init_warp_quietly
 from ..errors import InputError
 from ..photo.subject import AMOUNT_DEFAULT, AMOUNT_K_FRACTION
@@ -27,6 +29,32 @@ __all__ = ["aperture_of", "check_render_flags", "layer_options_of", "read_map", 
 
 JPEG_QUALITY = 95
 """The quality of a JPEG output without ``--jpeg-quality``."""
+
+
+RENDER_MODULES = ("warp", "bokehray.pipeline", "bokehray.ramps", "bokehray.strands", "bokehray.matting",
+                  "bokehray.levels.preview")
+"""What a preview render imports on its way (Warp, about 0.4 s of Python; the kernels' modules, whose kernels are
+parsed as they load): :func:`prefetch_imports` loads them while the photo is read."""
+
+
+def prefetch_imports(modules: tuple[str, ...] = RENDER_MODULES) -> threading.Thread:
+    """Import ``modules`` on a daemon thread, started now; join it before the first of them is needed. The photo's
+    reading, its map's and the colour conversion run in C with the GIL released (Pillow's decoders and littleCMS,
+    NumPy's loops), so the imports' Python runs beside them on the other core instead of after them. Importing is
+    all it does (``wp.init`` stays with :func:`start_warp`, which may silence the native stderr); a module that
+    fails to import here is left to the import that needs it, which raises as before."""
+    import importlib
+
+    def run() -> None:
+        for name in modules:
+            try:
+                importlib.import_module(name)
+            except Exception:  # noqa: BLE001 - the import that needs it raises it, with its own context
+                return
+
+    thread = threading.Thread(target=run, name="bokehray-imports", daemon=True)
+    thread.start()
+    return thread
 
 
 def start_warp(args: argparse.Namespace) -> None:
@@ -472,6 +500,8 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:  
     from ..validate import check_radiance
 
     clock = command_clock()
+    small_pages()  # NumPy's large arrays on 4 KB pages from the reading on (_memory.small_pages: less CPU here)
+    imports = prefetch_imports()
     bar.stage("read")
     image = _alpha_for_output(args, read_image(args.image))
     check_radiance(image, str(args.image))  # the limit every level has, with the file named
@@ -535,6 +565,7 @@ def _render(args: argparse.Namespace, physical: bool, bar: _Progress) -> dict:  
     if grain is not None:
         clock.lap("grain")
 
+    imports.join()
     start_warp(args)
     from ..options import PreviewOptions
     from ..pipeline import Handover, render_handed_over

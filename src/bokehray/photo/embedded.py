@@ -4,12 +4,14 @@ Used by the readers (``bokehray.photo.read``); see docs/conventions.md (Light) a
 
 from __future__ import annotations
 
+import os
 import struct
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from .._memory import on_cores
 from ..errors import InputError
 
 __all__ = ["Embedded", "apply_orientation", "embedded", "exif_for_output", "orientation_words", "to_srgb_codes"]
@@ -150,11 +152,18 @@ def to_srgb_codes(codes: np.ndarray, meta: Embedded, source: str) -> np.ndarray:
                                             renderingIntent=ImageCms.Intent.RELATIVE_COLORIMETRIC)
     except (ImageCms.PyCMSError, OSError, ValueError, TypeError) as e:
         raise InputError(f"{source}: cannot use its embedded ICC profile ({meta.icc_name or 'unnamed'}): {e}") from None
-    rgb = codes[..., :3]
-    eight = rgb if rgb.dtype == np.uint8 else np.round(rgb / 257.0).astype(np.uint8)
-    out = np.asarray(ImageCms.applyTransform(Image.fromarray(np.ascontiguousarray(eight), "RGB"), transform))
-    res = codes.copy()
-    res[..., :3] = out if codes.dtype == np.uint8 else out.astype(np.uint16) * 257
+    res = np.empty_like(codes)
+
+    def part(y0: int, y1: int) -> None:  # a part of the rows: littleCMS converts each pixel on its own
+        rgb = codes[y0:y1, :, :3]
+        eight = rgb if rgb.dtype == np.uint8 else np.round(rgb / 257.0).astype(np.uint8)
+        out = np.asarray(ImageCms.applyTransform(Image.fromarray(np.ascontiguousarray(eight), "RGB"), transform))
+        res[y0:y1, :, :3] = out if codes.dtype == np.uint8 else out.astype(np.uint16) * 257
+        res[y0:y1, :, 3:] = codes[y0:y1, :, 3:]
+
+    h = codes.shape[0]
+    n = max(1, min(os.cpu_count() or 1, h * codes.shape[1] // (1 << 18)))
+    on_cores(part, [(h * j // n, h * (j + 1) // n) for j in range(n)])  # the parts on the CPU's cores
     return res
 
 

@@ -68,6 +68,9 @@ def cmd_view(args: argparse.Namespace) -> int:  # noqa: C901
             device = str(wp.get_device(args.device))
     except (RuntimeError, ValueError) as e:
         raise InputError(f"--device: {args.device!r} is not available here ({e})") from None
+    from ..render_job import RENDER_MODULES, prefetch_imports
+
+    prefetch_imports(RENDER_MODULES)  # the renderer's modules load while the photo is read
     session = ViewSession.from_files(args.image, disparity=args.disparity, depth=args.depth, depth_model=args.depth_model,
                                      resize_disparity=args.resize_disparity, export_dir=export_dir,
                                      proxy_long_side=args.proxy_size, display_long_side=args.display_size,

@@ -436,8 +436,10 @@ class ViewSession:
                    depth_model: str | None = None, resize_disparity: bool = False, **kw) -> ViewSession:
         """Read the inputs as ``bokehray render`` does (the same readers, depth conventions, checks and messages;
         ``depth_model`` estimates the map with a local checkpoint, as ``--depth-model`` does)."""
+        from ..._memory import small_pages
         from ..render_job import read_map
 
+        small_pages()  # as the command line does before it reads (bokehray._memory.small_pages)
         image = br.read_image(image_path)
         d, norm = read_map(image, disparity=disparity, depth=depth, depth_model=depth_model,
                            resize_disparity=resize_disparity, device=kw.get("device", "cpu"))
