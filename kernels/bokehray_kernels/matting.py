@@ -156,6 +156,52 @@ def _cross_section(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float
 
 
 @wp.func
+def _narrow_here(coc: wp.array2d(dtype=float), py: int, px: int, ey: int, ex: int, mid: float) -> int:
+    """1 where the strand through (py, px) is one the cross-sections measure: no near pixel of its 3 x 3 has a
+    pixel 2 px either side along (ey, ex) on the near side too (a strand wider than a cross-section there, or
+    another near object beside it: the strands the reach measured are not this one); else 0."""
+    h = coc.shape[0]
+    w = coc.shape[1]
+    for dy in range(-1, 2):
+        for dx in range(-1, 2):
+            y = py + dy
+            x = px + dx
+            if y >= 0 and y < h and x >= 0 and x < w:
+                if coc[y, x] > mid:
+                    for s in range(-1, 2, 2):
+                        ye = y + 2 * s * ey
+                        xe = x + 2 * s * ex
+                        if ye >= 0 and ye < h and xe >= 0 and xe < w:
+                            if coc[ye, xe] > mid:
+                                return 0
+    return 1
+
+
+XS_COVER = wp.constant(2.0)
+"""A measured colour holds at a pixel whose section (:func:`_section_cover`) the strand could cover with the light
+behind it: at most this many times the strand's measured width; more, and the light is dimmer there than B (its
+rim beside the strand), and the pixel is not taken as a strand over that light."""
+
+
+@wp.func
+def _section_cover(image: wp.array2d(dtype=wp.vec3), py: int, px: int, ey: int, mb: wp.vec3, f: wp.vec3) -> float:
+    """The strand's cover of the section through (py, px) along (ey, 1 - ey) (the pixel and its two neighbours)
+    were the light ``mb`` behind all of it: the sum of their places on the line from ``mb`` to ``f``."""
+    fb = mb - f
+    den = wp.max(wp.dot(fb, fb), 1.0e-30)
+    h = image.shape[0]
+    w = image.shape[1]
+    ex = 1 - ey
+    out = float(0.0)
+    for k in range(-1, 2):
+        y = py + k * ey
+        x = px + k * ex
+        if y >= 0 and y < h and x >= 0 and x < w:
+            out += wp.dot(mb - image[y, x], fb) / den
+    return out
+
+
+@wp.func
 def _strand_colour(su: wp.vec3, sl: wp.vec3, n: wp.vec2, d: wp.vec3, lt: wp.vec3) -> wp.vec4:
     """The strand's colour from its mean unlit cross-section ``su`` (over ``d``: ``W (F - D)``) and lit one ``sl``
     (over ``lt``: ``W (F - L)``), ``n`` the counts: its width ``W = (su - sl) . (L - D) / |L - D|^2`` (the light
@@ -173,7 +219,7 @@ def _strand_colour(su: wp.vec3, sl: wp.vec3, n: wp.vec2, d: wp.vec3, lt: wp.vec3
     if width <= XS_MIN_W or width > XS_MAX_W:
         return wp.vec4(0.0, 0.0, 0.0, 0.0)
     f = wp.max(dd + u / width, wp.vec3(0.0, 0.0, 0.0))
-    return wp.vec4(f[0], f[1], f[2], 1.0)
+    return wp.vec4(f[0], f[1], f[2], width)
 
 
 @wp.func
@@ -258,7 +304,8 @@ def _light_free(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), 
                     sl += xs
                     dl += xb
                     nx += wp.vec2(0.0, 1.0)
-    return wp.vec3(sf, 0.0, 0.0), f1, f2, _strand_colour(su, sl, nx, du, dl)
+    nx = nx * float(_narrow_here(coc, py, px, ey, 1 - ey, mid))  # 0: this pixel's strand is not the one measured
+    return wp.vec3(sf, float(ey), 0.0), f1, f2, _strand_colour(su, sl, nx, du, dl)
 
 
 LIT_REACH = wp.constant(4)
@@ -443,9 +490,12 @@ def matting_band_kernel(  # noqa: C901
             # only where the window's F holds clearly more of the light than the unlit one (an opaque wire's core
             # is its own colour over any light: its F stays), unless the strand's cross-sections measured its colour
             share = wp.dot(mf - lf, mb) / wp.max(wp.dot(mb, mb), 1.0e-30)
-            if xf[3] > 0.0:  # the strand's colour from its cross-sections over the light and beside it
+            lfx = wp.vec3(xf[0], xf[1], xf[2])
+            if xf[3] > 0.0 and _section_cover(image, py, px, int(lw[1]), mb, lfx) > XS_COVER * xf[3]:
+                share = -1.0  # darker than the strand can make it over this light: the light's rim, B is not behind
+            elif xf[3] > 0.0:  # the strand's colour from its cross-sections over the light and beside it
                 var_f = l2 / wp.max(lw[0], 1.0e-30) - wp.cw_mul(lf, lf)
-                lf = wp.vec3(xf[0], xf[1], xf[2])
+                lf = lfx
                 l2 = wp.max(lw[0], 1.0e-30) * (var_f + wp.cw_mul(lf, lf))  # the unlit samples' spread about it
                 share = 1.0
             if share > params.light_share:

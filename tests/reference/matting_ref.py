@@ -143,7 +143,13 @@ def _light_behind(image, coc, y, x, offsets, weights, mid, mu, my, wv, purity, m
     var = np.maximum(sum((wt * c * c for wt, c in pairs), np.zeros(3)) / sw - f * f, 0.0)
     across = _strand_colour_ref(image, coc, y, x, samples, mid, mb)
     if across is not None:
-        f = across  # measured: it is F (the variance stays the unlit samples' spread, now about it)
+        f, width, (ey, ex) = across
+        fb = mb - f
+        cover = sum(float((mb - image[y + k * ey, x + k * ex]) @ fb) for k in (-1, 0, 1)
+                    if 0 <= y + k * ey < h and 0 <= x + k * ex < w) / max(float(fb @ fb), 1e-30)
+        if cover > 2.0 * width:
+            return None  # darker than a strand of that width over this light: the light is dimmer here, not B
+        # measured: it is F (the variance stays the unlit samples' spread, now about it)
     elif float((mf - f) @ mb) / bb <= light_share:
         return None  # the window's F holds hardly more of the light than the unlit one: it stays
     fb = f - mb
@@ -157,8 +163,8 @@ def _strand_colour_ref(image, coc, y, x, samples, mid, mb):
     inside the image and on the far side, the sum over the sample and its two neighbours of the photo less the line
     between those two ends. Both ends' projections on the light ``mb`` at least 0.75: lit (the sum is ``W (F -
     L)``); both below 0.05: unlit (``W (F - D)``). With both kinds, ``W = (mean unlit - mean lit) . (L - D) / |L -
-    D|^2`` (L, D: the mean of the ends' means); F = D + mean unlit / W, clipped at 0, for W in (0.05, 2.5]; else
-    None."""
+    D|^2`` (L, D: the mean of the ends' means); F = D + mean unlit / W, clipped at 0, for W in (0.05, 2.5] and
+    where (y, x)'s strand is one a cross-section holds (:func:`_narrow_here_ref`): (F, W, the axis); else None."""
     h, w = coc.shape
     bb = max(float(mb @ mb), 1e-30)
     near = [(y + dy, x + dx) for _, dy, dx in samples
@@ -182,7 +188,7 @@ def _strand_colour_ref(image, coc, y, x, samples, mid, mb):
             kinds[1].append((total, 0.5 * (c1 + c2)))
         elif max(l1, l2) < 0.05:
             kinds[-1].append((total, 0.5 * (c1 + c2)))
-    if not kinds[1] or not kinds[-1]:
+    if not kinds[1] or not kinds[-1] or not _narrow_here_ref(coc, y, x, ey, ex, mid):
         return None
     su, d = (np.mean([v[i] for v in kinds[-1]], 0) for i in (0, 1))
     sl, lt = (np.mean([v[i] for v in kinds[1]], 0) for i in (0, 1))
@@ -192,7 +198,23 @@ def _strand_colour_ref(image, coc, y, x, samples, mid, mb):
     width = float((su - sl) @ ld) / float(ld @ ld)
     if not 0.05 < width <= 2.5:
         return None
-    return np.maximum(d + su / width, 0.0)
+    return np.maximum(d + su / width, 0.0), width, (ey, ex)
+
+
+def _narrow_here_ref(coc, y, x, ey, ex, mid):
+    """False where a near pixel of (y, x)'s 3 x 3 has a near pixel 2 px either side of it along (ey, ex): the strand
+    there is wider than a cross-section (or another near object is beside it), not what the cross-sections
+    measured."""
+    h, w = coc.shape
+    for qy in range(y - 1, y + 2):
+        for qx in range(x - 1, x + 2):
+            if not (0 <= qy < h and 0 <= qx < w) or float(coc[qy, qx]) <= mid:
+                continue
+            for s in (-2, 2):
+                ye, xe = qy + s * ey, qx + s * ex
+                if 0 <= ye < h and 0 <= xe < w and float(coc[ye, xe]) > mid:
+                    return False
+    return True
 
 
 def gaussian_weights(dist: np.ndarray, radius: int) -> np.ndarray:
