@@ -177,28 +177,32 @@ def _narrow_here(coc: wp.array2d(dtype=float), py: int, px: int, ey: int, ex: in
     return 1
 
 
-XS_COVER = wp.constant(2.0)
-"""A measured colour holds at a pixel whose section (:func:`_section_cover`) the strand could cover with the light
-behind it: at most this many times the strand's measured width; more, and the light is dimmer there than B (its
-rim beside the strand), and the pixel is not taken as a strand over that light."""
+XS_LEFT = wp.constant(0.4)
+"""A measured colour holds at a pixel whose place on the line from the light to it exceeds by at most this much
+(px of cover) what the strand's measured width leaves it after the near pixels beside it across the strand
+(:func:`_cover_left`); more, and the light is dimmer there than B (its rim beside the strand): the pixel is not
+taken as a strand over that light."""
 
 
 @wp.func
-def _section_cover(image: wp.array2d(dtype=wp.vec3), py: int, px: int, ey: int, mb: wp.vec3, f: wp.vec3) -> float:
-    """The strand's cover of the section through (py, px) along (ey, 1 - ey) (the pixel and its two neighbours)
-    were the light ``mb`` behind all of it: the sum of their places on the line from ``mb`` to ``f``."""
+def _cover_left(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), py: int, px: int, ey: int,
+                mid: float, mb: wp.vec3, f: wp.vec3, width: float) -> float:
+    """The cover of (py, px) by a strand of colour ``f`` over the light ``mb`` (its place on the line from ``mb`` to
+    ``f``) less what a strand ``width`` px across leaves it after the near pixels within 2 px of it along (ey,
+    1 - ey) take theirs (each clipped to [0, 1]): above 0, the pixel is darker than the strand can make it."""
     fb = mb - f
     den = wp.max(wp.dot(fb, fb), 1.0e-30)
     h = image.shape[0]
     w = image.shape[1]
     ex = 1 - ey
-    out = float(0.0)
-    for k in range(-1, 2):
+    taken = float(0.0)
+    for k in range(-2, 3):
         y = py + k * ey
         x = px + k * ex
-        if y >= 0 and y < h and x >= 0 and x < w:
-            out += wp.dot(mb - image[y, x], fb) / den
-    return out
+        if k != 0 and y >= 0 and y < h and x >= 0 and x < w:
+            if coc[y, x] > mid:
+                taken += wp.clamp(wp.dot(mb - image[y, x], fb) / den, 0.0, 1.0)
+    return wp.dot(mb - image[py, px], fb) / den - wp.max(width - taken, 0.0)
 
 
 @wp.func
@@ -491,7 +495,7 @@ def matting_band_kernel(  # noqa: C901
             # is its own colour over any light: its F stays), unless the strand's cross-sections measured its colour
             share = wp.dot(mf - lf, mb) / wp.max(wp.dot(mb, mb), 1.0e-30)
             lfx = wp.vec3(xf[0], xf[1], xf[2])
-            if xf[3] > 0.0 and _section_cover(image, py, px, int(lw[1]), mb, lfx) > XS_COVER * xf[3]:
+            if xf[3] > 0.0 and _cover_left(image, coc, py, px, int(lw[1]), mid, mb, lfx, xf[3]) > XS_LEFT:
                 share = -1.0  # darker than the strand can make it over this light: the light's rim, B is not behind
             elif xf[3] > 0.0:  # the strand's colour from its cross-sections over the light and beside it
                 var_f = l2 / wp.max(lw[0], 1.0e-30) - wp.cw_mul(lf, lf)

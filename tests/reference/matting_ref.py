@@ -144,10 +144,7 @@ def _light_behind(image, coc, y, x, offsets, weights, mid, mu, my, wv, purity, m
     across = _strand_colour_ref(image, coc, y, x, samples, mid, mb)
     if across is not None:
         f, width, (ey, ex) = across
-        fb = mb - f
-        cover = sum(float((mb - image[y + k * ey, x + k * ex]) @ fb) for k in (-1, 0, 1)
-                    if 0 <= y + k * ey < h and 0 <= x + k * ex < w) / max(float(fb @ fb), 1e-30)
-        if cover > 2.0 * width:
+        if _cover_left_ref(image, coc, y, x, ey, ex, mid, mb, f, width) > 0.4:
             return None  # darker than a strand of that width over this light: the light is dimmer here, not B
         # measured: it is F (the variance stays the unlit samples' spread, now about it)
     elif float((mf - f) @ mb) / bb <= light_share:
@@ -199,6 +196,20 @@ def _strand_colour_ref(image, coc, y, x, samples, mid, mb):
     if not 0.05 < width <= 2.5:
         return None
     return np.maximum(d + su / width, 0.0), width, (ey, ex)
+
+
+def _cover_left_ref(image, coc, y, x, ey, ex, mid, mb, f, width):
+    """(y, x)'s place on the line from the light ``mb`` to the strand's colour ``f``, less what a strand ``width`` px
+    across leaves it after the near pixels within 2 px of it along (ey, ex) take theirs (each clipped to [0, 1])."""
+    h, w = coc.shape
+    fb = mb - f
+    den = max(float(fb @ fb), 1e-30)
+    taken = 0.0
+    for k in (-2, -1, 1, 2):
+        qy, qx = y + k * ey, x + k * ex
+        if 0 <= qy < h and 0 <= qx < w and float(coc[qy, qx]) > mid:
+            taken += min(1.0, max(0.0, float((mb - image[qy, qx]) @ fb) / den))
+    return float((mb - image[y, x]) @ fb) / den - max(width - taken, 0.0)
 
 
 def _narrow_here_ref(coc, y, x, ey, ex, mid):
