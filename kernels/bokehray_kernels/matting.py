@@ -15,9 +15,11 @@ One thread a band pixel, over its window (``offset_y``, ``offset_x``; Gaussian w
    ``light_thin`` of the window's weight): every near sample of the window holds some of the light and the model
    calls them pure, so F is taken again: the strand's colour from its cross-sections over the light and over an
    unlit background within ``light_reach`` px where it crosses both (``_strand_colour``: the light measures its
-   width), else the near samples that hold the least of the light's colour and the most of the strand
-   (``_light_free``), used where the window's F holds over ``light_share`` more of the light than that F; alpha
-   is the pixel's place on the line from B to F.
+   width; only where the pixel's strand is one a cross-section holds, ``_narrow_here``), else the near samples that
+   hold the least of the light's colour and the most of the strand (``_light_free``), used where the window's F
+   holds over ``light_share`` more of the light than that F; alpha is the pixel's place on the line from B to F. A
+   pixel darker than a strand of the measured width can make it (``_cover_left`` above ``XS_LEFT``) is the light's
+   rim, not a strand over it: it is left as the model has it.
 
 Oracle: ``tests/reference/matting_ref.py``.
 """
@@ -209,7 +211,7 @@ def _cover_left(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), 
 def _strand_colour(su: wp.vec3, sl: wp.vec3, n: wp.vec2, d: wp.vec3, lt: wp.vec3) -> wp.vec4:
     """The strand's colour from its mean unlit cross-section ``su`` (over ``d``: ``W (F - D)``) and lit one ``sl``
     (over ``lt``: ``W (F - L)``), ``n`` the counts: its width ``W = (su - sl) . (L - D) / |L - D|^2`` (the light
-    measures it), ``F = D + su / W``, and 1 as the fourth entry; 0 there without both kinds or a width in
+    measures it), ``F = D + su / W``, and W as the fourth entry; 0 there without both kinds or a width in
     (``XS_MIN_W``, ``XS_MAX_W``]."""
     if n[0] < 1.0 or n[1] < 1.0:
         return wp.vec4(0.0, 0.0, 0.0, 0.0)
@@ -238,8 +240,10 @@ def _light_free(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), 
     pixel is nowhere pure: the mean of its unlit samples is its colour times its mean coverage). (4) Where the near
     samples' cross-sections (:func:`_cross_section`, across the axis the near samples spread along least) show the
     strand both over the light and over an unlit background, its colour from them instead
-    (:func:`_strand_colour`). Returns (the weight sum as a vec3's first entry, the weighted sum, the weighted sum of
-    squares, the cross-sections' colour with 1 as its fourth entry, or 0 there)."""
+    (:func:`_strand_colour`), unless a near pixel of (py, px)'s 3 x 3 lies in a strand wider than a cross-section
+    (:func:`_narrow_here`). Returns (the weight sum and the cross-sections' ``ey`` as a vec3's first two entries, the
+    weighted sum, the weighted sum of squares, the cross-sections' colour with the width as its fourth entry, or 0
+    there)."""
     h = coc.shape[0]
     w = coc.shape[1]
     m = window.offset_y.shape[0]

@@ -108,8 +108,10 @@ def _light_behind(image, coc, y, x, offsets, weights, mid, mu, my, wv, purity, m
     weight): the unlit background D (far samples weighted by ``(1 - l)^purity``, ``l`` the projection on B); F0, the
     near samples weighted by ``(alpha (1 - l)^2)^purity``; F, the near samples weighted by ``(alpha (1 - l)^2
     t)^purity``, ``t`` the place from D towards F0 clipped to [0, 1.5]; alpha the pixel's place on the line from B to
-    F. Returns ((F, var F), alpha); None when no light, or where the window's F holds at most ``light_share``
-    more of the light's colour than that F."""
+    F; F is the strand's colour from its cross-sections where they measure it (:func:`_strand_colour_ref`). Returns
+    ((F, var F), alpha); None when no light, where the pixel is darker than a strand of the measured width can make
+    it (:func:`_cover_left_ref` above 0.4: the light's rim), or, without a measurement, where the window's F holds at
+    most ``light_share`` more of the light's colour than that F."""
     if not (float(mb.sum()) > 3.0 * light_level and float(mb.sum()) > light_ratio * float(mf.sum())):
         return None
     h, w = coc.shape
