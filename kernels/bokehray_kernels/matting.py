@@ -17,9 +17,10 @@ One thread a band pixel, over its window (``offset_y``, ``offset_x``; Gaussian w
    unlit background within ``light_reach`` px where it crosses both (``_strand_colour``: the light measures its
    width; only where the pixel's strand is one a cross-section holds, ``_narrow_here``), else the near samples that
    hold the least of the light's colour and the most of the strand (``_light_free``), used where the window's F
-   holds over ``light_share`` more of the light than that F; alpha is the pixel's place on the line from B to F. A
-   pixel darker than a strand of the measured width can make it (``_cover_left`` above ``XS_LEFT``) is the light's
-   rim, not a strand over it: it is left as the model has it.
+   holds over ``light_share`` more of the light than that F; alpha is the pixel's place on the line from B to F,
+   but with a measured F at most what the strand's width leaves the pixel after its near neighbours across the
+   strand (``_cover_left``) where it exceeds that by over ``XS_LEFT``: the pixel is then darker than the strand can
+   make it, the light's rim.
 
 Oracle: ``tests/reference/matting_ref.py``.
 """
@@ -180,18 +181,22 @@ def _narrow_here(coc: wp.array2d(dtype=float), py: int, px: int, ey: int, ex: in
 
 
 XS_LEFT = wp.constant(0.4)
-"""A measured colour holds at a pixel whose place on the line from the light to it exceeds by at most this much
-(px of cover) what the strand's measured width leaves it after the near pixels beside it across the strand
-(:func:`_cover_left`); more, and the light is dimmer there than B (its rim beside the strand): the pixel is not
-taken as a strand over that light."""
+"""A pixel whose place on the line from the light to the measured strand colour exceeds by more than this (px of
+cover) what the strand's measured width leaves it after the near pixels beside it across the strand
+(:func:`_cover_left`) is darker than the strand can make it: the light is dimmer there than B (its rim beside the
+strand), and its alpha is what the width leaves it."""
 
 
 @wp.func
 def _cover_left(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), py: int, px: int, ey: int,
                 mid: float, mb: wp.vec3, f: wp.vec3, width: float) -> float:
-    """The cover of (py, px) by a strand of colour ``f`` over the light ``mb`` (its place on the line from ``mb`` to
-    ``f``) less what a strand ``width`` px across leaves it after the near pixels within 2 px of it along (ey,
-    1 - ey) take theirs (each clipped to [0, 1]): above 0, the pixel is darker than the strand can make it."""
+    """What a strand ``width`` px across, of colour ``f`` over the light ``mb``, leaves (py, px) of its cover after
+    the near pixels within 2 px of it along (ey, 1 - ey) take theirs (each their place on the line from ``mb`` to
+    ``f``, clipped to [0, 1]), counting only pixels the light is behind (holding at least ``XS_UNLIT`` of it: over an
+    unlit background a pixel's place on that line is not its cover); at least 0, and 2 (no bound) where (py, px)
+    itself holds less."""
+    if wp.dot(image[py, px], mb) < XS_UNLIT * wp.dot(mb, mb):
+        return 2.0
     fb = mb - f
     den = wp.max(wp.dot(fb, fb), 1.0e-30)
     h = image.shape[0]
@@ -202,9 +207,10 @@ def _cover_left(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), 
         y = py + k * ey
         x = px + k * ex
         if k != 0 and y >= 0 and y < h and x >= 0 and x < w:
-            if coc[y, x] > mid:
-                taken += wp.clamp(wp.dot(mb - image[y, x], fb) / den, 0.0, 1.0)
-    return wp.dot(mb - image[py, px], fb) / den - wp.max(width - taken, 0.0)
+            c = image[y, x]
+            if coc[y, x] > mid and wp.dot(c, mb) >= XS_UNLIT * wp.dot(mb, mb):  # a near pixel the light is behind
+                taken += wp.clamp(wp.dot(mb - c, fb) / den, 0.0, 1.0)
+    return wp.max(width - taken, 0.0)
 
 
 @wp.func
@@ -498,20 +504,22 @@ def matting_band_kernel(  # noqa: C901
             # only where the window's F holds clearly more of the light than the unlit one (an opaque wire's core
             # is its own colour over any light: its F stays), unless the strand's cross-sections measured its colour
             share = wp.dot(mf - lf, mb) / wp.max(wp.dot(mb, mb), 1.0e-30)
-            lfx = wp.vec3(xf[0], xf[1], xf[2])
-            if xf[3] > 0.0 and _cover_left(image, coc, py, px, int(lw[1]), mid, mb, lfx, xf[3]) > XS_LEFT:
-                share = -1.0  # darker than the strand can make it over this light: the light's rim, B is not behind
-            elif xf[3] > 0.0:  # the strand's colour from its cross-sections over the light and beside it
+            left = float(2.0)  # the cover the strand's width leaves the pixel (2: no bound)
+            if xf[3] > 0.0:  # the strand's colour from its cross-sections over the light and beside it
                 var_f = l2 / wp.max(lw[0], 1.0e-30) - wp.cw_mul(lf, lf)
-                lf = lfx
+                lf = wp.vec3(xf[0], xf[1], xf[2])
                 l2 = wp.max(lw[0], 1.0e-30) * (var_f + wp.cw_mul(lf, lf))  # the unlit samples' spread about it
                 share = 1.0
+                left = _cover_left(image, coc, py, px, int(lw[1]), mid, mb, lf, xf[3])
             if share > params.light_share:
                 sf = wp.max(lw[0], 1.0e-30)
                 mf = lf
                 f2 = l2
                 fb = mf - mb
-                out.alpha[i] = wp.clamp(wp.dot(image[py, px] - mb, fb) / wp.max(wp.dot(fb, fb), 1.0e-30), 0.0, 1.0)
+                a = wp.clamp(wp.dot(image[py, px] - mb, fb) / wp.max(wp.dot(fb, fb), 1.0e-30), 0.0, 1.0)
+                if a > left + XS_LEFT:
+                    a = left  # darker than the strand can make it: the light is dimmer here (its rim), not covered
+                out.alpha[i] = a
     out.fg[i] = mf
     out.bg[i] = mb
     zero = wp.vec3(0.0, 0.0, 0.0)

@@ -109,9 +109,10 @@ def _light_behind(image, coc, y, x, offsets, weights, mid, mu, my, wv, purity, m
     near samples weighted by ``(alpha (1 - l)^2)^purity``; F, the near samples weighted by ``(alpha (1 - l)^2
     t)^purity``, ``t`` the place from D towards F0 clipped to [0, 1.5]; alpha the pixel's place on the line from B to
     F; F is the strand's colour from its cross-sections where they measure it (:func:`_strand_colour_ref`). Returns
-    ((F, var F), alpha); None when no light, where the pixel is darker than a strand of the measured width can make
-    it (:func:`_cover_left_ref` above 0.4: the light's rim), or, without a measurement, where the window's F holds at
-    most ``light_share`` more of the light's colour than that F."""
+    ((F, var F), alpha), alpha with a measured F at most what the strand's width leaves the pixel
+    (:func:`_cover_left_ref`) where it exceeds that by over 0.4 (darker than the strand can make it: the light's
+    rim); None when no light, or, without a measurement, where the window's F holds at most ``light_share`` more of
+    the light's colour than that F."""
     if not (float(mb.sum()) > 3.0 * light_level and float(mb.sum()) > light_ratio * float(mf.sum())):
         return None
     h, w = coc.shape
@@ -146,13 +147,14 @@ def _light_behind(image, coc, y, x, offsets, weights, mid, mu, my, wv, purity, m
     across = _strand_colour_ref(image, coc, y, x, samples, mid, mb)
     if across is not None:
         f, width, (ey, ex) = across
-        if _cover_left_ref(image, coc, y, x, ey, ex, mid, mb, f, width) > 0.4:
-            return None  # darker than a strand of that width over this light: the light is dimmer here, not B
+        left = _cover_left_ref(image, coc, y, x, ey, ex, mid, mb, f, width)
         # measured: it is F (the variance stays the unlit samples' spread, now about it)
     elif float((mf - f) @ mb) / bb <= light_share:
         return None  # the window's F holds hardly more of the light than the unlit one: it stays
     fb = f - mb
     alpha = min(1.0, max(0.0, float((image[y, x] - mb) @ fb) / max(float(fb @ fb), 1e-30)))
+    if across is not None and alpha > left + 0.4:
+        alpha = left  # darker than the strand of that width can make it: the light is dimmer here (its rim)
     return (f, var), alpha
 
 
@@ -201,17 +203,22 @@ def _strand_colour_ref(image, coc, y, x, samples, mid, mb):
 
 
 def _cover_left_ref(image, coc, y, x, ey, ex, mid, mb, f, width):
-    """(y, x)'s place on the line from the light ``mb`` to the strand's colour ``f``, less what a strand ``width`` px
-    across leaves it after the near pixels within 2 px of it along (ey, ex) take theirs (each clipped to [0, 1])."""
+    """What a strand ``width`` px across leaves (y, x) of its cover after the near pixels within 2 px of it along
+    (ey, ex) take theirs (each its place on the line from the light ``mb`` to the strand's colour ``f``, clipped to
+    [0, 1]), counting only pixels holding at least 0.05 of the light (over an unlit background a pixel's place on
+    that line is not its cover); at least 0, and 2 (no bound) where (y, x) itself holds less."""
+    if float(image[y, x] @ mb) < 0.05 * float(mb @ mb):
+        return 2.0
     h, w = coc.shape
     fb = mb - f
     den = max(float(fb @ fb), 1e-30)
     taken = 0.0
     for k in (-2, -1, 1, 2):
         qy, qx = y + k * ey, x + k * ex
-        if 0 <= qy < h and 0 <= qx < w and float(coc[qy, qx]) > mid:
+        lit = 0 <= qy < h and 0 <= qx < w and float(image[qy, qx] @ mb) >= 0.05 * float(mb @ mb)
+        if lit and float(coc[qy, qx]) > mid:
             taken += min(1.0, max(0.0, float((mb - image[qy, qx]) @ fb) / den))
-    return float((mb - image[y, x]) @ fb) / den - max(width - taken, 0.0)
+    return max(width - taken, 0.0)
 
 
 def _narrow_here_ref(coc, y, x, ey, ex, mid):
