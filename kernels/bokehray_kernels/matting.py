@@ -15,9 +15,12 @@ One thread a band pixel, over its window (``offset_y``, ``offset_x``; Gaussian w
    ``light_thin`` of the window's weight): every near sample of the window holds some of the light and the model
    calls them pure, so F is taken again: the strand's colour from its cross-sections over the light and over an
    unlit background within ``light_reach`` px where it crosses both (``_strand_colour``: the light measures its
-   width), else the near samples that hold the least of the light's colour and the most of the strand
-   (``_light_free``), used where the window's F holds over ``light_share`` more of the light than that F; alpha
-   is the pixel's place on the line from B to F.
+   width; only where the pixel's strand is one a cross-section holds, ``_narrow_here``), else the near samples that
+   hold the least of the light's colour and the most of the strand (``_light_free``), used where the window's F
+   holds over ``light_share`` more of the light than that F; alpha is the pixel's place on the line from B to F,
+   but with a measured F at most what the strand's width leaves the pixel after its near neighbours across the
+   strand (``_cover_left``) where it exceeds that by over ``XS_LEFT``: the pixel is then darker than the strand can
+   make it, the light's rim.
 
 Oracle: ``tests/reference/matting_ref.py``.
 """
@@ -156,10 +159,65 @@ def _cross_section(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float
 
 
 @wp.func
+def _narrow_here(coc: wp.array2d(dtype=float), py: int, px: int, ey: int, ex: int, mid: float) -> int:
+    """1 where the strand through (py, px) is one the cross-sections measure: no near pixel of its 3 x 3 has a
+    pixel 2 px either side along (ey, ex) on the near side too (a strand wider than a cross-section there, or
+    another near object beside it: the strands the reach measured are not this one); else 0."""
+    h = coc.shape[0]
+    w = coc.shape[1]
+    for dy in range(-1, 2):
+        for dx in range(-1, 2):
+            y = py + dy
+            x = px + dx
+            if y >= 0 and y < h and x >= 0 and x < w:
+                if coc[y, x] > mid:
+                    for s in range(-1, 2, 2):
+                        ye = y + 2 * s * ey
+                        xe = x + 2 * s * ex
+                        if ye >= 0 and ye < h and xe >= 0 and xe < w:
+                            if coc[ye, xe] > mid:
+                                return 0
+    return 1
+
+
+XS_LEFT = wp.constant(0.4)
+"""A pixel whose place on the line from the light to the measured strand colour exceeds by more than this (px of
+cover) what the strand's measured width leaves it after the near pixels beside it across the strand
+(:func:`_cover_left`) is darker than the strand can make it: the light is dimmer there than B (its rim beside the
+strand), and its alpha is what the width leaves it."""
+
+
+@wp.func
+def _cover_left(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), py: int, px: int, ey: int,
+                mid: float, mb: wp.vec3, f: wp.vec3, width: float) -> float:
+    """What a strand ``width`` px across, of colour ``f`` over the light ``mb``, leaves (py, px) of its cover after
+    the near pixels within 2 px of it along (ey, 1 - ey) take theirs (each their place on the line from ``mb`` to
+    ``f``, clipped to [0, 1]), counting only pixels the light is behind (holding at least ``XS_UNLIT`` of it: over an
+    unlit background a pixel's place on that line is not its cover); at least 0, and 2 (no bound) where (py, px)
+    itself holds less."""
+    if wp.dot(image[py, px], mb) < XS_UNLIT * wp.dot(mb, mb):
+        return 2.0
+    fb = mb - f
+    den = wp.max(wp.dot(fb, fb), 1.0e-30)
+    h = image.shape[0]
+    w = image.shape[1]
+    ex = 1 - ey
+    taken = float(0.0)
+    for k in range(-2, 3):
+        y = py + k * ey
+        x = px + k * ex
+        if k != 0 and y >= 0 and y < h and x >= 0 and x < w:
+            c = image[y, x]
+            if coc[y, x] > mid and wp.dot(c, mb) >= XS_UNLIT * wp.dot(mb, mb):  # a near pixel the light is behind
+                taken += wp.clamp(wp.dot(mb - c, fb) / den, 0.0, 1.0)
+    return wp.max(width - taken, 0.0)
+
+
+@wp.func
 def _strand_colour(su: wp.vec3, sl: wp.vec3, n: wp.vec2, d: wp.vec3, lt: wp.vec3) -> wp.vec4:
     """The strand's colour from its mean unlit cross-section ``su`` (over ``d``: ``W (F - D)``) and lit one ``sl``
     (over ``lt``: ``W (F - L)``), ``n`` the counts: its width ``W = (su - sl) . (L - D) / |L - D|^2`` (the light
-    measures it), ``F = D + su / W``, and 1 as the fourth entry; 0 there without both kinds or a width in
+    measures it), ``F = D + su / W``, and W as the fourth entry; 0 there without both kinds or a width in
     (``XS_MIN_W``, ``XS_MAX_W``]."""
     if n[0] < 1.0 or n[1] < 1.0:
         return wp.vec4(0.0, 0.0, 0.0, 0.0)
@@ -173,7 +231,7 @@ def _strand_colour(su: wp.vec3, sl: wp.vec3, n: wp.vec2, d: wp.vec3, lt: wp.vec3
     if width <= XS_MIN_W or width > XS_MAX_W:
         return wp.vec4(0.0, 0.0, 0.0, 0.0)
     f = wp.max(dd + u / width, wp.vec3(0.0, 0.0, 0.0))
-    return wp.vec4(f[0], f[1], f[2], 1.0)
+    return wp.vec4(f[0], f[1], f[2], width)
 
 
 @wp.func
@@ -188,8 +246,10 @@ def _light_free(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), 
     pixel is nowhere pure: the mean of its unlit samples is its colour times its mean coverage). (4) Where the near
     samples' cross-sections (:func:`_cross_section`, across the axis the near samples spread along least) show the
     strand both over the light and over an unlit background, its colour from them instead
-    (:func:`_strand_colour`). Returns (the weight sum as a vec3's first entry, the weighted sum, the weighted sum of
-    squares, the cross-sections' colour with 1 as its fourth entry, or 0 there)."""
+    (:func:`_strand_colour`), unless a near pixel of (py, px)'s 3 x 3 lies in a strand wider than a cross-section
+    (:func:`_narrow_here`). Returns (the weight sum and the cross-sections' ``ey`` as a vec3's first two entries, the
+    weighted sum, the weighted sum of squares, the cross-sections' colour with the width as its fourth entry, or 0
+    there)."""
     h = coc.shape[0]
     w = coc.shape[1]
     m = window.offset_y.shape[0]
@@ -258,7 +318,8 @@ def _light_free(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), 
                     sl += xs
                     dl += xb
                     nx += wp.vec2(0.0, 1.0)
-    return wp.vec3(sf, 0.0, 0.0), f1, f2, _strand_colour(su, sl, nx, du, dl)
+    nx = nx * float(_narrow_here(coc, py, px, ey, 1 - ey, mid))  # 0: this pixel's strand is not the one measured
+    return wp.vec3(sf, float(ey), 0.0), f1, f2, _strand_colour(su, sl, nx, du, dl)
 
 
 LIT_REACH = wp.constant(4)
@@ -443,17 +504,22 @@ def matting_band_kernel(  # noqa: C901
             # only where the window's F holds clearly more of the light than the unlit one (an opaque wire's core
             # is its own colour over any light: its F stays), unless the strand's cross-sections measured its colour
             share = wp.dot(mf - lf, mb) / wp.max(wp.dot(mb, mb), 1.0e-30)
+            left = float(2.0)  # the cover the strand's width leaves the pixel (2: no bound)
             if xf[3] > 0.0:  # the strand's colour from its cross-sections over the light and beside it
                 var_f = l2 / wp.max(lw[0], 1.0e-30) - wp.cw_mul(lf, lf)
                 lf = wp.vec3(xf[0], xf[1], xf[2])
                 l2 = wp.max(lw[0], 1.0e-30) * (var_f + wp.cw_mul(lf, lf))  # the unlit samples' spread about it
                 share = 1.0
+                left = _cover_left(image, coc, py, px, int(lw[1]), mid, mb, lf, xf[3])
             if share > params.light_share:
                 sf = wp.max(lw[0], 1.0e-30)
                 mf = lf
                 f2 = l2
                 fb = mf - mb
-                out.alpha[i] = wp.clamp(wp.dot(image[py, px] - mb, fb) / wp.max(wp.dot(fb, fb), 1.0e-30), 0.0, 1.0)
+                a = wp.clamp(wp.dot(image[py, px] - mb, fb) / wp.max(wp.dot(fb, fb), 1.0e-30), 0.0, 1.0)
+                if a > left + XS_LEFT:
+                    a = left  # darker than the strand can make it: the light is dimmer here (its rim), not covered
+                out.alpha[i] = a
     out.fg[i] = mf
     out.bg[i] = mb
     zero = wp.vec3(0.0, 0.0, 0.0)

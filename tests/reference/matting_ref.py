@@ -108,8 +108,11 @@ def _light_behind(image, coc, y, x, offsets, weights, mid, mu, my, wv, purity, m
     weight): the unlit background D (far samples weighted by ``(1 - l)^purity``, ``l`` the projection on B); F0, the
     near samples weighted by ``(alpha (1 - l)^2)^purity``; F, the near samples weighted by ``(alpha (1 - l)^2
     t)^purity``, ``t`` the place from D towards F0 clipped to [0, 1.5]; alpha the pixel's place on the line from B to
-    F. Returns ((F, var F), alpha); None when no light, or where the window's F holds at most ``light_share``
-    more of the light's colour than that F."""
+    F; F is the strand's colour from its cross-sections where they measure it (:func:`_strand_colour_ref`). Returns
+    ((F, var F), alpha), alpha with a measured F at most what the strand's width leaves the pixel
+    (:func:`_cover_left_ref`) where it exceeds that by over 0.4 (darker than the strand can make it: the light's
+    rim); None when no light, or, without a measurement, where the window's F holds at most ``light_share`` more of
+    the light's colour than that F."""
     if not (float(mb.sum()) > 3.0 * light_level and float(mb.sum()) > light_ratio * float(mf.sum())):
         return None
     h, w = coc.shape
@@ -143,11 +146,15 @@ def _light_behind(image, coc, y, x, offsets, weights, mid, mu, my, wv, purity, m
     var = np.maximum(sum((wt * c * c for wt, c in pairs), np.zeros(3)) / sw - f * f, 0.0)
     across = _strand_colour_ref(image, coc, y, x, samples, mid, mb)
     if across is not None:
-        f = across  # measured: it is F (the variance stays the unlit samples' spread, now about it)
+        f, width, (ey, ex) = across
+        left = _cover_left_ref(image, coc, y, x, ey, ex, mid, mb, f, width)
+        # measured: it is F (the variance stays the unlit samples' spread, now about it)
     elif float((mf - f) @ mb) / bb <= light_share:
         return None  # the window's F holds hardly more of the light than the unlit one: it stays
     fb = f - mb
     alpha = min(1.0, max(0.0, float((image[y, x] - mb) @ fb) / max(float(fb @ fb), 1e-30)))
+    if across is not None and alpha > left + 0.4:
+        alpha = left  # darker than the strand of that width can make it: the light is dimmer here (its rim)
     return (f, var), alpha
 
 
@@ -157,8 +164,8 @@ def _strand_colour_ref(image, coc, y, x, samples, mid, mb):
     inside the image and on the far side, the sum over the sample and its two neighbours of the photo less the line
     between those two ends. Both ends' projections on the light ``mb`` at least 0.75: lit (the sum is ``W (F -
     L)``); both below 0.05: unlit (``W (F - D)``). With both kinds, ``W = (mean unlit - mean lit) . (L - D) / |L -
-    D|^2`` (L, D: the mean of the ends' means); F = D + mean unlit / W, clipped at 0, for W in (0.05, 2.5]; else
-    None."""
+    D|^2`` (L, D: the mean of the ends' means); F = D + mean unlit / W, clipped at 0, for W in (0.05, 2.5] and
+    where (y, x)'s strand is one a cross-section holds (:func:`_narrow_here_ref`): (F, W, the axis); else None."""
     h, w = coc.shape
     bb = max(float(mb @ mb), 1e-30)
     near = [(y + dy, x + dx) for _, dy, dx in samples
@@ -182,7 +189,7 @@ def _strand_colour_ref(image, coc, y, x, samples, mid, mb):
             kinds[1].append((total, 0.5 * (c1 + c2)))
         elif max(l1, l2) < 0.05:
             kinds[-1].append((total, 0.5 * (c1 + c2)))
-    if not kinds[1] or not kinds[-1]:
+    if not kinds[1] or not kinds[-1] or not _narrow_here_ref(coc, y, x, ey, ex, mid):
         return None
     su, d = (np.mean([v[i] for v in kinds[-1]], 0) for i in (0, 1))
     sl, lt = (np.mean([v[i] for v in kinds[1]], 0) for i in (0, 1))
@@ -192,7 +199,42 @@ def _strand_colour_ref(image, coc, y, x, samples, mid, mb):
     width = float((su - sl) @ ld) / float(ld @ ld)
     if not 0.05 < width <= 2.5:
         return None
-    return np.maximum(d + su / width, 0.0)
+    return np.maximum(d + su / width, 0.0), width, (ey, ex)
+
+
+def _cover_left_ref(image, coc, y, x, ey, ex, mid, mb, f, width):
+    """What a strand ``width`` px across leaves (y, x) of its cover after the near pixels within 2 px of it along
+    (ey, ex) take theirs (each its place on the line from the light ``mb`` to the strand's colour ``f``, clipped to
+    [0, 1]), counting only pixels holding at least 0.05 of the light (over an unlit background a pixel's place on
+    that line is not its cover); at least 0, and 2 (no bound) where (y, x) itself holds less."""
+    if float(image[y, x] @ mb) < 0.05 * float(mb @ mb):
+        return 2.0
+    h, w = coc.shape
+    fb = mb - f
+    den = max(float(fb @ fb), 1e-30)
+    taken = 0.0
+    for k in (-2, -1, 1, 2):
+        qy, qx = y + k * ey, x + k * ex
+        lit = 0 <= qy < h and 0 <= qx < w and float(image[qy, qx] @ mb) >= 0.05 * float(mb @ mb)
+        if lit and float(coc[qy, qx]) > mid:
+            taken += min(1.0, max(0.0, float((mb - image[qy, qx]) @ fb) / den))
+    return max(width - taken, 0.0)
+
+
+def _narrow_here_ref(coc, y, x, ey, ex, mid):
+    """False where a near pixel of (y, x)'s 3 x 3 has a near pixel 2 px either side of it along (ey, ex): the strand
+    there is wider than a cross-section (or another near object is beside it), not what the cross-sections
+    measured."""
+    h, w = coc.shape
+    for qy in range(y - 1, y + 2):
+        for qx in range(x - 1, x + 2):
+            if not (0 <= qy < h and 0 <= qx < w) or float(coc[qy, qx]) <= mid:
+                continue
+            for s in (-2, 2):
+                ye, xe = qy + s * ey, qx + s * ex
+                if 0 <= ye < h and 0 <= xe < w and float(coc[ye, xe]) > mid:
+                    return False
+    return True
 
 
 def gaussian_weights(dist: np.ndarray, radius: int) -> np.ndarray:
