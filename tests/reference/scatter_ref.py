@@ -300,6 +300,35 @@ def level_of(r: float, r0: float, n_levels: int) -> int:
     return lev
 
 
+def radiance_pyramid(src: np.ndarray, coc: np.ndarray, inside: np.ndarray, r0: float, n_levels: int
+                     ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """(means, pixels, levels present) of radiance pyramid levels 1 .. n_levels - 1, by plain loops.
+
+    A level-k cell's mean of the sources (premultiplied RGB, coverage) over the pixels it holds (cut by the array's
+    edge), sources outside ``inside`` (the layer's support) counting as zero; its pixels; and as bits, the pyramid
+    levels l >= 1 (bit l) that a source of the cell with coverage and radius ``|coc| >= 0.5`` scatters on."""
+    h, w = coc.shape
+    out = []
+    for k in range(1, n_levels):
+        s = 2 ** k
+        hk, wk = -(-h // s), -(-w // s)
+        means, pixels, bits = np.zeros((hk, wk, 4)), np.zeros((hk, wk)), np.zeros((hk, wk), int)
+        for cy in range(hk):
+            for cx in range(wk):
+                for y in range(cy * s, min(h, cy * s + s)):
+                    for x in range(cx * s, min(w, cx * s + s)):
+                        pixels[cy, cx] += 1
+                        if not inside[y, x]:
+                            continue
+                        means[cy, cx] += src[y, x]
+                        r = abs(float(coc[y, x]))
+                        if src[y, x, 3] != 0 and r >= 0.5 and level_of(r, r0, n_levels) >= 1:
+                            bits[cy, cx] |= 1 << level_of(r, r0, n_levels)
+                means[cy, cx] /= pixels[cy, cx]
+        out.append((means, pixels, bits))
+    return out
+
+
 def salient(src: np.ndarray, coc: np.ndarray, r0: float, n_levels: int, visible: float, floor: float
             ) -> tuple[np.ndarray, np.ndarray]:
     """(score, routed mask) of the salient-source routing (docs/renderer.md), by plain loops.
