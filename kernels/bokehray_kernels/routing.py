@@ -47,9 +47,10 @@ def on_level(v: wp.vec4, r: float, r0: float, n_levels: int, lev: int) -> bool:
 
 
 @wp.func
-def _level_bit(v: wp.vec4, r: float, r0: float, n_levels: int) -> int:
-    # 1 << l for a source that scatters on pyramid level l >= 1 (on_level(.., l), as level_of finds it), else 0
-    if v[3] == 0.0 or r < 0.5 or r <= r0:
+def _level_bit(r: float, r0: float, n_levels: int) -> int:
+    # 1 << l for a source of radius r (with coverage) that scatters on pyramid level l >= 1 (on_level(.., l), as
+    # level_of finds it), else 0
+    if r < 0.5 or r <= r0:
         return 0
     lev = int(1)
     scale = float(0.5)
@@ -72,7 +73,8 @@ def _radiance_mean(src: wp.array2d(dtype=wp.vec4), coc: wp.array2d(dtype=float),
             for x in range(2 * cx, wp.min(2 * cx + 2, src.shape[1])):
                 v = src[y, x]
                 acc = acc + v
-                bits = bits | _level_bit(v, wp.abs(coc[y, x]), r0, n_levels)
+                if v[3] != 0.0:
+                    bits = bits | _level_bit(wp.abs(coc[y, x]), r0, n_levels)
         means[0, cy, cx] = acc / n
     counts[0, cy, cx] = n
     present[0, cy, cx] = wp.uint8(bits)
