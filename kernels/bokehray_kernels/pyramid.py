@@ -7,7 +7,7 @@ import warp as wp
 from .routing import Routing, on_level, routed_base, stored_neighbourhood
 from .sampling import bilinear_taps
 from .spans import Shape, scatter_exact, scatter_sharp
-from .support import Support, in_support, span_in_support
+from .support import Support, in_support, span_in_support, tile_end
 
 wp.set_module_options({"enable_backward": False})
 
@@ -373,17 +373,29 @@ def prefix_rows_kernel(buf: wp.array2d(dtype=wp.vec4), support: Support, store: 
     y = wp.tid()
     acc = wp.vec4()
     before = bool(False)  # whether the previous column is in the support
-    for x in range(width):
+    x = int(0)
+    while x < width:
+        # a run of columns in one tile of both grids: one support test for all of them
+        end = wp.min(wp.min(tile_end(support, x), tile_end(store, x)), width)
         inside = in_support(support, y, x)
-        if inside or before:  # elsewhere nothing is deposited (the light lies in the support): nothing to add
+        if inside:
+            kept = in_support(store, y, x)
+            for xi in range(x, end):
+                d = buf[y, xi]
+                if acc[0] != 0.0 or acc[1] != 0.0 or acc[2] != 0.0 or acc[3] != 0.0:
+                    acc = acc + d
+                    if kept:
+                        buf[y, xi] = acc
+                else:
+                    acc = d
+        elif before:  # the step down one column after a run of the support (nothing is stored there)
             d = buf[y, x]
             if acc[0] != 0.0 or acc[1] != 0.0 or acc[2] != 0.0 or acc[3] != 0.0:
                 acc = acc + d
-                if inside and in_support(store, y, x):
-                    buf[y, x] = acc
             else:
                 acc = d
         before = inside
+        x = end
 
 
 @wp.func
@@ -434,9 +446,14 @@ def resolve_levels_kernel(span: int, n_levels: int, first: int, levels: Levels, 
     on a CPU, a pixel a thread on a GPU (``bokehray.scene.row_span``).
     """
     y, j = wp.tid()
-    for x in range(j * span, wp.min(out.shape[1], j * span + span)):
+    x = j * span
+    x_end = wp.min(out.shape[1], j * span + span)
+    while x < x_end:
+        end = wp.min(tile_end(support, x), x_end)  # columns of one support tile: one test for all of them
         if in_support(support, y, x):
-            out[y, x] = _resolve_at(n_levels, first, levels, y, x, out.shape[0], out.shape[1])
+            for xi in range(x, end):
+                out[y, xi] = _resolve_at(n_levels, first, levels, y, xi, out.shape[0], out.shape[1])
+        x = end
 
 
 @wp.kernel
