@@ -194,25 +194,6 @@ class Cell:
 
 
 @wp.func
-def _cell_range(src: wp.array2d(dtype=wp.vec4), coc: wp.array2d(dtype=float), cell: Cell, routing: Routing,
-                shape: Shape, buf0: wp.array2d(dtype=wp.vec4)) -> wp.vec2:
-    """(smallest, largest) signed CoC of the cell's sources of its level (empty: smallest > largest), their routed
-    excess deposited at level 0 on the way."""
-    lo = float(1.0e30)
-    hi = float(-1.0e30)
-    for y in range(cell.y0, cell.y1):
-        for x in range(cell.x0, cell.x1):
-            v = src[y, x]
-            s = coc[y, x]
-            r = wp.abs(s)
-            if on_level(v, r, cell.r0, cell.n_levels, cell.lev):
-                lo = wp.min(lo, s)
-                hi = wp.max(hi, s)
-                deposit_routed(v, r, _sign(s), routing, src.shape[0], src.shape[1], y, x, cell.lev, shape, buf0)
-    return wp.vec2(lo, hi)
-
-
-@wp.func
 def _scatter_each(src: wp.array2d(dtype=wp.vec4), coc: wp.array2d(dtype=float), cell: Cell, routing: Routing,
                   shape: Shape, levels: Levels):
     """Every source of the cell's level on its own (a cell whose CoCs span more than ``MERGE_GROUPS`` bins)."""
@@ -290,6 +271,43 @@ def _scatter_moments(m: Moments, cell: Cell, levels: Levels, shape: Shape):
                      _sign(s_mean))
 
 
+@wp.struct
+class CellSources:
+    """What one pass over a pyramid cell's sources of its level finds (:func:`_cell_sources`): their smallest and
+    largest signed CoC (none: ``lo > hi``) and the :class:`Moments` of them all, in row order (one bin's merged
+    source when their CoCs span one bin)."""
+
+    lo: float
+    hi: float
+    m: Moments
+
+
+@wp.func
+def _cell_sources(src: wp.array2d(dtype=wp.vec4), coc: wp.array2d(dtype=float), cell: Cell, routing: Routing,
+                  shape: Shape, buf0: wp.array2d(dtype=wp.vec4)) -> CellSources:
+    """The cell's sources of its level (:class:`CellSources`), their routed excess deposited at level 0 on the way."""
+    c = CellSources()
+    c.lo = float(1.0e30)
+    c.hi = float(-1.0e30)
+    m = Moments()
+    for y in range(cell.y0, cell.y1):
+        for x in range(cell.x0, cell.x1):
+            v = src[y, x]
+            s = coc[y, x]
+            r = wp.abs(s)
+            if on_level(v, r, cell.r0, cell.n_levels, cell.lev):
+                c.lo = wp.min(c.lo, s)
+                c.hi = wp.max(c.hi, s)
+                deposit_routed(v, r, _sign(s), routing, src.shape[0], src.shape[1], y, x, cell.lev, shape, buf0)
+                share = pyramid_share(v, routing, src.shape[0], src.shape[1], y, x, cell.lev)
+                m.total += share
+                m.mx += share * (float(x - cell.x0) + 0.5)
+                m.my += share * (float(y - cell.y0) + 0.5)
+                m.s += share[3] * s
+    c.m = m
+    return c
+
+
 @wp.func
 def _scatter_bin(src: wp.array2d(dtype=wp.vec4), coc: wp.array2d(dtype=float), cell: Cell, routing: Routing,
                  shape: Shape, levels: Levels, lo: float, tol: float, n_bins: int, b: int):
@@ -346,15 +364,19 @@ def scatter_merged_kernel(
     cell.lev = lev
     cell.n_levels = n_levels
     cell.r0 = r0
-    span = _cell_range(src, coc, cell, routing, shape, levels.l0)
-    if span[1] < span[0]:
+    found = _cell_sources(src, coc, cell, routing, shape, levels.l0)
+    if found.hi < found.lo:
         return
-    n_bins = int((span[1] - span[0]) / tol) + 1
+    n_bins = int((found.hi - found.lo) / tol) + 1
     if n_bins > MERGE_GROUPS:
         _scatter_each(src, coc, cell, routing, shape, levels)
         return
+    if n_bins == 1:  # one bin holds them all: its merged source is the one the pass summed (no second pass)
+        if found.m.total[3] > 0.0:
+            _scatter_moments(found.m, cell, levels, shape)
+        return
     for b in range(n_bins):
-        _scatter_bin(src, coc, cell, routing, shape, levels, span[0], tol, n_bins, b)
+        _scatter_bin(src, coc, cell, routing, shape, levels, found.lo, tol, n_bins, b)
 
 
 @wp.kernel
