@@ -47,17 +47,27 @@ def on_level(v: wp.vec4, r: float, r0: float, n_levels: int, lev: int) -> bool:
 
 
 @wp.func
-def _level_bit(r: float, r0: float, n_levels: int) -> int:
-    # 1 << l for a source of radius r (with coverage) that scatters on pyramid level l >= 1 (on_level(.., l), as
-    # level_of finds it), else 0
-    if r < 0.5 or r <= r0:
-        return 0
-    lev = int(1)
-    scale = float(0.5)
+def _level(r: float, r0: float, n_levels: int) -> int:
+    # the pyramid level a source of radius r scatters on (bokehray_kernels.pyramid.level_of, whose loop this is)
+    lev = int(0)
+    scale = float(1.0)
     while r * scale > r0 and lev < n_levels - 1:
         lev += 1
         scale *= 0.5
-    return 1 << lev
+    return lev
+
+
+@wp.func
+def level_bits(lo: float, hi: float, r0: float, n_levels: int) -> int:
+    """Bits ``l`` (pyramid levels ``l >= 1``) from the level of radius ``lo`` to that of ``hi``: every level a source
+    of a radius in ``[lo, hi]`` may scatter on (0 for an empty range, ``lo > hi``)."""
+    if hi < lo:
+        return 0
+    top = _level(hi, r0, n_levels)
+    bottom = wp.max(_level(lo, r0, n_levels), 1)
+    if top < bottom:
+        return 0
+    return ((1 << (top + 1)) - 1) & ~((1 << bottom) - 1)
 
 
 @wp.func
@@ -69,13 +79,19 @@ def _radiance_mean(src: wp.array2d(dtype=wp.vec4), coc: wp.array2d(dtype=float),
     bits = int(0)
     if span_in_support(support, 2 * cy, wp.min(2 * cy + 2, src.shape[0]), 2 * cx, wp.min(2 * cx + 2, src.shape[1])):
         acc = wp.vec4()
+        lo = float(1.0e30)  # the radii of the cell's sources with coverage, scattered (r >= 0.5)
+        hi = float(-1.0e30)
         for y in range(2 * cy, wp.min(2 * cy + 2, src.shape[0])):
             for x in range(2 * cx, wp.min(2 * cx + 2, src.shape[1])):
                 v = src[y, x]
                 acc = acc + v
                 if v[3] != 0.0:
-                    bits = bits | _level_bit(wp.abs(coc[y, x]), r0, n_levels)
+                    r = wp.abs(coc[y, x])
+                    if r >= 0.5:
+                        lo = wp.min(lo, r)
+                        hi = wp.max(hi, r)
         means[0, cy, cx] = acc / n
+        bits = level_bits(lo, hi, r0, n_levels)
     counts[0, cy, cx] = n
     present[0, cy, cx] = wp.uint8(bits)
 
@@ -89,10 +105,11 @@ def radiance_mean_kernel(span: int, src: wp.array2d(dtype=wp.vec4), coc: wp.arra
 
     Sources of zero coverage count as black; cells cut by the array's edge average the pixels they hold
     (``counts``). Level ``k`` lives in ``means[k - 1]``. A cell outside the layer's ``support`` holds no source:
-    its mean is zero (``means`` comes zeroed there) and ``src`` is not read there. ``present``: bit ``l`` set
-    where a source of the cell scatters on pyramid level ``l >= 1`` (``on_level`` with ``r0``, ``n_levels``; a
-    cell of no level holds 0), so that :func:`route_cells_kernel` reads only the cells that hold sources of its
-    level. ``counts`` and ``present`` are written everywhere (they may come uninitialised).
+    its mean is zero (``means`` comes zeroed there) and ``src`` is not read there. ``present``: bits ``l`` of the
+    pyramid levels ``l >= 1`` from that of the cell's smallest radius to that of its largest (its sources with
+    coverage and ``r >= 0.5``; :func:`level_bits`), a bit set for every level a source of the cell scatters on
+    (``on_level`` with ``r0``, ``n_levels``), so that :func:`route_cells_kernel` reads only the cells that may hold
+    sources of its level. ``counts`` and ``present`` are written everywhere (they may come uninitialised).
 
     A thread takes ``span`` consecutive cells of a row, a launch of (rows, ceil(width / span)): a row a thread
     on a CPU, a pixel a thread on a GPU (``bokehray.scene.row_span``).

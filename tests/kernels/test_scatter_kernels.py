@@ -488,7 +488,7 @@ def test_light_near_the_border_keeps_what_the_frame_cuts_of_it(ap):
 @pytest.mark.parametrize("supported", [False, True])
 def test_radiance_pyramid_matches_reference(device, rng, supported):
     """radiance_mean_kernel and halve_mean_kernel: each level's means, pixels and the pyramid levels its cells'
-    sources scatter on (which route_cells_kernel reads to skip the cells holding none of its level), against the
+    sources may scatter on (which route_cells_kernel reads to skip the cells holding none of its level), against the
     plain-loop reference; the planes come uninitialised but level 1 of the means (outside the support)."""
     h, w, n_levels, r0 = 45, 53, 5, 8.0
     src = rng.random((h, w, 4)).astype(np.float32)
