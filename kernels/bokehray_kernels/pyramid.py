@@ -104,11 +104,9 @@ def _sign(s: float) -> float:
 
 
 @wp.func
-def _scatter_source(src: wp.array2d(dtype=wp.vec4), coc: wp.array2d(dtype=float), support: Support, routing: Routing,
-                    shape: Shape, r0: float, n_levels: int, levels: Levels, merged: int, y: int, x: int):
-    # one source of scatter_kernel
-    if not in_support(support, y, x):
-        return
+def _scatter_source(src: wp.array2d(dtype=wp.vec4), coc: wp.array2d(dtype=float), routing: Routing, shape: Shape,
+                    r0: float, n_levels: int, levels: Levels, merged: int, y: int, x: int):
+    # one source of scatter_kernel, in the support
     buf0 = levels.l0
     v = src[y, x]
     if v[3] == 0.0:
@@ -175,8 +173,14 @@ def scatter_kernel(
     on a CPU, a pixel a thread on a GPU (``bokehray.scene.row_span``).
     """
     y, j = wp.tid()
-    for x in range(j * span, wp.min(src.shape[1], j * span + span)):
-        _scatter_source(src, coc, support, routing, shape, r0, n_levels, levels, merged, y, x)
+    x = j * span
+    x_end = wp.min(src.shape[1], j * span + span)
+    while x < x_end:
+        end = wp.min(tile_end(support, x), x_end)  # columns of one support tile: one test for all of them
+        if in_support(support, y, x):
+            for xi in range(x, end):
+                _scatter_source(src, coc, routing, shape, r0, n_levels, levels, merged, y, xi)
+        x = end
 
 
 @wp.struct
@@ -490,8 +494,13 @@ def clear_support_kernel(span: int, support: Support, width: int, buf: wp.array2
     on a CPU, a pixel a thread on a GPU (``bokehray.scene.row_span``).
     """
     y, j = wp.tid()
-    for x in range(j * span, wp.min(width, j * span + span)):
+    x = j * span
+    x_end = wp.min(width, j * span + span)
+    while x < x_end:
+        end = wp.min(tile_end(support, x), x_end)  # columns of one support tile: one test for all of them
         if in_support(support, y, x):
-            buf[y, x] = wp.vec4()
+            for xi in range(x, end):
+                buf[y, xi] = wp.vec4()
+        x = end
 
 
