@@ -2,7 +2,7 @@
 
 import warp as wp
 
-from .support import Support, in_support
+from .support import Support, in_support, tile_end
 
 wp.set_module_options({"enable_backward": False})
 
@@ -44,9 +44,14 @@ def composite_kernel(span: int, layer: wp.array2d(dtype=wp.vec4), support: Suppo
     on a CPU, a pixel a thread on a GPU (``bokehray.scene.row_span``).
     """
     y, j = wp.tid()
-    for x in range(j * span, wp.min(layer.shape[1], j * span + span)):
+    x = j * span
+    x_end = wp.min(layer.shape[1], j * span + span)
+    while x < x_end:
+        end = wp.min(tile_end(support, x), x_end)  # columns of one support tile: one test for all of them
         if in_support(support, y, x):
-            _composite_at(layer, y, x, x0, y0, opaque, ids, index, acc)
+            for xi in range(x, end):
+                _composite_at(layer, y, xi, x0, y0, opaque, ids, index, acc)
+        x = end
 
 
 @wp.kernel

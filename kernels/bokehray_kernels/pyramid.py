@@ -7,7 +7,7 @@ import warp as wp
 from .routing import Routing, on_level, routed_base, stored_neighbourhood
 from .sampling import bilinear_taps
 from .spans import Shape, scatter_exact, scatter_sharp
-from .support import Support, in_support, span_in_support
+from .support import Support, in_support, span_in_support, tile_end
 
 wp.set_module_options({"enable_backward": False})
 
@@ -104,11 +104,9 @@ def _sign(s: float) -> float:
 
 
 @wp.func
-def _scatter_source(src: wp.array2d(dtype=wp.vec4), coc: wp.array2d(dtype=float), support: Support, routing: Routing,
-                    shape: Shape, r0: float, n_levels: int, levels: Levels, merged: int, y: int, x: int):
-    # one source of scatter_kernel
-    if not in_support(support, y, x):
-        return
+def _scatter_source(src: wp.array2d(dtype=wp.vec4), coc: wp.array2d(dtype=float), routing: Routing, shape: Shape,
+                    r0: float, n_levels: int, levels: Levels, merged: int, y: int, x: int):
+    # one source of scatter_kernel, in the support
     buf0 = levels.l0
     v = src[y, x]
     if v[3] == 0.0:
@@ -175,8 +173,14 @@ def scatter_kernel(
     on a CPU, a pixel a thread on a GPU (``bokehray.scene.row_span``).
     """
     y, j = wp.tid()
-    for x in range(j * span, wp.min(src.shape[1], j * span + span)):
-        _scatter_source(src, coc, support, routing, shape, r0, n_levels, levels, merged, y, x)
+    x = j * span
+    x_end = wp.min(src.shape[1], j * span + span)
+    while x < x_end:
+        end = wp.min(tile_end(support, x), x_end)  # columns of one support tile: one test for all of them
+        if in_support(support, y, x):
+            for xi in range(x, end):
+                _scatter_source(src, coc, routing, shape, r0, n_levels, levels, merged, y, xi)
+        x = end
 
 
 @wp.struct
@@ -191,25 +195,6 @@ class Cell:
     lev: int
     n_levels: int
     r0: float
-
-
-@wp.func
-def _cell_range(src: wp.array2d(dtype=wp.vec4), coc: wp.array2d(dtype=float), cell: Cell, routing: Routing,
-                shape: Shape, buf0: wp.array2d(dtype=wp.vec4)) -> wp.vec2:
-    """(smallest, largest) signed CoC of the cell's sources of its level (empty: smallest > largest), their routed
-    excess deposited at level 0 on the way."""
-    lo = float(1.0e30)
-    hi = float(-1.0e30)
-    for y in range(cell.y0, cell.y1):
-        for x in range(cell.x0, cell.x1):
-            v = src[y, x]
-            s = coc[y, x]
-            r = wp.abs(s)
-            if on_level(v, r, cell.r0, cell.n_levels, cell.lev):
-                lo = wp.min(lo, s)
-                hi = wp.max(hi, s)
-                deposit_routed(v, r, _sign(s), routing, src.shape[0], src.shape[1], y, x, cell.lev, shape, buf0)
-    return wp.vec2(lo, hi)
 
 
 @wp.func
@@ -290,6 +275,43 @@ def _scatter_moments(m: Moments, cell: Cell, levels: Levels, shape: Shape):
                      _sign(s_mean))
 
 
+@wp.struct
+class CellSources:
+    """What one pass over a pyramid cell's sources of its level finds (:func:`_cell_sources`): their smallest and
+    largest signed CoC (none: ``lo > hi``) and the :class:`Moments` of them all, in row order (one bin's merged
+    source when their CoCs span one bin)."""
+
+    lo: float
+    hi: float
+    m: Moments
+
+
+@wp.func
+def _cell_sources(src: wp.array2d(dtype=wp.vec4), coc: wp.array2d(dtype=float), cell: Cell, routing: Routing,
+                  shape: Shape, buf0: wp.array2d(dtype=wp.vec4)) -> CellSources:
+    """The cell's sources of its level (:class:`CellSources`), their routed excess deposited at level 0 on the way."""
+    c = CellSources()
+    c.lo = float(1.0e30)
+    c.hi = float(-1.0e30)
+    m = Moments()
+    for y in range(cell.y0, cell.y1):
+        for x in range(cell.x0, cell.x1):
+            v = src[y, x]
+            s = coc[y, x]
+            r = wp.abs(s)
+            if on_level(v, r, cell.r0, cell.n_levels, cell.lev):
+                c.lo = wp.min(c.lo, s)
+                c.hi = wp.max(c.hi, s)
+                deposit_routed(v, r, _sign(s), routing, src.shape[0], src.shape[1], y, x, cell.lev, shape, buf0)
+                share = pyramid_share(v, routing, src.shape[0], src.shape[1], y, x, cell.lev)
+                m.total += share
+                m.mx += share * (float(x - cell.x0) + 0.5)
+                m.my += share * (float(y - cell.y0) + 0.5)
+                m.s += share[3] * s
+    c.m = m
+    return c
+
+
 @wp.func
 def _scatter_bin(src: wp.array2d(dtype=wp.vec4), coc: wp.array2d(dtype=float), cell: Cell, routing: Routing,
                  shape: Shape, levels: Levels, lo: float, tol: float, n_bins: int, b: int):
@@ -346,15 +368,19 @@ def scatter_merged_kernel(
     cell.lev = lev
     cell.n_levels = n_levels
     cell.r0 = r0
-    span = _cell_range(src, coc, cell, routing, shape, levels.l0)
-    if span[1] < span[0]:
+    found = _cell_sources(src, coc, cell, routing, shape, levels.l0)
+    if found.hi < found.lo:
         return
-    n_bins = int((span[1] - span[0]) / tol) + 1
+    n_bins = int((found.hi - found.lo) / tol) + 1
     if n_bins > MERGE_GROUPS:
         _scatter_each(src, coc, cell, routing, shape, levels)
         return
+    if n_bins == 1:  # one bin holds them all: its merged source is the one the pass summed (no second pass)
+        if found.m.total[3] > 0.0:
+            _scatter_moments(found.m, cell, levels, shape)
+        return
     for b in range(n_bins):
-        _scatter_bin(src, coc, cell, routing, shape, levels, span[0], tol, n_bins, b)
+        _scatter_bin(src, coc, cell, routing, shape, levels, found.lo, tol, n_bins, b)
 
 
 @wp.kernel
@@ -373,17 +399,29 @@ def prefix_rows_kernel(buf: wp.array2d(dtype=wp.vec4), support: Support, store: 
     y = wp.tid()
     acc = wp.vec4()
     before = bool(False)  # whether the previous column is in the support
-    for x in range(width):
+    x = int(0)
+    while x < width:
+        # a run of columns in one tile of both grids: one support test for all of them
+        end = wp.min(wp.min(tile_end(support, x), tile_end(store, x)), width)
         inside = in_support(support, y, x)
-        if inside or before:  # elsewhere nothing is deposited (the light lies in the support): nothing to add
+        if inside:
+            kept = in_support(store, y, x)
+            for xi in range(x, end):
+                d = buf[y, xi]
+                if acc[0] != 0.0 or acc[1] != 0.0 or acc[2] != 0.0 or acc[3] != 0.0:
+                    acc = acc + d
+                    if kept:
+                        buf[y, xi] = acc
+                else:
+                    acc = d
+        elif before:  # the step down one column after a run of the support (nothing is stored there)
             d = buf[y, x]
             if acc[0] != 0.0 or acc[1] != 0.0 or acc[2] != 0.0 or acc[3] != 0.0:
                 acc = acc + d
-                if inside and in_support(store, y, x):
-                    buf[y, x] = acc
             else:
                 acc = d
         before = inside
+        x = end
 
 
 @wp.func
@@ -434,9 +472,14 @@ def resolve_levels_kernel(span: int, n_levels: int, first: int, levels: Levels, 
     on a CPU, a pixel a thread on a GPU (``bokehray.scene.row_span``).
     """
     y, j = wp.tid()
-    for x in range(j * span, wp.min(out.shape[1], j * span + span)):
+    x = j * span
+    x_end = wp.min(out.shape[1], j * span + span)
+    while x < x_end:
+        end = wp.min(tile_end(support, x), x_end)  # columns of one support tile: one test for all of them
         if in_support(support, y, x):
-            out[y, x] = _resolve_at(n_levels, first, levels, y, x, out.shape[0], out.shape[1])
+            for xi in range(x, end):
+                out[y, xi] = _resolve_at(n_levels, first, levels, y, xi, out.shape[0], out.shape[1])
+        x = end
 
 
 @wp.kernel
@@ -451,8 +494,13 @@ def clear_support_kernel(span: int, support: Support, width: int, buf: wp.array2
     on a CPU, a pixel a thread on a GPU (``bokehray.scene.row_span``).
     """
     y, j = wp.tid()
-    for x in range(j * span, wp.min(width, j * span + span)):
+    x = j * span
+    x_end = wp.min(width, j * span + span)
+    while x < x_end:
+        end = wp.min(tile_end(support, x), x_end)  # columns of one support tile: one test for all of them
         if in_support(support, y, x):
-            buf[y, x] = wp.vec4()
+            for xi in range(x, end):
+                buf[y, xi] = wp.vec4()
+        x = end
 
 

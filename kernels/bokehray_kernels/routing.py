@@ -3,7 +3,7 @@ their cell's cluster), from a radiance pyramid of the layer's sources (docs/rend
 
 import warp as wp
 
-from .reduce import children_2x2, sum_2x2_vec4
+from .reduce import children_2x2
 from .spans import Shape, scatter_exact
 from .support import Support, span_in_support
 
@@ -35,39 +35,99 @@ class Salience:
 
 
 @wp.func
-def _radiance_mean(src: wp.array2d(dtype=wp.vec4), support: Support, means: wp.array3d(dtype=wp.vec4),
-                   counts: wp.array3d(dtype=float), cy: int, cx: int):
-    # one cell of radiance_mean_kernel
+def on_level(v: wp.vec4, r: float, r0: float, n_levels: int, lev: int) -> bool:
+    # the source has coverage and scatters on pyramid level ``lev`` >= 1 (level_of(r) == lev, without its loop:
+    # r * 2^-l is exact in binary floating point, as in level_of)
+    if v[3] == 0.0 or r < 0.5:
+        return False
+    scale = 1.0 / float(1 << lev)
+    if r * (2.0 * scale) <= r0:
+        return False  # a lower level
+    return r * scale <= r0 or lev == n_levels - 1
+
+
+@wp.func
+def _level(r: float, r0: float, n_levels: int) -> int:
+    # the pyramid level a source of radius r scatters on (bokehray_kernels.pyramid.level_of, whose loop this is)
+    lev = int(0)
+    scale = float(1.0)
+    while r * scale > r0 and lev < n_levels - 1:
+        lev += 1
+        scale *= 0.5
+    return lev
+
+
+@wp.func
+def level_bits(lo: float, hi: float, r0: float, n_levels: int) -> int:
+    """Bits ``l`` (pyramid levels ``l >= 1``) from the level of radius ``lo`` to that of ``hi``: every level a source
+    of a radius in ``[lo, hi]`` may scatter on (0 for an empty range, ``lo > hi``)."""
+    if hi < lo:
+        return 0
+    top = _level(hi, r0, n_levels)
+    bottom = wp.max(_level(lo, r0, n_levels), 1)
+    if top < bottom:
+        return 0
+    return ((1 << (top + 1)) - 1) & ~((1 << bottom) - 1)
+
+
+@wp.func
+def _radiance_mean(src: wp.array2d(dtype=wp.vec4), coc: wp.array2d(dtype=float), support: Support, r0: float,
+                   n_levels: int, means: wp.array3d(dtype=wp.vec4), counts: wp.array3d(dtype=float),
+                   present: wp.array3d(dtype=wp.uint8), cy: int, cx: int):
+    # one cell of radiance_mean_kernel: the sum in sum_2x2_vec4's order
     n = children_2x2(src.shape[0], src.shape[1], cy, cx)
+    bits = int(0)
     if span_in_support(support, 2 * cy, wp.min(2 * cy + 2, src.shape[0]), 2 * cx, wp.min(2 * cx + 2, src.shape[1])):
-        means[0, cy, cx] = sum_2x2_vec4(src, cy, cx) / n
+        acc = wp.vec4()
+        lo = float(1.0e30)  # the radii of the cell's sources with coverage, scattered (r >= 0.5)
+        hi = float(-1.0e30)
+        for y in range(2 * cy, wp.min(2 * cy + 2, src.shape[0])):
+            for x in range(2 * cx, wp.min(2 * cx + 2, src.shape[1])):
+                v = src[y, x]
+                acc = acc + v
+                if v[3] != 0.0:
+                    r = wp.abs(coc[y, x])
+                    if r >= 0.5:
+                        lo = wp.min(lo, r)
+                        hi = wp.max(hi, r)
+        means[0, cy, cx] = acc / n
+        bits = level_bits(lo, hi, r0, n_levels)
     counts[0, cy, cx] = n
+    present[0, cy, cx] = wp.uint8(bits)
 
 
 @wp.kernel
-def radiance_mean_kernel(span: int, src: wp.array2d(dtype=wp.vec4), support: Support, means: wp.array3d(dtype=wp.vec4),
-                         counts: wp.array3d(dtype=float)):
-    """Level 1 of the radiance pyramid: mean over each 2 x 2 cell of the sources (premultiplied RGB, coverage).
+def radiance_mean_kernel(span: int, src: wp.array2d(dtype=wp.vec4), coc: wp.array2d(dtype=float), support: Support,
+                         r0: float, n_levels: int, means: wp.array3d(dtype=wp.vec4), counts: wp.array3d(dtype=float),
+                         present: wp.array3d(dtype=wp.uint8)):
+    """Level 1 of the radiance pyramid: mean over each 2 x 2 cell of the sources (premultiplied RGB, coverage), and
+    which pyramid levels its sources scatter on.
 
     Sources of zero coverage count as black; cells cut by the array's edge average the pixels they hold
     (``counts``). Level ``k`` lives in ``means[k - 1]``. A cell outside the layer's ``support`` holds no source:
-    its mean is zero (``means`` comes zeroed) and ``src`` is not read there.
+    its mean is zero (``means`` comes zeroed there) and ``src`` is not read there. ``present``: bits ``l`` of the
+    pyramid levels ``l >= 1`` from that of the cell's smallest radius to that of its largest (its sources with
+    coverage and ``r >= 0.5``; :func:`level_bits`), a bit set for every level a source of the cell scatters on
+    (``on_level`` with ``r0``, ``n_levels``), so that :func:`route_cells_kernel` reads only the cells that may hold
+    sources of its level. ``counts`` and ``present`` are written everywhere (they may come uninitialised).
 
     A thread takes ``span`` consecutive cells of a row, a launch of (rows, ceil(width / span)): a row a thread
     on a CPU, a pixel a thread on a GPU (``bokehray.scene.row_span``).
     """
     cy, j = wp.tid()
     for cx in range(j * span, wp.min((src.shape[1] + 1) // 2, j * span + span)):
-        _radiance_mean(src, support, means, counts, cy, cx)
+        _radiance_mean(src, coc, support, r0, n_levels, means, counts, present, cy, cx)
 
 
 @wp.kernel
-def halve_mean_kernel(means: wp.array3d(dtype=wp.vec4), counts: wp.array3d(dtype=float), k: int, fine_h: int,
-                      fine_w: int):
-    """Radiance pyramid level ``k + 1`` (in ``means[k]``) from level ``k``: pixel-count-weighted 2 x 2 means."""
+def halve_mean_kernel(means: wp.array3d(dtype=wp.vec4), counts: wp.array3d(dtype=float),
+                      present: wp.array3d(dtype=wp.uint8), k: int, fine_h: int, fine_w: int):
+    """Radiance pyramid level ``k + 1`` (in ``means[k]``) from level ``k``: pixel-count-weighted 2 x 2 means, and
+    the levels present in any of the 2 x 2 cells."""
     cy, cx = wp.tid()
     acc = wp.vec4()
     n = float(0.0)
+    bits = int(0)
     for dy in range(2):
         for dx in range(2):
             y = 2 * cy + dy
@@ -76,8 +136,10 @@ def halve_mean_kernel(means: wp.array3d(dtype=wp.vec4), counts: wp.array3d(dtype
                 c = counts[k - 1, y, x]
                 acc += means[k - 1, y, x] * c
                 n += c
+                bits = bits | int(present[k - 1, y, x])
     means[k, cy, cx] = acc / n
     counts[k, cy, cx] = n
+    present[k, cy, cx] = wp.uint8(bits)
 
 
 @wp.struct
@@ -158,18 +220,6 @@ def _cluster_excess(v: wp.vec4, r: float, flag: wp.uint8, mean: wp.vec2, r0: flo
 
 
 @wp.func
-def on_level(v: wp.vec4, r: float, r0: float, n_levels: int, lev: int) -> bool:
-    # the source has coverage and scatters on pyramid level ``lev`` >= 1 (level_of(r) == lev, without its loop:
-    # r * 2^-l is exact in binary floating point, as in level_of)
-    if v[3] == 0.0 or r < 0.5:
-        return False
-    scale = 1.0 / float(1 << lev)
-    if r * (2.0 * scale) <= r0:
-        return False  # a lower level
-    return r * scale <= r0 or lev == n_levels - 1
-
-
-@wp.func
 def _scatter_blocks(src: wp.array2d(dtype=wp.vec4), coc: wp.array2d(dtype=float), exact: wp.array2d(dtype=wp.uint8),
                     nb: Neighbourhood, mean: wp.vec2, r0: float, n_levels: int, lev: int, y0: int, y1: int, x0: int,
                     x1: int, shape: Shape, buf0: wp.array2d(dtype=wp.vec4)):
@@ -222,6 +272,7 @@ def route_cells_kernel(  # noqa: C901
     coc: wp.array2d(dtype=float),
     means: wp.array3d(dtype=wp.vec4),
     counts: wp.array3d(dtype=float),
+    present: wp.array3d(dtype=wp.uint8),
     r0: float,
     n_levels: int,
     lev: int,
@@ -257,9 +308,11 @@ def route_cells_kernel(  # noqa: C901
     (level 3), whatever the radius. ``E`` is the excess of all the cell's sources with a positive one less
     that of the routed ones, summed in float64 in the pass that counts the salient ones.
 
-    ``means[k]``, ``counts[k]``: radiance pyramid level ``k + 1`` (padded to level 1). Each cell's
-    neighbourhood sums are stored in ``cell_total``, ``cell_pixels`` for the scatter. Cells outside the
-    layer's ``support`` (``bokehray_kernels.support``) hold no source: skipped, nothing stored.
+    ``means[k]``, ``counts[k]``, ``present[k]``: radiance pyramid level ``k + 1`` (padded to level 1). Each
+    routing cell's neighbourhood sums are stored in ``cell_total``, ``cell_pixels`` for the scatter (which reads
+    them for routed sources only). Cells outside the layer's ``support`` (``bokehray_kernels.support``) hold no
+    source, and cells whose ``present`` bits hold no source of level ``lev`` route none: both skipped unread,
+    nothing stored.
     """
     cy, cx = wp.tid()
     side = 1 << lev
@@ -269,6 +322,8 @@ def route_cells_kernel(  # noqa: C901
     x1 = wp.min(x0 + side, src.shape[1])
     if not span_in_support(support, y0, y1, x0, x1):
         return
+    if (int(present[lev - 1, cy, cx]) & (1 << lev)) == 0:
+        return  # no source of this level in the cell: nothing to route, and nothing reads its neighbourhood
     per_cell = salience.per_cell
     visible = salience.visible
     floor = salience.floor

@@ -40,3 +40,10 @@ def span_in_support(support: Support, y0: int, y1: int, x0: int, x1: int) -> boo
             if support.mask[ty, tx] != wp.uint8(0):
                 return True
     return False
+
+
+@wp.func
+def tile_end(support: Support, x: int) -> int:
+    """The first box column past the support tile holding box column ``x`` (a run of columns of one tile: one
+    :func:`in_support` answer for all of them)."""
+    return (((x + support.ox) >> support.shift) + 1 << support.shift) - support.ox

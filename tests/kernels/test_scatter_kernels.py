@@ -485,6 +485,46 @@ def test_light_near_the_border_keeps_what_the_frame_cuts_of_it(ap):
     assert old.sum() > want.sum() * 1.05  # the rule before invented light
 
 
+@pytest.mark.parametrize("supported", [False, True])
+def test_radiance_pyramid_matches_reference(device, rng, supported):
+    """radiance_mean_kernel and halve_mean_kernel: each level's means, pixels and the pyramid levels its cells'
+    sources may scatter on (which route_cells_kernel reads to skip the cells holding none of its level), against the
+    plain-loop reference; the planes come uninitialised but level 1 of the means (outside the support)."""
+    h, w, n_levels, r0 = 45, 53, 5, 8.0
+    src = rng.random((h, w, 4)).astype(np.float32)
+    src[..., 3] = (rng.random((h, w)) < 0.8).astype(np.float32)
+    # radii on every level, at its edges too (r0 2^l exactly and one ulp above), in patches: cells of one level
+    edges = np.array([r0 * 2.0 ** k for k in range(n_levels)], np.float32)
+    pool = np.concatenate([rng.uniform(0.0, 200.0, 64).astype(np.float32), edges, np.nextafter(edges, np.inf),
+                           np.float32([0.4999, 0.5])])
+    patches = rng.choice(pool, (h // 4 + 1, w // 4 + 1))
+    coc = np.repeat(np.repeat(patches, 4, 0), 4, 1)[:h, :w] * rng.choice([-1, 1], (h, w)).astype(np.float32)
+    coc[rng.random((h, w)) < 0.1] = rng.choice(pool, 1)[0]
+    mask = (rng.random((3, 4)) < 0.6).astype(np.uint8) if supported else np.ones((1, 1), np.uint8)
+    support = LayerSupport(wp.array(mask, dtype=wp.uint8, device=device), 4 if supported else 30, 0, 0)
+    inside = np.ones((h, w), bool) if not supported else np.repeat(np.repeat(mask, 16, 0), 16, 1)[:h, :w] != 0
+    n_means, h1, w1 = n_levels - 1, (h + 1) // 2, (w + 1) // 2
+    means = wp.array(np.full((n_means, h1, w1, 4), np.nan, np.float32), dtype=wp.vec4, device=device)
+    means[0].zero_()
+    counts = wp.array(np.full((n_means, h1, w1), np.nan, np.float32), dtype=float, device=device)
+    present = wp.array(np.full((n_means, h1, w1), 0xAA, np.uint8), dtype=wp.uint8, device=device)
+    wp.launch(bk.radiance_mean_kernel, dim=(h1, 1),
+              inputs=[w1, wp.array(src, dtype=wp.vec4, device=device), wp.array(coc, device=device),
+                      support.struct(), r0, n_levels], outputs=[means, counts, present], device=device)
+    fh, fw = h1, w1
+    for k in range(1, n_means):
+        ch, cw = (fh + 1) // 2, (fw + 1) // 2
+        wp.launch(bk.halve_mean_kernel, dim=(ch, cw), inputs=[means, counts, present, k, fh, fw], device=device)
+        fh, fw = ch, cw
+    want = scatter_ref.radiance_pyramid(src.astype(np.float64), coc, inside, r0, n_levels)
+    assert len({int(b) for _, _, bits in want for b in np.unique(bits)}) > 6  # cells of one level, of several, none
+    for k, (m, px, bits) in enumerate(want):
+        hk, wk = px.shape
+        np.testing.assert_array_equal(present.numpy()[k, :hk, :wk], bits)
+        np.testing.assert_array_equal(counts.numpy()[k, :hk, :wk], px)
+        np.testing.assert_allclose(means.numpy()[k, :hk, :wk], m, rtol=1e-5, atol=1e-6)
+
+
 def test_salient_routing_matches_reference(device, rng):
     """route_salient (radiance pyramid, salience, per-cell cap) against the plain-loop reference."""
     from bokehray.levels.preview import SALIENT_FLOOR, SALIENT_VISIBLE

@@ -300,6 +300,45 @@ def level_of(r: float, r0: float, n_levels: int) -> int:
     return lev
 
 
+def radiance_pyramid(src: np.ndarray, coc: np.ndarray, inside: np.ndarray, r0: float, n_levels: int
+                     ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """(means, pixels, levels present) of radiance pyramid levels 1 .. n_levels - 1, by plain loops.
+
+    A level-k cell's mean of the sources (premultiplied RGB, coverage) over the pixels it holds (cut by the array's
+    edge), sources outside ``inside`` (the layer's support) counting as zero; its pixels; and as bits, the pyramid
+    levels l >= 1 (bit l) from that of the smallest to that of the largest radius ``|coc| >= 0.5`` of a level-1 cell's
+    sources with coverage (every level one of them scatters on, and those between), a coarser cell's those of its
+    2 x 2 cells."""
+    h, w = coc.shape
+    out = []
+    for k in range(1, n_levels):
+        s = 2 ** k
+        hk, wk = -(-h // s), -(-w // s)
+        means, pixels, bits = np.zeros((hk, wk, 4)), np.zeros((hk, wk)), np.zeros((hk, wk), int)
+        lo, hi = np.full((hk, wk), n_levels, int), np.full((hk, wk), -1, int)  # levels of its radii
+        for cy in range(hk):
+            for cx in range(wk):
+                for y in range(cy * s, min(h, cy * s + s)):
+                    for x in range(cx * s, min(w, cx * s + s)):
+                        pixels[cy, cx] += 1
+                        if not inside[y, x]:
+                            continue
+                        means[cy, cx] += src[y, x]
+                        r = abs(float(coc[y, x]))
+                        if src[y, x, 3] != 0 and r >= 0.5:
+                            lv = level_of(r, r0, n_levels)
+                            lo[cy, cx], hi[cy, cx] = min(lo[cy, cx], lv), max(hi[cy, cx], lv)
+                means[cy, cx] /= pixels[cy, cx]
+                if k == 1:
+                    for lv in range(max(1, lo[cy, cx]), hi[cy, cx] + 1):
+                        bits[cy, cx] |= 1 << lv
+                else:  # the levels of its 2 x 2 cells'
+                    finer = out[-1][2]
+                    bits[cy, cx] = np.bitwise_or.reduce(finer[2 * cy:2 * cy + 2, 2 * cx:2 * cx + 2], axis=None)
+        out.append((means, pixels, bits))
+    return out
+
+
 def salient(src: np.ndarray, coc: np.ndarray, r0: float, n_levels: int, visible: float, floor: float
             ) -> tuple[np.ndarray, np.ndarray]:
     """(score, routed mask) of the salient-source routing (docs/renderer.md), by plain loops.
