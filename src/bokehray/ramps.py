@@ -74,18 +74,19 @@ def snap_ramps(image: np.ndarray, signed_coc: np.ndarray, rule: RampRule | None 
     dev = wp.get_device(device)
     copy = not dev.is_cpu  # on the CPU the kernels read the (contiguous) arrays in place
     coc = wp.array(s, dtype=float, device=dev, copy=copy)
-    grad = wp.empty((h, w), dtype=float, device=dev)
+    flat = wp.empty((h, w), dtype=wp.uint8, device=dev)
 
-    def gradient(a: int, b: int) -> None:  # pixels a to b: the rows from ceil(a / w) on (the parts tile the rows)
+    def plateaus(a: int, b: int) -> None:  # pixels a to b: the rows from ceil(a / w) on (the parts tile the rows)
         y0, y1 = -(-a // w), -(-b // w)
         if y1 > y0:
-            wp.launch(bk_ramps.ramp_gradient_kernel, dim=(y1 - y0, w), inputs=[coc, y0], outputs=[grad], device=dev)
+            wp.launch(bk_ramps.ramp_plateau_kernel, dim=y1 - y0, inputs=[coc, y0, float(rule.grad_min)],
+                      outputs=[flat], device=dev)
 
-    in_parts(h * w, gradient, threads=threads, cpu=dev.is_cpu)
-    g = grad.numpy()
+    in_parts(h * w, plateaus, threads=threads, cpu=dev.is_cpu)
+    f = flat.numpy()
 
     def candidates(a: int, b: int) -> np.ndarray:  # the rows [a, b)'s pixels steeper than a plateau, row-major
-        return np.flatnonzero(g[a:b] > np.float32(rule.grad_min)) + a * w
+        return np.flatnonzero(f[a:b] == 0) + a * w
 
     cand = np.concatenate(in_row_parts(h, w, candidates, threads=threads))
     if cand.size == 0:
@@ -100,7 +101,7 @@ def snap_ramps(image: np.ndarray, signed_coc: np.ndarray, rule: RampRule | None 
         snapped = wp.empty(m, dtype=wp.uint8, device=dev)
         if m:
             wp.launch(bk_ramps.snap_ramps_kernel, dim=m,
-                      inputs=[img, coc, grad, wp.array(cy[a:b].astype(np.int32), dtype=wp.int32, device=dev),
+                      inputs=[img, coc, flat, wp.array(cy[a:b].astype(np.int32), dtype=wp.int32, device=dev),
                               wp.array(cx[a:b].astype(np.int32), dtype=wp.int32, device=dev), params],
                       outputs=[value, snapped], device=dev)
         return value.numpy(), snapped.numpy()
