@@ -79,7 +79,7 @@ def gap_offsets(max_gap: int) -> np.ndarray:
     return np.stack([oy[keep], ox[keep]], 1)[order].astype(np.int32)
 
 
-TILE_PX = 16
+TILE_PX = 8
 """(A power of two.) The strand-pixel pass skips the tiles of this size whose neighbourhood's map varies by no more than a jump."""
 
 
