@@ -98,17 +98,19 @@ def snap_ramps_kernel(
     image: wp.array2d(dtype=wp.vec3),
     coc: wp.array2d(dtype=float),
     flat: wp.array2d(dtype=wp.uint8),
-    cand_y: wp.array(dtype=wp.int32),
-    cand_x: wp.array(dtype=wp.int32),
+    cand: wp.array(dtype=wp.int32),
+    first: int,
     params: RampParams,
     value: wp.array(dtype=float),
     snapped: wp.array(dtype=wp.uint8),
 ):
-    i = wp.tid()
+    """Candidates ``first`` on (``cand``: row-major pixel indices; a launch of (count,)), their results at the same
+    places of ``value`` and ``snapped``."""
+    i = first + wp.tid()
     h = coc.shape[0]
     w = coc.shape[1]
-    py = cand_y[i]
-    px = cand_x[i]
+    py = cand[i] / w
+    px = cand[i] % w
     own = coc[py, px]
     value[i] = own
     snapped[i] = wp.uint8(0)

@@ -86,32 +86,27 @@ def snap_ramps(image: np.ndarray, signed_coc: np.ndarray, rule: RampRule | None 
     f = flat.numpy()
 
     def candidates(a: int, b: int) -> np.ndarray:  # the rows [a, b)'s pixels steeper than a plateau, row-major
-        return np.flatnonzero(f[a:b] == 0) + a * w
+        return (np.flatnonzero(f[a:b] == 0) + a * w).astype(np.int32)  # a frame's pixels fit an int32 (Warp's)
 
     cand = np.concatenate(in_row_parts(h, w, candidates, threads=threads))
     if cand.size == 0:
         return signed_coc, 0
-    cy, cx = np.divmod(cand, w)
     img = wp.array(np.ascontiguousarray(image, np.float32), dtype=wp.vec3, device=dev, copy=copy)
+    where = wp.array(cand, dtype=wp.int32, device=dev, copy=copy)
+    value = wp.empty(cand.size, dtype=float, device=dev)
+    snapped = wp.empty(cand.size, dtype=wp.uint8, device=dev)
     params = rule.struct()
 
-    def launch(a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
-        m = b - a
-        value = wp.empty(m, dtype=float, device=dev)
-        snapped = wp.empty(m, dtype=wp.uint8, device=dev)
-        if m:
-            wp.launch(bk_ramps.snap_ramps_kernel, dim=m,
-                      inputs=[img, coc, flat, wp.array(cy[a:b].astype(np.int32), dtype=wp.int32, device=dev),
-                              wp.array(cx[a:b].astype(np.int32), dtype=wp.int32, device=dev), params],
+    def launch(a: int, b: int) -> None:  # candidates a to b, their results in place
+        if b > a:
+            wp.launch(bk_ramps.snap_ramps_kernel, dim=b - a, inputs=[img, coc, flat, where, a, params],
                       outputs=[value, snapped], device=dev)
-        return value.numpy(), snapped.numpy()
 
-    parts = in_parts(cand.size, launch, threads=threads, cpu=dev.is_cpu, check=check)
-    value = np.concatenate([p[0] for p in parts])
-    moved = np.concatenate([p[1] for p in parts]).astype(bool)
-    n = int(moved.sum())
+    in_parts(cand.size, launch, threads=threads, cpu=dev.is_cpu, check=check)
+    moved = snapped.numpy().view(bool)  # 0 or 1
+    n = int(np.count_nonzero(moved))
     if n == 0:
         return signed_coc, 0
     out = s.copy()
-    out.reshape(-1)[cand[moved]] = value[moved]
+    out.reshape(-1)[cand[moved]] = value.numpy()[moved]
     return out, n
