@@ -181,6 +181,23 @@ def test_in_parts_with_checks_covers_the_items_in_order(n, threads, item_px):
         assert len(spans) >= 2  # a few hundred tiles are worth both cores
 
 
+def test_the_snap_in_parts_is_the_snap_whole(monkeypatch):
+    """The snap kernel runs the candidates in parts (the cores, the checks' rounds), each writing its results at its
+    own offset: the same map as one part."""
+    from bokehray import edge_estimate as ee
+
+    img, s = _soft_disc(48, 2.5, 24.0, 0.4, 7)
+    whole, n = snap_ramps(img, s, threads=1)
+    assert n > 0
+    monkeypatch.setattr(ee, "PIXELS_PER_THREAD", 16)
+    monkeypatch.setattr(ee, "CHECK_ITEMS", 37)
+    checks = []
+    parts, m = snap_ramps(img, s, threads=3, check=lambda: checks.append(1))
+    assert len(checks) > 1
+    assert m == n
+    np.testing.assert_array_equal(parts, whole)
+
+
 def test_the_split_in_chunks_is_the_split_whole(monkeypatch):
     """The matting works a chunk of band pixels at a time (bounded temporaries): the same split pixels, the same
     values, whatever the chunk."""
