@@ -70,11 +70,27 @@ def ramp_plateau_kernel(coc: wp.array2d(dtype=float), row0: int, grad_min: float
 
 
 @wp.func
+def _inside(v: float, n: int) -> int:
+    """1 when ``floor(v + 0.5)`` lies in [0, n - 1] for v (and so for any float between it and a pixel's own)."""
+    if v >= 0.0 and v <= float(n - 1):
+        return 1
+    return 0
+
+
+@wp.func
 def _plateau(flat: wp.array2d(dtype=wp.uint8), y: float, x: float, ny: float, nx: float, params: RampParams) -> int:
     """Steps from (y, x) along (ny, nx) to the first pixel whose gradient is at most ``grad_min`` (``flat``); 0: none
-    within ``max_walk``."""
+    within ``max_walk``. A walk whose last step lies inside the frame is inside at every step (``y + k ny`` is
+    monotone in k in floats too): it rounds without clamping."""
     h = flat.shape[0]
     w = flat.shape[1]
+    far = float(params.max_walk)
+    if _inside(y + far * ny, h) == 1 and _inside(x + far * nx, w) == 1:
+        for k in range(1, params.max_walk + 1):
+            fk = float(k)
+            if flat[int(wp.floor(y + fk * ny + 0.5)), int(wp.floor(x + fk * nx + 0.5))] != wp.uint8(0):
+                return k
+        return 0
     for k in range(1, params.max_walk + 1):
         if flat[_clamp_at(y + float(k) * ny, h), _clamp_at(x + float(k) * nx, w)] != wp.uint8(0):
             return k

@@ -42,6 +42,20 @@ def test_the_kernel_matches_the_float64_oracle(sigma, k, focus, seed):
     assert n == int(got_moved.sum())
 
 
+@pytest.mark.parametrize("sigma, k, focus, seed", [(3.0, 30.0, 0.3, 1), (5.0, 24.0, 0.7, 2)])
+def test_walks_inside_the_frame_match_the_oracle(sigma, k, focus, seed):
+    """A frame wide enough that most walks stay inside it (they round without clamping): the oracle's map."""
+    img, s = _soft_disc(120, sigma, k, focus, seed)
+    rule = RampRule()
+    got, n = snap_ramps(img, s, rule)
+    want, moved = snap_ramps_ref(img, s, rule)
+    got_moved = np.abs(got - s) > 0
+    assert moved.sum() > 100 and n == int(got_moved.sum())
+    assert (got_moved != moved).mean() <= 0.01
+    both = got_moved & moved
+    np.testing.assert_allclose(got[both], want[both], rtol=0, atol=1e-4)
+
+
 @settings(max_examples=25, deadline=None)
 @given(levels=st.lists(st.floats(-30.0, 30.0), min_size=2, max_size=4), seed=st.integers(0, 2**16))
 def test_a_hard_map_is_left_exactly_as_it_is(levels, seed):
