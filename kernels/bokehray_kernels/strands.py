@@ -71,27 +71,36 @@ def _thin_along(coc: wp.array2d(dtype=float), y: int, x: int, dy: int, dx: int, 
     return 0
 
 
+@wp.func
+def _is_strand(coc: wp.array2d(dtype=float), y: int, x: int, params: StrandParams) -> int:
+    """1 when (y, x) is nearer by more than ``jump_px`` than a pixel within ``thin_px`` on both sides along one of
+    the four axes."""
+    level = coc[y, x] - params.jump_px
+    n = params.thin_px
+    if _thin_along(coc, y, x, 0, 1, level, n) == 1 or _thin_along(coc, y, x, 1, 0, level, n) == 1:
+        return 1
+    if _thin_along(coc, y, x, 1, 1, level, n) == 1 or _thin_along(coc, y, x, 1, -1, level, n) == 1:
+        return 1
+    return 0
+
+
 @wp.kernel
 def strand_pixels_kernel(coc: wp.array2d(dtype=float), params: StrandParams, tile_y: wp.array(dtype=wp.int32),
                          tile_x: wp.array(dtype=wp.int32), tile: int, strand: wp.array2d(dtype=wp.uint8),
                          slot: wp.array2d(dtype=wp.uint8)):
     """The pixels of the ``tile`` x ``tile`` tiles whose corners are (``tile_y``, ``tile_x``) (a launch of (tiles,
-    tile * tile)), in the map ``strand`` and a tile's slot ``slot[i, j]`` (so that the host finds them among the
-    tiles' pixels, not the frame's); pixels outside the map are skipped."""
-    i, j = wp.tid()
-    y = tile_y[i] + j / tile
-    x = tile_x[i] + j % tile
-    if y >= coc.shape[0] or x >= coc.shape[1]:
+    tile): a thread a tile's row), in the map ``strand`` and a tile's slot ``slot[i, r * tile + c]`` (so that the
+    host finds them among the tiles' pixels, not the frame's); pixels outside the map are skipped."""
+    i, r = wp.tid()
+    y = tile_y[i] + r
+    if y >= coc.shape[0]:
         return
-    level = coc[y, x] - params.jump_px
-    n = params.thin_px
-    t = int(0)
-    if _thin_along(coc, y, x, 0, 1, level, n) == 1 or _thin_along(coc, y, x, 1, 0, level, n) == 1:
-        t = 1
-    elif _thin_along(coc, y, x, 1, 1, level, n) == 1 or _thin_along(coc, y, x, 1, -1, level, n) == 1:
-        t = 1
-    strand[y, x] = wp.uint8(t)
-    slot[i, j] = wp.uint8(t)
+    for c in range(tile):
+        x = tile_x[i] + c
+        if x < coc.shape[1]:
+            t = _is_strand(coc, y, x, params)
+            strand[y, x] = wp.uint8(t)
+            slot[i, r * tile + c] = wp.uint8(t)
 
 
 @wp.func

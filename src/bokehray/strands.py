@@ -164,7 +164,7 @@ def bridge_strands(image: np.ndarray, signed_coc: np.ndarray, rule: StrandRule |
 
     def launch_tiles(a: int, b: int) -> None:
         if b > a:
-            wp.launch(bk_strands.strand_pixels_kernel, dim=(b - a, TILE_PX * TILE_PX),
+            wp.launch(bk_strands.strand_pixels_kernel, dim=(b - a, TILE_PX),
                       inputs=[coc, params, ty0[a:b], tx0[a:b], TILE_PX], outputs=[strand, slot[a:b]], device=dev)
 
     in_parts(len(tiles), launch_tiles, threads=threads, cpu=dev.is_cpu, check=check, item_px=TILE_PX * TILE_PX)
