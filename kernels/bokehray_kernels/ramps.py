@@ -62,11 +62,34 @@ def ramp_plateau_kernel(coc: wp.array2d(dtype=float), row0: int, grad_min: float
     pixel, a quarter of the float gradient's memory for the walks to read)."""
     t = wp.tid()
     y = row0 + t
-    for x in range(coc.shape[1]):
-        if wp.length(_sobel(coc, y, x)) <= grad_min:
+    h = coc.shape[0]
+    w = coc.shape[1]
+    ym = wp.max(y - 1, 0)
+    yp = wp.min(y + 1, h - 1)
+    # the three rows' values at x - 1, x and x + 1 (clamped), slid along the row: _sobel's sums on them
+    u0 = coc[ym, 0]
+    m0 = coc[y, 0]
+    d0 = coc[yp, 0]
+    u1 = u0
+    m1 = m0
+    d1 = d0
+    for x in range(w):
+        xp = wp.min(x + 1, w - 1)
+        u2 = coc[ym, xp]
+        m2 = coc[y, xp]
+        d2 = coc[yp, xp]
+        gy = (d0 + 2.0 * d1 + d2) - (u0 + 2.0 * u1 + u2)
+        gx = (u2 + 2.0 * m2 + d2) - (u0 + 2.0 * m0 + d0)
+        if wp.length(wp.vec2(gy / 8.0, gx / 8.0)) <= grad_min:
             flat[y, x] = wp.uint8(1)
         else:
             flat[y, x] = wp.uint8(0)
+        u0 = u1
+        m0 = m1
+        d0 = d1
+        u1 = u2
+        m1 = m2
+        d1 = d2
 
 
 @wp.func
