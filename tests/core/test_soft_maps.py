@@ -42,6 +42,27 @@ def test_the_kernel_matches_the_float64_oracle(sigma, k, focus, seed):
     assert n == int(got_moved.sum())
 
 
+@settings(max_examples=20, deadline=None)
+@given(h=st.integers(3, 40), w=st.integers(3, 40), scale=st.floats(0.05, 3.0), seed=st.integers(0, 2**16))
+def test_the_plateau_pass_is_the_sobel_gradient_at_most_grad_min(h, w, scale, seed):
+    """The plateau pass (three rows slid along each row, a thread a row) against the float64 Sobel / 8 with clamped
+    borders: the same plateaus, but where the gradient lies within 1e-5 of ``grad_min`` (float32 rounding)."""
+    import bokehray_kernels.ramps as bk_ramps
+    import warp as wp
+
+    s = (np.random.default_rng(seed).normal(0, scale, (h, w))).astype(np.float32)
+    p = np.pad(s.astype(np.float64), 1, mode="edge")
+    gy = (p[2:, :-2] + 2 * p[2:, 1:-1] + p[2:, 2:]) - (p[:-2, :-2] + 2 * p[:-2, 1:-1] + p[:-2, 2:])
+    gx = (p[:-2, 2:] + 2 * p[1:-1, 2:] + p[2:, 2:]) - (p[:-2, :-2] + 2 * p[1:-1, :-2] + p[2:, :-2])
+    g = np.hypot(gy, gx) / 8
+    grad_min = RampRule().grad_min
+    flat = wp.empty((h, w), dtype=wp.uint8, device="cpu")
+    wp.launch(bk_ramps.ramp_plateau_kernel, dim=h, inputs=[wp.array(s, dtype=float, device="cpu"), 0, grad_min],
+              outputs=[flat], device="cpu")
+    sure = np.abs(g - grad_min) > 1e-5
+    np.testing.assert_array_equal(flat.numpy()[sure].astype(bool), (g <= grad_min)[sure])
+
+
 @pytest.mark.parametrize("sigma, k, focus, seed", [(3.0, 30.0, 0.3, 1), (5.0, 24.0, 0.7, 2)])
 def test_walks_inside_the_frame_match_the_oracle(sigma, k, focus, seed):
     """A frame wide enough that most walks stay inside it (they round without clamping): the oracle's map."""
