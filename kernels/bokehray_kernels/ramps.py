@@ -3,7 +3,8 @@
 A depth model's, a brush's or an upsampled map ramps over several pixels between a subject and its background;
 each ramp pixel carries a depth no surface has. Two kernels:
 
-1. :func:`ramp_gradient_kernel`: the map's gradient magnitude (Sobel / 8, borders clamped), where the ramps are.
+1. :func:`ramp_plateau_kernel`: where the map's gradient magnitude (Sobel / 8, borders clamped) is at most
+   ``grad_min`` (a plateau; elsewhere a ramp's pixel, a candidate).
 2. :func:`snap_ramps_kernel`, one thread a candidate pixel (gradient above ``grad_min``): from the pixel, walk
    along the gradient both ways, one pixel a step (nearest sample), to the first pixel whose gradient is at most
    ``grad_min`` (a plateau) within ``max_walk`` steps. A pixel strictly inside such a ramp (its value rises
@@ -55,21 +56,66 @@ def _sobel(coc: wp.array2d(dtype=float), y: int, x: int) -> wp.vec2:
 
 
 @wp.kernel
-def ramp_gradient_kernel(coc: wp.array2d(dtype=float), row0: int, grad: wp.array2d(dtype=float)):
-    """The gradient of rows ``row0`` on (a launch of ``(rows, W)``: a band of rows a CPU thread)."""
-    t, x = wp.tid()
+def ramp_plateau_kernel(coc: wp.array2d(dtype=float), row0: int, grad_min: float, flat: wp.array2d(dtype=wp.uint8)):
+    """1 where the map's gradient is at most ``grad_min`` (a plateau pixel), 0 where it is steeper (a ramp's
+    candidate), for rows ``row0`` on (a launch of ``(rows,)``: a thread a row, a band of rows a CPU thread; a byte a
+    pixel, a quarter of the float gradient's memory for the walks to read)."""
+    t = wp.tid()
     y = row0 + t
-    grad[y, x] = wp.length(_sobel(coc, y, x))
+    h = coc.shape[0]
+    w = coc.shape[1]
+    ym = wp.max(y - 1, 0)
+    yp = wp.min(y + 1, h - 1)
+    # the three rows' values at x - 1, x and x + 1 (clamped), slid along the row: _sobel's sums on them
+    u0 = coc[ym, 0]
+    m0 = coc[y, 0]
+    d0 = coc[yp, 0]
+    u1 = u0
+    m1 = m0
+    d1 = d0
+    for x in range(w):
+        xp = wp.min(x + 1, w - 1)
+        u2 = coc[ym, xp]
+        m2 = coc[y, xp]
+        d2 = coc[yp, xp]
+        gy = (d0 + 2.0 * d1 + d2) - (u0 + 2.0 * u1 + u2)
+        gx = (u2 + 2.0 * m2 + d2) - (u0 + 2.0 * m0 + d0)
+        if wp.length(wp.vec2(gy / 8.0, gx / 8.0)) <= grad_min:
+            flat[y, x] = wp.uint8(1)
+        else:
+            flat[y, x] = wp.uint8(0)
+        u0 = u1
+        m0 = m1
+        d0 = d1
+        u1 = u2
+        m1 = m2
+        d1 = d2
 
 
 @wp.func
-def _plateau(grad: wp.array2d(dtype=float), y: float, x: float, ny: float, nx: float, params: RampParams) -> int:
-    """Steps from (y, x) along (ny, nx) to the first pixel whose gradient is at most ``grad_min``; 0: none within
-    ``max_walk``."""
-    h = grad.shape[0]
-    w = grad.shape[1]
+def _inside(v: float, n: int) -> int:
+    """1 when ``floor(v + 0.5)`` lies in [0, n - 1] for v (and so for any float between it and a pixel's own)."""
+    if v >= 0.0 and v <= float(n - 1):
+        return 1
+    return 0
+
+
+@wp.func
+def _plateau(flat: wp.array2d(dtype=wp.uint8), y: float, x: float, ny: float, nx: float, params: RampParams) -> int:
+    """Steps from (y, x) along (ny, nx) to the first pixel whose gradient is at most ``grad_min`` (``flat``); 0: none
+    within ``max_walk``. A walk whose last step lies inside the frame is inside at every step (``y + k ny`` is
+    monotone in k in floats too): it rounds without clamping."""
+    h = flat.shape[0]
+    w = flat.shape[1]
+    far = float(params.max_walk)
+    if _inside(y + far * ny, h) == 1 and _inside(x + far * nx, w) == 1:
+        for k in range(1, params.max_walk + 1):
+            fk = float(k)
+            if flat[int(wp.floor(y + fk * ny + 0.5)), int(wp.floor(x + fk * nx + 0.5))] != wp.uint8(0):
+                return k
+        return 0
     for k in range(1, params.max_walk + 1):
-        if grad[_clamp_at(y + float(k) * ny, h), _clamp_at(x + float(k) * nx, w)] <= params.grad_min:
+        if flat[_clamp_at(y + float(k) * ny, h), _clamp_at(x + float(k) * nx, w)] != wp.uint8(0):
             return k
     return 0
 
@@ -90,18 +136,20 @@ def _plateau_colour(image: wp.array2d(dtype=wp.vec3), y: float, x: float, ny: fl
 def snap_ramps_kernel(
     image: wp.array2d(dtype=wp.vec3),
     coc: wp.array2d(dtype=float),
-    grad: wp.array2d(dtype=float),
-    cand_y: wp.array(dtype=wp.int32),
-    cand_x: wp.array(dtype=wp.int32),
+    flat: wp.array2d(dtype=wp.uint8),
+    cand: wp.array(dtype=wp.int32),
+    first: int,
     params: RampParams,
     value: wp.array(dtype=float),
     snapped: wp.array(dtype=wp.uint8),
 ):
-    i = wp.tid()
+    """Candidates ``first`` on (``cand``: row-major pixel indices; a launch of (count,)), their results at the same
+    places of ``value`` and ``snapped``."""
+    i = first + wp.tid()
     h = coc.shape[0]
     w = coc.shape[1]
-    py = cand_y[i]
-    px = cand_x[i]
+    py = cand[i] / w
+    px = cand[i] % w
     own = coc[py, px]
     value[i] = own
     snapped[i] = wp.uint8(0)
@@ -113,10 +161,10 @@ def snap_ramps_kernel(
     nx = g[1] / gl
     y = float(py)
     x = float(px)
-    k_near = _plateau(grad, y, x, ny, nx, params)
+    k_near = _plateau(flat, y, x, ny, nx, params)
     if k_near == 0:  # a slope (most candidates of a steep floor): the other side is not walked
         return
-    k_far = _plateau(grad, y, x, -ny, -nx, params)
+    k_far = _plateau(flat, y, x, -ny, -nx, params)
     if k_far == 0 or k_near + k_far < params.min_len:
         return
     v_near = coc[_clamp_at(y + float(k_near) * ny, h), _clamp_at(x + float(k_near) * nx, w)]

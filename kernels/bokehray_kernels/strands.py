@@ -71,27 +71,36 @@ def _thin_along(coc: wp.array2d(dtype=float), y: int, x: int, dy: int, dx: int, 
     return 0
 
 
+@wp.func
+def _is_strand(coc: wp.array2d(dtype=float), y: int, x: int, params: StrandParams) -> int:
+    """1 when (y, x) is nearer by more than ``jump_px`` than a pixel within ``thin_px`` on both sides along one of
+    the four axes."""
+    level = coc[y, x] - params.jump_px
+    n = params.thin_px
+    if _thin_along(coc, y, x, 0, 1, level, n) == 1 or _thin_along(coc, y, x, 1, 0, level, n) == 1:
+        return 1
+    if _thin_along(coc, y, x, 1, 1, level, n) == 1 or _thin_along(coc, y, x, 1, -1, level, n) == 1:
+        return 1
+    return 0
+
+
 @wp.kernel
 def strand_pixels_kernel(coc: wp.array2d(dtype=float), params: StrandParams, tile_y: wp.array(dtype=wp.int32),
                          tile_x: wp.array(dtype=wp.int32), tile: int, strand: wp.array2d(dtype=wp.uint8),
                          slot: wp.array2d(dtype=wp.uint8)):
     """The pixels of the ``tile`` x ``tile`` tiles whose corners are (``tile_y``, ``tile_x``) (a launch of (tiles,
-    tile * tile)), in the map ``strand`` and a tile's slot ``slot[i, j]`` (so that the host finds them among the
-    tiles' pixels, not the frame's); pixels outside the map are skipped."""
-    i, j = wp.tid()
-    y = tile_y[i] + j / tile
-    x = tile_x[i] + j % tile
-    if y >= coc.shape[0] or x >= coc.shape[1]:
+    tile): a thread a tile's row), in the map ``strand`` and a tile's slot ``slot[i, r * tile + c]`` (so that the
+    host finds them among the tiles' pixels, not the frame's); pixels outside the map are skipped."""
+    i, r = wp.tid()
+    y = tile_y[i] + r
+    if y >= coc.shape[0]:
         return
-    level = coc[y, x] - params.jump_px
-    n = params.thin_px
-    t = int(0)
-    if _thin_along(coc, y, x, 0, 1, level, n) == 1 or _thin_along(coc, y, x, 1, 0, level, n) == 1:
-        t = 1
-    elif _thin_along(coc, y, x, 1, 1, level, n) == 1 or _thin_along(coc, y, x, 1, -1, level, n) == 1:
-        t = 1
-    strand[y, x] = wp.uint8(t)
-    slot[i, j] = wp.uint8(t)
+    for c in range(tile):
+        x = tile_x[i] + c
+        if x < coc.shape[1]:
+            t = _is_strand(coc, y, x, params)
+            strand[y, x] = wp.uint8(t)
+            slot[i, r * tile + c] = wp.uint8(t)
 
 
 @wp.func
@@ -234,6 +243,29 @@ def _own(coc: wp.array2d(dtype=float), y: int, x: int, v: float, jump: float) ->
 
 
 @wp.func
+def _own_ring(coc: wp.array2d(dtype=float), y: int, x: int, jump: float) -> int:
+    """The 8-neighbours of (y, x) inside the map within ``jump`` of its value: bit ``(dy + 1) * 3 + (dx + 1)``."""
+    v = coc[y, x]
+    near = int(0)
+    for dy in range(-1, 2):
+        for dx in range(-1, 2):
+            if (dy != 0 or dx != 0) and _own(coc, y + dy, x + dx, v, jump) == 1:
+                near = near | (1 << ((dy + 1) * 3 + dx + 1))
+    return near
+
+
+@wp.func
+def _ends_in_ring(near: int, oy: int, ox: int) -> int:
+    """:func:`_ends_towards` from the pixel's :func:`_own_ring` ``near``: 1 when none of its neighbours of its own
+    depth lies on the side of (oy, ox)."""
+    for dy in range(-1, 2):
+        for dx in range(-1, 2):
+            if dy * oy + dx * ox > 0 and (near >> ((dy + 1) * 3 + dx + 1)) & 1 == 1:
+                return 0
+    return 1
+
+
+@wp.func
 def _joined(near: int, dy: int, dx: int) -> int:
     """1 when offset (dy, dx) (within 2 px, not 0) is an 8-neighbour or 8-adjacent to one set in ``near``."""
     if dy == 0 and dx == 0:
@@ -248,17 +280,12 @@ def _joined(near: int, dy: int, dx: int) -> int:
 
 
 @wp.func
-def _way_out(coc: wp.array2d(dtype=float), y1: int, x1: int, jump: float) -> wp.vec2i:
+def _way_out(coc: wp.array2d(dtype=float), y1: int, x1: int, near: int, jump: float) -> wp.vec2i:
     """The summed offset of the pixels of (y1, x1)'s dash within 2 px (of its depth and joined to it: an
     8-neighbour, or 8-adjacent to one), negated: the way out of a dash end; (0, 0) for a lone pixel, a pixel inside
     a strand or of a body (more than 8 such pixels), and one with a pixel of its depth among its 8-neighbours on
-    that side."""
+    that side. ``near``: its :func:`_own_ring`."""
     v = coc[y1, x1]
-    near = int(0)  # the 8-neighbours of its depth, bit (dy + 1) * 3 + (dx + 1)
-    for dy in range(-1, 2):
-        for dx in range(-1, 2):
-            if (dy != 0 or dx != 0) and _own(coc, y1 + dy, x1 + dx, v, jump) == 1:
-                near = near | (1 << ((dy + 1) * 3 + dx + 1))
     if near == 0:
         return wp.vec2i(0, 0)
     sy = int(0)
@@ -272,7 +299,7 @@ def _way_out(coc: wp.array2d(dtype=float), y1: int, x1: int, jump: float) -> wp.
                 count += 1
     if count > 8 or (sy == 0 and sx == 0):
         return wp.vec2i(0, 0)
-    if _ends_towards(coc, y1, x1, -sy, -sx, jump) == 0:
+    if _ends_in_ring(near, -sy, -sx) == 0:
         return wp.vec2i(0, 0)
     return wp.vec2i(-sy, -sx)
 
@@ -297,12 +324,12 @@ def _is_tip(coc: wp.array2d(dtype=float), y1: int, x1: int, uy: float, ux: float
 
 
 @wp.func
-def _extend_end(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), y1: int, x1: int,
+def _extend_end(image: wp.array2d(dtype=wp.vec3), coc: wp.array2d(dtype=float), y1: int, x1: int, near: int,
                 params: StrandParams, out: wp.array2d(dtype=float), changed: wp.array(dtype=wp.int32)):
     """Extend the dash ending at strand pixel (y1, x1) along its strand (:func:`_way_out`, :func:`_is_tip`) over the
     pixels behind it that the photo shows holding the strand (the end's colour over the background across, one
     surface there), up to ``end_px`` steps: each given the end's value."""
-    way = _way_out(coc, y1, x1, params.jump_px)
+    way = _way_out(coc, y1, x1, near, params.jump_px)
     if way[0] == 0 and way[1] == 0:
         return
     steps = wp.max(wp.abs(way[0]), wp.abs(way[1]))
@@ -344,14 +371,16 @@ def bridge_strands_kernel(
     y1 = strand_y[i]
     x1 = strand_x[i]
     s1 = coc[y1, x1]
+    near = _own_ring(coc, y1, x1, params.jump_px)  # read once: the offsets test their side of it
     for k in range(offset_y.shape[0]):
-        y2 = y1 + offset_y[k]
-        x2 = x1 + offset_x[k]
-        if y2 >= 0 and y2 < h and x2 >= 0 and x2 < w:
+        oy = offset_y[k]
+        ox = offset_x[k]
+        y2 = y1 + oy
+        x2 = x1 + ox
+        # two dash ends facing each other: a chord along a whole (kinked) strand is no gap
+        if _ends_in_ring(near, oy, ox) == 1 and y2 >= 0 and y2 < h and x2 >= 0 and x2 < w:
             if strand[y2, x2] != wp.uint8(0) and wp.abs(coc[y2, x2] - s1) <= params.jump_px:
-                # two dash ends facing each other: a chord along a whole (kinked) strand is no gap
-                if _ends_towards(coc, y1, x1, offset_y[k], offset_x[k], params.jump_px) == 1:
-                    if _ends_towards(coc, y2, x2, -offset_y[k], -offset_x[k], params.jump_px) == 1:
-                        _bridge(image, coc, y1, x1, offset_y[k], offset_x[k], params, out, changed)
+                if _ends_towards(coc, y2, x2, -oy, -ox, params.jump_px) == 1:
+                    _bridge(image, coc, y1, x1, oy, ox, params, out, changed)
     if params.end_px > 0:
-        _extend_end(image, coc, y1, x1, params, out, changed)
+        _extend_end(image, coc, y1, x1, near, params, out, changed)

@@ -74,43 +74,39 @@ def snap_ramps(image: np.ndarray, signed_coc: np.ndarray, rule: RampRule | None 
     dev = wp.get_device(device)
     copy = not dev.is_cpu  # on the CPU the kernels read the (contiguous) arrays in place
     coc = wp.array(s, dtype=float, device=dev, copy=copy)
-    grad = wp.empty((h, w), dtype=float, device=dev)
+    flat = wp.empty((h, w), dtype=wp.uint8, device=dev)
 
-    def gradient(a: int, b: int) -> None:  # pixels a to b: the rows from ceil(a / w) on (the parts tile the rows)
+    def plateaus(a: int, b: int) -> None:  # pixels a to b: the rows from ceil(a / w) on (the parts tile the rows)
         y0, y1 = -(-a // w), -(-b // w)
         if y1 > y0:
-            wp.launch(bk_ramps.ramp_gradient_kernel, dim=(y1 - y0, w), inputs=[coc, y0], outputs=[grad], device=dev)
+            wp.launch(bk_ramps.ramp_plateau_kernel, dim=y1 - y0, inputs=[coc, y0, float(rule.grad_min)],
+                      outputs=[flat], device=dev)
 
-    in_parts(h * w, gradient, threads=threads, cpu=dev.is_cpu)
-    g = grad.numpy()
+    in_parts(h * w, plateaus, threads=threads, cpu=dev.is_cpu)
+    f = flat.numpy()
 
     def candidates(a: int, b: int) -> np.ndarray:  # the rows [a, b)'s pixels steeper than a plateau, row-major
-        return np.flatnonzero(g[a:b] > np.float32(rule.grad_min)) + a * w
+        return (np.flatnonzero(f[a:b] == 0) + a * w).astype(np.int32)  # a frame's pixels fit an int32 (Warp's)
 
     cand = np.concatenate(in_row_parts(h, w, candidates, threads=threads))
     if cand.size == 0:
         return signed_coc, 0
-    cy, cx = np.divmod(cand, w)
     img = wp.array(np.ascontiguousarray(image, np.float32), dtype=wp.vec3, device=dev, copy=copy)
+    where = wp.array(cand, dtype=wp.int32, device=dev, copy=copy)
+    value = wp.empty(cand.size, dtype=float, device=dev)
+    snapped = wp.empty(cand.size, dtype=wp.uint8, device=dev)
     params = rule.struct()
 
-    def launch(a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
-        m = b - a
-        value = wp.empty(m, dtype=float, device=dev)
-        snapped = wp.empty(m, dtype=wp.uint8, device=dev)
-        if m:
-            wp.launch(bk_ramps.snap_ramps_kernel, dim=m,
-                      inputs=[img, coc, grad, wp.array(cy[a:b].astype(np.int32), dtype=wp.int32, device=dev),
-                              wp.array(cx[a:b].astype(np.int32), dtype=wp.int32, device=dev), params],
+    def launch(a: int, b: int) -> None:  # candidates a to b, their results in place
+        if b > a:
+            wp.launch(bk_ramps.snap_ramps_kernel, dim=b - a, inputs=[img, coc, flat, where, a, params],
                       outputs=[value, snapped], device=dev)
-        return value.numpy(), snapped.numpy()
 
-    parts = in_parts(cand.size, launch, threads=threads, cpu=dev.is_cpu, check=check)
-    value = np.concatenate([p[0] for p in parts])
-    moved = np.concatenate([p[1] for p in parts]).astype(bool)
-    n = int(moved.sum())
+    in_parts(cand.size, launch, threads=threads, cpu=dev.is_cpu, check=check)
+    moved = snapped.numpy().view(bool)  # 0 or 1
+    n = int(np.count_nonzero(moved))
     if n == 0:
         return signed_coc, 0
     out = s.copy()
-    out.reshape(-1)[cand[moved]] = value[moved]
+    out.reshape(-1)[cand[moved]] = value.numpy()[moved]
     return out, n

@@ -79,7 +79,7 @@ def gap_offsets(max_gap: int) -> np.ndarray:
     return np.stack([oy[keep], ox[keep]], 1)[order].astype(np.int32)
 
 
-TILE_PX = 16
+TILE_PX = 8
 """(A power of two.) The strand-pixel pass skips the tiles of this size whose neighbourhood's map varies by no more than a jump."""
 
 
@@ -126,10 +126,15 @@ def _grid_filter(a: np.ndarray, k: int, op) -> np.ndarray:
 
 def _tile_reduce(a: np.ndarray, t: int, op) -> np.ndarray:
     """``op`` (np.maximum, np.minimum) over the ``t`` x ``t`` tiles of ``a`` (sides multiples of ``t``, a power of
-    two), by halving: whole-array passes instead of a reduction a tile (a fifth of the time at 12 MP)."""
+    two), by halving: whole-array passes instead of a reduction a tile (a fifth of the time at 12 MP), the rows'
+    halvings first (pairs of whole rows: contiguous, the frame's largest pass), then the columns' (0.022 against
+    0.028-0.043 CPU-s for both ops at 12 MP, 8 px tiles)."""
+    k = t
+    while k > 1:
+        a = op(a[0::2], a[1::2])
+        k //= 2
     while t > 1:
         a = op(a[:, 0::2], a[:, 1::2])
-        a = op(a[0::2], a[1::2])
         t //= 2
     return a
 
@@ -159,7 +164,7 @@ def bridge_strands(image: np.ndarray, signed_coc: np.ndarray, rule: StrandRule |
 
     def launch_tiles(a: int, b: int) -> None:
         if b > a:
-            wp.launch(bk_strands.strand_pixels_kernel, dim=(b - a, TILE_PX * TILE_PX),
+            wp.launch(bk_strands.strand_pixels_kernel, dim=(b - a, TILE_PX),
                       inputs=[coc, params, ty0[a:b], tx0[a:b], TILE_PX], outputs=[strand, slot[a:b]], device=dev)
 
     in_parts(len(tiles), launch_tiles, threads=threads, cpu=dev.is_cpu, check=check, item_px=TILE_PX * TILE_PX)

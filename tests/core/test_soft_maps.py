@@ -42,6 +42,41 @@ def test_the_kernel_matches_the_float64_oracle(sigma, k, focus, seed):
     assert n == int(got_moved.sum())
 
 
+@settings(max_examples=20, deadline=None)
+@given(h=st.integers(3, 40), w=st.integers(3, 40), scale=st.floats(0.05, 3.0), seed=st.integers(0, 2**16))
+def test_the_plateau_pass_is_the_sobel_gradient_at_most_grad_min(h, w, scale, seed):
+    """The plateau pass (three rows slid along each row, a thread a row) against the float64 Sobel / 8 with clamped
+    borders: the same plateaus, but where the gradient lies within 1e-5 of ``grad_min`` (float32 rounding)."""
+    import bokehray_kernels.ramps as bk_ramps
+    import warp as wp
+
+    s = (np.random.default_rng(seed).normal(0, scale, (h, w))).astype(np.float32)
+    p = np.pad(s.astype(np.float64), 1, mode="edge")
+    gy = (p[2:, :-2] + 2 * p[2:, 1:-1] + p[2:, 2:]) - (p[:-2, :-2] + 2 * p[:-2, 1:-1] + p[:-2, 2:])
+    gx = (p[:-2, 2:] + 2 * p[1:-1, 2:] + p[2:, 2:]) - (p[:-2, :-2] + 2 * p[1:-1, :-2] + p[2:, :-2])
+    g = np.hypot(gy, gx) / 8
+    grad_min = RampRule().grad_min
+    flat = wp.empty((h, w), dtype=wp.uint8, device="cpu")
+    wp.launch(bk_ramps.ramp_plateau_kernel, dim=h, inputs=[wp.array(s, dtype=float, device="cpu"), 0, grad_min],
+              outputs=[flat], device="cpu")
+    sure = np.abs(g - grad_min) > 1e-5
+    np.testing.assert_array_equal(flat.numpy()[sure].astype(bool), (g <= grad_min)[sure])
+
+
+@pytest.mark.parametrize("sigma, k, focus, seed", [(3.0, 30.0, 0.3, 1), (5.0, 24.0, 0.7, 2)])
+def test_walks_inside_the_frame_match_the_oracle(sigma, k, focus, seed):
+    """A frame wide enough that most walks stay inside it (they round without clamping): the oracle's map."""
+    img, s = _soft_disc(120, sigma, k, focus, seed)
+    rule = RampRule()
+    got, n = snap_ramps(img, s, rule)
+    want, moved = snap_ramps_ref(img, s, rule)
+    got_moved = np.abs(got - s) > 0
+    assert moved.sum() > 100 and n == int(got_moved.sum())
+    assert (got_moved != moved).mean() <= 0.01
+    both = got_moved & moved
+    np.testing.assert_allclose(got[both], want[both], rtol=0, atol=1e-4)
+
+
 @settings(max_examples=25, deadline=None)
 @given(levels=st.lists(st.floats(-30.0, 30.0), min_size=2, max_size=4), seed=st.integers(0, 2**16))
 def test_a_hard_map_is_left_exactly_as_it_is(levels, seed):
@@ -179,6 +214,23 @@ def test_in_parts_with_checks_covers_the_items_in_order(n, threads, item_px):
     assert len(checks) == -(-len(spans) // min(threads, max(1, -(-n * item_px // ee.PIXELS_PER_THREAD))))
     if n and item_px > 1 and threads > 1 and n * item_px >= 2 * ee.PIXELS_PER_THREAD:
         assert len(spans) >= 2  # a few hundred tiles are worth both cores
+
+
+def test_the_snap_in_parts_is_the_snap_whole(monkeypatch):
+    """The snap kernel runs the candidates in parts (the cores, the checks' rounds), each writing its results at its
+    own offset: the same map as one part."""
+    from bokehray import edge_estimate as ee
+
+    img, s = _soft_disc(48, 2.5, 24.0, 0.4, 7)
+    whole, n = snap_ramps(img, s, threads=1)
+    assert n > 0
+    monkeypatch.setattr(ee, "PIXELS_PER_THREAD", 16)
+    monkeypatch.setattr(ee, "CHECK_ITEMS", 37)
+    checks = []
+    parts, m = snap_ramps(img, s, threads=3, check=lambda: checks.append(1))
+    assert len(checks) > 1
+    assert m == n
+    np.testing.assert_array_equal(parts, whole)
 
 
 def test_the_split_in_chunks_is_the_split_whole(monkeypatch):

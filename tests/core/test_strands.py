@@ -218,7 +218,7 @@ def test_the_tiles_skipped_hold_no_strand_pixel(seed, h, w, n):
     strand pixel lies in one (maps of flat blocks, thin lines and a gentle slope)."""
     rng = np.random.default_rng(seed)
     yy, xx = np.mgrid[:h, :w]
-    s = (0.01 * xx + 0.005 * yy).astype(np.float32)  # a slope: 0.24 px of CoC a tile across
+    s = (0.01 * xx + 0.005 * yy).astype(np.float32)  # a slope: 0.01 px of CoC a px across
     for _ in range(n):
         y0, x0 = rng.integers(0, h), rng.integers(0, w)
         s[y0 : y0 + rng.integers(1, 20), x0 : x0 + rng.integers(1, 4)] += np.float32(rng.uniform(-5, 5))
@@ -230,6 +230,19 @@ def test_the_tiles_skipped_hold_no_strand_pixel(seed, h, w, n):
     assert not (strand & ~covered).any()
     if n == 0 and h >= 3 * TILE_PX and w >= 3 * TILE_PX:
         assert not covered[TILE_PX : 2 * TILE_PX, TILE_PX : 2 * TILE_PX].any()  # a flat inner tile is skipped
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**16), th=st.integers(1, 6), tw=st.integers(1, 6), log_t=st.integers(0, 4))
+def test_the_tile_reduction_is_the_tiles_max_and_min(seed, th, tw, log_t):
+    """The strands' tile reduction by halving (rows first, then columns) gives each tile's max and min."""
+    from bokehray.strands import _tile_reduce
+
+    t = 1 << log_t
+    a = np.random.default_rng(seed).normal(0, 3, (th * t, tw * t)).astype(np.float32)
+    tiles = a.reshape(th, t, tw, t)
+    np.testing.assert_array_equal(_tile_reduce(a, t, np.maximum), tiles.max(axis=(1, 3)))
+    np.testing.assert_array_equal(_tile_reduce(a, t, np.minimum), tiles.min(axis=(1, 3)))
 
 
 def _lamp_scene(n: int, width: float, seed: int = 0, radius: float = 3.5, radiance: float = 8.0):
