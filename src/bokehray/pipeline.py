@@ -14,7 +14,7 @@ from numbers import Integral, Real
 import numpy as np
 
 from . import scene, tiling
-from ._memory import bound_heap, small_pages
+from ._memory import bound_heap, small_pages_while
 from .errors import InputError, NumericalError
 from .lens import Aperture, BlurParams
 from .levels import LEVELS, RenderContext, get_level
@@ -258,17 +258,17 @@ def _render_with_stats(inputs: Handover, blur: BlurParams, aperture: Aperture | 
     refining = _check_refine(refine, quality, refine_options)
     _check_shape_fits(inputs.image, level.whole_image_bytes(), memory)
     bound_heap()  # the C heap held to what is in use (the estimate counts arrays, not freed pages kept)
-    small_pages()  # NumPy's large arrays on 4 KB pages: less CPU here than its huge pages
-    # the context takes the arrays out of the holder: from here only the context (and the caller) holds them
-    ctx, work, raw_max, channels, lowest = _context(inputs, blur, aperture, layers, memory, options, device,
-                                                    progress, highlight_boost, keep_pixels=refining, clock=clock)
-    if refining:
-        out_rgb, stats, ctx = _render_refined(level, ctx, work, refine, refine_options)
-    else:
-        out_rgb, stats = level.render(ctx)
-    clock.lap_as(stats.stage_seconds, "level (other)")  # the level's crop, the refiner's second scene
-    stats.max_coc_px = raw_max
-    out = _output(level, ctx, work, out_rgb, quality, channels, lowest)
+    with small_pages_while():  # NumPy's large arrays on 4 KB pages while it renders: less CPU than huge pages
+        # the context takes the arrays out of the holder: from here only the context (and the caller) holds them
+        ctx, work, raw_max, channels, lowest = _context(inputs, blur, aperture, layers, memory, options, device,
+                                                        progress, highlight_boost, keep_pixels=refining, clock=clock)
+        if refining:
+            out_rgb, stats, ctx = _render_refined(level, ctx, work, refine, refine_options)
+        else:
+            out_rgb, stats = level.render(ctx)
+        clock.lap_as(stats.stage_seconds, "level (other)")  # the level's crop, the refiner's second scene
+        stats.max_coc_px = raw_max
+        out = _output(level, ctx, work, out_rgb, quality, channels, lowest)
     clock.lap("output")
     stats.stage_seconds = {**clock.laps, "total": clock.total()}
     return out, stats

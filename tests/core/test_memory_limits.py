@@ -7,6 +7,7 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from bokehray import _memory
@@ -55,6 +56,7 @@ def test_an_address_space_limit_caps_what_is_available():
 _FRAGMENTED_HEAP = """
 import os, sys
 import numpy as np
+import numpy as np
 import pytest
 
 from bokehray import _memory
@@ -98,7 +100,7 @@ def test_bound_heap_does_nothing_without_glibc(monkeypatch):
 
 
 def test_small_pages_turns_numpys_huge_page_hint_off_unless_the_environment_chose(monkeypatch):
-    """A render asks NumPy for 4 KB pages (less CPU on the machines measured); NUMPY_MADVISE_HUGEPAGE, when set,
+    """The command line asks NumPy for 4 KB pages (less CPU on the machines measured); NUMPY_MADVISE_HUGEPAGE, when set,
     is the user's choice and stands."""
     from numpy._core import multiarray
 
@@ -110,5 +112,29 @@ def test_small_pages_turns_numpys_huge_page_hint_off_unless_the_environment_chos
         monkeypatch.setenv("NUMPY_MADVISE_HUGEPAGE", "1")
         assert not _memory.small_pages()
         assert multiarray._set_madvise_hugepage(True) is True  # left as it was
+    finally:
+        multiarray._set_madvise_hugepage(before)
+
+
+def test_a_render_leaves_the_callers_huge_page_hint_as_it_found_it(monkeypatch):
+    """The hint is off while a render runs (also while two overlap) and back as it was once the last one ends: a
+    caller's own NumPy work after a render keeps its pages."""
+    from numpy._core import multiarray
+
+    monkeypatch.delenv("NUMPY_MADVISE_HUGEPAGE", raising=False)
+    before = multiarray._set_madvise_hugepage(True)
+    try:
+        with _memory.small_pages_while():
+            with _memory.small_pages_while():
+                assert multiarray._set_madvise_hugepage(False) is False
+            assert multiarray._set_madvise_hugepage(False) is False  # the outer render still runs
+        assert multiarray._set_madvise_hugepage(True) is True  # restored
+        import bokehray as br
+
+        br.render(np.zeros((8, 8, 3), np.float32), np.zeros((8, 8), np.float32), br.BlurParams(4.0, 0.5))
+        assert multiarray._set_madvise_hugepage(True) is True
+        multiarray._set_madvise_hugepage(False)
+        br.render(np.zeros((8, 8, 3), np.float32), np.zeros((8, 8), np.float32), br.BlurParams(4.0, 0.5))
+        assert multiarray._set_madvise_hugepage(False) is False  # a process that chose small pages keeps them
     finally:
         multiarray._set_madvise_hugepage(before)
