@@ -79,11 +79,13 @@ def small_pages() -> bool:
 
 
 @contextmanager
-def small_pages_while() -> Iterator[None]:
+def small_pages_while(active: bool = True) -> Iterator[None]:
     """:func:`small_pages` for as long as a render runs in a caller's process, the hint as it was once the last
     render running ends: the caller's own NumPy work keeps its pages (one FFT convolution of a 1.5 MP image took 20 %
-    longer on 4 KB pages on the same VM, so the hint is not the renderer's to change for good)."""
-    hint = _page_hint()
+    longer on 4 KB pages on the same VM, so the hint is not the renderer's to change for good). ``active`` False:
+    nothing changes (a render too small to gain: flipping the hint back also costs the caller's next large arrays a
+    compaction of the 4 KB pages the render freed)."""
+    hint = _page_hint() if active else None
     if hint is None:
         yield
         return

@@ -117,8 +117,8 @@ def test_small_pages_turns_numpys_huge_page_hint_off_unless_the_environment_chos
 
 
 def test_a_render_leaves_the_callers_huge_page_hint_as_it_found_it(monkeypatch):
-    """The hint is off while a render runs (also while two overlap) and back as it was once the last one ends: a
-    caller's own NumPy work after a render keeps its pages."""
+    """The hint is off while a large render runs (also while two overlap) and back as it was once the last one ends;
+    a small render leaves it alone: a caller's own NumPy work after a render keeps its pages."""
     from numpy._core import multiarray
 
     monkeypatch.delenv("NUMPY_MADVISE_HUGEPAGE", raising=False)
@@ -129,6 +129,8 @@ def test_a_render_leaves_the_callers_huge_page_hint_as_it_found_it(monkeypatch):
                 assert multiarray._set_madvise_hugepage(False) is False
             assert multiarray._set_madvise_hugepage(False) is False  # the outer render still runs
         assert multiarray._set_madvise_hugepage(True) is True  # restored
+        with _memory.small_pages_while(active=False):  # a small image: nothing to gain, the hint untouched
+            assert multiarray._set_madvise_hugepage(True) is True
         import bokehray as br
 
         br.render(np.zeros((8, 8, 3), np.float32), np.zeros((8, 8), np.float32), br.BlurParams(4.0, 0.5))
