@@ -5,17 +5,14 @@ in use (:func:`bound_heap`)."""
 from __future__ import annotations
 
 import ctypes
-import os
 import platform
-import threading
 from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
 import psutil
 
 __all__ = ["BAND_PX", "HEAP_MMAP_BYTES", "UNLIMITED", "address_space_headroom", "available_bytes", "bound_heap",
-           "cgroup_headroom", "on_cores", "row_bands", "small_pages", "small_pages_while"]
+           "cgroup_headroom", "on_cores", "row_bands", "small_pages"]
 
 UNLIMITED = 1 << 62
 """What :func:`available_bytes` and its parts say where nothing limits the process."""
@@ -65,56 +62,26 @@ def bound_heap() -> bool:
 
 
 def small_pages() -> bool:
-    """Turn off NumPy's huge-page hint (``madvise(MADV_HUGEPAGE)`` on arrays of 4 MB or more) for the whole process,
+    """Turn off NumPy's huge-page hint (``madvise(MADV_HUGEPAGE)`` on arrays of 4 MB or more) for the process,
     unless ``NUMPY_MADVISE_HUGEPAGE`` is set in the environment (then the user's choice stands). The command line and
-    the page call it before they read (their processes are the renderer's): on the 2-core development VM (transparent
-    huge pages on ``madvise``) a 12 MP command took 15.9-16.4 CPU-s without the hint and 18.2-20.8 with it (system
-    time 3.2-3.6 against 5.2-7.4 s), the peak RSS unchanged within the noise, for 40 % more page faults of 4 KB
-    (docs/design/command-stages.md). It changes no value. Returns whether the hint is off."""
-    hint = _page_hint()
-    if hint is None:
-        return False
-    hint(False)
-    return True
+    the page call it before they read (their processes are the renderer's; ``bokehray.render`` in a caller's process
+    leaves the hint alone: docs/design/command-stages.md says why): on the 2-core development VM (transparent huge pages on
+    ``madvise``) a 12 MP command took 15.9-16.4 CPU-s without the hint and 18.2-20.8 with it (system time 3.2-3.6
+    against 5.2-7.4 s), the peak RSS unchanged within the noise (1475-1480 against 1417-1506 MiB), for 40 % more page
+    faults of 4 KB (docs/design/command-stages.md). It changes no value. Returns whether the hint is off."""
+    import os
 
-
-@contextmanager
-def small_pages_while(active: bool = True) -> Iterator[None]:
-    """:func:`small_pages` for as long as a render runs in a caller's process, the hint as it was once the last
-    render running ends: the caller's own NumPy work keeps its pages (one FFT convolution of a 1.5 MP image took 20 %
-    longer on 4 KB pages on the same VM, so the hint is not the renderer's to change for good). ``active`` False:
-    nothing changes (a render too small to gain: flipping the hint back also costs the caller's next large arrays a
-    compaction of the 4 KB pages the render freed)."""
-    hint = _page_hint() if active else None
-    if hint is None:
-        yield
-        return
-    with _pages["lock"]:
-        if _pages["renders"] == 0:
-            _pages["before"] = hint(False)
-        _pages["renders"] += 1
-    try:
-        yield
-    finally:
-        with _pages["lock"]:
-            _pages["renders"] -= 1
-            if _pages["renders"] == 0:
-                hint(_pages["before"])
-
-
-_pages = {"lock": threading.Lock(), "renders": 0, "before": True}
-
-
-def _page_hint():
-    """NumPy's ``_set_madvise_hugepage`` (it returns the setting it replaces), or None where the environment chose
-    (``NUMPY_MADVISE_HUGEPAGE``) or this NumPy has none."""
     if "NUMPY_MADVISE_HUGEPAGE" in os.environ:
-        return None
+        return os.environ["NUMPY_MADVISE_HUGEPAGE"].strip() == "0"
     try:
         from numpy._core import multiarray
     except ImportError:  # NumPy 1.x
         from numpy.core import multiarray
-    return getattr(multiarray, "_set_madvise_hugepage", None)
+    hint = getattr(multiarray, "_set_madvise_hugepage", None)
+    if hint is None:
+        return False
+    hint(False)
+    return True
 
 
 def row_bands(h: int, w: int) -> Iterator[tuple[int, int]]:
@@ -128,6 +95,8 @@ def row_bands(h: int, w: int) -> Iterator[tuple[int, int]]:
 def on_cores(run, spans: list[tuple[int, int]]) -> list:
     """``run(a, b)`` for each of ``spans`` (independent parts of a frame: bands of rows), spread over the CPU's cores
     on a thread pool (NumPy's loops, Pillow's colour transforms release the GIL), the results in order."""
+    import os
+
     workers = min(len(spans), os.cpu_count() or 1)
     if workers <= 1:
         return [run(*span) for span in spans]

@@ -14,11 +14,10 @@ from numbers import Integral, Real
 import numpy as np
 
 from . import scene, tiling
-from ._memory import bound_heap, small_pages_while
+from ._memory import bound_heap
 from .errors import InputError, NumericalError
 from .lens import Aperture, BlurParams
 from .levels import LEVELS, RenderContext, get_level
-from .levels.buffers import lazy_for
 from .levels.refine import REFINABLE, check_refine_options, refine_render
 from .options import LayerOptions, MemoryOptions, PreviewOptions, RaytraceOptions
 from .stats import Clock, RenderStats
@@ -259,19 +258,16 @@ def _render_with_stats(inputs: Handover, blur: BlurParams, aperture: Aperture | 
     refining = _check_refine(refine, quality, refine_options)
     _check_shape_fits(inputs.image, level.whole_image_bytes(), memory)
     bound_heap()  # the C heap held to what is in use (the estimate counts arrays, not freed pages kept)
-    # NumPy's large arrays on 4 KB pages while a large image renders: less CPU than huge pages (no gain measured at
-    # 1.5 MP, where the caller's pages are left alone: docs/design/command-stages.md)
-    with small_pages_while(active=lazy_for(*inputs.image.shape[:2])):
-        # the context takes the arrays out of the holder: from here only the context (and the caller) holds them
-        ctx, work, raw_max, channels, lowest = _context(inputs, blur, aperture, layers, memory, options, device,
-                                                        progress, highlight_boost, keep_pixels=refining, clock=clock)
-        if refining:
-            out_rgb, stats, ctx = _render_refined(level, ctx, work, refine, refine_options)
-        else:
-            out_rgb, stats = level.render(ctx)
-        clock.lap_as(stats.stage_seconds, "level (other)")  # the level's crop, the refiner's second scene
-        stats.max_coc_px = raw_max
-        out = _output(level, ctx, work, out_rgb, quality, channels, lowest)
+    # the context takes the arrays out of the holder: from here only the context (and the caller) holds them
+    ctx, work, raw_max, channels, lowest = _context(inputs, blur, aperture, layers, memory, options, device,
+                                                    progress, highlight_boost, keep_pixels=refining, clock=clock)
+    if refining:
+        out_rgb, stats, ctx = _render_refined(level, ctx, work, refine, refine_options)
+    else:
+        out_rgb, stats = level.render(ctx)
+    clock.lap_as(stats.stage_seconds, "level (other)")  # the level's crop, the refiner's second scene
+    stats.max_coc_px = raw_max
+    out = _output(level, ctx, work, out_rgb, quality, channels, lowest)
     clock.lap("output")
     stats.stage_seconds = {**clock.laps, "total": clock.total()}
     return out, stats
