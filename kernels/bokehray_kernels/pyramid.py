@@ -4,7 +4,7 @@ resolution (docs/renderer.md)."""
 
 import warp as wp
 
-from .routing import Routing, on_level, routed_base, stored_neighbourhood
+from .routing import Routing, level_of, on_level, routed_base, stored_neighbourhood
 from .sampling import bilinear_taps
 from .spans import Shape, scatter_exact, scatter_sharp
 from .support import Support, in_support, span_in_support, tile_end
@@ -29,17 +29,6 @@ class Levels:
     l3: wp.array2d(dtype=wp.vec4)
     l4: wp.array2d(dtype=wp.vec4)
     l5: wp.array2d(dtype=wp.vec4)
-
-
-@wp.func
-def level_of(r: float, r0: float, n_levels: int) -> int:
-    """Pyramid level of a source of radius ``r``: the first where ``r / 2^l <= r0`` (at most ``n_levels - 1``)."""
-    lev = int(0)
-    scale = float(1.0)
-    while r * scale > r0 and lev < n_levels - 1:
-        lev += 1
-        scale *= 0.5
-    return lev
 
 
 @wp.func

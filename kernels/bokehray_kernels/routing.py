@@ -47,8 +47,8 @@ def on_level(v: wp.vec4, r: float, r0: float, n_levels: int, lev: int) -> bool:
 
 
 @wp.func
-def _level(r: float, r0: float, n_levels: int) -> int:
-    # the pyramid level a source of radius r scatters on (bokehray_kernels.pyramid.level_of, whose loop this is)
+def level_of(r: float, r0: float, n_levels: int) -> int:
+    """Pyramid level of a source of radius ``r``: the first where ``r / 2^l <= r0`` (at most ``n_levels - 1``)."""
     lev = int(0)
     scale = float(1.0)
     while r * scale > r0 and lev < n_levels - 1:
@@ -63,8 +63,8 @@ def level_bits(lo: float, hi: float, r0: float, n_levels: int) -> int:
     of a radius in ``[lo, hi]`` may scatter on (0 for an empty range, ``lo > hi``)."""
     if hi < lo:
         return 0
-    top = _level(hi, r0, n_levels)
-    bottom = wp.max(_level(lo, r0, n_levels), 1)
+    top = level_of(hi, r0, n_levels)
+    bottom = wp.max(level_of(lo, r0, n_levels), 1)
     if top < bottom:
         return 0
     return ((1 << (top + 1)) - 1) & ~((1 << bottom) - 1)
