@@ -269,6 +269,12 @@ def test_normalize_uses_robust_percentiles():
     assert 0.45 < float(np.median(d)) < 0.55
 
 
+def test_normalize_refuses_a_single_value_as_a_constant_map():
+    """A 0-d map is one depth: refused with the constant map's message (the banded passes index rows)."""
+    with pytest.raises(br.InputError, match="constant"):
+        depth.normalize_relative(np.float32(3.0))
+
+
 def test_reversed_map_is_flagged_and_the_right_one_is_not(demo):
     assert depth.looks_reversed(demo.disparity) == (False, "")
     flagged, why = depth.looks_reversed(1.0 - demo.disparity)

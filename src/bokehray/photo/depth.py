@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._memory import on_cores
+from .._memory import on_cores, row_bands
 from ..errors import InputError
 from ..formats import first_index, format_of
 from ..validate import check_path
@@ -85,7 +85,7 @@ def normalize_bounds(values: np.ndarray, source: str = "disparity") -> tuple[flo
     """The values :func:`normalize_relative` maps to 0 and 1, and how they were found: the 0.5th and 99.5th
     percentiles, or the min and max where those two are equal (a map mostly at one value). Non-finite values and a
     constant map are refused."""
-    v = np.asarray(values)
+    v = np.asarray(values).reshape(-1) if np.ndim(values) == 0 else np.asarray(values)
     if not _all_finite(v):
         raise InputError(f"{source}: --normalize needs finite values; NaN or Inf found")
     lo, hi = percentiles(v, NORMALIZE_PERCENTILES)
@@ -131,13 +131,8 @@ def _all_finite(v: np.ndarray) -> bool:
 
 
 def _row_bands(v: np.ndarray) -> list[tuple[int, int]]:
-    rows = max(1, _BAND_PX // max(1, int(np.prod(v.shape[1:], dtype=np.int64)))) if v.ndim > 1 else max(1, v.size)
-    n = v.shape[0] if v.ndim else 1
-    return [(a, min(n, a + rows)) for a in range(0, n, rows)] or [(0, 0)]
-
-
-_BAND_PX = 1 << 18
-"""Pixels a band of :func:`normalize_relative`'s float64 work holds (2 MB of float64)."""
+    """:func:`bokehray._memory.row_bands` of a map of one or more dimensions (a band of its first axis)."""
+    return list(row_bands(v.shape[0], int(np.prod(v.shape[1:], dtype=np.int64)))) or [(0, 0)]
 
 
 def normalize_relative(values: np.ndarray, *, invert: bool = False, source: str = "disparity",
@@ -164,7 +159,7 @@ def normalize_relative(values: np.ndarray, *, invert: bool = False, source: str 
             np.subtract(1.0, d, out=d)
         out[a:b] = d
 
-    on_cores(band, _row_bands(v))  # (a 0-d map is one value: refused as constant above)
+    on_cores(band, _row_bands(v))
     return (out, bounds) if with_bounds else out
 
 
