@@ -3,12 +3,13 @@ say so in an output (its primaries for EXR, an ICC profile for PNG, JPEG and TIF
 
 from __future__ import annotations
 
-import os
 import struct
 from functools import cache
 
 import numpy as np
 import numpy.typing as npt
+
+from ._memory import on_cores
 
 __all__ = ["SRGB_CHROMATICITIES", "SRGB_KNEE", "linear_to_srgb", "quantize", "srgb_decode_lut", "srgb_icc",
            "srgb_to_linear"]
@@ -106,35 +107,25 @@ def quantize(img: np.ndarray, bits: int, *, rows: int = 256) -> np.ndarray:
     out = np.empty((h, w, c), np.uint8 if bits == 8 else np.uint16)
     n_colour = min(c, 3)
 
-    def band_rows(y: int) -> None:
-        band = img[y : y + rows]
+    def band_rows(y: int, y1: int) -> None:
+        band = img[y:y1]
         for ch0, ch1, srgb in ((0, n_colour, True), (n_colour, c, False)):
             if ch1 <= ch0:
                 continue
             part = band[..., ch0:ch1]
             if bits != 8:
-                out[y : y + rows, :, ch0:ch1] = _codes_plain(part, bits, srgb)
+                out[y:y1, :, ch0:ch1] = _codes_plain(part, bits, srgb)
                 continue
             base, nxt = _u8_table(srgb)
             x = np.clip(part, 0.0, 1.0)
             x += np.float32(0.0)  # -0.0 -> +0.0 (its bit pattern would index past the table)
             b = x.view(np.uint32) >> _BUCKET_SHIFT
-            out[y : y + rows, :, ch0:ch1] = base[b] + (x >= nxt[b])
+            out[y:y1, :, ch0:ch1] = base[b] + (x >= nxt[b])
 
-    starts = range(0, h, rows)
-    workers = min(len(starts), os.cpu_count() or 1)
-    if workers <= 1:
-        for y in starts:
-            band_rows(y)
-    else:  # the bands on the CPU's cores: NumPy's loops release the GIL
-        from concurrent.futures import ThreadPoolExecutor
-
-        if bits == 8:  # the cached tables made once, before the threads
-            _u8_table(True)
-            _u8_table(False)
-        with ThreadPoolExecutor(max_workers=workers) as pool:
-            for f in [pool.submit(band_rows, y) for y in starts]:
-                f.result()
+    if bits == 8:  # the cached tables made once, before the bands' threads
+        _u8_table(True)
+        _u8_table(False)
+    on_cores(band_rows, [(y, min(h, y + rows)) for y in range(0, h, rows)])  # NumPy's loops release the GIL
     return out
 
 
