@@ -190,10 +190,14 @@ class _Grids:
     another has found that the map ramps somewhere), the coarser ones each halved from the last, the frame itself (``f = 1``:
     a fine blur's per-pixel fit) only where a fit needs it."""
 
-    def __init__(self, photo: np.ndarray, s: np.ndarray, centre: float, scale: float, half: _Level,
-                 low_high: tuple[float, float]):
-        self.photo, self.s, self.centre, self.scale, self.low_high = photo, s, centre, scale, low_high
+    def __init__(self, photo: np.ndarray, s: np.ndarray, centre: float, half: _Level, low_high: tuple[float, float]):
+        self.photo, self.s, self.centre, self.low_high = photo, s, centre, low_high
         self.by_f = {2: half}
+
+    @property
+    def scale(self) -> float:
+        """The map's range (its smallest and largest 2 x 2 block values): the normalised map spans 1."""
+        return self.low_high[1] - self.low_high[0]
 
     @classmethod
     def of(cls, photo: np.ndarray, s: np.ndarray, grad_min: float) -> _Grids | None:
@@ -212,7 +216,7 @@ class _Grids:
             np.subtract(x, c, out=x)
             np.multiply(x, inv, out=x)
         np.multiply(step, inv, out=step)
-        return cls(photo, s, centre, scale, _Level(2, colour, mean, low, high, step), (lo, hi))
+        return cls(photo, s, centre, _Level(2, colour, mean, low, high, step), (lo, hi))
 
     def __getitem__(self, f: int) -> _Level:
         if f not in self.by_f:
